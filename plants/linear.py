@@ -1,0 +1,83 @@
+"""A linear plant x' = A x + B u (the remainder g of the linearization is zero).
+
+Useful to check the analysis on a case with a known answer.  Parameters are the
+matrices themselves: ``params = { A = [[...]], B = [[...]] }``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numba as nb
+import numpy as np
+
+from .base import Plant
+
+
+@nb.njit(cache=True)
+def linear_rhs(x, u, p, dx):
+    n = int(p[0])
+    m = int(p[1])
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += p[2 + i * n + j] * x[j]
+        for j in range(m):
+            acc += p[2 + n * n + i * m + j] * u[j]
+        dx[i] = acc
+
+
+def _as_tuple2(a) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in row) for row in a)
+
+
+@dataclass(frozen=True)
+class Linear(Plant):
+    A_: tuple = field(default=((0.0, 1.0), (2.0, -1.0)))
+    B_: tuple = field(default=((0.0,), (1.0,)))
+
+    name: ClassVar[str] = "linear"
+    rhs: ClassVar = linear_rhs
+    description: ClassVar[str] = "linear plant x' = A x + B u (any n, m)"
+    lipschitz_region: ClassVar[float] = float("inf")
+
+    def __post_init__(self):
+        A = np.asarray(self.A_, dtype=float)
+        B = np.asarray(self.B_, dtype=float)
+        if A.ndim != 2 or A.shape[0] != A.shape[1] or A.shape[0] == 0:
+            raise ValueError(f"linear: A must be a square n x n matrix, got shape {A.shape}")
+        if B.ndim != 2 or B.shape[0] != A.shape[0] or B.shape[1] == 0:
+            raise ValueError(f"linear: B must be n x m with n = {A.shape[0]}, got shape {B.shape}")
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+            raise ValueError("linear: A and B must be finite")
+        object.__setattr__(self, "A_", _as_tuple2(A))
+        object.__setattr__(self, "B_", _as_tuple2(B))
+
+    @classmethod
+    def from_params(cls, A=None, B=None):
+        kw = {}
+        if A is not None:
+            kw["A_"] = A
+        if B is not None:
+            kw["B_"] = B
+        return cls(**kw)
+
+    def params_dict(self):
+        return {"A": [list(r) for r in self.A_], "B": [list(r) for r in self.B_]}
+
+    @property
+    def n(self) -> int:
+        return len(self.A_)
+
+    @property
+    def m(self) -> int:
+        return len(self.B_[0])
+
+    def param_vector(self) -> np.ndarray:
+        A = np.asarray(self.A_, dtype=float)
+        B = np.asarray(self.B_, dtype=float)
+        return np.concatenate([[A.shape[0], B.shape[1]], A.ravel(), B.ravel()])
+
+    def linearization(self):
+        return np.asarray(self.A_, dtype=float), np.asarray(self.B_, dtype=float)

@@ -1,0 +1,87 @@
+"""The ``testbed`` command line: one subcommand per job.
+
+Subcommands live in their own modules and are imported only when used, so
+``testbed simulate`` does not pay for Zenoh, MCAP or Rerun.  A module exposes
+``add_arguments(parser)`` and ``main(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("testbed.cmd_simulate", "run a scenario in the in-process simulator"),
+    "scenarios": ("testbed.cmd_simulate", "list the bundled scenarios"),
+}
+
+
+def _optional(name: str, module: str, help_: str) -> None:
+    if importlib.util.find_spec(module) is not None:
+        COMMANDS[name] = (module, help_)
+
+
+# commands provided by the other parts of the product (present once they exist)
+for _name, _mod, _help in [
+    ("analyze", "testbed.analysis.cli", "Theorem 1 and 2 bounds for a scenario"),
+    ("roa", "testbed.analysis.cli", "nominal region of attraction on a grid"),
+    ("sweep", "testbed.analysis.cli", "empirical DoS tolerance over (rho_F, rho_D)"),
+    ("run", "testbed.launcher", "run a scenario live: four processes over Zenoh"),
+    ("node", "testbed.nodes.main", "run one node of a live run"),
+    ("report", "testbed.report", "post-mortem of a recording"),
+    ("replay", "testbed.io.viewer", "open a recording in Rerun"),
+]:
+    try:
+        _optional(_name, _mod, _help)
+    except ModuleNotFoundError:
+        pass
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="testbed", description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        mod = importlib.import_module(module)
+        adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
+        adder(p)
+        p.set_defaults(_module=module, _name=name)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    # build only the parser of the requested command when possible (fast start)
+    if argv and argv[0] in COMMANDS:
+        name = argv[0]
+        module, help_ = COMMANDS[name]
+        mod = importlib.import_module(module)
+        ap = argparse.ArgumentParser(prog=f"testbed {name}", description=help_)
+        adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
+        adder(ap)
+        args = ap.parse_args(argv[1:])
+        runner = getattr(mod, f"main_{name}", None) or getattr(mod, "main")
+    else:
+        ap = build_parser()
+        args = ap.parse_args(argv)
+        mod = importlib.import_module(args._module)
+        runner = getattr(mod, f"main_{args._name}", None) or getattr(mod, "main")
+    from .scenario import ScenarioError
+
+    try:
+        return int(runner(args) or 0)
+    except ScenarioError as e:
+        print(f"testbed: scenario error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # output piped into head & co.
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
