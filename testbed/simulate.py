@@ -162,7 +162,7 @@ def _batch_kernel(rhs, p, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
     q_e = np.empty(n)
     q_d = np.empty(n)
     gstate = np.empty(g_init.shape[0])
-    use_greedy = greedy_params.shape[0] > 0
+    use_greedy = greedy_params.shape[0] > 0  # (B, 5): one budget per trajectory
     n_codes_box = M ** n
     for b in range(B):
         for i in range(n):
@@ -193,7 +193,7 @@ def _batch_kernel(rhs, p, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
             # --- attacker
             if use_greedy:
                 score = nrm if score_kind == 0 else E_e
-                th = greedy_step(gstate, k, T, score, greedy_params)
+                th = greedy_step(gstate, k, T, score, greedy_params[b])
             elif theta_tab.shape[1] > k:
                 th = theta_tab[srow, k]
             else:
@@ -291,8 +291,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, theta=Non
     theta : (S, N') 0/1 attack table, S schedules (rows shorter than N are padded
         with 0); ``sched_idx`` (B,) picks each trajectory's row (default: row b if
         S == B, else row 0).  None: no attack.
-    greedy_params : [kappa_F, rho_F, kappa_D, rho_D, threshold] to run the online
-        greedy attacker instead (``score`` "state" or "E" is what it maximizes).
+    greedy_params : [kappa_F, rho_F, kappa_D, rho_D, threshold] (shape (5,), or (B, 5)
+        for one budget per trajectory) to run the online greedy attacker instead (``score`` "state" or "E" is what it maximizes).
     mode : "ideal" | "resilient" | "none" (no quantization: the nominal loop);
         default qp.mode.
     record : keep x_k, E_k and theta_k for every sample.
@@ -312,7 +312,13 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, theta=Non
     sched_idx = np.ascontiguousarray(np.broadcast_to(np.asarray(sched_idx, dtype=np.int64), (B,)))
     if sched_idx.size and (sched_idx.max() >= tab.shape[0] or sched_idx.min() < 0):
         raise ValueError("sched_idx points outside the theta table")
-    gp = np.zeros(0) if greedy_params is None else np.asarray(greedy_params, dtype=np.float64)
+    if greedy_params is None:
+        gp = np.zeros((0, 5))
+    else:
+        gp = np.asarray(greedy_params, dtype=np.float64)
+        gp = np.ascontiguousarray(np.broadcast_to(gp, (B, 5)) if gp.ndim == 1 else gp)
+        if gp.shape != (B, 5):
+            raise ValueError(f"greedy_params must have shape (5,) or ({B}, 5), got {gp.shape}")
     mode_code = MODES[mode or qp.mode]
     shp = (B, N) if record else (0, 0)
     X_rec = np.zeros(shp + (n,)) if record else np.zeros((0, 0, n))
