@@ -111,8 +111,11 @@ class Plant:
               - self.f(np.broadcast_to(x, (self.m, self.n)), u - eu)).T / (2 * h)
         return Jx, Ju
 
-    def g(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Remainder of the linearization, g(x, u) = f(x, u) - A x - B u (equation (3))."""
+    def remainder(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The paper's g(x, u) = f(x, u) - A x - B u, remainder of the linearization (3).
+
+        Named ``remainder`` because several plants have a parameter called g (gravity).
+        """
         A, B = self.linearization()
         x = np.asarray(x, dtype=np.float64)
         u = np.asarray(u, dtype=np.float64)
