@@ -14,13 +14,12 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numba as nb
 import numpy as np
 
-from .base import Plant
+from .base import Plant, rhs_function
 
 
-@nb.njit(cache=True)
+@rhs_function
 def cartpole_rhs(x, u, p, dx):
     m_c, m_p, l, g = p[0], p[1], p[2], p[3]
     Mt = m_c + m_p

@@ -16,13 +16,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numba as nb
 import numpy as np
 
-from .base import Plant
+from .base import Plant, rhs_function
 
 
-@nb.njit(cache=True)
+@rhs_function
 def lienard_rhs(x, u, p, dx):
     x1 = x[0]
     x1sq = x1 * x1
@@ -57,3 +56,17 @@ class Lienard(Plant):
         A = np.array([[1.0, 1.0], [-1.0, 0.0]])
         B = np.array([[0.0], [1.0]])
         return A, B
+
+    def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:
+        """Exact gain of the remainder g(x, u) = (a x1^3 - b x1^5, 0) on ||x||_inf <= r.
+
+        ||g||_inf / (||x||_inf + ||u||_inf) <= |a x1^2 - b x1^4| (take |x1| = ||x||_inf,
+        u = 0 for equality), so G(r) = max over s in [0, r^2] of |a s - b s^2|: the end
+        point s = r^2 or the vertex s = a / (2 b).  The input does not enter g, so
+        u_bound and grid are ignored.  See :meth:`Plant.remainder_gain`.
+        """
+        s_max = float(r) ** 2
+        cands = [s_max]
+        if self.b != 0.0 and 0.0 < self.a / (2.0 * self.b) < s_max:
+            cands.append(self.a / (2.0 * self.b))
+        return max(abs(self.a * s - self.b * s * s) for s in cands)

@@ -9,13 +9,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-import numba as nb
 import numpy as np
 
-from .base import Plant
+from .base import Plant, rhs_function
 
 
-@nb.njit(cache=True)
+@rhs_function
 def linear_rhs(x, u, p, dx):
     n = int(p[0])
     m = int(p[1])
@@ -81,3 +80,7 @@ class Linear(Plant):
 
     def linearization(self):
         return np.asarray(self.A_, dtype=float), np.asarray(self.B_, dtype=float)
+
+    def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:
+        """The remainder g of a linear plant is identically zero (see :meth:`Plant.remainder_gain`)."""
+        return 0.0

@@ -11,13 +11,12 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numba as nb
 import numpy as np
 
-from .base import Plant
+from .base import Plant, rhs_function
 
 
-@nb.njit(cache=True)
+@rhs_function
 def pendulum_rhs(x, u, p, dx):
     g, l, mass, c = p[0], p[1], p[2], p[3]
     ml2 = mass * l * l
@@ -58,3 +57,16 @@ class Pendulum(Plant):
         A = np.array([[0.0, 1.0], [self.g / self.l, -self.damping / ml2]])
         B = np.array([[0.0], [1.0 / ml2]])
         return A, B
+
+    def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:
+        """Exact gain of the remainder g(x, u) = (0, (g/l)(sin x1 - x1)) on ||x||_inf <= r.
+
+        ||g||_inf / (||x||_inf + ||u||_inf) <= (g/l) |1 - sin(x1)/x1| with equality at
+        |x1| = ||x||_inf, u = 0.  sin(s)/s decreases on [0, s*] (s* = 4.4934, where
+        tan s = s, the global minimum -0.2172), so G(r) = (g/l)(1 - sinc(min(r, s*))).
+        See :meth:`Plant.remainder_gain`.
+        """
+        s = min(float(r), 4.493409457909064)
+        if s <= 0.0:
+            return 0.0
+        return abs(self.g / self.l) * (1.0 - math.sin(s) / s)

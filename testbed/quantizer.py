@@ -229,7 +229,7 @@ class _End:
         self.K = np.ascontiguousarray(np.asarray(K, dtype=np.float64).reshape(plant.m, plant.n))
         self.qp = qp
         self.codebook = Codebook(plant.n, qp.M, resilient=(qp.mode == "resilient"))
-        self._rhs = type(plant).rhs
+        self._rhs = type(plant).rhs.cfunc
         self._p = plant.p
         self._opts = flow.as_array()
         self._Ks = np.empty((13, plant.n))

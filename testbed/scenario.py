@@ -78,8 +78,7 @@ class AttackSpec:
         """The offline schedule (None for the online greedy attacker)."""
         if self.online:
             return None
-        d = {k: (v if not isinstance(v, tuple) else [list(x) if isinstance(x, tuple) else x for x in v])
-             for k, v in self.params}
+        d = {k: _thaw(v) for k, v in self.params}
         seed = d.pop("seed", None)
         return attack_generators.make_schedule(self.kind, d, T=T, horizon=horizon, seed=seed)
 
@@ -193,6 +192,12 @@ def _freeze(v):
         return tuple(_freeze(x) for x in v)
     if isinstance(v, dict):
         return tuple(sorted((k, _freeze(x)) for k, x in v.items()))
+    return v
+
+
+def _thaw(v):
+    if isinstance(v, tuple):
+        return [_thaw(x) for x in v]
     return v
 
 

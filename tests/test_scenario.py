@@ -1,0 +1,101 @@
+"""Scenario files: bundled scenarios load; every bad value gets a clear error."""
+
+import numpy as np
+import pytest
+
+from testbed import scenario
+from testbed.scenario import ScenarioError
+
+GOOD = """
+[plant]
+name = "lienard"
+params = { a = 0.3333333333333333, b = 0.02 }
+x0 = [0.1, 0.1]
+
+[quantizer]
+T = 0.1
+M = 6
+L = 10.0
+E0 = 0.1
+
+[controller]
+K = [[-1.81, -1.90]]
+
+[attack]
+kind = "intervals"
+intervals = [[1.0, 0.5], [3.0, 0.8]]
+
+[run]
+duration = 20.0
+"""
+
+
+def test_issue_example_loads():
+    sc = scenario.loads(GOOD)
+    assert sc.K.shape == (1, 2)
+    assert sc.n_steps == 200
+    assert sc.quantizer.Lambda == pytest.approx(np.e)
+    th = sc.theta()
+    assert th[10] == 1 and th[15] == 1 and th[16] == 0 and th[38] == 1 and th[39] == 0
+
+
+@pytest.mark.parametrize("name", scenario.bundled_names())
+def test_bundled_scenarios_load(name):
+    sc = scenario.load(name)
+    assert sc.x0.shape == (sc.make_plant().n,)
+    assert sc.source
+
+
+def test_bundled_names_include_the_paper():
+    assert {"paper", "paper-escape"} <= set(scenario.bundled_names())
+
+
+def test_lqr_controller():
+    text = GOOD.replace('K = [[-1.81, -1.90]]', 'lqr = { Q = [[1e-4, 0.0], [0.0, 1e-4]], R = [[1.0]] }')
+    sc = scenario.loads(text)
+    np.testing.assert_allclose(sc.K, [[-1.81, -1.90]], atol=0.005)
+
+
+def _bad(old, new):
+    assert old in GOOD, old
+    return GOOD.replace(old, new)
+
+
+@pytest.mark.parametrize("text,match", [
+    (_bad('name = "lienard"', 'name = "nope"'), r"unknown plant 'nope'"),
+    (_bad("M = 6", "M = 2"), r"breaks Assumption 2"),
+    (_bad("T = 0.1", "T = 0.0"), r"\[quantizer.T\] must be > 0"),
+    (_bad("T = 0.1", "T = -1"), r"\[quantizer.T\] must be > 0"),
+    (_bad("x0 = [0.1, 0.1]", "x0 = [0.1, 0.1, 0.1]"), r"\[plant.x0\] must have shape"),
+    (_bad("K = [[-1.81, -1.90]]", "K = [[-1.81]]"), r"\[controller.K\] must have shape 1 x 2"),
+    (_bad("K = [[-1.81, -1.90]]", "K = [[1.0, 1.0]]"), r"not Schur stable"),
+    (_bad("E0 = 0.1", "E0 = 0.1\nfoo = 3"), r"unknown key\(s\) \['foo'\]"),
+    (_bad("[run]", "[runn]\nx=1\n[run]"), r"unknown key\(s\) \['runn'\]"),
+    (_bad("M = 6", "M = 6.5"), r"must be an integer"),
+    (_bad("M = 6", 'M = "six"'), r"must be a number"),
+    (_bad("E0 = 0.1", "E0 = 0.05"), r"breaks Assumption 5"),
+    (_bad('kind = "intervals"', 'kind = "random"'), r"\[attack.kappa_F\] missing"),
+    (_bad('kind = "intervals"\nintervals = [[1.0, 0.5], [3.0, 0.8]]',
+          'kind = "random"\nkappa_F = 1\nrho_F = 0.1\nkappa_D = 1\nrho_D = 1.0'), r"rho_D.*< 1"),
+    (_bad('kind = "intervals"', 'kind = "laser"'), r"laser"),
+    (_bad("intervals = [[1.0, 0.5], [3.0, 0.8]]", "intervals = [[1.0, -0.5]]"), r"tau"),
+    (_bad("duration = 20.0", "duration = 0.01"), r"shorter than one sampling period"),
+    (_bad('params = { a = 0.3333333333333333, b = 0.02 }', 'params = { c = 1 }'), r"unknown parameter"),
+    (_bad("[run]\nduration = 20.0", ""), r"\[run\] section missing"),
+    ("[plant\nname=", r"not valid TOML"),
+])
+def test_bad_values_are_clear_errors(text, match):
+    with pytest.raises(ScenarioError, match=match):
+        scenario.loads(text)
+
+
+def test_allow_flags():
+    sc = scenario.loads(_bad("M = 6", "M = 2\nallow_M_le_Lambda = true"))
+    assert sc.quantizer.M == 2
+
+
+def test_missing_file_and_unknown_name():
+    with pytest.raises(ScenarioError, match="no such scenario file"):
+        scenario.load("does/not/exist.toml")
+    with pytest.raises(ScenarioError, match="neither a scenario file nor a bundled scenario"):
+        scenario.load("not-a-scenario")
