@@ -1,0 +1,444 @@
+"""``testbed analyze``, ``testbed roa`` and ``testbed sweep``.
+
+    testbed analyze SCENARIO [--json] [--plot DIR] [--full] [--gamma G] [--budget KF RF KD RD]
+    testbed roa SCENARIO [--grid N] [--plot PATH] [--json] [--vulnerable] [--budget ...]
+    testbed sweep SCENARIO [--grid NF ND] [--rho-F-max R] [--rho-D-max R] [--seeds S] [--plot PATH] [--json]
+
+The README figures and numbers of the Lienard example come from
+
+    testbed analyze paper --full --plot docs/analysis --json > docs/analysis/paper.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+# ============================================================================ progress bar
+class Progress:
+    """A one-line progress bar on stderr (``\\r`` updates on a terminal, a few lines otherwise)."""
+
+    def __init__(self, label: str, enabled: bool = True, width: int = 30):
+        self.label = label
+        self.enabled = enabled
+        self.width = width
+        self.t0 = time.perf_counter()
+        self.tty = sys.stderr.isatty()
+        self._last_pct = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0:
+            return
+        frac = done / total
+        el = time.perf_counter() - self.t0
+        eta = el / frac * (1 - frac) if frac > 0 else math.nan
+        bar = "#" * int(round(frac * self.width))
+        line = (f"{self.label} [{bar:<{self.width}}] {done}/{total} {el:6.1f} s"
+                + (f", ETA {eta:5.1f} s" if done < total else ""))
+        if self.tty:
+            sys.stderr.write("\r" + line + ("\n" if done >= total else ""))
+            sys.stderr.flush()
+        else:
+            pct = int(frac * 10)
+            if pct != self._last_pct or done >= total:
+                self._last_pct = pct
+                sys.stderr.write(line + "\n")
+                sys.stderr.flush()
+
+
+# ============================================================================ shared options
+def _add_scenario(p):
+    p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
+
+
+def _add_budget(p, help_=None):
+    p.add_argument("--budget", nargs=4, type=float, metavar=("KAPPA_F", "RHO_F", "KAPPA_D", "RHO_D"),
+                   help=help_ or "DoS budget of Assumptions 3 and 4 (default: the scenario's, see README)")
+
+
+def _write_json(obj) -> None:
+    json.dump(obj, sys.stdout, indent=1, allow_nan=False)
+    sys.stdout.write("\n")
+
+
+def _fmt(v, spec=".4g"):
+    if v is None:
+        return "n/a"
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return format(v, spec)
+
+
+# ============================================================================ analyze
+def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
+    _add_scenario(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", metavar="DIR", help="write PNG figures into DIR")
+    p.add_argument("--full", action="store_true",
+                   help="also the 201 x 201 region of attraction, the budget sweep and the vulnerable states "
+                        "(figures 3 and 4 with the experiment; about a minute)")
+    p.add_argument("--gamma", default="auto",
+                   help="gamma of Lemma 2, or 'auto' to maximize the E0 bound (default)")
+    p.add_argument("--rule", choices=["paper", "tight"], default="paper",
+                   help="mu constants of the headline certificate and Theorem 2: 'paper' = (mu0), (mu1) "
+                        "(default), 'tight' = smallest constants of (mu)")
+    p.add_argument("--share", type=float, default=0.5,
+                   help="part of Theorem 1's decay margin given to nonlinearity and quantization (default 0.5)")
+    _add_budget(p)
+    p.add_argument("--escape-x0", nargs="+", type=float, metavar="X",
+                   help="initial state of the escaping trajectory in the phase portrait "
+                        "(default: searched along the ray through the scenario's x0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+
+
+def main_analyze(args) -> int:
+    from .. import scenario
+    from .summary import analyze, to_json
+
+    sc = scenario.load(args.scenario)
+    gamma = args.gamma if args.gamma == "auto" else float(args.gamma)
+    res = analyze(sc, budget=args.budget, gamma=gamma, share=args.share, rule=args.rule)
+    extra = {}
+    if args.full:
+        extra = _full(sc, res, args)
+    if args.plot:
+        res["figures"] = _analyze_plots(sc, res, extra, Path(args.plot), args)
+    for k, v in extra.items():
+        if not k.startswith("_"):
+            res[k] = v
+    if args.json:
+        _write_json(to_json(res))
+    else:
+        _print_analysis(res)
+        for k in ("roa", "sweep", "sweep_zoom", "vulnerable", "vulnerable_baseline"):
+            if k in res:
+                print(f"  {k}: " + ", ".join(f"{a}={_fmt(b) if isinstance(b, float) else b}"
+                                             for a, b in res[k].items()
+                                             if isinstance(b, (int, float)) and a in (
+                                                 "fraction_inside", "area", "wall_s", "traj_steps_per_s", "runs",
+                                                 "fraction_vulnerable", "escaped", "states_in_region",
+                                                 "empirical_rho_D_max_at_rho_F_0",
+                                                 "empirical_rho_F_max_at_rho_D_0")))
+        if "figures" in res:
+            for f in res["figures"]:
+                print(f"  wrote {f}")
+    return 0
+
+
+def _print_analysis(r: dict) -> None:
+    b = r["budget"]
+    print(f"scenario {r['scenario']}: plant {r['plant']} (n={r['n']}), T={r['T']}, M={r['M']}, L={r['L']}, "
+          f"Lambda={r['Lambda']:.4f}, K={r['K']}")
+    print(f"  rho(A~+B~K) = {r['rho_Phi0']:.4f}, rho(A~) = {r['rho_Phi1']:.4f}")
+    t1 = r["theorem1"]
+    print("Theorem 1 (stability)")
+    pl = t1["plain"]
+    print(f"  plain choice (dlyap with I): phi0={pl['phi0']:.4f} phi1={pl['phi1']:.4f} mu0=mu1={pl['mu0']:.4g} "
+          f"-> rho_D_max={pl['rho_D_max']:.4f}, rho_F_max={pl['rho_F_max']:.4f}")
+    print(f"  optimized (min cond P, envelope over phi): rho_D_max={t1['paper']['rho_D_max']:.4f}, "
+          f"rho_F_max={t1['paper']['rho_F_max']:.4f}, area={t1['paper']['area']:.3g}")
+    if "tight" in t1:
+        print(f"  optimized, smallest mu of (mu):            rho_D_max={t1['tight']['rho_D_max']:.4f}, "
+              f"rho_F_max={t1['tight']['rho_F_max']:.4f}, area={t1['tight']['area']:.3g}")
+    print(f"  certificate ({t1['choice']}): phi0={r['phi0']:.6g} phi1={r['phi1']:.6g} mu0={r['mu0']:.4g} "
+          f"mu1={r['mu1']:.4g} nu0={r['nu0']:.4g} nu1={r['nu1']:.4g}")
+    print(f"  budget ({r['budget_source']}): kappa_F={b['kappa_F']:g} rho_F={b['rho_F']:g} "
+          f"kappa_D={b['kappa_D']:g} rho_D={b['rho_D']:g} -> theorem1_holds={r['theorem1_holds']} "
+          f"(by rule: {r['theorem1_holds_by_rule']})")
+    t2 = r["theorem2"]
+    print(f"Theorem 2 (convergence), gamma={r['gamma']:.4g}, for the {r['theorem2_budget']}")
+    print(f"  c0={t2['c0']:.4g} c1={t2['c1']:.4g} gamma0={t2['gamma0']:.4g} gamma1={t2['gamma1']:.4g} "
+          f"d={_fmt(t2['d'])} delta={_fmt(r['delta'])}")
+    print(f"  eps={t2['eps']:.4g} eta0={t2['eta0']:.4g} eta1={t2['eta1']:.4g} alpha={t2['alpha']:.4g} "
+          f"beta={t2['beta']:.4g} omega0={t2['omega0']:.6g} omega1={t2['omega1']:.6g} omega={t2['omega']:.6g}")
+    print(f"  E0 bound = {_fmt(r['E0_bound'])} (scenario E0 = {r['E0']:g}, within: {r['E0_within_bound']}); "
+          f"theorem2_holds={r['theorem2_holds']}")
+    print(f"  the paper's delta = 1.94e-7 is gamma = {_fmt(r['gamma_for_paper_delta'])} here")
+
+
+def _full(sc, res, args) -> dict:
+    """Region of attraction (201 x 201), sweep (21 x 21) and vulnerable states for --full."""
+    from .roa import nominal_roa
+    from .summary import sweep_kappas
+    from .sweep import sweep, vulnerable_states
+
+    plant = sc.make_plant()
+    out = {}
+    roa = nominal_roa(plant, sc.K, sc.T, grid=201, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
+                      progress=Progress("region of attraction", not args.no_progress))
+    out["_roa"] = roa
+    out["roa"] = roa.to_dict()
+    kF, kD = sweep_kappas(sc)
+    rF = np.linspace(0.0, 2.0, 21)
+    rD = np.linspace(0.0, 0.5, 21)
+    sw = sweep(plant, sc.K, sc.quantizer, sc.x0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=4, horizon=60.0,
+               tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress))
+    out["_sweep"] = sw
+    out["sweep"] = _sweep_summary(sw, res)
+    t1 = res["theorem1"]
+    hiF = 1.15 * max(t1.get("tight", t1["paper"])["rho_F_max"], t1["paper"]["rho_F_max"])
+    hiD = 1.15 * t1["paper"]["rho_D_max"]
+    swz = sweep(plant, sc.K, sc.quantizer, sc.x0, np.linspace(0.0, hiF, 12), np.linspace(0.0, hiD, 12),
+                kappa_F=kF, kappa_D=kD, seeds=4, horizon=60.0, tol=sc.run.converge_tol, flow=sc.flow,
+                progress=Progress("sweep (zoom)", not args.no_progress))
+    out["_sweep_zoom"] = swz
+    out["sweep_zoom"] = _sweep_summary(swz, res)
+    t1 = res["theorem1"]
+    reg = t1.get("tight") or t1["paper"]
+    vb = _vulnerable_budget(sc, reg["rho_F_max"], reg["rho_D_max"])
+    vu = vulnerable_states(plant, sc.K, sc.quantizer, vb, roa, stride=2, horizon=30.0, tol=sc.run.converge_tol,
+                           flow=sc.flow, progress=Progress("vulnerable states", not args.no_progress))
+    out["_vulnerable"] = vu
+    out["vulnerable"] = vu.to_dict()
+    base = vulnerable_states(plant, sc.K, sc.quantizer, (0.0, 0.0, 0.0, 0.0), roa, stride=2, horizon=30.0,
+                             tol=sc.run.converge_tol, flow=sc.flow)
+    out["_vulnerable_baseline"] = base
+    out["vulnerable_baseline"] = base.to_dict()
+    return out
+
+
+def _vulnerable_budget(sc, rho_F_max: float, rho_D_max: float) -> tuple:
+    """Budget of the vulnerable-state map: the scenario's explicit budget, else DEFAULT_KAPPAS
+    with rates at a quarter of Theorem 1's intercepts (well inside the allowable region)."""
+    from .summary import DEFAULT_KAPPAS
+
+    if sc.attack.budget is not None:
+        return tuple(sc.attack.budget)
+    return (DEFAULT_KAPPAS[0], round(rho_F_max / 4, 4), DEFAULT_KAPPAS[1], round(rho_D_max / 4, 4))
+
+
+def _sweep_summary(sw, res=None) -> dict:
+    d = sw.to_dict()
+    if res is not None:
+        eb = sw.empirical_boundary()
+        d["theory"] = {"rho_D_max": res["rho_D_max"], "rho_F_max": res["rho_F_max"]}
+        if "tight" in res["theorem1"]:
+            d["theory"]["tight"] = {k: res["theorem1"]["tight"][k] for k in ("rho_D_max", "rho_F_max")}
+        ok0 = sw.all_converged()[0]
+        bad0 = np.flatnonzero(~ok0)
+        last = (bad0[0] - 1 if bad0.size else len(ok0) - 1)
+        # largest rho_D such that every run converged for all rho_D' <= rho_D at rho_F = 0
+        d["empirical_rho_D_max_at_rho_F_0"] = float(sw.rho_D[last]) if last >= 0 else None
+        d["empirical_rho_F_max_at_rho_D_0"] = None if not np.isfinite(eb[0]) else float(eb[0])
+    return d
+
+
+def _analyze_plots(sc, res, extra, outdir: Path, args) -> list[str]:
+    from . import figures
+    from ..simulate import simulate_scenario
+    from .roa import nominal_roa
+    from .summary import find_escape, trajectory
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    files = []
+    sim = simulate_scenario(sc)
+    ivs = None
+    if not sc.attack.online:
+        ivs = sc.attack.schedule(sc.T, sc.run.duration).intervals
+    files.append(figures.plot_time_series(sim, outdir / f"{sc.name}-time-series.png", intervals=ivs,
+                                          title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded"))
+    roa = extra.get("_roa")
+    if roa is None:
+        plant = sc.make_plant()
+        roa = nominal_roa(plant, sc.K, sc.T, grid=101, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
+                          progress=Progress("region of attraction", not args.no_progress))
+    trajs = [(f"$x_0$ = {np.round(sc.x0, 3).tolist()}", sim.x, "C0")]
+    if args.escape_x0:
+        esc = (None, np.asarray(args.escape_x0, dtype=float))
+    else:
+        esc = find_escape(sc)
+    if esc is not None:
+        X = trajectory(sc, esc[1])
+        trajs.append((f"$x_0$ = {np.round(esc[1], 3).tolist()} (same attacks)", X, "C3"))
+        res["escape_x0"] = np.asarray(esc[1]).tolist()
+    zoom = ((roa.xs[-1] - roa.xs[0]) / 10, (roa.ys[-1] - roa.ys[0]) / 10)
+    files.append(figures.plot_phase_portrait(roa, outdir / f"{sc.name}-phase-portrait.png", trajectories=trajs,
+                                             title=f"{sc.name}: nominal region of attraction", zoom=zoom))
+    vu = extra.get("_vulnerable")
+    if vu is not None:
+        files.append(figures.plot_phase_portrait(roa, outdir / f"{sc.name}-vulnerable.png", vulnerable=vu,
+                                                 baseline=extra.get("_vulnerable_baseline"),
+                                                 title=f"{sc.name}: initial states the attacker defeats",
+                                                 zoom=zoom))
+    bud = res["budget"]
+    files.append(figures.plot_allowable_region(outdir / f"{sc.name}-allowable-region.png", regions=res["_regions"],
+                                               plain=res["_plain"], sweep=extra.get("_sweep"),
+                                               sweep_zoom=extra.get("_sweep_zoom"),
+                                               budget=(bud["kappa_F"], bud["rho_F"], bud["kappa_D"],
+                                                       bud["rho_D"]),
+                                               title=f"{sc.name}: allowable DoS (Theorem 1) and experiment"))
+    files.append(figures.plot_delta(res["delta_table"], outdir / f"{sc.name}-delta.png", gamma_mark=res["gamma"],
+                                    delta_paper=1.94e-7 if sc.plant.name == "lienard" else None,
+                                    title=f"{sc.name}: Lemma 2 radius; Theorem 2 bound for kappa_F = "
+                                          f"{bud['kappa_F']:g}, kappa_D = {bud['kappa_D']:g}"))
+    return [str(f) for f in files]
+
+
+# ============================================================================ roa
+def add_arguments_roa(p: argparse.ArgumentParser) -> None:
+    _add_scenario(p)
+    p.add_argument("--grid", type=int, default=201, help="points per axis (default 201)")
+    p.add_argument("--horizon", type=float, default=30.0, help="seconds simulated per state (default 30)")
+    p.add_argument("--window", nargs=2, type=float, metavar=("WX", "WY"),
+                   help="half-widths of the window (default per plant)")
+    p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
+    p.add_argument("--plot", metavar="PATH", help="write the phase portrait (PNG)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--vulnerable", action="store_true",
+                   help="also map the states of the region from which the attacker defeats the loop")
+    _add_budget(p, "budget of --vulnerable (default: the scenario's explicit budget, else "
+                   "(1, rho_F, 0.2, rho_D) at a quarter of Theorem 1's intercepts)")
+    p.add_argument("--kind", choices=["greedy", "random", "periodic"], default="greedy",
+                   help="attacker of --vulnerable (default greedy)")
+    p.add_argument("--threshold", type=float, default=0.0, help="greedy threshold (default 0)")
+    p.add_argument("--stride", type=int, default=2, help="--vulnerable uses every STRIDE-th grid state (default 2)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def main_roa(args) -> int:
+    from .. import scenario
+    from . import figures
+    from ..simulate import simulate_scenario
+    from .roa import nominal_roa
+
+    sc = scenario.load(args.scenario)
+    plant = sc.make_plant()
+    roa = nominal_roa(plant, sc.K, sc.T, grid=args.grid, window=args.window, dims=args.dims, horizon=args.horizon,
+                      tol=sc.run.converge_tol, flow=sc.flow,
+                      progress=Progress("region of attraction", not args.no_progress))
+    out = {"scenario": sc.name, "plant": plant.name, "roa": roa.to_dict()}
+    vu = None
+    if args.vulnerable:
+        from .sweep import vulnerable_states
+
+        if args.budget:
+            vb = tuple(args.budget)
+        else:
+            from .theorem1 import Loop, allowable_region
+
+            reg = allowable_region(Loop.from_scenario(sc), "tight", n_phi0=16, n_phi1=3)
+            vb = _vulnerable_budget(sc, reg.rho_F_max, reg.rho_D_max)
+        vu = vulnerable_states(plant, sc.K, sc.quantizer, vb, roa, stride=args.stride, kind=args.kind,
+                               threshold=args.threshold, tol=sc.run.converge_tol, flow=sc.flow,
+                               progress=Progress("vulnerable states", not args.no_progress))
+        out["vulnerable"] = vu.to_dict()
+    if args.plot:
+        sim = simulate_scenario(sc)
+        figures.plot_phase_portrait(roa, args.plot, trajectories=[(f"$x_0$ = {sc.x0.tolist()}", sim.x, "C0")],
+                                    vulnerable=vu, title=f"{sc.name}: nominal region of attraction")
+        out["figure"] = args.plot
+    if args.json:
+        from .summary import to_json
+
+        _write_json(to_json(out))
+    else:
+        r = out["roa"]
+        print(f"scenario {sc.name}: nominal region of attraction on a {r['grid'][0]} x {r['grid'][1]} grid, "
+              f"window {r['window']}, horizon {r['horizon']:g} s")
+        print(f"  inside: {r['fraction_inside']:.4f} of the grid, area {r['area']:.4g}")
+        print(f"  {r['traj_steps']} trajectory-steps in {r['wall_s']:.2f} s = {r['traj_steps_per_s']:.3g} per s")
+        if vu is not None:
+            v = out["vulnerable"]
+            print(f"  vulnerable under {v['kind']} DoS {v['budget']}: {v['bounded'] + v['escaped']} of "
+                  f"{v['states_in_region']} states fail ({v['escaped']} escape), "
+                  f"fraction {_fmt(v['fraction_vulnerable'])}")
+        if args.plot:
+            print(f"  wrote {args.plot}")
+    return 0
+
+
+# ============================================================================ sweep
+def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
+    _add_scenario(p)
+    p.add_argument("--grid", nargs=2, type=int, default=[21, 21], metavar=("NF", "ND"),
+                   help="budget points along rho_F and rho_D (default 21 21)")
+    p.add_argument("--rho-F-max", type=float, default=2.0, help="largest rho_F [1/s] (default 2)")
+    p.add_argument("--rho-D-max", type=float, default=0.5, help="largest rho_D (default 0.5)")
+    p.add_argument("--kappa-F", type=float, help="kappa_F (default: the scenario's budget, else 1)")
+    p.add_argument("--kappa-D", type=float, help="kappa_D (default: the scenario's budget, else 0.2)")
+    p.add_argument("--seeds", type=int, default=4, help="random schedules per budget point (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--kinds", nargs="+", default=["random", "periodic", "greedy"],
+                   choices=["random", "periodic", "greedy"], help="attackers (default all three)")
+    p.add_argument("--threshold", type=float, default=0.0, help="greedy threshold (default 0: attack asap)")
+    p.add_argument("--horizon", type=float, default=60.0, help="attacked seconds per run (default 60)")
+    p.add_argument("--states", type=int, default=0,
+                   help="extra initial states drawn uniformly with ||x0||_inf <= --state-radius (default 0)")
+    p.add_argument("--state-radius", type=float, default=None,
+                   help="radius of the extra initial states (default 3 ||x0||_inf)")
+    p.add_argument("--plot", metavar="PATH", help="write the allowable-region figure with the map (PNG)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def main_sweep(args) -> int:
+    from .. import scenario
+    from . import figures
+    from .summary import sweep_kappas, to_json
+    from .sweep import sweep
+    from .theorem1 import Loop, allowable_region, plain_certificate
+
+    sc = scenario.load(args.scenario)
+    plant = sc.make_plant()
+    kF0, kD0 = sweep_kappas(sc)
+    kF = kF0 if args.kappa_F is None else args.kappa_F
+    kD = kD0 if args.kappa_D is None else args.kappa_D
+    if not 0 <= args.rho_D_max < 1:
+        print("testbed sweep: --rho-D-max must be in [0, 1)", file=sys.stderr)
+        return 2
+    X0 = [sc.x0]
+    if args.states > 0:
+        r = args.state_radius or 3.0 * float(np.max(np.abs(sc.x0)))
+        rng = np.random.default_rng(args.seed)
+        X0.extend(rng.uniform(-r, r, (args.states, plant.n)))
+    X0 = np.array(X0)
+    rF = np.linspace(0.0, args.rho_F_max, args.grid[0])
+    rD = np.linspace(0.0, args.rho_D_max, args.grid[1])
+    sw = sweep(plant, sc.K, sc.quantizer, X0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=args.seeds, seed=args.seed,
+               horizon=args.horizon, kinds=tuple(args.kinds), threshold=args.threshold, tol=sc.run.converge_tol,
+               flow=sc.flow, progress=Progress("sweep", not args.no_progress))
+    loop = Loop.from_scenario(sc)
+    regions = {rule: allowable_region(loop, rule) for rule in ("paper", "tight")}
+    plain = plain_certificate(loop)
+    theory = {"rho_D_max": regions["paper"].rho_D_max, "rho_F_max": regions["paper"].rho_F_max,
+              "tight": {"rho_D_max": regions["tight"].rho_D_max, "rho_F_max": regions["tight"].rho_F_max},
+              "plain": {"rho_D_max": plain.rho_D_max, "rho_F_max": plain.rho_F_max}}
+    d = sw.to_dict()
+    d["theory"] = theory
+    d["scenario"] = sc.name
+    # budget points where the theorem holds but some run failed (the theorem is local: x0 may be too large)
+    th = regions["tight"].holds(rF[:, None], rD[None, :]) | regions["paper"].holds(rF[:, None], rD[None, :])
+    d["theorem_holds_but_failed"] = int(np.sum(th & ~sw.all_converged()))
+    d["theorem_holds_points"] = int(np.sum(th))
+    if args.plot:
+        figures.plot_allowable_region(args.plot, regions=regions, plain=plain, sweep=sw,
+                                      title=f"{sc.name}: Theorem 1 and the empirical map "
+                                            f"($\\kappa_F$={kF:g}, $\\kappa_D$={kD:g})")
+        d["figure"] = args.plot
+    if args.json:
+        _write_json(to_json(d))
+    else:
+        print(f"scenario {sc.name}: {len(rF)} x {len(rD)} budgets (rho_F <= {args.rho_F_max:g}, rho_D <= "
+              f"{args.rho_D_max:g}), kappa_F={kF:g}, kappa_D={kD:g}, {len(X0)} initial state(s), "
+              f"kinds {', '.join(sw.kinds)}, {args.seeds} random seeds, horizon {args.horizon:g} s")
+        print(f"  {sw.runs} runs, {sw.traj_steps} trajectory-steps in {sw.wall:.2f} s = {sw.rate:.3g} per s")
+        w = sw.worst()
+        print(f"  budget points where every run converged: {int(np.sum(sw.all_converged()))} of {w.size}")
+        for k in sw.kinds:
+            eb = sw.empirical_boundary(k)
+            print(f"  {k:8s}: converged fraction {np.nanmean(sw.converged[k]):.3f}, escaped "
+                  f"{np.nanmean(sw.escaped[k]):.3f}; all converge up to rho_F = {_fmt(float(eb[0]))} at rho_D = 0")
+        print(f"  Theorem 1: rho_D_max = {theory['rho_D_max']:.4f}, rho_F_max = {theory['rho_F_max']:.4f} "
+              f"(tight mu: {theory['tight']['rho_D_max']:.4f}, {theory['tight']['rho_F_max']:.4f}); "
+              f"{d['theorem_holds_but_failed']} of {d['theorem_holds_points']} grid budgets inside the theorem "
+              "had a failing run")
+        if args.plot:
+            print(f"  wrote {args.plot}")
+    return 0

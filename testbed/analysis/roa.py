@@ -1,0 +1,144 @@
+"""Nominal region of attraction on a grid (the gray area of the paper's third figure).
+
+Nominal means no quantization and no DoS: u_k = K x_k held over each sampling
+period, x_{k+1} = phi_T(x_k, K x_k).  A grid state belongs to the region when the
+nominal loop started there reaches ||x||_inf < tol within the horizon (the batch
+simulator with ``mode="none"``).  For n > 2 a two-dimensional slice is gridded
+(``dims``), the other coordinates fixed at ``center``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..flow import DEFAULT_FLOW, FlowOptions
+from ..quantizer import QuantizerParams
+from ..simulate import simulate_batch
+
+#: default half-widths of the gridded window per plant (covering the Lienard limit cycle)
+DEFAULT_WINDOWS = {"lienard": (5.0, 7.0), "pendulum": (math.pi, 2.0 * math.pi), "cartpole": (0.6, 2.0),
+                   "linear": (1.0, 1.0)}
+#: default gridded coordinates per plant
+DEFAULT_DIMS = {"cartpole": (2, 3)}
+
+
+def default_window(plant) -> tuple[float, float]:
+    return DEFAULT_WINDOWS.get(plant.name, (1.0, 1.0))
+
+
+def default_dims(plant) -> tuple[int, int]:
+    return DEFAULT_DIMS.get(plant.name, (0, 1))
+
+
+def state_grid(plant, grid: int | tuple[int, int], window, dims, center=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """States of a grid over coordinates ``dims``: (xs, ys, X) with X of shape (ny * nx, n), row-major in y."""
+    nx, ny = (grid, grid) if np.isscalar(grid) else grid
+    wx, wy = window
+    c = np.zeros(plant.n) if center is None else np.asarray(center, dtype=float)
+    xs = c[dims[0]] + np.linspace(-wx, wx, int(nx))
+    ys = c[dims[1]] + np.linspace(-wy, wy, int(ny))
+    X = np.tile(c, (len(xs) * len(ys), 1))
+    GX, GY = np.meshgrid(xs, ys, indexing="xy")
+    X[:, dims[0]] = GX.ravel()
+    X[:, dims[1]] = GY.ravel()
+    return xs, ys, X
+
+
+@dataclass
+class RoaResult:
+    """Nominal region of attraction on a grid: ``inside[iy, ix]`` for the state (xs[ix], ys[iy])."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    inside: np.ndarray
+    dims: tuple[int, int]
+    center: np.ndarray
+    horizon: float
+    tol: float
+    wall: float = 0.0
+    traj_steps: int = 0
+    status_counts: dict = field(default_factory=dict)
+
+    @property
+    def fraction(self) -> float:
+        """Fraction of the grid inside the region."""
+        return float(self.inside.mean())
+
+    @property
+    def area(self) -> float:
+        """Area of the region in the gridded plane (cells of the grid, edge cells halved)."""
+        dx = (self.xs[-1] - self.xs[0]) / max(len(self.xs) - 1, 1)
+        dy = (self.ys[-1] - self.ys[0]) / max(len(self.ys) - 1, 1)
+        w = np.ones_like(self.inside, dtype=float)
+        w[0, :] *= 0.5
+        w[-1, :] *= 0.5
+        w[:, 0] *= 0.5
+        w[:, -1] *= 0.5
+        return float(np.sum(w * self.inside) * dx * dy)
+
+    @property
+    def rate(self) -> float:
+        """Trajectory-steps per second of the batch simulation."""
+        return self.traj_steps / self.wall if self.wall > 0 else math.nan
+
+    def contains(self, X) -> np.ndarray:
+        """Nearest-grid-point lookup of membership for states X (..., n); False outside the window."""
+        X = np.asarray(X, dtype=float)
+        a, b = X[..., self.dims[0]], X[..., self.dims[1]]
+        ix = np.rint((a - self.xs[0]) / (self.xs[1] - self.xs[0])).astype(int)
+        iy = np.rint((b - self.ys[0]) / (self.ys[1] - self.ys[0])).astype(int)
+        ok = (ix >= 0) & (ix < len(self.xs)) & (iy >= 0) & (iy < len(self.ys))
+        out = np.zeros(a.shape, dtype=bool)
+        out[ok] = self.inside[iy[ok], ix[ok]]
+        return out
+
+    def to_dict(self) -> dict:
+        return {"grid": [len(self.xs), len(self.ys)], "dims": list(self.dims),
+                "window": [[float(self.xs[0]), float(self.xs[-1])], [float(self.ys[0]), float(self.ys[-1])]],
+                "center": self.center.tolist(), "horizon": self.horizon, "tol": self.tol,
+                "fraction_inside": self.fraction, "area": self.area, "wall_s": self.wall,
+                "traj_steps": self.traj_steps, "traj_steps_per_s": self.rate, "status_counts": self.status_counts}
+
+
+def nominal_roa(plant, K, T: float, *, grid: int | tuple[int, int] = 201, window=None, dims=None, center=None,
+                horizon: float = 30.0, tol: float = 1e-4, flow: FlowOptions = DEFAULT_FLOW,
+                chunk: int = 4096, progress=None) -> RoaResult:
+    """Grid the nominal region of attraction with the batch simulator.
+
+    Parameters
+    ----------
+    plant, K, T : the loop (K is m x n, u = K x).
+    grid : points per axis (int or (nx, ny)).
+    window : half-widths (wx, wy) around ``center`` (default per plant, see ``DEFAULT_WINDOWS``).
+    dims : the two gridded coordinates (default (0, 1); (2, 3) for the cart-pole).
+    center : the state the window is centred on; fixes the other coordinates (default 0).
+    horizon : seconds simulated; tol : convergence radius ||x_N||_inf < tol.
+    chunk : trajectories per simulator call (for ``progress(done, total)`` callbacks).
+
+    Returns
+    -------
+    RoaResult (with wall time and trajectory-steps).
+    """
+    window = default_window(plant) if window is None else window
+    dims = default_dims(plant) if dims is None else tuple(dims)
+    xs, ys, X = state_grid(plant, grid, window, dims, center)
+    n_steps = int(round(horizon / T))
+    qp = QuantizerParams(T=T, M=2, L=0.0, E0=1.0, mode="none")
+    conv = np.zeros(X.shape[0], dtype=bool)
+    status = np.zeros(X.shape[0], dtype=np.int64)
+    t0 = time.perf_counter()
+    for s in range(0, X.shape[0], chunk):
+        res = simulate_batch(plant, K, qp, X[s:s + chunk], n_steps, mode="none", flow=flow)
+        conv[s:s + chunk] = res.converged(tol)
+        status[s:s + chunk] = res.status
+        if progress is not None:
+            progress(min(s + chunk, X.shape[0]), X.shape[0])
+    wall = time.perf_counter() - t0
+    counts = {int(k): int(v) for k, v in zip(*np.unique(status, return_counts=True))}
+    c = np.zeros(plant.n) if center is None else np.asarray(center, dtype=float)
+    return RoaResult(xs, ys, conv.reshape(len(ys), len(xs)), dims, c, horizon, tol, wall,
+                     X.shape[0] * n_steps, counts)
