@@ -21,8 +21,9 @@ Saturation.  In a real loop x_k does leave Q(xi_k, E_k) (round-off once E_k is
   index; the event is counted.  Nothing else changes.
 * ``resilient`` (default): the encoder sends the spare OVERFLOW codeword M^n
   instead.  A decoder that receives it applies u_k = 0 and both ends zoom out:
-  xi_{k+1} = phi_T(xi_k, 0), E_{k+1} = sigma * Lambda * E_k, with sigma >= 1
-  (``zoom_out``, default M).  If the OVERFLOW packet itself is lost, both ends
+  xi_{k+1} = phi_T(xi_k, 0), E_{k+1} = sigma * Lambda * max(E_k, E_r), with sigma >= 1
+  (``zoom_out``, default M) and the rescue radius E_r = 1e-9 (1 + ||xi_k||_inf), so
+  that a range that underflowed to 0 in a long run can grow again.  If the OVERFLOW packet itself is lost, both ends
   apply the ordinary theta_k = 1 rule, so they stay in lockstep: the update
   depends only on what both know (theta_k and, when theta_k = 0, the symbol).
   The encoder retries at the next sample while x stays outside.  Optionally
@@ -128,8 +129,13 @@ def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, Lambda, M, si
         for r in range(u_s.shape[0]):
             u_s[r] = 0.0
         st = flow_into(rhs, xi, u_s, p, T, opts, K_s, ytmp, xi_out)
-        if theta == 0:  # OVERFLOW received
-            En = sigma * Lambda * E
+        if theta == 0:  # OVERFLOW received: zoom out from at least a small rescue radius, so
+            # that a range that underflowed to 0 (long runs at small T) can still grow again
+            rescue = 0.0
+            for i in range(xi.shape[0]):
+                rescue = max(rescue, abs(xi[i]))
+            rescue = 1e-9 * (1.0 + rescue)
+            En = sigma * Lambda * max(E, rescue)
         else:
             En = Lambda * E
     if En < E_min:

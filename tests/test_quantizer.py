@@ -175,3 +175,20 @@ def test_ideal_quantizer_loses_track_after_the_same_kick():
 def test_E_floor():
     x, sats, _, dec = _run_with_kick("resilient", kick_at=-1, E_min=1e-6)
     assert dec.E >= 1e-6
+
+
+def test_overflow_recovers_even_after_E_underflowed_to_zero():
+    """A long run at small T can underflow E to 0; OVERFLOW must still zoom out (both ends alike)."""
+    qp = _qp()
+    enc = Encoder(LIENARD, K_PAPER, qp)
+    dec = Decoder(LIENARD, K_PAPER, qp)
+    enc.E = dec.E = 0.0
+    x = np.array([0.01, -0.01])
+    for k in range(300):
+        sym, _ = enc.encode(x)
+        u, q, th = dec.step(sym)
+        enc.ack(th)
+        assert np.array_equal(enc.xi, dec.xi) and enc.E == dec.E
+        x, _ = phi_T(LIENARD, x, u, 0.1)
+    assert dec.overflows >= 1
+    assert np.max(np.abs(x)) < 1e-4
