@@ -1,0 +1,226 @@
+"""Live-loop timing benchmark: T = 0.1 s and T = 1 ms over Zenoh on loopback.
+
+For each sample period T it measures, in one invocation:
+
+1. the floor: a bare Zenoh ping-pong between two Python processes (same config,
+   QoS and message sizes as the control path: 1-byte payload, 12-byte header),
+   one ping per period T, so the messages are as sparse as in the loop;
+2. the live loop: ``testbed run`` of the paper's plant and gain at period T
+   (no DoS, so every sample should make it), for ``--duration`` seconds.
+
+It prints p50 / p99 sampling jitter, p50 / p99 sensor-to-actuator latency and its
+stages (encoder, proxy, controller, plant), deadline misses, CPU share per node,
+and the latency over the floor as a ratio.  The loop crosses four one-way hops
+(plant -> encoder -> attacker -> controller -> plant), i.e. two round trips, so
+the floor of the sensor-to-actuator latency is taken as 2 x the ping-pong RTT.
+
+    python benchmarks/bench_live.py                    # 30 s at T = 0.1 s and at T = 1 ms
+    python benchmarks/bench_live.py --duration 10 --periods 0.001 --realtime --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENARIO = """\
+# benchmark: the paper's plant and gain at period T, no DoS
+name = "bench-T{tag}"
+[plant]
+name = "lienard"
+params = {{ a = 0.3333333333333333, b = 0.02 }}
+x0 = [0.1, 0.1]
+[quantizer]
+T = {T!r}
+M = 6
+L = 10.0
+E0 = 0.1
+E_min = 1e-9          # keeps E_k above the round-off level over 30 000 samples
+mode = "resilient"
+[controller]
+K = [[-1.81, -1.90]]
+[attack]
+kind = "none"
+[run]
+duration = {duration!r}
+deadline = {deadline!r}
+"""
+
+
+# ------------------------------------------------------------------ ping-pong floor
+def _config(listen=(), connect=()):
+    from testbed.io import transport
+
+    return transport.make_config(listen=list(listen), connect=list(connect))
+
+
+def echo_main(port: int, seconds: float, realtime: bool) -> None:
+    import zenoh
+
+    from testbed.io import transport
+    from testbed.nodes.common import set_realtime, tune_process
+
+    tune_process()
+    with zenoh.open(_config(listen=[f"tcp/127.0.0.1:{port}"])) as s:
+        pub = s.declare_publisher("bench/pong", **transport.control_qos())
+        s.declare_subscriber("bench/ping", lambda smp: pub.put(smp.payload, attachment=smp.attachment))
+        if realtime:
+            set_realtime(True)
+        try:
+            time.sleep(seconds)
+        except KeyboardInterrupt:
+            pass
+
+
+def ping_pong(T: float, seconds: float, realtime: bool) -> dict:
+    """RTT of a bare Zenoh ping-pong paced at period T (same pacing as the plant)."""
+    import zenoh
+
+    from testbed.io import messages as msg
+    from testbed.io import transport
+    from testbed.nodes.common import RunClock, set_realtime, tune_process
+
+    port = transport.free_port()
+    n = int(max(50, min(seconds / T, 20000)))
+    echo = subprocess.Popen([sys.executable, __file__, "--echo", str(port), "--echo-seconds",
+                             str(n * T + 20)] + (["--realtime"] if realtime else []),
+                            start_new_session=True)
+    rtt = []
+    try:
+        tune_process()
+        with zenoh.open(_config(connect=[f"tcp/127.0.0.1:{port}"])) as s:
+            got = threading.Event()
+            box = [0]
+
+            def on_pong(_smp):
+                box[0] = time.monotonic_ns()
+                got.set()
+
+            s.declare_subscriber("bench/pong", on_pong)
+            pub = s.declare_publisher("bench/ping", **transport.control_qos())
+            att = msg.Header(0, 0).encode()
+            end = time.monotonic() + 20
+            while time.monotonic() < end:  # wait for the echo and warm up
+                got.clear()
+                pub.put(b"\x00", attachment=att)
+                if got.wait(0.2):
+                    break
+            for _ in range(20):
+                got.clear()
+                pub.put(b"\x00", attachment=att)
+                got.wait(1)
+            if realtime:
+                set_realtime(True)
+            clock = RunClock(time.time_ns() + 50_000_000)
+            T_ns = int(round(T * 1e9))
+            spin = min(200_000, T_ns // 10)
+            for k in range(n):
+                clock.sleep_until(k * T_ns, spin)
+                got.clear()
+                t = time.monotonic_ns()
+                pub.put(b"\x00", attachment=att)
+                if got.wait(max(T, 0.05)):
+                    rtt.append(box[0] - t)
+    finally:
+        if realtime:
+            set_realtime(False)
+        os.killpg(echo.pid, signal.SIGINT)
+        try:
+            echo.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(echo.pid, signal.SIGKILL)
+            echo.wait()
+    a = np.array(rtt) / 1e3
+    return {"n": int(a.size), "lost": n - int(a.size), "p50": float(np.percentile(a, 50)),
+            "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+
+
+# ------------------------------------------------------------------ the live loop
+def live_run(T: float, duration: float, deadline: float, realtime: bool, extra: list[str]) -> dict:
+    with tempfile.TemporaryDirectory(prefix="bench-live-") as d:
+        f = Path(d) / "bench.toml"
+        f.write_text(SCENARIO.format(tag=f"{T:g}".replace(".", "_"), T=T, duration=duration, deadline=deadline))
+        cmd = [sys.executable, "-m", "testbed.cli", "run", str(f), "--json"] + (["--realtime"] if realtime else [])
+        p = subprocess.run(cmd + extra, capture_output=True, text=True, timeout=duration + 600)
+    try:
+        s = json.loads(p.stdout)
+    except json.JSONDecodeError:
+        raise SystemExit(f"testbed run failed (exit {p.returncode}):\n{p.stderr[-3000:]}") from None
+    s["_exit_code"] = p.returncode
+    return s
+
+
+def _p(d: dict | None, key: str) -> str:
+    v = None if not d else d.get(key)
+    return "   n/a" if v is None else f"{v:6.0f}"
+
+
+def report(T: float, floor: dict, s: dict) -> dict:
+    tm = s["timing"]
+    s2a = tm["sensor_to_actuator_us"]
+    ns = s.get("node_summaries", {})
+    print(f"\n=== T = {T:g} s: {s['samples']} samples over {s['samples'] * T:g} s "
+          f"(deadline {s['deadline']:g} T, outcome {s['outcome']}, exit {s['_exit_code']})")
+    print(f"  {'':28s}{'p50 us':>8s}{'p99 us':>8s}{'max us':>9s}")
+    rows = [("sampling jitter", tm["sampling_jitter_us"]), ("sensor-to-actuator", s2a)]
+    rows += [(f"  {k}", v) for k, v in tm["stages_us"].items()]
+    rows += [("zenoh ping-pong RTT (floor)", floor)]
+    for name, d in rows:
+        print(f"  {name:28s}{_p(d, 'p50')}  {_p(d, 'p99')}  {_p(d, 'max')}")
+    r50 = r99 = None
+    if s2a.get("p50") is not None:
+        r50 = s2a["p50"] / (2 * floor["p50"])
+        r99 = s2a["p99"] / (2 * floor["p99"])
+        print(f"  sensor-to-actuator / (2 x RTT floor): p50 {r50:.2f}x, p99 {r99:.2f}x")
+    print(f"  deadline misses {tm['deadline_misses']} of {s['samples']}, overruns {tm['overruns']}, "
+          f"samples lost {sum(v for v in s['theta'] if v)}, late symbols {s.get('late_symbols')}")
+    print("  CPU share per node: " + ", ".join(f"{r} {ns[r].get('cpu_share', float('nan')):.0%}"
+                                             for r in ("plant", "encoder", "attacker", "controller") if r in ns))
+    goal = (T <= 0.001 + 1e-12, tm["deadline_misses"] == 0 and (s2a.get("p99") or 1e9) < 1000)
+    if goal[0]:
+        print(f"  goal (no misses, p99 sensor-to-actuator < 1 ms at 1 kHz): {'MET' if goal[1] else 'NOT met'}")
+    return {"T": T, "floor_rtt_us": floor, "timing": tm, "samples": s["samples"], "outcome": s["outcome"],
+            "ratio_p50": r50, "ratio_p99": r99, "cpu_share": {r: ns[r].get("cpu_share") for r in ns},
+            "lost": int(sum(v for v in s["theta"] if v)), "exit_code": s["_exit_code"]}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=30.0, help="seconds of live loop per period")
+    ap.add_argument("--periods", default="0.1,0.001", help="comma-separated sample periods (s)")
+    ap.add_argument("--pingpong-seconds", type=float, default=10.0)
+    ap.add_argument("--deadline", type=float, help="[run] deadline (default 0.5, 0.8 at T <= 2 ms)")
+    ap.add_argument("--realtime", action="store_true", help="nodes and ping-pong under SCHED_FIFO")
+    ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    ap.add_argument("--echo", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--echo-seconds", type=float, default=60.0, help=argparse.SUPPRESS)
+    args, extra = ap.parse_known_args()
+    if args.echo:
+        echo_main(args.echo, args.echo_seconds, args.realtime)
+        return 0
+    out = []
+    print(f"host: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, "
+          f"{'SCHED_FIFO' if args.realtime else 'normal scheduling'}")
+    for T in (float(t) for t in args.periods.split(",")):
+        deadline = args.deadline if args.deadline is not None else (0.8 if T <= 0.002 else 0.5)
+        floor = ping_pong(T, args.pingpong_seconds, args.realtime)
+        extra_T = list(extra) + (["--loss-fraction", "0.95"] if T <= 0.002 and "--loss-fraction" not in extra else [])
+        s = live_run(T, args.duration, deadline, args.realtime, extra_T)
+        out.append(report(T, floor, s))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Edges of the testbed: messages (encode/decode) and transport (Zenoh config, key expressions)."""

@@ -1,0 +1,362 @@
+"""``testbed run SCENARIO [--duration S]``: start the four nodes of a live run, watch them, stop them.
+
+The launcher listens on one Zenoh endpoint (``tcp/127.0.0.1:<free port>`` by
+default, a fresh port per run), starts plant, encoder, attacker and controller as
+``testbed node ...`` processes, each in its own session and process group, and
+collects their telemetry (``testbed.nodes.collect``).  It stops them all on
+SIGINT, SIGTERM, Ctrl-C, the end of the run or a timeout: ``Stop`` message, then
+SIGINT to each group, then SIGKILL.  Nodes also die with the launcher
+(PR_SET_PDEATHSIG) and stop when its liveliness token goes away, so no node is
+left behind.  A node that dies is reported with its exit status, the last lines
+of its log and when its liveliness token went away; the run goes on without it
+(unless it was the plant).
+
+Exit codes: 0 clean run, 1 a node died or the run did not complete,
+2 bad scenario, 128 + signal when interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import secrets
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from .io import messages as msg
+from .io import transport
+from .nodes.common import RunOptions, add_run_option_arguments, load_scenario
+
+
+def add_arguments_run(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", help="scenario file (.toml) or bundled name")
+    p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
+    add_run_option_arguments(p)
+    g = p.add_argument_group("network")
+    g.add_argument("--run-id", help="key prefix testbed/RUN_ID/... (default: unique per run)")
+    g.add_argument("--listen", metavar="ENDPOINT",
+                   help="the launcher's endpoint (default tcp/127.0.0.1:<free port>); nodes connect to it")
+    g.add_argument("--node-connect", metavar="ENDPOINT",
+                   help="endpoint the nodes connect to (default: --listen)")
+    g.add_argument("--node-listen", action="append", default=[], metavar="ROLE=ENDPOINT",
+                   help="a node's own listener (default tcp/127.0.0.1:0), e.g. plant=tcp/10.0.0.2:0")
+    g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
+                   help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
+    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
+    g = p.add_argument_group("run control")
+    g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
+                   help="give up if the nodes are not running after S seconds (default %(default)s)")
+    g.add_argument("--run-dir", help="directory for node logs (default: a temporary one, kept on faults)")
+    g.add_argument("--realtime", action="store_true", help="nodes try SCHED_FIFO")
+    g.add_argument("--spin-us", type=float, help="plant busy-wait before each sample instant (us)")
+    g.add_argument("--loss-fraction", type=float, help="controller loss deadline, fraction of d T")
+    g.add_argument("--ack-grace", type=float, help="encoder grace for a late ack, fraction of T")
+    g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
+    g = p.add_argument_group("fault injection")
+    g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
+                   help="SIGKILL a node SECONDS after t0 (repeatable)")
+    g.add_argument("--crash", action="append", default=[], metavar="ROLE@K",
+                   help="make a node raise at sample K (repeatable)")
+    g.add_argument("--corrupt", metavar="K[:range|:length],...",
+                   help="the attacker corrupts the payload of these samples")
+
+
+def _pairs(items, sep, what) -> dict[str, str]:
+    out = {}
+    for it in items:
+        role, s, val = it.partition(sep)
+        if not s or role not in transport.ROLES:
+            raise SystemExit(f"testbed run: {what} must be ROLE{sep}VALUE with ROLE in "
+                             f"{', '.join(transport.ROLES)}, got {it!r}")
+        out[role] = val
+    return out
+
+
+class Launcher:
+    def __init__(self, args):
+        self.args = args
+        self.opts = RunOptions.from_args(args)
+        self.sc = load_scenario(args.scenario, self.opts)
+        ref = args.scenario
+        self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
+        self.run_id = args.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
+        self.keys = transport.Keys.for_run(self.run_id)
+        self.listen = args.listen or f"tcp/127.0.0.1:{transport.free_port()}"
+        self.node_connect = args.node_connect or self.listen
+        self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
+        self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
+        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill").items()}
+        self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
+        self.own_dir = args.run_dir is None
+        self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.exits: dict[str, dict] = {}
+        self.faults: list[dict] = []
+        self.kill_sent: dict[str, int] = {}
+        self.signal: int | None = None
+        self.stopping = False
+
+    # ---- processes
+    def command(self, role: str) -> list[str]:
+        a = self.args
+        cmd = shlex.split(self.node_prefix.get(role, ""))
+        cmd += [sys.executable, "-m", "testbed.cli", "node", role, self.scenario_ref, *self.opts.cli(),
+                "--run-id", self.run_id, "--connect", self.node_connect,
+                "--listen", self.node_listen.get(role, transport.LOOPBACK_ANY),
+                "--ready-timeout", str(a.startup_timeout), "--launched"]
+        if a.zenoh_config:
+            cmd += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
+        if role not in self.node_prefix or self.node_prefix[role].startswith("ip netns exec"):
+            cmd += ["--parent-pid", str(os.getpid())]
+        if a.realtime:
+            cmd.append("--realtime")
+        if a.verbose:
+            cmd.append("--verbose")
+        if role in self.crashes:
+            cmd += ["--crash-at", str(self.crashes[role])]
+        if role == "plant":
+            if a.spin_us is not None:
+                cmd += ["--spin-us", str(a.spin_us)]
+        if role == "controller" and a.loss_fraction is not None:
+            cmd += ["--loss-fraction", str(a.loss_fraction)]
+        if role == "encoder" and a.ack_grace is not None:
+            cmd += ["--ack-grace", str(a.ack_grace)]
+        if role == "attacker" and a.corrupt:
+            cmd += ["--corrupt", a.corrupt]
+        return cmd
+
+    def spawn(self) -> None:
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        for role in transport.ROLES:
+            log = open(self.run_dir / f"{role}.log", "wb")
+            self.procs[role] = subprocess.Popen(self.command(role), stdin=subprocess.DEVNULL, stdout=log,
+                                                stderr=subprocess.STDOUT, start_new_session=True, env=env)
+            log.close()
+
+    def _signal_group(self, role: str, sig: int) -> None:
+        p = self.procs[role]
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def stop_all(self, session, reason: str, grace: float = 3.0) -> None:
+        self.stopping = True
+        alive = [r for r, p in self.procs.items() if p.poll() is None]
+        if not alive:
+            return
+        try:
+            session.put(self.keys.stop, msg.Stop(reason=reason, origin="launcher").encode())
+        except Exception:  # noqa: BLE001
+            pass
+        end = time.monotonic() + grace
+        while time.monotonic() < end and any(self.procs[r].poll() is None for r in alive):
+            time.sleep(0.02)
+        for r in alive:
+            self._signal_group(r, signal.SIGINT)
+        end = time.monotonic() + grace
+        while time.monotonic() < end and any(self.procs[r].poll() is None for r in alive):
+            time.sleep(0.02)
+        for r in alive:
+            self._signal_group(r, signal.SIGKILL)
+        for r in alive:
+            try:
+                self.procs[r].wait(5)
+            except subprocess.TimeoutExpired:
+                pass
+
+    def log_tail(self, role: str, lines: int = 6) -> str:
+        try:
+            text = (self.run_dir / f"{role}.log").read_text(errors="replace")
+        except OSError:
+            return ""
+        return "\n".join(text.rstrip().splitlines()[-lines:])
+
+    # ---- watching
+    def record_exit(self, role: str, rc: int, col, t0_mono: int | None) -> None:
+        now = time.monotonic_ns()
+        info = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
+                "at_sample": col.last_k(role),
+                "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
+        self.exits[role] = info
+        plant_done = col.plant_done()
+        injected = role in self.kill_sent
+        asked = self.signal is not None or self.stopping or plant_done
+        abnormal = rc != 0 and not (asked and rc in (130, 143, -2, -15))
+        if abnormal:
+            why = f"killed by {info['signal']}" if rc < 0 else f"exit code {rc}"
+            tail = self.log_tail(role)
+            last = tail.splitlines()[-1] if tail else ""
+            fault = {"node": role, "kind": "killed" if rc < 0 else "crashed", "why": why,
+                     "last_log_line": last, "exit_code": rc, "signal": info["signal"],
+                     "at_sample": info["at_sample"], "t_s": info["t_s"], "injected": injected}
+            self.faults.append(fault)
+            print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}"
+                  + (f": {last}" if last else ""), file=sys.stderr)
+
+    def _plant_ok(self, col) -> bool:
+        return col.plant_done() or self.exits.get("plant", {}).get("exit_code") == 0
+
+    def add_liveliness(self, col) -> None:
+        """When each dead node's liveliness token went away (it may trail the process exit)."""
+        for f in self.faults:
+            role = f.get("node")
+            if role is None:
+                continue
+            lost = col.lost_at(role)
+            f["liveliness_lost"] = lost is not None
+            if lost is not None and role in self.kill_sent:
+                f["liveliness_detect_ms"] = round((lost - self.kill_sent[role]) / 1e6, 3)
+
+    def watch(self, session, col) -> str:
+        a = self.args
+        t_launch = time.monotonic()
+        t0_mono = None
+        end_mono = None
+        stopping_since = None
+        while True:
+            if self.signal is not None:
+                return f"interrupted by {signal.Signals(self.signal).name}"
+            if t0_mono is None and col.start is not None:
+                st = col.start
+                t0_mono = st.t0_ns - (time.time_ns() - time.monotonic_ns())
+                end_mono = t0_mono + st.n_steps * st.T_ns + int(10e9)
+            for role, p in self.procs.items():
+                rc = p.poll()
+                if rc is not None and role not in self.exits:
+                    self.record_exit(role, rc, col, t0_mono)
+            if all(r in self.exits for r in self.procs):
+                return "done" if self._plant_ok(col) else "all nodes exited"
+            now = time.monotonic_ns()
+            if t0_mono is None:
+                if time.monotonic() - t_launch > a.startup_timeout:
+                    self.faults.append({"node": None, "kind": "startup_timeout",
+                                        "why": f"no start after {a.startup_timeout:g} s",
+                                        "alive": sorted(col.alive)})
+                    return "startup timeout"
+                if "plant" in self.exits:
+                    return "plant exited before the start"
+            else:
+                for role, sec in self.kills.items():
+                    if role not in self.kill_sent and now >= t0_mono + int(sec * 1e9):
+                        self.kill_sent[role] = time.monotonic_ns()
+                        self._signal_group(role, signal.SIGKILL)
+                if now > end_mono:
+                    self.faults.append({"node": None, "kind": "timeout",
+                                        "why": "nodes still running 10 s after the end of the run"})
+                    return "timeout"
+            if "plant" in self.exits or col.plant_done():
+                # the plant has finished or died: the others stop on its Stop or its liveliness
+                if stopping_since is None:
+                    stopping_since = time.monotonic()
+                    if "plant" in self.exits and not col.plant_done():
+                        session.put(self.keys.stop, msg.Stop(reason="plant died", origin="launcher").encode())
+                elif time.monotonic() - stopping_since > 5.0:
+                    return "done" if self._plant_ok(col) else "plant died"
+            time.sleep(0.01)
+
+    def run(self) -> tuple[int, dict]:
+        import zenoh
+
+        from .nodes.collect import Collector, build_summary
+        from .quantizer import Codebook
+
+        def on_signal(signum, _frame):
+            self.signal = signum
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        conf = transport.make_config(listen=[self.listen], config_file=self.args.zenoh_config)
+        outcome = "?"
+        try:
+            with zenoh.open(conf) as session:
+                col = Collector(session, self.keys)
+                tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR)),
+                          session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR))]
+                try:
+                    self.spawn()
+                    outcome = self.watch(session, col)
+                finally:
+                    self.stop_all(session, outcome)
+                    for r, p in self.procs.items():
+                        if r not in self.exits and p.poll() is not None:
+                            self.record_exit(r, p.returncode, col, None)
+                    time.sleep(0.3)  # late telemetry and summaries
+                    self.add_liveliness(col)
+                    for t in tokens:
+                        t.undeclare()
+                plant = self.sc.make_plant()
+                cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
+                nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
+                summary = build_summary(self.sc, col, run_id=self.run_id, opts=self.opts, nodes=nodes,
+                                        faults=self.faults, codebook=cb)
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+        summary["outcome"] = outcome
+        summary["run_dir"] = str(self.run_dir)
+        if self.signal is not None:
+            code = 128 + self.signal
+        elif self.faults or not summary.get("complete"):
+            code = 1
+        else:
+            code = 0
+        if code == 0 and self.own_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+            summary["run_dir"] = None
+        return code, summary
+
+
+def _fmt(p: dict | None) -> str:
+    if not p or p.get("p50") is None:
+        return "n/a"
+    return f"p50 {p['p50']:.0f} us, p99 {p['p99']:.0f} us, max {p['max']:.0f} us"
+
+
+def print_text(s: dict) -> None:
+    tm = s["timing"]
+    verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
+    print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "
+          f"T = {tm['T_us'] / 1e6:g} s, timing {s['timing_mode']}, outcome: {s['outcome']}")
+    print(f"  {s.get('packets_dropped', 0)} samples lost (attacker dropped {s['attacker']['dropped']}, "
+          f"invalid {s.get('invalid_payloads')}, withheld {len(s['withheld_at'])}), "
+          f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "
+          f"{s.get('encoder_decoder_agree_where_known')}" + ("" if s.get("encoder_decoder_agree") else
+                                                              " (on the samples both recorded)"))
+    fn = s.get("final_norm")
+    print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
+    print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
+    print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
+    for st, v in tm["stages_us"].items():
+        print(f"    {st:18s} {_fmt(v)}")
+    print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}; symbol payload "
+          f"{s['sizes']['symbol_payload_bytes']} B + header {s['sizes']['header_bytes']} B")
+    if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
+        print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
+    for f in s["faults"]:
+        print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
+              + (f" at sample {f['at_sample']}" if f.get("at_sample") is not None else "")
+              + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+    if s.get("run_dir"):
+        print(f"  node logs: {s['run_dir']}")
+
+
+def main_run(args) -> int:
+    launcher = Launcher(args)
+    code, summary = launcher.run()
+    if args.json:
+        json.dump(summary, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print_text(summary)
+    sys.stdout.flush()
+    return code

@@ -1,0 +1,1 @@
+"""Node shells of a live run: plant, encoder, attacker proxy, controller (``testbed node ...``)."""

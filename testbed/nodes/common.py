@@ -1,0 +1,550 @@
+"""What every node of a live run shares: options, the run clock, the Zenoh context.
+
+Clock.  Every node agrees on the run's start instant t0, chosen by the plant (the
+time master) and published in ``Start.t0_ns`` on CLOCK_REALTIME, the only clock
+two hosts can share (keep them in sync with NTP/PTP; the offset between hosts
+shifts the controller's loss deadline and the cross-host latency figures).  Each
+node converts t0 once into its own CLOCK_MONOTONIC and paces and stamps on that
+clock from then on, so a step of the wall clock during a run changes nothing.
+On one host (or in network namespaces of one host) the conversion error is a few
+microseconds.  All stamps are integer ns since t0; sample k is due at t_k = k T_ns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..io import messages as msg
+from ..io import transport
+
+log = logging.getLogger("testbed.nodes")
+
+
+# ============================================================================ run options
+@dataclass(frozen=True)
+class RunOptions:
+    """Options of a live run that every node must share (they enter the start digest).
+
+    Any field left None keeps the scenario's value.
+    """
+
+    duration: float | None = None
+    T: float | None = None
+    timing: str | None = None
+    deadline: float | None = None
+    mode: str | None = None
+    ack_via_attacker: bool = False
+
+    @classmethod
+    def from_args(cls, args) -> "RunOptions":
+        return cls(duration=getattr(args, "duration", None), T=getattr(args, "T", None),
+                   timing=getattr(args, "timing", None), deadline=getattr(args, "deadline", None),
+                   mode=getattr(args, "mode", None),
+                   ack_via_attacker=bool(getattr(args, "ack_via_attacker", False)))
+
+    def cli(self) -> list[str]:
+        """The same options as command-line flags (for the launcher)."""
+        out = []
+        for name, flag in (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"),
+                           ("deadline", "--deadline"), ("mode", "--mode")):
+            v = getattr(self, name)
+            if v is not None:
+                out += [flag, repr(v) if isinstance(v, float) else str(v)]
+        if self.ack_via_attacker:
+            out.append("--ack-via-attacker")
+        return out
+
+
+def add_run_option_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("run options (must be the same for every node of a run)")
+    g.add_argument("--duration", type=float, help="override [run] duration (seconds)")
+    g.add_argument("--T", type=float, metavar="SECONDS",
+                   help="override [quantizer] T, the sample period (re-validates the scenario)")
+    g.add_argument("--timing", choices=["ideal", "physical"], help="override [run] timing")
+    g.add_argument("--deadline", type=float, metavar="FRACTION",
+                   help="override [run] deadline (fraction of T the plant waits for u_k)")
+    g.add_argument("--mode", choices=["ideal", "resilient"], help="override [quantizer] mode")
+    g.add_argument("--ack-via-attacker", action="store_true",
+                   help="route the controller's acks through the attacker proxy too")
+
+
+def load_scenario(ref: str, opts: RunOptions):
+    """Load a scenario and apply the run overrides (validated as if written in the file)."""
+    from .. import scenario
+
+    sc = scenario.load(ref)
+    if opts.duration is None and opts.T is None and opts.timing is None and opts.deadline is None \
+            and opts.mode is None:
+        return sc
+    data = tomllib.loads(sc.source)
+    data.setdefault("run", {})
+    data.setdefault("quantizer", {})
+    if opts.duration is not None:
+        data["run"]["duration"] = float(opts.duration)
+    if opts.timing is not None:
+        data["run"]["timing"] = opts.timing
+    if opts.deadline is not None:
+        data["run"]["deadline"] = float(opts.deadline)
+    if opts.mode is not None:
+        data["quantizer"]["mode"] = opts.mode
+    if opts.T is not None:
+        data["quantizer"]["T"] = float(opts.T)
+    sc2 = scenario.from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source)
+    return dataclasses.replace(sc2, path=sc.path)
+
+
+def T_ns(sc) -> int:
+    return int(round(sc.T * 1e9))
+
+
+def run_digest(sc, opts: RunOptions) -> str:
+    """What all nodes must agree on: the scenario text, the resolved loop and the run options."""
+    d = {"source": sc.source, "K": sc.K.tolist(), "T": sc.T, "n_steps": sc.n_steps,
+         "quantizer": dataclasses.asdict(sc.quantizer), "run": dataclasses.asdict(sc.run),
+         "ack_via_attacker": opts.ack_via_attacker}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def attack_horizon(sc) -> float:
+    """Horizon of the offline DoS schedule: the run's duration, as ``testbed simulate`` uses."""
+    return sc.n_steps * sc.T
+
+
+# ============================================================================ clock
+class RunClock:
+    """ns since t0 on this node's CLOCK_MONOTONIC (t0 given on CLOCK_REALTIME)."""
+
+    def __init__(self, t0_realtime_ns: int):
+        self.t0_realtime_ns = int(t0_realtime_ns)
+        self.t0_mono_ns = self.t0_realtime_ns - realtime_minus_monotonic()
+
+    def now(self) -> int:
+        return time.monotonic_ns() - self.t0_mono_ns
+
+    def sleep_until(self, t_ns: int, spin_ns: int = 0, stop: threading.Event | None = None) -> int:
+        """Sleep until ``t_ns`` (ns since t0): sleep to ``t_ns - spin_ns`` then spin; returns now()."""
+        target = self.t0_mono_ns + t_ns
+        while True:
+            rem = target - time.monotonic_ns()
+            if rem <= spin_ns:
+                break
+            if stop is not None and stop.is_set():
+                return self.now()
+            time.sleep(min((rem - spin_ns) / 1e9, 0.05))
+        while time.monotonic_ns() < target:
+            pass
+        return time.monotonic_ns() - self.t0_mono_ns
+
+
+def realtime_minus_monotonic() -> int:
+    """CLOCK_REALTIME - CLOCK_MONOTONIC in ns (best of a few reads, error ~1 us)."""
+    best = None
+    for _ in range(7):
+        a = time.monotonic_ns()
+        r = time.time_ns()
+        b = time.monotonic_ns()
+        if best is None or b - a < best[0]:
+            best = (b - a, r - (a + b) // 2)
+    return best[1]
+
+
+# ============================================================================ process setup
+_libc = None
+
+
+def _prctl(option: int, arg: int) -> bool:
+    global _libc
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL(None, use_errno=True)
+        return _libc.prctl(option, arg, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def tune_process(parent_pid: int | None = None) -> dict:
+    """Fine timer slack and death with the parent (launcher)."""
+    info = {"timerslack": _prctl(29, 1)}  # PR_SET_TIMERSLACK = 29: 1 ns instead of 50 us
+    if parent_pid:
+        _prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+        if os.getppid() != parent_pid:  # the launcher died before we got here
+            raise SystemExit(f"testbed node: launcher (pid {parent_pid}) is gone")
+    return info
+
+
+def set_realtime(on: bool, priority: int = 1) -> bool:
+    """SCHED_FIFO (``on``) or back to SCHED_OTHER for every thread of this process.
+
+    Applied only for the loop itself (after start-up, JIT and warm-up), so a node
+    never competes at real-time priority while compiling or connecting.  The
+    kernel's RT throttling still leaves 5% of each CPU to everybody else.
+    """
+    policy = os.SCHED_FIFO if on else os.SCHED_OTHER
+    param = os.sched_param(priority if on else 0)
+    ok = True
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setscheduler(int(tid), policy, param)
+        except (OSError, ValueError):
+            ok = False
+    return ok
+
+
+# ============================================================================ zenoh options
+def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--run-id", default=transport.DEFAULT_RUN_ID,
+                   help="key prefix testbed/RUN_ID/... (default %(default)s)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/10.0.0.2:7447 (repeatable)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
+    g.add_argument("--zenoh-config", metavar="FILE",
+                   help="Zenoh JSON5 config read first (e.g. TLS certificates); flags override it")
+
+
+def zenoh_config(args, role: str):
+    """Standalone defaults: the plant listens on tcp/127.0.0.1:7447, the others connect to it."""
+    listen, connect = list(args.listen), list(args.connect)
+    if not listen and not connect and not args.zenoh_config:
+        if role == "plant":
+            listen = [transport.DEFAULT_HUB]
+        else:
+            connect = [transport.DEFAULT_HUB]
+    return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config)
+
+
+# ============================================================================ node context
+class NodeContext:
+    """A node's session, keys, liveliness view, event log and run clock."""
+
+    def __init__(self, role: str, session, sc, opts: RunOptions, keys: transport.Keys):
+        import zenoh
+
+        self._zenoh = zenoh  # first: liveliness callbacks (history=True) may fire during __init__
+        self.role = role
+        self.session = session
+        self.sc = sc
+        self.opts = opts
+        self.keys = keys
+        self.digest = run_digest(sc, opts)
+        self.T_ns = T_ns(sc)
+        self.n_steps = sc.n_steps
+        self.stop = threading.Event()
+        self.stop_reason = ""
+        self.start_msg: msg.Start | None = None
+        self.clock: RunClock | None = None
+        self._start_ev = threading.Event()
+        self._lock = threading.Lock()
+        self.alive: set[str] = set()
+        self.ready: set[str] = set()
+        self._peer_handlers: list = []
+        self._cond = threading.Condition()
+        self.events_sent = 0
+        self.events_suppressed = 0
+        self._ev_window: dict[str, tuple[float, int]] = {}
+        self._ev_lock = threading.Lock()
+        self._ev_pub = session.declare_publisher(keys.events(role), **transport.telemetry_qos())
+        self.telemetry = TelemetryOut(session.declare_publisher(keys.telemetry(role), **transport.telemetry_qos()),
+                                      self.T_ns)
+        self._subs = [
+            session.declare_subscriber(keys.start, self._on_start),
+            session.declare_subscriber(keys.stop, self._on_stop),
+            session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive, history=True),
+            session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True),
+        ]
+        self._tokens = []
+        self.watch_collector = False  # launched by ``testbed run``: stop when the launcher goes away
+
+    # ---- liveliness
+    def _on_alive(self, sample) -> None:
+        node = transport.Keys.node_of(sample.key_expr)
+        gone = sample.kind == self._zenoh.SampleKind.DELETE
+        with self._cond:
+            if gone:
+                self.alive.discard(node)
+            else:
+                self.alive.add(node)
+            self._cond.notify_all()
+        if gone and node == transport.COLLECTOR and self.watch_collector:
+            self.request_stop("launcher lost")
+        for h in self._peer_handlers:
+            try:
+                h(node, not gone)
+            except Exception:  # noqa: BLE001 - a handler bug must not kill the liveliness thread
+                log.exception("peer handler failed")
+
+    def _on_ready(self, sample) -> None:
+        node = transport.Keys.node_of(sample.key_expr)
+        with self._cond:
+            if sample.kind == self._zenoh.SampleKind.DELETE:
+                self.ready.discard(node)
+            else:
+                self.ready.add(node)
+            self._cond.notify_all()
+
+    def on_peer(self, handler) -> None:
+        """``handler(node, alive: bool)`` on every liveliness change (runs on a Zenoh thread)."""
+        self._peer_handlers.append(handler)
+
+    def declare_alive(self) -> None:
+        self._tokens.append(self.session.liveliness().declare_token(self.keys.alive(self.role)))
+
+    def declare_ready(self) -> None:
+        self._tokens.append(self.session.liveliness().declare_token(self.keys.ready(self.role)))
+
+    def wait_for(self, what: str, nodes, timeout: float) -> bool:
+        """Wait until every node of ``nodes`` is in ``self.alive`` / ``self.ready``."""
+        want = set(nodes)
+        end = time.monotonic() + timeout
+        with self._cond:
+            while not want <= getattr(self, what):
+                rem = end - time.monotonic()
+                if rem <= 0 or self.stop.is_set():
+                    return False
+                self._cond.wait(min(rem, 0.1))
+        return True
+
+    def missing(self, what: str, nodes) -> list[str]:
+        with self._cond:
+            return sorted(set(nodes) - getattr(self, what))
+
+    # ---- start / stop
+    def _on_start(self, sample) -> None:
+        try:
+            st = msg.Start.decode(sample.payload)
+        except msg.MessageError as e:
+            self.event("bad_start", detail=str(e))
+            return
+        with self._lock:
+            if self.start_msg is not None:
+                return
+            if st.digest != self.digest:
+                self.event("run_mismatch", detail=f"start digest {st.digest} != mine {self.digest}: "
+                                                  "different scenario or run options")
+                self.request_stop("run mismatch")
+                return
+            self.start_msg = st
+            self.clock = RunClock(st.t0_ns)
+        self._start_ev.set()
+
+    def _on_stop(self, sample) -> None:
+        try:
+            s = msg.Stop.decode(sample.payload)
+            reason = f"stop from {s.origin or '?'}: {s.reason}"
+        except msg.MessageError:
+            reason = "stop"
+        self.request_stop(reason)
+
+    def request_stop(self, reason: str) -> None:
+        if not self.stop.is_set():
+            self.stop_reason = reason
+            self.stop.set()
+        self._start_ev.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait_start(self, timeout: float) -> msg.Start | None:
+        self._start_ev.wait(timeout)
+        return self.start_msg if not self.stop.is_set() else None
+
+    def adopt_start(self, st: msg.Start) -> None:
+        """The plant chose t0 itself."""
+        with self._lock:
+            self.start_msg = st
+            self.clock = RunClock(st.t0_ns)
+        self._start_ev.set()
+
+    def now(self) -> int:
+        return self.clock.now() if self.clock else msg.NO_TIME
+
+    @property
+    def end_ns(self) -> int:
+        """ns since t0 after which nothing of the run can still happen."""
+        return self.n_steps * self.T_ns
+
+    # ---- events
+    EVENTS_PER_SECOND = 20  # per kind; the rest are only counted (``events_suppressed``)
+
+    def event(self, kind: str, k: int = -1, detail: str = "", level: int = logging.WARNING) -> None:
+        """Log and publish an event, at most EVENTS_PER_SECOND of each kind per second."""
+        now = time.monotonic()
+        with self._ev_lock:
+            t_win, n = self._ev_window.get(kind, (now, 0))
+            if now - t_win >= 1.0:
+                t_win, n = now, 0
+            if n >= self.EVENTS_PER_SECOND:
+                self.events_suppressed += 1
+                self._ev_window[kind] = (t_win, n)
+                return
+            self._ev_window[kind] = (t_win, n + 1)
+        e = msg.Event(node=self.role, kind=kind, k=int(k), t_ns=self.now(), detail=detail)
+        log.log(level, "%s: %s k=%d %s", self.role, kind, k, detail)
+        self.events_sent += 1
+        try:
+            self._ev_pub.put(e.encode())
+        except Exception:  # noqa: BLE001 - the session may be closing
+            pass
+
+    def publish_summary(self, data: dict) -> None:
+        s = msg.NodeSummary(node=self.role, data=data)
+        try:
+            self.session.put(self.keys.summary(self.role), s.encode(),
+                             congestion_control=self._zenoh.CongestionControl.BLOCK)
+        except Exception:  # noqa: BLE001
+            log.exception("summary not published")
+
+    def close(self) -> None:
+        for t in self._tokens:
+            try:
+                t.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+
+
+class TelemetryOut:
+    """Per-sample telemetry records, published in batches of at most ~``max_delay`` worth of samples.
+
+    One record per message at T = 0.1 s; at T = 1 ms 20 records every 20 ms, so the
+    per-message cost of Zenoh and of the readers stays off the control loop.  A node
+    killed mid-run loses at most one batch.
+    """
+
+    def __init__(self, pub, T_ns: int, max_delay_ns: int = 20_000_000):
+        self.pub = pub
+        self.n = int(max(1, min(64, max_delay_ns // max(T_ns, 1))))
+        self.buf: list[bytes] = []
+        self.lock = threading.Lock()
+
+    def put(self, record: bytes) -> None:
+        with self.lock:
+            self.buf.append(record)
+            if len(self.buf) < self.n:
+                return
+            data = msg.pack_batch(self.buf)
+            self.buf.clear()
+        self.pub.put(data)
+
+    def flush(self) -> None:
+        with self.lock:
+            if not self.buf:
+                return
+            data = msg.pack_batch(self.buf)
+            self.buf.clear()
+        try:
+            self.pub.put(data)
+        except Exception:  # noqa: BLE001 - the session may be closing
+            pass
+
+
+def warm_publisher(pub, payload: bytes, times: int = 3, pause: float = 0.005) -> None:
+    """First puts on a publisher are slow: send a few with the warm-up index (readers ignore them)."""
+    att = msg.Header(msg.WARMUP_K, 0).encode()
+    for _ in range(times):
+        pub.put(payload, attachment=att)
+        time.sleep(pause)
+
+
+def percentiles(values, unit: float = 1e3) -> dict:
+    """p50 / p99 / max / count of ns values, in microseconds by default (None when empty)."""
+    a = np.asarray([v for v in values if v is not None and v != msg.NO_TIME], dtype=float)
+    if a.size == 0:
+        return {"p50": None, "p99": None, "max": None, "n": 0}
+    return {"p50": float(np.percentile(a, 50) / unit), "p99": float(np.percentile(a, 99) / unit),
+            "max": float(a.max() / unit), "n": int(a.size)}
+
+
+def setup_logging(role: str, verbose: bool) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
+                        format=f"%(asctime)s {role:10s} %(levelname)s %(message)s")
+
+
+# ============================================================================ node base
+class Node:
+    """A node shell: ``setup`` (declare), ``warmup`` (JIT), ``run`` (after the start), ``summary``."""
+
+    role = ""
+
+    def __init__(self, ctx: NodeContext, args):
+        self.ctx = ctx
+        self.args = args
+        self.sc = ctx.sc
+        self.plant = ctx.sc.make_plant()
+        self.crash_at = getattr(args, "crash_at", None)
+        self.malformed = 0
+        self.error: BaseException | None = None
+        self._pubs: list = []
+
+    # -- to override
+    def setup(self) -> None: ...
+
+    def warmup(self) -> None: ...
+
+    def warm_publishers(self) -> None: ...
+
+    def run(self) -> None:
+        self.wait_end()
+
+    def summary(self) -> dict:
+        return {}
+
+    # -- helpers
+    def publisher(self, key: str, control: bool = True):
+        qos = transport.control_qos() if control else transport.telemetry_qos()
+        return self.ctx.session.declare_publisher(key, **qos)
+
+    def guard(self, fn):
+        """Wrap a Zenoh callback: an exception stops the node (exit code 1) instead of vanishing."""
+
+        def wrapped(sample):
+            if self.error is not None:
+                return
+            try:
+                fn(sample)
+            except Exception as e:  # noqa: BLE001
+                self.fail(e)
+
+        return wrapped
+
+    def fail(self, e: BaseException) -> None:
+        if self.error is None:
+            self.error = e
+            import traceback
+
+            tb = "".join(traceback.format_exception(e)).rstrip()
+            log.error("%s crashed:\n%s", self.role, tb)
+            self.ctx.event("crash", detail=f"{type(e).__name__}: {e}", level=logging.ERROR)
+            self.ctx.request_stop(f"crash: {type(e).__name__}: {e}")
+
+    def maybe_crash(self, k: int) -> None:
+        """Fault injection (``--crash-at K``): raise at sample K."""
+        if self.crash_at is not None and k == self.crash_at:
+            raise RuntimeError(f"injected crash of the {self.role} at sample {k}")
+
+    def bad_message(self, what: str, e: Exception, k: int = -1) -> None:
+        self.malformed += 1
+        if self.malformed <= 20:
+            self.ctx.event("malformed", k=k, detail=f"{what}: {e}")
+
+    def wait_end(self, grace_s: float = 5.0) -> None:
+        """Until a stop arrives, or the run's end plus ``grace_s`` (no plant to say so)."""
+        ctx = self.ctx
+        while not ctx.stop.is_set():
+            if ctx.clock is not None and ctx.now() > ctx.end_ns + int(grace_s * 1e9):
+                ctx.request_stop("run over (no stop message)")
+                break
+            ctx.stop.wait(0.05)

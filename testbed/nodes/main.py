@@ -1,0 +1,164 @@
+"""``testbed node plant|encoder|attacker|controller SCENARIO [zenoh options]``: one node of a live run.
+
+Life of a node: open the Zenoh session, declare, warm up (JIT), declare the
+``alive/<role>`` token, wait until the four roles are alive, declare
+``ready/<role>``; the plant then waits for every ``ready`` token and publishes
+``Start`` (t0), the others wait for it; warm up the publishers; run; publish a
+summary; close the session.  SIGINT / SIGTERM, a ``Stop`` message, the loss of
+the plant or the end of the run (+ grace) stop a node cleanly.
+
+Exit codes: 0 stopped cleanly, 1 crashed (traceback on stderr), 2 bad scenario or
+a different run configuration than the plant's, 3 peers missing at startup.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import logging
+import os
+import resource
+import signal
+import sys
+import time
+
+from ..io import transport
+from .common import (NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
+                     set_realtime, setup_logging, tune_process, zenoh_config)
+
+log = logging.getLogger("testbed.nodes")
+
+
+def _classes():
+    from .attacker import AttackerNode
+    from .controller import ControllerNode
+    from .encoder import EncoderNode
+    from .plant import PlantNode
+
+    return {"plant": PlantNode, "encoder": EncoderNode, "attacker": AttackerNode, "controller": ControllerNode}
+
+
+def _netns() -> str | None:
+    try:
+        return os.readlink("/proc/self/ns/net")
+    except OSError:
+        return None
+
+
+def add_arguments_node(p: argparse.ArgumentParser) -> None:
+    p.add_argument("role", choices=transport.ROLES, help="which node to run")
+    p.add_argument("scenario", help="scenario file (.toml) or bundled name")
+    add_run_option_arguments(p)
+    add_zenoh_arguments(p)
+    g = p.add_argument_group("node")
+    g.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
+                   help="give up if the other nodes are not up after S seconds (default %(default)s)")
+    g.add_argument("--realtime", action="store_true", help="run the loop under SCHED_FIFO (needs CAP_SYS_NICE)")
+    g.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
+    g.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
+    g.add_argument("--crash-at", type=int, metavar="K", help="fault injection: raise at sample K")
+    g.add_argument("-v", "--verbose", action="store_true")
+    g = p.add_argument_group("plant")
+    g.add_argument("--wait-collector", action="store_true",
+                   help="also wait for the launcher's collector before starting")
+    g.add_argument("--start-lead", type=float, default=0.5, metavar="S",
+                   help="t0 = now + S once everybody is ready (default %(default)s)")
+    g.add_argument("--spin-us", type=float, metavar="US",
+                   help="busy-wait this long before each sample instant (default min(200, T/10 in us))")
+    g = p.add_argument_group("encoder")
+    g.add_argument("--ack-grace", type=float, metavar="FRACTION",
+                   help="wait this fraction of T for a late ack before withholding (default 0.2 d)")
+    g = p.add_argument_group("controller")
+    g.add_argument("--loss-fraction", type=float, default=0.8, metavar="C",
+                   help="declare sample k lost at t_k + C d T (default %(default)s)")
+    g = p.add_argument_group("attacker")
+    g.add_argument("--corrupt", metavar="K[:range|:length],...",
+                   help="fault injection: corrupt the payload of these samples")
+
+
+def main_node(args) -> int:
+    import zenoh
+
+    role = args.role
+    setup_logging(role, args.verbose)
+    opts = RunOptions.from_args(args)
+    sc = load_scenario(args.scenario, opts)  # ScenarioError -> exit 2 in the CLI
+    tune_process(args.parent_pid)
+    sys.setswitchinterval(1e-4)  # a callback thread waiting for the GIL waits 100 us, not 5 ms
+    holder: dict = {}
+
+    def on_signal(signum, _frame):
+        ctx = holder.get("ctx")
+        if ctx is not None:
+            ctx.request_stop(f"signal {signal.Signals(signum).name}")
+        else:
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    conf = zenoh_config(args, role)
+    code = 0
+    cpu_info: dict = {}
+    with zenoh.open(conf) as session:
+        ctx = NodeContext(role, session, sc, opts, transport.Keys.for_run(args.run_id))
+        holder["ctx"] = ctx
+        ctx.watch_collector = args.launched
+        args.wait_collector = args.wait_collector or args.launched
+        node = _classes()[role](ctx, args)
+        try:
+            node.setup()
+            node.warmup()
+            ctx.declare_alive()
+            if not ctx.wait_for("alive", transport.ROLES, args.ready_timeout):
+                if ctx.stop.is_set():
+                    return 0
+                print(f"testbed node {role}: peers not up after {args.ready_timeout:g} s: "
+                      f"{', '.join(ctx.missing('alive', transport.ROLES))}", file=sys.stderr)
+                return 3
+            ctx.declare_ready()
+            if role == "plant":
+                st = node.start_run(args.start_lead, args.ready_timeout)
+            else:
+                st = ctx.wait_start(args.ready_timeout)
+            if st is None:
+                if ctx.stop_reason == "run mismatch":
+                    print(f"testbed node {role}: the plant runs a different scenario or run options "
+                          f"(digest mismatch)", file=sys.stderr)
+                    return 2
+                if ctx.stop.is_set():
+                    return 0
+                print(f"testbed node {role}: no start after {args.ready_timeout:g} s", file=sys.stderr)
+                return 3
+            node.warm_publishers()
+            log.info("%s: start, t0 = %d, %d samples of %g s", role, st.t0_ns, st.n_steps, st.T_ns / 1e9)
+            # no cyclic-GC pauses in the loop (the loop makes no reference cycles worth collecting)
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+            rt = set_realtime(True) if args.realtime else False
+            ru0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
+            try:
+                node.run()
+            finally:
+                if args.realtime:
+                    set_realtime(False)
+                gc.enable()
+                ru1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
+                cpu = (ru1.ru_utime + ru1.ru_stime) - (ru0.ru_utime + ru0.ru_stime)
+                cpu_info = {"cpu_run_s": round(cpu, 3), "cpu_share": round(cpu / max(w1 - w0, 1e-9), 3),
+                            "sched_fifo": rt}
+        except Exception as e:  # noqa: BLE001 - reported below, exit code 1
+            node.fail(e)
+        ctx.telemetry.flush()
+        data = node.summary()
+        data.update(cpu_info)
+        data["events_sent"], data["events_suppressed"] = ctx.events_sent, ctx.events_suppressed
+        data["stop_reason"] = ctx.stop_reason
+        data["pid"] = os.getpid()
+        data["netns"] = _netns()
+        data["error"] = None if node.error is None else f"{type(node.error).__name__}: {node.error}"
+        ctx.publish_summary(data)
+        ctx.close()
+        if node.error is not None:
+            code = 1
+    return code

@@ -1,0 +1,224 @@
+"""Plant node: samples x_k at t_k = k T on absolute deadlines, holds u, integrates phi_T.
+
+It is also the run's time master: once every node is ready it picks t0 and
+publishes ``Start``; when the last sample is done it publishes ``Stop``.
+
+Timing modes (``[run] timing``), with d = ``[run] deadline``:
+
+* ``ideal``:    u_k acts on [t_k, t_k+1) as in the paper: the plant holds t_k until
+  u_k arrives or d T has passed (then u_k = 0, a deadline miss) and computes
+  x_k+1 = phi_T(x_k, u_k).  A live run reproduces ``testbed simulate`` bit for bit.
+* ``physical``: u_k acts from its arrival t_k + delta_k (u_k-1 is held until then;
+  after d T without u_k the actuator falls back to 0):
+  x_k+1 = phi_{T - delta}(phi_delta(x_k, u_k-1), u_k).  Latency becomes model
+  mismatch that the quantizer has to survive.
+
+If the controller's liveliness token disappears the plant stops waiting and runs
+on with u = 0; the run is marked (``controller_lost_at``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from ..flow import FLOW_OK, STATUS_NAMES, phi_T
+from ..io import messages as msg
+from ..io import transport
+from .common import Node, percentiles
+
+PT = msg.PlantTelemetry
+
+
+class PlantNode(Node):
+    role = "plant"
+
+    def setup(self) -> None:
+        ctx, keys = self.ctx, self.ctx.keys
+        self.pub_sensor = self.publisher(keys.sensor)
+        self.pub_start = ctx.session.declare_publisher(keys.start)
+        self.pub_stop = ctx.session.declare_publisher(keys.stop)
+        self._sub_act = ctx.session.declare_subscriber(keys.actuation, self.guard(self._on_actuation))
+        self._lock = threading.Lock()
+        self._got = threading.Event()
+        self._waiting_k = 0                  # the sample whose u_k the loop needs next
+        self._acts: dict[int, tuple[msg.Actuation, int]] = {}  # u_k that arrived, by k
+        self.controller_dead = False
+        self.controller_lost_at = -1
+        self.late_u = 0
+        self.misses = 0
+        self.no_u = 0
+        self.overruns = 0
+        self.jitter: list[int] = []
+        self.latency: list[int] = []
+        self.k_done = 0
+        self.flow_status = FLOW_OK
+        self.diverged_at = -1
+        self.timing = self.sc.run.timing
+        self.spin_ns = int(self.args.spin_us * 1e3) if self.args.spin_us is not None \
+            else min(200_000, self.ctx.T_ns // 10)
+        ctx.on_peer(self._on_peer)
+
+    def warmup(self) -> None:
+        x0 = self.sc.x0
+        phi_T(self.plant, x0, np.zeros(self.plant.m), self.sc.T, self.sc.flow)
+        phi_T(self.plant, x0, np.zeros(self.plant.m), 0.5 * self.sc.T, self.sc.flow)
+
+    def warm_publishers(self) -> None:
+        from .common import warm_publisher
+
+        warm_publisher(self.pub_sensor, msg.Sensor(0, 0, tuple(self.sc.x0)).encode()[0])
+
+    # ---- callbacks
+    def _on_peer(self, node: str, alive: bool) -> None:
+        if node == "controller" and not alive and self.ctx.start_msg is not None \
+                and not self.controller_dead and not self.ctx.stop.is_set():
+            self.controller_dead = True
+            self.controller_lost_at = self.k_done
+            self.ctx.event("controller_lost", k=self.k_done,
+                           detail="controller liveliness lost: running on with u = 0")
+            self._got.set()
+
+    def _on_actuation(self, sample) -> None:
+        rx = time.monotonic_ns()
+        try:
+            a = msg.Actuation.decode(sample.payload, sample.attachment)
+            if len(a.u) != self.plant.m:
+                raise msg.MessageError(f"u has {len(a.u)} entries, plant has m = {self.plant.m}")
+        except msg.MessageError as e:
+            self.bad_message("actuation", e)
+            return
+        if a.k == msg.WARMUP_K:
+            return
+        with self._lock:
+            if a.k < self._waiting_k or a.k in self._acts:
+                self.late_u += 1
+                return
+            self._acts[a.k] = (a, rx)  # may come before the loop reaches k when the plant runs late
+            if a.k == self._waiting_k:
+                self._got.set()
+
+    # ---- the time master
+    def start_run(self, lead_s: float, timeout: float) -> msg.Start | None:
+        ctx = self.ctx
+        need = set(transport.ROLES) | ({transport.COLLECTOR} if self.args.wait_collector else set())
+        if not ctx.wait_for("ready", need, timeout):
+            if not ctx.stop.is_set():
+                ctx.event("startup_timeout", detail=f"not ready after {timeout:g} s: "
+                                                    f"{', '.join(ctx.missing('ready', need))}")
+                ctx.request_stop("startup timeout")
+            return None
+        st = msg.Start(run_id=ctx.keys.run_id, t0_ns=time.time_ns() + int(lead_s * 1e9), T_ns=ctx.T_ns,
+                       n_steps=ctx.n_steps, digest=ctx.digest, timing=self.timing,
+                       ack_via_attacker=ctx.opts.ack_via_attacker)
+        ctx.adopt_start(st)
+        payload = st.encode()
+
+        def announce():  # repeated until t0: a node that missed one copy gets the next
+            while not ctx.stop.is_set() and ctx.now() < -20_000_000:
+                self.pub_start.put(payload)
+                time.sleep(0.05)
+
+        self.pub_start.put(payload)
+        threading.Thread(target=announce, daemon=True, name="start-announce").start()
+        return st
+
+    # ---- the loop
+    def run(self) -> None:
+        ctx, sc, clock = self.ctx, self.sc, self.ctx.clock
+        T, T_ns, N = sc.T, ctx.T_ns, ctx.n_steps
+        m = self.plant.m
+        d_ns = int(sc.run.deadline * T_ns)
+        physical = self.timing == "physical"
+        x = np.array(sc.x0, dtype=np.float64)
+        u_held = np.zeros(m)
+        zeros = np.zeros(m)
+        tel = ctx.telemetry
+        for k in range(N):
+            if ctx.stop.is_set():
+                break
+            t_act = clock.sleep_until(k * T_ns, self.spin_ns, ctx.stop)
+            if ctx.stop.is_set():
+                break
+            self.maybe_crash(k)
+            with self._lock:
+                self._waiting_k = k
+                if k in self._acts:
+                    self._got.set()
+                else:
+                    self._got.clear()
+            payload, att = msg.Sensor(k, t_act, tuple(x.tolist())).encode()
+            self.pub_sensor.put(payload, attachment=att)
+            sensor_tx = clock.now()
+            # -- hold t_k until u_k or the deadline t_k + d T (ideal), or until u_k acts (physical).
+            # The deadline is nominal: a plant that runs late waits less and catches up.
+            deadline = k * T_ns + d_ns
+            while not self.controller_dead:
+                rem = deadline - clock.now()
+                if rem <= 0 or self._got.wait(rem / 1e9):
+                    break
+            with self._lock:
+                a, rx_mono = self._acts.pop(k, (None, msg.NO_TIME))
+                self._waiting_k = k + 1
+                for old in [j for j in self._acts if j <= k]:
+                    del self._acts[old]
+                    self.late_u += 1
+            flags = 0
+            if a is not None:
+                u = np.array(a.u)
+                theta = a.theta
+                u_rx = rx_mono - clock.t0_mono_ns
+                self.latency.append(u_rx - t_act)
+            else:
+                u, theta, u_rx = zeros, msg.THETA_NONE, msg.NO_TIME
+                flags |= PT.FLAG_NO_U
+                self.no_u += 1
+                if self.controller_dead:
+                    flags |= PT.FLAG_CTRL_DEAD
+                else:
+                    flags |= PT.FLAG_MISS
+                    self.misses += 1
+            jit = t_act - k * T_ns
+            self.jitter.append(jit)
+            if jit > d_ns:
+                self.overruns += 1
+            # -- integrate over [t_k, t_k+1)
+            if physical:
+                delay = min(max(u_rx - t_act, 0), d_ns) if a is not None else max(deadline - t_act, 0)
+                delay = min(delay, T_ns)
+                x_mid, st1 = phi_T(self.plant, x, u_held, delay / 1e9, sc.flow)
+                x_next, st2 = phi_T(self.plant, x_mid, u, T - delay / 1e9, sc.flow)
+                st = int(st1) or int(st2)
+                u_held = u
+            else:
+                delay = 0
+                x_next, st = phi_T(self.plant, x, u, T, sc.flow)
+                st = int(st)
+            tel.put(PT(k=k, t_ns=t_act, sensor_tx_ns=sensor_tx, u_rx_ns=u_rx, delay_ns=delay, theta=theta,
+                       flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u.tolist())).encode())
+            x = x_next
+            self.k_done = k + 1
+            if st != FLOW_OK:
+                self.flow_status, self.diverged_at = st, k
+                ctx.event("flow_diverged", k=k, detail=f"phi_T status {STATUS_NAMES.get(st, st)}: run ends")
+                break
+        self.x_final = x
+        final_k = self.k_done
+        tel.put(PT(k=final_k, t_ns=clock.now(), sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0,
+                   theta=msg.THETA_NONE, flags=PT.FLAG_FINAL, flow_status=self.flow_status,
+                   x=tuple(x.tolist()), u=()).encode())
+        reason = "done" if final_k == N else (f"flow diverged at sample {self.diverged_at}"
+                                               if self.diverged_at >= 0 else ctx.stop_reason or "stopped")
+        tel.flush()
+        self.pub_stop.put(msg.Stop(reason=reason, origin="plant").encode())
+        if not ctx.stop.is_set():
+            ctx.request_stop(reason)
+
+    def summary(self) -> dict:
+        return {"samples": self.k_done, "deadline_misses": self.misses, "u_missing": self.no_u,
+                "late_u": self.late_u, "overruns": self.overruns, "malformed": self.malformed,
+                "controller_lost_at": self.controller_lost_at, "timing": self.timing,
+                "jitter_us": percentiles(self.jitter), "latency_us": percentiles(self.latency),
+                "spin_us": self.spin_ns / 1e3}

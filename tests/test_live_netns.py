@@ -1,0 +1,102 @@
+"""Several hosts: the paper's loop across network namespaces joined by veth links.
+
+Topology: one namespace per node (plant, encoder, attacker, controller) plus one
+for the launcher, each with an ``eth0`` on 10.77.<net>.0/24, all plugged into a
+bridge that lives in a sixth namespace (the "switch").  Nothing is added to the
+host's own namespace.  Every node listens on its own address and connects to the
+launcher; Zenoh gossip then links the nodes directly across the bridge.
+Skipped (with the reason) where namespaces cannot be created (not root, no
+iproute2, no CAP_NET_ADMIN, no veth/bridge support).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from test_live_process import _LOGS, BIT_EXACT_KEYS, TIMEOUT, _node_logs, reap, run_cli, simulate  # noqa: F401
+
+pytestmark = pytest.mark.process
+
+ROLES = ("plant", "encoder", "attacker", "controller")
+
+
+def _ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=20)
+
+
+@pytest.fixture
+def netns():
+    if os.geteuid() != 0:
+        pytest.skip("network namespaces need root (CAP_SYS_ADMIN, CAP_NET_ADMIN)")
+    if shutil.which("ip") is None:
+        pytest.skip("network namespaces need iproute2 ('ip' not found)")
+    tag = secrets.token_hex(3)
+    net = 1 + int(tag, 16) % 250
+    names = {r: f"tb{tag}-{r[:4]}" for r in ("hub", *ROLES)}
+    switch = f"tb{tag}-sw"
+    addr = {r: f"10.77.{net}.{i}" for i, r in enumerate(names, start=1)}
+    created: list[str] = []
+
+    def cleanup():
+        for ns in reversed(created):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
+
+    try:
+        for ns in (switch, *names.values()):
+            _ip("netns", "add", ns)
+            created.append(ns)
+        _ip("-n", switch, "link", "add", "br0", "type", "bridge")
+        _ip("-n", switch, "link", "set", "br0", "up")
+        for i, (role, ns) in enumerate(names.items(), start=1):
+            _ip("-n", switch, "link", "add", f"p{i}", "type", "veth", "peer", "name", "eth0", "netns", ns)
+            _ip("-n", switch, "link", "set", f"p{i}", "master", "br0")
+            _ip("-n", switch, "link", "set", f"p{i}", "up")
+            _ip("-n", ns, "addr", "add", f"{addr[role]}/24", "dev", "eth0")
+            _ip("-n", ns, "link", "set", "eth0", "up")
+            _ip("-n", ns, "link", "set", "lo", "up")
+        if shutil.which("ping"):
+            _ip("netns", "exec", names["plant"], "ping", "-c", "1", "-W", "2", addr["controller"])
+    except (subprocess.CalledProcessError, subprocess.TimeoutExpired, OSError) as e:
+        cleanup()
+        reason = getattr(e, "stderr", None) or str(e)
+        pytest.skip(f"cannot build network namespaces with veth links here: {reason.strip()}")
+    try:
+        yield names, addr
+    finally:
+        cleanup()
+        left = [ns for ns in created if ns in subprocess.run(["ip", "netns", "list"], capture_output=True,
+                                                             text=True).stdout]
+        assert not left, f"namespaces left behind: {left}"
+
+
+def test_paper_across_network_namespaces(netns):
+    names, addr = netns
+    run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
+    port = 7447
+    cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
+           "--duration", "5", "--json", "--run-id", run_id, "--listen", f"tcp/{addr['hub']}:{port}",
+           "--run-dir", os.path.join(_LOGS, run_id)]
+    for r in ROLES:
+        cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}=tcp/{addr[r]}:0"]
+    try:
+        rc, out, err = run_cli(cmd, TIMEOUT)
+    finally:
+        left = reap(run_id)
+    assert not left, f"orphans: {left}"
+    s = json.loads(out)
+    assert rc == 0, (s["faults"], err[-3000:])
+    # every node ran in its own network namespace
+    netns_ids = {r: s["node_summaries"][r]["netns"] for r in ROLES}
+    assert len(set(netns_ids.values())) == 4, netns_ids
+    assert os.readlink("/proc/self/ns/net") not in netns_ids.values()
+    sim = simulate("paper", 5)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], key
+    assert s["timing"]["deadline_misses"] == 0

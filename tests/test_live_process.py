@@ -1,0 +1,381 @@
+"""Process tier: real ``testbed run`` / ``testbed node`` processes over Zenoh on loopback.
+
+Run with ``pytest -m process``.  Every test uses its own run id (key prefix) and
+port, runs under a timeout, and checks that no process of its run survives.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+import pytest
+
+pytestmark = pytest.mark.process
+
+PY = sys.executable
+TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))  # JIT warm-up of 4 nodes on 2 cores
+
+
+def tb_cmd(*args) -> list[str]:
+    return [PY, "-m", "testbed.cli", *args]
+
+
+def procs_with(token: str) -> list[int]:
+    """Pids whose command line contains ``token`` (this process excluded)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit() or int(d) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{d}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if token in cmd:
+            out.append(int(d))
+    return out
+
+
+def reap(token: str, wait: float = 5.0) -> list[int]:
+    """Wait for processes of a run to go, SIGKILL whatever is left; returns the leftovers."""
+    end = time.monotonic() + wait
+    left = procs_with(token)
+    while left and time.monotonic() < end:
+        time.sleep(0.1)
+        left = procs_with(token)
+    for pid in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    return left
+
+
+def run_cli(cmd: list[str], timeout: float = TIMEOUT):
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        out, err = p.communicate()
+        pytest.fail(f"{' '.join(cmd)} did not finish in {timeout} s\n{err[-3000:]}")
+    return p.returncode, out, err
+
+
+_LOGS = tempfile.mkdtemp(prefix="testbed-live-tests-")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _node_logs():
+    """Node logs of runs with faults go to one directory, removed after the session."""
+    yield
+    shutil.rmtree(_LOGS, ignore_errors=True)
+
+
+def live(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
+    """``testbed run SCENARIO --json`` -> (exit code, summary, stderr)."""
+    rc, out, err = run_cli(tb_cmd("run", scenario, "--json", "--run-id", run_id,
+                                  "--run-dir", os.path.join(_LOGS, run_id), *args), timeout)
+    try:
+        summary = json.loads(out)
+    except json.JSONDecodeError:
+        pytest.fail(f"no JSON summary (exit {rc})\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
+    return rc, summary, err
+
+
+@pytest.fixture
+def run_id():
+    rid = f"t{os.getpid()}x{secrets.token_hex(4)}"
+    yield rid
+    left = reap(rid)
+    assert not left, f"orphan processes of run {rid}: {left}"
+
+
+def simulate(scenario: str, duration: float) -> dict:
+    rc, out, err = run_cli(tb_cmd("simulate", scenario, "--duration", str(duration), "--json"))
+    assert rc == 0, err
+    return json.loads(out)
+
+
+BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "saturated_at", "x_final")
+
+
+# ====================================================================== ideal timing: bit for bit
+@pytest.fixture(scope="module")
+def paper_run():
+    rid = f"t{os.getpid()}xpaper{secrets.token_hex(3)}"
+    try:
+        yield live(rid, "paper", "--duration", "5")
+    finally:
+        left = reap(rid)
+        assert not left
+
+
+def test_paper_live_equals_simulator_bit_for_bit(paper_run):
+    rc, s, err = paper_run
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["complete"] and s["samples"] == 50 and s["outcome"] == "done"
+    sim5 = simulate("paper", 5)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim5[key], key
+    # ... and the same samples of the full 30 s `testbed simulate paper`
+    sim30 = simulate("paper", 30)
+    for key in ("symbols", "theta", "E", "E_dec", "xi", "x", "u"):
+        assert s[key] == sim30[key][:50], key
+    assert s["encoder_decoder_agree"] is True
+    # the paper's bursts [1.0, 2.2] and [4.0, 4.8]: samples 10..22 and 40..48
+    assert sum(s["theta"]) == 22 and s["attacker"]["dropped"] == 22
+
+
+def test_paper_live_reports_sizes_and_timing(paper_run):
+    _, s, _ = paper_run
+    assert s["sizes"]["symbol_payload_bytes"] == 1 and s["sizes"]["header_bytes"] == 12
+    tm = s["timing"]
+    # a stalled machine may make the controller's u_k = 0 for a *dropped* sample late (40 ms loss
+    # deadline vs the plant's 50 ms); a received sample never missed (the bit-exact test shows it)
+    assert tm["deadline_misses"] == len(s["deadline_missed_at"]) <= 1
+    assert all(s["theta"][k] == 1 for k in s["deadline_missed_at"])
+    assert tm["sampling_jitter_us"]["n"] == 50
+    assert tm["sensor_to_actuator_us"]["n"] == 28  # the 28 samples that reached the controller
+    for stage in ("encoder", "proxy", "controller", "plant"):
+        assert tm["stages_us"][stage]["n"] > 0
+    assert tm["sensor_to_actuator_us"]["p50"] < 0.5 * 100_000  # well inside the 50 ms deadline
+    # the attacker published its status on both edges of both bursts
+    assert [st["attack_on"] for st in s["attacker_status"]][:2] == [True, False]
+    for r in ("plant", "encoder", "attacker", "controller"):
+        assert s["nodes"][r]["exit_code"] == 0
+        assert r in s["node_summaries"]
+
+
+def test_greedy_attacker_live_equals_simulator(run_id):
+    rc, s, err = live(run_id, "paper-greedy", "--duration", "4")
+    assert rc == 0, (s["faults"], err[-2000:])
+    sim = simulate("paper-greedy", 4)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], key
+    assert s["node_summaries"]["attacker"]["missing_scores"] == 0
+
+
+# ====================================================================== faults
+def test_malformed_and_out_of_range_payloads_are_losses(run_id):
+    """The attacker corrupts samples 4 (out-of-range code) and 6 (wrong length)."""
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--corrupt", "4:range,6:length")
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["invalid_payloads"] == 2
+    assert s["theta"][4] == 1 and s["theta"][6] == 1 and s["symbols"][4] != -1
+    assert s["loss_reasons"]["invalid"] == 2
+    assert [e["k"] for e in s["event_log"] if e["kind"] == "invalid_payload"] == [4, 6]
+    # the loop is exactly the simulator's with two extra losses
+    from testbed import scenario
+    from testbed.simulate import OnlineAttacker, simulate_loop
+
+    sc = scenario.load("paper")
+    th = sc.theta(30).copy()
+    th[[4, 6]] = 1
+    res = simulate_loop(sc.make_plant(), sc.K, sc.quantizer, sc.x0, 30, OnlineAttacker(theta=th, T=sc.T), sc.flow)
+    assert s["E"] == res.E_enc.tolist() and s["x"] == res.x.tolist()
+
+
+def test_garbage_on_the_wire_is_counted(run_id):
+    """Garbage published straight onto the controller's input: counted and logged, the run goes on."""
+    import zenoh
+
+    from testbed.io import transport
+
+    port = transport.free_port()
+    keys = transport.Keys.for_run(run_id)
+    p = subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id, "--duration", "4",
+                                "--run-dir", os.path.join(_LOGS, run_id), "--listen", f"tcp/127.0.0.1:{port}"),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        conf = transport.make_config(connect=[f"tcp/127.0.0.1:{port}"])
+        with zenoh.open(conf) as session:
+            got = []
+            sub = session.declare_subscriber(keys.telemetry("plant"), lambda smp: got.append(1))
+            end = time.monotonic() + TIMEOUT
+            while len(got) < 5 and time.monotonic() < end and p.poll() is None:
+                time.sleep(0.05)
+            session.put(keys.symbol_rx, b"\x01\x02\x03")                          # no header
+            session.put(keys.symbol_rx, b"\x01", attachment=b"\x00" * 5)          # bad header
+            session.put(keys.actuation, b"\x00", attachment=b"\x00" * 12)         # bad actuation
+            time.sleep(0.3)
+            sub.undeclare()
+        out, err = p.communicate(timeout=TIMEOUT)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    s = json.loads(out)
+    assert p.returncode == 0, (s["faults"], err[-2000:])
+    assert s["malformed"]["controller"] == 2
+    assert s["malformed"]["plant"] == 1
+    assert s["complete"]
+
+
+def _after(s, k0):
+    return range(k0 + 2, s["samples"])
+
+
+def test_controller_killed_plant_runs_on_with_zero_input(run_id):
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", "controller@1.05")
+    assert rc == 1
+    (f,) = [f for f in s["faults"] if f["node"] == "controller"]
+    assert f["kind"] == "killed" and f["signal"] == "SIGKILL" and f["injected"]
+    assert f["liveliness_lost"] and f["liveliness_detect_ms"] < 1000
+    assert "controller died" in err
+    k0 = s["controller_lost_at"]
+    assert 9 <= k0 <= 12
+    assert s["complete"] and s["samples"] == 30  # the plant ran to the end
+    assert all(s["u"][k] == [0.0] for k in _after(s, k0))
+    assert s["timing"]["u_missing"] >= 30 - k0 - 1
+    assert s["events"].get("controller_lost") == 1
+
+
+@pytest.mark.parametrize("node", ["encoder", "attacker"])
+def test_uplink_node_killed_controller_counts_losses(run_id, node):
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", f"{node}@0.55")
+    assert rc == 1
+    (f,) = [f for f in s["faults"] if f["node"] == node]
+    assert f["kind"] == "killed" and f["liveliness_lost"]
+    assert s["complete"]
+    k0 = f["at_sample"]
+    assert 4 <= k0 <= 7
+    assert all(s["theta"][k] == 1 for k in _after(s, k0))
+    assert s["loss_reasons"]["deadline"] >= 30 - k0 - 2
+    # the controller still answers every sample (u = 0) before the plant's deadline (10 ms margin)
+    assert s["timing"]["deadline_misses"] <= 1
+    assert any(e["kind"] == "peer_lost" and node in e["detail"] for e in s["event_log"])
+
+
+def test_node_crash_is_reported_with_its_reason(run_id):
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--crash", "controller@8")
+    assert rc == 1
+    (f,) = [f for f in s["faults"] if f["node"] == "controller"]
+    assert f["kind"] == "crashed" and f["exit_code"] == 1
+    assert "injected crash of the controller at sample 8" in f["last_log_line"]
+    assert 8 <= s["controller_lost_at"] <= 11
+    assert s["complete"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_launcher_signal_stops_everything(run_id, sig):
+    p = subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id, "--duration", "30",
+                                "--run-dir", os.path.join(_LOGS, run_id)),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        end = time.monotonic() + TIMEOUT
+        while len(procs_with(run_id)) < 5 and time.monotonic() < end:  # launcher + 4 nodes
+            time.sleep(0.1)
+        time.sleep(1.0)
+        t = time.monotonic()
+        p.send_signal(sig)
+        out, err = p.communicate(timeout=30)
+        assert time.monotonic() - t < 15
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == 128 + sig
+    s = json.loads(out)
+    assert s["outcome"].startswith("interrupted")
+    assert reap(run_id, wait=3.0) == []
+
+
+# ====================================================================== ack channel, timing modes
+def test_ack_through_the_attacker_keeps_lockstep(run_id):
+    rc, s, err = live(run_id, "paper", "--duration", "6", "--ack-via-attacker")
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["attacker"]["acks_dropped"] >= 13
+    ns = s["node_summaries"]["encoder"]
+    assert ns["desync_episodes"] >= 1 and ns["inconsistent_acks"] == 0
+    # wherever both ends recorded xi_k, E_k they are identical: no desync, ever
+    known = [k for k in range(s["samples"]) if s["E"][k] is not None and s["E_dec"][k] is not None]
+    assert len(known) == s["samples"] - len(s["withheld_at"]) > 30
+    assert all(s["E"][k] == s["E_dec"][k] and s["xi"][k] == s["xi_dec"][k] for k in known)
+    assert s["encoder_decoder_agree_where_known"] is True
+    # withholding happens only while the jammer is on (or right after)
+    assert set(s["withheld_at"]) <= set(range(10, 24)) | set(range(40, 50))
+    assert s["saturations"] == 0
+
+
+def test_physical_timing_survives_latency(run_id, tmp_path):
+    """u_k acts when it arrives: the latency is model mismatch, answered by the saturation protocol.
+
+    Without DoS (the paper's loop, attack removed), x_k leaves Q(xi_k, E_k) whenever
+    E_k has zoomed in below the mismatch; the encoder sends OVERFLOW, both ends zoom
+    out in lockstep and the state keeps decaying.
+    """
+    from testbed import scenario
+
+    text = scenario.load("paper").source.replace('kind = "intervals"', 'kind = "none"')
+    text = "\n".join(line for line in text.splitlines() if not line.startswith("intervals"))
+    f = tmp_path / "paper-no-dos.toml"
+    f.write_text(text)
+    rc, s, err = live(run_id, str(f), "--duration", "6", "--timing", "physical")
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["timing_mode"] == "physical" and s["complete"]
+    assert s["encoder_decoder_agree"] is True
+    assert sum(s["theta"]) == 0
+    assert s["timing"]["sensor_to_actuator_us"]["n"] == 60
+    # every saturation was answered with the OVERFLOW codeword (M^n = 36), u_k = 0 there
+    assert all(s["symbols"][k] == 36 and s["u"][k] == [0.0] for k in s["saturated_at"])
+    assert not s["diverged"] and s["final_norm"] < 0.1
+
+
+def test_standalone_nodes(run_id):
+    """Four ``testbed node`` processes started by hand (no launcher) run a scenario to the end."""
+    from testbed.io import transport
+
+    port = transport.free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    procs = {}
+    try:
+        for role in ("encoder", "attacker", "controller", "plant"):  # plant last: others retry the connect
+            net = ["--listen", ep] if role == "plant" else ["--connect", ep]
+            procs[role] = subprocess.Popen(tb_cmd("node", role, "paper", "--duration", "2", "--run-id", run_id,
+                                                   *net), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                           text=True, start_new_session=True)
+        outs = {r: p.communicate(timeout=TIMEOUT)[0] for r, p in procs.items()}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.communicate()
+    for r, p in procs.items():
+        assert p.returncode == 0, (r, outs[r][-2000:])
+
+
+def test_mismatched_run_options_are_refused(run_id):
+    """A node started with other run options than the plant's does not join the run."""
+    from testbed.io import transport
+
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    procs = {}
+    try:
+        for role in ("plant", "encoder", "attacker", "controller"):
+            extra = ["--duration", "3" if role == "controller" else "2"]
+            net = ["--listen", ep] if role == "plant" else ["--connect", ep]
+            procs[role] = subprocess.Popen(tb_cmd("node", role, "paper", "--run-id", run_id, "--ready-timeout",
+                                                   "60", *extra, *net), stdout=subprocess.PIPE,
+                                           stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        out = procs["controller"].communicate(timeout=TIMEOUT)[0]
+        assert procs["controller"].returncode == 2, out[-2000:]
+        assert "digest mismatch" in out
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.communicate()
