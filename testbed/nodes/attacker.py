@@ -160,12 +160,8 @@ class AttackerNode(Node):
         if clock is None:
             return
         rx = clock.now()
-        try:
-            h = msg.Header.decode(sample.attachment)
-        except msg.MessageError as e:
-            self.bad_message("symbol header (dropped)", e)
-            return
-        if h.warmup:
+        h = self.rx_header(sample, "symbol header (dropped)")
+        if h is None:
             return
         k = h.k
         self.maybe_crash(k)
@@ -200,12 +196,8 @@ class AttackerNode(Node):
         return payload + b"\xff"
 
     def _on_ack(self, sample) -> None:
-        try:
-            h = msg.Header.decode(sample.attachment)
-        except msg.MessageError as e:
-            self.bad_message("ack header (dropped)", e)
-            return
-        if h.warmup:
+        h = self.rx_header(sample, "ack header (dropped)")
+        if h is None:
             return
         if h.k < self.ctx.n_steps and self.decide(h.k, wait_score=False):
             self.acks_dropped += 1

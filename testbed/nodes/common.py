@@ -540,6 +540,15 @@ class Node:
         if self.malformed <= 20:
             self.ctx.event("malformed", k=k, detail=f"{what}: {e}")
 
+    def rx_header(self, sample, what: str):
+        """The sample's header, or None for a warm-up put or a malformed header (counted)."""
+        try:
+            h = msg.Header.decode(sample.attachment)
+        except msg.MessageError as e:
+            self.bad_message(what, e)
+            return None
+        return None if h.warmup else h
+
     def wait_end(self, grace_s: float = 5.0) -> None:
         """Until a stop arrives, or the run's end plus ``grace_s`` (no plant to say so)."""
         ctx = self.ctx

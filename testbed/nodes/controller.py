@@ -94,12 +94,8 @@ class ControllerNode(Node):
         if clock is None:
             return
         rx = clock.now()
-        try:
-            h = msg.Header.decode(sample.attachment)
-        except msg.MessageError as e:
-            self.bad_message("symbol header", e)
-            return
-        if h.warmup:
+        h = self.rx_header(sample, "symbol header")
+        if h is None:
             return
         k = h.k
         with self._cond:
