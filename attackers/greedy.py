@@ -28,6 +28,8 @@ import math
 import numba
 import numpy as np
 
+from .budget import _check_nonneg
+
 __all__ = [
     "GREEDY_STATE_SIZE",
     "GREEDY_PARAMS_SIZE",
@@ -85,15 +87,7 @@ def greedy_params(kappa_F, rho_F, kappa_D, rho_D, threshold=0.0) -> np.ndarray:
         ("rho_D", rho_D),
         ("threshold", threshold),
     ):
-        if isinstance(v, (bool, np.bool_)):
-            raise ValueError(f"greedy attacker: {name} must be a real number, got bool {v!r}")
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"greedy attacker: {name} must be a real number, got {v!r}") from None
-        if not math.isfinite(f) or f < 0.0:
-            raise ValueError(f"greedy attacker: {name}={v!r} must be finite and >= 0")
-        vals[name] = f
+        vals[name] = _check_nonneg(f"greedy attacker: {name}", v)
     if vals["rho_D"] >= 1.0:
         raise ValueError(
             f"greedy attacker: rho_D={rho_D!r} must be < 1 (Assumption 4: rho_D in [0, 1))"

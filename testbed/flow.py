@@ -19,7 +19,6 @@ method); divergence is reported as a status code, never as NaN:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numba as nb

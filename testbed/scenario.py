@@ -20,7 +20,7 @@ from attackers import generators as attack_generators
 
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .flow import FlowOptions
-from .quantizer import MODES, QuantizerParams
+from .quantizer import QuantizerParams
 
 BUNDLED_DIR = "scenarios"
 
@@ -89,10 +89,6 @@ class RunSpec:
     converge_tol: float = 1e-4
     timing: str = "ideal"          # live plant: "ideal" | "physical"
     deadline: float = 0.5          # live plant, ideal timing: fraction of T to wait for u_k
-
-    @property
-    def __dict_for_json__(self):  # pragma: no cover
-        return self.__dict__
 
 
 @dataclass(frozen=True)

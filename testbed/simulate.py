@@ -25,7 +25,7 @@ import numpy as np
 from attackers.greedy import greedy_init, greedy_step
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into, phi_T
-from .quantizer import (MODE_NONE, MODE_RESILIENT, MODES, Decoder, Encoder, QuantizerParams,
+from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
 SCORE_STATE = 0  # greedy attacker hurts where ||x_k||_inf is largest
@@ -378,8 +378,6 @@ def summarize(sc, res: SimResult) -> dict:
     escaped = diverged or not bool(in_nominal_roa(plant, res.K, sc.T, res.x_final[None, :], tol=tol,
                                                    flow=sc.flow)[0])
     sch = res.intervals()
-    from .quantizer import Codebook
-
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     return {
         "scenario": sc.name,
