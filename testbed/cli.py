@@ -30,6 +30,7 @@ for _name, _mod, _help in [
     ("sweep", "testbed.analysis.cli", "empirical DoS tolerance over (rho_F, rho_D)"),
     ("run", "testbed.launcher", "run a scenario live: four processes over Zenoh"),
     ("node", "testbed.nodes.main", "run one node of a live run"),
+    ("record", "testbed.nodes.recorder", "record a live run to MCAP (testbed run starts one itself)"),
     ("report", "testbed.report", "post-mortem of a recording"),
     ("replay", "testbed.io.viewer", "open a recording in Rerun"),
 ]:

@@ -12,21 +12,28 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object with every sample")
     p.add_argument("--duration", type=float, help="override [run] duration (seconds)")
     p.add_argument("--mode", choices=["ideal", "resilient"], help="override [quantizer] mode")
+    p.add_argument("--out", metavar="PATH.mcap",
+                   help="also write the run as an MCAP recording (the topics of a live run; see testbed report)")
+    p.add_argument("--rrd", metavar="PATH.rrd", help="also write a Rerun recording of the run (see testbed replay)")
 
 
 def main_simulate(args) -> int:
-    import dataclasses
-
     from . import scenario
     from .simulate import simulate_scenario, summarize
 
-    sc = scenario.load(args.scenario)
-    if args.mode:
-        sc = dataclasses.replace(sc, quantizer=dataclasses.replace(sc.quantizer, mode=args.mode))
-    if args.duration:
-        sc = dataclasses.replace(sc, run=dataclasses.replace(sc.run, duration=args.duration))
+    overrides = {"mode": args.mode, "duration": args.duration}
+    sc = scenario.with_overrides(scenario.load(args.scenario), overrides)
     res = simulate_scenario(sc)
     out = summarize(sc, res)
+    if args.out:
+        from .io.recording import record_simulation
+
+        record_simulation(args.out, sc, res, overrides={k: v for k, v in overrides.items() if v is not None},
+                          ref=args.scenario)
+    if args.rrd:
+        from .io.viewer import simulation_to_rrd
+
+        simulation_to_rrd(args.rrd, sc, res)
     if args.json:
         json.dump(out, sys.stdout)
         sys.stdout.write("\n")
@@ -40,6 +47,10 @@ def main_simulate(args) -> int:
               f"{out['encoder_decoder_agree']}")
         print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}"
               + (f" (flow diverged at sample {out['diverged_at']})" if out["diverged"] else ""))
+        if args.out:
+            print(f"  recording: {args.out}")
+        if args.rrd:
+            print(f"  rerun recording: {args.rrd}")
     return 0
 
 

@@ -34,6 +34,14 @@ from .io import messages as msg
 from .io import transport
 from .nodes.common import RunOptions, add_run_option_arguments, load_scenario
 
+RECORDER = "recorder"
+
+
+def recording_default_path(name: str) -> Path:
+    from .io.recording import default_path
+
+    return default_path(name)
+
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file (.toml) or bundled name")
@@ -50,6 +58,12 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
+    g = p.add_argument_group("recording")
+    g.add_argument("--record", metavar="PATH.mcap",
+                   help="recording file (default recordings/<scenario>-<UTC start>.mcap)")
+    g.add_argument("--no-record", action="store_true", help="do not record the run")
+    g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
+                   help="also record the control-path messages (auto: when T >= 10 ms)")
     g = p.add_argument_group("run control")
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the nodes are not running after S seconds (default %(default)s)")
@@ -61,20 +75,20 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
     g = p.add_argument_group("fault injection")
     g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
-                   help="SIGKILL a node SECONDS after t0 (repeatable)")
+                   help="SIGKILL a node (or the recorder) SECONDS after t0 (repeatable)")
     g.add_argument("--crash", action="append", default=[], metavar="ROLE@K",
                    help="make a node raise at sample K (repeatable)")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="the attacker corrupts the payload of these samples")
 
 
-def _pairs(items, sep, what) -> dict[str, str]:
+def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
     out = {}
     for it in items:
         role, s, val = it.partition(sep)
-        if not s or role not in transport.ROLES:
+        if not s or role not in roles:
             raise SystemExit(f"testbed run: {what} must be ROLE{sep}VALUE with ROLE in "
-                             f"{', '.join(transport.ROLES)}, got {it!r}")
+                             f"{', '.join(roles)}, got {it!r}")
         out[role] = val
     return out
 
@@ -92,7 +106,7 @@ class Launcher:
         self.node_connect = args.node_connect or self.listen
         self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
         self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
-        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill").items()}
+        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, RECORDER)).items()}
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
         self.own_dir = args.run_dir is None
         self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
@@ -103,12 +117,16 @@ class Launcher:
         self.kill_sent: dict[str, int] = {}
         self.signal: int | None = None
         self.stopping = False
+        self.record_path = None if args.no_record else Path(args.record or recording_default_path(self.sc.name))
+        self.recorder: subprocess.Popen | None = None
+        self.recorder_exit: dict | None = None
+        self._faults_published = 0
 
     # ---- processes
     def command(self, role: str) -> list[str]:
         a = self.args
         cmd = shlex.split(self.node_prefix.get(role, ""))
-        cmd += [sys.executable, "-m", "testbed.cli", "node", role, self.scenario_ref, *self.opts.cli(),
+        cmd += [sys.executable, "-P", "-m", "testbed.cli", "node", role, self.scenario_ref, *self.opts.cli(),
                 "--run-id", self.run_id, "--connect", self.node_connect,
                 "--listen", self.node_listen.get(role, transport.LOOPBACK_ANY),
                 "--ready-timeout", str(a.startup_timeout), "--launched"]
@@ -132,6 +150,90 @@ class Launcher:
         if role == "attacker" and a.corrupt:
             cmd += ["--corrupt", a.corrupt]
         return cmd
+
+    def recorder_command(self) -> list[str]:
+        a = self.args
+        cmd = [sys.executable, "-P", "-m", "testbed.cli", "record", self.scenario_ref, *self.opts.cli(),
+               "--run-id", self.run_id, "--connect", self.node_connect, "--listen", transport.LOOPBACK_ANY,
+               "--out", str(self.record_path), "--loop", a.record_loop, "--launched",
+               "--parent-pid", str(os.getpid()), "--scenario-ref", a.scenario]
+        if a.zenoh_config:
+            cmd += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
+        if a.verbose:
+            cmd.append("--verbose")
+        return cmd
+
+    def spawn_recorder(self, col) -> bool:
+        """Start the recorder and wait for its ready token (False: it died or never came up)."""
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        log = open(self.run_dir / f"{RECORDER}.log", "wb")
+        self.recorder = subprocess.Popen(self.recorder_command(), stdin=subprocess.DEVNULL, stdout=log,
+                                         stderr=subprocess.STDOUT, start_new_session=True, env=env)
+        log.close()
+        end = time.monotonic() + self.args.startup_timeout
+        while time.monotonic() < end and self.signal is None:
+            if RECORDER in col.ready_nodes():
+                return True
+            if self.recorder.poll() is not None:
+                break
+            time.sleep(0.02)
+        rc = self.recorder.poll()
+        self.faults.append({"node": RECORDER, "kind": "startup_failed",
+                            "why": f"exit code {rc}" if rc is not None else "not ready in time",
+                            "last_log_line": (self.log_tail(RECORDER).splitlines() or [""])[-1]})
+        return False
+
+    def check_recorder(self, col, t0_mono: int | None) -> None:
+        if self.recorder is None or self.recorder_exit is not None:
+            return
+        rc = self.recorder.poll()
+        if rc is None:
+            return
+        now = time.monotonic_ns()
+        self.recorder_exit = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
+                              "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
+        if not self.stopping:
+            why = f"killed by {self.recorder_exit['signal']}" if rc < 0 else f"exit code {rc}"
+            self.faults.append({"node": RECORDER, "kind": "killed" if rc < 0 else "crashed", "why": why,
+                                "t_s": self.recorder_exit["t_s"], "injected": RECORDER in self.kill_sent,
+                                "last_log_line": (self.log_tail(RECORDER).splitlines() or [""])[-1]})
+            print(f"testbed run: the recorder died ({why}); the run goes on unrecorded, the file keeps "
+                  f"what was flushed: {self.record_path}", file=sys.stderr)
+
+    def recording_info(self) -> dict | None:
+        if self.record_path is None:
+            return None
+        ok = self.recorder_exit is not None and self.recorder_exit["exit_code"] == 0
+        return {"path": str(self.record_path), "complete": ok, "recorder_exit": self.recorder_exit,
+                "log": str(self.run_dir / f"{RECORDER}.log")}
+
+    def publish_faults(self, session) -> None:
+        """Each new fault as an ``Event`` of node ``launcher`` (so the recording has it)."""
+        while self._faults_published < len(self.faults):
+            f = self.faults[self._faults_published]
+            self._faults_published += 1
+            k = f.get("at_sample")
+            e = msg.Event(node="launcher", kind=f"{f.get('node') or 'run'}_{f['kind']}",
+                          k=-1 if k is None else int(k), detail=json.dumps(f, default=str))
+            try:
+                session.put(self.keys.events("launcher"), e.encode())
+            except Exception:  # noqa: BLE001 - the session may be closing
+                pass
+
+    def stop_recorder(self, grace: float = 15.0) -> None:
+        p = self.recorder
+        if p is None or p.poll() is not None:
+            return
+        try:
+            os.killpg(p.pid, signal.SIGINT)
+        except ProcessLookupError:
+            return
+        try:
+            p.wait(grace)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(5)
 
     def spawn(self) -> None:
         env = dict(os.environ)
@@ -235,6 +337,8 @@ class Launcher:
                 rc = p.poll()
                 if rc is not None and role not in self.exits:
                     self.record_exit(role, rc, col, t0_mono)
+            self.check_recorder(col, t0_mono)
+            self.publish_faults(session)
             if all(r in self.exits for r in self.procs):
                 return "done" if self._plant_ok(col) else "all nodes exited"
             now = time.monotonic_ns()
@@ -250,7 +354,11 @@ class Launcher:
                 for role, sec in self.kills.items():
                     if role not in self.kill_sent and now >= t0_mono + int(sec * 1e9):
                         self.kill_sent[role] = time.monotonic_ns()
-                        self._signal_group(role, signal.SIGKILL)
+                        if role == RECORDER:
+                            if self.recorder is not None and self.recorder.poll() is None:
+                                os.killpg(self.recorder.pid, signal.SIGKILL)
+                        else:
+                            self._signal_group(role, signal.SIGKILL)
                 if now > end_mono:
                     self.faults.append({"node": None, "kind": "timeout",
                                         "why": "nodes still running 10 s after the end of the run"})
@@ -268,7 +376,8 @@ class Launcher:
     def run(self) -> tuple[int, dict]:
         import zenoh
 
-        from .nodes.collect import Collector, build_summary
+        from .nodes.collect import Collector
+        from .runsummary import build_summary
         from .quantizer import Codebook
 
         def on_signal(signum, _frame):
@@ -280,11 +389,15 @@ class Launcher:
         try:
             with zenoh.open(conf) as session:
                 col = Collector(session, self.keys)
-                tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR)),
-                          session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR))]
+                tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
                 try:
-                    self.spawn()
-                    outcome = self.watch(session, col)
+                    # the plant starts once the collector is ready: after the recorder is
+                    if self.record_path is not None and not self.spawn_recorder(col):
+                        outcome = "recorder did not start"
+                    else:
+                        tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
+                        self.spawn()
+                        outcome = self.watch(session, col)
                 finally:
                     self.stop_all(session, outcome)
                     for r, p in self.procs.items():
@@ -292,17 +405,32 @@ class Launcher:
                             self.record_exit(r, p.returncode, col, None)
                     time.sleep(0.3)  # late telemetry and summaries
                     self.add_liveliness(col)
-                    for t in tokens:
-                        t.undeclare()
+                    self.check_recorder(col, None)
+                    self.publish_faults(session)
                 plant = self.sc.make_plant()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
-                summary = build_summary(self.sc, col, run_id=self.run_id, opts=self.opts, nodes=nodes,
+                summary = build_summary(self.sc, col.snapshot(), run_id=self.run_id,
+                                        ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
                                         faults=self.faults, codebook=cb)
+                summary["outcome"] = outcome
+                try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
+                    launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
+                    session.put(self.keys.summary("launcher"),
+                                msg.NodeSummary(node="launcher", data=launcher_view).encode())
+                    time.sleep(0.1)
+                except Exception:  # noqa: BLE001
+                    pass
+                self.stop_recorder()
+                self.check_recorder(col, None)
+                for t in tokens:
+                    t.undeclare()
+                summary["recording"] = self.recording_info()
         finally:
+            if self.recorder is not None and self.recorder.poll() is None:  # an exception above
+                self.stop_recorder()
             for s, h in old.items():
                 signal.signal(s, h)
-        summary["outcome"] = outcome
         summary["run_dir"] = str(self.run_dir)
         if self.signal is not None:
             code = 128 + self.signal
@@ -346,6 +474,10 @@ def print_text(s: dict) -> None:
         print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
               + (f" at sample {f['at_sample']}" if f.get("at_sample") is not None else "")
               + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+    rec = s.get("recording")
+    if rec:
+        print(f"  recording: {rec['path']}" + ("" if rec["complete"] else " (INCOMPLETE: the recorder did not "
+                                                                          "finish; readable up to its last flush)"))
     if s.get("run_dir"):
         print(f"  node logs: {s['run_dir']}")
 

@@ -7,6 +7,7 @@ wrong.  The full schema is documented in the README ("Scenario files").
 from __future__ import annotations
 
 import math
+import dataclasses
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -379,3 +380,27 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>") -> Scen
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
     return from_dict(data, name=name, where=where, source=text)
+
+
+#: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
+OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
+             "mode": ("quantizer", "mode"), "T": ("quantizer", "T")}
+
+
+def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
+    """``sc`` with run-time overrides applied and validated as if written in its file.
+
+    ``sc.source`` stays the original text; recordings store the overrides beside it.
+    """
+    over = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if not over:
+        return sc
+    unknown = set(over) - set(OVERRIDES)
+    if unknown:
+        raise ScenarioError(f"unknown override(s): {', '.join(sorted(unknown))}")
+    data = tomllib.loads(sc.source)
+    for k, v in over.items():
+        table, key = OVERRIDES[k]
+        data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+    sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source)
+    return dataclasses.replace(sc2, path=sc.path)

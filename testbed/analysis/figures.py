@@ -68,7 +68,11 @@ def plot_time_series(res, path, *, title: str = "", intervals=None):
         axs[1].step(t, res.u[:, j], where="post", lw=1.2, label=f"$u_{j + 1}$" if res.u.shape[1] > 1 else "$u$")
     axs[1].set_ylabel("input $u$")
     E = np.maximum(res.E_enc, 1e-300)
-    axs[2].semilogy(t, E, lw=1.2, color="C3")
+    axs[2].semilogy(t, E, lw=1.2, color="C3", label="encoder")
+    E_dec = getattr(res, "E_dec", None)
+    if E_dec is not None and np.any(np.isfinite(E_dec)):
+        axs[2].semilogy(t, np.maximum(E_dec, 1e-300), lw=1.0, ls="--", color="k", label="decoder")
+        axs[2].legend(loc="upper right", fontsize=8)
     axs[2].set_ylabel("range $E_k$")
     axs[2].set_xlabel("time $t$ [s]")
     for ax in axs:

@@ -23,13 +23,12 @@ import signal
 import sys
 import threading
 import time
-import tomllib
 from dataclasses import dataclass
 
-import numpy as np
 
 from ..io import messages as msg
 from ..io import transport
+from ..runsummary import percentiles  # noqa: F401 - re-exported for the nodes
 
 log = logging.getLogger("testbed.nodes")
 
@@ -55,6 +54,11 @@ class RunOptions:
                    timing=getattr(args, "timing", None), deadline=getattr(args, "deadline", None),
                    mode=getattr(args, "mode", None),
                    ack_via_attacker=bool(getattr(args, "ack_via_attacker", False)))
+
+    def overrides(self) -> dict:
+        """The scenario overrides (``testbed.scenario.with_overrides``), None fields left out."""
+        return {k: getattr(self, k) for k in ("duration", "T", "timing", "deadline", "mode")
+                if getattr(self, k) is not None}
 
     def cli(self) -> list[str]:
         """The same options as command-line flags (for the launcher)."""
@@ -86,25 +90,7 @@ def load_scenario(ref: str, opts: RunOptions):
     """Load a scenario and apply the run overrides (validated as if written in the file)."""
     from .. import scenario
 
-    sc = scenario.load(ref)
-    if opts.duration is None and opts.T is None and opts.timing is None and opts.deadline is None \
-            and opts.mode is None:
-        return sc
-    data = tomllib.loads(sc.source)
-    data.setdefault("run", {})
-    data.setdefault("quantizer", {})
-    if opts.duration is not None:
-        data["run"]["duration"] = float(opts.duration)
-    if opts.timing is not None:
-        data["run"]["timing"] = opts.timing
-    if opts.deadline is not None:
-        data["run"]["deadline"] = float(opts.deadline)
-    if opts.mode is not None:
-        data["quantizer"]["mode"] = opts.mode
-    if opts.T is not None:
-        data["quantizer"]["T"] = float(opts.T)
-    sc2 = scenario.from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source)
-    return dataclasses.replace(sc2, path=sc.path)
+    return scenario.with_overrides(scenario.load(ref), opts.overrides())
 
 
 def T_ns(sc) -> int:
@@ -457,15 +443,6 @@ def warm_publisher(pub, payload: bytes, times: int = 3, pause: float = 0.005) ->
     for _ in range(times):
         pub.put(payload, attachment=att)
         time.sleep(pause)
-
-
-def percentiles(values, unit: float = 1e3) -> dict:
-    """p50 / p99 / max / count of ns values, in microseconds by default (None when empty)."""
-    a = np.asarray([v for v in values if v is not None and v != msg.NO_TIME], dtype=float)
-    if a.size == 0:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    return {"p50": float(np.percentile(a, 50) / unit), "p99": float(np.percentile(a, 99) / unit),
-            "max": float(a.max() / unit), "n": int(a.size)}
 
 
 def setup_logging(role: str, verbose: bool) -> None:

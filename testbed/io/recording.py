@@ -1,0 +1,455 @@
+"""MCAP recordings of runs (live or simulated): one writer, one reader, one set of topics.
+
+Topics are the run's Zenoh keys without the ``testbed/<run_id>`` prefix; every
+channel is protobuf (``testbed.io.schema``):
+
+=========================  ==========================  ===============================================
+topic                      schema                      content
+=========================  ==========================  ===============================================
+``/telemetry/plant``       ``testbed.PlantSample``     x_k, u_k, theta_k as received, timing, flags;
+                                                       the final state x_N has flag bit 3
+``/telemetry/encoder``     ``testbed.EncoderSample``   symbol, xi_k, E_k, q_k, saturation (Algorithm 1)
+``/telemetry/controller``  ``testbed.ControllerSample``  xi_k, E_k, theta_k, q_k, u_k (Algorithm 2)
+``/telemetry/attacker``    ``testbed.AttackerSample``  dropped / forwarded, attack on, totals
+``/loop/sensor``           ``testbed.Sensor``          control path as it crossed the network
+``/loop/symbol/tx|rx``     ``testbed.Symbol``          (live runs; at T >= 10 ms by default,
+``/loop/actuation``        ``testbed.Actuation``       see ``testbed record --loop``)
+``/loop/ack/tx|rx``        ``testbed.Ack``
+``/attacker/status``       ``testbed.AttackerStatus``  every switch of the attack
+``/events/<node>``         ``testbed.Event``           saturations, faults, peers lost, node deaths
+``/summary/<node>``        ``testbed.NodeSummary``     a node's counters and timing at exit
+``/control/start|stop``    ``testbed.RunStart|RunStop``  t0 and the run's identity; stops
+``/liveliness``            ``testbed.Liveliness``      nodes appearing and going away
+``/recorder/malformed``    ``testbed.Malformed``       anything that did not decode, as received
+=========================  ==========================  ===============================================
+
+Metadata records: ``testbed.scenario`` (name, TOML text, reference),
+``testbed.software`` (versions), ``testbed.run`` (source live|simulate, run id,
+host, command line, options), and at a clean close ``testbed.recorder``
+(message counts).  ``log_time`` is when the recorder got a message
+(CLOCK_REALTIME ns; t0 + k T in a simulation), ``publish_time`` t0 plus the
+message's own time stamp when it has one.
+
+Crash safety: the writer closes its chunk and flushes the file at least every
+``flush_interval`` (0.5 s), so a recorder killed with SIGKILL leaves a file whose
+every complete chunk ``read`` recovers (``Recording.truncated`` is then True).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import threading
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from . import messages as msg
+from . import schema
+
+PROFILE = "testbed"           # MCAP header profile
+FORMAT_VERSION = "1"          # bump when a topic or field changes meaning
+
+TELEMETRY_TOPICS = {r: f"/telemetry/{r}" for r in ("plant", "encoder", "controller", "attacker")}
+TELEMETRY_SCHEMA = {"plant": "PlantSample", "encoder": "EncoderSample", "controller": "ControllerSample",
+                    "attacker": "AttackerSample"}
+LOOP_TOPICS = {"/loop/sensor": "Sensor", "/loop/symbol/tx": "Symbol", "/loop/symbol/rx": "Symbol",
+               "/loop/actuation": "Actuation", "/loop/ack/tx": "Ack", "/loop/ack/rx": "Ack"}
+FIXED_TOPICS = {"/attacker/status": "AttackerStatus", "/control/start": "RunStart", "/control/stop": "RunStop",
+                "/liveliness": "Liveliness", "/recorder/malformed": "Malformed"}
+
+
+def schema_for_topic(topic: str) -> str | None:
+    """The schema name a topic carries (None: not a topic of a recording)."""
+    for role, t in TELEMETRY_TOPICS.items():
+        if topic == t:
+            return TELEMETRY_SCHEMA[role]
+    if topic in LOOP_TOPICS:
+        return LOOP_TOPICS[topic]
+    if topic in FIXED_TOPICS:
+        return FIXED_TOPICS[topic]
+    if topic.startswith("/events/"):
+        return "Event"
+    if topic.startswith("/summary/"):
+        return "NodeSummary"
+    return None
+
+
+def default_path(scenario_name: str, when: float | None = None, directory: str | Path = "recordings") -> Path:
+    """``recordings/<scenario>-<UTC start, YYYYmmdd-HHMMSS>.mcap`` (a suffix avoids overwriting)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(time.time() if when is None else when))
+    base = Path(directory) / f"{scenario_name}-{stamp}"
+    p = base.with_suffix(".mcap")
+    i = 1
+    while p.exists():
+        p = Path(f"{base}-{i}.mcap")
+        i += 1
+    return p
+
+
+def software_versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": sys.version.split()[0], "platform": platform.platform(), "format": FORMAT_VERSION}
+    for dist in ("dos-testbed", "numpy", "scipy", "numba", "eclipse-zenoh", "mcap", "protobuf", "rerun-sdk"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "not installed"
+    try:
+        import subprocess
+
+        root = Path(__file__).resolve().parents[2]
+        if (root / ".git").exists():
+            r = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                               text=True, timeout=5)
+            if r.returncode == 0:
+                out["git"] = r.stdout.strip()
+    except Exception:  # noqa: BLE001 - git is optional
+        pass
+    return out
+
+
+def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
+    return {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name}
+
+
+class RecordingWriter:
+    """Thread-safe MCAP writer of protobuf messages, flushed at least every ``flush_interval`` seconds."""
+
+    def __init__(self, path: str | Path, *, flush_interval: float = 0.5, chunk_size: int = 1 << 20,
+                 compression: str = "zstd"):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb")
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=comp)
+        self._w.start(profile=PROFILE, library=f"testbed-recorder/{FORMAT_VERSION}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self.flush_interval = float(flush_interval)
+        self._last_flush = time.monotonic()
+        self.counts: Counter = Counter()
+        self.closed = False
+
+    def _channel(self, topic: str, name: str) -> int:
+        ch = self._channels.get(topic)
+        if ch is None:
+            sid = self._schemas.get(name)
+            if sid is None:
+                sid = self._w.register_schema(name=schema.full_name(name), encoding="protobuf",
+                                              data=schema.file_descriptor_set())
+                self._schemas[name] = sid
+            ch = self._w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
+            self._channels[topic] = ch
+        return ch
+
+    def metadata(self, name: str, data: dict) -> None:
+        clean = {str(k): v if isinstance(v, str) else json.dumps(v, default=str) for k, v in data.items()}
+        with self._lock:
+            if not self.closed:
+                self._w.add_metadata(name, clean)
+                self._f.flush()
+
+    def write(self, topic: str, obj, log_time: int, publish_time: int | None = None,
+              name: str | None = None) -> None:
+        """``obj``: a ``testbed.io.messages`` dataclass, a dict with the schema's fields, or a protobuf message."""
+        if name is None:
+            name = schema_for_topic(topic)
+            if name is None:
+                raise ValueError(f"{topic!r} is not a topic of a recording")
+        data = obj.SerializeToString() if hasattr(obj, "SerializeToString") else \
+            schema.to_pb(obj, name).SerializeToString()
+        self.write_bytes(topic, name, data, log_time, publish_time)
+
+    def write_bytes(self, topic: str, name: str, data: bytes, log_time: int, publish_time: int | None = None) -> None:
+        log_time = int(log_time)
+        with self._lock:
+            if self.closed:
+                return
+            ch = self._channel(topic, name)
+            self._w.add_message(channel_id=ch, log_time=max(log_time, 0),
+                                data=data, publish_time=max(int(log_time if publish_time is None else publish_time), 0))
+            self.counts[topic] += 1
+            if time.monotonic() - self._last_flush >= self.flush_interval:
+                self._flush_locked()
+
+    def maybe_flush(self) -> None:
+        with self._lock:
+            if not self.closed and time.monotonic() - self._last_flush >= self.flush_interval:
+                self._flush_locked()
+
+    def flush(self) -> None:
+        with self._lock:
+            if not self.closed:
+                self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        self._w.flush()   # closes the chunk in progress and flushes the stream (no fsync: a killed
+        self._last_flush = time.monotonic()  # process's written data survives in the page cache)
+
+    def close(self, recorder_stats: dict | None = None) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            stats = {"messages": sum(self.counts.values()), "per_topic": dict(self.counts)}
+            if recorder_stats:
+                stats.update(recorder_stats)
+            self._w.add_metadata("testbed.recorder", {k: json.dumps(v) for k, v in stats.items()})
+            self._w.finish()
+            self._f.close()
+            self.closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# ============================================================================ reading
+@dataclass
+class Recording:
+    """Everything in one recording, decoded (``read``)."""
+
+    path: str
+    truncated: bool = False
+    read_error: str | None = None
+    metadata: dict[str, dict] = field(default_factory=dict)
+    start: msg.Start | None = None
+    stops: list[msg.Stop] = field(default_factory=list)
+    telemetry: dict[str, dict[int, object]] = field(default_factory=lambda: {r: {} for r in TELEMETRY_TOPICS})
+    plant_final: msg.PlantTelemetry | None = None
+    events: list[msg.Event] = field(default_factory=list)
+    status: list[msg.AttackerStatus] = field(default_factory=list)
+    summaries: dict[str, dict] = field(default_factory=dict)
+    liveliness: list[tuple[int, str, str, bool]] = field(default_factory=list)  # (log ns, node, token, present)
+    loop: dict[str, list] = field(default_factory=lambda: defaultdict(list))
+    malformed: list[dict] = field(default_factory=list)
+    counts: Counter = field(default_factory=Counter)
+    duplicates: int = 0
+    last_log_time: int = 0
+
+    @property
+    def source(self) -> str:
+        return self.metadata.get("testbed.run", {}).get("source", "?")
+
+    @property
+    def scenario_toml(self) -> str | None:
+        return self.metadata.get("testbed.scenario", {}).get("toml")
+
+    def scenario(self):
+        """The scenario the run used, rebuilt from the TOML stored in the recording."""
+        from ..scenario import loads, with_overrides
+
+        toml = self.scenario_toml
+        if not toml:
+            raise ValueError(f"{self.path}: no scenario in the recording's metadata")
+        meta = self.metadata.get("testbed.scenario", {})
+        sc = loads(toml, name=meta.get("name", "recorded"))
+        over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
+        return with_overrides(sc, json.loads(over)) if over else sc
+
+
+def _records(f):
+    """Every record of an MCAP stream; stops quietly (``truncated``) where a crash cut the file."""
+    from mcap.stream_reader import StreamReader
+
+    return StreamReader(f, skip_magic=False, emit_chunks=False).records
+
+
+def read(path: str | Path, *, loop: bool = True) -> Recording:
+    """Decode a recording.  A file cut short by a crash is read up to its last complete chunk."""
+    from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
+
+    path = Path(path)
+    rec = Recording(path=str(path))
+    with open(path, "rb") as f:
+        head = f.read(8)
+        if head != b"\x89MCAP0\r\n":
+            raise ValueError(f"{path}: not an MCAP file")
+        f.seek(0)
+        schemas: dict[int, dict[str, type]] = {}
+        schema_names: dict[int, str] = {}
+        channels: dict[int, tuple[str, str, type | None]] = {}
+        seen_footer = False
+        it = iter(_records(f))
+        while True:
+            try:
+                r = next(it)
+            except StopIteration:
+                break
+            except Exception as e:  # noqa: BLE001 - a truncated or corrupt tail
+                rec.truncated = True
+                rec.read_error = f"{type(e).__name__}: {e}"
+                break
+            if isinstance(r, Message):
+                ch = channels.get(r.channel_id)
+                if ch is None:
+                    continue
+                topic, name, cls = ch
+                rec.counts[topic] += 1
+                rec.last_log_time = max(rec.last_log_time, r.log_time)
+                if cls is None or (not loop and topic.startswith("/loop/")):
+                    continue
+                try:
+                    m = cls.FromString(r.data)
+                except Exception as e:  # noqa: BLE001 - protobuf DecodeError
+                    rec.malformed.append({"topic": topic, "error": str(e)})
+                    continue
+                _dispatch(rec, topic, name, m, r.log_time)
+            elif isinstance(r, Schema):
+                if r.encoding == "protobuf":
+                    try:
+                        schemas[r.id] = schema.classes_from(r.data) if r.data != schema.file_descriptor_set() \
+                            else {schema.full_name(k): v for k, v in schema.classes().items()}
+                    except Exception:  # noqa: BLE001
+                        schemas[r.id] = {}
+                schema_names[r.id] = r.name
+            elif isinstance(r, Channel):
+                full = schema_names.get(r.schema_id, "")
+                cls = schemas.get(r.schema_id, {}).get(full)
+                channels[r.id] = (r.topic, full.rsplit(".", 1)[-1], cls)
+            elif isinstance(r, Metadata):
+                rec.metadata[r.name] = dict(r.metadata)
+            elif isinstance(r, (DataEnd, Footer)):
+                seen_footer = seen_footer or isinstance(r, Footer)
+        if not seen_footer:
+            rec.truncated = True
+    return rec
+
+
+def _dispatch(rec: Recording, topic: str, name: str, m, log_time: int) -> None:
+    if name in ("PlantSample", "EncoderSample", "ControllerSample", "AttackerSample"):
+        role = topic.rsplit("/", 1)[-1]
+        t = schema.from_pb(m, name)
+        if name == "PlantSample" and t.flags & msg.PlantTelemetry.FLAG_FINAL:
+            rec.plant_final = t
+            return
+        d = rec.telemetry.setdefault(role, {})
+        if t.k in d:
+            rec.duplicates += 1
+        d[t.k] = t
+    elif name == "Event":
+        rec.events.append(schema.from_pb(m, name))
+    elif name == "AttackerStatus":
+        rec.status.append(schema.from_pb(m, name))
+    elif name == "RunStart":
+        if rec.start is None:
+            rec.start = schema.from_pb(m, name)
+    elif name == "RunStop":
+        rec.stops.append(schema.from_pb(m, name))
+    elif name == "NodeSummary":
+        try:
+            rec.summaries[m.node] = json.loads(m.json)
+        except ValueError:
+            rec.summaries[m.node] = {"unparsed": m.json}
+    elif name == "Liveliness":
+        rec.liveliness.append((log_time, m.node, m.token, m.present))
+    elif name == "Malformed":
+        rec.malformed.append({"topic": topic, "key": m.key, "error": m.error})
+    elif topic.startswith("/loop/"):
+        rec.loop[topic].append(schema.from_pb(m, name))
+
+
+def open_plain(path: str | Path):
+    """Messages through the plain ``mcap`` reader (for checks): [(topic, schema name, log_time, data)]."""
+    from mcap.reader import make_reader
+
+    out = []
+    with open(path, "rb") as f:
+        for sch, ch, m in make_reader(f).iter_messages():
+            out.append((ch.topic, sch.name if sch else None, m.log_time, m.data))
+    return out
+
+
+def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref: str | None = None,
+                        extra: dict | None = None) -> None:
+    """The metadata every recording starts with."""
+    w.metadata("testbed.scenario", scenario_metadata(sc, ref))
+    w.metadata("testbed.software", software_versions())
+    run = {"source": source, "run_id": run_id, "host": platform.node(), "pid": str(os.getpid()),
+           "command": " ".join(sys.argv), "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if extra:
+        run.update({k: v if isinstance(v, str) else json.dumps(v, default=str) for k, v in extra.items()})
+    w.metadata("testbed.run", run)
+
+
+def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
+                      t0_ns: int | None = None, flush_interval: float = 5.0) -> dict:
+    """Write a simulated run (``testbed.simulate.SimResult``) with the topics and schemas of a live run.
+
+    Times are nominal and latencies zero (t_k = k T, every message at its sample
+    instant); t0 is the wall-clock time of the call.  Returns the writer's counts.
+    """
+    import numpy as np
+
+    from ..quantizer import Codebook
+
+    t0 = time.time_ns() if t0_ns is None else int(t0_ns)
+    Tn = int(round(sc.T * 1e9))
+    N = len(res.t)
+    plant = sc.make_plant()
+    cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    run_id = f"sim-{sc.name}-{t0}"
+    w = RecordingWriter(path, flush_interval=flush_interval)
+    try:
+        write_text_metadata(w, sc, source="simulate", run_id=run_id, ref=ref,
+                            extra={"scenario_overrides": overrides or {}, "bits": cb.bits})
+        start = msg.Start(run_id=run_id, t0_ns=t0, T_ns=Tn, n_steps=sc.n_steps, digest="", timing="ideal",
+                          ack_via_attacker=False)
+        w.write("/control/start", start, t0)
+        theta = np.asarray(res.theta, dtype=np.int64)
+        sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
+        attack_on = np.asarray(sched.theta_samples(sc.T, N), dtype=bool) if N else np.zeros(0, bool)
+        attack_on |= theta.astype(bool)
+        dropped_total = np.cumsum(theta)
+        prev_on = False
+        for k in range(N):
+            tk = k * Tn
+            lt = t0 + tk
+            th = int(theta[k])
+            w.write("/telemetry/plant", msg.PlantTelemetry(
+                k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=tk, delay_ns=0, theta=th, flags=0,
+                flow_status=int(res.flow_status) if k == res.diverged_at else 0,
+                x=tuple(res.x[k]), u=tuple(res.u[k])), lt)
+            sym = int(res.symbols[k])
+            w.write("/telemetry/encoder", msg.EncoderTelemetry(
+                k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym, saturated=int(res.saturated[k]), silent=0,
+                E=float(res.E_enc[k]), xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k])), lt)
+            if res.saturated[k]:
+                w.write("/events/encoder", msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
+                                                     detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"), lt)
+            on = bool(attack_on[k])
+            w.write("/telemetry/attacker", msg.AttackerTelemetry(
+                k=k, rx_ns=tk, tx_ns=msg.NO_TIME if th else tk, dropped=th, corrupted=0, attack_on=int(on),
+                dropped_total=int(dropped_total[k]), forwarded_total=int(k + 1 - dropped_total[k])), lt)
+            if on != prev_on:
+                w.write("/attacker/status", msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
+                                                               forwarded=int(k + 1 - dropped_total[k])), lt)
+                prev_on = on
+            w.write("/telemetry/controller", msg.ControllerTelemetry(
+                k=k, sym_stamp_ns=msg.NO_TIME if th else tk, rx_ns=msg.NO_TIME if th else tk, tx_ns=tk,
+                symbol=-1 if th else sym, theta=th,
+                reason=msg.ControllerTelemetry.DEADLINE if th else msg.ControllerTelemetry.RECEIVED,
+                E=float(res.E_dec[k]), xi=tuple(res.xi_dec[k]), q=tuple(res.q[k]), u=tuple(res.u[k])), lt)
+        tN = N * Tn
+        w.write("/telemetry/plant", msg.PlantTelemetry(
+            k=N, t_ns=tN, sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0, theta=msg.THETA_NONE,
+            flags=msg.PlantTelemetry.FLAG_FINAL, flow_status=int(res.flow_status),
+            x=tuple(np.asarray(res.x_final, dtype=float)), u=()), t0 + tN)
+        w.write("/control/stop", msg.Stop(reason="end of run", origin="simulator"), t0 + tN)
+    finally:
+        w.close()
+    return dict(w.counts)
+
+
+__all__ = ["RecordingWriter", "Recording", "read", "open_plain", "default_path", "schema_for_topic",
+           "record_simulation", "TELEMETRY_TOPICS", "LOOP_TOPICS", "software_versions", "write_text_metadata"]
+

@@ -1,0 +1,278 @@
+"""``testbed record SCENARIO --run-id ID --out RUN.mcap``: the recorder node of a live run.
+
+The recorder is a Zenoh peer like the four loop nodes: it subscribes to the
+run's keys and writes what crossed the network to one MCAP file
+(``testbed.io.recording``).  ``testbed run`` starts it before the loop nodes
+and lets the plant start only once it is ready, so a recording holds a run
+from its first sample; a recorder started by hand records whatever it sees.
+
+Off the loop's path: a Zenoh callback only appends the raw bytes and the
+arrival time to a queue; a writer thread decodes, converts to protobuf and
+writes.  The control path (``loop/*``: five messages a sample) is recorded by
+default only when T >= 10 ms (``--loop auto``); telemetry carries every value
+of it anyway.  The file is flushed at least every ``--flush`` seconds, so a
+recorder killed with SIGKILL loses at most that much.
+
+It stops on SIGINT / SIGTERM, when the launcher goes away (``--launched``),
+or by itself ``--linger`` seconds after the plant's ``Stop``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from ..io import messages as msg
+from ..io import recording, transport
+from .common import RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, tune_process
+
+log = logging.getLogger("testbed.recorder")
+ROLE = "recorder"
+
+_LOOP_TYPES = {"loop/sensor": msg.Sensor, "loop/symbol/tx": msg.Symbol, "loop/symbol/rx": msg.Symbol,
+               "loop/actuation": msg.Actuation, "loop/ack/tx": msg.Ack, "loop/ack/rx": msg.Ack}
+_JSON_TYPES = {"attacker/status": msg.AttackerStatus, "control/start": msg.Start, "control/stop": msg.Stop}
+
+
+def _stamp(t) -> int:
+    """The record's own time (ns since t0) for ``publish_time``."""
+    for f in ("t_ns", "tx_ns", "rx_ns"):
+        v = getattr(t, f, msg.NO_TIME)
+        if v != msg.NO_TIME:
+            return v
+    return msg.NO_TIME
+
+
+class Recorder:
+    """Subscribes to one run and writes it to ``writer``; ``close()`` drains and finishes the file."""
+
+    def __init__(self, session, keys: transport.Keys, writer: recording.RecordingWriter, *, loop: bool):
+        import zenoh
+
+        self._zenoh = zenoh
+        self.keys = keys
+        self.w = writer
+        self.loop = loop
+        self.q: collections.deque = collections.deque()
+        self.t0: int | None = None
+        self.received = 0
+        self.written = 0
+        self.warmup = 0
+        self.malformed = 0
+        self.max_queue = 0
+        self.write_errors = 0
+        self.stop_seen: msg.Stop | None = None
+        self.stop_seen_mono = 0.0
+        self.lost: dict[str, float] = {}
+        self._done = threading.Event()
+        self._wake = threading.Event()
+        self._thread = threading.Thread(target=self._writer, name="recorder-writer", daemon=True)
+        self._thread.start()
+        p = keys.prefix
+        self._plen = len(p) + 1
+        if loop:
+            keyexprs = [f"{p}/**"]
+        else:
+            keyexprs = [f"{p}/telemetry/*", f"{p}/events/*", f"{p}/summary/*", keys.attacker_status,
+                        f"{p}/control/*"]
+        self._subs = [session.declare_subscriber(k, self._on_sample) for k in keyexprs]
+        self._subs += [session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive, history=True),
+                       session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True)]
+
+    # ---- Zenoh threads: just enqueue
+    def _on_sample(self, sample) -> None:
+        att = sample.attachment
+        self.q.append((str(sample.key_expr), sample.payload.to_bytes(), None if att is None else att.to_bytes(),
+                       time.time_ns()))
+        self.received += 1
+        self._wake.set()
+
+    def _liveliness(self, sample, token: str) -> None:
+        node = transport.Keys.node_of(sample.key_expr)
+        present = sample.kind != self._zenoh.SampleKind.DELETE
+        self.q.append(("", None, (node, token, present), time.time_ns()))
+        if not present and token == "alive":
+            self.lost[node] = time.monotonic()
+        self._wake.set()
+
+    def _on_alive(self, sample) -> None:
+        self._liveliness(sample, "alive")
+
+    def _on_ready(self, sample) -> None:
+        self._liveliness(sample, "ready")
+
+    # ---- writer thread
+    def _writer(self) -> None:
+        while True:
+            self._wake.wait(0.1)
+            self._wake.clear()
+            self.max_queue = max(self.max_queue, len(self.q))
+            while self.q:
+                item = self.q.popleft()
+                try:
+                    self._write(*item)
+                except Exception:  # noqa: BLE001 - never lose the recording over one message
+                    self.write_errors += 1
+                    log.exception("recorder: could not write a message")
+            self.w.maybe_flush()
+            if self._done.is_set() and not self.q:
+                return
+
+    def _pub(self, stamp: int, log_time: int) -> int:
+        return log_time if self.t0 is None or stamp == msg.NO_TIME else self.t0 + stamp
+
+    def _malformed(self, key: str, payload: bytes, attachment: bytes | None, error: str, log_time: int) -> None:
+        self.malformed += 1
+        self.w.write("/recorder/malformed", {"key": key, "payload": payload, "attachment": attachment or b"",
+                                             "error": error}, log_time)
+
+    def _write(self, key: str, payload, attachment, log_time: int) -> None:
+        if not key:  # liveliness
+            node, token, present = attachment
+            self.w.write("/liveliness", {"node": node, "token": token, "present": present}, log_time)
+            return
+        rel = key[self._plen:]
+        topic = "/" + rel
+        try:
+            if rel.startswith("telemetry/"):
+                role = rel[len("telemetry/"):]
+                typ = msg.TELEMETRY_TYPES.get(role)
+                if typ is None:
+                    raise msg.MessageError(f"no telemetry type for node {role!r}")
+                recs = [typ.decode(r) for r in msg.unpack_batch(payload)]
+                name = recording.TELEMETRY_SCHEMA[role]
+                for t in recs:
+                    self.w.write(topic, t, log_time, self._pub(_stamp(t), log_time), name=name)
+                self.written += len(recs)
+                return
+            if rel in _LOOP_TYPES:
+                m = _LOOP_TYPES[rel].decode(payload, attachment)
+                if m.k == msg.WARMUP_K:
+                    self.warmup += 1
+                    return
+                self.w.write(topic, m, log_time, self._pub(m.stamp_ns, log_time))
+            elif rel.startswith("events/"):
+                e = msg.Event.decode(payload)
+                self.w.write(topic, e, log_time, self._pub(e.t_ns, log_time))
+            elif rel.startswith("summary/"):
+                s = msg.NodeSummary.decode(payload)
+                self.w.write(topic, {"node": s.node, "json": json.dumps(s.data, default=str)}, log_time)
+            elif rel in _JSON_TYPES:
+                m = _JSON_TYPES[rel].decode(payload)
+                if isinstance(m, msg.Start) and self.t0 is None:
+                    self.t0 = m.t0_ns
+                if isinstance(m, msg.Stop) and self.stop_seen is None and m.origin == "plant":
+                    self.stop_seen, self.stop_seen_mono = m, time.monotonic()
+                self.w.write(topic, m, log_time)
+            else:
+                raise msg.MessageError(f"not a key of a run: {rel}")
+            self.written += 1
+        except msg.MessageError as e:
+            self._malformed(key, payload, attachment, str(e), log_time)
+
+    # ---- end
+    def stats(self) -> dict:
+        return {"received": self.received, "written": self.written, "warmup_skipped": self.warmup,
+                "malformed": self.malformed, "max_queue": self.max_queue, "write_errors": self.write_errors,
+                "loop_recorded": self.loop}
+
+    def close(self, timeout: float = 30.0) -> dict:
+        for s in self._subs:
+            try:
+                s.undeclare()
+            except Exception:  # noqa: BLE001 - the session may be closing
+                pass
+        self._done.set()
+        self._wake.set()
+        self._thread.join(timeout)
+        st = self.stats()
+        self.w.close(st)
+        return st
+
+
+# ============================================================================ command line
+def add_arguments_record(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", help="the run's scenario (file or bundled name): stored in the recording")
+    p.add_argument("--out", metavar="PATH.mcap",
+                   help="recording file (default recordings/<scenario>-<UTC start>.mcap)")
+    p.add_argument("--loop", choices=["auto", "on", "off"], default="auto",
+                   help="record the control-path messages too (auto: when T >= 10 ms; default %(default)s)")
+    p.add_argument("--flush", type=float, default=0.5, metavar="S",
+                   help="flush the file at least every S seconds (what a SIGKILL can lose; default %(default)s)")
+    p.add_argument("--linger", type=float, default=2.0, metavar="S",
+                   help="standalone: stop S seconds after the plant's Stop (default %(default)s)")
+    p.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
+    p.add_argument("--scenario-ref", help=argparse.SUPPRESS)
+    p.add_argument("-v", "--verbose", action="store_true")
+    add_run_option_arguments(p)
+    add_zenoh_arguments(p)
+
+
+def loop_default(sc, choice: str) -> bool:
+    return choice == "on" or (choice == "auto" and sc.T >= 0.01)
+
+
+def main_record(args) -> int:
+    import zenoh
+
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(asctime)s recorder   %(levelname)s %(message)s")
+    opts = RunOptions.from_args(args)
+    sc = load_scenario(args.scenario, opts)
+    tune_process(args.parent_pid)
+    stop = threading.Event()
+    why = {"reason": ""}
+
+    def on_signal(signum, _frame):
+        why["reason"] = why["reason"] or f"signal {signal.Signals(signum).name}"
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    out = Path(args.out) if args.out else recording.default_path(sc.name)
+    keys = transport.Keys.for_run(args.run_id)
+    listen, connect = list(args.listen), list(args.connect)
+    if not listen and not connect and not args.zenoh_config:
+        connect = [transport.DEFAULT_HUB]
+    conf = transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config)
+    w = recording.RecordingWriter(out, flush_interval=args.flush)
+    recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
+                                  extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
+                                         "ack_via_attacker": opts.ack_via_attacker})
+    loop = loop_default(sc, args.loop)
+    print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
+    with zenoh.open(conf) as session:
+        rec = Recorder(session, keys, w, loop=loop)
+        tokens = [session.liveliness().declare_token(keys.alive(ROLE)),
+                  session.liveliness().declare_token(keys.ready(ROLE))]
+        try:
+            while not stop.wait(0.05):
+                if args.launched and transport.COLLECTOR in rec.lost:
+                    why["reason"] = "launcher gone"
+                    break
+                if not args.launched and rec.stop_seen is not None \
+                        and time.monotonic() - rec.stop_seen_mono > args.linger:
+                    why["reason"] = "run ended"
+                    break
+        finally:
+            for t in tokens:
+                try:
+                    t.undeclare()
+                except Exception:  # noqa: BLE001
+                    pass
+            st = rec.close()
+    log.info("recorder stopped (%s): %s", why["reason"], st)
+    print(f"testbed record: {st['written']} messages written to {out} ({why['reason'] or 'stopped'})",
+          file=sys.stderr, flush=True)
+    return 0
+
+
+__all__ = ["Recorder", "add_arguments_record", "main_record", "loop_default"]
