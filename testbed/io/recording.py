@@ -78,8 +78,13 @@ def schema_for_topic(topic: str) -> str | None:
     return None
 
 
-def default_path(scenario_name: str, when: float | None = None, directory: str | Path = "recordings") -> Path:
-    """``recordings/<scenario>-<UTC start, YYYYmmdd-HHMMSS>.mcap`` (a suffix avoids overwriting)."""
+def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None) -> Path:
+    """``recordings/<scenario>-<UTC start, YYYYmmdd-HHMMSS>.mcap`` (a suffix avoids overwriting).
+
+    The directory is ``$TESTBED_RECORDINGS_DIR`` if set, else ``recordings/`` under the current directory.
+    """
+    if directory is None:
+        directory = os.environ.get("TESTBED_RECORDINGS_DIR") or "recordings"
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(time.time() if when is None else when))
     base = Path(directory) / f"{scenario_name}-{stamp}"
     p = base.with_suffix(".mcap")
@@ -407,8 +412,10 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         w.write("/control/start", start, t0)
         theta = np.asarray(res.theta, dtype=np.int64)
         sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
-        attack_on = np.asarray(sched.theta_samples(sc.T, N), dtype=bool) if N else np.zeros(0, bool)
-        attack_on |= theta.astype(bool)
+        if sched is None or not N:  # an online attacker (greedy) has no schedule: it is on when it drops
+            attack_on = theta.astype(bool)
+        else:
+            attack_on = np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta.astype(bool)
         dropped_total = np.cumsum(theta)
         prev_on = False
         for k in range(N):

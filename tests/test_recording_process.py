@@ -1,0 +1,112 @@
+"""Process tier: live runs record to MCAP; the recording survives SIGKILL of any node, the recorder included.
+
+Run with ``pytest -m process``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import signal
+import subprocess
+import time
+
+import pytest
+from test_live_process import BIT_EXACT_KEYS, TIMEOUT, live, procs_with, reap, simulate, tb_cmd
+
+from testbed.io import recording
+from testbed.report import report
+
+pytestmark = pytest.mark.process
+
+
+@pytest.fixture
+def run_id():
+    rid = f"t{os.getpid()}r{secrets.token_hex(4)}"
+    yield rid
+    left = reap(rid)
+    assert not left, f"orphan processes of run {rid}: {left}"
+
+
+def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
+    path = tmp_path / "live.mcap"
+    rc, s, err = live(run_id, "paper", "--duration", "5", "--record", str(path))
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["recording"]["complete"] and s["recording"]["path"] == str(path)
+    r = report(path)
+    sim = simulate("paper", 5.0)
+    assert s["timing"]["deadline_misses"] == 0, (s["timing"], s["event_log"])  # else the loops differ
+    for key in BIT_EXACT_KEYS:          # the recording alone gives the simulator's numbers, bit for bit
+        assert r[key] == sim[key], key
+    for key in ("converged", "escaped", "packets_dropped", "dos_intervals", "encoder_decoder_agree", "final_norm"):
+        assert r[key] == sim[key], key
+    assert r["agreement"]["all_agree"] and r["agreement"]["compared"] == 50
+    assert r["source"] == "live" and r["outcome"] == "done" and not r["recording"]["truncated"]
+    assert r["timing"]["sampling_jitter_us"]["n"] == 50
+    # what crossed the network is there too (T = 0.1 s: the control path is recorded)
+    msgs = recording.read(path).counts
+    assert msgs["/loop/sensor"] == 50 and msgs["/loop/symbol/tx"] == 50 and msgs["/loop/actuation"] == 50
+    assert msgs["/loop/symbol/rx"] == 50 - sim["packets_dropped"]
+    assert {"/summary/plant", "/summary/encoder", "/summary/attacker", "/summary/controller",
+            "/summary/launcher"} <= set(msgs)
+    # and the report's timing equals the launcher's
+    assert r["timing"]["sensor_to_actuator_us"] == s["timing"]["sensor_to_actuator_us"]
+
+
+def test_recorder_killed_the_run_goes_on_and_the_file_reads(run_id, tmp_path):
+    path = tmp_path / "rk.mcap"
+    rc, s, err = live(run_id, "paper", "--duration", "5", "--record", str(path), "--kill", "recorder@2.5")
+    assert rc == 1
+    (f,) = [f for f in s["faults"] if f["node"] == "recorder"]
+    assert f["kind"] == "killed" and f["injected"]
+    assert s["complete"] and not s["recording"]["complete"]
+    assert "recorder died" in err
+    rec = recording.read(path)
+    assert rec.truncated
+    ks = sorted(rec.telemetry["plant"])
+    assert ks == list(range(len(ks)))
+    last_t = ks[-1] * 0.1
+    assert last_t >= 2.5 - 1.0, f"recording ends at {last_t} s, recorder killed at 2.5 s"
+    r = report(path)                      # the post-mortem still works on what is there
+    assert r["recording"]["truncated"] and r["samples"] == len(ks)
+
+
+def test_plant_killed_the_recording_is_complete_and_says_so(run_id, tmp_path):
+    path = tmp_path / "pk.mcap"
+    rc, s, err = live(run_id, "paper", "--duration", "5", "--record", str(path), "--kill", "plant@1.5")
+    assert rc == 1
+    rec = recording.read(path)
+    assert not rec.truncated and "testbed.recorder" in rec.metadata
+    ks = sorted(rec.telemetry["plant"])
+    assert 13 <= len(ks) <= 17 and ks == list(range(len(ks)))
+    launcher_events = [e for e in rec.events if e.node == "launcher"]
+    assert any(e.kind == "plant_killed" for e in launcher_events)
+    r = report(path)
+    assert any(f["node"] == "plant" and f["kind"] == "killed" for f in r["faults"])
+    assert any(lv[1] == "plant" and not lv[3] for lv in rec.liveliness)  # its token went away
+
+
+def test_launcher_sigkilled_the_recorder_still_finishes_the_file(run_id, tmp_path):
+    path = tmp_path / "lk.mcap"
+    p = subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id, "--duration", "30",
+                                "--record", str(path)),
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        end = time.monotonic() + TIMEOUT
+        while time.monotonic() < end and not (path.exists() and len(recording.read(path).telemetry["plant"]) >= 10):
+            time.sleep(0.5)
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait(10)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    end = time.monotonic() + 30
+    while procs_with(run_id) and time.monotonic() < end:   # nodes and recorder die with the launcher
+        time.sleep(0.2)
+    assert procs_with(run_id) == []
+    rec = recording.read(path)
+    assert not rec.truncated, rec.read_error          # PDEATHSIG: the recorder closed the file properly
+    assert len(rec.telemetry["plant"]) >= 10
+    assert json.loads(rec.metadata["testbed.recorder"]["received"]) > 0
