@@ -12,6 +12,7 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object with every sample")
     p.add_argument("--duration", type=float, help="override [run] duration (seconds)")
     p.add_argument("--mode", choices=["ideal", "resilient"], help="override [quantizer] mode")
+    p.add_argument("--T", type=float, metavar="SECONDS", help="override [quantizer] T, the sample period")
     p.add_argument("--out", metavar="PATH.mcap",
                    help="also write the run as an MCAP recording (the topics of a live run; see testbed report)")
     p.add_argument("--rrd", metavar="PATH.rrd", help="also write a Rerun recording of the run (see testbed replay)")
@@ -21,7 +22,7 @@ def main_simulate(args) -> int:
     from . import scenario
     from .simulate import simulate_scenario, summarize
 
-    overrides = {"mode": args.mode, "duration": args.duration}
+    overrides = {"mode": args.mode, "duration": args.duration, "T": args.T}
     sc = scenario.with_overrides(scenario.load(args.scenario), overrides)
     res = simulate_scenario(sc)
     out = summarize(sc, res)

@@ -50,6 +50,11 @@ def _stamp(t) -> int:
     return msg.NO_TIME
 
 
+def stats_key(keys: transport.Keys) -> str:
+    """Queryable of a running recorder's counters (JSON): received, written, queue, ..."""
+    return f"{keys.prefix}/recorder/stats"
+
+
 class Recorder:
     """Subscribes to one run and writes it to ``writer``; ``close()`` drains and finishes the file."""
 
@@ -85,6 +90,14 @@ class Recorder:
         self._subs = [session.declare_subscriber(k, self._on_sample) for k in keyexprs]
         self._subs += [session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive, history=True),
                        session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True)]
+        # ``testbed/<run>/recorder/stats``: its counters on request (is it keeping up?)
+        self._stats_q = session.declare_queryable(stats_key(keys), self._on_stats)
+
+    def _on_stats(self, query) -> None:
+        d = self.stats()
+        d["queue"] = len(self.q)
+        d["messages_in_file"] = sum(self.w.counts.values())
+        query.reply(query.key_expr, json.dumps(d).encode())
 
     # ---- Zenoh threads: just enqueue
     def _on_sample(self, sample) -> None:
@@ -184,7 +197,7 @@ class Recorder:
                 "loop_recorded": self.loop}
 
     def close(self, timeout: float = 30.0) -> dict:
-        for s in self._subs:
+        for s in (*self._subs, self._stats_q):
             try:
                 s.undeclare()
             except Exception:  # noqa: BLE001 - the session may be closing
@@ -275,4 +288,4 @@ def main_record(args) -> int:
     return 0
 
 
-__all__ = ["Recorder", "add_arguments_record", "main_record", "loop_default"]
+__all__ = ["Recorder", "stats_key", "add_arguments_record", "main_record", "loop_default"]

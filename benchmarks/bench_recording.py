@@ -1,0 +1,199 @@
+"""Recording benchmarks: recorder throughput over Zenoh, and ``testbed report`` on a 10-minute 1 kHz recording.
+
+    python benchmarks/bench_recording.py [--minutes 10] [--rates 2000,10000,40000,0] [--seconds 3]
+
+1. Writer baseline: ``RecordingWriter`` alone, in-process (protobuf + MCAP + zstd), messages/s.
+2. Recorder node: a real ``testbed record`` process subscribed over Zenoh on loopback; this
+   process publishes attacker telemetry records at an offered rate for a few seconds
+   (batched 20 to a Zenoh message like the nodes do at T = 1 ms, and unbatched, one Zenoh
+   message per record, like the control path), then stops the recorder with SIGINT.
+   Printed: records sent, records in the file (drops = the difference), the recorder's
+   sustained rate (records / time from the first put to the file being closed) and its
+   largest backlog.  Rate 0 means "as fast as this publisher can".
+3. Report: a 10-minute run at T = 1 ms (600,000 samples, ~2.4 M messages) recorded by
+   ``testbed simulate --out`` (the same topics and schemas as a live recording), then
+   ``testbed report`` on it, timed (read, and the whole report).
+
+Figures depend on the machine; they are printed, not asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from testbed.io import messages as msg  # noqa: E402
+from testbed.io import recording, transport  # noqa: E402
+
+
+def _record(k: int) -> msg.AttackerTelemetry:
+    t = time.time_ns()
+    return msg.AttackerTelemetry(k=k, rx_ns=t, tx_ns=t, dropped=0, corrupted=0, attack_on=0, dropped_total=0,
+                                 forwarded_total=k)
+
+
+def writer_baseline(tmp: Path, n: int = 100_000) -> float:
+    w = recording.RecordingWriter(tmp / "baseline.mcap")
+    recs = [_record(k) for k in range(n)]
+    t = time.perf_counter()
+    for r in recs:
+        w.write("/telemetry/attacker", r, r.rx_ns)
+    w.close()
+    return n / (time.perf_counter() - t)
+
+
+def _stats(session, keys) -> dict | None:
+    from testbed.nodes.recorder import stats_key
+
+    for r in session.get(stats_key(keys), timeout=2.0):
+        if r.ok is not None:
+            return json.loads(r.ok.payload.to_bytes())
+    return None
+
+
+def recorder_phase(tmp: Path, rate: float, seconds: float, batch: int) -> dict:
+    import zenoh
+
+    port = transport.free_port()
+    run_id = f"bench{os.getpid()}r{int(rate)}b{batch}"
+    out = tmp / f"{run_id}.mcap"
+    cmd = [sys.executable, "-P", "-m", "testbed.cli", "record", "paper", "--run-id", run_id,
+           "--listen", f"tcp/127.0.0.1:{port}", "--out", str(out), "--loop", "on"]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    keys = transport.Keys.for_run(run_id)
+    sent = 0
+    try:
+        conf = transport.make_config(connect=[f"tcp/127.0.0.1:{port}"])
+        with zenoh.open(conf) as s:
+            ready = []
+            sub = s.liveliness().declare_subscriber(keys.ready("recorder"), lambda smp: ready.append(1), history=True)
+            end = time.monotonic() + 60
+            while not ready and time.monotonic() < end and p.poll() is None:
+                time.sleep(0.02)
+            if not ready:
+                raise RuntimeError(f"recorder not ready: {p.stderr.read() if p.poll() is not None else 'timeout'}")
+            sub.undeclare()
+            if batch > 1:
+                pub = s.declare_publisher(keys.telemetry("attacker"), **transport.telemetry_qos())
+            else:
+                pub = s.declare_publisher(keys.symbol_tx, **transport.control_qos())
+            payload = msg.pack_batch([_record(k).encode() for k in range(batch)])
+            sym_att = [msg.Header(k, 0).encode() for k in range(1000)]
+            t0 = time.perf_counter()
+            t_end = t0 + seconds
+            i = 0
+            while True:
+                now = time.perf_counter()
+                if now >= t_end:
+                    break
+                if rate > 0:
+                    due = t0 + (sent + batch) / rate
+                    if due > now:
+                        time.sleep(min(due - now, 0.001))
+                        continue
+                if batch > 1:
+                    pub.put(payload)
+                else:
+                    pub.put(b"\x07", attachment=sym_att[i % 1000])
+                sent += batch
+                i += 1
+            t_pub = time.perf_counter() - t0
+            # wait until the recorder has everything (its stats queryable) or stops making progress
+            t_last, last = time.perf_counter(), -1
+            while True:
+                st = _stats(s, keys)
+                got_now = st["written"] if st else -1  # records decoded and written (telemetry: per record)
+                if got_now != last:
+                    t_last, last = time.perf_counter(), got_now
+                if (st and st["written"] >= sent) or time.perf_counter() - t_last > 3:
+                    break
+                time.sleep(0.05)
+            t_done = time.perf_counter() - t0
+        p.send_signal(signal.SIGINT)
+        p.wait(300)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    rec = recording.read(out)
+    topic = "/telemetry/attacker" if batch > 1 else "/loop/symbol/tx"
+    got = rec.counts.get(topic, 0)
+    stats = rec.metadata.get("testbed.recorder", {})
+    return {"offered_per_s": rate or None, "batch": batch, "sent": sent, "recorded": got, "dropped": sent - got,
+            "publish_s": t_pub, "closed_after_s": t_done, "offered_achieved_per_s": sent / t_pub,
+            "sustained_per_s": got / t_done,  # t_done: when the last record was written
+            "max_queue": json.loads(stats.get("max_queue", "null")),
+            "file_mb": out.stat().st_size / 1e6}
+
+
+def report_timing(tmp: Path, minutes: float) -> dict:
+    path = tmp / "tenminutes.mcap"
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "simulate", "paper", "--T", "0.001",
+                        "--duration", str(60 * minutes), "--out", str(path)], capture_output=True, text=True)
+    if r.returncode:
+        raise RuntimeError(r.stderr)
+    t_write = time.perf_counter() - t
+    t = time.perf_counter()
+    rec = recording.read(path)
+    t_read = time.perf_counter() - t
+    n_msgs = sum(rec.counts.values())
+    del rec
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "report", str(path), "--json"],
+                       capture_output=True, text=True)
+    t_report = time.perf_counter() - t
+    if r.returncode:
+        raise RuntimeError(r.stderr)
+    s = json.loads(r.stdout)
+    return {"samples": s["samples"], "messages": n_msgs, "file_mb": path.stat().st_size / 1e6,
+            "simulate_and_write_s": t_write, "read_s": t_read, "report_cli_s": t_report,
+            "report_messages_per_s": n_msgs / t_report}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="length of the 1 kHz recording (default 10)")
+    ap.add_argument("--rates", default="2000,10000,40000,0", help="offered records/s (0: as fast as possible)")
+    ap.add_argument("--seconds", type=float, default=3.0, help="publishing time per phase")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args()
+    out: dict = {"cpus": os.cpu_count()}
+    with tempfile.TemporaryDirectory(prefix="bench-recording-") as d:
+        tmp = Path(d)
+        out["writer_baseline_per_s"] = writer_baseline(tmp)
+        print(f"writer alone (in-process, protobuf + MCAP + zstd): {out['writer_baseline_per_s']:,.0f} messages/s",
+              flush=True)
+        out["recorder"] = []
+        print(f"{'batch':>5} {'offered/s':>10} {'achieved/s':>11} {'sent':>8} {'recorded':>9} {'dropped':>7} "
+              f"{'sustained/s':>12} {'vs writer':>9} {'max backlog':>11}", flush=True)
+        for batch in (20, 1):
+            for rate in [float(x) for x in a.rates.split(",")]:
+                r = recorder_phase(tmp, rate, a.seconds, batch)
+                out["recorder"].append(r)
+                print(f"{batch:>5} {rate or float('nan'):>10,.0f} {r['offered_achieved_per_s']:>11,.0f} "
+                      f"{r['sent']:>8,} {r['recorded']:>9,} {r['dropped']:>7,} {r['sustained_per_s']:>12,.0f} "
+                      f"{r['sustained_per_s'] / out['writer_baseline_per_s']:>9.2f} {r['max_queue']!s:>11}",
+                      flush=True)
+        print(f"\nreport on a {a.minutes:g}-minute recording at 1 kHz ...", flush=True)
+        out["report"] = rr = report_timing(tmp, a.minutes)
+        print(f"  {rr['samples']:,} samples, {rr['messages']:,} messages, {rr['file_mb']:.1f} MB; "
+              f"simulate + write {rr['simulate_and_write_s']:.1f} s; read {rr['read_s']:.1f} s; "
+              f"testbed report {rr['report_cli_s']:.1f} s ({rr['report_messages_per_s']:,.0f} messages/s)")
+    if a.json:
+        print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
