@@ -150,7 +150,8 @@ def live_run(T: float, duration: float, deadline: float, realtime: bool, extra: 
     with tempfile.TemporaryDirectory(prefix="bench-live-") as d:
         f = Path(d) / "bench.toml"
         f.write_text(SCENARIO.format(tag=f"{T:g}".replace(".", "_"), T=T, duration=duration, deadline=deadline))
-        cmd = [sys.executable, "-m", "testbed.cli", "run", str(f), "--json"] + (["--realtime"] if realtime else [])
+        cmd = [sys.executable, "-m", "testbed.cli", "run", str(f), "--json", "--no-record"]  # as before recordings
+        cmd += ["--realtime"] if realtime else []
         p = subprocess.run(cmd + extra, capture_output=True, text=True, timeout=duration + 600)
     try:
         s = json.loads(p.stdout)

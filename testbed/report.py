@@ -137,7 +137,10 @@ def print_text(s: dict) -> None:
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
     fn = s.get("final_norm")
-    print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
+    if s["samples"] == 0:
+        print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")
+    else:
+        print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
     d = s["dos"]
     lens = ", ".join(f"{x:g}" for x in d["lengths"][:8]) + (" ..." if len(d["lengths"]) > 8 else "")
     print(f"  DoS: {d['count']} intervals (lengths {lens or '-'} s), {s['packets_dropped']} samples lost "

@@ -242,3 +242,4 @@ def describe() -> str:
             lines.append(f"| `{f}` | {t} | {doc} |")
         lines.append("")
     return "\n".join(lines)
+
