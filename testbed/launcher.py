@@ -64,6 +64,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-record", action="store_true", help="do not record the run")
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
+    _add_rerun_arguments(p)
     g = p.add_argument_group("run control")
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the nodes are not running after S seconds (default %(default)s)")
@@ -80,6 +81,21 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="make a node raise at sample K (repeatable)")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="the attacker corrupts the payload of these samples")
+
+
+# ---- rerun (testbed run --rerun): the launcher's part lives in testbed.io.viewer.LiveRerun
+def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
+    from .io.viewer import add_rerun_run_arguments
+
+    add_rerun_run_arguments(p)
+
+
+def _live_rerun(args, sc, run_id: str):
+    if not getattr(args, "rerun", None):
+        return None
+    from .io.viewer import LiveRerun
+
+    return LiveRerun.from_args(args, sc, run_id)
 
 
 def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
@@ -121,6 +137,7 @@ class Launcher:
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0
+        self.rerun = _live_rerun(args, self.sc, self.run_id)  # testbed run --rerun, or None
 
     # ---- processes
     def command(self, role: str) -> list[str]:
@@ -149,6 +166,8 @@ class Launcher:
             cmd += ["--ack-grace", str(a.ack_grace)]
         if role == "attacker" and a.corrupt:
             cmd += ["--corrupt", a.corrupt]
+        if self.rerun is not None:
+            cmd += self.rerun.node_flags(role)
         return cmd
 
     def recorder_command(self) -> list[str]:
@@ -396,6 +415,8 @@ class Launcher:
                         outcome = "recorder did not start"
                     else:
                         tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
+                        if self.rerun is not None:
+                            self.rerun.start()
                         self.spawn()
                         outcome = self.watch(session, col)
                 finally:
@@ -426,6 +447,9 @@ class Launcher:
                 for t in tokens:
                     t.undeclare()
                 summary["recording"] = self.recording_info()
+                if self.rerun is not None:
+                    self.rerun.finish()
+                    summary["rerun"] = self.rerun.info()
         finally:
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above
                 self.stop_recorder()

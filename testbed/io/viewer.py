@@ -168,10 +168,9 @@ def log_styles(rec, n: int, m: int, roles=("plant", "encoder", "controller", "at
                     "encoder/xi": rr.SeriesLines(names=[f"xi{i + 1} encoder" for i in range(n)]),
                     "encoder/saturated": rr.SeriesPoints(names=["saturated"], markers=["cross"]),
                     "phase/xi": rr.Points2D.from_fields(colors=[COLOR_BOX], radii=[-4.0], labels=["xi_k"]),
-                    "phase/box": rr.Boxes2D.from_fields(colors=[COLOR_BOX], radii=[-1.5],
-                                                        labels=["Q(xi_k, E_k)"])},
-        "controller": {"controller/log10_E": rr.SeriesLines(names=["log10 E_k decoder"], colors=[COLOR_DEC],
-                                                            widths=[1.0]),
+                    "phase/box": rr.Boxes2D.from_fields(colors=[COLOR_BOX], radii=[-1.5])},
+        "controller": {"controller/log10_E": rr.SeriesPoints(names=["log10 E_k decoder"], colors=[COLOR_DEC],
+                                                             markers=["circle"], marker_sizes=[1.5]),
                        "controller/E": rr.SeriesLines(names=["E_k decoder"], colors=[COLOR_DEC]),
                        "controller/xi": rr.SeriesLines(names=[f"xi{i + 1} decoder" for i in range(n)]),
                        "controller/theta": rr.SeriesPoints(names=["theta_k (1 = lost)"], colors=[COLOR_DEC],
@@ -182,6 +181,13 @@ def log_styles(rec, n: int, m: int, roles=("plant", "encoder", "controller", "at
     for role in roles:
         for path, arch in st.get(role, {}).items():
             rr.log(path, arch, static=True, recording=rec)
+
+
+def flip_y(rec) -> None:
+    """Rerun's 2D space has y pointing down: a static transform of ``phase`` makes x2 point up (values unchanged)."""
+    import rerun as rr
+
+    rr.log("phase", rr.Transform3D(mat3x3=[[1, 0, 0], [0, -1, 0], [0, 0, 1]]), static=True, recording=rec)
 
 
 # ============================================================================ region of attraction
@@ -237,6 +243,7 @@ def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline
     """Static: the scenario text and the nominal region's outline (when ``roa`` and n = 2)."""
     import rerun as rr
 
+    flip_y(rec)
     text = sc.source or f"scenario {sc.name}"
     rr.log("scenario", rr.TextDocument(text, media_type="text/plain"), static=True, recording=rec)
     out = roa_outline(sc, roa_grid) if roa else None
@@ -248,10 +255,13 @@ def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline
 
 
 def phase_bounds(sc, x=None, roa: RoaOutline | None = None):
-    """Visual bounds of the phase plane: the ROA window, else around x0 (or the trajectory)."""
+    """Visual bounds of the phase plane: around the trajectory when known (offline), else around the origin and x0."""
     a, b = PHASE_DIMS
-    if roa is not None:
-        return roa.window
+    if x is None:  # live: a window around the origin that holds x0 and reaches the nearest part of the ROA outline
+        r = 3.5 * float(np.max(np.abs(np.asarray(sc.x0, dtype=float)[[a, b]]))) or 1.0
+        if roa is not None and roa.lines:
+            r = max(r, 1.2 * min(float(np.min(np.max(np.abs(ln), axis=1))) for ln in roa.lines))
+        return ((-r, r), (-r, r))
     pts = np.asarray(sc.x0, dtype=float)[[a, b]][None, :]
     if x is not None and len(x):
         pts = np.vstack([pts, np.asarray(x, dtype=float)[:, [a, b]]])
@@ -264,7 +274,6 @@ def blueprint(sc, bounds=None):
     """States and input over time; log10 E_k at encoder and decoder; theta_k and DoS; the phase plane."""
     import rerun.blueprint as rrb
 
-    name = getattr(sc, "name", "run")
     all_history = [rrb.VisibleTimeRange(TIMELINE_K, start=rrb.TimeRangeBoundary.infinite(),
                                         end=rrb.TimeRangeBoundary.cursor_relative(seq=0)),
                    rrb.VisibleTimeRange(TIMELINE_T, start=rrb.TimeRangeBoundary.infinite(),
@@ -274,8 +283,8 @@ def blueprint(sc, bounds=None):
         (x0, x1), (y0, y1) = bounds
         phase_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[y0, y1])
     phase = rrb.Spatial2DView(
-        name="phase plane: x_k, xi_k, Q(xi_k, E_k), nominal ROA", origin="phase",
-        contents=["$origin/**"],
+        name="phase plane: x_k, xi_k, Q(xi_k, E_k), nominal ROA", origin="/",
+        contents=["phase/**"],
         overrides={"phase/trajectory": [rrb.VisibleTimeRanges(all_history)]},
         **phase_kw)
     plots = rrb.Vertical(
@@ -412,11 +421,149 @@ def main_replay(args) -> int:
 
     from . import recording
 
-    s = report(args.recording)
-    sc = recording.read(args.recording).scenario()
+    rec = recording.read(args.recording)
+    s = report(rec)
+    sc = rec.scenario()
     spawn = args.spawn or not args.rrd
     trace_to_rrd(args.rrd, sc, Trace.from_report(s), recording_id=str(s.get("run_id") or sc.name),
                  roa=not args.no_roa, spawn=spawn)
     if args.rrd:
         print(f"rerun recording: {args.rrd} (open with: rerun {args.rrd})")
     return 0
+
+
+# ============================================================================ live: testbed run --rerun
+def rerun_binary() -> str:
+    """The Rerun CLI shipped in the wheel (the binary itself: the Python wrapper does not forward signals)."""
+    import shutil
+    from pathlib import Path
+
+    try:
+        import rerun_cli
+
+        p = Path(rerun_cli.__file__).parent / "rerun"
+        if p.exists():
+            return str(p)
+    except ImportError:
+        pass
+    return shutil.which("rerun") or "rerun"
+
+
+def add_rerun_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``--rerun`` option group of ``testbed run``."""
+    g = p.add_argument_group("rerun (live view; see testbed/io/viewer.py)")
+    g.add_argument("--rerun", nargs="+", metavar="spawn | connect [URL] | save PATH.rrd",
+                   help="stream the run to Rerun: spawn a viewer, connect to one (default "
+                        "rerun+http://127.0.0.1:9876/proxy) or save one .rrd; every node logs into one recording")
+    g.add_argument("--rerun-no-roa", action="store_true", help="skip the nominal region of attraction outline")
+
+
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+
+
+class LiveRerun:
+    """The launcher's side of a live Rerun stream.
+
+    Every process of the run (the launcher and the four nodes) opens its own
+    ``RecordingStream`` with the same ``recording_id`` (the run id), so Rerun shows
+    one recording.  The launcher logs the statics (scenario, ROA outline, series
+    styles) and the blueprint; each node logs its own entities from a background
+    thread (``testbed.nodes.rerun_tap``).  Sinks:
+
+    * ``spawn``: a viewer is spawned (or reused) on port 9876; everybody connects to it over gRPC;
+    * ``connect URL``: everybody connects to ``URL`` over gRPC;
+    * ``save PATH``: every process writes its own part file (one .rrd cannot take
+      several writers), and the launcher merges the parts into ``PATH`` at the end
+      (``rerun rrd merge``): one recording, one file.
+    """
+
+    def __init__(self, mode: str, target: str | None, sc, recording_id: str, roa: bool = True):
+        self.mode, self.target, self.sc, self.recording_id, self.roa = mode, target, sc, recording_id, roa
+        self.rec = None
+        self.parts_dir = None
+        self.merge_error: str | None = None
+
+    @classmethod
+    def from_args(cls, args, sc, recording_id: str) -> "LiveRerun | None":
+        spec = getattr(args, "rerun", None)
+        if not spec:
+            return None
+        mode, rest = spec[0], spec[1:]
+        if mode == "spawn" and not rest:
+            return cls("spawn", None, sc, recording_id, not args.rerun_no_roa)
+        if mode == "connect" and len(rest) <= 1:
+            return cls("connect", rest[0] if rest else DEFAULT_URL, sc, recording_id, not args.rerun_no_roa)
+        if mode == "save" and len(rest) == 1:
+            return cls("save", rest[0], sc, recording_id, not args.rerun_no_roa)
+        raise SystemExit(f"testbed run: --rerun takes 'spawn', 'connect [URL]' or 'save PATH.rrd', got {' '.join(spec)}")
+
+    @property
+    def url(self) -> str:
+        return self.target if self.mode == "connect" else DEFAULT_URL
+
+    def part(self, who: str) -> str:
+        from pathlib import Path
+
+        return str(Path(self.parts_dir) / f"{who}.rrd")
+
+    def node_flags(self, role: str) -> list[str]:
+        """The flags of ``testbed node`` that make it stream its telemetry."""
+        out = ["--recording-id", self.recording_id]
+        if self.mode == "save":
+            return out + ["--rerun-save", self.part(role)]
+        return out + ["--rerun-url", self.url]
+
+    def start(self) -> None:
+        """Before the nodes start: open the launcher's stream, send the blueprint and the statics."""
+        import tempfile
+        from pathlib import Path
+
+        import rerun as rr
+
+        roa = roa_outline(self.sc) if self.roa else None
+        bp = blueprint(self.sc, phase_bounds(self.sc, None, roa))
+        self.rec = new_stream(self.recording_id)
+        if self.mode == "save":
+            out = Path(self.target).resolve()
+            out.parent.mkdir(parents=True, exist_ok=True)
+            self.parts_dir = tempfile.mkdtemp(prefix=f".{out.name}.parts-", dir=out.parent)
+            self.rec.save(self.part("launcher"), default_blueprint=bp)
+        else:
+            if self.mode == "spawn":
+                rr.spawn(connect=False, recording=self.rec)
+            self.rec.connect_grpc(self.url, default_blueprint=bp)
+        self.rec.send_recording_name(f"{self.sc.name} (live)")
+        plant = self.sc.make_plant()
+        log_styles(self.rec, plant.n, plant.m, roles=())
+        log_scenario(self.rec, self.sc, roa=self.roa)
+        self.rec.flush()
+
+    def finish(self) -> None:
+        """After the nodes have stopped: close the stream; ``save``: merge the parts into one file."""
+        import shutil
+        import subprocess
+        from pathlib import Path
+
+        if self.rec is not None:
+            self.rec.flush()
+            self.rec.disconnect()
+            self.rec = None
+        if self.mode != "save" or self.parts_dir is None:
+            return
+        parts = sorted(str(p) for p in Path(self.parts_dir).glob("*.rrd"))
+        env = dict(__import__("os").environ, RERUN_ANALYTICS="0")
+        r = subprocess.run([rerun_binary(), "rrd", "optimize", "--continue-on-error", *parts, "-o", str(self.target)],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                           timeout=120)
+        if r.returncode == 0 and Path(self.target).exists():
+            shutil.rmtree(self.parts_dir, ignore_errors=True)
+        else:
+            self.merge_error = f"rerun rrd optimize exit {r.returncode}: {r.stderr.decode(errors='replace')[-300:]}"
+
+    def info(self) -> dict:
+        d = {"mode": self.mode, "recording_id": self.recording_id,
+             "target": self.target if self.mode != "spawn" else self.url}
+        if self.merge_error:
+            d["error"] = self.merge_error
+            d["parts"] = self.parts_dir
+        return d

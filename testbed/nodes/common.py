@@ -28,7 +28,6 @@ from dataclasses import dataclass
 
 from ..io import messages as msg
 from ..io import transport
-from ..runsummary import percentiles  # noqa: F401 - re-exported for the nodes
 
 log = logging.getLogger("testbed.nodes")
 
@@ -415,8 +414,12 @@ class TelemetryOut:
         self.n = int(max(1, min(64, max_delay_ns // max(T_ns, 1))))
         self.buf: list[bytes] = []
         self.lock = threading.Lock()
+        self.tap = None  # testbed run --rerun: a deque's append (testbed.nodes.rerun_tap), nothing more
 
     def put(self, record: bytes) -> None:
+        tap = self.tap
+        if tap is not None:
+            tap(record)
         with self.lock:
             self.buf.append(record)
             if len(self.buf) < self.n:

@@ -58,6 +58,10 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
     g.add_argument("--crash-at", type=int, metavar="K", help="fault injection: raise at sample K")
     g.add_argument("-v", "--verbose", action="store_true")
+    g = p.add_argument_group("rerun (testbed run --rerun passes these)")
+    g.add_argument("--rerun-url", metavar="URL", help="stream this node's telemetry to a Rerun gRPC URL")
+    g.add_argument("--rerun-save", metavar="PATH.rrd", help="write this node's telemetry to a Rerun file")
+    g.add_argument("--recording-id", help="Rerun recording id shared by the nodes of a run (default: --run-id)")
     g = p.add_argument_group("plant")
     g.add_argument("--wait-collector", action="store_true",
                    help="also wait for the launcher's collector before starting")
@@ -74,6 +78,14 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("attacker")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="fault injection: corrupt the payload of these samples")
+
+
+def _rerun_tap(args, role: str, sc):
+    if not (args.rerun_url or args.rerun_save):
+        return None
+    from . import rerun_tap
+
+    return rerun_tap.from_args(args, role, sc)
 
 
 def main_node(args) -> int:
@@ -105,7 +117,11 @@ def main_node(args) -> int:
         ctx.watch_collector = args.launched
         args.wait_collector = args.wait_collector or args.launched
         node = _classes()[role](ctx, args)
+        tap = None
         try:
+            tap = _rerun_tap(args, role, sc)
+            if tap is not None:
+                ctx.telemetry.tap = tap.put
             node.setup()
             node.warmup()
             ctx.declare_alive()
@@ -152,6 +168,9 @@ def main_node(args) -> int:
         ctx.telemetry.flush()
         data = node.summary()
         data.update(cpu_info)
+        if tap is not None:
+            ctx.telemetry.tap = None
+            data.update(tap.close())
         data["events_sent"], data["events_suppressed"] = ctx.events_sent, ctx.events_suppressed
         data["stop_reason"] = ctx.stop_reason
         data["pid"] = os.getpid()

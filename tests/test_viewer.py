@@ -1,0 +1,171 @@
+"""The Rerun view (``testbed.io.viewer``): simulate --rrd, replay of an MCAP, and a live run with --rerun save.
+
+Every test writes a ``.rrd`` and reads it back with ``rerun.chunk.RrdReader``:
+the entities are there and the logged E_k is the recording's (bit for bit);
+``rerun rrd verify`` accepts the file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+
+from testbed.io import viewer  # noqa: E402
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+PY = sys.executable
+TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))
+
+ENTITIES = {"/plant/x", "/plant/u", "/encoder/E", "/encoder/log10_E", "/encoder/xi", "/controller/E",
+            "/controller/log10_E", "/controller/xi", "/controller/theta", "/attacker/attack_on",
+            "/phase/trajectory", "/phase/x", "/phase/xi", "/phase/box"}
+
+
+def entity_paths(path) -> set[str]:
+    return {c.entity_path for c in RrdReader(path).store().stream()}
+
+
+def scalars(path, entity: str) -> dict[int, list[float]]:
+    """k -> the logged Scalars of ``entity`` (temporal rows only)."""
+    out: dict[int, list[float]] = {}
+    for c in RrdReader(path).store().stream():
+        if c.entity_path != entity or c.is_static:
+            continue
+        d = c.to_record_batch().to_pydict()
+        if "Scalars:scalars" not in d:
+            continue
+        for k, v in zip(d["k"], d["Scalars:scalars"]):
+            out[int(k)] = list(v)
+    return out
+
+
+def rrd_verify(path) -> subprocess.CompletedProcess:
+    return subprocess.run([viewer.rerun_binary(), "rrd", "verify", str(path)], capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, RERUN_ANALYTICS="0"))
+
+
+@pytest.fixture(scope="module")
+def sim(paper):
+    from testbed.simulate import simulate_scenario
+
+    return paper, simulate_scenario(paper)
+
+
+# ---------------------------------------------------------------- pure parts
+def test_attack_intervals_to_samples():
+    on = viewer.Trace.attack_from_intervals([[1.0, 1.2], [4.0, 0.8]], 0.1, 60)
+    assert on[:10].sum() == 0 and on[10:22].all() and not on[22] and on[40:48].all() and on.sum() == 20
+
+
+def test_roa_outline_paper_and_none_for_cartpole(paper):
+    from testbed import scenario
+
+    out = viewer.roa_outline(paper, grid=31)
+    assert out is not None and out.lines and 0.0 < out.fraction < 1.0
+    assert all(ln.shape[1] == 2 for ln in out.lines)
+    assert viewer.roa_outline(scenario.load("cartpole")) is None
+
+
+# ---------------------------------------------------------------- simulate --rrd
+def test_simulation_rrd_entities_and_E(sim, tmp_path):
+    sc, res = sim
+    path = tmp_path / "sim.rrd"
+    viewer.simulation_to_rrd(path, sc, res)
+    r = RrdReader(path)
+    assert len(r.recordings()) == 1 and len(r.blueprints()) == 1
+    paths = entity_paths(path)
+    assert ENTITIES | {"/phase/roa", "/scenario"} <= paths
+    E = scalars(path, "/encoder/E")
+    assert sorted(E) == list(range(len(res.E_enc)))
+    assert np.array_equal(np.array([E[k][0] for k in sorted(E)]), res.E_enc)  # bit for bit
+    Ed = scalars(path, "/controller/E")
+    assert np.array_equal(np.array([Ed[k][0] for k in sorted(Ed)]), res.E_dec)
+    x = scalars(path, "/plant/x")
+    assert np.array_equal(np.array([x[k] for k in range(len(res.x))]), res.x)
+    assert np.array_equal(np.array(x[len(res.x)]), res.x_final)
+    lg = scalars(path, "/encoder/log10_E")
+    np.testing.assert_allclose([lg[k][0] for k in sorted(lg)], np.log10(res.E_enc))
+    theta = scalars(path, "/controller/theta")
+    assert [int(theta[k][0]) for k in sorted(theta)] == res.theta.astype(int).tolist()
+    v = rrd_verify(path)
+    assert v.returncode == 0, v.stderr[-2000:]
+
+
+def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
+    """n = 4: phase plane of (x1, x2), no ROA outline."""
+    path = tmp_path / "cp.rrd"
+    p = subprocess.run([PY, "-m", "testbed.cli", "simulate", "cartpole", "--duration", "2", "--rrd", str(path)],
+                       capture_output=True, text=True, timeout=TIMEOUT)
+    assert p.returncode == 0, p.stderr[-2000:]
+    paths = entity_paths(path)
+    assert ENTITIES <= paths and "/phase/roa" not in paths
+    assert len(scalars(path, "/plant/x")[0]) == 4
+
+
+# ---------------------------------------------------------------- replay of an MCAP recording
+def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
+    sc, res = sim
+    mcap, rrd = tmp_path / "sim.mcap", tmp_path / "replay.rrd"
+    p = subprocess.run([PY, "-m", "testbed.cli", "simulate", "paper", "--out", str(mcap)], capture_output=True,
+                       text=True, timeout=TIMEOUT)
+    assert p.returncode == 0, p.stderr[-2000:]
+    p = subprocess.run([PY, "-m", "testbed.cli", "replay", str(mcap), "--rrd", str(rrd)], capture_output=True,
+                       text=True, timeout=TIMEOUT)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert ENTITIES | {"/phase/roa", "/scenario"} <= entity_paths(rrd)
+    E = scalars(rrd, "/encoder/E")
+    assert np.array_equal(np.array([E[k][0] for k in sorted(E)]), res.E_enc)
+    on = scalars(rrd, "/attacker/attack_on")
+    assert sum(v[0] for v in on.values()) == 20  # [1.0, 2.2) and [4.0, 4.8) at T = 0.1
+    assert rrd_verify(rrd).returncode == 0
+
+
+# ---------------------------------------------------------------- live: testbed run --rerun save
+@pytest.mark.process
+def test_live_run_rerun_save_one_recording_from_every_node(tmp_path):
+    from testbed.io import recording
+
+    rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
+    run_id = f"tv-{secrets.token_hex(3)}"
+    cmd = [PY, "-m", "testbed.cli", "run", "paper", "--duration", "3", "--run-id", run_id, "--json",
+           "--record", str(mcap), "--rerun", "save", str(rrd)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         env=dict(os.environ, RERUN_ANALYTICS="0"))
+    try:
+        out, err = p.communicate(timeout=TIMEOUT)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        out, err = p.communicate()
+        pytest.fail(f"testbed run --rerun did not finish in {TIMEOUT} s\n{err[-3000:]}")
+    assert p.returncode == 0, err[-3000:]
+    s = json.loads(out)
+    assert s["rerun"]["mode"] == "save" and "error" not in s["rerun"], s["rerun"]
+    for role in ("plant", "encoder", "controller", "attacker"):
+        ns = s["node_summaries"][role]
+        assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= 30, (role, ns)
+    assert not list(tmp_path.glob(".live.rrd.parts-*")), "part files left behind"
+    r = RrdReader(rrd)
+    recs = r.recordings()
+    assert len(recs) == 1 and recs[0].recording_id == run_id  # the launcher and four nodes: one recording
+    assert len(r.blueprints()) == 1
+    assert ENTITIES | {"/phase/roa", "/scenario"} <= entity_paths(rrd)
+    rec = recording.read(mcap)
+    enc = rec.telemetry["encoder"]
+    want = {k: t.E for k, t in enc.items() if not t.silent}
+    E = scalars(rrd, "/encoder/E")
+    assert len(want) == 30 and {k: v[0] for k, v in E.items()} == want  # exactly the recorded E_k
+    Ed = scalars(rrd, "/controller/E")
+    assert {k: v[0] for k, v in Ed.items()} == {k: t.E for k, t in rec.telemetry["controller"].items()
+                                               if len(t.xi)}
+    v = rrd_verify(rrd)
+    assert v.returncode == 0, v.stderr[-2000:]
