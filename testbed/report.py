@@ -69,11 +69,12 @@ def _agreement(data: RunData, N: int) -> dict:
             "not_compared": len(missing), "not_compared_at": missing[:50], "all_agree": not differ and not missing}
 
 
-def report(path: str | Path) -> dict:
-    """The report of one recording (a JSON-able dict)."""
+def report(path: str | Path | rec_io.Recording) -> dict:
+    """The report of one recording (a path, or a ``Recording`` already read), as a JSON-able dict."""
     from .quantizer import Codebook
 
-    rec = rec_io.read(path)
+    rec = path if isinstance(path, rec_io.Recording) else rec_io.read(path)
+    path = rec.path
     sc = rec.scenario()
     runmeta = rec.metadata.get("testbed.run", {})
     data = RunData(tele={r: rec.telemetry.get(r, {}) for r in ROLES}, plant_final=rec.plant_final,

@@ -264,7 +264,7 @@ def test_parse_corrupt():
 
 
 def test_percentiles():
-    from testbed.nodes.common import percentiles
+    from testbed.runsummary import percentiles
 
     p = percentiles([1000, 2000, 3000, msg.NO_TIME])
     assert p["n"] == 3 and p["p50"] == 2.0 and p["max"] == 3.0

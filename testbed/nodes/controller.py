@@ -15,7 +15,8 @@ import threading
 
 from ..io import messages as msg
 from ..quantizer import Decoder, InvalidSymbol
-from .common import Node, percentiles, warm_publisher
+from ..runsummary import percentiles
+from .common import Node, warm_publisher
 
 CT = msg.ControllerTelemetry
 

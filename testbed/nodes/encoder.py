@@ -19,7 +19,8 @@ import numpy as np
 
 from ..io import messages as msg
 from ..quantizer import Encoder
-from .common import Node, percentiles, warm_publisher
+from ..runsummary import percentiles
+from .common import Node, warm_publisher
 
 
 def skip_sample(enc: Encoder) -> None:

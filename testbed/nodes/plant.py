@@ -27,7 +27,8 @@ import numpy as np
 from ..flow import FLOW_OK, STATUS_NAMES, phi_T
 from ..io import messages as msg
 from ..io import transport
-from .common import Node, percentiles
+from ..runsummary import percentiles
+from .common import Node
 
 PT = msg.PlantTelemetry
 
