@@ -7,26 +7,18 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import signal
 import subprocess
 import time
 
 import pytest
-from test_live_process import BIT_EXACT_KEYS, TIMEOUT, live, procs_with, reap, simulate, tb_cmd
+from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, live, procs_with,  # noqa: F401 - run_id is a fixture
+                               run_id, simulate, tb_cmd)
 
 from testbed.io import recording
 from testbed.report import report
 
 pytestmark = pytest.mark.process
-
-
-@pytest.fixture
-def run_id():
-    rid = f"t{os.getpid()}r{secrets.token_hex(4)}"
-    yield rid
-    left = reap(rid)
-    assert not left, f"orphan processes of run {rid}: {left}"
 
 
 def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):

@@ -297,6 +297,19 @@ def _body_record(cls, body: bytes):
     return cls.read(ReadDataStream(io.BytesIO(body)))
 
 
+_IN_CHUNK = (_OP_MESSAGE, _OP_SCHEMA, _OP_CHANNEL)   # the records a chunk may hold
+
+
+def _decode(op: int, buf: bytes, body: int, end: int):
+    """A Message, Schema or Channel record whose body is ``buf[body:end]``."""
+    from mcap.records import Channel, Message, Schema
+
+    if op == _OP_MESSAGE:
+        ch, seq, lt, pt = _MSG_HEAD.unpack_from(buf, body)
+        return Message(channel_id=ch, sequence=seq, log_time=lt, publish_time=pt, data=buf[body + _MSG_HEAD.size:end])
+    return _body_record(Schema if op == _OP_SCHEMA else Channel, buf[body:end])
+
+
 def _records(data: bytes):
     """The records of an MCAP file held in memory, in file order: ``(opcode, object)``.
 
@@ -304,11 +317,10 @@ def _records(data: bytes):
     ``mcap`` library's stream reader on small messages; message indexes and the
     summary section are skipped.  Raises ``_Truncated`` where a crash cut the file.
     """
-    from mcap.records import Channel, Message, Metadata, Schema
+    from mcap.records import Metadata
 
     n = len(data)
     off = len(_MAGIC)
-    unpack_msg = _MSG_HEAD.unpack_from
     unpack_q = struct.Struct("<Q").unpack_from
     unpack_i = struct.Struct("<I").unpack_from
     while off < n:
@@ -334,23 +346,11 @@ def _records(data: bytes):
                 ib, ie = k + 9, k + 9 + ilen
                 if ie > m:
                     raise ValueError("corrupt chunk: a record runs past its end")
-                if iop == _OP_MESSAGE:
-                    ch, seq, lt, pt = unpack_msg(inner, ib)
-                    yield _OP_MESSAGE, Message(channel_id=ch, sequence=seq, log_time=lt, publish_time=pt,
-                                               data=inner[ib + _MSG_HEAD.size:ie])
-                elif iop == _OP_SCHEMA:
-                    yield iop, _body_record(Schema, inner[ib:ie])
-                elif iop == _OP_CHANNEL:
-                    yield iop, _body_record(Channel, inner[ib:ie])
+                if iop in _IN_CHUNK:
+                    yield iop, _decode(iop, inner, ib, ie)
                 k = ie
-        elif op == _OP_MESSAGE:
-            ch, seq, lt, pt = unpack_msg(data, body)
-            yield op, Message(channel_id=ch, sequence=seq, log_time=lt, publish_time=pt,
-                              data=data[body + _MSG_HEAD.size:end])
-        elif op == _OP_SCHEMA:
-            yield op, _body_record(Schema, data[body:end])
-        elif op == _OP_CHANNEL:
-            yield op, _body_record(Channel, data[body:end])
+        elif op in _IN_CHUNK:
+            yield op, _decode(op, data, body, end)
         elif op == _OP_METADATA:
             yield op, _body_record(Metadata, data[body:end])
         elif op in (_OP_FOOTER, _OP_DATA_END):
