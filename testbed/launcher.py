@@ -184,12 +184,7 @@ class Launcher:
 
     def spawn_recorder(self, col) -> bool:
         """Start the recorder and wait for its ready token (False: it died or never came up)."""
-        env = dict(os.environ)
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        log = open(self.run_dir / f"{RECORDER}.log", "wb")
-        self.recorder = subprocess.Popen(self.recorder_command(), stdin=subprocess.DEVNULL, stdout=log,
-                                         stderr=subprocess.STDOUT, start_new_session=True, env=env)
-        log.close()
+        self.recorder = self._popen(self.recorder_command(), RECORDER)
         end = time.monotonic() + self.args.startup_timeout
         while time.monotonic() < end and self.signal is None:
             if RECORDER in col.ready_nodes():
@@ -254,14 +249,17 @@ class Launcher:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait(5)
 
-    def spawn(self) -> None:
+    def _popen(self, cmd: list[str], name: str) -> subprocess.Popen:
+        """A child in its own session and process group, its output in ``<run dir>/<name>.log``."""
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
+        with open(self.run_dir / f"{name}.log", "wb") as log:
+            return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                    start_new_session=True, env=env)
+
+    def spawn(self) -> None:
         for role in transport.ROLES:
-            log = open(self.run_dir / f"{role}.log", "wb")
-            self.procs[role] = subprocess.Popen(self.command(role), stdin=subprocess.DEVNULL, stdout=log,
-                                                stderr=subprocess.STDOUT, start_new_session=True, env=env)
-            log.close()
+            self.procs[role] = self._popen(self.command(role), role)
 
     def _signal_group(self, role: str, sig: int) -> None:
         p = self.procs[role]

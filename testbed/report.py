@@ -119,7 +119,7 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
 
     from .analysis.figures import plot_time_series
 
-    def arr(key, shape_from=None):
+    def arr(key):
         v = summary.get(key) or []
         return np.array([[np.nan if a is None else a for a in row] if isinstance(row, list) else
                          (np.nan if row is None else row) for row in v], dtype=float)

@@ -42,7 +42,9 @@ def _all_finite_numbers(o: list) -> bool:
         a = np.asarray(o)
     except ValueError:  # ragged
         return False
-    return a.dtype.kind in "biuf" and bool(np.isfinite(a).all()) if a.dtype.kind == "f" else a.dtype.kind in "biu"
+    if a.dtype.kind == "f":
+        return bool(np.isfinite(a).all())
+    return a.dtype.kind in "biu"
 
 
 def _clean(o):

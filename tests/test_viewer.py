@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
-import signal
 import subprocess
 import sys
 
@@ -19,6 +17,8 @@ import pytest
 
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
+
+from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
 
 from testbed.io import viewer  # noqa: E402
 
@@ -132,22 +132,15 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
 
 # ---------------------------------------------------------------- live: testbed run --rerun save
 @pytest.mark.process
-def test_live_run_rerun_save_one_recording_from_every_node(tmp_path):
+def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
+    from test_live_process import run_cli, tb_cmd
+
     from testbed.io import recording
 
     rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
-    run_id = f"tv-{secrets.token_hex(3)}"
-    cmd = [PY, "-m", "testbed.cli", "run", "paper", "--duration", "3", "--run-id", run_id, "--json",
-           "--record", str(mcap), "--rerun", "save", str(rrd)]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                         env=dict(os.environ, RERUN_ANALYTICS="0"))
-    try:
-        out, err = p.communicate(timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        out, err = p.communicate()
-        pytest.fail(f"testbed run --rerun did not finish in {TIMEOUT} s\n{err[-3000:]}")
-    assert p.returncode == 0, err[-3000:]
+    rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
+                                  "--record", str(mcap), "--rerun", "save", str(rrd)))
+    assert rc == 0, err[-3000:]
     s = json.loads(out)
     assert s["rerun"]["mode"] == "save" and "error" not in s["rerun"], s["rerun"]
     for role in ("plant", "encoder", "controller", "attacker"):

@@ -450,17 +450,6 @@ def _dispatch(rec: Recording, topic: str, name: str, m, log_time: int) -> None:
         rec.loop[topic].append(schema.from_pb(m, name))
 
 
-def open_plain(path: str | Path):
-    """Messages through the plain ``mcap`` reader (for checks): [(topic, schema name, log_time, data)]."""
-    from mcap.reader import make_reader
-
-    out = []
-    with open(path, "rb") as f:
-        for sch, ch, m in make_reader(f).iter_messages():
-            out.append((ch.topic, sch.name if sch else None, m.log_time, m.data))
-    return out
-
-
 def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref: str | None = None,
                         extra: dict | None = None) -> None:
     """The metadata every recording starts with."""
@@ -586,7 +575,7 @@ simulation both are t0 + k T and every latency is zero.
 {schema.describe()}"""
 
 
-__all__ = ["RecordingWriter", "Recording", "read", "open_plain", "default_path", "schema_for_topic",
+__all__ = ["RecordingWriter", "Recording", "read", "default_path", "schema_for_topic",
            "record_simulation", "TELEMETRY_TOPICS", "LOOP_TOPICS", "software_versions", "write_text_metadata"]
 
 

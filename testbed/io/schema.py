@@ -201,17 +201,6 @@ def to_pb(obj, name: str | None = None):
     return m
 
 
-def to_dict(m, name: str) -> dict:
-    """protobuf message -> dict with the messages dataclass's conventions (absent time -> NO_TIME)."""
-    plain, optional, repeated = _layout(name)
-    d = {f: getattr(m, f) for f in plain}
-    for f in optional:
-        d[f] = getattr(m, f) if m.HasField(f) else msg.NO_TIME
-    for f in repeated:
-        d[f] = tuple(getattr(m, f))
-    return d
-
-
 @lru_cache(maxsize=None)
 def _converter(name: str):
     """protobuf message -> dataclass, fields read in the dataclass's order (the hot path of reading)."""
