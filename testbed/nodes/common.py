@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import dataclasses
+import faulthandler
 import hashlib
 import json
 import logging
@@ -162,13 +163,81 @@ def _prctl(option: int, arg: int) -> bool:
 
 
 def tune_process(parent_pid: int | None = None) -> dict:
-    """Fine timer slack and death with the parent (launcher)."""
+    """Fine timer slack, death with the parent (launcher), stacks on SIGUSR1.
+
+    ``kill -USR1 PID`` prints every thread's Python stack to the node's stderr
+    (its log file under ``testbed run``): the way to see where a node hangs.
+    """
+    try:
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (AttributeError, ValueError, OSError):
+        pass
     info = {"timerslack": _prctl(29, 1)}  # PR_SET_TIMERSLACK = 29: 1 ns instead of 50 us
     if parent_pid:
         _prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
         if os.getppid() != parent_pid:  # the launcher died before we got here
             raise SystemExit(f"testbed node: launcher (pid {parent_pid}) is gone")
     return info
+
+
+def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
+                    signals=(signal.SIGINT, signal.SIGTERM)) -> None:
+    """Call ``callback(signum)`` on a helper thread when one of ``signals`` arrives.
+
+    A Python signal handler runs on the main thread between two bytecodes, which
+    may be inside ``threading.Event.wait`` holding the event's lock: a handler that
+    sets an event or notifies a condition deadlocks there (seen: a node hung for
+    ever after the launcher's death sent it SIGTERM).  So the Python handler does
+    nothing but (optionally) ``main_handler``; the interpreter's C-level handler
+    writes the signal number to a wake-up pipe, and a daemon thread reads it and
+    calls ``callback``, outside any lock the main thread holds.
+
+    ``grace``: after the first signal, exit hard (``os._exit(1)``) if the process
+    is still alive ``grace`` seconds later, so a stop that hangs anyway cannot leave
+    an orphan behind.
+    """
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    wanted = {int(s) for s in signals}
+
+    def py_handler(signum, _frame):
+        if main_handler is not None:
+            main_handler(signum)
+
+    for s in signals:
+        signal.signal(s, py_handler)
+    signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+
+    def pump() -> None:
+        armed = False
+        while True:
+            try:
+                data = os.read(r, 64)
+            except OSError:
+                return
+            for b in data:
+                if b not in wanted:
+                    continue
+                if grace is not None and not armed:
+                    armed = True
+                    threading.Thread(target=_exit_after, args=(grace, b), daemon=True,
+                                     name="stop-deadline").start()
+                try:
+                    callback(b)
+                except Exception:  # noqa: BLE001 - a stop request must not kill the pump
+                    logging.getLogger(__name__).exception("stop callback failed")
+
+    threading.Thread(target=pump, daemon=True, name="signals").start()
+
+
+def _exit_after(seconds: float, signum: int) -> None:
+    time.sleep(seconds)
+    try:
+        name = signal.Signals(signum).name
+    except ValueError:
+        name = str(signum)
+    print(f"testbed: still running {seconds:g} s after {name}; exiting hard", file=sys.stderr, flush=True)
+    os._exit(1)
 
 
 def set_realtime(on: bool, priority: int = 1) -> bool:

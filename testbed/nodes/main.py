@@ -24,9 +24,11 @@ import time
 
 from ..io import transport
 from .common import (NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
-                     set_realtime, setup_logging, tune_process, zenoh_config)
+                     on_stop_signals, set_realtime, setup_logging, tune_process, zenoh_config)
 
 log = logging.getLogger("testbed.nodes")
+
+STOP_GRACE_S = 15.0  # a node still alive this long after SIGINT/SIGTERM exits hard
 
 
 def _classes():
@@ -99,15 +101,16 @@ def main_node(args) -> int:
     sys.setswitchinterval(1e-4)  # a callback thread waiting for the GIL waits 100 us, not 5 ms
     holder: dict = {}
 
-    def on_signal(signum, _frame):
+    def on_signal(signum):  # on the signal thread: no lock of the main thread is held here
         ctx = holder.get("ctx")
         if ctx is not None:
             ctx.request_stop(f"signal {signal.Signals(signum).name}")
-        else:
+
+    def before_context(_signum):  # on the main thread: only while there is no context to stop
+        if holder.get("ctx") is None:
             raise KeyboardInterrupt
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    on_stop_signals(on_signal, main_handler=before_context, grace=STOP_GRACE_S)
     conf = zenoh_config(args, role)
     code = 0
     cpu_info: dict = {}

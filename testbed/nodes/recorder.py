@@ -32,10 +32,12 @@ from pathlib import Path
 
 from ..io import messages as msg
 from ..io import recording, transport
-from .common import RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, tune_process
+from .common import (RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, on_stop_signals,
+                     tune_process)
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
+RECORDER_STOP_GRACE_S = 60.0  # time to drain the queue and close the file after a signal
 
 _LOOP_TYPES = {"loop/sensor": msg.Sensor, "loop/symbol/tx": msg.Symbol, "loop/symbol/rx": msg.Symbol,
                "loop/actuation": msg.Actuation, "loop/ack/tx": msg.Ack, "loop/ack/rx": msg.Ack}
@@ -252,12 +254,11 @@ def main_record(args) -> int:
     stop = threading.Event()
     why = {"reason": ""}
 
-    def on_signal(signum, _frame):
+    def on_signal(signum):  # on the signal thread (see on_stop_signals)
         why["reason"] = why["reason"] or f"signal {signal.Signals(signum).name}"
         stop.set()
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    on_stop_signals(on_signal, grace=RECORDER_STOP_GRACE_S)
     out = Path(args.out) if args.out else recording.default_path(sc.name)
     keys = transport.Keys.for_run(args.run_id)
     listen, connect = list(args.listen), list(args.connect)
