@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 
 import pytest
 
@@ -41,6 +42,19 @@ def procs_with(token: str) -> list[int]:
             continue
         if token in cmd:
             out.append(int(d))
+    return out
+
+
+def cmdlines(pids: list[int]) -> list[str]:
+    """``pid: command line`` of each pid, for assertion messages."""
+    out = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace")
+            out.append(f"{pid}: {cmd[:200]}")
+        except OSError:
+            out.append(f"{pid}: (gone)")
     return out
 
 
@@ -91,12 +105,35 @@ def live(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     return rc, summary, err
 
 
+def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
+    """``live`` for the bit-exact tests: one rerun if the machine stalled the first run.
+
+    A deadline miss, an overrun or a late symbol (a node starved of CPU for tens of
+    ms on these shared 2-core machines) is a timing fault the run reports, and it
+    makes that sample a loss,
+    so the loop legitimately leaves the simulator's.  Such a run proves nothing
+    either way; the test reruns once and says so.  Two stalled runs in a row
+    fail, and so does any mismatch in a run without a miss.
+    """
+    res = live(run_id, scenario, *args, timeout=timeout)
+    tm = res[1].get("timing", {})
+    stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
+             "late_symbols": res[1].get("late_symbols")}
+    if any(stall.values()):
+        warnings.warn(f"{scenario}: the run reports {stall} (machine stalled); rerunning once")
+        reap(run_id)
+        res = live(run_id + "r", scenario, *args, timeout=timeout)
+    return res
+
+
 @pytest.fixture
 def run_id():
     rid = f"t{os.getpid()}x{secrets.token_hex(4)}"
     yield rid
+    left = procs_with(rid)
+    names = cmdlines(left)
     left = reap(rid)
-    assert not left, f"orphan processes of run {rid}: {left}"
+    assert not left, f"orphan processes of run {rid}: {names}"
 
 
 def simulate(scenario: str, duration: float) -> dict:
@@ -113,7 +150,7 @@ BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "satura
 def paper_run():
     rid = f"t{os.getpid()}xpaper{secrets.token_hex(3)}"
     try:
-        yield live(rid, "paper", "--duration", "5")
+        yield live_exact(rid, "paper", "--duration", "5")
     finally:
         left = reap(rid)
         assert not left
@@ -156,7 +193,7 @@ def test_paper_live_reports_sizes_and_timing(paper_run):
 
 
 def test_greedy_attacker_live_equals_simulator(run_id):
-    rc, s, err = live(run_id, "paper-greedy", "--duration", "4")
+    rc, s, err = live_exact(run_id, "paper-greedy", "--duration", "4")
     assert rc == 0, (s["faults"], err[-2000:])
     sim = simulate("paper-greedy", 4)
     for key in BIT_EXACT_KEYS:

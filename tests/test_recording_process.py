@@ -12,7 +12,7 @@ import subprocess
 import time
 
 import pytest
-from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, live, procs_with,  # noqa: F401 - run_id is a fixture
+from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, cmdlines, live, live_exact, procs_with,  # noqa: F401 - run_id is a fixture
                                run_id, simulate, tb_cmd)
 
 from testbed.io import recording
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.process
 
 def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
     path = tmp_path / "live.mcap"
-    rc, s, err = live(run_id, "paper", "--duration", "5", "--record", str(path))
+    rc, s, err = live_exact(run_id, "paper", "--duration", "5", "--record", str(path))
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["recording"]["complete"] and s["recording"]["path"] == str(path)
     r = report(path)
@@ -97,7 +97,7 @@ def test_launcher_sigkilled_the_recorder_still_finishes_the_file(run_id, tmp_pat
     end = time.monotonic() + 30
     while procs_with(run_id) and time.monotonic() < end:   # nodes and recorder die with the launcher
         time.sleep(0.2)
-    assert procs_with(run_id) == []
+    assert procs_with(run_id) == [], cmdlines(procs_with(run_id))
     rec = recording.read(path)
     assert not rec.truncated, rec.read_error          # PDEATHSIG: the recorder closed the file properly
     assert len(rec.telemetry["plant"]) >= 10
