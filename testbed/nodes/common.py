@@ -246,12 +246,22 @@ def set_realtime(on: bool, priority: int = 1) -> bool:
     Applied only for the loop itself (after start-up, JIT and warm-up), so a node
     never competes at real-time priority while compiling or connecting.  The
     kernel's RT throttling still leaves 5% of each CPU to everybody else.
+
+    Threads with a higher nice value than the main thread (the Rerun logging thread and the threads
+    Rerun created from it, ``rerun_tap.NICE``) are background work and stay
+    SCHED_OTHER: a real-time thread would preempt the loop it is meant to stay off.
     """
     policy = os.SCHED_FIFO if on else os.SCHED_OTHER
     param = os.sched_param(priority if on else 0)
+    try:
+        base = os.getpriority(os.PRIO_PROCESS, os.getpid())  # the main thread's nice value
+    except OSError:
+        base = 0
     ok = True
     for tid in os.listdir("/proc/self/task"):
         try:
+            if on and os.getpriority(os.PRIO_PROCESS, int(tid)) > base:
+                continue
             os.sched_setscheduler(int(tid), policy, param)
         except (OSError, ValueError):
             ok = False
