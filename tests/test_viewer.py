@@ -162,3 +162,77 @@ def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
                                                if len(t.xi)}
     v = rrd_verify(rrd)
     assert v.returncode == 0, v.stderr[-2000:]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stream_entities(path) -> tuple[set[str], list]:
+    """Entities and recordings of a file with or without a footer (a saving server writes none)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "no footer: legacy format" from a --save server's file
+        r = RrdReader(path)
+        return {c.entity_path for c in r.stream()}, r.recordings()
+
+
+# ------------------------------------------------ live: testbed run --rerun connect URL
+@pytest.mark.process
+def test_live_run_rerun_connect_streams_to_a_grpc_server(tmp_path, run_id):
+    """A real Rerun gRPC server (``rerun --port P --save F``, no viewer window) receives the run."""
+    from test_live_process import run_cli, tb_cmd
+
+    port, got = _free_port(), tmp_path / "server.rrd"
+    srv = subprocess.Popen([viewer.rerun_binary(), "--port", str(port), "--save", str(got)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                           env=dict(os.environ, RERUN_ANALYTICS="0"), start_new_session=True)
+    try:
+        url = f"rerun+http://127.0.0.1:{port}/proxy"
+        rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
+                                      "--no-record", "--rerun", "connect", url))
+        assert rc == 0, err[-3000:]
+        s = json.loads(out)
+        assert s["rerun"] == {"mode": "connect", "recording_id": run_id, "target": url}
+        for role in ("plant", "encoder", "controller", "attacker"):
+            ns = s["node_summaries"][role]
+            assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= 30, (role, ns)
+    finally:
+        srv.send_signal(2)  # SIGINT: the server writes what it has and exits
+        try:
+            srv.wait(20)
+        except subprocess.TimeoutExpired:
+            srv.kill()
+            srv.wait()
+    ents, recs = _stream_entities(got)
+    assert [r.recording_id for r in recs] == [run_id]  # every process into one recording
+    assert ENTITIES | {"/phase/roa", "/scenario"} <= ents
+
+
+# ------------------------------------------------ live: --rerun save when a node is killed
+@pytest.mark.process
+def test_live_rerun_save_merges_when_a_node_was_killed(tmp_path, run_id):
+    """The killed node's part file has no footer; the merge keeps the others' data and the file verifies."""
+    from test_live_process import run_cli, tb_cmd
+
+    rrd = tmp_path / "killed.rrd"
+    rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
+                                  "--no-record", "--rerun", "save", str(rrd), "--kill", "encoder@1.5"))
+    s = json.loads(out)
+    assert rc == 1 and any(f["node"] == "encoder" for f in s["faults"]), (rc, s["faults"])
+    assert "error" not in s["rerun"], s["rerun"]
+    assert rrd.exists() and not list(tmp_path.glob(".killed.rrd.parts-*")), "no merge, or part files left"
+    v = rrd_verify(rrd)
+    assert v.returncode == 0, v.stderr[-2000:]
+    ents = entity_paths(rrd)
+    assert {"/plant/x", "/plant/u", "/controller/E", "/controller/theta", "/attacker/attack_on"} <= ents
+    Ed = scalars(rrd, "/controller/E")
+    assert len(Ed) >= 25, sorted(Ed)  # the controller decoded up to the end (E grows on losses after 1.5 s)
+    # the killed encoder's part: what its tap had handed to Rerun before the kill (15 of 15 here)
+    E = scalars(rrd, "/encoder/E")
+    assert 5 <= len(E) <= 16 and sorted(E) == list(range(len(E))), sorted(E)
