@@ -274,6 +274,20 @@ def test_controller_killed_plant_runs_on_with_zero_input(run_id):
     assert all(s["u"][k] == [0.0] for k in _after(s, k0))
     assert s["timing"]["u_missing"] >= 30 - k0 - 1
     assert s["events"].get("controller_lost") == 1
+    assert_recording_kept_the_run(s, "controller", k0)
+
+
+def assert_recording_kept_the_run(s: dict, killed: str, k_kill: int) -> None:
+    """Crash safety: the run's MCAP (the default one) holds the whole run, the killed node's
+    samples up to its death, and the launcher's fault event."""
+    from testbed.io import recording
+
+    rec = recording.read(s["recording"]["path"])
+    assert not rec.truncated and s["recording"]["complete"], rec.read_error
+    assert sorted(rec.telemetry["plant"]) == list(range(s["samples"]))
+    ks = sorted(rec.telemetry[killed])
+    assert ks == list(range(len(ks))) and k_kill - 2 <= len(ks) <= k_kill + 2, (killed, k_kill, ks[-3:])
+    assert any(e.node == "launcher" and e.kind == f"{killed}_killed" for e in rec.events)
 
 
 @pytest.mark.parametrize("node", ["encoder", "attacker"])
@@ -287,9 +301,12 @@ def test_uplink_node_killed_controller_counts_losses(run_id, node):
     assert 4 <= k0 <= 7
     assert all(s["theta"][k] == 1 for k in _after(s, k0))
     assert s["loss_reasons"]["deadline"] >= 30 - k0 - 2
-    # the controller still answers every sample (u = 0) before the plant's deadline (10 ms margin)
-    assert s["timing"]["deadline_misses"] <= 1
+    # the controller still answers the lost samples (u = 0) before the plant's deadline: only
+    # 10 ms of margin, so a loaded 2-core machine may push a few late; a controller that did not
+    # answer would miss every one of the ~24
+    assert s["timing"]["deadline_misses"] <= 3
     assert any(e["kind"] == "peer_lost" and node in e["detail"] for e in s["event_log"])
+    assert_recording_kept_the_run(s, node, k0)
 
 
 def test_node_crash_is_reported_with_its_reason(run_id):
