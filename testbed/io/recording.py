@@ -301,12 +301,14 @@ _IN_CHUNK = (_OP_MESSAGE, _OP_SCHEMA, _OP_CHANNEL)   # the records a chunk may h
 
 
 def _decode(op: int, buf: bytes, body: int, end: int):
-    """A Message, Schema or Channel record whose body is ``buf[body:end]``."""
-    from mcap.records import Channel, Message, Schema
-
+    """A record whose body is ``buf[body:end]``: a Message as a plain ``(channel id, log time,
+    data)`` tuple (the hot path: an ``mcap.records.Message`` costs a few us each), a Schema or
+    Channel as the ``mcap`` record."""
     if op == _OP_MESSAGE:
-        ch, seq, lt, pt = _MSG_HEAD.unpack_from(buf, body)
-        return Message(channel_id=ch, sequence=seq, log_time=lt, publish_time=pt, data=buf[body + _MSG_HEAD.size:end])
+        ch, _seq, lt, _pt = _MSG_HEAD.unpack_from(buf, body)
+        return ch, lt, buf[body + _MSG_HEAD.size:end]
+    from mcap.records import Channel, Schema
+
     return _body_record(Schema if op == _OP_SCHEMA else Channel, buf[body:end])
 
 
@@ -382,21 +384,22 @@ def read(path: str | Path, *, loop: bool = True) -> Recording:
             rec.read_error = f"{type(e).__name__}: {e}"
             break
         if op == _OP_MESSAGE:
-            ch = channels.get(r.channel_id)
+            channel_id, log_time, payload = r
+            ch = channels.get(channel_id)
             if ch is None:
                 continue
             topic, name, cls = ch
             rec.counts[topic] += 1
-            if r.log_time > rec.last_log_time:
-                rec.last_log_time = r.log_time
+            if log_time > rec.last_log_time:
+                rec.last_log_time = log_time
             if cls is None or (not loop and topic.startswith("/loop/")):
                 continue
             try:
-                m = cls.FromString(r.data)
+                m = cls.FromString(payload)
             except Exception as e:  # noqa: BLE001 - protobuf DecodeError
                 rec.malformed.append({"topic": topic, "error": str(e)})
                 continue
-            _dispatch(rec, topic, name, m, r.log_time)
+            _dispatch(rec, topic, name, m, log_time)
         elif op == _OP_SCHEMA:
             if r.encoding == "protobuf":
                 try:
