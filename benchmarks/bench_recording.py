@@ -166,6 +166,7 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=10.0, help="length of the 1 kHz recording (default 10)")
     ap.add_argument("--rates", default="2000,10000,40000,0", help="offered records/s (0: as fast as possible)")
     ap.add_argument("--seconds", type=float, default=3.0, help="publishing time per phase")
+    ap.add_argument("--report-only", action="store_true", help="skip the recorder phases")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     out: dict = {"cpus": os.cpu_count()}
@@ -177,7 +178,7 @@ def main() -> int:
         out["recorder"] = []
         print(f"{'batch':>5} {'offered/s':>10} {'achieved/s':>11} {'sent':>8} {'recorded':>9} {'dropped':>7} "
               f"{'sustained/s':>12} {'vs writer':>9} {'max backlog':>11}", flush=True)
-        for batch in (20, 1):
+        for batch in (() if a.report_only else (20, 1)):
             for rate in [float(x) for x in a.rates.split(",")]:
                 r = recorder_phase(tmp, rate, a.seconds, batch)
                 out["recorder"].append(r)
