@@ -17,10 +17,12 @@ import secrets
 import shutil
 import subprocess
 import sys
+import warnings
 
 import pytest
 
-from test_live_process import _LOGS, BIT_EXACT_KEYS, TIMEOUT, _node_logs, reap, run_cli, simulate  # noqa: F401
+from test_live_process import (_LOGS, BIT_EXACT_KEYS, TIMEOUT, _node_logs, reap, run_cli,  # noqa: F401
+                               simulate, stalled)
 
 pytestmark = pytest.mark.process
 
@@ -76,9 +78,7 @@ def netns():
         assert not left, f"namespaces left behind: {left}"
 
 
-def test_paper_across_network_namespaces(netns):
-    names, addr = netns
-    run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
+def _run_in_namespaces(names, addr, run_id):
     port = 7447
     cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
            "--duration", "5", "--json", "--run-id", run_id, "--listen", f"tcp/{addr['hub']}:{port}",
@@ -90,7 +90,17 @@ def test_paper_across_network_namespaces(netns):
     finally:
         left = reap(run_id)
     assert not left, f"orphans: {left}"
-    s = json.loads(out)
+    return rc, json.loads(out), err
+
+
+def test_paper_across_network_namespaces(netns):
+    names, addr = netns
+    run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
+    rc, s, err = _run_in_namespaces(names, addr, run_id)
+    stall = stalled(s)
+    if stall:  # as live_exact: a starved node makes a loss, and the run says so; rerun once
+        warnings.warn(f"netns run reports {stall} (machine stalled); rerunning once")
+        rc, s, err = _run_in_namespaces(names, addr, run_id + "r")
     assert rc == 0, (s["faults"], err[-3000:])
     # every node ran in its own network namespace
     netns_ids = {r: s["node_summaries"][r]["netns"] for r in ROLES}

@@ -105,6 +105,14 @@ def live(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     return rc, summary, err
 
 
+def stalled(summary: dict) -> dict | None:
+    """The timing faults a run reports about itself (deadline misses, overruns, late symbols), or None."""
+    tm = summary.get("timing", {})
+    stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
+             "late_symbols": summary.get("late_symbols")}
+    return stall if any(stall.values()) else None
+
+
 def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     """``live`` for the bit-exact tests: one rerun if the machine stalled the first run.
 
@@ -116,10 +124,8 @@ def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     fail, and so does any mismatch in a run without a miss.
     """
     res = live(run_id, scenario, *args, timeout=timeout)
-    tm = res[1].get("timing", {})
-    stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
-             "late_symbols": res[1].get("late_symbols")}
-    if any(stall.values()):
+    stall = stalled(res[1])
+    if stall:
         warnings.warn(f"{scenario}: the run reports {stall} (machine stalled); rerunning once")
         reap(run_id)
         res = live(run_id + "r", scenario, *args, timeout=timeout)
