@@ -5,9 +5,10 @@ signal handler that sets an Event runs on the main thread, possibly inside that
 Event's own ``with lock:`` in ``Event.wait``, and deadlocks; CI once left a node
 hanging that way.  ``on_stop_signals`` hands the signal to a helper thread.
 These tests start a small child process (a few hundred ms each), not a run.
-The old handler style deadlocked in about 1 of 20 children under the hammer
-below (a single signal suffices when it lands just after ``Event.wait`` took the
-lock), too rare for a test; what is tested is the property that rules it out.
+The old handler style (``signal.signal(SIGTERM, lambda s, f: stop.set())``)
+deadlocked in about 1 of 20 children under the hammer below (a single signal
+suffices when it lands just after ``Event.wait`` took the lock): too rare for a
+test.  What is tested is the property that rules it out.
 """
 from __future__ import annotations
 
@@ -24,9 +25,7 @@ CHILD = textwrap.dedent("""
     from testbed.nodes.common import on_stop_signals
     stop = threading.Event()
     mode = sys.argv[1]
-    if mode == "old":                      # what the nodes did before: set the Event in the handler
-        signal.signal(signal.SIGTERM, lambda s, f: stop.set())
-    elif mode == "new":
+    if mode == "new":
         def on_stop(s):
             print("callback on", "main" if threading.current_thread() is threading.main_thread() else "helper",
                   flush=True)
@@ -47,13 +46,13 @@ def _child(mode: str) -> subprocess.Popen:
     return p
 
 
-def _hammer(p: subprocess.Popen, n: int = 200, pause: float = 0.0005) -> None:
+def _hammer(p: subprocess.Popen, n: int = 200) -> None:
     """Many SIGTERMs in a row: each is a chance to land inside Event.wait's lock."""
     for _ in range(n):
         if p.poll() is not None:
             return
         p.send_signal(signal.SIGTERM)
-        time.sleep(pause)
+        time.sleep(0.0005)
 
 
 def _finish(p: subprocess.Popen, timeout: float) -> int | None:
