@@ -110,7 +110,11 @@ def stalled(summary: dict) -> dict | None:
     tm = summary.get("timing", {})
     stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
              "late_symbols": summary.get("late_symbols")}
-    return stall if any(stall.values()) else None
+    if not any(stall.values()):
+        return None
+    stall["missed_at"] = summary.get("deadline_missed_at")
+    stall["sampling_jitter_max_us"] = (tm.get("sampling_jitter_us") or {}).get("max")
+    return stall
 
 
 def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
