@@ -15,6 +15,7 @@ max, deadline misses, and the ratios with / without.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -24,14 +25,6 @@ import time
 from pathlib import Path
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run_once(scenario: str, T: float, duration: float, rrd: str | None, sink: str = "save") -> dict:
     """One live run; ``rrd`` None: no Rerun.  ``sink`` "save": ``--rerun save rrd``; "connect":
     ``--rerun connect`` to a headless Rerun gRPC server (``rerun --port P --save rrd``, what a
@@ -39,28 +32,15 @@ def run_once(scenario: str, T: float, duration: float, rrd: str | None, sink: st
     cmd = [sys.executable, "-m", "testbed.cli", "run", scenario, "--T", repr(T), "--duration", repr(duration),
            "--json", "--no-record"]
     env = dict(os.environ, RERUN_ANALYTICS="0")
-    srv = None
-    if rrd and sink == "connect":
-        from testbed.io.viewer import rerun_binary
+    with contextlib.ExitStack() as stack:
+        if rrd and sink == "connect":
+            from testbed.io.viewer import saving_server
 
-        port = _free_port()
-        srv = subprocess.Popen([rerun_binary(), "--port", str(port), "--save", rrd], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, env=env)
-        time.sleep(1.0)
-        cmd += ["--rerun", "connect", f"rerun+http://127.0.0.1:{port}/proxy"]
-    elif rrd:
-        cmd += ["--rerun", "save", rrd]
-    t0 = time.monotonic()
-    try:
+            cmd += ["--rerun", "connect", stack.enter_context(saving_server(rrd))]
+        elif rrd:
+            cmd += ["--rerun", "save", rrd]
+        t0 = time.monotonic()
         p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=duration + 180, env=env)
-    finally:
-        if srv is not None:
-            srv.send_signal(2)
-            try:
-                srv.wait(20)
-            except subprocess.TimeoutExpired:
-                srv.kill()
-                srv.wait()
     wall = time.monotonic() - t0
     if not p.stdout.strip():
         raise SystemExit(f"testbed run failed ({p.returncode}): {p.stderr.decode()[-2000:]}")

@@ -164,14 +164,6 @@ def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
     assert v.returncode == 0, v.stderr[-2000:]
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _stream_entities(path) -> tuple[set[str], list]:
     """Entities and recordings of a file with or without a footer (a saving server writes none)."""
     import warnings
@@ -188,27 +180,16 @@ def test_live_run_rerun_connect_streams_to_a_grpc_server(tmp_path, run_id):
     """A real Rerun gRPC server (``rerun --port P --save F``, no viewer window) receives the run."""
     from test_live_process import run_cli, tb_cmd
 
-    port, got = _free_port(), tmp_path / "server.rrd"
-    srv = subprocess.Popen([viewer.rerun_binary(), "--port", str(port), "--save", str(got)],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                           env=dict(os.environ, RERUN_ANALYTICS="0"), start_new_session=True)
-    try:
-        url = f"rerun+http://127.0.0.1:{port}/proxy"
+    got = tmp_path / "server.rrd"
+    with viewer.saving_server(got) as url:
         rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
                                       "--no-record", "--rerun", "connect", url))
-        assert rc == 0, err[-3000:]
-        s = json.loads(out)
-        assert s["rerun"] == {"mode": "connect", "recording_id": run_id, "target": url}
-        for role in ("plant", "encoder", "controller", "attacker"):
-            ns = s["node_summaries"][role]
-            assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= 30, (role, ns)
-    finally:
-        srv.send_signal(2)  # SIGINT: the server writes what it has and exits
-        try:
-            srv.wait(20)
-        except subprocess.TimeoutExpired:
-            srv.kill()
-            srv.wait()
+    assert rc == 0, err[-3000:]
+    s = json.loads(out)
+    assert s["rerun"] == {"mode": "connect", "recording_id": run_id, "target": url}
+    for role in ("plant", "encoder", "controller", "attacker"):
+        ns = s["node_summaries"][role]
+        assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= 30, (role, ns)
     ents, recs = _stream_entities(got)
     assert [r.recording_id for r in recs] == [run_id]  # every process into one recording
     assert ENTITIES | {"/phase/roa", "/scenario"} <= ents

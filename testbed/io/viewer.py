@@ -48,6 +48,7 @@ Rerun is imported only inside the functions: importing this module is cheap.
 from __future__ import annotations
 
 import argparse
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -447,6 +448,36 @@ def rerun_binary() -> str:
     except ImportError:
         pass
     return shutil.which("rerun") or "rerun"
+
+
+@contextmanager
+def saving_server(path, *, startup_s: float = 1.0):
+    """A headless Rerun gRPC server (``rerun --port P --save PATH``): it receives what a viewer's
+    server would, without a window, and saves it (no footer: read it with ``RrdReader.stream()``).
+    Yields the URL for ``--rerun connect``; stopped with SIGINT on exit (the test and the benchmark
+    of the live-view sink)."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import time
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    srv = subprocess.Popen([rerun_binary(), "--port", str(port), "--save", str(path)], stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"),
+                           start_new_session=True)
+    try:
+        time.sleep(startup_s)
+        yield f"rerun+http://127.0.0.1:{port}/proxy"
+    finally:
+        srv.send_signal(signal.SIGINT)  # the server writes what it has and exits
+        try:
+            srv.wait(20)
+        except subprocess.TimeoutExpired:
+            srv.kill()
+            srv.wait()
 
 
 def add_rerun_run_arguments(p: argparse.ArgumentParser) -> None:
