@@ -156,7 +156,8 @@ def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
     enc = rec.telemetry["encoder"]
     want = {k: t.E for k, t in enc.items() if not t.silent}
     E = scalars(rrd, "/encoder/E")
-    assert len(want) == 30 and {k: v[0] for k, v in E.items()} == want  # exactly the recorded E_k
+    # exactly the recorded E_k (a sample is withheld only if a stall delayed its ack)
+    assert len(want) == 30 - len(s["withheld_at"]) >= 25 and {k: v[0] for k, v in E.items()} == want
     Ed = scalars(rrd, "/controller/E")
     assert {k: v[0] for k, v in Ed.items()} == {k: t.E for k, t in rec.telemetry["controller"].items()
                                                if len(t.xi)}

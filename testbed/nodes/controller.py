@@ -61,6 +61,8 @@ class ControllerNode(Node):
         if self.ctx.start_msg is None or self.ctx.stop.is_set():
             return
         if node in ("encoder", "attacker") and not alive:
+            if self.next_k >= self.ctx.n_steps:
+                return  # every sample decided: a peer leaving now is the normal end of the run
             self.ctx.event("peer_lost", k=self.next_k,
                            detail=f"{node} liveliness lost: its samples will be treated as losses")
         elif node == "plant" and not alive:
