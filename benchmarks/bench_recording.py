@@ -149,16 +149,20 @@ def report_timing(tmp: Path, minutes: float) -> dict:
     t_read = time.perf_counter() - t
     n_msgs = sum(rec.counts.values())
     del rec
-    t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "report", str(path), "--json"],
-                       capture_output=True, text=True)
-    t_report = time.perf_counter() - t
-    if r.returncode:
-        raise RuntimeError(r.stderr)
-    s = json.loads(r.stdout)
+    with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
+        t = time.perf_counter()
+        p = subprocess.Popen([sys.executable, "-P", "-m", "testbed.cli", "report", str(path), "--json"],
+                             stdout=fo, stderr=fe, text=True)
+        _, status, ru = os.wait4(p.pid, 0)  # reaps it, with its resource usage (peak RSS)
+        t_report = time.perf_counter() - t
+        p.returncode = os.waitstatus_to_exitcode(status)
+        fo.seek(0), fe.seek(0)
+        if p.returncode:
+            raise RuntimeError(fe.read())
+        s = json.loads(fo.read())
     return {"samples": s["samples"], "messages": n_msgs, "file_mb": path.stat().st_size / 1e6,
             "simulate_and_write_s": t_write, "read_s": t_read, "report_cli_s": t_report,
-            "report_messages_per_s": n_msgs / t_report}
+            "report_messages_per_s": n_msgs / t_report, "report_peak_rss_mb": ru.ru_maxrss / 1024}
 
 
 def main() -> int:
@@ -190,7 +194,8 @@ def main() -> int:
         out["report"] = rr = report_timing(tmp, a.minutes)
         print(f"  {rr['samples']:,} samples, {rr['messages']:,} messages, {rr['file_mb']:.1f} MB; "
               f"simulate + write {rr['simulate_and_write_s']:.1f} s; read {rr['read_s']:.1f} s; "
-              f"testbed report {rr['report_cli_s']:.1f} s ({rr['report_messages_per_s']:,.0f} messages/s)")
+              f"testbed report {rr['report_cli_s']:.1f} s ({rr['report_messages_per_s']:,.0f} messages/s, "
+              f"peak RSS {rr['report_peak_rss_mb']:,.0f} MB)")
     if a.json:
         print(json.dumps(out))
     return 0
