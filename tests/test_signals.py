@@ -83,4 +83,5 @@ def test_grace_deadline_ends_a_stop_that_hangs():
     t0 = time.monotonic()
     p.send_signal(signal.SIGTERM)
     rc = _finish(p, 10)
-    assert rc == 1 and 0.4 < time.monotonic() - t0 < 5
+    # rc 1 within _finish's 10 s is the grace deadline's os._exit(1); a load stall may delay it
+    assert rc == 1 and time.monotonic() - t0 > 0.4
