@@ -71,7 +71,7 @@ def test_plant_killed_the_recording_is_complete_and_says_so(run_id, tmp_path):
     rec = recording.read(path)
     assert not rec.truncated and "testbed.recorder" in rec.metadata
     ks = sorted(rec.telemetry["plant"])
-    assert 13 <= len(ks) <= 17 and ks == list(range(len(ks)))
+    assert 13 <= len(ks) <= 19 and ks == list(range(len(ks)))  # killed at 1.5 s (sample 15)
     launcher_events = [e for e in rec.events if e.node == "launcher"]
     assert any(e.kind == "plant_killed" for e in launcher_events)
     r = report(path)
