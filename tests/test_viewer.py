@@ -218,3 +218,48 @@ def test_live_rerun_save_merges_when_a_node_was_killed(tmp_path, run_id):
     # the killed encoder's part: what its tap had handed to Rerun before the kill (15 of 15 here)
     E = scalars(rrd, "/encoder/E")
     assert 5 <= len(E) <= 16 and sorted(E) == list(range(len(E))), sorted(E)
+
+
+# ------------------------------------------------ live: testbed run --rerun spawn
+def _port_busy(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _rerun_pids() -> set[int]:
+    from test_live_process import procs_with
+
+    return set(procs_with(viewer.rerun_binary()))
+
+
+@pytest.mark.process
+def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
+    """``--rerun spawn`` with a viewer already on port 9876: no second viewer, the run goes to it.
+
+    A headless saving server stands in for the viewer (there is no display here);
+    what is not tested is the window a spawn opens when nothing listens there.
+    """
+    from test_live_process import run_cli, tb_cmd
+
+    if _port_busy(9876):
+        pytest.skip("port 9876 is taken on this machine")
+    got = tmp_path / "spawned.rrd"
+    with viewer.saving_server(got, port=9876):
+        before = _rerun_pids()
+        rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "2", "--run-id", run_id, "--json",
+                                      "--no-record", "--rerun", "spawn"))
+        started = _rerun_pids() - before
+    for pid in started:  # never leave a viewer behind, even when the test fails
+        os.kill(pid, 9)
+    assert rc == 0, err[-3000:]
+    assert not started, "spawn started a second viewer although one listened on 9876"
+    s = json.loads(out)
+    assert s["rerun"] == {"mode": "spawn", "recording_id": run_id, "target": viewer.DEFAULT_URL}
+    for role in ("plant", "encoder", "controller", "attacker"):
+        ns = s["node_summaries"][role]
+        assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= 20, (role, ns)
+    ents, recs = _stream_entities(got)
+    assert [r.recording_id for r in recs] == [run_id]
+    assert ENTITIES | {"/phase/roa", "/scenario"} <= ents

@@ -451,20 +451,22 @@ def rerun_binary() -> str:
 
 
 @contextmanager
-def saving_server(path, *, startup_s: float = 1.0):
+def saving_server(path, *, port: int = 0, startup_s: float = 1.0):
     """A headless Rerun gRPC server (``rerun --port P --save PATH``): it receives what a viewer's
     server would, without a window, and saves it (no footer: read it with ``RrdReader.stream()``).
     Yields the URL for ``--rerun connect``; stopped with SIGINT on exit (the test and the benchmark
-    of the live-view sink)."""
+    of the live-view sink).  ``port`` 0: a free one; 9876 stands in for the viewer ``--rerun spawn``
+    would start (it reuses whatever listens there)."""
     import os
     import signal
     import socket
     import subprocess
     import time
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    if not port:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
     srv = subprocess.Popen([rerun_binary(), "--port", str(port), "--save", str(path)], stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"),
                            start_new_session=True)
