@@ -61,9 +61,11 @@ class ControllerNode(Node):
         if self.ctx.start_msg is None or self.ctx.stop.is_set():
             return
         if node in ("encoder", "attacker") and not alive:
-            if self.next_k >= self.ctx.n_steps:
+            with self._cond:  # _decide holds it between publishing u_{N-1} and advancing next_k
+                k = self.next_k
+            if k >= self.ctx.n_steps:
                 return  # every sample decided: a peer leaving now is the normal end of the run
-            self.ctx.event("peer_lost", k=self.next_k,
+            self.ctx.event("peer_lost", k=k,
                            detail=f"{node} liveliness lost: its samples will be treated as losses")
         elif node == "plant" and not alive:
             self.ctx.request_stop("plant lost")
