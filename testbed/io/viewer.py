@@ -451,7 +451,7 @@ def rerun_binary() -> str:
 
 
 @contextmanager
-def saving_server(path, *, port: int = 0, startup_s: float = 1.0):
+def saving_server(path, *, port: int = 0, startup_s: float = 30.0):
     """A headless Rerun gRPC server (``rerun --port P --save PATH``): it receives what a viewer's
     server would, without a window, and saves it (no footer: read it with ``RrdReader.stream()``).
     Yields the URL for ``--rerun connect``; stopped with SIGINT on exit (the test and the benchmark
@@ -471,7 +471,15 @@ def saving_server(path, *, port: int = 0, startup_s: float = 1.0):
                            stderr=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"),
                            start_new_session=True)
     try:
-        time.sleep(startup_s)
+        end = time.monotonic() + startup_s
+        while True:  # until it accepts connections (a loaded machine may take seconds)
+            with socket.socket() as sock:
+                if sock.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            if srv.poll() is not None or time.monotonic() > end:
+                raise RuntimeError(f"rerun --port {port} --save {path}: no server "
+                                   f"(exit code {srv.poll()}) after {startup_s:g} s")
+            time.sleep(0.05)
         yield f"rerun+http://127.0.0.1:{port}/proxy"
     finally:
         srv.send_signal(signal.SIGINT)  # the server writes what it has and exits
