@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 
@@ -252,7 +253,7 @@ def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
                                       "--no-record", "--rerun", "spawn"))
         started = _rerun_pids() - before
     for pid in started:  # never leave a viewer behind, even when the test fails
-        os.kill(pid, 9)
+        os.kill(pid, signal.SIGKILL)
     assert rc == 0, err[-3000:]
     assert not started, "spawn started a second viewer although one listened on 9876"
     s = json.loads(out)
