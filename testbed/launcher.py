@@ -32,6 +32,7 @@ from pathlib import Path
 
 from .io import messages as msg
 from .io import transport
+from .io.viewer import LiveRerun, add_rerun_run_arguments
 from .nodes.common import RunOptions, add_run_option_arguments, load_scenario
 
 RECORDER = "recorder"
@@ -64,7 +65,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-record", action="store_true", help="do not record the run")
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
-    _add_rerun_arguments(p)
+    add_rerun_run_arguments(p)
     g = p.add_argument_group("run control")
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the nodes are not running after S seconds (default %(default)s)")
@@ -81,21 +82,6 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="make a node raise at sample K (repeatable)")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="the attacker corrupts the payload of these samples")
-
-
-# ---- rerun (testbed run --rerun): the launcher's part lives in testbed.io.viewer.LiveRerun
-def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
-    from .io.viewer import add_rerun_run_arguments
-
-    add_rerun_run_arguments(p)
-
-
-def _live_rerun(args, sc, run_id: str):
-    if not getattr(args, "rerun", None):
-        return None
-    from .io.viewer import LiveRerun
-
-    return LiveRerun.from_args(args, sc, run_id)
 
 
 def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
@@ -137,7 +123,7 @@ class Launcher:
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0
-        self.rerun = _live_rerun(args, self.sc, self.run_id)  # testbed run --rerun, or None
+        self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
 
     # ---- processes
     def command(self, role: str) -> list[str]:

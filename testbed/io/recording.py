@@ -266,12 +266,11 @@ class Recording:
         return with_overrides(sc, json.loads(over)) if over else sc
 
 
-_MSG_HEAD = struct.Struct("<HIQQ")   # Message record: channel id, sequence, log time, publish time
-_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x03, 0x04, 0x05
-
-
+# the MCAP byte layout (the spec's records) that ``_records`` walks
 _MAGIC = b"\x89MCAP0\r\n"
-_OP_FOOTER, _OP_CHUNK, _OP_METADATA, _OP_DATA_END = 0x02, 0x06, 0x0C, 0x0F
+_OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x02, 0x03, 0x04, 0x05
+_OP_CHUNK, _OP_METADATA, _OP_DATA_END = 0x06, 0x0C, 0x0F
+_MSG_HEAD = struct.Struct("<HIQQ")      # Message record: channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<QQQI")    # message start, message end, uncompressed size, uncompressed crc
 
 

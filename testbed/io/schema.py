@@ -231,4 +231,3 @@ def describe() -> str:
             lines.append(f"| `{f}` | {t} | {doc} |")
         lines.append("")
     return "\n".join(lines)
-

@@ -264,7 +264,7 @@ def phase_bounds(sc, x=None, roa: RoaOutline | None = None):
             r = max(r, 1.2 * min(float(np.min(np.max(np.abs(ln), axis=1))) for ln in roa.lines))
         return ((-r, r), (-r, r))
     pts = np.asarray(sc.x0, dtype=float)[[a, b]][None, :]
-    if x is not None and len(x):
+    if len(x):
         pts = np.vstack([pts, np.asarray(x, dtype=float)[:, [a, b]]])
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     pad = np.maximum(0.5 * (hi - lo), 0.5 * np.max(np.abs(pts)) + 1e-3)
@@ -490,16 +490,16 @@ def saving_server(path, *, port: int = 0, startup_s: float = 30.0):
             srv.wait()
 
 
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+
+
 def add_rerun_run_arguments(p: argparse.ArgumentParser) -> None:
     """The ``--rerun`` option group of ``testbed run``."""
     g = p.add_argument_group("rerun (live view; see testbed/io/viewer.py)")
     g.add_argument("--rerun", nargs="+", metavar="spawn | connect [URL] | save PATH.rrd",
-                   help="stream the run to Rerun: spawn a viewer, connect to one (default "
-                        "rerun+http://127.0.0.1:9876/proxy) or save one .rrd; every node logs into one recording")
+                   help=f"stream the run to Rerun: spawn a viewer, connect to one (default {DEFAULT_URL}) "
+                        "or save one .rrd; every node logs into one recording")
     g.add_argument("--rerun-no-roa", action="store_true", help="skip the nominal region of attraction outline")
-
-
-DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 
 
 class LiveRerun:
@@ -515,7 +515,7 @@ class LiveRerun:
     * ``connect URL``: everybody connects to ``URL`` over gRPC;
     * ``save PATH``: every process writes its own part file (one .rrd cannot take
       several writers), and the launcher merges the parts into ``PATH`` at the end
-      (``rerun rrd merge``): one recording, one file.
+      (``rerun rrd optimize``): one recording, one file.
     """
 
     def __init__(self, mode: str, target: str | None, sc, recording_id: str, roa: bool = True):
@@ -581,6 +581,7 @@ class LiveRerun:
 
     def finish(self) -> None:
         """After the nodes have stopped: close the stream; ``save``: merge the parts into one file."""
+        import os
         import shutil
         import subprocess
         from pathlib import Path
@@ -592,7 +593,7 @@ class LiveRerun:
         if self.mode != "save" or self.parts_dir is None:
             return
         parts = sorted(str(p) for p in Path(self.parts_dir).glob("*.rrd"))
-        env = dict(__import__("os").environ, RERUN_ANALYTICS="0")
+        env = dict(os.environ, RERUN_ANALYTICS="0")
         r = subprocess.run([rerun_binary(), "rrd", "optimize", "--continue-on-error", *parts, "-o", str(self.target)],
                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
                            timeout=120)

@@ -23,6 +23,7 @@ import sys
 import time
 
 from ..io import transport
+from . import rerun_tap
 from .common import (NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
                      on_stop_signals, set_realtime, setup_logging, tune_process, zenoh_config)
 
@@ -82,14 +83,6 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
                    help="fault injection: corrupt the payload of these samples")
 
 
-def _rerun_tap(args, role: str, sc):
-    if not (args.rerun_url or args.rerun_save):
-        return None
-    from . import rerun_tap
-
-    return rerun_tap.from_args(args, role, sc)
-
-
 def main_node(args) -> int:
     import zenoh
 
@@ -122,7 +115,7 @@ def main_node(args) -> int:
         node = _classes()[role](ctx, args)
         tap = None
         try:
-            tap = _rerun_tap(args, role, sc)
+            tap = rerun_tap.from_args(args, role, sc)
             if tap is not None:
                 ctx.telemetry.tap = tap.put
             node.setup()

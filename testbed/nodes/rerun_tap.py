@@ -131,13 +131,12 @@ class RerunTap:
         """Log what is left, flush and close the sink (the part file gets its footer)."""
         self._stop.set()
         self._thread.join(timeout)
-        if self.rec is None:
-            return {"rerun_logged": self.logged, "rerun_errors": self.errors}
-        try:
-            self.rec.flush()
-            self.rec.disconnect()
-        except Exception:  # noqa: BLE001
-            log.exception("%s: rerun flush failed", self.role)
+        if self.rec is not None:
+            try:
+                self.rec.flush()
+                self.rec.disconnect()
+            except Exception:  # noqa: BLE001
+                log.exception("%s: rerun flush failed", self.role)
         return {"rerun_logged": self.logged, "rerun_errors": self.errors}
 
 
