@@ -3,13 +3,21 @@
 Subcommands live in their own modules and are imported only when used, so
 ``testbed simulate`` does not pay for Zenoh, MCAP or Rerun.  A module exposes
 ``add_arguments(parser)`` and ``main(args) -> int``.
+
+Exit codes of every command: 0 ok, 1 the run or job failed, 2 bad input
+(``testbed.errors.BadInput``: one line on stderr, never a traceback).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+DESCRIPTION = ("Real-time testbed for quantized control of nonlinear plants under DoS attacks. "
+               "Run 'testbed COMMAND --help' for a command's options.")
+EPILOG = "exit codes: 0 ok, 1 the run or job failed, 2 bad input"
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -40,12 +48,19 @@ for _name, _mod, _help in [
         pass
 
 
+def _version() -> str:
+    from . import __version__
+
+    return f"testbed (dos-testbed) {__version__}"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="testbed", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="testbed", description=DESCRIPTION, epilog=EPILOG)
+    ap.add_argument("--version", action="version", version=_version())
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_, description=help_)
+        p = sub.add_parser(name, help=help_, description=help_, epilog=EPILOG)
         mod = importlib.import_module(module)
         adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
         adder(p)
@@ -56,11 +71,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     # build only the parser of the requested command when possible (fast start)
+    if argv and argv[0] in ("--version", "-V"):
+        print(_version())
+        return 0
     if argv and argv[0] in COMMANDS:
         name = argv[0]
         module, help_ = COMMANDS[name]
         mod = importlib.import_module(module)
-        ap = argparse.ArgumentParser(prog=f"testbed {name}", description=help_)
+        ap = argparse.ArgumentParser(prog=f"testbed {name}", description=help_, epilog=EPILOG)
         adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
         adder(ap)
         args = ap.parse_args(argv[1:])
@@ -70,18 +88,36 @@ def main(argv: list[str] | None = None) -> int:
         args = ap.parse_args(argv)
         mod = importlib.import_module(args._module)
         runner = getattr(mod, f"main_{args._name}", None) or getattr(mod, "main")
-    from .scenario import ScenarioError
+    return run_guarded(runner, args, f"testbed {getattr(args, '_name', None) or argv[0]}")
+
+
+def run_guarded(runner, args, prog: str) -> int:
+    """Run a command: bad input is one line and exit 2, an internal error one line and exit 1.
+
+    ``TESTBED_TRACEBACK=1`` re-raises instead (for bug reports).
+    """
+    from .errors import BadInput
 
     try:
         return int(runner(args) or 0)
-    except ScenarioError as e:
-        print(f"testbed: scenario error: {e}", file=sys.stderr)
+    except BadInput as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as e:
+        print(f"{prog}: {e.strerror or e}: {e.filename}" if getattr(e, "filename", None) else f"{prog}: {e}",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
+    except Exception as e:  # noqa: BLE001 - one line, not a traceback; the variable shows it
+        if os.environ.get("TESTBED_TRACEBACK"):
+            raise
+        print(f"{prog}: internal error: {type(e).__name__}: {e} (set TESTBED_TRACEBACK=1 for the traceback)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -7,15 +7,19 @@ import json
 import sys
 
 
+from . import cliargs
+
+
 def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
-    p.add_argument("--json", action="store_true", help="print one JSON object with every sample")
+    cliargs.add_scenario(p)
+    cliargs.add_json(p, "the run (every sample, counts and outcome)")
     p.add_argument("--duration", type=float, help="override [run] duration (seconds)")
     p.add_argument("--mode", choices=["ideal", "resilient"], help="override [quantizer] mode")
     p.add_argument("--T", type=float, metavar="SECONDS", help="override [quantizer] T, the sample period")
-    p.add_argument("--out", metavar="PATH.mcap",
-                   help="also write the run as an MCAP recording (the topics of a live run; see testbed report)")
-    p.add_argument("--rrd", metavar="PATH.rrd", help="also write a Rerun recording of the run (see testbed replay)")
+    cliargs.add_out(p, "also write the run as an MCAP recording (the topics of a live run; see testbed report)")
+    cliargs.add_rrd(p, "also write a Rerun recording of the run (see testbed replay)")
+    cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded) into this PNG")
+    cliargs.add_no_roa(p)
 
 
 def main_simulate(args) -> int:
@@ -34,7 +38,14 @@ def main_simulate(args) -> int:
     if args.rrd:
         from .io.viewer import simulation_to_rrd
 
-        simulation_to_rrd(args.rrd, sc, res)
+        simulation_to_rrd(args.rrd, sc, res, roa=not args.no_roa)
+    if args.plot:
+        from .analysis.figures import plot_time_series
+
+        ivs = None if sc.attack.online else [list(iv) for iv in res.intervals().intervals]
+        plot_time_series(res, args.plot, intervals=ivs,
+                         title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded")
+        out["figure"] = str(args.plot)
     if args.json:
         sys.stdout.write(json.dumps(out))  # the C encoder in one go: 2x json.dump on long runs
         sys.stdout.write("\n")
@@ -52,17 +63,28 @@ def main_simulate(args) -> int:
             print(f"  recording: {args.out}")
         if args.rrd:
             print(f"  rerun recording: {args.rrd}")
+        if args.plot:
+            print(f"  figure: {args.plot}")
     return 0
 
 
 def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
-    pass
+    cliargs.add_json(p, "the list (name, description, plant, T, M, attack, duration)")
 
 
 def main_scenarios(args) -> int:
     from . import scenario
 
+    rows = []
     for name in scenario.bundled_names():
         sc = scenario.load(name)
-        print(f"{name:16s} plant={sc.plant.name:9s} T={sc.T:<6g} M={sc.quantizer.M} attack={sc.attack.kind}")
+        rows.append({"name": name, "description": sc.description, "plant": sc.plant.name, "n": len(sc.plant.x0),
+                     "T": sc.T, "M": sc.quantizer.M, "attack": sc.attack.kind, "duration": sc.run.duration})
+    if args.json:
+        print(json.dumps({"scenarios": rows}))
+        return 0
+    for r in rows:
+        print(f"{r['name']:14s} {r['description']}")
+        print(f"{'':14s} plant {r['plant']}, T = {r['T']:g} s, M = {r['M']}, attack {r['attack']}, "
+              f"{r['duration']:g} s")
     return 0

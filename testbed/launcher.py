@@ -30,6 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from . import cliargs
 from .io import messages as msg
 from .io import transport
 from .io.viewer import LiveRerun, add_rerun_run_arguments
@@ -46,7 +47,7 @@ def recording_default_path(name: str) -> Path:
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file (.toml) or bundled name")
-    p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
+    cliargs.add_json(p, "the run's summary (the keys of testbed simulate --json, plus timing and faults)")
     add_run_option_arguments(p)
     g = p.add_argument_group("network")
     g.add_argument("--run-id", help="key prefix testbed/RUN_ID/... (default: unique per run)")
@@ -60,8 +61,8 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
     g = p.add_argument_group("recording")
-    g.add_argument("--record", metavar="PATH.mcap",
-                   help="recording file (default recordings/<scenario>-<UTC start>.mcap)")
+    cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap)",
+                    aliases=("--record",))
     g.add_argument("--no-record", action="store_true", help="do not record the run")
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
@@ -119,7 +120,7 @@ class Launcher:
         self.kill_sent: dict[str, int] = {}
         self.signal: int | None = None
         self.stopping = False
-        self.record_path = None if args.no_record else Path(args.record or recording_default_path(self.sc.name))
+        self.record_path = None if args.no_record else Path(args.out or recording_default_path(self.sc.name))
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0

@@ -20,13 +20,14 @@ import plants
 from attackers import generators as attack_generators
 
 from .control import c2d, closed_loop, dlqr, spectral_radius
+from .errors import BadInput
 from .flow import FlowOptions
 from .quantizer import QuantizerParams
 
 BUNDLED_DIR = "scenarios"
 
 
-class ScenarioError(ValueError):
+class ScenarioError(BadInput):
     """A scenario file that cannot be used, with the reason."""
 
 
@@ -103,6 +104,7 @@ class Scenario:
     flow: FlowOptions
     source: str = ""       # the TOML text it was read from (stored in recordings)
     path: str = ""
+    description: str = ""  # one line (``testbed scenarios``)
 
     @property
     def T(self) -> float:
@@ -131,7 +133,7 @@ class Scenario:
 
 
 # ----------------------------------------------------------------------------- validation
-_SECTIONS = {"plant", "quantizer", "controller", "attack", "run", "flow", "name"}
+_SECTIONS = {"plant", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
 _KEYS = {
     "plant": {"name", "params", "x0"},
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
@@ -209,7 +211,12 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
             raise ctx.err(sec, "section missing")
         if not isinstance(data[sec], dict):
             raise ctx.err(sec, "must be a table")
-    name = str(data.get("name", name))
+    name = data.get("name", name)
+    if not isinstance(name, str) or not name:
+        raise ctx.err("name", f"must be a non-empty string, got {name!r}")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise ctx.err("description", f"must be a string, got {description!r}")
 
     # [plant]
     pt = data["plant"]
@@ -342,7 +349,8 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
                           for k, v in ft.items()})
 
     sc = Scenario(name=name, plant=PlantSpec(plant.name, _freeze(params), x0), quantizer=qp,
-                  controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where)
+                  controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
+                  description=description)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))

@@ -245,8 +245,8 @@ def test_sigkill_of_a_writer_loses_at_most_the_last_second(tmp_path):
 def test_the_format_document_is_current():
     from pathlib import Path
 
-    doc = Path(__file__).resolve().parents[1] / "docs" / "recording.md"
-    assert doc.read_text() == recording.markdown(), "regenerate: python -m testbed.io.recording > docs/recording.md"
+    doc = Path(__file__).resolve().parents[1] / "docs" / "recording-format.md"
+    assert doc.read_text() == recording.markdown(), "regenerate: python -m testbed.io.recording > docs/recording-format.md"
 
 
 def test_rerun_decodes_the_protobuf_channels(tmp_path):

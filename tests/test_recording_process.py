@@ -23,7 +23,7 @@ pytestmark = pytest.mark.process
 
 def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
     path = tmp_path / "live.mcap"
-    rc, s, err = live_exact(run_id, "paper", "--duration", "5", "--record", str(path))
+    rc, s, err = live_exact(run_id, "paper", "--duration", "5", "--out", str(path))
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["recording"]["complete"] and s["recording"]["path"] == str(path)
     r = report(path)
@@ -48,7 +48,7 @@ def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
 
 def test_recorder_killed_the_run_goes_on_and_the_file_reads(run_id, tmp_path):
     path = tmp_path / "rk.mcap"
-    rc, s, err = live(run_id, "paper", "--duration", "5", "--record", str(path), "--kill", "recorder@2.5")
+    rc, s, err = live(run_id, "paper", "--duration", "5", "--out", str(path), "--kill", "recorder@2.5")
     assert rc == 1
     (f,) = [f for f in s["faults"] if f["node"] == "recorder"]
     assert f["kind"] == "killed" and f["injected"]
@@ -66,7 +66,7 @@ def test_recorder_killed_the_run_goes_on_and_the_file_reads(run_id, tmp_path):
 
 def test_plant_killed_the_recording_is_complete_and_says_so(run_id, tmp_path):
     path = tmp_path / "pk.mcap"
-    rc, s, err = live(run_id, "paper", "--duration", "5", "--record", str(path), "--kill", "plant@1.5")
+    rc, s, err = live(run_id, "paper", "--duration", "5", "--out", str(path), "--kill", "plant@1.5")
     assert rc == 1
     rec = recording.read(path)
     assert not rec.truncated and "testbed.recorder" in rec.metadata
@@ -82,7 +82,7 @@ def test_plant_killed_the_recording_is_complete_and_says_so(run_id, tmp_path):
 def test_launcher_sigkilled_the_recorder_still_finishes_the_file(run_id, tmp_path):
     path = tmp_path / "lk.mcap"
     p = subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id, "--duration", "30",
-                                "--record", str(path)),
+                                "--out", str(path)),
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         end = time.monotonic() + TIMEOUT

@@ -118,7 +118,9 @@ def test_cli_reports_bad_scenario(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("[plant]\nname = 'lienard'\n")
     assert cli.main(["simulate", str(bad)]) == 2
-    assert "scenario error" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("testbed simulate: ") and "[quantizer] section missing" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_console_script_runs():

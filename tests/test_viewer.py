@@ -140,7 +140,7 @@ def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
 
     rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
     rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
-                                  "--record", str(mcap), "--rerun", "save", str(rrd)))
+                                  "--out", str(mcap), "--rerun", "save", str(rrd)))
     assert rc == 0, err[-3000:]
     s = json.loads(out)
     assert s["rerun"]["mode"] == "save" and "error" not in s["rerun"], s["rerun"]

@@ -1,12 +1,10 @@
 """``testbed analyze``, ``testbed roa`` and ``testbed sweep``.
 
-    testbed analyze SCENARIO [--json] [--plot DIR] [--full] [--gamma G] [--budget KF RF KD RD]
-    testbed roa SCENARIO [--grid N] [--plot PATH] [--json] [--vulnerable] [--budget ...]
-    testbed sweep SCENARIO [--grid NF ND] [--rho-F-max R] [--rho-D-max R] [--seeds S] [--plot PATH] [--json]
+    testbed analyze SCENARIO [--json] [--plot PATH.png] [--full] [--gamma G] [--budget KF RF KD RD]
+    testbed roa SCENARIO [--grid N] [--plot PATH.png] [--json] [--vulnerable] [--budget ...]
+    testbed sweep SCENARIO [--grid NF ND] [--rho-F-max R] [--rho-D-max R] [--seeds S] [--plot PATH.png] [--json]
 
-The README figures and numbers of the Lienard example come from
-
-    testbed analyze paper --full --plot docs/analysis --json > docs/analysis/paper.json
+The figures and numbers of docs/analysis.md come from ``python docs/numbers.py`` (see there).
 """
 
 from __future__ import annotations
@@ -19,6 +17,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .. import cliargs
 
 
 # ============================================================================ progress bar
@@ -80,7 +80,11 @@ def _fmt(v, spec=".4g"):
 def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--plot", metavar="DIR", help="write PNG figures into DIR")
+    p.add_argument("--plot", metavar="PATH.png",
+                   help="draw the allowable DoS region (Theorem 1, with the experiment under --full) into PATH.png "
+                        "and the other figures beside it as PATH-time-series.png, PATH-phase-portrait.png, "
+                        "PATH-delta.png (and PATH-vulnerable.png under --full); a folder instead of a .png path "
+                        "writes them there as <scenario>-<figure>.png")
     p.add_argument("--full", action="store_true",
                    help="also the 201 x 201 region of attraction, the budget sweep and the vulnerable states "
                         "(figures 3 and 4 with the experiment; about a minute)")
@@ -95,7 +99,7 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     p.add_argument("--escape-x0", nargs="+", type=float, metavar="X",
                    help="initial state of the escaping trajectory in the phase portrait "
                         "(default: searched along the ray through the scenario's x0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+    cliargs.add_no_progress(p)
 
 
 def main_analyze(args) -> int:
@@ -158,8 +162,15 @@ def _print_analysis(r: dict) -> None:
           f"d={_fmt(t2['d'])} delta={_fmt(r['delta'])}")
     print(f"  eps={t2['eps']:.4g} eta0={t2['eta0']:.4g} eta1={t2['eta1']:.4g} alpha={t2['alpha']:.4g} "
           f"beta={t2['beta']:.4g} omega0={t2['omega0']:.6g} omega1={t2['omega1']:.6g} omega={t2['omega']:.6g}")
-    print(f"  E0 bound = {_fmt(r['E0_bound'])} (scenario E0 = {r['E0']:g}, within: {r['E0_within_bound']}); "
-          f"theorem2_holds={r['theorem2_holds']}")
+    if not r["theorem2_holds"]:
+        print("  Theorem 2's conditions (omega0 < 1, omega < 1, delta > 0) fail: it guarantees nothing here")
+    elif r["E0_within_bound"]:
+        print(f"  Theorem 2 guarantees convergence for E0 <= {_fmt(r['E0_bound'])}: it covers this scenario "
+              f"(E0 = {r['E0']:g})")
+    else:
+        print(f"  Theorem 2's conditions hold, and guarantee convergence for E0 <= {_fmt(r['E0_bound'])}; this "
+              f"scenario's E0 = {r['E0']:g} is above that bound, so the theorem does not cover it (a sufficient "
+              "condition: the run may still converge, see testbed simulate)")
     print(f"  the paper's delta = 1.94e-7 is gamma = {_fmt(r['gamma_for_paper_delta'])} here")
 
 
@@ -230,19 +241,29 @@ def _sweep_summary(sw, res=None) -> dict:
     return d
 
 
-def _analyze_plots(sc, res, extra, outdir: Path, args) -> list[str]:
+def figure_paths(plot: str | Path, scenario_name: str):
+    """``--plot`` of analyze: a .png path (the allowable region there, the rest beside it) or a folder."""
+    plot = Path(plot)
+    if plot.suffix.lower() == ".png":
+        plot.parent.mkdir(parents=True, exist_ok=True)
+        return lambda fig: plot if fig == "allowable-region" else plot.with_name(f"{plot.stem}-{fig}.png")
+    plot.mkdir(parents=True, exist_ok=True)
+    return lambda fig: plot / f"{scenario_name}-{fig}.png"
+
+
+def _analyze_plots(sc, res, extra, plot: Path, args) -> list[str]:
     from . import figures
     from ..simulate import simulate_scenario
     from .roa import nominal_roa
     from .summary import find_escape, trajectory
 
-    outdir.mkdir(parents=True, exist_ok=True)
+    path = figure_paths(plot, sc.name)
     files = []
     sim = simulate_scenario(sc)
     ivs = None
     if not sc.attack.online:
         ivs = sc.attack.schedule(sc.T, sc.run.duration).intervals
-    files.append(figures.plot_time_series(sim, outdir / f"{sc.name}-time-series.png", intervals=ivs,
+    files.append(figures.plot_time_series(sim, path("time-series"), intervals=ivs,
                                           title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded"))
     roa = extra.get("_roa")
     if roa is None:
@@ -259,22 +280,22 @@ def _analyze_plots(sc, res, extra, outdir: Path, args) -> list[str]:
         trajs.append((f"$x_0$ = {np.round(esc[1], 3).tolist()} (same attacks)", X, "C3"))
         res["escape_x0"] = np.asarray(esc[1]).tolist()
     zoom = ((roa.xs[-1] - roa.xs[0]) / 10, (roa.ys[-1] - roa.ys[0]) / 10)
-    files.append(figures.plot_phase_portrait(roa, outdir / f"{sc.name}-phase-portrait.png", trajectories=trajs,
+    files.append(figures.plot_phase_portrait(roa, path("phase-portrait"), trajectories=trajs,
                                              title=f"{sc.name}: nominal region of attraction", zoom=zoom))
     vu = extra.get("_vulnerable")
     if vu is not None:
-        files.append(figures.plot_phase_portrait(roa, outdir / f"{sc.name}-vulnerable.png", vulnerable=vu,
+        files.append(figures.plot_phase_portrait(roa, path("vulnerable"), vulnerable=vu,
                                                  baseline=extra.get("_vulnerable_baseline"),
                                                  title=f"{sc.name}: initial states the attacker defeats",
                                                  zoom=zoom))
     bud = res["budget"]
-    files.append(figures.plot_allowable_region(outdir / f"{sc.name}-allowable-region.png", regions=res["_regions"],
+    files.append(figures.plot_allowable_region(path("allowable-region"), regions=res["_regions"],
                                                plain=res["_plain"], sweep=extra.get("_sweep"),
                                                sweep_zoom=extra.get("_sweep_zoom"),
                                                budget=(bud["kappa_F"], bud["rho_F"], bud["kappa_D"],
                                                        bud["rho_D"]),
                                                title=f"{sc.name}: allowable DoS (Theorem 1) and experiment"))
-    files.append(figures.plot_delta(res["delta_table"], outdir / f"{sc.name}-delta.png", gamma_mark=res["gamma"],
+    files.append(figures.plot_delta(res["delta_table"], path("delta"), gamma_mark=res["gamma"],
                                     delta_paper=1.94e-7 if sc.plant.name == "lienard" else None,
                                     title=f"{sc.name}: Lemma 2 radius; Theorem 2 bound for kappa_F = "
                                           f"{bud['kappa_F']:g}, kappa_D = {bud['kappa_D']:g}"))
@@ -299,7 +320,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
                    help="attacker of --vulnerable (default greedy)")
     p.add_argument("--threshold", type=float, default=0.0, help="greedy threshold (default 0)")
     p.add_argument("--stride", type=int, default=2, help="--vulnerable uses every STRIDE-th grid state (default 2)")
-    p.add_argument("--no-progress", action="store_true")
+    cliargs.add_no_progress(p)
 
 
 def main_roa(args) -> int:
@@ -375,7 +396,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
                    help="radius of the extra initial states (default 3 ||x0||_inf)")
     p.add_argument("--plot", metavar="PATH", help="write the allowable-region figure with the map (PNG)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--no-progress", action="store_true")
+    cliargs.add_no_progress(p)
 
 
 def main_sweep(args) -> int:

@@ -411,10 +411,13 @@ def simulation_to_rrd(path, sc, res, *, roa: bool = True) -> None:
 
 # ============================================================================ testbed replay
 def add_arguments_replay(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", help="an MCAP recording (testbed run --record, testbed simulate --out)")
-    p.add_argument("--rrd", metavar="PATH.rrd", help="write the view to this file")
+    from .. import cliargs
+
+    p.add_argument("recording", help="an MCAP recording (testbed run --out, testbed simulate --out)")
+    cliargs.add_rrd(p, "write the view to this file")
     p.add_argument("--spawn", action="store_true", help="open it in a Rerun viewer (the default without --rrd)")
-    p.add_argument("--no-roa", action="store_true", help="skip the nominal region of attraction (a grid computation)")
+    cliargs.add_no_roa(p)
+    cliargs.add_json(p, "what was written (the .rrd path, the run id, the number of samples)")
 
 
 def main_replay(args) -> int:
@@ -428,7 +431,12 @@ def main_replay(args) -> int:
     spawn = args.spawn or not args.rrd
     trace_to_rrd(args.rrd, sc, Trace.from_report(s), recording_id=str(s.get("run_id") or sc.name),
                  roa=not args.no_roa, spawn=spawn)
-    if args.rrd:
+    if args.json:
+        import json
+
+        print(json.dumps({"rrd": args.rrd, "spawned": spawn, "run_id": s.get("run_id"), "samples": s.get("samples"),
+                          "scenario": sc.name}))
+    elif args.rrd:
         print(f"rerun recording: {args.rrd} (open with: rerun {args.rrd})")
     return 0
 
@@ -495,11 +503,14 @@ DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 
 def add_rerun_run_arguments(p: argparse.ArgumentParser) -> None:
     """The ``--rerun`` option group of ``testbed run``."""
-    g = p.add_argument_group("rerun (live view; see testbed/io/viewer.py)")
+    from .. import cliargs
+
+    g = p.add_argument_group("rerun (live view)")
     g.add_argument("--rerun", nargs="+", metavar="spawn | connect [URL] | save PATH.rrd",
                    help=f"stream the run to Rerun: spawn a viewer, connect to one (default {DEFAULT_URL}) "
                         "or save one .rrd; every node logs into one recording")
-    g.add_argument("--rerun-no-roa", action="store_true", help="skip the nominal region of attraction outline")
+    cliargs.add_rrd(g, "write the run's Rerun view into this file (the same as --rerun save PATH.rrd)")
+    cliargs.add_no_roa(g, aliases=("--rerun-no-roa",))
 
 
 class LiveRerun:
@@ -526,17 +537,25 @@ class LiveRerun:
 
     @classmethod
     def from_args(cls, args, sc, recording_id: str) -> "LiveRerun | None":
+        from ..errors import BadInput
+
         spec = getattr(args, "rerun", None)
+        rrd = getattr(args, "rrd", None)
+        roa = not getattr(args, "no_roa", False)
+        if rrd:
+            if spec and spec != ["save", rrd]:
+                raise BadInput(f"--rrd {rrd} and --rerun {' '.join(spec)}: give one of them")
+            spec = ["save", rrd]
         if not spec:
             return None
         mode, rest = spec[0], spec[1:]
         if mode == "spawn" and not rest:
-            return cls("spawn", None, sc, recording_id, not args.rerun_no_roa)
+            return cls("spawn", None, sc, recording_id, roa)
         if mode == "connect" and len(rest) <= 1:
-            return cls("connect", rest[0] if rest else DEFAULT_URL, sc, recording_id, not args.rerun_no_roa)
+            return cls("connect", rest[0] if rest else DEFAULT_URL, sc, recording_id, roa)
         if mode == "save" and len(rest) == 1:
-            return cls("save", rest[0], sc, recording_id, not args.rerun_no_roa)
-        raise SystemExit(f"testbed run: --rerun takes 'spawn', 'connect [URL]' or 'save PATH.rrd', got {' '.join(spec)}")
+            return cls("save", rest[0], sc, recording_id, roa)
+        raise BadInput(f"--rerun takes 'spawn', 'connect [URL]' or 'save PATH.rrd', got {' '.join(spec)}")
 
     @property
     def url(self) -> str:

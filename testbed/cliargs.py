@@ -1,0 +1,52 @@
+"""The options every command shares, one name per meaning (see docs/cli.md).
+
+==================  ===============================================================
+``--json``          print the result as one JSON object on stdout
+``--out PATH.mcap`` write an MCAP recording (run, simulate, record)
+``--rrd PATH.rrd``  write a Rerun recording (run, simulate, replay)
+``--plot PATH.png`` draw the command's figure into one PNG file
+``--no-roa``        skip the nominal region of attraction outline (a grid computation)
+``--no-progress``   no progress bars on stderr
+``--workers N``     processes for batch jobs (default: every core)
+==================  ===============================================================
+
+Old names stay accepted as hidden aliases (``--record``, ``--rerun-no-roa``).
+Exit codes: 0 ok, 1 the run or job failed, 2 bad input (``testbed.errors``).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_json(p: argparse.ArgumentParser, what: str = "the result") -> None:
+    p.add_argument("--json", action="store_true", help=f"print {what} as one JSON object on stdout")
+
+
+def add_out(p: argparse.ArgumentParser, help_: str, *, aliases: tuple[str, ...] = ()) -> None:
+    p.add_argument("--out", metavar="PATH.mcap", help=help_)
+    for a in aliases:
+        p.add_argument(a, dest="out", metavar="PATH.mcap", help=argparse.SUPPRESS)
+
+
+def add_rrd(p: argparse.ArgumentParser, help_: str) -> None:
+    p.add_argument("--rrd", metavar="PATH.rrd", help=help_)
+
+
+def add_plot(p: argparse.ArgumentParser, help_: str) -> None:
+    p.add_argument("--plot", metavar="PATH.png", help=help_)
+
+
+def add_no_roa(p: argparse.ArgumentParser, *, aliases: tuple[str, ...] = ()) -> None:
+    p.add_argument("--no-roa", action="store_true",
+                   help="skip the nominal region of attraction outline (a grid computation of about a second)")
+    for a in aliases:
+        p.add_argument(a, dest="no_roa", action="store_true", help=argparse.SUPPRESS)
+
+
+def add_no_progress(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-progress", action="store_true", help="do not draw progress bars on stderr")
+
+
+def add_scenario(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
