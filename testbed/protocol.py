@@ -255,6 +255,14 @@ class ControllerProtocol:
                 "overflows": self.dec.overflows, "decided": self.next_k}
 
 
+def corrupt_payload(codebook: Codebook, payload: bytes, kind: str) -> bytes:
+    """The attacker's fault injection: an out-of-range code, or one byte too many."""
+    if kind == "range" and codebook.n_codes < 256 ** codebook.nbytes:
+        return (256 ** codebook.nbytes - 1).to_bytes(codebook.nbytes, "big")
+    return payload + b"\xff"
+
+
+
 # ============================================================================ plant
 class OdeProcess:
     """A true plant given by its right-hand side: x advanced by the flow map phi_dt(x, u)."""
@@ -332,5 +340,5 @@ class PlantProtocol:
         return st
 
 
-__all__ = ["EncoderProtocol", "ControllerProtocol", "PlantProtocol", "OdeProcess", "Send", "Withhold",
+__all__ = ["corrupt_payload", "EncoderProtocol", "ControllerProtocol", "PlantProtocol", "OdeProcess", "Send", "Withhold",
            "Decision", "skip_sample", "RECEIVED", "DEADLINE", "INVALID", "SUPERSEDED", "REASONS"]

@@ -85,7 +85,7 @@ def _report(path: str | Path | rec_io.Recording) -> dict:
     data = RunData(tele={r: rec.telemetry.get(r, {}) for r in ROLES}, plant_final=rec.plant_final,
                    events=rec.events, status=rec.status, summaries=rec.summaries)
     launcher = rec.summaries.get("launcher", {})
-    plant = sc.make_plant()
+    plant = sc.make_model()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = rec.start.run_id if rec.start else runmeta.get("run_id", "?")
     ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(rec.start and rec.start.ack_via_attacker)

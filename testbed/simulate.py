@@ -27,7 +27,7 @@ from attackers.greedy import greedy_init, greedy_step
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
-                       Send)
+                       Send, corrupt_payload)
 from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
@@ -138,13 +138,6 @@ class Replay:
     withheld: np.ndarray
     u_missing: np.ndarray
     delays: np.ndarray | None = None
-
-
-def corrupt_payload(codebook: Codebook, payload: bytes, kind: str) -> bytes:
-    """The attacker's fault injection: an out-of-range code, or one byte too many."""
-    if kind == "range" and codebook.n_codes < 256 ** codebook.nbytes:
-        return (256 ** codebook.nbytes - 1).to_bytes(codebook.nbytes, "big")
-    return payload + b"\xff"
 
 
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,

@@ -496,7 +496,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)
     Tn = int(round(sc.T * 1e9))
     N = len(res.t)
-    plant = sc.make_plant()
+    plant = sc.make_model()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = f"sim-{sc.name}-{t0}"
     w = RecordingWriter(path, flush_interval=flush_interval)
