@@ -53,7 +53,7 @@ GENERATOR_VERSION = "1"
 
 _lock = threading.Lock()
 _built: dict[str, object] = {}      # module hash -> kernel wrapper
-_failed: set[str] = set()           # plants whose failure was already logged
+_memo: dict[tuple, tuple] = {}      # (kernel, bindings) -> (wrapper or the kernel itself, ...), per process
 
 
 class CannotSpecialize(Exception):
@@ -87,15 +87,18 @@ def specialized(kernel, bindings: dict):
     itself when the specialization cannot be built (logged once per plant);
     the caller then passes the ``cfunc`` as usual.
     """
-    key_names = ",".join(f"{k}={getattr(v, '__name__', v)}" for k, v in sorted(bindings.items()))
+    memo = (id(kernel),) + tuple((k, id(v)) for k, v in sorted(bindings.items()))
+    hit = _memo.get(memo)
+    if hit is not None:
+        return hit[0]
     try:
-        return _specialized(kernel, bindings)
+        run = _specialized(kernel, bindings)
     except Exception as e:  # noqa: BLE001 - any failure falls back to the generic kernel
-        if key_names not in _failed:
-            _failed.add(key_names)
-            log.warning("testbed: no cached specialized kernel for %s (%s); using the generic kernel",
-                        key_names, e)
-        return kernel
+        names = ", ".join(f"{k} = {getattr(v, '__name__', v)}" for k, v in sorted(bindings.items()))
+        log.warning("testbed: no cached specialized kernel for %s (%s); using the generic kernel", names, e)
+        run = kernel
+    _memo[memo] = (run, kernel, tuple(bindings.values()))  # holds the objects so that their ids stay theirs
+    return run
 
 
 def _specialized(kernel, bindings: dict):

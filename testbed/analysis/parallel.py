@@ -407,6 +407,12 @@ class Stages:
 
         return cb
 
+    def finish(self) -> None:
+        """The bar at its end (stages that were not needed are dropped)."""
+        if self.progress is not None:
+            self.counts = self.counts[:max(self.i + 1, 1)]
+            self.progress(sum(self.counts), sum(self.counts))
+
 
 def _serial(fn, it, i, total, progress):
     r = fn(it)
