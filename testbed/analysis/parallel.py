@@ -203,7 +203,7 @@ def _import_distributed():
 def _dask_client(address: str):
     distributed = _import_distributed()
     try:
-        return distributed.Client(address, timeout="20s", set_as_default=False)
+        return distributed.Client(address, timeout="10s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as e:
         raise BadInput(f"cannot connect to the Dask scheduler at {address}: {e}") from None
 
@@ -243,7 +243,7 @@ def _dask_map(client, fn, items, warm, warmed: set, progress):
     index = {f.key: i for i, f in enumerate(futs)}
     out = [None] * len(items)
     try:
-        for done, f in enumerate(distributed.as_completed(futs), 1):
+        for done, f in enumerate(distributed.as_completed(futs, loop=client.loop), 1):
             out[index[f.key]] = f.result()
             if progress is not None:
                 progress(done, len(items))
