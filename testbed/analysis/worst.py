@@ -295,6 +295,23 @@ def all_schedules(m: int, extra: int, n_steps: int):
             yield tuple(zip(ks, lengths))
 
 
+def _splits(runs, n_steps: int):
+    """Schedules with one more run: a run split by one delivered sample, each piece also shifted
+    by one sample (within the horizon, keeping runs apart)."""
+    out = set()
+    for i, (k, L) in enumerate(runs):
+        others = runs[:i] + runs[i + 1:]
+        for j in range(1, L - 1):  # sample k + j is delivered: pieces (k, j), (k + j + 1, L - j - 1)
+            for da in (-1, 0, 1):
+                for db in (-1, 0, 1):
+                    a, b = (k + da, j), (k + j + 1 + db, L - j - 1)
+                    if a[0] < 0 or b[0] + b[1] > n_steps or b[0] <= a[0] + a[1]:
+                        continue
+                    if _valid_add(others, *a) and _valid_add(others + (a,), *b):
+                        out.add(tuple(sorted(others + (a, b))))
+    return out
+
+
 def _valid_add(runs, k0: int, L: int) -> bool:
     """Run (k0, L) neither overlaps nor touches any run of ``runs``."""
     for a, b in runs:
@@ -390,6 +407,14 @@ def worst_attack(loop: Loop, x0, *, attacks: int = 1, E0: float | None = None, m
                 break
             level.append(((r,), r[1] - 1))
             seen.add((r,))
+        # ... and the shorter attacks near the best single one: a delivered packet in the middle of
+        # an attack costs the attacker little and saves one T of duration (two runs of L_a + L_b
+        # lost packets last L_a + L_b - 2 samples, one run L_a + L_b - 1)
+        if L1 > 0:
+            for _p, (k, ell) in pool:
+                if abs(k - k1) <= 2 and L1 - 4 <= ell < L1 and ((k, ell),) not in seen:
+                    level.append((((k, ell),), ell - 1))
+                    seen.add(((k, ell),))
         for _m in range(2, attacks + 1):
             cands = []
             for prefix, d_used in level:
@@ -416,7 +441,23 @@ def worst_attack(loop: Loop, x0, *, attacks: int = 1, E0: float | None = None, m
                     escaped = True
             keep = [j for j in np.argsort(-peak, kind="stable") if not esc[j] and ds[j] < best_d]
             level = [(cands[j], int(ds[j])) for j in keep[:beam]]
-        method = f"beam search (width {beam}) over 2..{attacks} attacks"
+        # ---- local search: split a run of the best schedule (one delivered packet inside it) and
+        #      shift the pieces by a sample, while it improves
+        while escaped and len(best_runs) < attacks:
+            cands = sorted(c for c in _splits(best_runs, N) if c not in seen and duration_samples(c) < best_d)
+            if not cands:
+                break
+            seen.update(cands)
+            esc, _ = evaluate(loop, np.repeat(X0, len(cands), 0), np.full(len(cands), e0), theta_table(cands, N),
+                              np.arange(len(cands)), executor=executor, progress=progress)
+            ev += len(cands)
+            steps += len(cands) * N
+            hits = [c for c, e in zip(cands, esc) if e]
+            if not hits:
+                break
+            best_runs = min(hits, key=lambda c: (duration_samples(c), c))
+            best_d = duration_samples(best_runs)
+        method = f"beam search (width {beam}) and local search over 2..{attacks} attacks"
         exact = best_d == 0 and escaped
         # ---- certify: enumerate every schedule of 2..A runs below the answer, if few enough
         if not exact and escaped:
