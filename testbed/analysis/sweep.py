@@ -217,23 +217,14 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         res.escaped[k] = np.full((nF, nD), np.nan)
         res.lost[k] = np.full((nF, nD), np.nan)
     t0 = time.perf_counter()
-    # ---- offline schedules of the whole grid: (kind, i, j) per table row
-    rows, tags = [], []
-    for i, rF in enumerate(rho_F):
-        for j, rD in enumerate(rho_D):
-            if "random" in kinds:
-                for s in range(seeds):
-                    sch = make_schedule("random", {"kappa_F": kappa_F, "rho_F": rF, "kappa_D": kappa_D,
-                                                   "rho_D": rD}, T=T, horizon=horizon,
-                                        seed=seed + s + seeds * (j + nD * i))
-                    rows.append(sch.theta_samples(T, N))
-                    tags.append(("random", i, j))
-            if "periodic" in kinds:
-                pp = periodic_within_budget(rF, rD, kappa_F, kappa_D)
-                if pp is not None:
-                    sch = make_schedule("periodic", pp, T=T, horizon=horizon)
-                    rows.append(sch.theta_samples(T, N))
-                    tags.append(("periodic", i, j))
+    # ---- offline schedules of the whole grid: (kind, i, j) per table row (generated in parallel too:
+    #      drawing thousands of random schedules is Python work of the same order as simulating them)
+    groups = [list(range(a, min(a + 2, nF))) for a in range(0, nF, 2)]
+    spec = (tuple(kinds), rho_F, rho_D, float(kappa_F), float(kappa_D), int(seeds), int(seed), T, float(horizon), N)
+    items = [(spec, g) for g in groups]
+    parts = executor.map(_schedule_rows, items) if executor is not None else [_schedule_rows(it) for it in items]
+    rows = [r for p in parts for r in p[0]]
+    tags = [t for p in parts for t in p[1]]
     n_off = len(rows) * B0
     n_gr = nF * nD * B0 if "greedy" in kinds else 0
     stages = Stages(progress, [n_chunks(n_off, N, executor), n_chunks(n_gr, N, executor),
@@ -266,6 +257,30 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         res.traj_steps = len(run_tags) * N
     res.wall = time.perf_counter() - t0
     return res
+
+
+def _schedule_rows(item):
+    """theta rows and (kind, i, j) tags of the offline schedules of the budget rows ``rows_i``."""
+    (kinds, rho_F, rho_D, kappa_F, kappa_D, seeds, seed, T, horizon, N), rows_i = item
+    nD = len(rho_D)
+    rows, tags = [], []
+    for i in rows_i:
+        rF = rho_F[i]
+        for j, rD in enumerate(rho_D):
+            if "random" in kinds:
+                for s in range(seeds):
+                    sch = make_schedule("random", {"kappa_F": kappa_F, "rho_F": rF, "kappa_D": kappa_D,
+                                                   "rho_D": rD}, T=T, horizon=horizon,
+                                        seed=seed + s + seeds * (j + nD * i))
+                    rows.append(sch.theta_samples(T, N))
+                    tags.append(("random", i, j))
+            if "periodic" in kinds:
+                pp = periodic_within_budget(rF, rD, kappa_F, kappa_D)
+                if pp is not None:
+                    sch = make_schedule("periodic", pp, T=T, horizon=horizon)
+                    rows.append(sch.theta_samples(T, N))
+                    tags.append(("periodic", i, j))
+    return rows, tags
 
 
 def _accumulate(res: SweepResult, tags, conv, esc, lost) -> None:

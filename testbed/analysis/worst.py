@@ -569,9 +569,9 @@ class VulnerabilityMap:
                 "escape_unattacked": int(np.sum(self.samples == 0)),
                 "no_escape_found": int(np.sum(self.samples == -1)),
                 "all_exact": bool(np.all(self.exact[inside])),
-                "least_duration": None if d.size == 0 else float(d.min()),
-                "median_duration": None if d.size == 0 else float(np.median(d)),
-                "largest_duration": None if d.size == 0 else float(d.max()),
+                "least_duration": None if d.size == 0 else round(float(d.min()), 12),
+                "median_duration": None if d.size == 0 else round(float(np.median(d)), 12),
+                "largest_duration": None if d.size == 0 else round(float(d.max()), 12),
                 "delta": self.delta, "xs": self.xs.tolist(), "ys": self.ys.tolist(),
                 "duration": clean(self.duration), "samples": self.samples.tolist(),
                 "wall_s": self.wall, "traj_steps": self.traj_steps, "candidates": self.evaluated}
@@ -602,7 +602,7 @@ def vulnerability_map(loop: Loop, roa, *, attacks: int = 1, max_len: int | None 
         Ls = sr.L
         ex = np.ones(len(X), dtype=bool) if Lmax == N else Ls >= 0
         ev, steps = sr.evaluated, sr.traj_steps
-        dur = np.where(Ls > 0, (Ls - 1) * loop.T, np.where(Ls == 0, 0.0, np.nan))
+        dur = np.where(Ls > 0, np.round((Ls - 1) * loop.T, 12), np.where(Ls == 0, 0.0, np.nan))
     else:
         Ls = np.zeros(len(X), dtype=np.int64)
         dur = np.zeros(len(X))
