@@ -356,15 +356,23 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
                           None if gp is None else np.ascontiguousarray(gp[sl]), score, mode, flow, fields,
                           specialize)
 
-    slices = [slice(s, min(s + chunk, B)) for s in range(0, B, chunk)]
-    items = [make(sl) for sl in slices]
+    # strided chunks (chunk j holds trajectories j, j + C, j + 2 C, ...): neighbouring trajectories
+    # often cost alike (an escaping one stiffens the flow), so this balances the workers
+    C = math.ceil(B / chunk)
+    sets = [np.arange(j, B, C) for j in range(C)]
+    items = [make(ix) for ix in sets]
     warm = None
     if executor is not None and len(items) > 1:
-        w = slice(0, 1)
-        warm = replace(make(w), n_steps=2)
+        warm = replace(make(np.arange(1)), n_steps=2)
     parts = (executor.map(run_chunk, items, warm=warm, progress=progress) if executor is not None
              else [_serial(run_chunk, it, i, len(items), progress) for i, it in enumerate(items)])
-    return {k: np.concatenate([p[k] for p in parts]) for k in fields}
+    out = {}
+    for k in fields:
+        v = parts[0][k]
+        out[k] = np.zeros((B,) + v.shape[1:], dtype=v.dtype)
+        for ix, p in zip(sets, parts):
+            out[k][ix] = p[k]
+    return out
 
 
 def chunk_size(B: int, n_steps: int, executor: Executor | None = None) -> int:
