@@ -22,7 +22,7 @@ from attackers import generators as attack_generators
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
 from .flow import FlowOptions
-from .quantizer import QuantizerParams
+from .quantizer import RULES, Codebook, CodebookTooLarge, QuantizerParams, delay_margin_gain
 
 BUNDLED_DIR = "scenarios"
 
@@ -43,11 +43,24 @@ class PlantSpec:
 
 
 @dataclass(frozen=True)
+class ModelSpec:
+    """``[model]``: the plant model of the predictions (rule (xi)), the LQR design and the analysis."""
+
+    name: str
+    params: tuple[tuple[str, Any], ...]
+    explicit: bool = False     # the scenario has a [model] section
+
+    def make(self) -> plants.Plant:
+        return plants.make(self.name, **dict(self.params))
+
+
+@dataclass(frozen=True)
 class ControllerSpec:
     K: tuple[tuple[float, ...], ...]           # resolved gain, m x n
     source: str                                # "K" or "lqr"
     Q: tuple[tuple[float, ...], ...] | None = None
     R: tuple[tuple[float, ...], ...] | None = None
+    u_max: float = 1e6                         # actuator limit: the plant clamps |u_k| to it
 
     @property
     def K_array(self) -> np.ndarray:
@@ -86,11 +99,54 @@ class AttackSpec:
 
 
 @dataclass(frozen=True)
+class DelaySpec:
+    """An actuation-delay bound [s] the delay-aware quantizer rule covers (``[run] delay``, ``delay_lost``)."""
+
+    nominal: float
+    min: float
+    max: float
+    declared: bool = False     # written in the scenario (else the default)
+
+
+@dataclass(frozen=True)
+class SimDelaySpec:
+    """``[run] sim_delay``: how long u_k takes to reach the plant in a simulated physical-timing run.
+
+    The latency after t_k of a received sample's u_k (a lost sample's u_k = 0 leaves the
+    controller at its loss deadline and takes the same latency after it).
+    """
+
+    kind: str = "constant"     # "constant" | "uniform" | "trace"
+    value: float = 0.0         # constant
+    min: float = 0.0           # uniform
+    max: float = 0.0
+    seed: int | None = None
+    values: tuple[float, ...] = ()  # trace
+
+    def draw(self, n_steps: int) -> np.ndarray:
+        """The latency of sample k = 0..N-1 in integer ns (a trace shorter than N holds its last value)."""
+        if self.kind == "constant":
+            v = np.full(n_steps, self.value)
+        elif self.kind == "uniform":
+            v = np.random.default_rng(self.seed).uniform(self.min, self.max, n_steps)
+        else:
+            t = np.asarray(self.values, dtype=float)
+            v = np.full(n_steps, t[-1] if t.size else 0.0)
+            v[:min(n_steps, t.size)] = t[:n_steps]
+        return np.round(v * 1e9).astype(np.int64)
+
+
+@dataclass(frozen=True)
 class RunSpec:
     duration: float
     converge_tol: float = 1e-4
     timing: str = "ideal"          # live plant: "ideal" | "physical"
-    deadline: float = 0.5          # live plant, ideal timing: fraction of T to wait for u_k
+    deadline: float = 0.5          # live plant: fraction of T to wait for u_k
+    loss_fraction: float = 0.8     # the controller decides a sample lost at t_k + loss_fraction d T
+    actuation: str = "scheduled"   # physical timing: u_k acts at its scheduled instant | on arrival
+    delay: DelaySpec | None = None       # physical timing: a received sample's actuation delay (bound)
+    delay_lost: DelaySpec | None = None  # ... and a lost sample's (u_k = 0 from the loss deadline)
+    sim_delay: SimDelaySpec | None = None   # physical timing: the simulator's latency of u_k
 
 
 @dataclass(frozen=True)
@@ -105,6 +161,8 @@ class Scenario:
     source: str = ""       # the TOML text it was read from (stored in recordings)
     path: str = ""
     description: str = ""  # one line (``testbed scenarios``)
+    model: ModelSpec | None = None   # [model] (defaults to [plant]'s)
+    L_u: float = 0.0       # input gain of the model (delay-aware rule)
 
     @property
     def T(self) -> float:
@@ -123,7 +181,40 @@ class Scenario:
         return np.array(self.plant.x0, dtype=float)
 
     def make_plant(self) -> plants.Plant:
+        """The true plant ([plant]): what the simulator and the live plant node integrate."""
         return self.plant.make()
+
+    def make_model(self) -> plants.Plant:
+        """The plant model ([model], default [plant]): the predictions, the LQR design, the analysis."""
+        return (self.model or ModelSpec(self.plant.name, self.plant.params)).make()
+
+    def make_process(self):
+        """The true plant as it advances in time (``plants.base.PlantProcess``)."""
+        from .protocol import OdeProcess
+
+        return OdeProcess(self.make_plant(), self.flow)
+
+    def sim_latency(self, n_steps: int | None = None) -> np.ndarray | None:
+        """The latency [ns] of u_k in a simulated run (``[run] sim_delay``; None under ideal timing).
+
+        Default: a constant latency at the received sample's nominal actuation delay under
+        arrival actuation, and 0 under scheduled actuation (every u_k then acts on schedule).
+        """
+        if self.run.timing != "physical":
+            return None
+        N = self.n_steps if n_steps is None else n_steps
+        spec = self.run.sim_delay or SimDelaySpec(
+            "constant", value=self.run.delay.nominal if self.run.actuation == "arrival" else 0.0)
+        return spec.draw(N)
+
+    @property
+    def timing_params(self) -> np.ndarray:
+        """[physical, scheduled, delta_s, d T, loss deadline] in integer ns (``PlantProtocol``, the kernel)."""
+        r = self.run
+        Tn = int(round(self.T * 1e9))
+        sched = int(round(r.delay.nominal * 1e9)) if (r.timing == "physical" and r.delay) else 0
+        return np.array([int(r.timing == "physical"), int(r.actuation == "scheduled"), sched,
+                         int(r.deadline * Tn), int(r.loss_fraction * r.deadline * Tn)], dtype=np.int64)
 
     def theta(self, n_steps: int | None = None) -> np.ndarray | None:
         """theta_k of the offline schedule for k = 0..N-1 (None for an online attacker)."""
@@ -133,13 +224,15 @@ class Scenario:
 
 
 # ----------------------------------------------------------------------------- validation
-_SECTIONS = {"plant", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
+_SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
 _KEYS = {
     "plant": {"name", "params", "x0"},
+    "model": {"name", "params"},
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
-                  "allow_x0_outside"},
-    "controller": {"K", "lqr"},
-    "run": {"duration", "converge_tol", "timing", "deadline"},
+                  "allow_x0_outside", "rule", "L_u"},
+    "controller": {"K", "lqr", "u_max"},
+    "run": {"duration", "converge_tol", "timing", "deadline", "loss_fraction", "actuation", "delay",
+            "delay_lost", "sim_delay"},
     "flow": {"rtol", "atol", "x_max", "max_steps"},
 }
 
@@ -200,6 +293,29 @@ def _thaw(v):
     return v
 
 
+def _str(ctx, key, v, choices=None) -> str:
+    if not isinstance(v, str):
+        raise ctx.err(key, f"must be a string, got {v!r}")
+    if choices is not None and v not in choices:
+        raise ctx.err(key, f"must be one of {', '.join(repr(c) for c in choices)}, got {v!r}")
+    return v
+
+
+def _table(ctx, key, v) -> dict:
+    if not isinstance(v, dict):
+        raise ctx.err(key, "must be a table")
+    return v
+
+
+def _make_plant(ctx, key, name, params) -> plants.Plant:
+    if not isinstance(name, str):
+        raise ctx.err(f"{key}.name", f"must be a string, got {name!r}")
+    try:
+        return plants.make(name, **params)
+    except ValueError as e:
+        raise ctx.err(key, str(e)) from None
+
+
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "") -> Scenario:
     """Validate a parsed TOML document and build a Scenario."""
     ctx = _Ctx(where)
@@ -209,31 +325,53 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     for sec in ("plant", "quantizer", "controller", "run"):
         if sec not in data:
             raise ctx.err(sec, "section missing")
-        if not isinstance(data[sec], dict):
-            raise ctx.err(sec, "must be a table")
+        _table(ctx, sec, data[sec])
     name = data.get("name", name)
     if not isinstance(name, str) or not name:
         raise ctx.err("name", f"must be a non-empty string, got {name!r}")
-    description = data.get("description", "")
-    if not isinstance(description, str):
-        raise ctx.err("description", f"must be a string, got {description!r}")
+    description = _str(ctx, "description", data.get("description", ""))
 
-    # [plant]
+    # [plant]: the true plant
     pt = data["plant"]
     _unknown(ctx, "plant", pt, _KEYS["plant"])
     if "name" not in pt:
         raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())}")
-    params = pt.get("params", {})
-    if not isinstance(params, dict):
-        raise ctx.err("plant.params", "must be a table")
-    try:
-        plant = plants.make(str(pt["name"]), **params)
-    except ValueError as e:
-        raise ctx.err("plant", str(e)) from None
+    params = _table(ctx, "plant.params", pt.get("params", {}))
+    plant = _make_plant(ctx, "plant", pt["name"], params)
     n, m = plant.n, plant.m
     if "x0" not in pt:
         raise ctx.err("plant.x0", "missing")
     x0 = _matrix(ctx, "plant.x0", [pt["x0"]], (1, n))[0]
+
+    # [model]: what the predictions, the design and the analysis use (default: [plant])
+    if "model" in data:
+        mt = _table(ctx, "model", data["model"])
+        _unknown(ctx, "model", mt, _KEYS["model"])
+        mname = mt.get("name", pt["name"])
+        if "params" in mt:
+            mparams = _table(ctx, "model.params", mt["params"])
+        else:
+            mparams = params if mname == pt["name"] else {}
+        model_obj = _make_plant(ctx, "model", mname, mparams)
+        if (model_obj.n, model_obj.m) != (n, m):
+            raise ctx.err("model", f"{model_obj.name} has n = {model_obj.n}, m = {model_obj.m}; the plant "
+                                   f"{plant.name} has n = {n}, m = {m}")
+        model = ModelSpec(model_obj.name, _freeze(mparams), explicit=True)
+    else:
+        model_obj = plant
+        model = ModelSpec(plant.name, _freeze(params))
+
+    # [run] (its timing decides the quantizer's default rule)
+    rt = data["run"]
+    _unknown(ctx, "run", rt, _KEYS["run"])
+    if "duration" not in rt:
+        raise ctx.err("run.duration", "missing")
+    duration = _num(ctx, "run.duration", rt["duration"], positive=True)
+    tol = _num(ctx, "run.converge_tol", rt.get("converge_tol", 1e-4), positive=True)
+    timing = _str(ctx, "run.timing", rt.get("timing", "ideal"), ("ideal", "physical"))
+    deadline = _num(ctx, "run.deadline", rt.get("deadline", 0.5), positive=True)
+    if deadline >= 1:
+        raise ctx.err("run.deadline", f"is a fraction of T and must be < 1, got {deadline}")
 
     # [quantizer]
     qt = data["quantizer"]
@@ -247,15 +385,20 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         raise ctx.err("quantizer.M", f"must be an integer >= 2, got {M}")
     L = _num(ctx, "quantizer.L", qt["L"], positive=True)
     E0 = _num(ctx, "quantizer.E0", qt["E0"], positive=True)
-    mode = qt.get("mode", "resilient")
-    if mode not in ("ideal", "resilient"):
-        raise ctx.err("quantizer.mode", f"must be 'ideal' or 'resilient', got {mode!r}")
+    mode = _str(ctx, "quantizer.mode", qt.get("mode", "resilient"), ("ideal", "resilient"))
+    try:
+        Codebook(n, M, resilient=(mode == "resilient"))
+    except CodebookTooLarge as e:
+        raise ctx.err("quantizer.M", str(e)) from None
     zoom_out = qt.get("zoom_out")
     if zoom_out is not None:
         zoom_out = _num(ctx, "quantizer.zoom_out", zoom_out)
         if zoom_out < 1:
             raise ctx.err("quantizer.zoom_out", f"must be >= 1, got {zoom_out}")
     E_min = _num(ctx, "quantizer.E_min", qt.get("E_min", 0.0), nonneg=True)
+    for k in ("allow_M_le_Lambda", "allow_x0_outside"):
+        if not isinstance(qt.get(k, False), bool):
+            raise ctx.err(f"quantizer.{k}", f"must be true or false, got {qt[k]!r}")
     Lam = math.exp(L * T)
     if M <= Lam and not qt.get("allow_M_le_Lambda", False):
         raise ctx.err("quantizer.M", f"M = {M} <= Lambda = e^(L T) = {Lam:.4g} breaks Assumption 2 "
@@ -263,47 +406,136 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     if max(abs(v) for v in x0) > E0 and not qt.get("allow_x0_outside", False):
         raise ctx.err("quantizer.E0", f"||x0||_inf = {max(abs(v) for v in x0):g} > E0 = {E0:g} breaks "
                       "Assumption 5 (set allow_x0_outside = true to run it anyway)")
-    qp = QuantizerParams(T=T, M=M, L=L, E0=E0, mode=mode, zoom_out=zoom_out, E_min=E_min)
+    rule = _str(ctx, "quantizer.rule", qt.get("rule", "delay-aware" if timing == "physical" else "paper"),
+                RULES)
 
-    # [controller]
+    # [run] actuation, delay, delay_lost: when u_k acts (physical timing), and the bounds the
+    # delay-aware rule covers; sim_delay: the latency of u_k in a simulation
+    loss_fraction = _num(ctx, "run.loss_fraction", rt.get("loss_fraction", 0.8), positive=True)
+    if loss_fraction >= 1:
+        raise ctx.err("run.loss_fraction", f"must be < 1 (the loss deadline comes before the plant's), got "
+                                           f"{loss_fraction}")
+    actuation = _str(ctx, "run.actuation", rt.get("actuation", "scheduled"), ("scheduled", "arrival"))
+    dT = deadline * T
+    t_loss = loss_fraction * dT
+
+    def bound(key, default_lo, default_nom, default_hi):
+        if key not in rt:
+            return DelaySpec(default_nom, default_lo, default_hi)
+        dt_ = _table(ctx, f"run.{key}", rt[key])
+        _unknown(ctx, f"run.{key}", dt_, {"nominal", "min", "max"})
+        nom = _num(ctx, f"run.{key}.nominal", dt_.get("nominal", default_nom), nonneg=True)
+        lo = _num(ctx, f"run.{key}.min", dt_.get("min", nom if actuation == "scheduled" else default_lo),
+                  nonneg=True)
+        hi = _num(ctx, f"run.{key}.max", dt_.get("max", nom if actuation == "scheduled" else default_hi),
+                  nonneg=True)
+        if not lo <= nom <= hi:
+            raise ctx.err(f"run.{key}", f"needs min <= nominal <= max, got {lo:g}, {nom:g}, {hi:g}")
+        if hi > dT * (1 + 1e-12):
+            raise ctx.err(f"run.{key}.max", f"{hi:g} s is beyond the plant's deadline d T = {dT:g} s (a u_k "
+                                            "that comes later is not used)")
+        if actuation == "scheduled" and lo != nom:
+            raise ctx.err(f"run.{key}.min", "under scheduled actuation u_k never acts before its instant: "
+                                            "min = nominal")
+        return DelaySpec(nom, lo, hi, declared=True)
+
+    delay = delay_lost = None
+    if timing == "physical" or rule == "delay-aware":
+        if actuation == "scheduled":
+            delay = bound("delay", 0.4 * dT, 0.4 * dT, 0.4 * dT)
+            if "delay_lost" in rt:
+                raise ctx.err("run.delay_lost", "under scheduled actuation a lost sample's u_k = 0 acts at the "
+                                                "deadline d T: there is nothing to set")
+            delay_lost = DelaySpec(dT, dT, dT)
+        else:
+            delay = bound("delay", 0.0, 0.5 * t_loss, t_loss)
+            delay_lost = bound("delay_lost", t_loss, 0.5 * (t_loss + dT), dT)
+    elif "delay" in rt or "delay_lost" in rt:
+        raise ctx.err("run.delay", "applies to physical timing (timing = 'physical') or the delay-aware rule only")
+    sim_delay = None
+    if "sim_delay" in rt:
+        sd = _table(ctx, "run.sim_delay", rt["sim_delay"])
+        kind = _str(ctx, "run.sim_delay.kind", sd.get("kind", "constant"), ("constant", "uniform", "trace"))
+        allowed = {"constant": {"kind", "value"}, "uniform": {"kind", "min", "max", "seed"},
+                   "trace": {"kind", "values"}}[kind]
+        _unknown(ctx, "run.sim_delay", sd, allowed)
+        if kind == "constant":
+            sim_delay = SimDelaySpec("constant", value=_num(ctx, "run.sim_delay.value", sd.get("value", 0.0),
+                                                              nonneg=True))
+        elif kind == "uniform":
+            lo = _num(ctx, "run.sim_delay.min", sd.get("min", 0.0), nonneg=True)
+            hi = _num(ctx, "run.sim_delay.max", sd.get("max", 0.0), nonneg=True)
+            if lo > hi:
+                raise ctx.err("run.sim_delay", f"needs min <= max, got {lo:g}, {hi:g}")
+            if "seed" not in sd:
+                raise ctx.err("run.sim_delay.seed", "missing (kind = 'uniform' needs a seed, so that a run "
+                                                    "can be repeated)")
+            seed = _num(ctx, "run.sim_delay.seed", sd["seed"], integer=True, nonneg=True)
+            sim_delay = SimDelaySpec("uniform", min=lo, max=hi, seed=seed)
+        else:
+            vals = sd.get("values")
+            if not isinstance(vals, list) or not vals:
+                raise ctx.err("run.sim_delay.values", "must be a non-empty list of latencies [s]")
+            sim_delay = SimDelaySpec("trace", values=tuple(_num(ctx, "run.sim_delay.values", v, nonneg=True)
+                                                           for v in vals))
+        top = max([sim_delay.value, sim_delay.max, *sim_delay.values])
+        if top > T:
+            raise ctx.err("run.sim_delay", f"a latency of {top:g} s is longer than the period T = {T:g} s")
+    dpar = dict(delay_hat=0.0, margin_gain=0.0, delay_hat_lost=0.0, margin_gain_lost=0.0)
+    L_u = 0.0
+    if rule == "delay-aware":
+        region = float(getattr(model_obj, "lipschitz_region", math.inf))
+        L_u = _num(ctx, "quantizer.L_u", qt["L_u"], nonneg=True) if "L_u" in qt else \
+            float(model_obj.input_gain(region))
+        ns = lambda v: round(v * 1e9) / 1e9  # noqa: E731 - delays act in whole ns, as the live plant measures them
+        dpar = dict(delay_hat=ns(delay.nominal),
+                    margin_gain=delay_margin_gain(Lam, L_u, delay.nominal, delay.min, delay.max),
+                    delay_hat_lost=int(deadline * round(T * 1e9)) / 1e9 if actuation == "scheduled"
+                    else ns(delay_lost.nominal),
+                    margin_gain_lost=delay_margin_gain(Lam, L_u, delay_lost.nominal, delay_lost.min, delay_lost.max))
+    elif "L_u" in qt:
+        raise ctx.err("quantizer.L_u", "is used by the delay-aware rule only (rule = 'delay-aware')")
+    qp = QuantizerParams(T=T, M=M, L=L, E0=E0, mode=mode, zoom_out=zoom_out, E_min=E_min, rule=rule, **dpar)
+    if duration < T:
+        raise ctx.err("run.duration", f"shorter than one sampling period T = {T}")
+    run = RunSpec(duration=duration, converge_tol=tol, timing=timing, deadline=deadline,
+                  loss_fraction=loss_fraction, actuation=actuation, delay=delay, delay_lost=delay_lost,
+                  sim_delay=sim_delay)
+
+    # [controller] (designed on the model)
     ct = data["controller"]
     _unknown(ctx, "controller", ct, _KEYS["controller"])
     if ("K" in ct) == ("lqr" in ct):
         raise ctx.err("controller", "give exactly one of K = [[...]] or lqr = { Q = ..., R = ... }")
+    u_max = _num(ctx, "controller.u_max", ct.get("u_max", 1e6), positive=True)
+    Ad, Bd = c2d(model_obj.A, model_obj.B, T)
     if "K" in ct:
         K = _matrix(ctx, "controller.K", ct["K"], (m, n))
-        ctrl = ControllerSpec(K=K, source="K")
+        ctrl = ControllerSpec(K=K, source="K", u_max=u_max)
     else:
-        lq = ct["lqr"]
-        if not isinstance(lq, dict):
-            raise ctx.err("controller.lqr", "must be a table { Q = [[...]], R = [[...]] }")
+        lq = _table(ctx, "controller.lqr", ct["lqr"])
         _unknown(ctx, "controller.lqr", lq, {"Q", "R"})
         Q = _matrix(ctx, "controller.lqr.Q", lq.get("Q", np.eye(n).tolist()), (n, n))
         R = _matrix(ctx, "controller.lqr.R", lq.get("R", np.eye(m).tolist()), (m, m))
-        Ad, Bd = c2d(plant.A, plant.B, T)
         try:
             Kd = dlqr(Ad, Bd, np.array(Q), np.array(R))
         except (np.linalg.LinAlgError, ValueError) as e:
             raise ctx.err("controller.lqr", f"discrete LQR failed: {e}") from None
-        ctrl = ControllerSpec(K=tuple(tuple(float(v) for v in r) for r in Kd), source="lqr", Q=Q, R=R)
-    Ad, Bd = c2d(plant.A, plant.B, T)
+        ctrl = ControllerSpec(K=tuple(tuple(float(v) for v in r) for r in Kd), source="lqr", Q=Q, R=R, u_max=u_max)
     rad = spectral_radius(closed_loop(Ad, Bd, ctrl.K_array))
     if not rad < 1:
         raise ctx.err("controller.K", f"A~ + B~ K is not Schur stable (spectral radius {rad:.4g})")
 
     # [attack]
-    at = data.get("attack", {"kind": "none"})
-    if not isinstance(at, dict):
-        raise ctx.err("attack", "must be a table")
+    at = _table(ctx, "attack", data.get("attack", {"kind": "none"}))
     kind = at.get("kind")
     if kind is None:
         raise ctx.err("attack.kind", f"missing; one of {sorted(attack_generators.GENERATORS)}")
+    kind = _str(ctx, "attack.kind", kind, sorted(attack_generators.GENERATORS))
     aparams = {k: v for k, v in at.items() if k not in ("kind", "budget")}
     budget = None
     if "budget" in at:
-        bt = at["budget"]
-        if not isinstance(bt, dict):
-            raise ctx.err("attack.budget", "must be a table { kappa_F, rho_F, kappa_D, rho_D }")
+        bt = _table(ctx, "attack.budget", at["budget"])
         _unknown(ctx, "attack.budget", bt, {"kappa_F", "rho_F", "kappa_D", "rho_D"})
         budget = tuple(_num(ctx, f"attack.budget.{k}", bt.get(k, 0.0), nonneg=True)
                        for k in ("kappa_F", "rho_F", "kappa_D", "rho_D"))
@@ -321,42 +553,43 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         thr = _num(ctx, "attack.threshold", aparams.get("threshold", 0.0), nonneg=True)
         if thr > 1:
             raise ctx.err("attack.threshold", f"must be in [0, 1], got {thr}")
-        if aparams.get("score", "state") not in ("state", "E"):
-            raise ctx.err("attack.score", f"must be 'state' or 'E', got {aparams.get('score')!r}")
+        _str(ctx, "attack.score", aparams.get("score", "state"), ("state", "E"))
+    _check_attack_params(ctx, kind, aparams)
     attack = AttackSpec(kind=str(kind), params=_freeze(aparams), budget=budget)
 
-    # [run]
-    rt = data["run"]
-    _unknown(ctx, "run", rt, _KEYS["run"])
-    if "duration" not in rt:
-        raise ctx.err("run.duration", "missing")
-    duration = _num(ctx, "run.duration", rt["duration"], positive=True)
-    if duration < T:
-        raise ctx.err("run.duration", f"shorter than one sampling period T = {T}")
-    tol = _num(ctx, "run.converge_tol", rt.get("converge_tol", 1e-4), positive=True)
-    timing = rt.get("timing", "ideal")
-    if timing not in ("ideal", "physical"):
-        raise ctx.err("run.timing", f"must be 'ideal' or 'physical', got {timing!r}")
-    deadline = _num(ctx, "run.deadline", rt.get("deadline", 0.5), positive=True)
-    if deadline >= 1:
-        raise ctx.err("run.deadline", f"is a fraction of T and must be < 1, got {deadline}")
-    run = RunSpec(duration=duration, converge_tol=tol, timing=timing, deadline=deadline)
-
     # [flow]
-    ft = data.get("flow", {})
+    ft = _table(ctx, "flow", data.get("flow", {}))
     _unknown(ctx, "flow", ft, _KEYS["flow"])
     flow = FlowOptions(**{k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
                           for k, v in ft.items()})
 
     sc = Scenario(name=name, plant=PlantSpec(plant.name, _freeze(params), x0), quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
-                  description=description)
+                  description=description, model=model, L_u=L_u)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
     except (ValueError, TypeError, KeyError) as e:
         raise ctx.err("attack", str(e)) from None
     return sc
+
+
+def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
+    """Types of the attack's parameters: numbers are numbers (a string "1.0" is an error)."""
+    for k, v in aparams.items():
+        if k == "score":
+            continue
+        if k == "intervals":
+            if not isinstance(v, list) or not all(isinstance(iv, list) and len(iv) == 2 for iv in v):
+                raise ctx.err("attack.intervals", "must be a list of [start, length] pairs in seconds")
+            for iv in v:
+                for x in iv:
+                    _num(ctx, "attack.intervals", x)
+            continue
+        if k == "seed":
+            _num(ctx, "attack.seed", v, integer=True)
+            continue
+        _num(ctx, f"attack.{k}", v)
 
 
 def bundled_names() -> list[str]:
@@ -392,7 +625,8 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>") -> Scen
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
-             "mode": ("quantizer", "mode"), "T": ("quantizer", "T")}
+             "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
+             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule")}
 
 
 def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:

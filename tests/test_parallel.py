@@ -54,21 +54,21 @@ def test_specialized_kernel_is_cached_and_identical(paper_sc):
     b = simulate_batch(plant, paper_sc.K, paper_sc.quantizer, X0, 120, theta=th, specialize=True)
     for f in ("x_final", "E_final", "status", "stop_k", "saturations", "mismatch", "max_norm", "attacked"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
-    run = kernelcache.specialized(_batch_kernel, {"rhs": type(plant).rhs})
+    run = kernelcache.specialized(_batch_kernel, {"rhs": type(plant).rhs, "rhs_m": type(plant).rhs})
     assert run is not _batch_kernel
     # the generated module is in the cache folder, named after a hash of its sources
     assert os.path.dirname(run.path) == str(kernelcache.cache_dir())
     assert run.dispatcher.stats.cache_path.startswith(str(kernelcache.cache_dir()))
     src = open(run.path).read()
-    assert "rhs = _rhs_object.jit" in src and "def flow_into__rhs(" in src and "def zoom_update__rhs(" in src
+    assert "rhs = _rhs_object.jit" in src and "def flow_into__rhs(" in src and "def zoom_update__rhs_m(" in src
 
 
 def test_specialized_kernel_depends_on_every_source(paper_sc):
     from testbed import kernelcache
     from testbed.simulate import _batch_kernel
 
-    gen = kernelcache._Generator({"rhs": ("plants.lienard", "lienard_rhs")})
-    gen.function(_batch_kernel, {"rhs": "rhs"}, top=True)
+    gen = kernelcache._Generator({"rhs": ("plants.lienard", "lienard_rhs"), "rhs_m": ("plants.lienard", "lienard_rhs")})
+    gen.function(_batch_kernel, {"rhs": "rhs", "rhs_m": "rhs_m"}, top=True)
     names = {os.path.relpath(f, os.path.dirname(os.path.dirname(kernelcache.__file__))) for f in gen.files}
     for f in ("testbed/simulate.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
               "attackers/greedy.py"):
@@ -90,10 +90,10 @@ def test_plant_without_module_level_rhs_falls_back(paper_sc, caplog):
 
     obj = rhs_function(local_rhs)
     with caplog.at_level(logging.WARNING, logger="testbed.kernelcache"):
-        assert kernelcache.specialized(_batch_kernel, {"rhs": obj}) is _batch_kernel
-        assert kernelcache.specialized(_batch_kernel, {"rhs": obj}) is _batch_kernel
+        assert kernelcache.specialized(_batch_kernel, {"rhs": obj, "rhs_m": obj}) is _batch_kernel
+        assert kernelcache.specialized(_batch_kernel, {"rhs": obj, "rhs_m": obj}) is _batch_kernel
     lines = [r for r in caplog.records if "generic kernel" in r.getMessage()]
-    assert len(lines) == 1 and "local_rhs" in lines[0].getMessage()
+    assert len(lines) == 1 and "local_rhs" in lines[0].getMessage() and "module-level" in lines[0].getMessage()
 
 
 def test_run_batch_chunks_do_not_change_results(paper_sc):
