@@ -36,6 +36,8 @@ for _name, _mod, _help in [
     ("analyze", "testbed.analysis.cli", "Theorem 1 and 2 bounds for a scenario"),
     ("roa", "testbed.analysis.cli", "nominal region of attraction on a grid"),
     ("sweep", "testbed.analysis.cli", "empirical DoS tolerance over (rho_F, rho_D)"),
+    ("worst-attack", "testbed.analysis.cli", "the shortest DoS that drives the loop out of the region of attraction"),
+    ("vulnerability", "testbed.analysis.cli", "that least DoS duration over the region of attraction (heat map)"),
     ("run", "testbed.launcher", "run a scenario live: four processes over Zenoh"),
     ("node", "testbed.nodes.main", "run one node of a live run"),
     ("record", "testbed.nodes.recorder", "record a live run to MCAP (testbed run starts one itself)"),
@@ -47,6 +49,11 @@ for _name, _mod, _help in [
         _optional(_name, _mod, _help)
     except ModuleNotFoundError:
         pass
+
+
+def _ident(name: str) -> str:
+    """A command's name in its module's function names (worst-attack -> worst_attack)."""
+    return name.replace("-", "_")
 
 
 def _version() -> str:
@@ -63,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_, epilog=EPILOG)
         mod = importlib.import_module(module)
-        adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
+        adder = getattr(mod, f"add_arguments_{_ident(name)}", None) or getattr(mod, "add_arguments")
         adder(p)
         p.set_defaults(_module=module, _name=name)
     return ap
@@ -80,15 +87,15 @@ def main(argv: list[str] | None = None) -> int:
         module, help_ = COMMANDS[name]
         mod = importlib.import_module(module)
         ap = argparse.ArgumentParser(prog=f"testbed {name}", description=help_, epilog=EPILOG)
-        adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
+        adder = getattr(mod, f"add_arguments_{_ident(name)}", None) or getattr(mod, "add_arguments")
         adder(ap)
         args = ap.parse_args(argv[1:])
-        runner = getattr(mod, f"main_{name}", None) or getattr(mod, "main")
+        runner = getattr(mod, f"main_{_ident(name)}", None) or getattr(mod, "main")
     else:
         ap = build_parser()
         args = ap.parse_args(argv)
         mod = importlib.import_module(args._module)
-        runner = getattr(mod, f"main_{args._name}", None) or getattr(mod, "main")
+        runner = getattr(mod, f"main_{_ident(args._name)}", None) or getattr(mod, "main")
     return run_guarded(runner, args, f"testbed {getattr(args, '_name', None) or argv[0]}")
 
 

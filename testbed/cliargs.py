@@ -7,7 +7,8 @@
 ``--plot PATH.png`` draw the command's figure into one PNG file
 ``--no-roa``        skip the nominal region of attraction outline (a grid computation)
 ``--no-progress``   no progress bars on stderr
-``--workers N``     processes for batch jobs (default: every core)
+``--workers N``     processes for batch jobs (default: every core; 1: in this process)
+``--scheduler URL`` run the batch jobs on a Dask cluster instead (``tcp://HOST:PORT``)
 ==================  ===============================================================
 
 Old names stay accepted as hidden aliases (``--record``, ``--rerun-no-roa``).
@@ -50,3 +51,25 @@ def add_no_progress(p: argparse.ArgumentParser) -> None:
 
 def add_scenario(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
+
+
+def _positive_int(v: str) -> int:
+    try:
+        n = int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {v!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
+
+
+def add_workers(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="worker processes for the batch simulations (default: every core; 1 runs in this "
+                        "process); results are identical for every N")
+
+
+def add_scheduler(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="send the batch simulations to this Dask scheduler instead of local processes "
+                        "(needs the extra 'dask'; see docs/scaling.md); results are identical")

@@ -6,7 +6,8 @@ Two entry points share one semantics (sample k = 0, ..., N-1 at t_k = k T):
    ``Decoder`` objects that only see symbols and acks (what a live run does).
    Returns every per-sample quantity (``SimResult``).
 2. ``simulate_batch`` - many initial states and/or schedules at once in one
-   numba kernel (one core).  Encoder and decoder keep separate (xi, E) arrays and
+   numba kernel (one core; ``testbed.analysis.parallel`` spreads batches over
+   processes).  Encoder and decoder keep separate (xi, E) arrays and
    each computes its own prediction; their disagreement is counted.  Summary
    outputs always, full traces on request.  The analysis uses this.
 
@@ -279,8 +280,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
 
 
 # ============================================================================ batch kernel
-#: the kernel parameters that carry a right-hand side (the true plant's, the model's):
-#: a specialized kernel binds each of them to the plant's compiled function
+#: the kernel parameters that carry a right-hand side (the true plant's, the model's): the cached
+#: specialized kernel (``testbed.kernelcache``) turns each into a global bound to a plant's ``RHS.jit``
 _RHS_ARGS = ("rhs", "rhs_m")
 
 
@@ -498,10 +499,12 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     mode : "ideal" | "resilient" | "none" (no quantization: the nominal loop);
         default qp.mode.
     record : keep x_k, E_k and theta_k for every sample.
-    specialize : compile the kernel for this plant (its right-hand side inlined):
-        about twice the throughput, but a few seconds of compilation in every
-        new process (numba cannot cache it).  Worth it for big grids and sweeps.
-        Results are identical either way.
+    specialize : run the kernel specialized for this plant (its right-hand side
+        inlined, about twice the throughput).  Generated and cached on disk by
+        ``testbed.kernelcache``: the first use per plant compiles for a few
+        seconds, later processes load it.  Falls back to the generic kernel
+        (one log line) for a plant whose right-hand side is not a module-level
+        ``@rhs_function``.  Results are identical either way.
     """
     X0 = np.ascontiguousarray(np.atleast_2d(np.asarray(X0, dtype=np.float64)))
     B, n = X0.shape
@@ -554,10 +557,15 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     out = dict(x_final=np.zeros((B, n)), E_final=np.zeros(B), status=np.zeros(B, np.int8),
                stop_k=np.zeros(B, np.int64), saturations=np.zeros(B, np.int64),
                mismatch=np.zeros(B, np.int64), max_norm=np.zeros(B), attacked=np.zeros(B, np.int64))
-    kind = "jit" if specialize else "cfunc"
-    rhs, rhs_m = getattr(type(plant).rhs, kind), getattr(type(model).rhs, kind)
-    _batch_kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
-                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, float(u_max), tab, sched_idx, tpar, ltab, latency_idx, gp, greedy_init(),
+    kernel = _batch_kernel
+    if specialize:
+        from .kernelcache import specialized
+
+        kernel = specialized(_batch_kernel, {"rhs": type(plant).rhs, "rhs_m": type(model).rhs})
+    rhs, rhs_m = type(plant).rhs.cfunc, type(model).rhs.cfunc
+    kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
+           float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, float(u_max), tab, sched_idx,
+           tpar, ltab, latency_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
                   out["attacked"])

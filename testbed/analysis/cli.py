@@ -3,6 +3,11 @@
     testbed analyze SCENARIO [--json] [--plot PATH.png] [--full] [--gamma G] [--budget KF RF KD RD]
     testbed roa SCENARIO [--grid N] [--plot PATH.png] [--json] [--vulnerable] [--budget ...]
     testbed sweep SCENARIO [--grid NF ND] [--rho-F-max R] [--rho-D-max R] [--seeds S] [--plot PATH.png] [--json]
+    testbed worst-attack SCENARIO [--attacks N] [--x0 X1 X2 ...] [--json]
+    testbed vulnerability SCENARIO [--grid N] [--attacks N] [--plot PATH.png] [--json]
+
+Every command that runs batches takes --workers N (default: every core) and --scheduler tcp://HOST:PORT
+(a Dask cluster); the results do not depend on either (testbed.analysis.parallel).
 
 The figures and numbers of docs/analysis.md come from ``python docs/numbers.py`` (see there).
 """
@@ -100,6 +105,8 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
                    help="initial state of the escaping trajectory in the phase portrait "
                         "(default: searched along the ray through the scenario's x0)")
     cliargs.add_no_progress(p)
+    cliargs.add_workers(p)
+    cliargs.add_scheduler(p)
 
 
 def main_analyze(args) -> int:
@@ -111,7 +118,9 @@ def main_analyze(args) -> int:
     res = analyze(sc, budget=args.budget, gamma=gamma, share=args.share, rule=args.rule)
     extra = {}
     if args.full:
-        extra = _full(sc, res, args)
+        with _executor(args) as ex:
+            extra = _full(sc, res, args, ex)
+            extra["parallel"] = ex.describe()
     if args.plot:
         res["figures"] = _analyze_plots(sc, res, extra, Path(args.plot), args)
     for k, v in extra.items():
@@ -174,7 +183,23 @@ def _print_analysis(r: dict) -> None:
     print(f"  the paper's delta = 1.94e-7 is gamma = {_fmt(r['gamma_for_paper_delta'])} here")
 
 
-def _full(sc, res, args) -> dict:
+class _executor:
+    """``with _executor(args) as ex``: the executor of --workers / --scheduler, closed afterwards."""
+
+    def __init__(self, args):
+        from .parallel import from_args
+
+        self.ex = from_args(args)
+
+    def __enter__(self):
+        return self.ex
+
+    def __exit__(self, *exc):
+        self.ex.close()
+        return False
+
+
+def _full(sc, res, args, ex=None) -> dict:
     """Region of attraction (201 x 201), sweep (21 x 21) and vulnerable states for --full."""
     from .roa import nominal_roa
     from .summary import sweep_kappas
@@ -183,14 +208,14 @@ def _full(sc, res, args) -> dict:
     plant = sc.make_model()
     out = {}
     roa = nominal_roa(plant, sc.K, sc.T, grid=201, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
-                      progress=Progress("region of attraction", not args.no_progress))
+                      progress=Progress("region of attraction", not args.no_progress), executor=ex)
     out["_roa"] = roa
     out["roa"] = roa.to_dict()
     kF, kD = sweep_kappas(sc)
     rF = np.linspace(0.0, 2.0, 21)
     rD = np.linspace(0.0, 0.5, 21)
     sw = sweep(plant, sc.K, sc.quantizer, sc.x0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=4, horizon=60.0,
-               tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress))
+               tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress), executor=ex)
     out["_sweep"] = sw
     out["sweep"] = _sweep_summary(sw, res)
     t1 = res["theorem1"]
@@ -198,18 +223,18 @@ def _full(sc, res, args) -> dict:
     hiD = 1.15 * t1["paper"]["rho_D_max"]
     swz = sweep(plant, sc.K, sc.quantizer, sc.x0, np.linspace(0.0, hiF, 12), np.linspace(0.0, hiD, 12),
                 kappa_F=kF, kappa_D=kD, seeds=4, horizon=60.0, tol=sc.run.converge_tol, flow=sc.flow,
-                progress=Progress("sweep (zoom)", not args.no_progress))
+                progress=Progress("sweep (zoom)", not args.no_progress), executor=ex)
     out["_sweep_zoom"] = swz
     out["sweep_zoom"] = _sweep_summary(swz, res)
     t1 = res["theorem1"]
     reg = t1.get("tight") or t1["paper"]
     vb = _vulnerable_budget(sc, reg["rho_F_max"], reg["rho_D_max"])
     vu = vulnerable_states(plant, sc.K, sc.quantizer, vb, roa, stride=2, horizon=30.0, tol=sc.run.converge_tol,
-                           flow=sc.flow, progress=Progress("vulnerable states", not args.no_progress))
+                           flow=sc.flow, progress=Progress("vulnerable states", not args.no_progress), executor=ex)
     out["_vulnerable"] = vu
     out["vulnerable"] = vu.to_dict()
     base = vulnerable_states(plant, sc.K, sc.quantizer, (0.0, 0.0, 0.0, 0.0), roa, stride=2, horizon=30.0,
-                             tol=sc.run.converge_tol, flow=sc.flow)
+                             tol=sc.run.converge_tol, flow=sc.flow, executor=ex)
     out["_vulnerable_baseline"] = base
     out["vulnerable_baseline"] = base.to_dict()
     return out
@@ -321,20 +346,28 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, default=0.0, help="greedy threshold (default 0)")
     p.add_argument("--stride", type=int, default=2, help="--vulnerable uses every STRIDE-th grid state (default 2)")
     cliargs.add_no_progress(p)
+    cliargs.add_workers(p)
+    cliargs.add_scheduler(p)
 
 
 def main_roa(args) -> int:
     from .. import scenario
+
+    sc = scenario.load(args.scenario)
+    plant = sc.make_model()
+    with _executor(args) as ex:
+        return _roa(sc, plant, args, ex)
+
+
+def _roa(sc, plant, args, ex) -> int:
     from . import figures
     from ..simulate import simulate_scenario
     from .roa import nominal_roa
 
-    sc = scenario.load(args.scenario)
-    plant = sc.make_model()
     roa = nominal_roa(plant, sc.K, sc.T, grid=args.grid, window=args.window, dims=args.dims, horizon=args.horizon,
                       tol=sc.run.converge_tol, flow=sc.flow,
-                      progress=Progress("region of attraction", not args.no_progress))
-    out = {"scenario": sc.name, "plant": plant.name, "roa": roa.to_dict()}
+                      progress=Progress("region of attraction", not args.no_progress), executor=ex)
+    out = {"scenario": sc.name, "plant": plant.name, "roa": roa.to_dict(), "parallel": ex.describe()}
     vu = None
     if args.vulnerable:
         from .sweep import vulnerable_states
@@ -348,7 +381,7 @@ def main_roa(args) -> int:
             vb = _vulnerable_budget(sc, reg.rho_F_max, reg.rho_D_max)
         vu = vulnerable_states(plant, sc.K, sc.quantizer, vb, roa, stride=args.stride, kind=args.kind,
                                threshold=args.threshold, tol=sc.run.converge_tol, flow=sc.flow,
-                               progress=Progress("vulnerable states", not args.no_progress))
+                               progress=Progress("vulnerable states", not args.no_progress), executor=ex)
         out["vulnerable"] = vu.to_dict()
     if args.plot:
         sim = simulate_scenario(sc)
@@ -397,6 +430,8 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", metavar="PATH", help="write the allowable-region figure with the map (PNG)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     cliargs.add_no_progress(p)
+    cliargs.add_workers(p)
+    cliargs.add_scheduler(p)
 
 
 def main_sweep(args) -> int:
@@ -422,9 +457,12 @@ def main_sweep(args) -> int:
     X0 = np.array(X0)
     rF = np.linspace(0.0, args.rho_F_max, args.grid[0])
     rD = np.linspace(0.0, args.rho_D_max, args.grid[1])
-    sw = sweep(plant, sc.K, sc.quantizer, X0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=args.seeds, seed=args.seed,
-               horizon=args.horizon, kinds=tuple(args.kinds), threshold=args.threshold, tol=sc.run.converge_tol,
-               flow=sc.flow, progress=Progress("sweep", not args.no_progress))
+    with _executor(args) as ex:
+        sw = sweep(plant, sc.K, sc.quantizer, X0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=args.seeds, seed=args.seed,
+                   horizon=args.horizon, kinds=tuple(args.kinds), threshold=args.threshold,
+                   tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress),
+                   executor=ex)
+        par = ex.describe()
     loop = Loop.from_scenario(sc)
     regions = {rule: allowable_region(loop, rule) for rule in ("paper", "tight")}
     plain = plain_certificate(loop)
@@ -434,6 +472,7 @@ def main_sweep(args) -> int:
     d = sw.to_dict()
     d["theory"] = theory
     d["scenario"] = sc.name
+    d["parallel"] = par
     # budget points where the theorem holds but some run failed (the theorem is local: x0 may be too large)
     th = regions["tight"].holds(rF[:, None], rD[None, :]) | regions["paper"].holds(rF[:, None], rD[None, :])
     d["theorem_holds_but_failed"] = int(np.sum(th & ~sw.all_converged()))
@@ -462,4 +501,147 @@ def main_sweep(args) -> int:
               "had a failing run")
         if args.plot:
             print(f"  wrote {args.plot}")
+    return 0
+
+
+# ============================================================================ worst-attack
+def _add_search(p) -> None:
+    p.add_argument("--attacks", type=int, default=1, metavar="N",
+                   help="at most N sample-aligned attack intervals (default 1: exact; N >= 2: beam search, "
+                        "exact when proven)")
+    p.add_argument("--max-length", type=float, metavar="SECONDS",
+                   help="longest single attack tried (default: the whole run)")
+    p.add_argument("--beam", type=int, default=16, help="beam width of the search for --attacks >= 2 (default 16)")
+
+
+def _search_args(args, sc) -> dict:
+    from ..errors import BadInput
+
+    if args.attacks < 1:
+        raise BadInput(f"--attacks must be >= 1, got {args.attacks}")
+    if args.beam < 1:
+        raise BadInput(f"--beam must be >= 1, got {args.beam}")
+    max_len = None
+    if args.max_length is not None:
+        if not (math.isfinite(args.max_length) and args.max_length >= 0):
+            raise BadInput(f"--max-length must be >= 0 seconds, got {args.max_length}")
+        max_len = int(round(args.max_length / sc.T)) + 1
+    return {"attacks": args.attacks, "max_len": max_len, "beam": args.beam}
+
+
+def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
+    _add_scenario(p)
+    _add_search(p)
+    p.add_argument("--x0", nargs="+", type=float, metavar="X",
+                   help="initial state (default: the scenario's); E0 = max(scenario E0, ||x0||_inf)")
+    p.add_argument("--no-greedy", action="store_true",
+                   help="skip the greedy online attacker's least budget (reported for comparison)")
+    cliargs.add_json(p, "the result (intervals, total_duration, escaped, exact, greedy, ...)")
+    cliargs.add_no_progress(p)
+    cliargs.add_workers(p)
+    cliargs.add_scheduler(p)
+
+
+def main_worst_attack(args) -> int:
+    from .. import scenario
+    from ..errors import BadInput
+    from .worst import Loop, worst_attack
+
+    sc = scenario.load(args.scenario)
+    kw = _search_args(args, sc)
+    plant = sc.make_plant()
+    x0 = sc.x0 if args.x0 is None else np.asarray(args.x0, dtype=float)
+    if x0.shape != (plant.n,) or not np.all(np.isfinite(x0)):
+        raise BadInput(f"--x0 needs {plant.n} finite numbers, got {args.x0}")
+    with _executor(args) as ex:
+        w = worst_attack(Loop.from_scenario(sc), x0, greedy=not args.no_greedy, executor=ex,
+                         progress=Progress("worst attack", not args.no_progress), **kw)
+        out = {"scenario": sc.name, "plant": plant.name, **w.to_dict(), "parallel": ex.describe()}
+    if args.json:
+        _write_json(out)
+        return 0
+    print(f"scenario {sc.name}: x0 = {out['x0']}, E0 = {out['E0']:g}, {out['n_steps']} samples of "
+          f"T = {out['T']:g} s, at most {out['attacks']} attack(s)")
+    if out["unattacked_escapes"]:
+        print("  the quantized loop escapes without any attack")
+    elif out["escaped"]:
+        print(f"  shortest attack that escapes: intervals {out['intervals']} (start, length in s), total "
+              f"duration {out['total_duration']:g} s, {out['samples_lost']} packets lost "
+              f"({'exact' if out['exact'] else 'not proven minimal'}: {out['method']})")
+    else:
+        print(f"  no schedule escapes (attacks up to {out['max_length_samples']} samples; {out['method']})")
+    g = out.get("greedy")
+    if g:
+        if g["escaped"]:
+            print(f"  greedy attacker: escapes with kappa_D = {g['kappa_D']:g} s (threshold {g['threshold']:g}, "
+                  f"score {g['score']}), intervals {g['intervals']}, total duration {g['total_duration']:g} s")
+        else:
+            print("  greedy attacker: no escape with any duration budget")
+    print(f"  {out['candidates']} schedules, {out['traj_steps']} trajectory-steps in {out['wall_s']:.2f} s "
+          f"({out['parallel']['kind']}, {out['parallel']['workers']} workers)")
+    return 0
+
+
+# ============================================================================ vulnerability
+def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
+    _add_scenario(p)
+    p.add_argument("--grid", type=int, default=41, help="grid points per axis (default 41)")
+    p.add_argument("--window", nargs=2, type=float, metavar=("WX", "WY"),
+                   help="half-widths of the window (default per plant, as testbed roa)")
+    p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
+    _add_search(p)
+    cliargs.add_plot(p, "draw the heat map (least duration per state, the region's outline, Theorem 2's "
+                        "delta-ball) into this PNG")
+    cliargs.add_json(p, "the map (least duration per grid state, counts, delta)")
+    cliargs.add_no_progress(p)
+    cliargs.add_workers(p)
+    cliargs.add_scheduler(p)
+
+
+def main_vulnerability(args) -> int:
+    from .. import scenario
+    from ..errors import BadInput
+    from .roa import nominal_roa
+    from .summary import analyze
+    from .worst import Loop, vulnerability_map
+
+    sc = scenario.load(args.scenario)
+    kw = _search_args(args, sc)
+    if not 2 <= args.grid <= 1001:
+        raise BadInput(f"--grid must be in 2..1001, got {args.grid}")
+    plant = sc.make_plant()
+    if args.dims is not None and (len(set(args.dims)) != 2 or not all(0 <= d < plant.n for d in args.dims)):
+        raise BadInput(f"--dims needs two different coordinates in 0..{plant.n - 1}, got {args.dims}")
+    delta = analyze(sc)["delta"]
+    with _executor(args) as ex:
+        roa = nominal_roa(plant, sc.K, sc.T, grid=args.grid, window=args.window, dims=args.dims,
+                          tol=sc.run.converge_tol, flow=sc.flow,
+                          progress=Progress("region of attraction", not args.no_progress), executor=ex)
+        vm = vulnerability_map(Loop.from_scenario(sc), roa, delta=delta, executor=ex,
+                               progress=Progress("least attack per state", not args.no_progress), **kw)
+        out = {"scenario": sc.name, "plant": plant.name, **vm.to_dict(), "roa_inside_digest": roa.digest,
+               "parallel": ex.describe()}
+    if args.plot:
+        from . import figures
+
+        figures.plot_vulnerability(vm, roa, args.plot, x0=sc.x0,
+                                   title=f"{sc.name}: least DoS duration that drives the loop out")
+        out["figure"] = str(args.plot)
+    if args.json:
+        from .summary import to_json
+
+        _write_json(to_json(out))
+        return 0
+    print(f"scenario {sc.name}: {out['states_in_region']} states of the nominal region of attraction on a "
+          f"{args.grid} x {args.grid} grid, at most {out['attacks']} attack(s), {out['n_steps']} samples")
+    print(f"  {out['escape_unattacked']} escape without any attack; {out['no_escape_found']} resist every "
+          "schedule tried")
+    print(f"  least duration over the region: {_fmt(out['least_duration'])} s, median "
+          f"{_fmt(out['median_duration'])} s, largest {_fmt(out['largest_duration'])} s "
+          f"({'exact' if out['all_exact'] else 'not all proven minimal'})")
+    print(f"  Theorem 2's delta = {_fmt(delta)}")
+    print(f"  {out['candidates']} schedules, {out['traj_steps']} trajectory-steps in {out['wall_s']:.2f} s "
+          f"({out['parallel']['kind']}, {out['parallel']['workers']} workers)")
+    if args.plot:
+        print(f"  wrote {args.plot}")
     return 0

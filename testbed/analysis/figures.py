@@ -7,7 +7,9 @@
 * :func:`plot_allowable_region`: Theorem 1's boundary in the (rho_D, rho_F) plane
   for the plain, optimized and tight choices over the empirical convergence map
   of a sweep (the fourth figure, plus the experiment);
-* :func:`plot_delta`: delta (Lemma 2) and the E_0 bound (Theorem 2) against gamma.
+* :func:`plot_delta`: delta (Lemma 2) and the E_0 bound (Theorem 2) against gamma;
+* :func:`plot_vulnerability`: the least DoS duration that defeats the loop over the region of
+  attraction, with Theorem 2's delta-ball (the figure the paper's conclusion asks for).
 """
 
 from __future__ import annotations
@@ -250,4 +252,71 @@ def plot_delta(rows, path, *, gamma_mark=None, delta_paper=None, title: str = ""
     ax.legend(fontsize=8)
     if title:
         ax.set_title(title)
+    return _save(fig, path)
+
+
+def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2$"), x0=None):
+    """Heat map of the least DoS duration that defeats the loop, over the nominal region of attraction.
+
+    Parameters
+    ----------
+    vm : a :class:`testbed.analysis.worst.VulnerabilityMap`.
+    roa : the :class:`testbed.analysis.roa.RoaResult` it was computed on (its outline is drawn).
+    x0 : optional initial state to mark.
+    Theorem 2's delta-ball ||x||_inf <= delta (``vm.delta``) is drawn around the origin, with an
+    inset when it is too small to see.
+    """
+    plt = _plt()
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch, Rectangle
+
+    fig, ax = plt.subplots(figsize=(7.0, 5.8), layout="constrained")
+    dx = (vm.xs[-1] - vm.xs[0]) / max(len(vm.xs) - 1, 1) / 2
+    dy = (vm.ys[-1] - vm.ys[0]) / max(len(vm.ys) - 1, 1) / 2
+    ext = [vm.xs[0] - dx, vm.xs[-1] + dx, vm.ys[0] - dy, vm.ys[-1] + dy]
+    heat = np.where(vm.samples > 0, vm.duration, np.nan)
+    im = ax.imshow(np.ma.masked_invalid(heat), origin="lower", extent=ext, aspect="auto", cmap="viridis",
+                   interpolation="nearest")
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("least total DoS duration that makes the loop escape [s]")
+    lost = np.where(vm.samples == 0, 1.0, np.nan)
+    ax.imshow(np.ma.masked_invalid(lost), origin="lower", extent=ext, aspect="auto",
+              cmap=ListedColormap(["black"]), vmin=0, vmax=1, interpolation="nearest")
+    none = np.where(vm.samples == -1, 1.0, np.nan)
+    ax.imshow(np.ma.masked_invalid(none), origin="lower", extent=ext, aspect="auto",
+              cmap=ListedColormap(["#f0c0c0"]), vmin=0, vmax=1, interpolation="nearest")
+    d0, d1 = roa.dims
+    ax.contour(roa.xs, roa.ys, roa.inside.astype(float), levels=[0.5], colors="0.2", linewidths=1.0)
+    c = roa.center
+    handles = [Patch(facecolor="none", edgecolor="0.2", label="nominal region of attraction (outline)"),
+               Patch(color="black", label="escapes without any attack (quantization)")]
+    if np.any(vm.samples == -1):
+        handles.append(Patch(color="#f0c0c0", label=f"no escape with attacks up to {vm.max_len} samples"))
+    if vm.delta is not None and np.isfinite(vm.delta) and vm.delta > 0:
+        dl = float(vm.delta)
+        ax.add_patch(Rectangle((c[d0] - dl, c[d1] - dl), 2 * dl, 2 * dl, fill=False, ec="red", lw=1.2))
+        ax.plot([c[d0]], [c[d1]], "+", color="red", ms=8)
+        handles.append(Patch(facecolor="none", edgecolor="red",
+                             label=f"Theorem 2: $\\|x\\|_\\infty \\leq \\delta$ = {dl:.3g}"))
+        if 2 * dl < 0.05 * (ext[1] - ext[0]):
+            ins = ax.inset_axes([0.04, 0.04, 0.28, 0.28])
+            ins.imshow(np.ma.masked_invalid(heat), origin="lower", extent=ext, aspect="auto", cmap="viridis",
+                       norm=im.norm, interpolation="nearest")
+            ins.add_patch(Rectangle((c[d0] - dl, c[d1] - dl), 2 * dl, 2 * dl, fill=False, ec="red", lw=1.2))
+            w = max(4 * dl, 3 * dx)
+            ins.set_xlim(c[d0] - w, c[d0] + w)
+            ins.set_ylim(c[d1] - w, c[d1] + w)
+            ins.set_xticks([])
+            ins.set_yticks([])
+            ins.set_title("near the origin", fontsize=7)
+    if x0 is not None:
+        x0 = np.asarray(x0, dtype=float)
+        ax.plot([x0[d0]], [x0[d1]], "o", mfc="none", mec="white", ms=7)
+    ax.set_xlim(ext[0], ext[1])
+    ax.set_ylim(ext[2], ext[3])
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.legend(handles=handles, loc="upper right", fontsize=7)
+    kind = "one attack" if vm.attacks == 1 else f"at most {vm.attacks} attacks"
+    ax.set_title(title or f"least DoS duration ({kind}) that defeats the loop")
     return _save(fig, path)

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..flow import DEFAULT_FLOW, FlowOptions
+from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..quantizer import QuantizerParams
-from ..simulate import simulate_batch
+from .parallel import run_batch
 
 #: default half-widths of the gridded window per plant (covering the Lienard limit cycle)
 DEFAULT_WINDOWS = {"lienard": (5.0, 7.0), "pendulum": (math.pi, 2.0 * math.pi), "cartpole": (0.6, 2.0),
@@ -96,8 +96,16 @@ class RoaResult:
         out[ok] = self.inside[iy[ok], ix[ok]]
         return out
 
+    @property
+    def digest(self) -> str:
+        """sha256 of the inside/outside mask (shape, then one byte per state, row-major in y)."""
+        import hashlib
+
+        m = np.ascontiguousarray(self.inside, dtype=np.uint8)
+        return "sha256:" + hashlib.sha256(f"{m.shape[0]}x{m.shape[1]}:".encode() + m.tobytes()).hexdigest()
+
     def to_dict(self) -> dict:
-        return {"grid": [len(self.xs), len(self.ys)], "dims": list(self.dims),
+        return {"grid": [len(self.xs), len(self.ys)], "dims": list(self.dims), "inside_digest": self.digest,
                 "window": [[float(self.xs[0]), float(self.xs[-1])], [float(self.ys[0]), float(self.ys[-1])]],
                 "center": self.center.tolist(), "horizon": self.horizon, "tol": self.tol,
                 "fraction_inside": self.fraction, "area": self.area, "wall_s": self.wall,
@@ -106,7 +114,7 @@ class RoaResult:
 
 def nominal_roa(plant, K, T: float, *, grid: int | tuple[int, int] = 201, window=None, dims=None, center=None,
                 horizon: float = 30.0, tol: float = 1e-4, flow: FlowOptions = DEFAULT_FLOW,
-                chunk: int = 4096, progress=None) -> RoaResult:
+                chunk: int | None = None, progress=None, executor=None) -> RoaResult:
     """Grid the nominal region of attraction with the batch simulator.
 
     Parameters
@@ -117,7 +125,9 @@ def nominal_roa(plant, K, T: float, *, grid: int | tuple[int, int] = 201, window
     dims : the two gridded coordinates (default (0, 1); (2, 3) for the cart-pole).
     center : the state the window is centred on; fixes the other coordinates (default 0).
     horizon : seconds simulated; tol : convergence radius ||x_N||_inf < tol.
-    chunk : trajectories per simulator call (for ``progress(done, total)`` callbacks).
+    chunk : trajectories per chunk (default: see ``parallel.chunk_size``); ``progress(done, total)``
+        is called per chunk.
+    executor : a ``parallel.Executor`` (None: this process); the result does not depend on it.
 
     Returns
     -------
@@ -128,15 +138,11 @@ def nominal_roa(plant, K, T: float, *, grid: int | tuple[int, int] = 201, window
     xs, ys, X = state_grid(plant, grid, window, dims, center)
     n_steps = int(round(horizon / T))
     qp = QuantizerParams(T=T, M=2, L=0.0, E0=1.0, mode="none")
-    conv = np.zeros(X.shape[0], dtype=bool)
-    status = np.zeros(X.shape[0], dtype=np.int64)
     t0 = time.perf_counter()
-    for s in range(0, X.shape[0], chunk):
-        res = simulate_batch(plant, K, qp, X[s:s + chunk], n_steps, mode="none", flow=flow)
-        conv[s:s + chunk] = res.converged(tol)
-        status[s:s + chunk] = res.status
-        if progress is not None:
-            progress(min(s + chunk, X.shape[0]), X.shape[0])
+    out = run_batch(plant, K, qp, X, n_steps, mode="none", flow=flow, fields=("x_final", "status"),
+                    executor=executor, progress=progress, chunk=chunk)
+    status = out["status"].astype(np.int64)
+    conv = (status == FLOW_OK) & (np.max(np.abs(out["x_final"]), axis=1) < tol)  # BatchResult.converged
     wall = time.perf_counter() - t0
     counts = {int(k): int(v) for k, v in zip(*np.unique(status, return_counts=True))}
     c = np.zeros(plant.n) if center is None else np.asarray(center, dtype=float)

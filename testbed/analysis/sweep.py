@@ -49,7 +49,7 @@ import numpy as np
 from attackers.generators import make_schedule
 
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from ..simulate import in_nominal_roa, simulate_batch
+from .parallel import Stages, n_chunks, nominal_converged, run_batch
 from .roa import RoaResult
 
 KINDS = ("random", "periodic", "greedy")
@@ -85,38 +85,26 @@ def e0_levels(X0, E0: float, ratio: float = 1.25, floor: float = 1e-6) -> np.nda
 
 
 def run_grouped(plant, K, qp, X0, E0s, n_steps, *, theta=None, sched_idx=None, greedy_params=None,
-                score="state", flow: FlowOptions = DEFAULT_FLOW) -> dict:
-    """simulate_batch with one E_0 per trajectory (grouped by value); arrays in input order."""
-    X0 = np.atleast_2d(np.asarray(X0, dtype=float))
-    B = X0.shape[0]
-    out = {k: None for k in ("x_final", "status", "attacked", "saturations", "max_norm", "stop_k")}
-    for e in np.unique(E0s):
-        sel = np.flatnonzero(E0s == e)
-        kw = {}
-        if theta is not None:
-            kw["theta"] = theta
-            kw["sched_idx"] = np.asarray(sched_idx)[sel]
-        if greedy_params is not None:
-            gp = np.asarray(greedy_params, dtype=float)
-            kw["greedy_params"] = gp if gp.ndim == 1 else gp[sel]
-        res = simulate_batch(plant, K, replace(qp, E0=float(e)), X0[sel], n_steps, score=score, flow=flow, **kw)
-        for k in out:
-            v = getattr(res, k)
-            if out[k] is None:
-                out[k] = np.zeros((B,) + v.shape[1:], dtype=v.dtype)
-            out[k][sel] = v
-    return out
+                score="state", flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> dict:
+    """The batch simulator with one E_0 per trajectory; arrays in input order (``parallel.run_batch``)."""
+    return run_batch(plant, K, qp, X0, n_steps, E0=E0s, theta=theta, sched_idx=sched_idx,
+                     greedy_params=greedy_params, score=score, flow=flow,
+                     fields=("x_final", "status", "attacked", "saturations", "max_norm", "stop_k"),
+                     executor=executor, progress=progress)
 
 
 def classify(plant, K, T, x_final, status, tol, *, escape_horizon: float = 30.0,
-             flow: FlowOptions = DEFAULT_FLOW) -> tuple[np.ndarray, np.ndarray]:
+             flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """(converged, escaped) per run: ||x_N|| < tol; not converged and (diverged or x_N outside the nominal region)."""
     conv = (status == FLOW_OK) & (np.max(np.abs(x_final), axis=1) < tol)
     esc = status != FLOW_OK
     check = np.flatnonzero(~conv & ~esc)
     if check.size:
-        inside = in_nominal_roa(plant, K, T, x_final[check], horizon=escape_horizon, tol=tol, flow=flow)
+        inside = nominal_converged(plant, K, T, x_final[check], horizon=escape_horizon, tol=tol, flow=flow,
+                                   executor=executor, progress=progress)
         esc[check] = ~inside
+    elif progress is not None:
+        progress(1, 1)
     return conv, esc
 
 
@@ -190,7 +178,7 @@ def _capped(flow: FlowOptions, x_max: float | None) -> FlowOptions:
 def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: float = 0.5, seeds: int = 4,
           horizon: float = 60.0, kinds=KINDS, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
           escape_horizon: float = 30.0, seed: int = 0, flow: FlowOptions = DEFAULT_FLOW,
-          x_max: float | None = 1e3, progress=None) -> SweepResult:
+          x_max: float | None = 1e3, progress=None, executor=None) -> SweepResult:
     """Run the loop over a grid of budgets (rho_F x rho_D) and attacker kinds.
 
     Parameters
@@ -203,7 +191,11 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
     horizon : seconds of attacked operation; tol : convergence radius.
     kinds : subset of ``KINDS``; threshold, score : the greedy attacker's parameters.
     x_max : escape cap on ||x||_inf (module docstring); None keeps ``flow.x_max``.
-    progress : callback progress(done_rows, total_rows).
+    progress : callback progress(done_chunks, total_chunks).
+    executor : a ``parallel.Executor`` (None: this process); the result does not depend on it.
+
+    All runs of the grid form two batches (offline schedules, greedy attacker) and the
+    escape checks a third, each split into chunks on the executor.
     """
     flow = _capped(flow, x_max)
     X0 = np.atleast_2d(np.asarray(X0, dtype=float))
@@ -225,9 +217,55 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         res.escaped[k] = np.full((nF, nD), np.nan)
         res.lost[k] = np.full((nF, nD), np.nan)
     t0 = time.perf_counter()
-    for i, rF in enumerate(rho_F):
-        # ---- offline schedules of this row: (kind, j) per table row
-        rows, tags = [], []
+    # ---- offline schedules of the whole grid: (kind, i, j) per table row (generated in parallel too:
+    #      drawing thousands of random schedules is Python work of the same order as simulating them)
+    groups = [list(range(a, min(a + 2, nF))) for a in range(0, nF, 2)]
+    spec = (tuple(kinds), rho_F, rho_D, float(kappa_F), float(kappa_D), int(seeds), int(seed), T, float(horizon), N)
+    items = [(spec, g) for g in groups]
+    parts = executor.map(_schedule_rows, items) if executor is not None else [_schedule_rows(it) for it in items]
+    rows = [r for p in parts for r in p[0]]
+    tags = [t for p in parts for t in p[1]]
+    n_off = len(rows) * B0
+    n_gr = nF * nD * B0 if "greedy" in kinds else 0
+    stages = Stages(progress, [n_chunks(n_off, N, executor), n_chunks(n_gr, N, executor),
+                               n_chunks(n_off + n_gr, int(round(escape_horizon / T)), executor)])
+    parts, run_tags = [], []
+    if rows:
+        tab = np.array(rows, dtype=np.uint8)
+        sidx = np.repeat(np.arange(len(rows)), B0)
+        parts.append(run_grouped(plant, K, qp, np.tile(X0, (len(rows), 1)), np.tile(E0x, len(rows)), N,
+                                 theta=tab, sched_idx=sidx, flow=flow, executor=executor,
+                                 progress=stages.next()))
+        run_tags += [tags[r] for r in sidx]
+    else:
+        stages.next()
+    if "greedy" in kinds:
+        gp = np.array([[kappa_F, rF, kappa_D, rD, threshold] for rF in rho_F for rD in rho_D for _ in range(B0)])
+        parts.append(run_grouped(plant, K, qp, np.tile(X0, (nF * nD, 1)), np.tile(E0x, nF * nD), N,
+                                 greedy_params=gp, score=score, flow=flow, executor=executor,
+                                 progress=stages.next()))
+        run_tags += [("greedy", i, j) for i in range(nF) for j in range(nD) for _ in range(B0)]
+    else:
+        stages.next()
+    if parts:
+        out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        conv, esc = classify(plant, K, T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
+                             flow=flow, executor=executor, progress=stages.next())
+        lost = out["attacked"] / np.maximum(out["stop_k"], 1)
+        _accumulate(res, run_tags, conv, esc, lost)
+        res.runs = len(run_tags)
+        res.traj_steps = len(run_tags) * N
+    res.wall = time.perf_counter() - t0
+    return res
+
+
+def _schedule_rows(item):
+    """theta rows and (kind, i, j) tags of the offline schedules of the budget rows ``rows_i``."""
+    (kinds, rho_F, rho_D, kappa_F, kappa_D, seeds, seed, T, horizon, N), rows_i = item
+    nD = len(rho_D)
+    rows, tags = [], []
+    for i in rows_i:
+        rF = rho_F[i]
         for j, rD in enumerate(rho_D):
             if "random" in kinds:
                 for s in range(seeds):
@@ -235,47 +273,21 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
                                                    "rho_D": rD}, T=T, horizon=horizon,
                                         seed=seed + s + seeds * (j + nD * i))
                     rows.append(sch.theta_samples(T, N))
-                    tags.append(("random", j))
+                    tags.append(("random", i, j))
             if "periodic" in kinds:
                 pp = periodic_within_budget(rF, rD, kappa_F, kappa_D)
                 if pp is not None:
                     sch = make_schedule("periodic", pp, T=T, horizon=horizon)
                     rows.append(sch.theta_samples(T, N))
-                    tags.append(("periodic", j))
-        if rows:
-            tab = np.array(rows, dtype=np.uint8)
-            sidx = np.repeat(np.arange(len(rows)), B0)
-            Xb = np.tile(X0, (len(rows), 1))
-            Eb = np.tile(E0x, len(rows))
-            out = run_grouped(plant, K, qp, Xb, Eb, N, theta=tab, sched_idx=sidx, flow=flow)
-            conv, esc = classify(plant, K, T, out["x_final"], out["status"], tol,
-                                 escape_horizon=escape_horizon, flow=flow)
-            lost = out["attacked"] / np.maximum(out["stop_k"], 1)
-            _accumulate(res, i, [tags[r] for r in sidx], conv, esc, lost)
-            res.runs += len(sidx)
-            res.traj_steps += len(sidx) * N
-        if "greedy" in kinds:
-            gp = np.array([[kappa_F, rF, kappa_D, rD, threshold] for rD in rho_D for _ in range(B0)])
-            Xb = np.tile(X0, (nD, 1))
-            Eb = np.tile(E0x, nD)
-            out = run_grouped(plant, K, qp, Xb, Eb, N, greedy_params=gp, score=score, flow=flow)
-            conv, esc = classify(plant, K, T, out["x_final"], out["status"], tol,
-                                 escape_horizon=escape_horizon, flow=flow)
-            tags = [("greedy", j) for j in range(nD) for _ in range(B0)]
-            _accumulate(res, i, tags, conv, esc, out["attacked"] / np.maximum(out["stop_k"], 1))
-            res.runs += nD * B0
-            res.traj_steps += nD * B0 * N
-        if progress is not None:
-            progress(i + 1, nF)
-    res.wall = time.perf_counter() - t0
-    return res
+                    tags.append(("periodic", i, j))
+    return rows, tags
 
 
-def _accumulate(res: SweepResult, i: int, tags, conv, esc, lost) -> None:
+def _accumulate(res: SweepResult, tags, conv, esc, lost) -> None:
     groups: dict = {}
     for r, t in enumerate(tags):
         groups.setdefault(t, []).append(r)
-    for (kind, j), idx in groups.items():
+    for (kind, i, j), idx in groups.items():
         res.converged[kind][i, j] = float(np.mean(conv[idx]))
         res.escaped[kind][i, j] = float(np.mean(esc[idx]))
         res.lost[kind][i, j] = float(np.mean(lost[idx]))
@@ -318,7 +330,7 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
                       horizon: float = 30.0, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
                       seed: int = 0, escape_horizon: float = 30.0, flow: FlowOptions = DEFAULT_FLOW,
                       x_max: float | None = 1e3, kappa_D_shares=(0.0, 0.5, 1.0),
-                      progress=None) -> VulnerableResult:
+                      progress=None, executor=None) -> VulnerableResult:
     """Which states of the nominal region fail under a budget-limited attacker.
 
     Parameters
@@ -333,6 +345,7 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
         the exact attack (quantization makes it irregular), so this family is a
         stronger, still budget-limited, adversary than one greedy policy.
     x_max : escape cap on ||x||_inf (see the module docstring).
+    executor : a ``parallel.Executor`` (None: this process); the result does not depend on it.
 
     Returns
     -------
@@ -350,15 +363,16 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
     N = int(round(horizon / qp.T))
     E0s = e0_levels(X, 0.0, floor=1e-3 * max(abs(xs).max(), abs(ys).max()))
     t0 = time.perf_counter()
-    runs = []
     if kind == "greedy":
         shares = tuple(kappa_D_shares) or (1.0,)
-        for i, sh in enumerate(shares):
-            runs.append(run_grouped(plant, K, qp, X, E0s, N,
-                                    greedy_params=np.array([kF, rF, sh * kD, rD, threshold]), score=score,
-                                    flow=flow))
-            if progress is not None:
-                progress(i + 1, len(shares))
+        gp = np.array([[kF, rF, sh * kD, rD, threshold] for sh in shares for _ in range(len(X))])
+        stages = Stages(progress, [n_chunks(len(gp), N, executor), n_chunks(len(gp), N, executor)])
+        out = run_grouped(plant, K, qp, np.tile(X, (len(shares), 1)), np.tile(E0s, len(shares)), N,
+                          greedy_params=gp, score=score, flow=flow, executor=executor, progress=stages.next())
+        c, e = classify(plant, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
+                        flow=flow, executor=executor, progress=stages.next())
+        conv = np.all(c.reshape(len(shares), len(X)), axis=0)
+        esc = np.any(e.reshape(len(shares), len(X)), axis=0)
     else:
         if kind == "random":
             sch = make_schedule("random", {"kappa_F": kF, "rho_F": rF, "kappa_D": kD, "rho_D": rD}, T=qp.T,
@@ -369,19 +383,14 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
         else:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         tab = sch.theta_samples(qp.T, N)[None, :]
-        runs.append(run_grouped(plant, K, qp, X, E0s, N, theta=tab, sched_idx=np.zeros(len(X), dtype=int),
-                                flow=flow))
-        if progress is not None:
-            progress(1, 1)
-    conv = np.ones(len(X), dtype=bool)
-    esc = np.zeros(len(X), dtype=bool)
-    for out in runs:
-        c, e = classify(plant, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
-                        flow=flow)
-        conv &= c
-        esc |= e
+        stages = Stages(progress, [n_chunks(len(X), N, executor), n_chunks(len(X), N, executor)])
+        out = run_grouped(plant, K, qp, X, E0s, N, theta=tab, sched_idx=np.zeros(len(X), dtype=int), flow=flow,
+                          executor=executor, progress=stages.next())
+        conv, esc = classify(plant, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
+                             flow=flow, executor=executor, progress=stages.next())
+        shares = (None,)
     wall = time.perf_counter() - t0
     outcome = np.full(inside.shape, -1, dtype=np.int8)
     outcome[inside] = np.where(conv, 0, np.where(esc, 2, 1))
     return VulnerableResult(xs, ys, roa.dims, outcome, tuple(budget), kind, threshold, horizon, wall,
-                            len(X) * N * len(runs))
+                            len(X) * N * len(shares))
