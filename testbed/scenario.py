@@ -34,12 +34,46 @@ class ScenarioError(BadInput):
 # ----------------------------------------------------------------------------- dataclasses
 @dataclass(frozen=True)
 class PlantSpec:
-    name: str
+    name: str                      # the plant's display name (its class's ``name``)
     params: tuple[tuple[str, Any], ...]
     x0: tuple[float, ...]
+    ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
+    base_dir: str = ""             # the scenario file's folder ("" for bundled scenarios and strings)
+    fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
 
     def make(self) -> plants.Plant:
-        return plants.make(self.name, **dict(self.params))
+        if self.fmu is not None:
+            raise ScenarioError(f"the plant is the FMU {self.fmu.path}: it has no equation (1) object "
+                                "(the [model] section gives one)")
+        return plants.make(self.ref or self.name, self.base_dir or None, **dict(self.params))
+
+    def source_info(self) -> dict[str, str]:
+        """The plant module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (``plants.refs.source_info``)."""
+        if self.fmu is not None:
+            return {"module": "", "class": "", "file": self.fmu.path, "source": "", "sha256": ""}
+        from plants.refs import source_info
+
+        return source_info(plants.resolve(self.ref or self.name, self.base_dir or None))
+
+    def make_process(self):
+        """The FMU plant (``plants.fmu.FMUPlant``, a ``plants.PlantProcess``) of an ``fmu`` spec."""
+        if self.fmu is None:
+            raise ScenarioError("the plant is not an FMU")
+        return self.fmu.open()
+
+
+@dataclass(frozen=True)
+class FMUSpec:
+    """``[plant] fmu = "plant.fmu"``, ``inputs = [...]``, ``states = [...]``, ``params = {...}``."""
+    path: str                                  # absolute (resolved against the scenario's folder)
+    inputs: tuple[str, ...]
+    states: tuple[str, ...]
+    params: tuple[tuple[str, Any], ...] = ()
+
+    def open(self):
+        from plants.fmu import FMUPlant
+
+        return FMUPlant(self.path, inputs=self.inputs, states=self.states, params=dict(self.params))
 
 
 @dataclass(frozen=True)
@@ -105,6 +139,7 @@ class Scenario:
     source: str = ""       # the TOML text it was read from (stored in recordings)
     path: str = ""
     description: str = ""  # one line (``testbed scenarios``)
+    base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
 
     @property
     def T(self) -> float:
@@ -135,7 +170,7 @@ class Scenario:
 # ----------------------------------------------------------------------------- validation
 _SECTIONS = {"plant", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
 _KEYS = {
-    "plant": {"name", "params", "x0"},
+    "plant": {"name", "params", "x0", "fmu", "inputs", "states"},
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
                   "allow_x0_outside"},
     "controller": {"K", "lqr"},
@@ -200,8 +235,14 @@ def _thaw(v):
     return v
 
 
-def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "") -> Scenario:
-    """Validate a parsed TOML document and build a Scenario."""
+def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
+              base_dir: str | Path | None = None) -> Scenario:
+    """Validate a parsed TOML document and build a Scenario.
+
+    ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
+    from there first and an FMU path is relative to it.
+    """
+    base_dir = str(Path(base_dir).resolve()) if base_dir else ""
     ctx = _Ctx(where)
     if not isinstance(data, dict):
         raise ctx.err("", "scenario must be a TOML table")
@@ -221,13 +262,28 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     # [plant]
     pt = data["plant"]
     _unknown(ctx, "plant", pt, _KEYS["plant"])
-    if "name" not in pt:
-        raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())}")
     params = pt.get("params", {})
     if not isinstance(params, dict):
         raise ctx.err("plant.params", "must be a table")
+    if "fmu" in pt:
+        fmu = _fmu_spec(ctx, pt, params, base_dir)
+        if "model" not in data:
+            raise ctx.err("plant.fmu", "an FMU plant needs a [model] section: the model (name, params) the "
+                          "quantizer predicts with and the controller is designed on")
+        # the [model] section and the FMU as the true plant of the simulator are wired in separately
+        raise ctx.err("plant.fmu", "FMU plants are not wired into the simulator and the plant node yet")
+    if "name" not in pt:
+        raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())} (or "
+                      "'module.path:ClassName', or fmu = \"file.fmu\")")
+    for k in ("inputs", "states"):
+        if k in pt:
+            raise ctx.err(f"plant.{k}", "only with fmu = \"file.fmu\"")
+    ref = pt["name"]
+    if not isinstance(ref, str) or not ref:
+        raise ctx.err("plant.name", f"must be a non-empty string, got {ref!r}")
     try:
-        plant = plants.make(str(pt["name"]), **params)
+        plant_cls = plants.resolve(ref, base_dir or None)
+        plant = plants.instantiate(plant_cls, ref, params)
     except ValueError as e:
         raise ctx.err("plant", str(e)) from None
     n, m = plant.n, plant.m
@@ -348,15 +404,46 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     flow = FlowOptions(**{k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
                           for k, v in ft.items()})
 
-    sc = Scenario(name=name, plant=PlantSpec(plant.name, _freeze(params), x0), quantizer=qp,
+    spec = PlantSpec(plant.name or type(plant).__name__, _freeze(params), x0, ref=ref, base_dir=base_dir)
+    sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
-                  description=description)
+                  description=description, base_dir=base_dir)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
     except (ValueError, TypeError, KeyError) as e:
         raise ctx.err("attack", str(e)) from None
     return sc
+
+
+def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str) -> FMUSpec:
+    """``[plant] fmu``, ``inputs``, ``states``, ``params``, checked against the FMU's model description."""
+    if "name" in pt:
+        raise ctx.err("plant", "give either name = \"...\" or fmu = \"file.fmu\", not both")
+    f = pt["fmu"]
+    if not isinstance(f, str) or not f:
+        raise ctx.err("plant.fmu", f"must be a path to an .fmu file, got {f!r}")
+    path = Path(f).expanduser()
+    if not path.is_absolute():
+        path = Path(base_dir or ".") / path
+    lists = {}
+    for k in ("inputs", "states"):
+        v = pt.get(k)
+        if not isinstance(v, list) or not v or not all(isinstance(x, str) and x for x in v):
+            raise ctx.err(f"plant.{k}", f"must be a non-empty list of the FMU's variable names, got {v!r}")
+        if len(set(v)) != len(v):
+            raise ctx.err(f"plant.{k}", f"names a variable twice: {v}")
+        lists[k] = tuple(v)
+    try:
+        from plants.fmu import FMUError, describe
+
+        describe(str(path.resolve()), inputs=lists["inputs"], states=lists["states"], params=params)
+    except ImportError as e:
+        raise ctx.err("plant.fmu", str(e)) from None
+    except FMUError as e:
+        raise ctx.err("plant.fmu", str(e)) from None
+    return FMUSpec(path=str(path.resolve()), inputs=lists["inputs"], states=lists["states"],
+                   params=_freeze(params))
 
 
 def bundled_names() -> list[str]:
@@ -371,23 +458,25 @@ def load(ref: str | Path) -> Scenario:
         if not p.is_file():
             raise ScenarioError(f"{ref}: no such scenario file (bundled: {', '.join(bundled_names())})")
         text = p.read_text()
-        name, where = p.stem, str(p)
+        name, where, base_dir = p.stem, str(p), str(p.resolve().parent)
     else:
         res = resources.files("testbed").joinpath(BUNDLED_DIR, f"{ref}.toml")
         if not res.is_file():
             raise ScenarioError(f"{ref!r} is neither a scenario file nor a bundled scenario "
                                 f"(bundled: {', '.join(bundled_names())})")
         text = res.read_text()
-        name, where = str(ref), f"bundled:{ref}"
-    return loads(text, name=name, where=where)
+        name, where, base_dir = str(ref), f"bundled:{ref}", None
+    return loads(text, name=name, where=where, base_dir=base_dir)
 
 
-def loads(text: str, *, name: str = "scenario", where: str = "<string>") -> Scenario:
+def loads(text: str, *, name: str = "scenario", where: str = "<string>",
+          base_dir: str | Path | None = None) -> Scenario:
+    """A scenario from TOML text; ``base_dir`` as in ``from_dict`` (None: plants from ``sys.path`` only)."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
-    return from_dict(data, name=name, where=where, source=text)
+    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
@@ -410,5 +499,6 @@ def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
     for k, v in over.items():
         table, key = OVERRIDES[k]
         data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) else v
-    sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source)
+    sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
+                    base_dir=sc.base_dir or None)
     return dataclasses.replace(sc2, path=sc.path)

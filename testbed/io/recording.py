@@ -23,7 +23,7 @@ topic                      schema                      content
 ``/recorder/malformed``    ``testbed.Malformed``       anything that did not decode, as received
 =========================  ==========================  ===============================================
 
-Metadata records: ``testbed.scenario`` (name, TOML text, reference),
+Metadata records: ``testbed.scenario`` (name, TOML text, reference, folder, plant module source),
 ``testbed.software`` (versions), ``testbed.run`` (source live|simulate, run id,
 host, command line, options), and at a clean close ``testbed.recorder``
 (message counts).  ``log_time`` is when the recorder got a message
@@ -123,7 +123,18 @@ def software_versions() -> dict[str, str]:
 
 
 def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
-    return {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name}
+    """The ``testbed.scenario`` record: the scenario's name, TOML, reference, folder and plant module."""
+    out = {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name,
+           "base_dir": getattr(sc, "base_dir", "") or "", "plant_ref": sc.plant.ref or sc.plant.name}
+    try:
+        info = sc.plant.source_info()
+    except (ValueError, AttributeError):
+        info = {}
+    bundled = info.get("module", "").startswith("plants.")  # ships with the testbed (testbed.software)
+    out.update({"plant_module": info.get("module", ""), "plant_class": info.get("class", ""),
+                "plant_file": info.get("file", ""), "plant_source": "" if bundled else info.get("source", ""),
+                "plant_sha256": info.get("sha256", "")})
+    return out
 
 
 class RecordingWriter:
@@ -244,6 +255,7 @@ class Recording:
     counts: Counter = field(default_factory=Counter)
     duplicates: int = 0
     last_log_time: int = 0
+    plant_source: dict | None = None   # set by ``scenario()``: how the plant module was loaded
 
     @property
     def source(self) -> str:
@@ -254,16 +266,54 @@ class Recording:
         return self.metadata.get("testbed.scenario", {}).get("toml")
 
     def scenario(self):
-        """The scenario the run used, rebuilt from the TOML stored in the recording."""
-        from ..scenario import loads, with_overrides
+        """The scenario the run used, rebuilt from the TOML stored in the recording.
+
+        The plant is imported as the run did (its reference, from the scenario's
+        folder first); only when that fails is the plant module's source stored in
+        the recording loaded, which runs code from the recording: a line on stderr
+        says so.  ``plant_source`` tells which happened (``plants.refs.resolve_recorded``).
+        """
+        from ..scenario import ScenarioError, loads, with_overrides
 
         toml = self.scenario_toml
         if not toml:
             raise ValueError(f"{self.path}: no scenario in the recording's metadata")
         meta = self.metadata.get("testbed.scenario", {})
-        sc = loads(toml, name=meta.get("name", "recorded"))
+        base_dir = meta.get("base_dir") or None
+        self.plant_source = self._resolve_plant(meta, base_dir)
+        sc = loads(toml, name=meta.get("name", "recorded"), where=f"{self.path} (recorded scenario)",
+                   base_dir=base_dir)
         over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
-        return with_overrides(sc, json.loads(over)) if over else sc
+        try:
+            return with_overrides(sc, json.loads(over)) if over else sc
+        except ValueError as e:
+            raise ScenarioError(f"{self.path}: recorded overrides: {e}") from None
+
+    def _resolve_plant(self, meta: dict, base_dir: str | None) -> dict | None:
+        """Resolve the recorded plant reference (pinning the stored source when it is not importable)."""
+        from plants.refs import PlantRefError, resolve_recorded
+
+        ref = meta.get("plant_ref")
+        if not ref:
+            return None  # a recording from before plant references were stored: the TOML alone
+        try:
+            _cls, status = resolve_recorded(ref, base_dir, module=meta.get("plant_module", ""),
+                                            class_name=meta.get("plant_class", ""),
+                                            source=meta.get("plant_source", ""), sha256=meta.get("plant_sha256", ""))
+        except PlantRefError as e:
+            from ..scenario import ScenarioError
+
+            raise ScenarioError(f"{self.path}: {e}") from None
+        status["module"] = meta.get("plant_module", "")
+        if status["loaded_from"] == "recording":
+            print(f"note: plant module {status['module']!r} is not importable ({status['reason']}); "
+                  f"loaded the source stored in {self.path} (sha256 {status['sha256'][:12]}): "
+                  "this runs code from the recording", file=sys.stderr)
+        elif status["differs"]:
+            print(f"note: plant module {status['module']!r} as imported now differs from the one recorded "
+                  f"in {self.path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
+                  file=sys.stderr)
+        return status
 
 
 # the MCAP byte layout (the spec's records) that ``_records`` walks
@@ -575,7 +625,11 @@ Foxglove opens the file as it is and Rerun decodes it natively.
 
 ## Metadata records
 
-- `testbed.scenario`: `name`, `toml` (the scenario file's text), `ref` (as given on the command line).
+- `testbed.scenario`: `name`, `toml` (the scenario file's text), `ref` (as given on the command line),
+  `base_dir` (the scenario file's folder, empty for a bundled scenario), `plant_ref` (`[plant] name`),
+  `plant_module`, `plant_class`, `plant_file` (where the plant class came from), `plant_source` (that module's
+  text; empty for the bundled plants, which ship with the testbed) and `plant_sha256` (its sha256).
+  `testbed report` loads `plant_source` only when the module cannot be imported (see docs/own-plant.md).
 - `testbed.software`: versions of Python, the platform, dos-testbed (and its git commit when run from a
   checkout), numpy, scipy, numba, eclipse-zenoh, mcap, protobuf, rerun-sdk; `format` (this format's version).
 - `testbed.run`: `source` (`live` or `simulate`), `run_id`, `host`, `pid`, `command`, `started_utc`,
