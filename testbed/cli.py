@@ -23,6 +23,8 @@ EPILOG = "exit codes: 0 ok, 1 the run or job failed, 2 bad input"
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("testbed.cmd_simulate", "run a scenario in the in-process simulator"),
     "scenarios": ("testbed.cmd_simulate", "list the bundled scenarios"),
+    "plants": ("testbed.cmd_plants", "list the built-in and installed plants"),
+    "check-plant": ("testbed.cmd_plants", "check a plant: shapes, f(0, 0), A, B, L, Assumption 2"),
 }
 
 
@@ -62,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_, epilog=EPILOG)
         mod = importlib.import_module(module)
-        adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
+        adder = getattr(mod, f"add_arguments_{name.replace('-', '_')}", None) or getattr(mod, "add_arguments")
         adder(p)
         p.set_defaults(_module=module, _name=name)
     return ap
@@ -79,15 +81,15 @@ def main(argv: list[str] | None = None) -> int:
         module, help_ = COMMANDS[name]
         mod = importlib.import_module(module)
         ap = argparse.ArgumentParser(prog=f"testbed {name}", description=help_, epilog=EPILOG)
-        adder = getattr(mod, f"add_arguments_{name}", None) or getattr(mod, "add_arguments")
+        adder = getattr(mod, f"add_arguments_{name.replace('-', '_')}", None) or getattr(mod, "add_arguments")
         adder(ap)
         args = ap.parse_args(argv[1:])
-        runner = getattr(mod, f"main_{name}", None) or getattr(mod, "main")
+        runner = getattr(mod, f"main_{name.replace('-', '_')}", None) or getattr(mod, "main")
     else:
         ap = build_parser()
         args = ap.parse_args(argv)
         mod = importlib.import_module(args._module)
-        runner = getattr(mod, f"main_{args._name}", None) or getattr(mod, "main")
+        runner = getattr(mod, f"main_{args._name.replace('-', '_')}", None) or getattr(mod, "main")
     return run_guarded(runner, args, f"testbed {getattr(args, '_name', None) or argv[0]}")
 
 
