@@ -280,7 +280,8 @@ class Recording:
             raise ValueError(f"{self.path}: no scenario in the recording's metadata")
         meta = self.metadata.get("testbed.scenario", {})
         base_dir = meta.get("base_dir") or None
-        self.plant_source = self._resolve_plant(meta, base_dir)
+        if self.plant_source is None:   # once per recording (report and replay both rebuild the scenario)
+            self.plant_source = self._resolve_plant(meta, base_dir)
         sc = loads(toml, name=meta.get("name", "recorded"), where=f"{self.path} (recorded scenario)",
                    base_dir=base_dir)
         over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
