@@ -314,3 +314,16 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     rep = json.loads(out)
     assert rep["plant_source"]["loaded_from"] == "import" and not rep["plant_source"]["differs"]
     assert rep["x"] == sim["x"] and rep["source"] == "live"
+
+
+def test_launcher_says_when_a_run_never_started(capsys):
+    """A run whose nodes could not load the plant prints why, not a summary of a loop that never ran."""
+    from testbed.launcher import print_text
+
+    why = "testbed node: vdp.toml: [plant] unknown plant 'vanderpol'"
+    print_text({"samples": 0, "run_id": "r1", "scenario": "vdp", "outcome": "plant exited before the start",
+                "faults": [{"node": "plant", "kind": "crashed", "why": "exit code 2", "last_log_line": why}],
+                "run_dir": "/tmp/logs"})
+    out = capsys.readouterr().out
+    assert "the run NEVER STARTED (outcome: plant exited before the start)" in out
+    assert why in out and "converged" not in out and "agree" not in out
