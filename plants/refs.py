@@ -4,9 +4,10 @@
 ``Plant`` subclass, the same way in every process of a run:
 
 1. ``"module.path:ClassName"``: the module is imported from ``base_dir`` (the
-   scenario file's folder) first, then from ``sys.path``.  A module of the same
-   name imported earlier from somewhere else is dropped, so two scenarios in two
-   folders each get their own file.
+   scenario file's folder) first, then from ``sys.path``.  A plant module of the
+   same name imported earlier from another scenario's folder is dropped, so two
+   scenarios in two folders each get their own file; a file that would shadow a
+   module imported otherwise (``plants.py``, ``numpy.py``) is refused.
 2. a name registered with ``plants.register`` (the bundled plants are);
 3. an entry point of the group ``dos_testbed.plants`` (``pip install`` of a plant
    package), whose value is ``"pkg.module:ClassName"``.
@@ -48,6 +49,8 @@ class PlantRefError(ValueError):
 
 #: what this process resolved a (ref, base_dir) to: module references and entry points only
 _RESOLVED: dict[tuple[str, str], type[Plant]] = {}
+#: top-level plant modules imported from a scenario's folder, and that folder
+_FROM_FOLDER: dict[str, str] = {}
 
 
 def is_module_ref(ref: str) -> bool:
@@ -84,17 +87,24 @@ def _import(modname: str, base_dir: str | None):
         if (base / f"{top}.py").is_file() or (base / top / "__init__.py").is_file():
             old = sys.modules.get(top)
             if old is not None and not _is_under(old, base):
+                if _FROM_FOLDER.get(top) is None:
+                    # not a plant module of another scenario folder: the testbed's own packages, a library
+                    raise PlantRefError(f"module {top!r} in {base} has the name of a module already imported from "
+                                        f"{_module_file(old)}: rename it")
                 for k in [k for k in sys.modules if k == top or k.startswith(top + ".")]:
-                    del sys.modules[k]
+                    del sys.modules[k]   # the same name in another scenario folder: each gets its own
             sys.path.insert(0, str(base))
             try:
                 importlib.invalidate_caches()
-                return importlib.import_module(modname)
+                mod = importlib.import_module(modname)
             finally:
                 try:
                     sys.path.remove(str(base))
                 except ValueError:
                     pass
+            if _is_under(sys.modules.get(top, mod), base):
+                _FROM_FOLDER[top] = str(base)
+            return mod
     return importlib.import_module(modname)
 
 

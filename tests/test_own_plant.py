@@ -327,3 +327,13 @@ def test_launcher_says_when_a_run_never_started(capsys):
     out = capsys.readouterr().out
     assert "the run NEVER STARTED (outcome: plant exited before the start)" in out
     assert why in out and "converged" not in out and "agree" not in out
+
+
+def test_a_plant_file_may_not_shadow_an_imported_module(tmp_path):
+    from testbed import scenario
+
+    (tmp_path / "numpy.py").write_text(VDP)
+    (tmp_path / "vdp.toml").write_text(SCENARIO.format(ref="numpy:VanDerPol", duration=1.0))
+    with pytest.raises(scenario.ScenarioError, match="has the name of a module already imported from .*: rename it"):
+        scenario.load(tmp_path / "vdp.toml")
+    assert np.zeros(2).shape == (2,)   # numpy is still numpy
