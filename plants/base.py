@@ -8,6 +8,7 @@ is built on that one function, so the model is written once.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
@@ -69,8 +70,8 @@ class Plant:
     rhs: ClassVar[Any] = None
     description: ClassVar[str] = ""
     #: the radius r of the box ||x||_inf <= r on which the plant's Lipschitz bound L
-    #: (Assumption 1) is meant; None: not stated (``testbed check-plant`` then uses a default)
-    lipschitz_region: ClassVar[float | None] = None
+    #: (Assumption 1) is meant; inf: not stated (``testbed check-plant`` then uses a default)
+    lipschitz_region: ClassVar[float] = float("inf")
 
     # -- to be provided by subclasses -------------------------------------------------
     @property
@@ -181,6 +182,28 @@ class Plant:
                 rows = rows + np.abs(col)
         best = float(rows.max())
         return best
+
+    def input_gain(self, varrho: float, u_bound: float = 10.0, grid: int = 21, h: float = 1e-6) -> float:
+        """Numerical estimate of L_u = sup ||df/du||_inf on the box of ``lipschitz``.
+
+        How much the input can change f: ||f(x, u) - f(x, v)||_inf <= L_u ||u - v||_inf.
+        The delay-aware quantizer rule uses it (``testbed.quantizer.delay_margin_gain``).
+        Plants affine in u with a constant input matrix B have L_u = ||B||_inf exactly
+        and may override this; this default samples the box and is an estimate.
+        """
+        n, m = self.n, self.m
+        if not math.isfinite(varrho):
+            varrho = 10.0
+        pts = grid if n <= 2 else max(3, int(round(grid ** (2 / n))))
+        axes = [np.linspace(-varrho, varrho, pts)] * n + [np.linspace(-u_bound, u_bound, 5)] * m
+        mesh = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n + m)
+        X, U = mesh[:, :n], mesh[:, n:]
+        rows = np.zeros((X.shape[0], n))
+        for j in range(m):
+            e = np.zeros(m)
+            e[j] = h
+            rows = rows + np.abs((self.f(X, U + e) - self.f(X, U - e)) / (2 * h))
+        return float(rows.max())
 
     def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:
         """Gain of the linearization remainder g on a box (used by Lemmas 1 and 2).

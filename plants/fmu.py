@@ -24,6 +24,7 @@ fmpy is the optional extra ``fmu`` (``pip install 'dos-testbed[fmu]'``).
 from __future__ import annotations
 
 import math
+import os
 import shutil
 import tempfile
 import zipfile
@@ -192,11 +193,13 @@ class FMUPlant:
         from fmpy import extract
         from fmpy.fmi2 import FMU2Slave
 
+        cwd = os.getcwd()
         try:
             extract(self.info.path, self._dir)
             self._fmu = FMU2Slave(guid=self.info.guid, unzipDirectory=self._dir,
                                   modelIdentifier=self.info.model_identifier, instanceName=instance_name)
         except Exception as e:  # noqa: BLE001 - a bad archive member, a library that does not load
+            os.chdir(cwd)   # fmpy changes into the binary's folder to load it and stays there when that fails
             self.close()
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             raise FMUError(f"{self.info.path}: cannot load the FMU's binary: {msg}") from None

@@ -57,6 +57,10 @@ class Lienard(Plant):
         B = np.array([[0.0], [1.0]])
         return A, B
 
+    def input_gain(self, varrho: float, u_bound: float = 10.0, grid: int = 21, h: float = 1e-6) -> float:
+        """L_u = ||B||_inf = 1 exactly (u enters x2' = -x1 + u only)."""
+        return 1.0
+
     def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:
         """Exact gain of the remainder g(x, u) = (a x1^3 - b x1^5, 0) on ||x||_inf <= r.
 

@@ -58,6 +58,10 @@ class Pendulum(Plant):
         B = np.array([[0.0], [1.0 / ml2]])
         return A, B
 
+    def input_gain(self, varrho: float, u_bound: float = 10.0, grid: int = 21, h: float = 1e-6) -> float:
+        """L_u = 1 / (mass l^2) exactly (u enters x2' only, linearly)."""
+        return 1.0 / (self.mass * self.l ** 2)
+
     def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:
         """Exact gain of the remainder g(x, u) = (0, (g/l)(sin x1 - x1)) on ||x||_inf <= r.
 

@@ -413,7 +413,7 @@ class Launcher:
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     self.publish_faults(session)
-                plant = self.sc.make_plant()
+                plant = self.sc.make_model()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
                 summary = build_summary(self.sc, col.snapshot(), run_id=self.run_id,

@@ -50,10 +50,33 @@ MODE_IDEAL = 0
 MODE_RESILIENT = 1
 MODE_NONE = 2  # no quantization at all (q_k = x_k): the nominal loop of the region of attraction
 MODES = {"ideal": MODE_IDEAL, "resilient": MODE_RESILIENT, "none": MODE_NONE}
+RULES = ("paper", "delay-aware")
+
+#: the largest codebook the testbed carries end to end: a symbol is a 32-bit field of the
+#: telemetry and the recording (and an int64 in the batch kernel's arithmetic)
+MAX_CODES = 2**31 - 1
+
+
+def delay_margin_gain(Lambda: float, L_u: float, nominal: float, lo: float, hi: float) -> float:
+    """The delay-aware rule's margin per unit input change: Lambda L_u w, w = max(nominal - lo, hi - nominal).
+
+    If the plant switches from u_{k-1} to u_k at delta in [lo, hi] instead of the predicted
+    delta_hat = ``nominal``, the two trajectories from one initial point differ only while
+    their inputs differ, for |delta - delta_hat| <= w seconds, where
+    ||f(x, u_{k-1}) - f(x, u_k)||_inf <= L_u ||u_{k-1} - u_k||_inf; Gronwall's inequality with
+    the Lipschitz constant L gives a gap of at most e^{L T} L_u w ||u_k - u_{k-1}||_inf at
+    t_{k+1} (docs/paper.md, "The delay-aware rule").
+    """
+    w = max(nominal - lo, hi - nominal, 0.0)
+    return float(Lambda * L_u * w)
 
 
 class InvalidSymbol(ValueError):
     """A payload that is not a code of the codebook (wrong length or out of range)."""
+
+
+class CodebookTooLarge(ValueError):
+    """A codebook beyond ``MAX_CODES`` (the scenario loader turns it into a ScenarioError)."""
 
 
 # ----------------------------------------------------------------------------- pure kernels
@@ -118,26 +141,50 @@ def control_input(Kgain, q, theta, overflow, u):
 
 
 @nb.njit(cache=True)
-def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, Lambda, M, sigma,
-                E_min, K_s, ytmp, u_s, xi_out):
-    """Update rules (xi) and (E) (and the OVERFLOW zoom-out). Returns (E_next, flow status)."""
+def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
+                E_min, delay_hat, margin_gain, K_s, ytmp, u_s, xi_out):
+    """Update rules (xi) and (E) (and the OVERFLOW zoom-out). Returns (E_next, flow status).
+
+    ``u_s`` receives u_k, the input both ends know was sent for this sample
+    ((1 - theta_k) K q_k, or 0 after OVERFLOW): the caller keeps it as the next ``u_prev``.
+
+    Paper rule (``delay_hat`` = 0, ``margin_gain`` = 0): xi_{k+1} = phi_T(q_k, K q_k) or
+    phi_T(xi_k, 0).  Delay-aware rule (an extension, docs/paper.md): the plant holds
+    u_{k-1} for the first delta_k of the period, so both ends predict with the nominal
+    delay delta_hat, xi_{k+1} = phi_{T - delta_hat}(phi_delta_hat(q_k, u_{k-1}), u_k), and
+    add the margin margin_gain * ||u_k - u_{k-1}||_inf to E_{k+1}, which covers every
+    delay in the declared bound.
+    """
+    m = u_s.shape[0]
     if theta == 0 and not overflow:
         control_input(Kgain, q, 0, False, u_s)
-        st = flow_into(rhs, q, u_s, p, T, opts, K_s, ytmp, xi_out)
-        En = Lambda / M * E
+        start = q
     else:
-        for r in range(u_s.shape[0]):
+        for r in range(m):
             u_s[r] = 0.0
-        st = flow_into(rhs, xi, u_s, p, T, opts, K_s, ytmp, xi_out)
-        if theta == 0:  # OVERFLOW received: zoom out from at least a small rescue radius, so
-            # that a range that underflowed to 0 (long runs at small T) can still grow again
-            rescue = 0.0
-            for i in range(xi.shape[0]):
-                rescue = max(rescue, abs(xi[i]))
-            rescue = 1e-9 * (1.0 + rescue)
-            En = sigma * Lambda * max(E, rescue)
-        else:
-            En = Lambda * E
+        start = xi
+    if delay_hat > 0.0:
+        st = flow_into(rhs, start, u_prev, p, delay_hat, opts, K_s, ytmp, xi_out)
+        if st == 0:  # flow_into may integrate in place (x0 is out): it reads x0 only to copy it
+            st = flow_into(rhs, xi_out, u_s, p, T - delay_hat, opts, K_s, ytmp, xi_out)
+    else:
+        st = flow_into(rhs, start, u_s, p, T, opts, K_s, ytmp, xi_out)
+    if theta == 0 and not overflow:
+        En = Lambda / M * E
+    elif theta == 0:  # OVERFLOW received: zoom out from at least a small rescue radius, so
+        # that a range that underflowed to 0 (long runs at small T) can still grow again
+        rescue = 0.0
+        for i in range(xi.shape[0]):
+            rescue = max(rescue, abs(xi[i]))
+        rescue = 1e-9 * (1.0 + rescue)
+        En = sigma * Lambda * max(E, rescue)
+    else:
+        En = Lambda * E
+    if margin_gain > 0.0:
+        du = 0.0
+        for r in range(m):
+            du = max(du, abs(u_s[r] - u_prev[r]))
+        En += margin_gain * du
     if En < E_min:
         En = E_min
     return En, st
@@ -155,6 +202,9 @@ class Codebook:
     def __post_init__(self):
         if self.n < 1 or self.M < 1:
             raise ValueError(f"codebook needs n >= 1 and M >= 1, got n={self.n}, M={self.M}")
+        if self.n_codes > MAX_CODES:
+            raise CodebookTooLarge(f"M^n = {self.M}^{self.n} codes{' + OVERFLOW' if self.resilient else ''} exceed "
+                                   f"the limit of 2^31 - 1 codes per symbol (31 bits): lower M or n")
 
     @property
     def n_boxes(self) -> int:
@@ -208,10 +258,15 @@ class QuantizerParams:
     mode: str = "resilient"
     zoom_out: float | None = None  # sigma; None -> M
     E_min: float = 0.0
+    rule: str = "paper"            # prediction rule: "paper" | "delay-aware"
+    delay_hat: float = 0.0         # delay-aware rule: nominal actuation delay [s]
+    margin_gain: float = 0.0       # delay-aware rule: E_{k+1} += margin_gain ||u_k - u_{k-1}||_inf
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"quantizer mode must be one of {sorted(MODES)}, got {self.mode!r}")
+        if self.rule not in RULES:
+            raise ValueError(f"quantizer rule must be one of {RULES}, got {self.rule!r}")
 
     @property
     def Lambda(self) -> float:
@@ -240,20 +295,22 @@ class _End:
         self._opts = flow.as_array()
         self._Ks = np.empty((13, plant.n))
         self._ytmp = np.empty(plant.n)
-        self._us = np.empty(plant.m)
         self.k = 0
         self.xi = np.zeros(plant.n)  # xi_0 = 0
         self.E = float(qp.E0)
+        self.u_prev = np.zeros(plant.m)  # u_{k-1} as both ends know it (u_{-1} = 0)
         self.flow_status = 0
 
     def _update(self, theta: int, overflow: bool, q: np.ndarray) -> None:
         xi_next = np.empty(self.plant.n)
+        u_k = np.empty(self.plant.m)
         qp = self.qp
         E_next, st = zoom_update(self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
-                                 self.xi, self.E, q, qp.Lambda, qp.M, qp.sigma, qp.E_min,
-                                 self._Ks, self._ytmp, self._us, xi_next)
+                                 self.xi, self.E, q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
+                                 qp.delay_hat, qp.margin_gain, self._Ks, self._ytmp, u_k, xi_next)
         self.xi = xi_next
         self.E = float(E_next)
+        self.u_prev = u_k
         self.flow_status = int(st)
         self.k += 1
 

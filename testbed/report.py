@@ -16,8 +16,9 @@ the same thing here.  Added beside them:
   truncation, message counts, software versions);
 * ``plant_source``: how the plant module was loaded, ``{"ref", "sha256",
   "loaded_from": "import" | "recording", "differs", ...}`` (None for recordings
-  that store no plant module).  The stored source is used only when the module
-  cannot be imported, and then the report says so.
+  that store no plant module), and ``model_source`` the same for a ``[model]`` of
+  another class.  The stored source is used only when the module cannot be
+  imported, and then the report says so.
 
 Exit codes: 0 report written, 2 unreadable file or no scenario in it.
 """
@@ -89,7 +90,7 @@ def _report(path: str | Path | rec_io.Recording) -> dict:
     data = RunData(tele={r: rec.telemetry.get(r, {}) for r in ROLES}, plant_final=rec.plant_final,
                    events=rec.events, status=rec.status, summaries=rec.summaries)
     launcher = rec.summaries.get("launcher", {})
-    plant = sc.make_plant()
+    plant = sc.make_model()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = rec.start.run_id if rec.start else runmeta.get("run_id", "?")
     ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(rec.start and rec.start.ack_via_attacker)
@@ -120,6 +121,7 @@ def _report(path: str | Path | rec_io.Recording) -> dict:
         "overrides": json.loads(runmeta.get("scenario_overrides", "{}") or "{}"),
     }
     out["plant_source"] = rec.plant_source
+    out["model_source"] = rec.model_source
     return out
 
 
@@ -147,13 +149,14 @@ def print_text(s: dict) -> None:
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
-    ps = s.get("plant_source")
-    if ps and ps["loaded_from"] == "recording":
-        print(f"  plant {ps['ref']}: module {ps.get('module')!r} not importable; used the source stored in the "
-              f"recording (sha256 {ps['sha256'][:12]})")
-    elif ps and ps["differs"]:
-        print(f"  plant {ps['ref']}: the importable module {ps.get('module')!r} DIFFERS from the recorded one "
-              f"(sha256 {(ps['importable_sha256'] or '')[:12]} now, {ps['sha256'][:12]} recorded)")
+    for what in ("plant", "model"):
+        ps = s.get(f"{what}_source")
+        if ps and ps["loaded_from"] == "recording":
+            print(f"  {what} {ps['ref']}: module {ps.get('module')!r} not importable; used the source stored in the "
+                  f"recording (sha256 {ps['sha256'][:12]})")
+        elif ps and ps["differs"]:
+            print(f"  {what} {ps['ref']}: the importable module {ps.get('module')!r} DIFFERS from the recorded one "
+                  f"(sha256 {(ps['importable_sha256'] or '')[:12]} now, {ps['sha256'][:12]} recorded)")
     fn = s.get("final_norm")
     if s["samples"] == 0:
         print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")

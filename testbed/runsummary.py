@@ -83,7 +83,7 @@ def build_summary(sc, data: RunData, *, run_id: str, ack_via_attacker: bool, nod
     from .flow import FLOW_OK
     from .simulate import SimResult, summarize
 
-    plant = sc.make_plant()
+    plant = sc.make_model()
     n, m = plant.n, plant.m
     Tn = int(round(sc.T * 1e9))
     P = data.tele.get("plant", {})

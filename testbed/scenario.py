@@ -22,7 +22,7 @@ from attackers import generators as attack_generators
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
 from .flow import FlowOptions
-from .quantizer import QuantizerParams
+from .quantizer import RULES, Codebook, CodebookTooLarge, QuantizerParams, delay_margin_gain
 
 BUNDLED_DIR = "scenarios"
 
@@ -34,7 +34,7 @@ class ScenarioError(BadInput):
 # ----------------------------------------------------------------------------- dataclasses
 @dataclass(frozen=True)
 class PlantSpec:
-    name: str                      # the plant's display name (its class's ``name``)
+    name: str                      # the plant's display name (its class's ``name``; "fmu:FILE" for an FMU)
     params: tuple[tuple[str, Any], ...]
     x0: tuple[float, ...]
     ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
@@ -48,18 +48,20 @@ class PlantSpec:
         return plants.make(self.ref or self.name, self.base_dir or None, **dict(self.params))
 
     def source_info(self) -> dict[str, str]:
-        """The plant module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (``plants.refs.source_info``)."""
+        """The plant module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (``plants.refs.source_info``).
+
+        For an FMU: its ``file`` and the sha256 of the file (no source)."""
         if self.fmu is not None:
-            return {"module": "", "class": "", "file": self.fmu.path, "source": "", "sha256": ""}
+            import hashlib
+
+            try:
+                sha = hashlib.sha256(Path(self.fmu.path).read_bytes()).hexdigest()
+            except OSError:
+                sha = ""
+            return {"module": "", "class": "", "file": self.fmu.path, "source": "", "sha256": sha}
         from plants.refs import source_info
 
         return source_info(plants.resolve(self.ref or self.name, self.base_dir or None))
-
-    def make_process(self):
-        """The FMU plant (``plants.fmu.FMUPlant``, a ``plants.PlantProcess``) of an ``fmu`` spec."""
-        if self.fmu is None:
-            raise ScenarioError("the plant is not an FMU")
-        return self.fmu.open()
 
 
 @dataclass(frozen=True)
@@ -69,11 +71,26 @@ class FMUSpec:
     inputs: tuple[str, ...]
     states: tuple[str, ...]
     params: tuple[tuple[str, Any], ...] = ()
+    checked: bool = True                       # False: read from a recording, the file not looked at
 
     def open(self):
+        """The FMU as a ``plants.PlantProcess`` (``plants.fmu.FMUPlant``)."""
         from plants.fmu import FMUPlant
 
         return FMUPlant(self.path, inputs=self.inputs, states=self.states, params=dict(self.params))
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """``[model]``: the plant model of the predictions (rule (xi)), the LQR design and the analysis."""
+
+    name: str                  # a plant reference, resolved as [plant] name is
+    params: tuple[tuple[str, Any], ...]
+    explicit: bool = False     # the scenario has a [model] section
+    base_dir: str = ""         # the scenario file's folder
+
+    def make(self) -> plants.Plant:
+        return plants.make(self.name, self.base_dir or None, **dict(self.params))
 
 
 @dataclass(frozen=True)
@@ -82,6 +99,7 @@ class ControllerSpec:
     source: str                                # "K" or "lqr"
     Q: tuple[tuple[float, ...], ...] | None = None
     R: tuple[tuple[float, ...], ...] | None = None
+    u_max: float = 1e6                         # actuator limit: the plant clamps |u_k| to it
 
     @property
     def K_array(self) -> np.ndarray:
@@ -120,11 +138,46 @@ class AttackSpec:
 
 
 @dataclass(frozen=True)
+class DelaySpec:
+    """``[run] delay``: the actuation delay bound [s] the delay-aware quantizer rule covers."""
+
+    nominal: float
+    min: float
+    max: float
+    declared: bool = False     # written in the scenario (else the default: [0, d T], nominal at the middle)
+
+
+@dataclass(frozen=True)
+class SimDelaySpec:
+    """``[run] sim_delay``: the delays delta_k of a simulated physical-timing run."""
+
+    kind: str = "constant"     # "constant" | "uniform" | "trace"
+    value: float = 0.0         # constant
+    min: float = 0.0           # uniform
+    max: float = 0.0
+    seed: int | None = None
+    values: tuple[float, ...] = ()  # trace
+
+    def draw(self, n_steps: int) -> np.ndarray:
+        """delta_k for k = 0..N-1 (a trace shorter than N is held at its last value)."""
+        if self.kind == "constant":
+            return np.full(n_steps, self.value)
+        if self.kind == "uniform":
+            return np.random.default_rng(self.seed).uniform(self.min, self.max, n_steps)
+        v = np.asarray(self.values, dtype=float)
+        out = np.full(n_steps, v[-1] if v.size else 0.0)
+        out[:min(n_steps, v.size)] = v[:n_steps]
+        return out
+
+
+@dataclass(frozen=True)
 class RunSpec:
     duration: float
     converge_tol: float = 1e-4
     timing: str = "ideal"          # live plant: "ideal" | "physical"
-    deadline: float = 0.5          # live plant, ideal timing: fraction of T to wait for u_k
+    deadline: float = 0.5          # live plant: fraction of T to wait for u_k
+    delay: DelaySpec | None = None          # physical timing: the bound of the delay-aware rule
+    sim_delay: SimDelaySpec | None = None   # physical timing: the simulator's delta_k
 
 
 @dataclass(frozen=True)
@@ -139,6 +192,8 @@ class Scenario:
     source: str = ""       # the TOML text it was read from (stored in recordings)
     path: str = ""
     description: str = ""  # one line (``testbed scenarios``)
+    model: ModelSpec | None = None   # [model] (defaults to [plant]'s)
+    L_u: float = 0.0       # input gain of the model (delay-aware rule)
     base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
 
     @property
@@ -158,7 +213,29 @@ class Scenario:
         return np.array(self.plant.x0, dtype=float)
 
     def make_plant(self) -> plants.Plant:
+        """The true plant ([plant]): what the simulator and the live plant node integrate."""
         return self.plant.make()
+
+    def make_model(self) -> plants.Plant:
+        """The plant model ([model], default [plant]): the predictions, the LQR design, the analysis."""
+        return (self.model or ModelSpec(self.plant.ref or self.plant.name, self.plant.params,
+                                        base_dir=self.plant.base_dir)).make()
+
+    def make_process(self):
+        """The true plant as it advances in time (``plants.base.PlantProcess``): an ODE plant or an FMU."""
+        if self.plant.fmu is not None:
+            return self.plant.fmu.open()
+        from .protocol import OdeProcess
+
+        return OdeProcess(self.make_plant(), self.flow)
+
+    def sim_delays(self, n_steps: int | None = None) -> np.ndarray | None:
+        """delta_k of a simulated run: None under ideal timing."""
+        if self.run.timing != "physical":
+            return None
+        N = self.n_steps if n_steps is None else n_steps
+        spec = self.run.sim_delay or SimDelaySpec("constant", value=self.run.delay.nominal)
+        return np.minimum(spec.draw(N), self.run.deadline * self.T)
 
     def theta(self, n_steps: int | None = None) -> np.ndarray | None:
         """theta_k of the offline schedule for k = 0..N-1 (None for an online attacker)."""
@@ -168,13 +245,14 @@ class Scenario:
 
 
 # ----------------------------------------------------------------------------- validation
-_SECTIONS = {"plant", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
+_SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
 _KEYS = {
     "plant": {"name", "params", "x0", "fmu", "inputs", "states"},
+    "model": {"name", "params"},
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
-                  "allow_x0_outside"},
-    "controller": {"K", "lqr"},
-    "run": {"duration", "converge_tol", "timing", "deadline"},
+                  "allow_x0_outside", "rule", "L_u"},
+    "controller": {"K", "lqr", "u_max"},
+    "run": {"duration", "converge_tol", "timing", "deadline", "delay", "sim_delay"},
     "flow": {"rtol", "atol", "x_max", "max_steps"},
 }
 
@@ -235,12 +313,37 @@ def _thaw(v):
     return v
 
 
+def _str(ctx, key, v, choices=None) -> str:
+    if not isinstance(v, str):
+        raise ctx.err(key, f"must be a string, got {v!r}")
+    if choices is not None and v not in choices:
+        raise ctx.err(key, f"must be one of {', '.join(repr(c) for c in choices)}, got {v!r}")
+    return v
+
+
+def _table(ctx, key, v) -> dict:
+    if not isinstance(v, dict):
+        raise ctx.err(key, "must be a table")
+    return v
+
+
+def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
+    """A plant from a reference (registered name, entry point or "module:Class", see ``plants.refs``)."""
+    if not isinstance(name, str) or not name:
+        raise ctx.err(f"{key}.name", f"must be a non-empty string, got {name!r}")
+    try:
+        return plants.instantiate(plants.resolve(name, base_dir or None), name, params)
+    except ValueError as e:
+        raise ctx.err(key, str(e)) from None
+
+
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
-              base_dir: str | Path | None = None) -> Scenario:
+              base_dir: str | Path | None = None, check_fmu: bool = True) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
-    from there first and an FMU path is relative to it.
+    from there first and an FMU path is relative to it.  ``check_fmu=False`` skips
+    reading an FMU plant's file (a recording's scenario: the report needs only the model).
     """
     base_dir = str(Path(base_dir).resolve()) if base_dir else ""
     ctx = _Ctx(where)
@@ -250,46 +353,70 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     for sec in ("plant", "quantizer", "controller", "run"):
         if sec not in data:
             raise ctx.err(sec, "section missing")
-        if not isinstance(data[sec], dict):
-            raise ctx.err(sec, "must be a table")
+        _table(ctx, sec, data[sec])
     name = data.get("name", name)
     if not isinstance(name, str) or not name:
         raise ctx.err("name", f"must be a non-empty string, got {name!r}")
-    description = data.get("description", "")
-    if not isinstance(description, str):
-        raise ctx.err("description", f"must be a string, got {description!r}")
+    description = _str(ctx, "description", data.get("description", ""))
 
-    # [plant]
+    # [plant]: the true plant
     pt = data["plant"]
     _unknown(ctx, "plant", pt, _KEYS["plant"])
-    params = pt.get("params", {})
-    if not isinstance(params, dict):
-        raise ctx.err("plant.params", "must be a table")
+    params = _table(ctx, "plant.params", pt.get("params", {}))
+    fmu = None
     if "fmu" in pt:
-        fmu = _fmu_spec(ctx, pt, params, base_dir)
+        fmu = _fmu_spec(ctx, pt, params, base_dir, check_fmu)
         if "model" not in data:
             raise ctx.err("plant.fmu", "an FMU plant needs a [model] section: the model (name, params) the "
                           "quantizer predicts with and the controller is designed on")
-        # the [model] section and the FMU as the true plant of the simulator are wired in separately
-        raise ctx.err("plant.fmu", "FMU plants are not wired into the simulator and the plant node yet")
-    if "name" not in pt:
-        raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())} (or "
-                      "'module.path:ClassName', or fmu = \"file.fmu\")")
-    for k in ("inputs", "states"):
-        if k in pt:
-            raise ctx.err(f"plant.{k}", "only with fmu = \"file.fmu\"")
-    ref = pt["name"]
-    if not isinstance(ref, str) or not ref:
-        raise ctx.err("plant.name", f"must be a non-empty string, got {ref!r}")
-    try:
-        plant_cls = plants.resolve(ref, base_dir or None)
-        plant = plants.instantiate(plant_cls, ref, params)
-    except ValueError as e:
-        raise ctx.err("plant", str(e)) from None
-    n, m = plant.n, plant.m
+        plant = None
+        n, m = len(fmu.states), len(fmu.inputs)
+        plant_name = f"fmu:{Path(fmu.path).name}"
+    else:
+        if "name" not in pt:
+            raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())} (or "
+                          "'module.path:ClassName', or fmu = \"file.fmu\")")
+        for k in ("inputs", "states"):
+            if k in pt:
+                raise ctx.err(f"plant.{k}", "only with fmu = \"file.fmu\"")
+        plant = _make_plant(ctx, "plant", pt["name"], params, base_dir)
+        n, m = plant.n, plant.m
+        plant_name = plant.name or type(plant).__name__
     if "x0" not in pt:
         raise ctx.err("plant.x0", "missing")
     x0 = _matrix(ctx, "plant.x0", [pt["x0"]], (1, n))[0]
+
+    # [model]: what the predictions, the design and the analysis use (default: [plant])
+    if "model" in data:
+        mt = _table(ctx, "model", data["model"])
+        _unknown(ctx, "model", mt, _KEYS["model"])
+        if fmu is not None and "name" not in mt:
+            raise ctx.err("model.name", "missing: an FMU plant has no equations to default to")
+        mname = mt.get("name", pt.get("name"))
+        if "params" in mt:
+            mparams = _table(ctx, "model.params", mt["params"])
+        else:
+            mparams = params if mname == pt.get("name") else {}
+        model_obj = _make_plant(ctx, "model", mname, mparams, base_dir)
+        if (model_obj.n, model_obj.m) != (n, m):
+            raise ctx.err("model", f"{model_obj.name} has n = {model_obj.n}, m = {model_obj.m}; the plant "
+                                   f"{plant_name} has n = {n}, m = {m}")
+        model = ModelSpec(mname, _freeze(mparams), explicit=True, base_dir=base_dir)
+    else:
+        model_obj = plant
+        model = ModelSpec(pt["name"], _freeze(params), base_dir=base_dir)
+
+    # [run] (its timing decides the quantizer's default rule)
+    rt = data["run"]
+    _unknown(ctx, "run", rt, _KEYS["run"])
+    if "duration" not in rt:
+        raise ctx.err("run.duration", "missing")
+    duration = _num(ctx, "run.duration", rt["duration"], positive=True)
+    tol = _num(ctx, "run.converge_tol", rt.get("converge_tol", 1e-4), positive=True)
+    timing = _str(ctx, "run.timing", rt.get("timing", "ideal"), ("ideal", "physical"))
+    deadline = _num(ctx, "run.deadline", rt.get("deadline", 0.5), positive=True)
+    if deadline >= 1:
+        raise ctx.err("run.deadline", f"is a fraction of T and must be < 1, got {deadline}")
 
     # [quantizer]
     qt = data["quantizer"]
@@ -303,15 +430,20 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         raise ctx.err("quantizer.M", f"must be an integer >= 2, got {M}")
     L = _num(ctx, "quantizer.L", qt["L"], positive=True)
     E0 = _num(ctx, "quantizer.E0", qt["E0"], positive=True)
-    mode = qt.get("mode", "resilient")
-    if mode not in ("ideal", "resilient"):
-        raise ctx.err("quantizer.mode", f"must be 'ideal' or 'resilient', got {mode!r}")
+    mode = _str(ctx, "quantizer.mode", qt.get("mode", "resilient"), ("ideal", "resilient"))
+    try:
+        Codebook(n, M, resilient=(mode == "resilient"))
+    except CodebookTooLarge as e:
+        raise ctx.err("quantizer.M", str(e)) from None
     zoom_out = qt.get("zoom_out")
     if zoom_out is not None:
         zoom_out = _num(ctx, "quantizer.zoom_out", zoom_out)
         if zoom_out < 1:
             raise ctx.err("quantizer.zoom_out", f"must be >= 1, got {zoom_out}")
     E_min = _num(ctx, "quantizer.E_min", qt.get("E_min", 0.0), nonneg=True)
+    for k in ("allow_M_le_Lambda", "allow_x0_outside"):
+        if not isinstance(qt.get(k, False), bool):
+            raise ctx.err(f"quantizer.{k}", f"must be true or false, got {qt[k]!r}")
     Lam = math.exp(L * T)
     if M <= Lam and not qt.get("allow_M_le_Lambda", False):
         raise ctx.err("quantizer.M", f"M = {M} <= Lambda = e^(L T) = {Lam:.4g} breaks Assumption 2 "
@@ -319,47 +451,103 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     if max(abs(v) for v in x0) > E0 and not qt.get("allow_x0_outside", False):
         raise ctx.err("quantizer.E0", f"||x0||_inf = {max(abs(v) for v in x0):g} > E0 = {E0:g} breaks "
                       "Assumption 5 (set allow_x0_outside = true to run it anyway)")
-    qp = QuantizerParams(T=T, M=M, L=L, E0=E0, mode=mode, zoom_out=zoom_out, E_min=E_min)
+    rule = _str(ctx, "quantizer.rule", qt.get("rule", "delay-aware" if timing == "physical" else "paper"),
+                RULES)
 
-    # [controller]
+    # [run] delay: the bound the delay-aware rule covers; sim_delay: the simulator's delta_k
+    dT = deadline * T
+    delay = None
+    if "delay" in rt:
+        dt_ = _table(ctx, "run.delay", rt["delay"])
+        _unknown(ctx, "run.delay", dt_, {"nominal", "min", "max"})
+        lo = _num(ctx, "run.delay.min", dt_.get("min", 0.0), nonneg=True)
+        hi = _num(ctx, "run.delay.max", dt_.get("max", dT), nonneg=True)
+        nom = _num(ctx, "run.delay.nominal", dt_.get("nominal", 0.5 * (lo + hi)), nonneg=True)
+        if not lo <= nom <= hi:
+            raise ctx.err("run.delay", f"needs min <= nominal <= max, got {lo:g}, {nom:g}, {hi:g}")
+        if hi > dT * (1 + 1e-12):
+            raise ctx.err("run.delay.max", f"{hi:g} s is beyond the plant's deadline d T = {dT:g} s (u_k that "
+                                           "comes later is not used)")
+        delay = DelaySpec(nom, lo, hi, declared=True)
+    elif timing == "physical" or rule == "delay-aware":
+        delay = DelaySpec(0.5 * dT, 0.0, dT)
+    sim_delay = None
+    if "sim_delay" in rt:
+        sd = _table(ctx, "run.sim_delay", rt["sim_delay"])
+        kind = _str(ctx, "run.sim_delay.kind", sd.get("kind", "constant"), ("constant", "uniform", "trace"))
+        allowed = {"constant": {"kind", "value"}, "uniform": {"kind", "min", "max", "seed"},
+                   "trace": {"kind", "values"}}[kind]
+        _unknown(ctx, "run.sim_delay", sd, allowed)
+        base = delay or DelaySpec(0.0, 0.0, dT)
+        if kind == "constant":
+            sim_delay = SimDelaySpec("constant", value=_num(ctx, "run.sim_delay.value",
+                                                              sd.get("value", base.nominal), nonneg=True))
+        elif kind == "uniform":
+            lo = _num(ctx, "run.sim_delay.min", sd.get("min", base.min), nonneg=True)
+            hi = _num(ctx, "run.sim_delay.max", sd.get("max", base.max), nonneg=True)
+            if lo > hi:
+                raise ctx.err("run.sim_delay", f"needs min <= max, got {lo:g}, {hi:g}")
+            if "seed" not in sd:
+                raise ctx.err("run.sim_delay.seed", "missing (kind = 'uniform' needs a seed, so that a run "
+                                                    "can be repeated)")
+            seed = _num(ctx, "run.sim_delay.seed", sd["seed"], integer=True, nonneg=True)
+            sim_delay = SimDelaySpec("uniform", min=lo, max=hi, seed=seed)
+        else:
+            vals = sd.get("values")
+            if not isinstance(vals, list) or not vals:
+                raise ctx.err("run.sim_delay.values", "must be a non-empty list of delays [s]")
+            sim_delay = SimDelaySpec("trace", values=tuple(_num(ctx, "run.sim_delay.values", v, nonneg=True)
+                                                           for v in vals))
+        top = max([sim_delay.value, sim_delay.max, *sim_delay.values])
+        if top > T:
+            raise ctx.err("run.sim_delay", f"a delay of {top:g} s is longer than the period T = {T:g} s")
+    margin, L_u = 0.0, 0.0
+    if rule == "delay-aware":
+        region = float(getattr(model_obj, "lipschitz_region", math.inf))
+        L_u = _num(ctx, "quantizer.L_u", qt["L_u"], nonneg=True) if "L_u" in qt else \
+            float(model_obj.input_gain(region))
+        margin = delay_margin_gain(Lam, L_u, delay.nominal, delay.min, delay.max)
+    qp = QuantizerParams(T=T, M=M, L=L, E0=E0, mode=mode, zoom_out=zoom_out, E_min=E_min, rule=rule,
+                         delay_hat=delay.nominal if rule == "delay-aware" else 0.0, margin_gain=margin)
+    if duration < T:
+        raise ctx.err("run.duration", f"shorter than one sampling period T = {T}")
+    run = RunSpec(duration=duration, converge_tol=tol, timing=timing, deadline=deadline, delay=delay,
+                  sim_delay=sim_delay)
+
+    # [controller] (designed on the model)
     ct = data["controller"]
     _unknown(ctx, "controller", ct, _KEYS["controller"])
     if ("K" in ct) == ("lqr" in ct):
         raise ctx.err("controller", "give exactly one of K = [[...]] or lqr = { Q = ..., R = ... }")
+    u_max = _num(ctx, "controller.u_max", ct.get("u_max", 1e6), positive=True)
+    Ad, Bd = c2d(model_obj.A, model_obj.B, T)
     if "K" in ct:
         K = _matrix(ctx, "controller.K", ct["K"], (m, n))
-        ctrl = ControllerSpec(K=K, source="K")
+        ctrl = ControllerSpec(K=K, source="K", u_max=u_max)
     else:
-        lq = ct["lqr"]
-        if not isinstance(lq, dict):
-            raise ctx.err("controller.lqr", "must be a table { Q = [[...]], R = [[...]] }")
+        lq = _table(ctx, "controller.lqr", ct["lqr"])
         _unknown(ctx, "controller.lqr", lq, {"Q", "R"})
         Q = _matrix(ctx, "controller.lqr.Q", lq.get("Q", np.eye(n).tolist()), (n, n))
         R = _matrix(ctx, "controller.lqr.R", lq.get("R", np.eye(m).tolist()), (m, m))
-        Ad, Bd = c2d(plant.A, plant.B, T)
         try:
             Kd = dlqr(Ad, Bd, np.array(Q), np.array(R))
         except (np.linalg.LinAlgError, ValueError) as e:
             raise ctx.err("controller.lqr", f"discrete LQR failed: {e}") from None
-        ctrl = ControllerSpec(K=tuple(tuple(float(v) for v in r) for r in Kd), source="lqr", Q=Q, R=R)
-    Ad, Bd = c2d(plant.A, plant.B, T)
+        ctrl = ControllerSpec(K=tuple(tuple(float(v) for v in r) for r in Kd), source="lqr", Q=Q, R=R, u_max=u_max)
     rad = spectral_radius(closed_loop(Ad, Bd, ctrl.K_array))
     if not rad < 1:
         raise ctx.err("controller.K", f"A~ + B~ K is not Schur stable (spectral radius {rad:.4g})")
 
     # [attack]
-    at = data.get("attack", {"kind": "none"})
-    if not isinstance(at, dict):
-        raise ctx.err("attack", "must be a table")
+    at = _table(ctx, "attack", data.get("attack", {"kind": "none"}))
     kind = at.get("kind")
     if kind is None:
         raise ctx.err("attack.kind", f"missing; one of {sorted(attack_generators.GENERATORS)}")
+    kind = _str(ctx, "attack.kind", kind, sorted(attack_generators.GENERATORS))
     aparams = {k: v for k, v in at.items() if k not in ("kind", "budget")}
     budget = None
     if "budget" in at:
-        bt = at["budget"]
-        if not isinstance(bt, dict):
-            raise ctx.err("attack.budget", "must be a table { kappa_F, rho_F, kappa_D, rho_D }")
+        bt = _table(ctx, "attack.budget", at["budget"])
         _unknown(ctx, "attack.budget", bt, {"kappa_F", "rho_F", "kappa_D", "rho_D"})
         budget = tuple(_num(ctx, f"attack.budget.{k}", bt.get(k, 0.0), nonneg=True)
                        for k in ("kappa_F", "rho_F", "kappa_D", "rho_D"))
@@ -377,37 +565,20 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         thr = _num(ctx, "attack.threshold", aparams.get("threshold", 0.0), nonneg=True)
         if thr > 1:
             raise ctx.err("attack.threshold", f"must be in [0, 1], got {thr}")
-        if aparams.get("score", "state") not in ("state", "E"):
-            raise ctx.err("attack.score", f"must be 'state' or 'E', got {aparams.get('score')!r}")
+        _str(ctx, "attack.score", aparams.get("score", "state"), ("state", "E"))
+    _check_attack_params(ctx, kind, aparams)
     attack = AttackSpec(kind=str(kind), params=_freeze(aparams), budget=budget)
 
-    # [run]
-    rt = data["run"]
-    _unknown(ctx, "run", rt, _KEYS["run"])
-    if "duration" not in rt:
-        raise ctx.err("run.duration", "missing")
-    duration = _num(ctx, "run.duration", rt["duration"], positive=True)
-    if duration < T:
-        raise ctx.err("run.duration", f"shorter than one sampling period T = {T}")
-    tol = _num(ctx, "run.converge_tol", rt.get("converge_tol", 1e-4), positive=True)
-    timing = rt.get("timing", "ideal")
-    if timing not in ("ideal", "physical"):
-        raise ctx.err("run.timing", f"must be 'ideal' or 'physical', got {timing!r}")
-    deadline = _num(ctx, "run.deadline", rt.get("deadline", 0.5), positive=True)
-    if deadline >= 1:
-        raise ctx.err("run.deadline", f"is a fraction of T and must be < 1, got {deadline}")
-    run = RunSpec(duration=duration, converge_tol=tol, timing=timing, deadline=deadline)
-
     # [flow]
-    ft = data.get("flow", {})
+    ft = _table(ctx, "flow", data.get("flow", {}))
     _unknown(ctx, "flow", ft, _KEYS["flow"])
     flow = FlowOptions(**{k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
                           for k, v in ft.items()})
 
-    spec = PlantSpec(plant.name or type(plant).__name__, _freeze(params), x0, ref=ref, base_dir=base_dir)
+    spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu)
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
-                  description=description, base_dir=base_dir)
+                  description=description, model=model, L_u=L_u, base_dir=base_dir)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
@@ -416,7 +587,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     return sc
 
 
-def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str) -> FMUSpec:
+def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) -> FMUSpec:
     """``[plant] fmu``, ``inputs``, ``states``, ``params``, checked against the FMU's model description."""
     if "name" in pt:
         raise ctx.err("plant", "give either name = \"...\" or fmu = \"file.fmu\", not both")
@@ -434,16 +605,33 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str) -> FMUSpec:
         if len(set(v)) != len(v):
             raise ctx.err(f"plant.{k}", f"names a variable twice: {v}")
         lists[k] = tuple(v)
-    try:
+    if check:
         from plants.fmu import FMUError, describe
 
-        describe(str(path.resolve()), inputs=lists["inputs"], states=lists["states"], params=params)
-    except ImportError as e:
-        raise ctx.err("plant.fmu", str(e)) from None
-    except FMUError as e:
-        raise ctx.err("plant.fmu", str(e)) from None
+        try:
+            describe(str(path.resolve()), inputs=lists["inputs"], states=lists["states"], params=params)
+        except FMUError as e:
+            raise ctx.err("plant.fmu", str(e)) from None
     return FMUSpec(path=str(path.resolve()), inputs=lists["inputs"], states=lists["states"],
-                   params=_freeze(params))
+                   params=_freeze(params), checked=check)
+
+
+def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
+    """Types of the attack's parameters: numbers are numbers (a string "1.0" is an error)."""
+    for k, v in aparams.items():
+        if k == "score":
+            continue
+        if k == "intervals":
+            if not isinstance(v, list) or not all(isinstance(iv, list) and len(iv) == 2 for iv in v):
+                raise ctx.err("attack.intervals", "must be a list of [start, length] pairs in seconds")
+            for iv in v:
+                for x in iv:
+                    _num(ctx, "attack.intervals", x)
+            continue
+        if k == "seed":
+            _num(ctx, "attack.seed", v, integer=True)
+            continue
+        _num(ctx, f"attack.{k}", v)
 
 
 def bundled_names() -> list[str]:
@@ -470,13 +658,13 @@ def load(ref: str | Path) -> Scenario:
 
 
 def loads(text: str, *, name: str = "scenario", where: str = "<string>",
-          base_dir: str | Path | None = None) -> Scenario:
-    """A scenario from TOML text; ``base_dir`` as in ``from_dict`` (None: plants from ``sys.path`` only)."""
+          base_dir: str | Path | None = None, check_fmu: bool = True) -> Scenario:
+    """A scenario from TOML text; ``base_dir``, ``check_fmu`` as in ``from_dict``."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
-    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir)
+    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir, check_fmu=check_fmu)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
@@ -500,5 +688,5 @@ def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
         table, key = OVERRIDES[k]
         data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) else v
     sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
-                    base_dir=sc.base_dir or None)
+                    base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked)
     return dataclasses.replace(sc2, path=sc.path)

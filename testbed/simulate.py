@@ -17,6 +17,7 @@ both ends apply (xi), (E) -> plant x_{k+1} = phi_T(x_k, u_k).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numba as nb
@@ -24,7 +25,9 @@ import numpy as np
 
 from attackers.greedy import greedy_init, greedy_step
 
-from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into, phi_T
+from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
+from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
+                       Send, corrupt_payload)
 from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
@@ -41,20 +44,25 @@ class SimResult:
     T: float
     t: np.ndarray
     x: np.ndarray          # x_k, (N, n)
-    u: np.ndarray          # u_k, (N, m)
+    u: np.ndarray          # u_k as the controller sent it, (N, m)
     q: np.ndarray          # q_k at the decoder (0 when lost), (N, n)
     q_enc: np.ndarray      # q_k at the encoder (centre of the box of x_k), (N, n)
-    xi_enc: np.ndarray     # xi_k at the encoder, (N, n)
-    E_enc: np.ndarray      # E_k at the encoder, (N,)
+    xi_enc: np.ndarray     # xi_k at the encoder, (N, n) (NaN where the symbol was withheld)
+    E_enc: np.ndarray      # E_k at the encoder, (N,) (NaN where withheld)
     xi_dec: np.ndarray
     E_dec: np.ndarray
     theta: np.ndarray      # theta_k (1: packet lost), (N,) uint8
-    symbols: np.ndarray    # symbol sent by the encoder, (N,) int64
+    symbols: np.ndarray    # symbol sent by the encoder, (N,) int64 (-1: withheld)
     saturated: np.ndarray  # x_k outside Q(xi_k, E_k) at the encoder, (N,) bool
     x_final: np.ndarray    # x_N
     flow_status: int = FLOW_OK   # first non-ok flow status of the plant, if any
     diverged_at: int = -1        # sample at which the plant flow diverged, or -1
     K: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
+    reason: np.ndarray | None = None     # the controller's reason per sample (protocol.REASONS)
+    withheld: np.ndarray | None = None   # the encoder withheld the symbol (a lost ack), (N,) bool
+    delays: np.ndarray | None = None     # physical timing: delta_k [s] (None: ideal timing)
+    u_missing: np.ndarray | None = None  # u_k never reached the plant (u = 0 after the deadline)
+    counters: dict = field(default_factory=dict)
 
     @property
     def saturations(self) -> int:
@@ -66,8 +74,12 @@ class SimResult:
 
     @property
     def agree(self) -> bool:
-        """Encoder and decoder xi_k, E_k identical at every sample (bit for bit)."""
-        return bool(np.array_equal(self.xi_enc, self.xi_dec) and np.array_equal(self.E_enc, self.E_dec))
+        """Encoder and decoder xi_k, E_k identical at every sample the encoder sent (bit for bit)."""
+        known = np.isfinite(self.E_enc)
+        if self.withheld is None and not known.all():
+            return False
+        return bool(np.array_equal(self.xi_enc[known], self.xi_dec[known])
+                    and np.array_equal(self.E_enc[known], self.E_dec[known]))
 
     def intervals(self):
         """The realized DoS schedule (runs of lost samples) as (start, length) pairs."""
@@ -95,55 +107,171 @@ class OnlineAttacker:
         return int(self.theta[k])
 
 
-def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker,
-                  flow: FlowOptions = DEFAULT_FLOW) -> SimResult:
-    """One trajectory, sample by sample, with separate Encoder and Decoder objects."""
-    n, m = plant.n, plant.m
+@dataclass(frozen=True)
+class Network:
+    """What happens between the nodes of a simulated run, beyond the attacker's drops.
+
+    ack_via_attacker : the ack of sample k crosses the attacker too, and is dropped iff
+        the attacker dropped sample k (``testbed run --ack-via-attacker``).
+    corrupt : {k: "range" | "length"}: the attacker replaces the payload of sample k by an
+        out-of-range code or a payload of the wrong length (``testbed run --corrupt``).
+    """
+
+    ack_via_attacker: bool = False
+    corrupt: tuple[tuple[int, str], ...] = ()
+
+
+@dataclass(frozen=True)
+class Replay:
+    """What a recording says happened (``testbed resimulate``), one entry per sample.
+
+    reason : the controller's decision reason (protocol.RECEIVED, DEADLINE, INVALID,
+        SUPERSEDED; -1 where no controller record exists: treated as a loss)
+    sensed : the encoder received x_k (False: the sensor message never reached it)
+    withheld : the encoder withheld sample k (its ack for an earlier sample was late)
+    u_missing : u_k never reached the plant: u_{k-1} held until the deadline, then 0
+    delays : physical timing: delta_k [s] as the plant measured it (None: ideal timing)
+    """
+
+    reason: np.ndarray
+    sensed: np.ndarray
+    withheld: np.ndarray
+    u_missing: np.ndarray
+    delays: np.ndarray | None = None
+
+
+def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
+                  flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing: str = "ideal",
+                  delays=None, deadline: float = 0.5, u_max: float = math.inf, network: Network | None = None,
+                  replay: Replay | None = None) -> SimResult:
+    """One trajectory, sample by sample, through the protocol state machines of the live nodes.
+
+    The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
+    and the plant (``PlantProtocol``) are the objects the live nodes run; here a
+    simulated network connects them.  Per sample k: the plant samples x_k; the
+    encoder sends a symbol or withholds it (a lost ack); the attacker drops or
+    forwards it (or corrupts it); the controller decides u_k, theta_k and acks; the
+    plant holds u_{k-1} for delta_k (physical timing) and then applies u_k.
+
+    ``plant`` is the true plant (an ODE plant; or give ``process``, any true-plant
+    process such as an FMU), ``model`` the plant model of the encoder's and decoder's
+    predictions (default: ``plant``).  ``delays``: physical timing, delta_k in seconds
+    (a scalar or (N,)).  ``replay``: re-run what a recording says happened (the
+    attacker is then ignored: theta_k follows the recorded decisions).
+    """
+    model = plant if model is None else model
+    n, m = model.n, model.m
     K = np.asarray(K, dtype=np.float64).reshape(m, n)
-    enc = Encoder(plant, K, qp, flow)
-    dec = Decoder(plant, K, qp, flow)
     N = int(n_steps)
-    rec = {k: np.zeros((N, n)) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
+    net = network or Network()
+    corrupt = dict(net.corrupt)
+    if process is None:
+        process = OdeProcess(plant, flow)
+    process.reset(np.asarray(x0, dtype=np.float64))
+    if replay is not None and replay.delays is not None:
+        delays = replay.delays
+        timing = "physical"
+    if delays is not None:
+        timing = "physical"
+        delays = np.broadcast_to(np.asarray(delays, dtype=np.float64), (N,))
+    pp = PlantProtocol(process, qp.T, timing=timing, deadline=deadline, u_max=u_max)
+    encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
+    ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
+    cb = ctlp.codebook
+    rec = {k: np.full((N, n), np.nan) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
     u_rec = np.zeros((N, m))
-    E_enc = np.zeros(N)
-    E_dec = np.zeros(N)
-    theta = np.zeros(N, dtype=np.uint8)
-    symbols = np.zeros(N, dtype=np.int64)
+    E_enc = np.full(N, np.nan)
+    E_dec = np.full(N, np.nan)
+    theta = np.ones(N, dtype=np.uint8)
+    symbols = np.full(N, -1, dtype=np.int64)
     sat = np.zeros(N, dtype=bool)
-    x = np.asarray(x0, dtype=np.float64).copy()
+    reason = np.full(N, -1, dtype=np.int64)
+    withheld = np.zeros(N, dtype=bool)
+    u_missing = np.zeros(N, dtype=bool)
+    acks: list = []          # acks on their way to the encoder (delivered before the next sensor sample)
     status, diverged_at = FLOW_OK, -1
     last = N
+
+    def record(d) -> None:
+        theta[d.k] = d.theta
+        rec["q"][d.k] = d.q
+        rec["xi_dec"][d.k] = d.xi
+        E_dec[d.k] = d.E
+        u_rec[d.k] = d.u
+        reason[d.k] = d.reason
+
     for k in range(N):
+        x = process.x
         rec["x"][k] = x
-        rec["xi_enc"][k] = enc.xi
-        rec["xi_dec"][k] = dec.xi
-        E_enc[k] = enc.E
-        E_dec[k] = dec.E
-        sym, s = enc.encode(x)
-        symbols[k], sat[k] = sym, s
-        rec["q_enc"][k] = enc.q
-        drop = attacker.decide(k, x, enc.E)
-        u, q, th = dec.step(None if drop else sym)
-        enc.ack(th)
-        theta[k] = th
-        rec["q"][k] = q
-        u_rec[k] = u
-        x_next, st = phi_T(plant, x, u, qp.T, flow)
-        x = x_next
+        if replay is None or not replay.withheld[k]:
+            for a in acks:
+                encp.ack(*a)
+            acks.clear()
+        # --- encoder
+        send = None
+        if replay is None or replay.sensed[k]:
+            send = encp.sensor(k, x)
+        if isinstance(send, Send):
+            symbols[k], sat[k] = send.symbol, send.saturated
+            rec["xi_enc"][k] = send.xi
+            E_enc[k] = send.E
+            rec["q_enc"][k] = send.q
+        else:
+            withheld[k] = True
+        # --- attacker and controller
+        payload = cb.pack(send.symbol) if isinstance(send, Send) else None
+        if replay is None:
+            drop = attacker.decide(k, x, encp.enc.E) if attacker is not None else 0
+            if drop:
+                payload = None
+            elif payload is not None and k in corrupt:
+                payload = corrupt_payload(cb, payload, corrupt[k])
+        else:
+            drop = 0
+            r = int(replay.reason[k])
+            if r == INVALID and payload is not None:
+                payload = corrupt_payload(cb, payload, "length")
+            elif r != RECEIVED:
+                payload = None
+        decs = ctlp.symbol(k, payload) if payload is not None else [ctlp.deadline(k)]
+        for d in decs:
+            record(d)
+            if not (net.ack_via_attacker and drop):
+                acks.append((d.k, d.theta, d.last_rx))
+        d = decs[-1]
+        # --- plant
+        u_k, _fault = pp.check_input(d.u)
+        dk = 0.0 if delays is None else float(delays[k])
+        if replay is not None and replay.u_missing[k]:
+            u_k = None
+            u_missing[k] = True
+        st = pp.step(u_k, dk)
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
+    for a in acks:
+        encp.ack(*a)
     sl = slice(0, last)
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=rec["x"][sl], u=u_rec[sl], q=rec["q"][sl],
                      q_enc=rec["q_enc"][sl], xi_enc=rec["xi_enc"][sl], E_enc=E_enc[sl],
                      xi_dec=rec["xi_dec"][sl], E_dec=E_dec[sl], theta=theta[sl], symbols=symbols[sl],
-                     saturated=sat[sl], x_final=x, flow_status=status, diverged_at=diverged_at, K=K)
+                     saturated=sat[sl], x_final=process.x, flow_status=status, diverged_at=diverged_at, K=K,
+                     reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl],
+                     delays=None if delays is None else np.array(delays[:last]),
+                     counters={"encoder": encp.counters(), "controller": ctlp.counters(),
+                               "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}})
 
 
 # ============================================================================ batch kernel
+#: the kernel parameters that carry a right-hand side (the true plant's, the model's):
+#: a specialized kernel binds each of them to the plant's compiled function
+_RHS_ARGS = ("rhs", "rhs_m")
+
+
 @nb.njit(cache=True)
-def _batch_kernel(rhs, p, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
-                  theta_tab, sched_idx, greedy_params, g_init, score_kind, n_steps, record,
+def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
+                  delay_hat, margin_gain, theta_tab, sched_idx, delay_tab, delay_idx,
+                  greedy_params, g_init, score_kind, n_steps, record,
                   X_rec, E_rec, th_rec, x_final, E_final, status, stop_k, sat_count,
                   mismatch, max_norm, theta_count):
     B = X0.shape[0]
@@ -152,7 +280,11 @@ def _batch_kernel(rhs, p, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
     K_s = np.empty((13, n))
     ytmp = np.empty(n)
     u = np.empty(m)
-    u_s = np.empty(m)
+    u_e = np.empty(m)
+    u_d = np.empty(m)
+    up_e = np.empty(m)      # u_{k-1} as the encoder knows it
+    up_d = np.empty(m)      # ... as the decoder knows it
+    u_held = np.empty(m)    # u_{k-1} as the plant holds it (physical timing)
     x = np.empty(n)
     xn = np.empty(n)
     xi_e = np.empty(n)
@@ -163,18 +295,24 @@ def _batch_kernel(rhs, p, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
     q_d = np.empty(n)
     gstate = np.empty(g_init.shape[0])
     use_greedy = greedy_params.shape[0] > 0  # (B, 5): one budget per trajectory
+    physical = delay_tab.shape[0] > 0        # (S, N) actuation delays: u_{k-1} held for delta_k
     n_codes_box = M ** n
     for b in range(B):
         for i in range(n):
             x[i] = X0[b, i]
             xi_e[i] = 0.0
             xi_d[i] = 0.0
+        for r in range(m):
+            up_e[r] = 0.0
+            up_d[r] = 0.0
+            u_held[r] = 0.0
         E_e = E0
         E_d = E0
         if use_greedy:
             for i in range(gstate.shape[0]):
                 gstate[i] = g_init[i]
         srow = sched_idx[b]
+        drow = delay_idx[b] if physical else 0
         st = 0
         stop_k[b] = n_steps
         nsat = 0
@@ -220,23 +358,37 @@ def _batch_kernel(rhs, p, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
                     for i in range(n):
                         q_d[i] = 0.0
                 control_input(Kgain, q_d, th, overflow, u)
-                # --- both ends: rules (xi), (E); each computes its own prediction
-                E_e_n, _s1 = zoom_update(rhs, p, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, Lambda,
-                                         M, sigma, E_min, K_s, ytmp, u_s, xi_e_n)
-                E_d_n, _s2 = zoom_update(rhs, p, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, Lambda,
-                                         M, sigma, E_min, K_s, ytmp, u_s, xi_d_n)
+                # --- both ends: rules (xi), (E) on the model; each computes its own prediction
+                E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
+                                         M, sigma, E_min, delay_hat, margin_gain, K_s, ytmp, u_e, xi_e_n)
+                E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
+                                         M, sigma, E_min, delay_hat, margin_gain, K_s, ytmp, u_d, xi_d_n)
                 same = E_e_n == E_d_n
                 for i in range(n):
                     xi_e[i] = xi_e_n[i]
                     xi_d[i] = xi_d_n[i]
                     if xi_e_n[i] != xi_d_n[i]:
                         same = False
+                for r in range(m):
+                    up_e[r] = u_e[r]
+                    up_d[r] = u_d[r]
+                    if u_e[r] != u_d[r]:
+                        same = False
                 E_e = E_e_n
                 E_d = E_d_n
                 if not same:
                     nmis += 1
-            # --- plant
-            st = flow_into(rhs, x, u, p, T, opts, K_s, ytmp, xn)
+            # --- the true plant: ideal timing phi_T(x_k, u_k); physical timing
+            #     phi_{T - delta_k}(phi_delta_k(x_k, u_{k-1}), u_k)
+            if physical:
+                dk = delay_tab[drow, k]
+                st = flow_into(rhs, x, u_held, p, dk, opts, K_s, ytmp, xn)
+                if st == 0:
+                    st = flow_into(rhs, xn, u, p, T - dk, opts, K_s, ytmp, xn)
+                for r in range(m):
+                    u_held[r] = u[r]
+            else:
+                st = flow_into(rhs, x, u, p, T, opts, K_s, ytmp, xn)
             for i in range(n):
                 x[i] = xn[i]
             if st != 0:
@@ -278,20 +430,26 @@ class BatchResult:
         return (self.status == FLOW_OK) & (self.final_norm < tol)
 
 
-def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, theta=None, sched_idx=None,
-                   greedy_params=None, score: str = "state", mode: str | None = None,
+def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=None, theta=None, sched_idx=None,
+                   delays=None, delay_idx=None, greedy_params=None, score: str = "state", mode: str | None = None,
                    record: bool = False, flow: FlowOptions = DEFAULT_FLOW,
                    specialize: bool = False) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
 
     Parameters
     ----------
-    plant, K, qp : the loop (K is m x n)
+    plant, K, qp : the loop (K is m x n); ``plant`` is the true plant the state follows
     X0 : (B, n) initial states (or (n,) for one)
     n_steps : number of samples N
+    model : the plant model of the encoder's and decoder's predictions (rule (xi));
+        default ``plant`` (no model mismatch)
     theta : (S, N') 0/1 attack table, S schedules (rows shorter than N are padded
         with 0); ``sched_idx`` (B,) picks each trajectory's row (default: row b if
         S == B, else row 0).  None: no attack.
+    delays : physical timing: (D, N) actuation delays delta_k in seconds (0 <= delta_k
+        <= T; a scalar or (N,) is broadcast): the plant holds u_{k-1} on
+        [t_k, t_k + delta_k), then u_k.  ``delay_idx`` (B,) picks each trajectory's row
+        (default as for ``sched_idx``).  None: ideal timing (u_k acts from t_k).
     greedy_params : [kappa_F, rho_F, kappa_D, rho_D, threshold] (shape (5,), or (B, 5)
         for one budget per trajectory) to run the online greedy attacker instead (``score`` "state" or "E" is what it maximizes).
     mode : "ideal" | "resilient" | "none" (no quantization: the nominal loop);
@@ -324,6 +482,27 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, theta=Non
         gp = np.ascontiguousarray(np.broadcast_to(gp, (B, 5)) if gp.ndim == 1 else gp)
         if gp.shape != (B, 5):
             raise ValueError(f"greedy_params must have shape (5,) or ({B}, 5), got {gp.shape}")
+    if delays is None:
+        dtab = np.zeros((0, 0))
+        delay_idx = np.zeros(B, dtype=np.int64)
+    else:
+        dtab = np.asarray(delays, dtype=np.float64)
+        if dtab.ndim <= 1:
+            dtab = np.broadcast_to(dtab, (N,)).reshape(1, N)
+        dtab = np.ascontiguousarray(dtab)
+        if dtab.ndim != 2 or dtab.shape[1] < N:
+            raise ValueError(f"delays must have N = {N} columns, got shape {dtab.shape}")
+        if not (np.all(dtab[:, :N] >= 0.0) and np.all(dtab[:, :N] <= qp.T)):
+            raise ValueError(f"delays must lie in [0, T = {qp.T}]")
+        if delay_idx is None:
+            delay_idx = np.arange(B) if dtab.shape[0] == B else np.zeros(B, dtype=np.int64)
+        delay_idx = np.ascontiguousarray(np.broadcast_to(np.asarray(delay_idx, dtype=np.int64), (B,)))
+        if delay_idx.max() >= dtab.shape[0] or delay_idx.min() < 0:
+            raise ValueError("delay_idx points outside the delay table")
+    model = plant if model is None else model
+    if (model.n, model.m) != (plant.n, plant.m):
+        raise ValueError(f"model {model.name} (n={model.n}, m={model.m}) does not match plant {plant.name} "
+                         f"(n={plant.n}, m={plant.m})")
     mode_code = MODES[mode or qp.mode]
     shp = (B, N) if record else (0, 0)
     X_rec = np.zeros(shp + (n,)) if record else np.zeros((0, 0, n))
@@ -332,9 +511,11 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, theta=Non
     out = dict(x_final=np.zeros((B, n)), E_final=np.zeros(B), status=np.zeros(B, np.int8),
                stop_k=np.zeros(B, np.int64), saturations=np.zeros(B, np.int64),
                mismatch=np.zeros(B, np.int64), max_norm=np.zeros(B), attacked=np.zeros(B, np.int64))
-    rhs = type(plant).rhs.jit if specialize else type(plant).rhs.cfunc
-    _batch_kernel(rhs, plant.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
-                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), tab, sched_idx, gp, greedy_init(),
+    kind = "jit" if specialize else "cfunc"
+    rhs, rhs_m = getattr(type(plant).rhs, kind), getattr(type(model).rhs, kind)
+    _batch_kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
+                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), float(qp.delay_hat),
+                  float(qp.margin_gain), tab, sched_idx, dtab, delay_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
                   out["attacked"])
@@ -358,32 +539,49 @@ def in_nominal_roa(plant, K, T: float, X, horizon: float = 60.0, tol: float = 1e
     return res.converged(tol)
 
 
-def simulate_scenario(sc, *, n_steps: int | None = None) -> SimResult:
-    """Run a scenario (see ``testbed.scenario``) with the per-sample loop."""
-    plant = sc.make_plant()
+def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
+                      delays=None) -> SimResult:
+    """Run a scenario (see ``testbed.scenario``) with the per-sample loop.
+
+    The true plant is ``[plant]`` (``sc.make_process()``), the predictions use ``[model]``;
+    under physical timing delta_k comes from ``[run] sim_delay`` unless ``delays`` is given.
+    """
     N = sc.n_steps if n_steps is None else int(n_steps)
     if sc.attack.online:
         att = OnlineAttacker(greedy_params=sc.attack.greedy_params(), score=sc.attack.score, T=sc.T)
     else:
         att = OnlineAttacker(theta=sc.theta(N), T=sc.T)
-    return simulate_loop(plant, sc.K, sc.quantizer, sc.x0, N, att, sc.flow)
+    if delays is None:
+        delays = sc.sim_delays(N)
+    process = sc.make_process()
+    try:
+        return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
+                             process=process, timing=sc.run.timing, delays=delays, deadline=sc.run.deadline,
+                             u_max=sc.controller.u_max, network=network)
+    finally:
+        process.close()
 
 
 def summarize(sc, res: SimResult) -> dict:
-    """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``)."""
-    plant = sc.make_plant()
+    """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
+
+    ``escaped``: x_N outside the nominal region of attraction of the model's loop (or the
+    flow diverged).
+    """
+    model = sc.make_model()
     tol = sc.run.converge_tol
     diverged = res.flow_status != FLOW_OK
     converged = (not diverged) and res.final_norm < tol
-    escaped = diverged or not bool(in_nominal_roa(plant, res.K, sc.T, res.x_final[None, :], tol=tol,
+    escaped = diverged or not bool(in_nominal_roa(model, res.K, sc.T, res.x_final[None, :], tol=tol,
                                                    flow=sc.flow)[0])
     sch = res.intervals()
-    cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     return {
         "scenario": sc.name,
-        "plant": plant.name,
-        "n": plant.n,
-        "m": plant.m,
+        "plant": sc.plant.name,
+        "model": model.name,
+        "n": model.n,
+        "m": model.m,
         "T": sc.T,
         "M": sc.quantizer.M,
         "Lambda": sc.quantizer.Lambda,
@@ -410,4 +608,7 @@ def summarize(sc, res: SimResult) -> dict:
         "escaped": bool(escaped),
         "diverged": bool(diverged),
         "diverged_at": res.diverged_at,
+        "timing_mode": sc.run.timing,
+        "rule": sc.quantizer.rule,
+        "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),
     }

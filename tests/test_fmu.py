@@ -9,6 +9,7 @@ must give one clear line.
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
@@ -121,8 +122,10 @@ def test_broken_fmus_give_one_clear_line(lienard_fmu, tmp_path, monkeypatch):
     assert "not a zip archive" in err(junk)
     assert "no binary for this platform (linux64)" in err(b.variant(lienard_fmu, tmp_path / "nobin.fmu",
                                                                     drop_binary=True))
+    cwd = os.getcwd()
     assert "cannot load the FMU's binary" in err(b.variant(lienard_fmu, tmp_path / "badso.fmu",
                                                            binary=b"\x7fELF garbage"))
+    assert os.getcwd() == cwd
     assert "no variable 'x3' (states); the FMU has: a, b, fail_at, n_sub, u, x1, x2" in \
         err(lienard_fmu, states=["x1", "x3"])
     assert "no variable 'w' (inputs)" in err(lienard_fmu, inputs=["w"])
@@ -170,3 +173,37 @@ def test_scenario_fmu_keys(lienard_fmu, tmp_path):
         scenario.load(f)
     info = describe(tmp_path / "sub" / "plant.fmu", **IO)
     assert (info.n, info.m, info.model_identifier) == (2, 1, "lienard")
+    # with a [model]: the FMU is the true plant process, the model the predictions' plant
+    f.write_text(body.format(states='"x1", "x2"') + '[model]\n')
+    with pytest.raises(scenario.ScenarioError, match=r"\[model.name\] missing"):
+        scenario.load(f)
+    f.write_text(body.format(states='"x1", "x2"') + '[model]\nname = "lienard"\nparams = { a = 0.2 }\n')
+    sc = scenario.load(f)
+    assert sc.plant.name == "fmu:plant.fmu" and sc.make_model().a == 0.2
+    with sc.make_process() as proc:
+        assert isinstance(proc, FMUPlant) and (proc.n, proc.m) == (2, 1)
+    f.write_text(body.format(states='"x1"').replace("x0 = [0.1, 0.1]", "x0 = [0.1]") + '[model]\nname = "lienard"\n')
+    with pytest.raises(scenario.ScenarioError, match="lienard has n = 2, m = 1; the plant fmu:plant.fmu has n = 1"):
+        scenario.load(f)
+
+
+def test_paper_scenario_with_the_fmu_as_true_plant(lienard_fmu, tmp_path):
+    """The paper's loop with the FMU as [plant] and the built-in Lienard as [model]: the built-in run's states.
+
+    E_min = 1e-9 in both: the paper's E_k falls to 1e-87, below any difference of two
+    integrators (here 3e-13), and a box that small makes the quantizer saturate on it.
+    """
+    from testbed import scenario
+    from testbed.simulate import simulate_scenario
+
+    text = scenario.load("paper").source.replace('mode = "resilient"', 'mode = "resilient"\nE_min = 1e-9')
+    (tmp_path / "lienard.fmu").write_bytes(Path(lienard_fmu).read_bytes())
+    (tmp_path / "builtin.toml").write_text(text)
+    fmu_text = text.replace('[plant]\nname = "lienard"\n', '[plant]\nfmu = "lienard.fmu"\ninputs = ["u"]\n'
+                            'states = ["x1", "x2"]\n') + '\n[model]\nname = "lienard"\n' \
+        'params = { a = 0.3333333333333333, b = 0.02 }\n'
+    (tmp_path / "fmu.toml").write_text(fmu_text)
+    ref = simulate_scenario(scenario.load(tmp_path / "builtin.toml"))
+    res = simulate_scenario(scenario.load(tmp_path / "fmu.toml"))
+    assert np.abs(res.x - ref.x).max() < 1e-6 and np.abs(res.x_final - ref.x_final).max() < 1e-6
+    assert not res.saturated.any() and np.array_equal(res.theta, ref.theta)

@@ -337,3 +337,30 @@ def test_a_plant_file_may_not_shadow_an_imported_module(tmp_path):
     with pytest.raises(scenario.ScenarioError, match="has the name of a module already imported from .*: rename it"):
         scenario.load(tmp_path / "vdp.toml")
     assert np.zeros(2).shape == (2,)   # numpy is still numpy
+
+
+@pytest.mark.slow
+def test_recorded_model_module_is_stored_too(tmp_path):
+    """A [model] of a class of your own (model mismatch): its source is in the recording as well."""
+    from testbed import scenario
+    from testbed.io.recording import record_simulation
+    from testbed.simulate import simulate_scenario
+
+    (tmp_path / "mymodels.py").write_text(VDP)
+    text = SCENARIO.format(ref="vanderpol-unused", duration=2.0).replace(
+        '[plant]\nname = "vanderpol-unused"\nparams = { mu = 1.0 }\n',
+        '[plant]\nname = "myplants:VanDerPol"\nparams = { mu = 1.1 }\n') + \
+        '[model]\nname = "mymodels:VanDerPol"\nparams = { mu = 1.0 }\n'
+    (tmp_path / "myplants.py").write_text(VDP)
+    (tmp_path / "mm.toml").write_text(text)
+    sc = scenario.load(tmp_path / "mm.toml")
+    assert sc.make_model().mu == 1.0 and sc.make_plant().mu == 1.1
+    rec = tmp_path / "mm.mcap"
+    record_simulation(rec, sc, simulate_scenario(sc))
+    (tmp_path / "mymodels.py").unlink()
+    rc, out, err = tb("report", rec, "--json", cwd=tmp_path.parent)
+    assert rc == 0, err
+    rep = json.loads(out)
+    assert rep["model_source"]["loaded_from"] == "recording" and rep["model_source"]["module"] == "mymodels"
+    assert rep["plant_source"]["loaded_from"] == "import" and not rep["plant_source"]["differs"]
+    assert "model module 'mymodels' is not importable" in err

@@ -180,7 +180,7 @@ def _full(sc, res, args) -> dict:
     from .summary import sweep_kappas
     from .sweep import sweep, vulnerable_states
 
-    plant = sc.make_plant()
+    plant = sc.make_model()
     out = {}
     roa = nominal_roa(plant, sc.K, sc.T, grid=201, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                       progress=Progress("region of attraction", not args.no_progress))
@@ -267,7 +267,7 @@ def _analyze_plots(sc, res, extra, plot: Path, args) -> list[str]:
                                           title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded"))
     roa = extra.get("_roa")
     if roa is None:
-        plant = sc.make_plant()
+        plant = sc.make_model()
         roa = nominal_roa(plant, sc.K, sc.T, grid=101, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                           progress=Progress("region of attraction", not args.no_progress))
     trajs = [(f"$x_0$ = {np.round(sc.x0, 3).tolist()}", sim.x, "C0")]
@@ -330,7 +330,7 @@ def main_roa(args) -> int:
     from .roa import nominal_roa
 
     sc = scenario.load(args.scenario)
-    plant = sc.make_plant()
+    plant = sc.make_model()
     roa = nominal_roa(plant, sc.K, sc.T, grid=args.grid, window=args.window, dims=args.dims, horizon=args.horizon,
                       tol=sc.run.converge_tol, flow=sc.flow,
                       progress=Progress("region of attraction", not args.no_progress))
@@ -407,7 +407,7 @@ def main_sweep(args) -> int:
     from .theorem1 import Loop, allowable_region, plain_certificate
 
     sc = scenario.load(args.scenario)
-    plant = sc.make_plant()
+    plant = sc.make_model()
     kF0, kD0 = sweep_kappas(sc)
     kF = kF0 if args.kappa_F is None else args.kappa_F
     kD = kD0 if args.kappa_D is None else args.kappa_D

@@ -70,7 +70,7 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
 
     E_0 = max(scenario E_0, ||s x_0||_inf) (Assumption 5).  Returns (s, x0) or None.
     """
-    plant = sc.make_plant()
+    plant = sc.make_model()
     x0 = sc.x0
     nx = float(np.max(np.abs(x0)))
     if nx == 0:
@@ -97,7 +97,7 @@ def trajectory(sc, x0, *, E0: float | None = None):
     """x_k of the scenario's loop from ``x0`` (batch simulator, recorded), shape (N, n)."""
     import dataclasses
 
-    plant = sc.make_plant()
+    plant = sc.make_model()
     qp = dataclasses.replace(sc.quantizer, E0=float(E0 if E0 is not None else max(sc.quantizer.E0,
                                                                                     np.max(np.abs(x0)))))
     theta, gp = scenario_theta(sc)
@@ -148,7 +148,7 @@ def analyze(sc, *, budget=None, gamma="auto", share: float = 0.5, rules=RULES, n
     dict (JSON-ready, see README); entries starting with "_" hold Python objects
     (regions, certificate, Theorem 2 result) for plotting and are dropped by :func:`to_json`.
     """
-    plant = sc.make_plant()
+    plant = sc.make_model()
     loop = Loop.from_scenario(sc)
     if budget is None:
         budget, src = scenario_budget(sc)

@@ -113,7 +113,7 @@ class Loop:
 
     @classmethod
     def from_scenario(cls, sc) -> "Loop":
-        return cls.from_plant(sc.make_plant(), sc.K, sc.quantizer)
+        return cls.from_plant(sc.make_model(), sc.K, sc.quantizer)
 
     @property
     def n(self) -> int:

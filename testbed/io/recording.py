@@ -122,18 +122,33 @@ def software_versions() -> dict[str, str]:
     return out
 
 
+def _module_keys(prefix: str, ref: str, info: dict) -> dict[str, str]:
+    bundled = info.get("module", "").startswith("plants.")  # ships with the testbed (testbed.software)
+    return {f"{prefix}_ref": ref, f"{prefix}_module": info.get("module", ""), f"{prefix}_class": info.get("class", ""),
+            f"{prefix}_file": info.get("file", ""), f"{prefix}_source": "" if bundled else info.get("source", ""),
+            f"{prefix}_sha256": info.get("sha256", "")}
+
+
 def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
-    """The ``testbed.scenario`` record: the scenario's name, TOML, reference, folder and plant module."""
-    out = {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name,
-           "base_dir": getattr(sc, "base_dir", "") or "", "plant_ref": sc.plant.ref or sc.plant.name}
+    """The ``testbed.scenario`` record: the scenario's name, TOML, reference, folder, plant and model modules."""
+    from plants.refs import source_info
+
+    out = {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name, "base_dir": sc.base_dir or ""}
+    fmu = sc.plant.fmu is not None
     try:
         info = sc.plant.source_info()
     except (ValueError, AttributeError):
         info = {}
-    bundled = info.get("module", "").startswith("plants.")  # ships with the testbed (testbed.software)
-    out.update({"plant_module": info.get("module", ""), "plant_class": info.get("class", ""),
-                "plant_file": info.get("file", ""), "plant_source": "" if bundled else info.get("source", ""),
-                "plant_sha256": info.get("sha256", "")})
+    out.update(_module_keys("plant", "" if fmu else (sc.plant.ref or sc.plant.name), info))
+    model = sc.model
+    if model is not None and (fmu or model.name != sc.plant.ref):  # a [model] that is not the plant's class
+        import plants
+
+        try:
+            minfo = source_info(plants.resolve(model.name, model.base_dir or None))
+        except ValueError:
+            minfo = {}
+        out.update(_module_keys("model", model.name, minfo))
     return out
 
 
@@ -256,6 +271,8 @@ class Recording:
     duplicates: int = 0
     last_log_time: int = 0
     plant_source: dict | None = None   # set by ``scenario()``: how the plant module was loaded
+    model_source: dict | None = None   # ... and the [model]'s, when it is another class
+    _resolved: bool = field(default=False, repr=False)
 
     @property
     def source(self) -> str:
@@ -280,38 +297,41 @@ class Recording:
             raise ValueError(f"{self.path}: no scenario in the recording's metadata")
         meta = self.metadata.get("testbed.scenario", {})
         base_dir = meta.get("base_dir") or None
-        if self.plant_source is None:   # once per recording (report and replay both rebuild the scenario)
-            self.plant_source = self._resolve_plant(meta, base_dir)
+        if not self._resolved:   # once per recording (report and replay both rebuild the scenario)
+            self.plant_source = self._resolve_plant(meta, base_dir, "plant")
+            self.model_source = self._resolve_plant(meta, base_dir, "model")
+            self._resolved = True
         sc = loads(toml, name=meta.get("name", "recorded"), where=f"{self.path} (recorded scenario)",
-                   base_dir=base_dir)
+                   base_dir=base_dir, check_fmu=False)
         over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
         try:
             return with_overrides(sc, json.loads(over)) if over else sc
         except ValueError as e:
             raise ScenarioError(f"{self.path}: recorded overrides: {e}") from None
 
-    def _resolve_plant(self, meta: dict, base_dir: str | None) -> dict | None:
-        """Resolve the recorded plant reference (pinning the stored source when it is not importable)."""
+    def _resolve_plant(self, meta: dict, base_dir: str | None, prefix: str) -> dict | None:
+        """Resolve the recorded plant (or model) reference, pinning the stored source when it is not importable."""
         from plants.refs import PlantRefError, resolve_recorded
 
-        ref = meta.get("plant_ref")
+        ref = meta.get(f"{prefix}_ref")
         if not ref:
-            return None  # a recording from before plant references were stored: the TOML alone
+            return None  # an FMU plant, a model that is the plant, or a recording from before references were stored
         try:
-            _cls, status = resolve_recorded(ref, base_dir, module=meta.get("plant_module", ""),
-                                            class_name=meta.get("plant_class", ""),
-                                            source=meta.get("plant_source", ""), sha256=meta.get("plant_sha256", ""))
+            _cls, status = resolve_recorded(ref, base_dir, module=meta.get(f"{prefix}_module", ""),
+                                            class_name=meta.get(f"{prefix}_class", ""),
+                                            source=meta.get(f"{prefix}_source", ""),
+                                            sha256=meta.get(f"{prefix}_sha256", ""))
         except PlantRefError as e:
             from ..scenario import ScenarioError
 
             raise ScenarioError(f"{self.path}: {e}") from None
-        status["module"] = meta.get("plant_module", "")
+        status["module"] = meta.get(f"{prefix}_module", "")
         if status["loaded_from"] == "recording":
-            print(f"note: plant module {status['module']!r} is not importable ({status['reason']}); "
+            print(f"note: {prefix} module {status['module']!r} is not importable ({status['reason']}); "
                   f"loaded the source stored in {self.path} (sha256 {status['sha256'][:12]}): "
                   "this runs code from the recording", file=sys.stderr)
         elif status["differs"]:
-            print(f"note: plant module {status['module']!r} as imported now differs from the one recorded "
+            print(f"note: {prefix} module {status['module']!r} as imported now differs from the one recorded "
                   f"in {self.path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
                   file=sys.stderr)
         return status
@@ -547,7 +567,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)
     Tn = int(round(sc.T * 1e9))
     N = len(res.t)
-    plant = sc.make_plant()
+    plant = sc.make_model()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = f"sim-{sc.name}-{t0}"
     w = RecordingWriter(path, flush_interval=flush_interval)
@@ -629,7 +649,9 @@ Foxglove opens the file as it is and Rerun decodes it natively.
 - `testbed.scenario`: `name`, `toml` (the scenario file's text), `ref` (as given on the command line),
   `base_dir` (the scenario file's folder, empty for a bundled scenario), `plant_ref` (`[plant] name`),
   `plant_module`, `plant_class`, `plant_file` (where the plant class came from), `plant_source` (that module's
-  text; empty for the bundled plants, which ship with the testbed) and `plant_sha256` (its sha256).
+  text; empty for the bundled plants, which ship with the testbed) and `plant_sha256` (its sha256; for an FMU
+  plant `plant_ref` is empty, `plant_file` the FMU and `plant_sha256` the file's); the same `model_*` keys for a
+  `[model]` of another class than the plant's.
   `testbed report` loads `plant_source` only when the module cannot be imported (see docs/own-plant.md).
 - `testbed.software`: versions of Python, the platform, dos-testbed (and its git commit when run from a
   checkout), numpy, scipy, numba, eclipse-zenoh, mcap, protobuf, rerun-sdk; `format` (this format's version).

@@ -207,7 +207,7 @@ def roa_outline(sc, grid: int = 61) -> RoaOutline | None:
 
     A coarse grid (61 x 61: under a second for the paper's plant) is enough for a picture.
     """
-    plant = sc.make_plant()
+    plant = sc.make_model()
     if plant.n != 2:
         return None
     key = (sc.source or sc.name, tuple(np.asarray(sc.K).ravel()), float(sc.T), int(grid))
@@ -224,7 +224,7 @@ def _roa_for(key, sc, grid) -> RoaOutline:
 
     from ..analysis.roa import nominal_roa
 
-    r = nominal_roa(sc.make_plant(), sc.K, sc.T, grid=grid, flow=sc.flow)
+    r = nominal_roa(sc.make_model(), sc.K, sc.T, grid=grid, flow=sc.flow)
     window = ((float(r.xs[0]), float(r.xs[-1])), (float(r.ys[0]), float(r.ys[-1])))
     if r.inside.all():
         (x0, x1), (y0, y1) = window
@@ -593,7 +593,7 @@ class LiveRerun:
                 rr.spawn(connect=False, recording=self.rec)
             self.rec.connect_grpc(self.url, default_blueprint=bp)
         self.rec.send_recording_name(f"{self.sc.name} (live)")
-        plant = self.sc.make_plant()
+        plant = self.sc.make_model()
         log_styles(self.rec, plant.n, plant.m, roles=())
         log_scenario(self.rec, self.sc, roa=self.roa)
         self.rec.flush()

@@ -24,6 +24,7 @@ import numpy as np
 from attackers import Gate, GreedyAttacker
 
 from ..io import messages as msg
+from ..protocol import corrupt_payload
 from .common import Node, attack_horizon, warm_publisher
 
 
@@ -58,7 +59,7 @@ class AttackerNode(Node):
             self.score_kind = None
         from ..quantizer import Codebook
 
-        self.codebook = Codebook(self.plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+        self.codebook = Codebook(self.model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
         self.corrupt = parse_corrupt(getattr(self.args, "corrupt", None))
         self._lock = threading.Lock()
         self._score_cond = threading.Condition()
@@ -71,6 +72,7 @@ class AttackerNode(Node):
         self.acks_dropped = 0
         self.acks_forwarded = 0
         self.missing_scores = 0
+        self.future_symbols = 0
         self.score_wait_ns = max(int(0.25 * sc.run.deadline * ctx.T_ns), 100_000)
         self.pub_fwd = self.publisher(keys.symbol_rx)
         self.pub_status = ctx.session.declare_publisher(keys.attacker_status)
@@ -164,9 +166,13 @@ class AttackerNode(Node):
         if h is None:
             return
         k = h.k
-        self.maybe_crash(k)
         if k >= ctx.n_steps:
             return
+        if k > ctx.newest_k(rx):
+            self.future_symbols += 1
+            ctx.event("future_symbol", k=k, detail=f"symbol for sample {k} before its instant: dropped")
+            return
+        self.maybe_crash(k)
         drop = self.decide(k)
         corrupted = 0
         tx = msg.NO_TIME
@@ -190,10 +196,7 @@ class AttackerNode(Node):
             ctx.event("corrupted", k=k, detail=f"payload replaced ({self.corrupt[k]})", level=20)
 
     def _corrupt(self, payload: bytes, kind: str) -> bytes:
-        cb = self.codebook
-        if kind == "range" and cb.n_codes < 256 ** cb.nbytes:
-            return (256 ** cb.nbytes - 1).to_bytes(cb.nbytes, "big")
-        return payload + b"\xff"
+        return corrupt_payload(self.codebook, payload, kind)
 
     def _on_ack(self, sample) -> None:
         h = self.rx_header(sample, "ack header (dropped)")
@@ -213,5 +216,6 @@ class AttackerNode(Node):
                 "corrupted": self.corrupted, "acks_dropped": self.acks_dropped,
                 "acks_forwarded": self.acks_forwarded, "missing_scores": self.missing_scores,
                 "attacks_started": self.gate.attacks_started, "malformed": self.malformed,
+                "future_symbols": self.future_symbols,
                 "score": self.score_kind}
 

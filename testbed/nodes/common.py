@@ -32,6 +32,10 @@ from ..io import transport
 
 log = logging.getLogger("testbed.nodes")
 
+#: how far ahead of a node's run clock a message's sample instant may be (clock offsets across
+#: hosts, a plant that samples a little early); a message for a later sample is rejected
+CLOCK_TOLERANCE_NS = 2_000_000
+
 
 # ============================================================================ run options
 @dataclass(frozen=True)
@@ -309,6 +313,7 @@ class NodeContext:
         self.digest = run_digest(sc, opts)
         self.T_ns = T_ns(sc)
         self.n_steps = sc.n_steps
+        self.clock_tolerance_ns = CLOCK_TOLERANCE_NS
         self.stop = threading.Event()
         self.stop_reason = ""
         self.start_msg: msg.Start | None = None
@@ -437,6 +442,11 @@ class NodeContext:
     def now(self) -> int:
         return self.clock.now() if self.clock else msg.NO_TIME
 
+    def newest_k(self, now_ns: int) -> int:
+        """The newest sample whose instant t_k = k T has come at ``now_ns`` (run clock), within the
+        clock tolerance: a message for a later sample cannot be genuine."""
+        return (now_ns + self.clock_tolerance_ns) // self.T_ns
+
     @property
     def end_ns(self) -> int:
         """ns since t0 after which nothing of the run can still happen."""
@@ -543,7 +553,7 @@ class Node:
         self.ctx = ctx
         self.args = args
         self.sc = ctx.sc
-        self.plant = ctx.sc.make_plant()
+        self.model = ctx.sc.make_model()  # the predictions' model (n, m); the plant node has the true plant
         self.crash_at = getattr(args, "crash_at", None)
         self.malformed = 0
         self.error: BaseException | None = None

@@ -1,12 +1,15 @@
 """Controller node: Algorithm 2 and control law (2); u_k to the plant, theta_k to the encoder.
 
-Samples are decided strictly in order k = 0, 1, ...  Sample k is decided when its
-symbol arrives (theta_k = 0, or 1 for a malformed / out-of-range payload) or, if
-nothing has arrived by the loss deadline t_k + ``loss_fraction`` * d * T (d =
-``[run] deadline``, measured on the shared run clock), with theta_k = 1: the
-attacker dropped it, or the encoder or attacker is dead.  The loss deadline falls
-before the plant's own deadline t_k + d T, so u_k = 0 still reaches it in time.
-A symbol that arrives after its sample was decided is counted as late and ignored.
+The logic is ``testbed.protocol.ControllerProtocol`` (the simulator runs the same
+object): samples are decided strictly in order k = 0, 1, ... Sample k is decided
+when its symbol arrives (theta_k = 0, or 1 for a malformed / out-of-range
+payload) or, if nothing has arrived by the loss deadline t_k + ``loss_fraction`` *
+d * T (d = ``[run] deadline``, measured on the shared run clock), with theta_k = 1:
+the attacker dropped it, or the encoder or attacker is dead.  The loss deadline
+falls before the plant's own deadline t_k + d T, so u_k = 0 still reaches it in
+time.  A symbol that arrives after its sample was decided is late and ignored; one
+whose header names a sample whose instant t_k has not come yet on the run clock
+cannot be genuine and is rejected (counted, logged).
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ from __future__ import annotations
 import threading
 
 from ..io import messages as msg
-from ..quantizer import Decoder, InvalidSymbol
+from ..protocol import ControllerProtocol, Decision
+from ..quantizer import Decoder
 from ..runsummary import percentiles
 from .common import Node, warm_publisher
 
@@ -26,18 +30,12 @@ class ControllerNode(Node):
 
     def setup(self) -> None:
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
-        self.dec = Decoder(self.plant, sc.K, sc.quantizer, sc.flow)
+        self.dec = Decoder(self.model, sc.K, sc.quantizer, sc.flow)
+        self.proto = ControllerProtocol(self.dec, ctx.n_steps)
         self.codebook = self.dec.codebook
         self.pub_act = self.publisher(keys.actuation)
         self.pub_ack = self.publisher(keys.ack_tx)
         self._cond = threading.Condition()
-        self.next_k = 0
-        self.last_rx = -1
-        self.received = 0
-        self.lost_deadline = 0
-        self.invalid = 0
-        self.late = 0
-        self.superseded = 0
         self.decode_time: list[int] = []
         self.net_latency: list[int] = []
         frac = self.args.loss_fraction
@@ -45,15 +43,19 @@ class ControllerNode(Node):
         self._sub = ctx.session.declare_subscriber(keys.symbol_rx, self.guard(self._on_symbol))
         ctx.on_peer(self._on_peer)
 
+    @property
+    def next_k(self) -> int:
+        return self.proto.next_k
+
     def warmup(self) -> None:
-        d = Decoder(self.plant, self.sc.K, self.sc.quantizer, self.sc.flow)
+        d = Decoder(self.model, self.sc.K, self.sc.quantizer, self.sc.flow)
         d.step(0)
         d.step(None)
         if self.codebook.resilient:
             d.step(self.codebook.overflow)
 
     def warm_publishers(self) -> None:
-        m = self.plant.m
+        m = self.model.m
         warm_publisher(self.pub_act, msg.Actuation(0, 0, 1, (0.0,) * m).encode()[0])
         warm_publisher(self.pub_ack, msg.Ack(0, 0, 1, -1).encode()[0])
 
@@ -61,8 +63,8 @@ class ControllerNode(Node):
         if self.ctx.start_msg is None or self.ctx.stop.is_set():
             return
         if node in ("encoder", "attacker") and not alive:
-            with self._cond:  # _decide holds it between publishing u_{N-1} and advancing next_k
-                k = self.next_k
+            with self._cond:  # _publish holds it between publishing u_{N-1} and advancing next_k
+                k = self.proto.next_k
             if k >= self.ctx.n_steps:
                 return  # every sample decided: a peer leaving now is the normal end of the run
             self.ctx.event("peer_lost", k=k,
@@ -70,28 +72,22 @@ class ControllerNode(Node):
         elif node == "plant" and not alive:
             self.ctx.request_stop("plant lost")
 
-    # ---- one sample (hold self._cond)
-    def _decide(self, k: int, symbol: int | None, reason: int, rx: int, stamp: int) -> None:
-        self.maybe_crash(k)
-        dec = self.dec
-        xi, E = dec.xi, dec.E
-        u, q, theta = dec.step(symbol)
-        if theta == 0:
-            self.last_rx = k
+    # ---- one decision (hold self._cond)
+    def _publish(self, d: Decision, rx: int, stamp: int) -> None:
+        self.maybe_crash(d.k)
         clock = self.ctx.clock
         tx = clock.now()
-        ut = tuple(u.tolist())
-        p, a = msg.Actuation(k, tx, theta, ut).encode()
+        ut = tuple(d.u.tolist())
+        p, a = msg.Actuation(d.k, tx, d.theta, ut).encode()
         self.pub_act.put(p, attachment=a)
-        p, a = msg.Ack(k, tx, theta, self.last_rx).encode()
+        p, a = msg.Ack(d.k, tx, d.theta, d.last_rx).encode()
         self.pub_ack.put(p, attachment=a)
-        self.next_k = k + 1
         self._cond.notify_all()
         if rx != msg.NO_TIME:
             self.decode_time.append(tx - rx)
-        self.ctx.telemetry.put(CT(k=k, sym_stamp_ns=stamp, rx_ns=rx, tx_ns=tx,
-                                  symbol=-1 if symbol is None else int(symbol), theta=theta, reason=reason,
-                                  E=E, xi=tuple(xi.tolist()), q=tuple(q.tolist()), u=ut).encode())
+        self.ctx.telemetry.put(CT(k=d.k, sym_stamp_ns=stamp, rx_ns=rx, tx_ns=tx, symbol=d.symbol, theta=d.theta,
+                                  reason=d.reason, E=d.E, xi=tuple(d.xi.tolist()), q=tuple(d.q.tolist()),
+                                  u=ut).encode())
 
     def _on_symbol(self, sample) -> None:
         ctx = self.ctx
@@ -103,47 +99,49 @@ class ControllerNode(Node):
         if h is None:
             return
         k = h.k
+        proto = self.proto
         with self._cond:
-            if k < self.next_k or k >= ctx.n_steps:
-                self.late += 1
+            late, future, invalid = proto.late, proto.future, proto.invalid
+            decs = proto.symbol(k, sample.payload.to_bytes(), newest_k=ctx.newest_k(rx))
+            if proto.late > late:
                 ctx.event("late_symbol", k=k, detail=f"arrived {(rx - k * ctx.T_ns) / 1e3:.0f} us after "
                                                      f"t_k, sample already decided (theta = 1)", level=20)
-                return
-            while self.next_k < k:  # a later sample arrived first: the earlier ones are lost
-                self.superseded += 1
-                self._decide(self.next_k, None, CT.SUPERSEDED, msg.NO_TIME, msg.NO_TIME)
-            try:
-                sym = self.codebook.unpack(sample.payload.to_bytes())
-            except InvalidSymbol as e:
-                self.invalid += 1
-                ctx.event("invalid_payload", k=k, detail=f"{e}: treated as a loss (theta = 1)")
-                self._decide(k, None, CT.INVALID, rx, h.stamp_ns)
-                return
-            self.received += 1
-            self.net_latency.append(rx - h.stamp_ns)
-            self._decide(k, sym, CT.RECEIVED, rx, h.stamp_ns)
+            elif proto.future > future:
+                ctx.event("future_symbol", k=k, detail=f"header names sample {k}, whose instant is "
+                                                       f"{(k * ctx.T_ns - rx) / 1e6:.1f} ms ahead: rejected")
+            for d in decs:
+                if d.reason == CT.RECEIVED:
+                    self.net_latency.append(rx - h.stamp_ns)
+                    self._publish(d, rx, h.stamp_ns)
+                elif d.k == k:  # an invalid payload
+                    self._publish(d, rx, h.stamp_ns)
+                else:
+                    self._publish(d, msg.NO_TIME, msg.NO_TIME)
+            if proto.invalid > invalid:
+                ctx.event("invalid_payload", k=k, detail="not a code of the codebook: treated as a loss (theta = 1)")
 
     # ---- the loss deadlines
     def run(self) -> None:
         ctx = self.ctx
         clock = ctx.clock
         N, T_ns = ctx.n_steps, ctx.T_ns
+        proto = self.proto
         while not ctx.stop.is_set():
             with self._cond:
-                k = self.next_k
+                k = proto.next_k
                 if k >= N:
                     break
                 rem = k * T_ns + self.loss_ns - clock.now()
                 if rem > 0:
                     self._cond.wait(min(rem / 1e9, 0.05))
                     continue
-                self.lost_deadline += 1
-                self._decide(k, None, CT.DEADLINE, msg.NO_TIME, msg.NO_TIME)
+                d = proto.deadline(k)
+                if d is not None:
+                    self._publish(d, msg.NO_TIME, msg.NO_TIME)
         self.wait_end()
 
     def summary(self) -> dict:
-        return {"received": self.received, "lost_deadline": self.lost_deadline, "invalid": self.invalid,
-                "late": self.late, "superseded": self.superseded, "malformed": self.malformed,
-                "overflows": self.dec.overflows, "decided": self.next_k, "loss_deadline_us": self.loss_ns / 1e3,
-                "decode_us": percentiles(self.decode_time), "uplink_us": percentiles(self.net_latency)}
-
+        d = self.proto.counters()
+        d.update({"malformed": self.malformed, "loss_deadline_us": self.loss_ns / 1e3,
+                  "decode_us": percentiles(self.decode_time), "uplink_us": percentiles(self.net_latency)})
+        return d

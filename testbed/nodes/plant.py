@@ -1,8 +1,10 @@
-"""Plant node: samples x_k at t_k = k T on absolute deadlines, holds u, integrates phi_T.
+"""Plant node: samples x_k at t_k = k T on absolute deadlines, holds u, integrates the true plant.
 
 It is also the run's time master: once every node is ready it picks t0 and
 publishes ``Start``; when the last sample is done it publishes ``Stop``.
 
+What acts on the plant is ``testbed.protocol.PlantProtocol`` (the simulator runs
+the same object) on the scenario's true plant (``[plant]``, ``sc.make_process()``).
 Timing modes (``[run] timing``), with d = ``[run] deadline``:
 
 * ``ideal``:    u_k acts on [t_k, t_k+1) as in the paper: the plant holds t_k until
@@ -10,11 +12,14 @@ Timing modes (``[run] timing``), with d = ``[run] deadline``:
   x_k+1 = phi_T(x_k, u_k).  A live run reproduces ``testbed simulate`` bit for bit.
 * ``physical``: u_k acts from its arrival t_k + delta_k (u_k-1 is held until then;
   after d T without u_k the actuator falls back to 0):
-  x_k+1 = phi_{T - delta}(phi_delta(x_k, u_k-1), u_k).  Latency becomes model
-  mismatch that the quantizer has to survive.
+  x_k+1 = phi_{T - delta}(phi_delta(x_k, u_k-1), u_k).  The delays are recorded, so
+  ``testbed resimulate`` reproduces the run.
 
-If the controller's liveliness token disappears the plant stops waiting and runs
-on with u = 0; the run is marked (``controller_lost_at``).
+Input checks: a u_k with a non-finite entry is rejected (u_k = 0, as if it never came)
+and |u_k| is clamped to ``[controller] u_max``; an actuation whose header names a
+sample whose instant has not come yet is rejected.  Each is counted and logged as
+an event.  If the controller's liveliness token disappears the plant stops waiting
+and runs on with u = 0; the run is marked (``controller_lost_at``).
 """
 
 from __future__ import annotations
@@ -24,9 +29,10 @@ import time
 
 import numpy as np
 
-from ..flow import FLOW_OK, STATUS_NAMES, phi_T
+from ..flow import FLOW_OK, STATUS_NAMES
 from ..io import messages as msg
 from ..io import transport
+from ..protocol import PlantProtocol
 from ..runsummary import percentiles
 from .common import Node
 
@@ -49,6 +55,7 @@ class PlantNode(Node):
         self.controller_dead = False
         self.controller_lost_at = -1
         self.late_u = 0
+        self.future_u = 0
         self.misses = 0
         self.no_u = 0
         self.overruns = 0
@@ -60,12 +67,16 @@ class PlantNode(Node):
         self.timing = self.sc.run.timing
         self.spin_ns = int(self.args.spin_us * 1e3) if self.args.spin_us is not None \
             else min(200_000, self.ctx.T_ns // 10)
+        self.process = self.sc.make_process()
         ctx.on_peer(self._on_peer)
 
     def warmup(self) -> None:
-        x0 = self.sc.x0
-        phi_T(self.plant, x0, np.zeros(self.plant.m), self.sc.T, self.sc.flow)
-        phi_T(self.plant, x0, np.zeros(self.plant.m), 0.5 * self.sc.T, self.sc.flow)
+        sc = self.sc
+        p = self.sc.make_process()
+        p.reset(sc.x0)
+        p.advance(np.zeros(p.m), sc.T)
+        p.advance(np.zeros(p.m), 0.5 * sc.T)
+        p.close()
 
     def warm_publishers(self) -> None:
         from .common import warm_publisher
@@ -86,15 +97,20 @@ class PlantNode(Node):
         rx = time.monotonic_ns()
         try:
             a = msg.Actuation.decode(sample.payload, sample.attachment)
-            if len(a.u) != self.plant.m:
-                raise msg.MessageError(f"u has {len(a.u)} entries, plant has m = {self.plant.m}")
+            if len(a.u) != self.process.m:
+                raise msg.MessageError(f"u has {len(a.u)} entries, plant has m = {self.process.m}")
         except msg.MessageError as e:
             self.bad_message("actuation", e)
             return
         if a.k == msg.WARMUP_K:
             return
+        ctx = self.ctx
+        if ctx.clock is not None and a.k > ctx.newest_k(rx - ctx.clock.t0_mono_ns):
+            self.future_u += 1
+            ctx.event("future_actuation", k=a.k, detail=f"u for sample {a.k} before its instant: rejected")
+            return
         with self._lock:
-            if a.k < self._waiting_k or a.k in self._acts:
+            if a.k < self._waiting_k or a.k in self._acts or a.k >= ctx.n_steps:
                 self.late_u += 1
                 return
             self._acts[a.k] = (a, rx)  # may come before the loop reaches k when the plant runs late
@@ -129,13 +145,12 @@ class PlantNode(Node):
     # ---- the loop
     def run(self) -> None:
         ctx, sc, clock = self.ctx, self.sc, self.ctx.clock
-        T, T_ns, N = sc.T, ctx.T_ns, ctx.n_steps
-        m = self.plant.m
+        T_ns, N = ctx.T_ns, ctx.n_steps
         d_ns = int(sc.run.deadline * T_ns)
         physical = self.timing == "physical"
-        x = np.array(sc.x0, dtype=np.float64)
-        u_held = np.zeros(m)
-        zeros = np.zeros(m)
+        proc = self.process
+        proc.reset(np.array(sc.x0, dtype=np.float64))
+        pp = PlantProtocol(proc, sc.T, timing=self.timing, deadline=sc.run.deadline, u_max=sc.controller.u_max)
         tel = ctx.telemetry
         for k in range(N):
             if ctx.stop.is_set():
@@ -150,6 +165,7 @@ class PlantNode(Node):
                     self._got.set()
                 else:
                     self._got.clear()
+            x = proc.x
             payload, att = msg.Sensor(k, t_act, tuple(x.tolist())).encode()
             self.pub_sensor.put(payload, attachment=att)
             sensor_tx = clock.now()
@@ -167,18 +183,25 @@ class PlantNode(Node):
                     del self._acts[old]
                     self.late_u += 1
             flags = 0
+            u = None
             if a is not None:
-                u = np.array(a.u)
+                u, fault = pp.check_input(a.u)
+                if fault == "nonfinite":
+                    ctx.event("input_rejected", k=k, detail="u_k has a non-finite entry: u_k = 0 applied")
+                elif fault == "clamped":
+                    ctx.event("input_clamped", k=k, detail=f"|u_k| above u_max = {sc.controller.u_max:g}: clamped")
+            if u is not None:
                 theta = a.theta
                 u_rx = rx_mono - clock.t0_mono_ns
                 self.latency.append(u_rx - t_act)
             else:
-                u, theta, u_rx = zeros, msg.THETA_NONE, msg.NO_TIME
+                theta = msg.THETA_NONE if a is None else a.theta
+                u_rx = msg.NO_TIME
                 flags |= PT.FLAG_NO_U
                 self.no_u += 1
                 if self.controller_dead:
                     flags |= PT.FLAG_CTRL_DEAD
-                else:
+                elif a is None:
                     flags |= PT.FLAG_MISS
                     self.misses += 1
             jit = t_act - k * T_ns
@@ -187,25 +210,22 @@ class PlantNode(Node):
                 self.overruns += 1
             # -- integrate over [t_k, t_k+1)
             if physical:
-                delay = min(max(u_rx - t_act, 0), d_ns) if a is not None else max(deadline - t_act, 0)
+                delay = min(max(u_rx - t_act, 0), d_ns) if u is not None else max(deadline - t_act, 0)
                 delay = min(delay, T_ns)
-                x_mid, st1 = phi_T(self.plant, x, u_held, delay / 1e9, sc.flow)
-                x_next, st2 = phi_T(self.plant, x_mid, u, T - delay / 1e9, sc.flow)
-                st = int(st1) or int(st2)
-                u_held = u
             else:
                 delay = 0
-                x_next, st = phi_T(self.plant, x, u, T, sc.flow)
-                st = int(st)
+            st = pp.step(u, delay / 1e9)
+            u_applied = np.zeros(proc.m) if u is None else u
             tel.put(PT(k=k, t_ns=t_act, sensor_tx_ns=sensor_tx, u_rx_ns=u_rx, delay_ns=delay, theta=theta,
-                       flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u.tolist())).encode())
-            x = x_next
+                       flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u_applied.tolist())).encode())
             self.k_done = k + 1
             if st != FLOW_OK:
                 self.flow_status, self.diverged_at = st, k
                 ctx.event("flow_diverged", k=k, detail=f"phi_T status {STATUS_NAMES.get(st, st)}: run ends")
                 break
+        x = proc.x
         self.x_final = x
+        self.rejected_nonfinite, self.clamped = pp.rejected_nonfinite, pp.clamped
         final_k = self.k_done
         tel.put(PT(k=final_k, t_ns=clock.now(), sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0,
                    theta=msg.THETA_NONE, flags=PT.FLAG_FINAL, flow_status=self.flow_status,
@@ -219,7 +239,9 @@ class PlantNode(Node):
 
     def summary(self) -> dict:
         return {"samples": self.k_done, "deadline_misses": self.misses, "u_missing": self.no_u,
-                "late_u": self.late_u, "overruns": self.overruns, "malformed": self.malformed,
+                "late_u": self.late_u, "future_u": self.future_u,
+                "inputs_rejected": getattr(self, "rejected_nonfinite", 0), "inputs_clamped": getattr(self, "clamped", 0),
+                "overruns": self.overruns, "malformed": self.malformed,
                 "controller_lost_at": self.controller_lost_at, "timing": self.timing,
                 "jitter_us": percentiles(self.jitter), "latency_us": percentiles(self.latency),
                 "spin_us": self.spin_ns / 1e3}

@@ -36,7 +36,7 @@ class RerunTap:
     def __init__(self, role: str, sc, recording_id: str, *, url: str | None = None, save: str | None = None,
                  period: float = 0.1, nice: int = NICE):
         self.role, self.T, self.period, self.nice = role, sc.T, period, nice
-        plant = sc.make_plant()
+        plant = sc.make_model()
         self.n, self.m = plant.n, plant.m
         self._target = (recording_id, url, save)
         self.rec = None
