@@ -42,6 +42,7 @@ for _name, _mod, _help in [
     ("node", "testbed.nodes.main", "run one node of a live run"),
     ("record", "testbed.nodes.recorder", "record a live run to MCAP (testbed run starts one itself)"),
     ("report", "testbed.report", "post-mortem of a recording"),
+    ("resimulate", "testbed.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
     ("replay", "testbed.io.viewer", "open a recording in Rerun"),
 ]:
     try:

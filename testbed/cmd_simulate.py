@@ -11,11 +11,13 @@ from . import cliargs
 
 
 def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
+    from .nodes.common import add_run_option_arguments
+
     cliargs.add_scenario(p)
     cliargs.add_json(p, "the run (every sample, counts and outcome)")
-    p.add_argument("--duration", type=float, help="override [run] duration (seconds)")
-    p.add_argument("--mode", choices=["ideal", "resilient"], help="override [quantizer] mode")
-    p.add_argument("--T", type=float, metavar="SECONDS", help="override [quantizer] T, the sample period")
+    add_run_option_arguments(p, title="run options (as testbed run takes them)")
+    p.add_argument("--corrupt", metavar="K[:range|:length],...",
+                   help="the attacker corrupts the payload of these samples (as testbed run --corrupt)")
     cliargs.add_out(p, "also write the run as an MCAP recording (the topics of a live run; see testbed report)")
     cliargs.add_rrd(p, "also write a Rerun recording of the run (see testbed replay)")
     cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded) into this PNG")
@@ -24,11 +26,22 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 
 def main_simulate(args) -> int:
     from . import scenario
+    from .errors import BadInput
     from .simulate import simulate_scenario, summarize
 
-    overrides = {"mode": args.mode, "duration": args.duration, "T": args.T}
+    from .nodes.attacker import parse_corrupt
+    from .nodes.common import RunOptions
+    from .simulate import Network
+
+    opts = RunOptions.from_args(args)
+    overrides = opts.overrides()
     sc = scenario.with_overrides(scenario.load(args.scenario), overrides)
-    res = simulate_scenario(sc)
+    try:
+        corrupt = parse_corrupt(args.corrupt)
+    except ValueError as e:
+        raise BadInput(str(e)) from None
+    net = Network(ack_via_attacker=opts.ack_via_attacker, corrupt=tuple(sorted(corrupt.items())))
+    res = simulate_scenario(sc, network=net)
     out = summarize(sc, res)
     if args.out:
         from .io.recording import record_simulation

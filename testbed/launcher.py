@@ -73,7 +73,6 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--run-dir", help="directory for node logs (default: a temporary one, kept on faults)")
     g.add_argument("--realtime", action="store_true", help="nodes try SCHED_FIFO")
     g.add_argument("--spin-us", type=float, help="plant busy-wait before each sample instant (us)")
-    g.add_argument("--loss-fraction", type=float, help="controller loss deadline, fraction of d T")
     g.add_argument("--ack-grace", type=float, help="encoder grace for a late ack, fraction of T")
     g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
     g = p.add_argument_group("fault injection")
@@ -147,8 +146,6 @@ class Launcher:
         if role == "plant":
             if a.spin_us is not None:
                 cmd += ["--spin-us", str(a.spin_us)]
-        if role == "controller" and a.loss_fraction is not None:
-            cmd += ["--loss-fraction", str(a.loss_fraction)]
         if role == "encoder" and a.ack_grace is not None:
             cmd += ["--ack-grace", str(a.ack_grace)]
         if role == "attacker" and a.corrupt:

@@ -297,14 +297,21 @@ class PlantProtocol:
     """Hold, delay and fallback: what acts on the plant over [t_k, t_k+1).
 
     timing ``ideal``: u_k acts on the whole period (u = 0 if it never came).
-    timing ``physical``: u_{k-1} is held for delta_k, then u_k acts; if u_k never
-    came, u_{k-1} is held until the deadline d T and the actuator falls back to 0.
+    timing ``physical``: u_{k-1} is held for delta_k, then u_k acts:
+      actuation ``arrival``: delta_k is when u_k arrived;
+      actuation ``scheduled``: a received sample's u_k acts at t_k + delta_s (or on
+      arrival if later), a lost sample's u_k = 0 at the deadline t_k + d T.
+    If u_k never came by the deadline d T, u_{k-1} is held until then and the actuator
+    falls back to 0.  Delays are whole nanoseconds (as the live plant measures them).
     """
 
     process: object
     T: float
     timing: str = "ideal"
-    deadline: float = 0.5           # d: fraction of T
+    actuation: str = "scheduled"
+    sched_ns: int = 0               # delta_s: a received sample's scheduled actuation delay
+    deadline_ns: int = 0            # d T
+    loss_ns: int = 0                # the controller's loss deadline (a lost sample's u_k leaves then)
     u_max: float = math.inf         # actuator limit: |u| is clamped to it
     u_held: np.ndarray = field(default=None)
     rejected_nonfinite: int = 0
@@ -313,6 +320,12 @@ class PlantProtocol:
     def __post_init__(self):
         if self.u_held is None:
             self.u_held = np.zeros(self.process.m)
+
+    @classmethod
+    def for_scenario(cls, sc, process) -> "PlantProtocol":
+        phys, sched, s_ns, d_ns, loss_ns = (int(v) for v in sc.timing_params)
+        return cls(process, sc.T, timing=sc.run.timing, actuation=sc.run.actuation, sched_ns=s_ns,
+                   deadline_ns=d_ns, loss_ns=loss_ns, u_max=sc.controller.u_max)
 
     def check_input(self, u) -> tuple[np.ndarray | None, str | None]:
         """u_k as the actuator takes it: (u, None), (clamped u, "clamped") or (None, "nonfinite")."""
@@ -325,17 +338,25 @@ class PlantProtocol:
             return np.clip(u, -self.u_max, self.u_max), "clamped"
         return u, None
 
-    def step(self, u: np.ndarray | None, delay: float = 0.0) -> int:
-        """Advance over one period.  ``u``: u_k, or None if it never came; ``delay``: delta_k [s]
-        (physical timing; with u None, the time until the deadline).  Returns the status."""
+    def delay_ns(self, arrival_ns: int, theta: int) -> int:
+        """delta_k [ns] of a u_k that reached the plant ``arrival_ns`` after t_k (<= the deadline)."""
+        a = min(max(int(arrival_ns), 0), self.deadline_ns)
+        if self.actuation == "scheduled":
+            return max(a, self.sched_ns if theta == 0 else self.deadline_ns)
+        return a
+
+    def step(self, u: np.ndarray | None, delay_ns: int = 0) -> int:
+        """Advance over one period.  ``u``: u_k, or None if it never came (then ``delay_ns`` is the
+        time until the deadline).  Physical timing only uses ``delay_ns``.  Returns the status."""
         proc = self.process
         m = proc.m
         if self.timing != "physical":
             return proc.advance(np.zeros(m) if u is None else u, self.T)
         u_k = np.zeros(m) if u is None else np.asarray(u, dtype=np.float64)
-        st = proc.advance(self.u_held, delay)
+        d = delay_ns / 1e9
+        st = proc.advance(self.u_held, d)
         if st == FLOW_OK:
-            st = proc.advance(u_k, self.T - delay)
+            st = proc.advance(u_k, self.T - d)
         self.u_held = u_k
         return st
 

@@ -52,6 +52,9 @@ MODE_NONE = 2  # no quantization at all (q_k = x_k): the nominal loop of the reg
 MODES = {"ideal": MODE_IDEAL, "resilient": MODE_RESILIENT, "none": MODE_NONE}
 RULES = ("paper", "delay-aware")
 
+#: E_{k+1} >= ROUNDOFF ||xi_{k+1}||_inf: 16 ulp, the round-off of the box arithmetic and the flow map
+ROUNDOFF = 16 * 2.0 ** -52
+
 #: the largest codebook the testbed carries end to end: a symbol is a 32-bit field of the
 #: telemetry and the recording (and an int64 in the batch kernel's arithmetic)
 MAX_CODES = 2**31 - 1
@@ -142,18 +145,20 @@ def control_input(Kgain, q, theta, overflow, u):
 
 @nb.njit(cache=True)
 def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
-                E_min, delay_hat, margin_gain, K_s, ytmp, u_s, xi_out):
+                E_min, dpar, K_s, ytmp, u_s, xi_out):
     """Update rules (xi) and (E) (and the OVERFLOW zoom-out). Returns (E_next, flow status).
 
     ``u_s`` receives u_k, the input both ends know was sent for this sample
     ((1 - theta_k) K q_k, or 0 after OVERFLOW): the caller keeps it as the next ``u_prev``.
 
-    Paper rule (``delay_hat`` = 0, ``margin_gain`` = 0): xi_{k+1} = phi_T(q_k, K q_k) or
-    phi_T(xi_k, 0).  Delay-aware rule (an extension, docs/paper.md): the plant holds
-    u_{k-1} for the first delta_k of the period, so both ends predict with the nominal
-    delay delta_hat, xi_{k+1} = phi_{T - delta_hat}(phi_delta_hat(q_k, u_{k-1}), u_k), and
-    add the margin margin_gain * ||u_k - u_{k-1}||_inf to E_{k+1}, which covers every
-    delay in the declared bound.
+    ``dpar`` = [delta_hat_0, g_0, delta_hat_1, g_1]: the delay-aware rule's nominal delay
+    and margin gain for a sample whose symbol arrived (theta_k = 0, index 0) and for one
+    decided lost at the controller's loss deadline (theta_k = 1, index 1).  All zero: the
+    paper's rule, xi_{k+1} = phi_T(q_k, K q_k) or phi_T(xi_k, 0).  Delay-aware rule (an
+    extension, docs/paper.md): the plant holds u_{k-1} for the first delta_k of the period,
+    so both ends predict with the nominal delay, xi_{k+1} =
+    phi_{T - delta_hat}(phi_delta_hat(q_k, u_{k-1}), u_k), and add the margin
+    g ||u_k - u_{k-1}||_inf to E_{k+1}, which covers every delay in the declared bound.
     """
     m = u_s.shape[0]
     if theta == 0 and not overflow:
@@ -163,6 +168,9 @@ def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambd
         for r in range(m):
             u_s[r] = 0.0
         start = xi
+    j = 2 if theta == 1 else 0
+    delay_hat = dpar[j]
+    margin_gain = dpar[j + 1]
     if delay_hat > 0.0:
         st = flow_into(rhs, start, u_prev, p, delay_hat, opts, K_s, ytmp, xi_out)
         if st == 0:  # flow_into may integrate in place (x0 is out): it reads x0 only to copy it
@@ -185,6 +193,13 @@ def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambd
         for r in range(m):
             du = max(du, abs(u_s[r] - u_prev[r]))
         En += margin_gain * du
+    # never below the round-off of the box arithmetic around xi_{k+1} (a few ulp): a range
+    # narrower than that cannot hold x_{k+1} however exact the prediction
+    big = 0.0
+    for i in range(xi_out.shape[0]):
+        big = max(big, abs(xi_out[i]))
+    if En < ROUNDOFF * big:
+        En = ROUNDOFF * big
     if En < E_min:
         En = E_min
     return En, st
@@ -259,8 +274,10 @@ class QuantizerParams:
     zoom_out: float | None = None  # sigma; None -> M
     E_min: float = 0.0
     rule: str = "paper"            # prediction rule: "paper" | "delay-aware"
-    delay_hat: float = 0.0         # delay-aware rule: nominal actuation delay [s]
-    margin_gain: float = 0.0       # delay-aware rule: E_{k+1} += margin_gain ||u_k - u_{k-1}||_inf
+    delay_hat: float = 0.0         # delay-aware rule: nominal actuation delay [s] of a received sample
+    margin_gain: float = 0.0       # ... and its margin: E_{k+1} += margin_gain ||u_k - u_{k-1}||_inf
+    delay_hat_lost: float = 0.0    # the same for a sample decided lost (u_k = 0 sent at the loss deadline)
+    margin_gain_lost: float = 0.0
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -281,6 +298,11 @@ class QuantizerParams:
     def mode_code(self) -> int:
         return MODES[self.mode]
 
+    @property
+    def dpar(self) -> np.ndarray:
+        """The delay-aware rule's parameters as ``zoom_update`` takes them."""
+        return np.array([self.delay_hat, self.margin_gain, self.delay_hat_lost, self.margin_gain_lost])
+
 
 class _End:
     """State shared by the encoder and the decoder: xi_k, E_k and the sample index k."""
@@ -294,6 +316,7 @@ class _End:
         self._p = plant.p
         self._opts = flow.as_array()
         self._Ks = np.empty((13, plant.n))
+        self._dpar = qp.dpar
         self._ytmp = np.empty(plant.n)
         self.k = 0
         self.xi = np.zeros(plant.n)  # xi_0 = 0
@@ -307,7 +330,7 @@ class _End:
         qp = self.qp
         E_next, st = zoom_update(self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
                                  self.xi, self.E, q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
-                                 qp.delay_hat, qp.margin_gain, self._Ks, self._ytmp, u_k, xi_next)
+                                 self._dpar, self._Ks, self._ytmp, u_k, xi_next)
         self.xi = xi_next
         self.E = float(E_next)
         self.u_prev = u_k

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import messages as msg
 from .io import recording as rec_io
 from .runsummary import ROLES, RunData, build_summary
 
@@ -57,6 +58,38 @@ def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
     else:
         out["budget"] = None
     return out
+
+
+def _actuation_section(sc, data: RunData, N: int) -> dict | None:
+    """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
+    if sc.run.timing != "physical":
+        return None
+    from .runsummary import percentiles
+
+    P = data.tele.get("plant", {})
+    tp = sc.timing_params
+    qp = sc.quantizer
+    recv, lost, arrival, late = [], [], [], 0
+    for k in range(N):
+        p = P.get(k)
+        if p is None:
+            continue
+        (lost if p.theta == 1 else recv).append(p.delay_ns)
+        if p.u_rx_ns != msg.NO_TIME and p.t_ns != msg.NO_TIME and p.theta == 0:
+            arrival.append(p.u_rx_ns - p.t_ns)
+            if sc.run.actuation == "scheduled" and p.theta == 0 and p.u_rx_ns - p.t_ns > int(tp[2]):
+                late += 1
+
+    def bound(d):
+        return None if d is None else {"nominal": d.nominal, "min": d.min, "max": d.max, "declared": d.declared}
+
+    return {"actuation": sc.run.actuation, "rule": qp.rule, "scheduled_delay_s": int(tp[2]) / 1e9,
+            "deadline_s": int(tp[3]) / 1e9, "loss_deadline_s": int(tp[4]) / 1e9,
+            "bound": bound(sc.run.delay), "bound_lost": bound(sc.run.delay_lost),
+            "delay_hat": qp.delay_hat, "margin_gain": qp.margin_gain, "delay_hat_lost": qp.delay_hat_lost,
+            "margin_gain_lost": qp.margin_gain_lost, "L_u": sc.L_u,
+            "delay_us": {"received": percentiles(recv), "lost": percentiles(lost)},
+            "arrival_us": percentiles(arrival), "late_for_schedule": late}
 
 
 def _agreement(data: RunData, N: int) -> dict:
@@ -111,6 +144,13 @@ def _report(path: str | Path | rec_io.Recording) -> dict:
     out["agreement"] = _agreement(data, N)
     out["saturation_events"] = [e.k for e in rec.events if e.kind == "saturation"]
     out["outcome"] = launcher.get("outcome", "simulated" if not live else None)
+    out["actuation"] = _actuation_section(sc, data, N)
+    from .resimulate import compare, recorded_run
+
+    try:
+        out["resimulation"] = compare(recorded_run(rec))
+    except Exception as e:  # noqa: BLE001 - the report stands without it; say why
+        out["resimulation"] = {"reproduced": None, "verdict": f"not resimulated: {type(e).__name__}: {e}"}
     last_t = (rec.last_log_time - rec.start.t0_ns) / 1e9 if rec.start and rec.last_log_time else None
     out["recording"] = {
         "path": str(path), "source": rec.source, "truncated": rec.truncated, "read_error": rec.read_error,
@@ -189,6 +229,21 @@ def print_text(s: dict) -> None:
         print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
         print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
         print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
+    act = s.get("actuation")
+    if act:
+        from .launcher import _fmt
+
+        print(f"  physical timing, {act['actuation']} actuation"
+              + (f" at t_k + {act['scheduled_delay_s'] * 1e3:g} ms" if act["actuation"] == "scheduled" else "")
+              + f", {act['rule']} rule (nominal delay {act['delay_hat'] * 1e3:g} ms, margin "
+                f"{act['margin_gain']:.3g} ||u_k - u_k-1||; lost samples {act['delay_hat_lost'] * 1e3:g} ms, "
+                f"margin {act['margin_gain_lost']:.3g})")
+        print(f"  u_k of a received sample arrived after t_k: {_fmt(act['arrival_us'])}"
+              + (f"; {act['late_for_schedule']} later than scheduled" if act["actuation"] == "scheduled" else ""))
+    rs = s.get("resimulation")
+    if rs:
+        print(f"  resimulation: {rs['verdict']}"
+              + (f" (max state error {rs['max_state_error']:.3g})" if rs.get("max_state_error") else ""))
     for f in s.get("faults") or []:
         print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
     if s.get("events"):

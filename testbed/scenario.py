@@ -139,17 +139,21 @@ class AttackSpec:
 
 @dataclass(frozen=True)
 class DelaySpec:
-    """``[run] delay``: the actuation delay bound [s] the delay-aware quantizer rule covers."""
+    """An actuation-delay bound [s] the delay-aware quantizer rule covers (``[run] delay``, ``delay_lost``)."""
 
     nominal: float
     min: float
     max: float
-    declared: bool = False     # written in the scenario (else the default: [0, d T], nominal at the middle)
+    declared: bool = False     # written in the scenario (else the default)
 
 
 @dataclass(frozen=True)
 class SimDelaySpec:
-    """``[run] sim_delay``: the delays delta_k of a simulated physical-timing run."""
+    """``[run] sim_delay``: how long u_k takes to reach the plant in a simulated physical-timing run.
+
+    The latency after t_k of a received sample's u_k (a lost sample's u_k = 0 leaves the
+    controller at its loss deadline and takes the same latency after it).
+    """
 
     kind: str = "constant"     # "constant" | "uniform" | "trace"
     value: float = 0.0         # constant
@@ -159,15 +163,16 @@ class SimDelaySpec:
     values: tuple[float, ...] = ()  # trace
 
     def draw(self, n_steps: int) -> np.ndarray:
-        """delta_k for k = 0..N-1 (a trace shorter than N is held at its last value)."""
+        """The latency of sample k = 0..N-1 in integer ns (a trace shorter than N holds its last value)."""
         if self.kind == "constant":
-            return np.full(n_steps, self.value)
-        if self.kind == "uniform":
-            return np.random.default_rng(self.seed).uniform(self.min, self.max, n_steps)
-        v = np.asarray(self.values, dtype=float)
-        out = np.full(n_steps, v[-1] if v.size else 0.0)
-        out[:min(n_steps, v.size)] = v[:n_steps]
-        return out
+            v = np.full(n_steps, self.value)
+        elif self.kind == "uniform":
+            v = np.random.default_rng(self.seed).uniform(self.min, self.max, n_steps)
+        else:
+            t = np.asarray(self.values, dtype=float)
+            v = np.full(n_steps, t[-1] if t.size else 0.0)
+            v[:min(n_steps, t.size)] = t[:n_steps]
+        return np.round(v * 1e9).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -176,8 +181,11 @@ class RunSpec:
     converge_tol: float = 1e-4
     timing: str = "ideal"          # live plant: "ideal" | "physical"
     deadline: float = 0.5          # live plant: fraction of T to wait for u_k
-    delay: DelaySpec | None = None          # physical timing: the bound of the delay-aware rule
-    sim_delay: SimDelaySpec | None = None   # physical timing: the simulator's delta_k
+    loss_fraction: float = 0.8     # the controller decides a sample lost at t_k + loss_fraction d T
+    actuation: str = "scheduled"   # physical timing: u_k acts at its scheduled instant | on arrival
+    delay: DelaySpec | None = None       # physical timing: a received sample's actuation delay (bound)
+    delay_lost: DelaySpec | None = None  # ... and a lost sample's (u_k = 0 from the loss deadline)
+    sim_delay: SimDelaySpec | None = None   # physical timing: the simulator's latency of u_k
 
 
 @dataclass(frozen=True)
@@ -229,13 +237,27 @@ class Scenario:
 
         return OdeProcess(self.make_plant(), self.flow)
 
-    def sim_delays(self, n_steps: int | None = None) -> np.ndarray | None:
-        """delta_k of a simulated run: None under ideal timing."""
+    def sim_latency(self, n_steps: int | None = None) -> np.ndarray | None:
+        """The latency [ns] of u_k in a simulated run (``[run] sim_delay``; None under ideal timing).
+
+        Default: a constant latency at the received sample's nominal actuation delay under
+        arrival actuation, and 0 under scheduled actuation (every u_k then acts on schedule).
+        """
         if self.run.timing != "physical":
             return None
         N = self.n_steps if n_steps is None else n_steps
-        spec = self.run.sim_delay or SimDelaySpec("constant", value=self.run.delay.nominal)
-        return np.minimum(spec.draw(N), self.run.deadline * self.T)
+        spec = self.run.sim_delay or SimDelaySpec(
+            "constant", value=self.run.delay.nominal if self.run.actuation == "arrival" else 0.0)
+        return spec.draw(N)
+
+    @property
+    def timing_params(self) -> np.ndarray:
+        """[physical, scheduled, delta_s, d T, loss deadline] in integer ns (``PlantProtocol``, the kernel)."""
+        r = self.run
+        Tn = int(round(self.T * 1e9))
+        sched = int(round(r.delay.nominal * 1e9)) if (r.timing == "physical" and r.delay) else 0
+        return np.array([int(r.timing == "physical"), int(r.actuation == "scheduled"), sched,
+                         int(r.deadline * Tn), int(r.loss_fraction * r.deadline * Tn)], dtype=np.int64)
 
     def theta(self, n_steps: int | None = None) -> np.ndarray | None:
         """theta_k of the offline schedule for k = 0..N-1 (None for an online attacker)."""
@@ -252,7 +274,8 @@ _KEYS = {
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
                   "allow_x0_outside", "rule", "L_u"},
     "controller": {"K", "lqr", "u_max"},
-    "run": {"duration", "converge_tol", "timing", "deadline", "delay", "sim_delay"},
+    "run": {"duration", "converge_tol", "timing", "deadline", "loss_fraction", "actuation", "delay",
+            "delay_lost", "sim_delay"},
     "flow": {"rtol", "atol", "x_max", "max_steps"},
 }
 
@@ -454,23 +477,49 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     rule = _str(ctx, "quantizer.rule", qt.get("rule", "delay-aware" if timing == "physical" else "paper"),
                 RULES)
 
-    # [run] delay: the bound the delay-aware rule covers; sim_delay: the simulator's delta_k
+    # [run] actuation, delay, delay_lost: when u_k acts (physical timing), and the bounds the
+    # delay-aware rule covers; sim_delay: the latency of u_k in a simulation
+    loss_fraction = _num(ctx, "run.loss_fraction", rt.get("loss_fraction", 0.8), positive=True)
+    if loss_fraction >= 1:
+        raise ctx.err("run.loss_fraction", f"must be < 1 (the loss deadline comes before the plant's), got "
+                                           f"{loss_fraction}")
+    actuation = _str(ctx, "run.actuation", rt.get("actuation", "scheduled"), ("scheduled", "arrival"))
     dT = deadline * T
-    delay = None
-    if "delay" in rt:
-        dt_ = _table(ctx, "run.delay", rt["delay"])
-        _unknown(ctx, "run.delay", dt_, {"nominal", "min", "max"})
-        lo = _num(ctx, "run.delay.min", dt_.get("min", 0.0), nonneg=True)
-        hi = _num(ctx, "run.delay.max", dt_.get("max", dT), nonneg=True)
-        nom = _num(ctx, "run.delay.nominal", dt_.get("nominal", 0.5 * (lo + hi)), nonneg=True)
+    t_loss = loss_fraction * dT
+
+    def bound(key, default_lo, default_nom, default_hi):
+        if key not in rt:
+            return DelaySpec(default_nom, default_lo, default_hi)
+        dt_ = _table(ctx, f"run.{key}", rt[key])
+        _unknown(ctx, f"run.{key}", dt_, {"nominal", "min", "max"})
+        nom = _num(ctx, f"run.{key}.nominal", dt_.get("nominal", default_nom), nonneg=True)
+        lo = _num(ctx, f"run.{key}.min", dt_.get("min", nom if actuation == "scheduled" else default_lo),
+                  nonneg=True)
+        hi = _num(ctx, f"run.{key}.max", dt_.get("max", nom if actuation == "scheduled" else default_hi),
+                  nonneg=True)
         if not lo <= nom <= hi:
-            raise ctx.err("run.delay", f"needs min <= nominal <= max, got {lo:g}, {nom:g}, {hi:g}")
+            raise ctx.err(f"run.{key}", f"needs min <= nominal <= max, got {lo:g}, {nom:g}, {hi:g}")
         if hi > dT * (1 + 1e-12):
-            raise ctx.err("run.delay.max", f"{hi:g} s is beyond the plant's deadline d T = {dT:g} s (u_k that "
-                                           "comes later is not used)")
-        delay = DelaySpec(nom, lo, hi, declared=True)
-    elif timing == "physical" or rule == "delay-aware":
-        delay = DelaySpec(0.5 * dT, 0.0, dT)
+            raise ctx.err(f"run.{key}.max", f"{hi:g} s is beyond the plant's deadline d T = {dT:g} s (a u_k "
+                                            "that comes later is not used)")
+        if actuation == "scheduled" and lo != nom:
+            raise ctx.err(f"run.{key}.min", "under scheduled actuation u_k never acts before its instant: "
+                                            "min = nominal")
+        return DelaySpec(nom, lo, hi, declared=True)
+
+    delay = delay_lost = None
+    if timing == "physical" or rule == "delay-aware":
+        if actuation == "scheduled":
+            delay = bound("delay", 0.4 * dT, 0.4 * dT, 0.4 * dT)
+            if "delay_lost" in rt:
+                raise ctx.err("run.delay_lost", "under scheduled actuation a lost sample's u_k = 0 acts at the "
+                                                "deadline d T: there is nothing to set")
+            delay_lost = DelaySpec(dT, dT, dT)
+        else:
+            delay = bound("delay", 0.0, 0.5 * t_loss, t_loss)
+            delay_lost = bound("delay_lost", t_loss, 0.5 * (t_loss + dT), dT)
+    elif "delay" in rt or "delay_lost" in rt:
+        raise ctx.err("run.delay", "applies to physical timing (timing = 'physical') or the delay-aware rule only")
     sim_delay = None
     if "sim_delay" in rt:
         sd = _table(ctx, "run.sim_delay", rt["sim_delay"])
@@ -478,13 +527,12 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         allowed = {"constant": {"kind", "value"}, "uniform": {"kind", "min", "max", "seed"},
                    "trace": {"kind", "values"}}[kind]
         _unknown(ctx, "run.sim_delay", sd, allowed)
-        base = delay or DelaySpec(0.0, 0.0, dT)
         if kind == "constant":
-            sim_delay = SimDelaySpec("constant", value=_num(ctx, "run.sim_delay.value",
-                                                              sd.get("value", base.nominal), nonneg=True))
+            sim_delay = SimDelaySpec("constant", value=_num(ctx, "run.sim_delay.value", sd.get("value", 0.0),
+                                                              nonneg=True))
         elif kind == "uniform":
-            lo = _num(ctx, "run.sim_delay.min", sd.get("min", base.min), nonneg=True)
-            hi = _num(ctx, "run.sim_delay.max", sd.get("max", base.max), nonneg=True)
+            lo = _num(ctx, "run.sim_delay.min", sd.get("min", 0.0), nonneg=True)
+            hi = _num(ctx, "run.sim_delay.max", sd.get("max", 0.0), nonneg=True)
             if lo > hi:
                 raise ctx.err("run.sim_delay", f"needs min <= max, got {lo:g}, {hi:g}")
             if "seed" not in sd:
@@ -495,23 +543,31 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         else:
             vals = sd.get("values")
             if not isinstance(vals, list) or not vals:
-                raise ctx.err("run.sim_delay.values", "must be a non-empty list of delays [s]")
+                raise ctx.err("run.sim_delay.values", "must be a non-empty list of latencies [s]")
             sim_delay = SimDelaySpec("trace", values=tuple(_num(ctx, "run.sim_delay.values", v, nonneg=True)
                                                            for v in vals))
         top = max([sim_delay.value, sim_delay.max, *sim_delay.values])
         if top > T:
-            raise ctx.err("run.sim_delay", f"a delay of {top:g} s is longer than the period T = {T:g} s")
-    margin, L_u = 0.0, 0.0
+            raise ctx.err("run.sim_delay", f"a latency of {top:g} s is longer than the period T = {T:g} s")
+    dpar = dict(delay_hat=0.0, margin_gain=0.0, delay_hat_lost=0.0, margin_gain_lost=0.0)
+    L_u = 0.0
     if rule == "delay-aware":
         region = float(getattr(model_obj, "lipschitz_region", math.inf))
         L_u = _num(ctx, "quantizer.L_u", qt["L_u"], nonneg=True) if "L_u" in qt else \
             float(model_obj.input_gain(region))
-        margin = delay_margin_gain(Lam, L_u, delay.nominal, delay.min, delay.max)
-    qp = QuantizerParams(T=T, M=M, L=L, E0=E0, mode=mode, zoom_out=zoom_out, E_min=E_min, rule=rule,
-                         delay_hat=delay.nominal if rule == "delay-aware" else 0.0, margin_gain=margin)
+        ns = lambda v: round(v * 1e9) / 1e9  # noqa: E731 - delays act in whole ns, as the live plant measures them
+        dpar = dict(delay_hat=ns(delay.nominal),
+                    margin_gain=delay_margin_gain(Lam, L_u, delay.nominal, delay.min, delay.max),
+                    delay_hat_lost=int(deadline * round(T * 1e9)) / 1e9 if actuation == "scheduled"
+                    else ns(delay_lost.nominal),
+                    margin_gain_lost=delay_margin_gain(Lam, L_u, delay_lost.nominal, delay_lost.min, delay_lost.max))
+    elif "L_u" in qt:
+        raise ctx.err("quantizer.L_u", "is used by the delay-aware rule only (rule = 'delay-aware')")
+    qp = QuantizerParams(T=T, M=M, L=L, E0=E0, mode=mode, zoom_out=zoom_out, E_min=E_min, rule=rule, **dpar)
     if duration < T:
         raise ctx.err("run.duration", f"shorter than one sampling period T = {T}")
-    run = RunSpec(duration=duration, converge_tol=tol, timing=timing, deadline=deadline, delay=delay,
+    run = RunSpec(duration=duration, converge_tol=tol, timing=timing, deadline=deadline,
+                  loss_fraction=loss_fraction, actuation=actuation, delay=delay, delay_lost=delay_lost,
                   sim_delay=sim_delay)
 
     # [controller] (designed on the model)
@@ -669,7 +725,8 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
-             "mode": ("quantizer", "mode"), "T": ("quantizer", "T")}
+             "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
+             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule")}
 
 
 def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:

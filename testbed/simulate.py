@@ -60,7 +60,7 @@ class SimResult:
     K: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
     reason: np.ndarray | None = None     # the controller's reason per sample (protocol.REASONS)
     withheld: np.ndarray | None = None   # the encoder withheld the symbol (a lost ack), (N,) bool
-    delays: np.ndarray | None = None     # physical timing: delta_k [s] (None: ideal timing)
+    delays: np.ndarray | None = None     # physical timing: delta_k [ns] (None: ideal timing)
     u_missing: np.ndarray | None = None  # u_k never reached the plant (u = 0 after the deadline)
     counters: dict = field(default_factory=dict)
 
@@ -130,7 +130,7 @@ class Replay:
     sensed : the encoder received x_k (False: the sensor message never reached it)
     withheld : the encoder withheld sample k (its ack for an earlier sample was late)
     u_missing : u_k never reached the plant: u_{k-1} held until the deadline, then 0
-    delays : physical timing: delta_k [s] as the plant measured it (None: ideal timing)
+    delays : physical timing: delta_k [ns] as the plant measured it (None: ideal timing)
     """
 
     reason: np.ndarray
@@ -141,8 +141,8 @@ class Replay:
 
 
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
-                  flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing: str = "ideal",
-                  delays=None, deadline: float = 0.5, u_max: float = math.inf, network: Network | None = None,
+                  flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
+                  u_max: float = math.inf, network: Network | None = None,
                   replay: Replay | None = None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
 
@@ -155,9 +155,11 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
 
     ``plant`` is the true plant (an ODE plant; or give ``process``, any true-plant
     process such as an FMU), ``model`` the plant model of the encoder's and decoder's
-    predictions (default: ``plant``).  ``delays``: physical timing, delta_k in seconds
-    (a scalar or (N,)).  ``replay``: re-run what a recording says happened (the
-    attacker is then ignored: theta_k follows the recorded decisions).
+    predictions (default: ``plant``).  ``timing``: ``Scenario.timing_params`` ([physical,
+    scheduled, delta_s, d T, loss deadline] in ns; None: ideal timing) and ``latency``
+    (ns, a scalar or (N,)): when u_k reaches the plant after t_k (a lost sample's after the
+    loss deadline).  ``replay``: re-run what a recording says happened (the attacker is
+    then ignored: theta_k follows the recorded decisions; delta_k is the recorded one).
     """
     model = plant if model is None else model
     n, m = model.n, model.m
@@ -168,13 +170,15 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     if process is None:
         process = OdeProcess(plant, flow)
     process.reset(np.asarray(x0, dtype=np.float64))
+    tpar = np.zeros(5, dtype=np.int64) if timing is None else np.asarray(timing, dtype=np.int64)
+    physical = bool(tpar[0])
     if replay is not None and replay.delays is not None:
-        delays = replay.delays
-        timing = "physical"
-    if delays is not None:
-        timing = "physical"
-        delays = np.broadcast_to(np.asarray(delays, dtype=np.float64), (N,))
-    pp = PlantProtocol(process, qp.T, timing=timing, deadline=deadline, u_max=u_max)
+        physical = True
+    pp = PlantProtocol(process, qp.T, timing="physical" if physical else "ideal",
+                       actuation="scheduled" if tpar[1] else "arrival", sched_ns=int(tpar[2]),
+                       deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max)
+    lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
+    delays = np.zeros(N, dtype=np.int64) if physical else None
     encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
     ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
     cb = ctlp.codebook
@@ -241,11 +245,23 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         d = decs[-1]
         # --- plant
         u_k, _fault = pp.check_input(d.u)
-        dk = 0.0 if delays is None else float(delays[k])
-        if replay is not None and replay.u_missing[k]:
-            u_k = None
+        dns = 0
+        if replay is not None:
+            if replay.u_missing[k]:
+                u_k = None
+            if physical:
+                dns = int(replay.delays[k])
+        elif physical:
+            arr = int(lat[k]) + (pp.loss_ns if d.theta == 1 else 0)
+            if arr > pp.deadline_ns:
+                u_k, dns = None, pp.deadline_ns
+            else:
+                dns = pp.delay_ns(arr, d.theta)
+        if u_k is None:
             u_missing[k] = True
-        st = pp.step(u_k, dk)
+        if physical:
+            delays[k] = dns
+        st = pp.step(u_k, dns)
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
@@ -257,7 +273,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      xi_dec=rec["xi_dec"][sl], E_dec=E_dec[sl], theta=theta[sl], symbols=symbols[sl],
                      saturated=sat[sl], x_final=process.x, flow_status=status, diverged_at=diverged_at, K=K,
                      reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl],
-                     delays=None if delays is None else np.array(delays[:last]),
+                     delays=None if delays is None else delays[:last].copy(),
                      counters={"encoder": encp.counters(), "controller": ctlp.counters(),
                                "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}})
 
@@ -270,7 +286,7 @@ _RHS_ARGS = ("rhs", "rhs_m")
 
 @nb.njit(cache=True)
 def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
-                  delay_hat, margin_gain, theta_tab, sched_idx, delay_tab, delay_idx,
+                  dpar, theta_tab, sched_idx, tpar, lat_tab, lat_idx,
                   greedy_params, g_init, score_kind, n_steps, record,
                   X_rec, E_rec, th_rec, x_final, E_final, status, stop_k, sat_count,
                   mismatch, max_norm, theta_count):
@@ -295,7 +311,8 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
     q_d = np.empty(n)
     gstate = np.empty(g_init.shape[0])
     use_greedy = greedy_params.shape[0] > 0  # (B, 5): one budget per trajectory
-    physical = delay_tab.shape[0] > 0        # (S, N) actuation delays: u_{k-1} held for delta_k
+    physical = tpar[0] == 1                  # physical timing: u_{k-1} held for delta_k (PlantProtocol)
+    u_app = np.empty(m)
     n_codes_box = M ** n
     for b in range(B):
         for i in range(n):
@@ -312,7 +329,7 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
             for i in range(gstate.shape[0]):
                 gstate[i] = g_init[i]
         srow = sched_idx[b]
-        drow = delay_idx[b] if physical else 0
+        drow = lat_idx[b] if physical else 0
         st = 0
         stop_k[b] = n_steps
         nsat = 0
@@ -360,9 +377,9 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                 control_input(Kgain, q_d, th, overflow, u)
                 # --- both ends: rules (xi), (E) on the model; each computes its own prediction
                 E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
-                                         M, sigma, E_min, delay_hat, margin_gain, K_s, ytmp, u_e, xi_e_n)
+                                         M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
                 E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
-                                         M, sigma, E_min, delay_hat, margin_gain, K_s, ytmp, u_d, xi_d_n)
+                                         M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
                 same = E_e_n == E_d_n
                 for i in range(n):
                     xi_e[i] = xi_e_n[i]
@@ -380,13 +397,23 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                     nmis += 1
             # --- the true plant: ideal timing phi_T(x_k, u_k); physical timing
             #     phi_{T - delta_k}(phi_delta_k(x_k, u_{k-1}), u_k)
-            if physical:
-                dk = delay_tab[drow, k]
+            if physical:  # PlantProtocol.delay_ns: arrival of u_k, then the actuation policy
+                arr = lat_tab[drow, k] + (tpar[4] if th == 1 else 0)
+                missing = arr > tpar[3]
+                if missing:
+                    dns = tpar[3]
+                elif tpar[1] == 1:
+                    dns = max(max(arr, 0), tpar[2] if th == 0 else tpar[3])
+                else:
+                    dns = max(arr, 0)
+                for r in range(m):
+                    u_app[r] = 0.0 if missing else u[r]
+                dk = dns / 1e9
                 st = flow_into(rhs, x, u_held, p, dk, opts, K_s, ytmp, xn)
                 if st == 0:
-                    st = flow_into(rhs, xn, u, p, T - dk, opts, K_s, ytmp, xn)
+                    st = flow_into(rhs, xn, u_app, p, T - dk, opts, K_s, ytmp, xn)
                 for r in range(m):
-                    u_held[r] = u[r]
+                    u_held[r] = u_app[r]
             else:
                 st = flow_into(rhs, x, u, p, T, opts, K_s, ytmp, xn)
             for i in range(n):
@@ -431,7 +458,7 @@ class BatchResult:
 
 
 def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=None, theta=None, sched_idx=None,
-                   delays=None, delay_idx=None, greedy_params=None, score: str = "state", mode: str | None = None,
+                   timing=None, latency=None, latency_idx=None, greedy_params=None, score: str = "state", mode: str | None = None,
                    record: bool = False, flow: FlowOptions = DEFAULT_FLOW,
                    specialize: bool = False) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
@@ -446,10 +473,11 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     theta : (S, N') 0/1 attack table, S schedules (rows shorter than N are padded
         with 0); ``sched_idx`` (B,) picks each trajectory's row (default: row b if
         S == B, else row 0).  None: no attack.
-    delays : physical timing: (D, N) actuation delays delta_k in seconds (0 <= delta_k
-        <= T; a scalar or (N,) is broadcast): the plant holds u_{k-1} on
-        [t_k, t_k + delta_k), then u_k.  ``delay_idx`` (B,) picks each trajectory's row
-        (default as for ``sched_idx``).  None: ideal timing (u_k acts from t_k).
+    timing : physical timing as ``Scenario.timing_params`` gives it ([physical, scheduled,
+        delta_s, d T, loss deadline] in ns); None: ideal timing (u_k acts from t_k)
+    latency : physical timing: (D, N) latencies [ns] of u_k after t_k (a lost sample's after
+        the loss deadline; a scalar or (N,) is broadcast), ``latency_idx`` (B,) picks each
+        trajectory's row (default as for ``sched_idx``)
     greedy_params : [kappa_F, rho_F, kappa_D, rho_D, threshold] (shape (5,), or (B, 5)
         for one budget per trajectory) to run the online greedy attacker instead (``score`` "state" or "E" is what it maximizes).
     mode : "ideal" | "resilient" | "none" (no quantization: the nominal loop);
@@ -482,23 +510,23 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         gp = np.ascontiguousarray(np.broadcast_to(gp, (B, 5)) if gp.ndim == 1 else gp)
         if gp.shape != (B, 5):
             raise ValueError(f"greedy_params must have shape (5,) or ({B}, 5), got {gp.shape}")
-    if delays is None:
-        dtab = np.zeros((0, 0))
-        delay_idx = np.zeros(B, dtype=np.int64)
+    if timing is None or int(timing[0]) == 0:
+        tpar = np.zeros(5, dtype=np.int64)
+        ltab = np.zeros((0, 0), dtype=np.int64)
+        latency_idx = np.zeros(B, dtype=np.int64)
     else:
-        dtab = np.asarray(delays, dtype=np.float64)
-        if dtab.ndim <= 1:
-            dtab = np.broadcast_to(dtab, (N,)).reshape(1, N)
-        dtab = np.ascontiguousarray(dtab)
-        if dtab.ndim != 2 or dtab.shape[1] < N:
-            raise ValueError(f"delays must have N = {N} columns, got shape {dtab.shape}")
-        if not (np.all(dtab[:, :N] >= 0.0) and np.all(dtab[:, :N] <= qp.T)):
-            raise ValueError(f"delays must lie in [0, T = {qp.T}]")
-        if delay_idx is None:
-            delay_idx = np.arange(B) if dtab.shape[0] == B else np.zeros(B, dtype=np.int64)
-        delay_idx = np.ascontiguousarray(np.broadcast_to(np.asarray(delay_idx, dtype=np.int64), (B,)))
-        if delay_idx.max() >= dtab.shape[0] or delay_idx.min() < 0:
-            raise ValueError("delay_idx points outside the delay table")
+        tpar = np.ascontiguousarray(np.asarray(timing, dtype=np.int64))
+        ltab = np.zeros(N, dtype=np.int64) if latency is None else np.asarray(latency, dtype=np.int64)
+        if ltab.ndim <= 1:
+            ltab = np.broadcast_to(ltab, (N,)).reshape(1, N)
+        ltab = np.ascontiguousarray(ltab)
+        if ltab.ndim != 2 or ltab.shape[1] < N:
+            raise ValueError(f"latency must have N = {N} columns, got shape {ltab.shape}")
+        if latency_idx is None:
+            latency_idx = np.arange(B) if ltab.shape[0] == B else np.zeros(B, dtype=np.int64)
+        latency_idx = np.ascontiguousarray(np.broadcast_to(np.asarray(latency_idx, dtype=np.int64), (B,)))
+        if latency_idx.max() >= ltab.shape[0] or latency_idx.min() < 0:
+            raise ValueError("latency_idx points outside the latency table")
     model = plant if model is None else model
     if (model.n, model.m) != (plant.n, plant.m):
         raise ValueError(f"model {model.name} (n={model.n}, m={model.m}) does not match plant {plant.name} "
@@ -514,8 +542,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     kind = "jit" if specialize else "cfunc"
     rhs, rhs_m = getattr(type(plant).rhs, kind), getattr(type(model).rhs, kind)
     _batch_kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
-                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), float(qp.delay_hat),
-                  float(qp.margin_gain), tab, sched_idx, dtab, delay_idx, gp, greedy_init(),
+                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, tab, sched_idx, tpar, ltab, latency_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
                   out["attacked"])
@@ -540,23 +567,24 @@ def in_nominal_roa(plant, K, T: float, X, horizon: float = 60.0, tol: float = 1e
 
 
 def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
-                      delays=None) -> SimResult:
+                      latency=None) -> SimResult:
     """Run a scenario (see ``testbed.scenario``) with the per-sample loop.
 
     The true plant is ``[plant]`` (``sc.make_process()``), the predictions use ``[model]``;
-    under physical timing delta_k comes from ``[run] sim_delay`` unless ``delays`` is given.
+    under physical timing the latency of u_k comes from ``[run] sim_delay`` unless
+    ``latency`` (ns) is given.
     """
     N = sc.n_steps if n_steps is None else int(n_steps)
     if sc.attack.online:
         att = OnlineAttacker(greedy_params=sc.attack.greedy_params(), score=sc.attack.score, T=sc.T)
     else:
         att = OnlineAttacker(theta=sc.theta(N), T=sc.T)
-    if delays is None:
-        delays = sc.sim_delays(N)
+    if latency is None:
+        latency = sc.sim_latency(N)
     process = sc.make_process()
     try:
         return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
-                             process=process, timing=sc.run.timing, delays=delays, deadline=sc.run.deadline,
+                             process=process, timing=sc.timing_params, latency=latency,
                              u_max=sc.controller.u_max, network=network)
     finally:
         process.close()

@@ -305,9 +305,10 @@ class Recording:
                    base_dir=base_dir, check_fmu=False)
         over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
         try:
-            return with_overrides(sc, json.loads(over)) if over else sc
+            sc = with_overrides(sc, json.loads(over)) if over else sc
         except ValueError as e:
             raise ScenarioError(f"{self.path}: recorded overrides: {e}") from None
+        return _with_resolved(sc, self.metadata.get("testbed.resolved"))
 
     def _resolve_plant(self, meta: dict, base_dir: str | None, prefix: str) -> dict | None:
         """Resolve the recorded plant (or model) reference, pinning the stored source when it is not importable."""
@@ -335,6 +336,32 @@ class Recording:
                   f"in {self.path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
                   file=sys.stderr)
         return status
+
+
+def _with_resolved(sc, meta: dict | None):
+    """``sc`` with the quantizer and timing the recorded run resolved (a later version's defaults
+    may differ: the recording's own values win)."""
+    import dataclasses
+
+    from ..quantizer import QuantizerParams
+    from ..scenario import DelaySpec, SimDelaySpec
+
+    if not meta:
+        return sc
+    try:
+        qd = json.loads(meta["quantizer"])
+        rd = json.loads(meta["run"])
+        qp = QuantizerParams(**qd)
+        for key, cls in (("delay", DelaySpec), ("delay_lost", DelaySpec), ("sim_delay", SimDelaySpec)):
+            if rd.get(key) is not None:
+                v = dict(rd[key])
+                if "values" in v:
+                    v["values"] = tuple(v["values"])
+                rd[key] = cls(**v)
+        run = dataclasses.replace(sc.run, **rd)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"unreadable testbed.resolved metadata: {e}") from None
+    return dataclasses.replace(sc, quantizer=qp, run=run)
 
 
 # the MCAP byte layout (the spec's records) that ``_records`` walks
@@ -541,10 +568,22 @@ def _dispatch(rec: Recording, topic: str, name: str, m, log_time: int) -> None:
         rec.loop[topic].append(schema.from_pb(m, name))
 
 
+def resolved_metadata(sc) -> dict[str, str]:
+    """What the run resolved from its scenario: the quantizer's parameters (the delay-aware rule's
+    nominal delays and margins included), the timing and its bounds (``testbed.resolved``)."""
+    import dataclasses
+
+    run = dataclasses.asdict(sc.run)
+    return {"quantizer": json.dumps(dataclasses.asdict(sc.quantizer)), "run": json.dumps(run),
+            "timing_params_ns": json.dumps([int(v) for v in sc.timing_params]), "L_u": json.dumps(sc.L_u),
+            "K": json.dumps(sc.K.tolist()), "u_max": json.dumps(sc.controller.u_max)}
+
+
 def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref: str | None = None,
                         extra: dict | None = None) -> None:
     """The metadata every recording starts with."""
     w.metadata("testbed.scenario", scenario_metadata(sc, ref))
+    w.metadata("testbed.resolved", resolved_metadata(sc))
     w.metadata("testbed.software", software_versions())
     run = {"source": source, "run_id": run_id, "host": platform.node(), "pid": str(os.getpid()),
            "command": " ".join(sys.argv), "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -585,18 +624,31 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
             attack_on = np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta.astype(bool)
         dropped_total = np.cumsum(theta)
         prev_on = False
+        delays = res.delays
+        u_missing = res.u_missing if res.u_missing is not None else np.zeros(N, dtype=bool)
+        withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
+        reasons = res.reason
         for k in range(N):
             tk = k * Tn
             lt = t0 + tk
             th = int(theta[k])
+            dk = 0 if delays is None else int(delays[k])
+            miss = bool(u_missing[k])
             w.write("/telemetry/plant", msg.PlantTelemetry(
-                k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=tk, delay_ns=0, theta=th, flags=0,
+                k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=msg.NO_TIME if miss else tk + dk, delay_ns=dk,
+                theta=msg.THETA_NONE if miss else th,
+                flags=(msg.PlantTelemetry.FLAG_NO_U | msg.PlantTelemetry.FLAG_MISS) if miss else 0,
                 flow_status=int(res.flow_status) if k == res.diverged_at else 0,
-                x=tuple(res.x[k]), u=tuple(res.u[k])), lt)
+                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k])), lt)
             sym = int(res.symbols[k])
-            w.write("/telemetry/encoder", msg.EncoderTelemetry(
-                k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym, saturated=int(res.saturated[k]), silent=0,
-                E=float(res.E_enc[k]), xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k])), lt)
+            if withheld[k]:
+                w.write("/telemetry/encoder", msg.EncoderTelemetry(
+                    k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=msg.NO_TIME, symbol=-1, saturated=0, silent=1,
+                    E=float("nan"), xi=(), q=()), lt)
+            else:
+                w.write("/telemetry/encoder", msg.EncoderTelemetry(
+                    k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym, saturated=int(res.saturated[k]),
+                    silent=0, E=float(res.E_enc[k]), xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k])), lt)
             if res.saturated[k]:
                 w.write("/events/encoder", msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
                                                      detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"), lt)
@@ -608,10 +660,12 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
                 w.write("/attacker/status", msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
                                                                forwarded=int(k + 1 - dropped_total[k])), lt)
                 prev_on = on
+            reason = (msg.ControllerTelemetry.DEADLINE if th else msg.ControllerTelemetry.RECEIVED) \
+                if reasons is None else int(reasons[k])
+            received = reason == msg.ControllerTelemetry.RECEIVED
             w.write("/telemetry/controller", msg.ControllerTelemetry(
-                k=k, sym_stamp_ns=msg.NO_TIME if th else tk, rx_ns=msg.NO_TIME if th else tk, tx_ns=tk,
-                symbol=-1 if th else sym, theta=th,
-                reason=msg.ControllerTelemetry.DEADLINE if th else msg.ControllerTelemetry.RECEIVED,
+                k=k, sym_stamp_ns=tk if received else msg.NO_TIME, rx_ns=tk if received else msg.NO_TIME, tx_ns=tk,
+                symbol=sym if received else -1, theta=th, reason=reason,
                 E=float(res.E_dec[k]), xi=tuple(res.xi_dec[k]), q=tuple(res.q[k]), u=tuple(res.u[k])), lt)
         tN = N * Tn
         w.write("/telemetry/plant", msg.PlantTelemetry(

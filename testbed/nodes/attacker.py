@@ -40,7 +40,10 @@ def parse_corrupt(spec: str | None) -> dict[int, str]:
         kind = kind or "range"
         if kind not in ("range", "length"):
             raise ValueError(f"--corrupt: kind must be 'range' or 'length', got {kind!r}")
-        out[int(k)] = kind
+        try:
+            out[int(k)] = kind
+        except ValueError:
+            raise ValueError(f"--corrupt: {k!r} is not a sample index") from None
     return out
 
 

@@ -50,25 +50,28 @@ class RunOptions:
     timing: str | None = None
     deadline: float | None = None
     mode: str | None = None
+    loss_fraction: float | None = None
+    actuation: str | None = None
+    rule: str | None = None
     ack_via_attacker: bool = False
+
+    _OVERRIDES = (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"), ("deadline", "--deadline"),
+                  ("mode", "--mode"), ("loss_fraction", "--loss-fraction"), ("actuation", "--actuation"),
+                  ("rule", "--rule"))
 
     @classmethod
     def from_args(cls, args) -> "RunOptions":
-        return cls(duration=getattr(args, "duration", None), T=getattr(args, "T", None),
-                   timing=getattr(args, "timing", None), deadline=getattr(args, "deadline", None),
-                   mode=getattr(args, "mode", None),
+        return cls(**{k: getattr(args, k, None) for k, _ in cls._OVERRIDES},
                    ack_via_attacker=bool(getattr(args, "ack_via_attacker", False)))
 
     def overrides(self) -> dict:
         """The scenario overrides (``testbed.scenario.with_overrides``), None fields left out."""
-        return {k: getattr(self, k) for k in ("duration", "T", "timing", "deadline", "mode")
-                if getattr(self, k) is not None}
+        return {k: getattr(self, k) for k, _ in self._OVERRIDES if getattr(self, k) is not None}
 
     def cli(self) -> list[str]:
         """The same options as command-line flags (for the launcher)."""
         out = []
-        for name, flag in (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"),
-                           ("deadline", "--deadline"), ("mode", "--mode")):
+        for name, flag in self._OVERRIDES:
             v = getattr(self, name)
             if v is not None:
                 out += [flag, repr(v) if isinstance(v, float) else str(v)]
@@ -77,8 +80,9 @@ class RunOptions:
         return out
 
 
-def add_run_option_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("run options (must be the same for every node of a run)")
+def add_run_option_arguments(p: argparse.ArgumentParser,
+                             title: str = "run options (must be the same for every node of a run)") -> None:
+    g = p.add_argument_group(title)
     g.add_argument("--duration", type=float, help="override [run] duration (seconds)")
     g.add_argument("--T", type=float, metavar="SECONDS",
                    help="override [quantizer] T, the sample period (re-validates the scenario)")
@@ -86,6 +90,11 @@ def add_run_option_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--deadline", type=float, metavar="FRACTION",
                    help="override [run] deadline (fraction of T the plant waits for u_k)")
     g.add_argument("--mode", choices=["ideal", "resilient"], help="override [quantizer] mode")
+    g.add_argument("--loss-fraction", type=float, metavar="C",
+                   help="override [run] loss_fraction: the controller declares sample k lost at t_k + C d T")
+    g.add_argument("--actuation", choices=["scheduled", "arrival"],
+                   help="override [run] actuation (physical timing: u_k acts at its scheduled instant or on arrival)")
+    g.add_argument("--rule", choices=["paper", "delay-aware"], help="override [quantizer] rule (the prediction rule)")
     g.add_argument("--ack-via-attacker", action="store_true",
                    help="route the controller's acks through the attacker proxy too")
 

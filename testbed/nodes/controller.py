@@ -38,8 +38,7 @@ class ControllerNode(Node):
         self._cond = threading.Condition()
         self.decode_time: list[int] = []
         self.net_latency: list[int] = []
-        frac = self.args.loss_fraction
-        self.loss_ns = int(frac * sc.run.deadline * ctx.T_ns)
+        self.loss_ns = int(sc.timing_params[4])  # t_k + loss_fraction d T
         self._sub = ctx.session.declare_subscriber(keys.symbol_rx, self.guard(self._on_symbol))
         ctx.on_peer(self._on_peer)
 

@@ -75,9 +75,6 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("encoder")
     g.add_argument("--ack-grace", type=float, metavar="FRACTION",
                    help="wait this fraction of T for a late ack before withholding (default 0.2 d)")
-    g = p.add_argument_group("controller")
-    g.add_argument("--loss-fraction", type=float, default=0.8, metavar="C",
-                   help="declare sample k lost at t_k + C d T (default %(default)s)")
     g = p.add_argument_group("attacker")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="fault injection: corrupt the payload of these samples")

@@ -150,7 +150,7 @@ class PlantNode(Node):
         physical = self.timing == "physical"
         proc = self.process
         proc.reset(np.array(sc.x0, dtype=np.float64))
-        pp = PlantProtocol(proc, sc.T, timing=self.timing, deadline=sc.run.deadline, u_max=sc.controller.u_max)
+        pp = PlantProtocol.for_scenario(sc, proc)
         tel = ctx.telemetry
         for k in range(N):
             if ctx.stop.is_set():
@@ -209,12 +209,13 @@ class PlantNode(Node):
             if jit > d_ns:
                 self.overruns += 1
             # -- integrate over [t_k, t_k+1)
-            if physical:
-                delay = min(max(u_rx - t_act, 0), d_ns) if u is not None else max(deadline - t_act, 0)
-                delay = min(delay, T_ns)
-            else:
+            if not physical:
                 delay = 0
-            st = pp.step(u, delay / 1e9)
+            elif u is not None:
+                delay = pp.delay_ns(u_rx - t_act, theta)
+            else:  # u_{k-1} held until the (nominal) deadline, then 0
+                delay = min(max(deadline - t_act, 0), T_ns)
+            st = pp.step(u, delay)
             u_applied = np.zeros(proc.m) if u is None else u
             tel.put(PT(k=k, t_ns=t_act, sensor_tx_ns=sensor_tx, u_rx_ns=u_rx, delay_ns=delay, theta=theta,
                        flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u_applied.tolist())).encode())
