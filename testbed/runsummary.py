@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .io import messages as msg
+from .simulate import json_clean as _clean
 
 ROLES = ("plant", "encoder", "attacker", "controller")
 PT = msg.PlantTelemetry
@@ -34,30 +35,6 @@ def percentiles(values, unit: float = 1e3) -> dict:
 
 def _nan(n: int) -> np.ndarray:
     return np.full(n, np.nan)
-
-
-def _all_finite_numbers(o: list) -> bool:
-    """A (nested) list of plain numbers without NaN or inf: nothing to clean (checked in C)."""
-    try:
-        a = np.asarray(o)
-    except ValueError:  # ragged
-        return False
-    if a.dtype.kind == "f":
-        return bool(np.isfinite(a).all())
-    return a.dtype.kind in "biu"
-
-
-def _clean(o):
-    """NaN -> None, recursively (JSON has no NaN)."""
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, list):
-        if len(o) > 64 and _all_finite_numbers(o):
-            return o
-        return [_clean(v) for v in o]
-    if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
-    return o
 
 
 def _agree_where_known(xi_e, E_e, xi_d, E_d) -> bool:

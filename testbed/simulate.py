@@ -253,7 +253,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                 dns = int(replay.delays[k])
         elif physical:
             arr = int(lat[k]) + (pp.loss_ns if d.theta == 1 else 0)
-            if arr > pp.deadline_ns:
+            if u_k is None or arr > pp.deadline_ns:  # u_{k-1} held until the deadline, then 0
                 u_k, dns = None, pp.deadline_ns
             else:
                 dns = pp.delay_ns(arr, d.theta)
@@ -286,7 +286,7 @@ _RHS_ARGS = ("rhs", "rhs_m")
 
 @nb.njit(cache=True)
 def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
-                  dpar, theta_tab, sched_idx, tpar, lat_tab, lat_idx,
+                  dpar, u_max, theta_tab, sched_idx, tpar, lat_tab, lat_idx,
                   greedy_params, g_init, score_kind, n_steps, record,
                   X_rec, E_rec, th_rec, x_final, E_final, status, stop_k, sat_count,
                   mismatch, max_norm, theta_count):
@@ -395,11 +395,24 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                 E_d = E_d_n
                 if not same:
                     nmis += 1
+            # --- the actuator (PlantProtocol.check_input): a non-finite u_k is not applied,
+            #     |u_k| is clamped to u_max
+            bad = False
+            for r in range(m):
+                if not math.isfinite(u[r]):
+                    bad = True
+                elif u[r] > u_max:
+                    u[r] = u_max
+                elif u[r] < -u_max:
+                    u[r] = -u_max
+            if bad:
+                for r in range(m):
+                    u[r] = 0.0
             # --- the true plant: ideal timing phi_T(x_k, u_k); physical timing
             #     phi_{T - delta_k}(phi_delta_k(x_k, u_{k-1}), u_k)
             if physical:  # PlantProtocol.delay_ns: arrival of u_k, then the actuation policy
                 arr = lat_tab[drow, k] + (tpar[4] if th == 1 else 0)
-                missing = arr > tpar[3]
+                missing = bad or arr > tpar[3]
                 if missing:
                     dns = tpar[3]
                 elif tpar[1] == 1:
@@ -458,9 +471,9 @@ class BatchResult:
 
 
 def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=None, theta=None, sched_idx=None,
-                   timing=None, latency=None, latency_idx=None, greedy_params=None, score: str = "state", mode: str | None = None,
-                   record: bool = False, flow: FlowOptions = DEFAULT_FLOW,
-                   specialize: bool = False) -> BatchResult:
+                   timing=None, latency=None, latency_idx=None, u_max: float = math.inf, greedy_params=None,
+                   score: str = "state", mode: str | None = None, record: bool = False,
+                   flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
 
     Parameters
@@ -478,6 +491,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     latency : physical timing: (D, N) latencies [ns] of u_k after t_k (a lost sample's after
         the loss deadline; a scalar or (N,) is broadcast), ``latency_idx`` (B,) picks each
         trajectory's row (default as for ``sched_idx``)
+    u_max : actuator limit: |u_k| is clamped to it (a non-finite u_k is not applied), as
+        the live plant does (``[controller] u_max``)
     greedy_params : [kappa_F, rho_F, kappa_D, rho_D, threshold] (shape (5,), or (B, 5)
         for one budget per trajectory) to run the online greedy attacker instead (``score`` "state" or "E" is what it maximizes).
     mode : "ideal" | "resilient" | "none" (no quantization: the nominal loop);
@@ -542,7 +557,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     kind = "jit" if specialize else "cfunc"
     rhs, rhs_m = getattr(type(plant).rhs, kind), getattr(type(model).rhs, kind)
     _batch_kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
-                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, tab, sched_idx, tpar, ltab, latency_idx, gp, greedy_init(),
+                  float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, float(u_max), tab, sched_idx, tpar, ltab, latency_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
                   out["attacked"])
@@ -590,6 +605,30 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
         process.close()
 
 
+def _all_finite_numbers(o: list) -> bool:
+    """A (nested) list of plain numbers without NaN or inf: nothing to clean (checked in C)."""
+    try:
+        a = np.asarray(o)
+    except ValueError:  # ragged
+        return False
+    if a.dtype.kind == "f":
+        return bool(np.isfinite(a).all())
+    return a.dtype.kind in "biu"
+
+
+def json_clean(o):
+    """NaN -> None, recursively (JSON has no NaN)."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, list):
+        if len(o) > 64 and _all_finite_numbers(o):
+            return o
+        return [json_clean(v) for v in o]
+    if isinstance(o, dict):
+        return {k: json_clean(v) for k, v in o.items()}
+    return o
+
+
 def summarize(sc, res: SimResult) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
@@ -604,7 +643,7 @@ def summarize(sc, res: SimResult) -> dict:
                                                    flow=sc.flow)[0])
     sch = res.intervals()
     cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
-    return {
+    return json_clean({
         "scenario": sc.name,
         "plant": sc.plant.name,
         "model": model.name,
@@ -639,4 +678,4 @@ def summarize(sc, res: SimResult) -> dict:
         "timing_mode": sc.run.timing,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),
-    }
+    })

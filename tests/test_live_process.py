@@ -226,6 +226,13 @@ def test_greedy_attacker_live_equals_simulator(run_id):
 
 
 # ====================================================================== faults
+def resimulated(s: dict) -> dict:
+    """``testbed resimulate --json`` of a live run's recording."""
+    rc, out, err = run_cli(tb_cmd("resimulate", s["recording"]["path"], "--json"))
+    assert rc in (0, 1), err
+    return json.loads(out)
+
+
 def test_malformed_and_out_of_range_payloads_are_losses(run_id):
     """The attacker corrupts samples 4 (out-of-range code) and 6 (wrong length)."""
     rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--corrupt", "4:range,6:length")
@@ -234,15 +241,13 @@ def test_malformed_and_out_of_range_payloads_are_losses(run_id):
     assert s["theta"][4] == 1 and s["theta"][6] == 1 and s["symbols"][4] != -1
     assert s["loss_reasons"]["invalid"] == 2
     assert [e["k"] for e in s["event_log"] if e["kind"] == "invalid_payload"] == [4, 6]
-    # the loop is exactly the simulator's with two extra losses
-    from testbed import scenario
-    from testbed.simulate import OnlineAttacker, simulate_loop
-
-    sc = scenario.load("paper")
-    th = sc.theta(30).copy()
-    th[[4, 6]] = 1
-    res = simulate_loop(sc.make_plant(), sc.K, sc.quantizer, sc.x0, 30, OnlineAttacker(theta=th, T=sc.T), sc.flow)
-    assert s["E"] == res.E_enc.tolist() and s["x"] == res.x.tolist()
+    # the loop is exactly the simulator's with the same corruption
+    rc, out, err = run_cli(tb_cmd("simulate", "paper", "--duration", "3", "--corrupt", "4:range,6:length", "--json"))
+    sim = json.loads(out)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], key
+    r = resimulated(s)
+    assert r["reproduced"] and r["max_state_error"] == 0 and r["symbols_identical"] and r["E_identical"]
 
 
 def test_garbage_on_the_wire_is_counted(run_id):
@@ -379,17 +384,40 @@ def test_ack_through_the_attacker_keeps_lockstep(run_id):
     assert len(known) == s["samples"] - len(s["withheld_at"]) > 30
     assert all(s["E"][k] == s["E_dec"][k] and s["xi"][k] == s["xi_dec"][k] for k in known)
     assert s["encoder_decoder_agree_where_known"] is True
-    # withholding happens only while the jammer is on (or right after)
+    # withholding happens only while the jammer is on (or right after), exactly as the simulator says
     assert set(s["withheld_at"]) <= set(range(10, 24)) | set(range(40, 50))
     assert s["saturations"] == 0
+    rc, out, err = run_cli(tb_cmd("simulate", "paper", "--duration", "6", "--ack-via-attacker", "--json"))
+    sim = json.loads(out)
+    for key in ("withheld_at", "symbols", "theta", "E", "E_dec", "x", "u"):
+        assert s[key] == sim[key], key
+    r = resimulated(s)
+    assert r["reproduced"] and r["max_state_error"] == 0 and r["symbols_identical"] and r["E_identical"]
 
 
-def test_physical_timing_survives_latency(run_id, tmp_path):
-    """u_k acts when it arrives: the latency is model mismatch, answered by the saturation protocol.
+def test_physical_timing_converges_on_the_paper_and_resimulates(run_id):
+    """The paper's scenario and attacks with u_k acting at a real instant: scheduled actuation,
+    the delay-aware rule; it converges, and the recording re-simulates exactly."""
+    rc, s, err = live_exact(run_id, "paper", "--duration", "30", "--timing", "physical")
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["timing_mode"] == "physical" and s["complete"] and s["rule"] == "delay-aware"
+    assert s["converged"] and s["final_norm"] < 1e-4, s["final_norm"]
+    assert s["encoder_decoder_agree_where_known"] is True
+    r = resimulated(s)
+    assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
+    # with no stall, u_k acted exactly on schedule: the live run is the simulator's, bit for bit
+    rc, out, err = run_cli(tb_cmd("simulate", "paper", "--timing", "physical", "--json"))
+    sim = json.loads(out)
+    late = s["timing"]["sensor_to_actuator_us"]["max"] > 20_000  # received samples: scheduled at 20 ms
+    if not late:
+        for key in ("symbols", "theta", "E", "x"):
+            assert s[key] == sim[key], key
 
-    Without DoS (the paper's loop, attack removed), x_k leaves Q(xi_k, E_k) whenever
-    E_k has zoomed in below the mismatch; the encoder sends OVERFLOW, both ends zoom
-    out in lockstep and the state keeps decaying.
+
+def test_physical_timing_on_arrival_survives_latency(run_id, tmp_path):
+    """u_k acts when it arrives, the paper's rule: the latency is model mismatch, answered by the
+    saturation protocol.  Without DoS, x_k leaves Q(xi_k, E_k) whenever E_k has zoomed in below the
+    mismatch; the encoder sends OVERFLOW, both ends zoom out in lockstep and the state keeps decaying.
     """
     from testbed import scenario
 
@@ -397,7 +425,8 @@ def test_physical_timing_survives_latency(run_id, tmp_path):
     text = "\n".join(line for line in text.splitlines() if not line.startswith("intervals"))
     f = tmp_path / "paper-no-dos.toml"
     f.write_text(text)
-    rc, s, err = live_exact(run_id, str(f), "--duration", "6", "--timing", "physical")
+    rc, s, err = live_exact(run_id, str(f), "--duration", "6", "--timing", "physical", "--actuation", "arrival",
+                            "--rule", "paper")
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["timing_mode"] == "physical" and s["complete"]
     assert s["encoder_decoder_agree"] is True
@@ -406,6 +435,8 @@ def test_physical_timing_survives_latency(run_id, tmp_path):
     # every saturation was answered with the OVERFLOW codeword (M^n = 36), u_k = 0 there
     assert all(s["symbols"][k] == 36 and s["u"][k] == [0.0] for k in s["saturated_at"])
     assert not s["diverged"] and s["final_norm"] < 0.1
+    r = resimulated(s)
+    assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
 
 
 def test_standalone_nodes(run_id):

