@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numba as nb
 import numpy as np
@@ -69,6 +69,9 @@ class Plant:
     name: ClassVar[str] = ""
     rhs: ClassVar[Any] = None
     description: ClassVar[str] = ""
+    #: the radius r of the box ||x||_inf <= r on which the plant's Lipschitz bound L
+    #: (Assumption 1) is meant; inf: not stated (``testbed check-plant`` then uses a default)
+    lipschitz_region: ClassVar[float] = float("inf")
 
     # -- to be provided by subclasses -------------------------------------------------
     @property
@@ -245,3 +248,45 @@ class Plant:
             res = minimize(lambda z: -float(ratio(z)[0]), Z[k], method="L-BFGS-B", bounds=bounds)
             best = max(best, -float(res.fun))
         return best
+
+
+class PlantFault(RuntimeError):
+    """The true plant failed while it ran (an FMU step that failed, a variable it lost), one line."""
+
+
+@runtime_checkable
+class PlantProcess(Protocol):
+    """The true plant as a process that is stepped in time: what the simulator and the live plant node hold.
+
+    A plant of equation (1) integrated by ``testbed.flow`` and a co-simulation FMU
+    (``plants.fmu.FMUPlant``) both present it.  Between sampling instants the input
+    u is held (zero-order hold), so one sampling period is ``advance(u_k, T)``; a
+    delayed actuation splits the period into two ``advance`` calls.
+
+    Members
+    -------
+    n, m : int
+        State and input dimensions.
+    reset(x0)
+        (Re)initialize at state x0, time 0 (an FMU: instantiate, set the state
+        variables in initialization mode, exit initialization mode).
+    advance(u, dt) -> int
+        Hold u for dt seconds; returns 0 when the step succeeded, raises
+        ``PlantFault`` when it did not.  dt = 0 is a no-op.
+    x : np.ndarray
+        A copy of the current state.
+    close()
+        Release what the plant holds (an FMU instance, its library, its files).
+    """
+
+    n: int
+    m: int
+
+    def reset(self, x0: np.ndarray) -> None: ...
+
+    def advance(self, u: np.ndarray, dt: float) -> int: ...
+
+    @property
+    def x(self) -> np.ndarray: ...
+
+    def close(self) -> None: ...

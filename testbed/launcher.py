@@ -457,6 +457,14 @@ def _fmt(p: dict | None) -> str:
 
 
 def print_text(s: dict) -> None:
+    if not s.get("samples"):  # nothing ran: no loop figures to show, only why
+        print(f"run {s['run_id']}: scenario {s.get('scenario')}: the run NEVER STARTED (outcome: {s['outcome']})")
+        for f in s["faults"]:
+            print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
+                  + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+        if s.get("run_dir"):
+            print(f"  node logs: {s['run_dir']}")
+        return
     tm = s["timing"]
     verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
     print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "

@@ -13,7 +13,12 @@ the same thing here.  Added beside them:
   checked against the scenario's declared budget when it has one;
 * ``agreement``: encoder and decoder xi_k, E_k compared at every sample;
 * ``saturation_events``, ``dropped_by_attacker``, ``recording`` (source,
-  truncation, message counts, software versions).
+  truncation, message counts, software versions);
+* ``plant_source``: how the plant module was loaded, ``{"ref", "sha256",
+  "loaded_from": "import" | "recording", "differs", ...}`` (None for recordings
+  that store no plant module), and ``model_source`` the same for a ``[model]`` of
+  another class.  The stored source is used only when the module cannot be
+  imported, and then the report says so.
 
 Exit codes: 0 report written, 2 unreadable file or no scenario in it.
 """
@@ -155,6 +160,8 @@ def _report(path: str | Path | rec_io.Recording) -> dict:
         "recorder": rec.metadata.get("testbed.recorder"), "scenario_ref": rec.metadata.get("testbed.scenario", {}).get("ref"),
         "overrides": json.loads(runmeta.get("scenario_overrides", "{}") or "{}"),
     }
+    out["plant_source"] = rec.plant_source
+    out["model_source"] = rec.model_source
     return out
 
 
@@ -182,6 +189,14 @@ def print_text(s: dict) -> None:
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
+    for what in ("plant", "model"):
+        ps = s.get(f"{what}_source")
+        if ps and ps["loaded_from"] == "recording":
+            print(f"  {what} {ps['ref']}: module {ps.get('module')!r} not importable; used the source stored in the "
+                  f"recording (sha256 {ps['sha256'][:12]})")
+        elif ps and ps["differs"]:
+            print(f"  {what} {ps['ref']}: the importable module {ps.get('module')!r} DIFFERS from the recorded one "
+                  f"(sha256 {(ps['importable_sha256'] or '')[:12]} now, {ps['sha256'][:12]} recorded)")
     fn = s.get("final_norm")
     if s["samples"] == 0:
         print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")

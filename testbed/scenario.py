@@ -34,24 +34,63 @@ class ScenarioError(BadInput):
 # ----------------------------------------------------------------------------- dataclasses
 @dataclass(frozen=True)
 class PlantSpec:
-    name: str
+    name: str                      # the plant's display name (its class's ``name``; "fmu:FILE" for an FMU)
     params: tuple[tuple[str, Any], ...]
     x0: tuple[float, ...]
+    ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
+    base_dir: str = ""             # the scenario file's folder ("" for bundled scenarios and strings)
+    fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
 
     def make(self) -> plants.Plant:
-        return plants.make(self.name, **dict(self.params))
+        if self.fmu is not None:
+            raise ScenarioError(f"the plant is the FMU {self.fmu.path}: it has no equation (1) object "
+                                "(the [model] section gives one)")
+        return plants.make(self.ref or self.name, self.base_dir or None, **dict(self.params))
+
+    def source_info(self) -> dict[str, str]:
+        """The plant module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (``plants.refs.source_info``).
+
+        For an FMU: its ``file`` and the sha256 of the file (no source)."""
+        if self.fmu is not None:
+            import hashlib
+
+            try:
+                sha = hashlib.sha256(Path(self.fmu.path).read_bytes()).hexdigest()
+            except OSError:
+                sha = ""
+            return {"module": "", "class": "", "file": self.fmu.path, "source": "", "sha256": sha}
+        from plants.refs import source_info
+
+        return source_info(plants.resolve(self.ref or self.name, self.base_dir or None))
+
+
+@dataclass(frozen=True)
+class FMUSpec:
+    """``[plant] fmu = "plant.fmu"``, ``inputs = [...]``, ``states = [...]``, ``params = {...}``."""
+    path: str                                  # absolute (resolved against the scenario's folder)
+    inputs: tuple[str, ...]
+    states: tuple[str, ...]
+    params: tuple[tuple[str, Any], ...] = ()
+    checked: bool = True                       # False: read from a recording, the file not looked at
+
+    def open(self):
+        """The FMU as a ``plants.PlantProcess`` (``plants.fmu.FMUPlant``)."""
+        from plants.fmu import FMUPlant
+
+        return FMUPlant(self.path, inputs=self.inputs, states=self.states, params=dict(self.params))
 
 
 @dataclass(frozen=True)
 class ModelSpec:
     """``[model]``: the plant model of the predictions (rule (xi)), the LQR design and the analysis."""
 
-    name: str
+    name: str                  # a plant reference, resolved as [plant] name is
     params: tuple[tuple[str, Any], ...]
     explicit: bool = False     # the scenario has a [model] section
+    base_dir: str = ""         # the scenario file's folder
 
     def make(self) -> plants.Plant:
-        return plants.make(self.name, **dict(self.params))
+        return plants.make(self.name, self.base_dir or None, **dict(self.params))
 
 
 @dataclass(frozen=True)
@@ -163,6 +202,7 @@ class Scenario:
     description: str = ""  # one line (``testbed scenarios``)
     model: ModelSpec | None = None   # [model] (defaults to [plant]'s)
     L_u: float = 0.0       # input gain of the model (delay-aware rule)
+    base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
 
     @property
     def T(self) -> float:
@@ -186,10 +226,13 @@ class Scenario:
 
     def make_model(self) -> plants.Plant:
         """The plant model ([model], default [plant]): the predictions, the LQR design, the analysis."""
-        return (self.model or ModelSpec(self.plant.name, self.plant.params)).make()
+        return (self.model or ModelSpec(self.plant.ref or self.plant.name, self.plant.params,
+                                        base_dir=self.plant.base_dir)).make()
 
     def make_process(self):
-        """The true plant as it advances in time (``plants.base.PlantProcess``)."""
+        """The true plant as it advances in time (``plants.base.PlantProcess``): an ODE plant or an FMU."""
+        if self.plant.fmu is not None:
+            return self.plant.fmu.open()
         from .protocol import OdeProcess
 
         return OdeProcess(self.make_plant(), self.flow)
@@ -226,7 +269,7 @@ class Scenario:
 # ----------------------------------------------------------------------------- validation
 _SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
 _KEYS = {
-    "plant": {"name", "params", "x0"},
+    "plant": {"name", "params", "x0", "fmu", "inputs", "states"},
     "model": {"name", "params"},
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
                   "allow_x0_outside", "rule", "L_u"},
@@ -307,17 +350,25 @@ def _table(ctx, key, v) -> dict:
     return v
 
 
-def _make_plant(ctx, key, name, params) -> plants.Plant:
-    if not isinstance(name, str):
-        raise ctx.err(f"{key}.name", f"must be a string, got {name!r}")
+def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
+    """A plant from a reference (registered name, entry point or "module:Class", see ``plants.refs``)."""
+    if not isinstance(name, str) or not name:
+        raise ctx.err(f"{key}.name", f"must be a non-empty string, got {name!r}")
     try:
-        return plants.make(name, **params)
+        return plants.instantiate(plants.resolve(name, base_dir or None), name, params)
     except ValueError as e:
         raise ctx.err(key, str(e)) from None
 
 
-def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "") -> Scenario:
-    """Validate a parsed TOML document and build a Scenario."""
+def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
+              base_dir: str | Path | None = None, check_fmu: bool = True) -> Scenario:
+    """Validate a parsed TOML document and build a Scenario.
+
+    ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
+    from there first and an FMU path is relative to it.  ``check_fmu=False`` skips
+    reading an FMU plant's file (a recording's scenario: the report needs only the model).
+    """
+    base_dir = str(Path(base_dir).resolve()) if base_dir else ""
     ctx = _Ctx(where)
     if not isinstance(data, dict):
         raise ctx.err("", "scenario must be a TOML table")
@@ -334,11 +385,26 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     # [plant]: the true plant
     pt = data["plant"]
     _unknown(ctx, "plant", pt, _KEYS["plant"])
-    if "name" not in pt:
-        raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())}")
     params = _table(ctx, "plant.params", pt.get("params", {}))
-    plant = _make_plant(ctx, "plant", pt["name"], params)
-    n, m = plant.n, plant.m
+    fmu = None
+    if "fmu" in pt:
+        fmu = _fmu_spec(ctx, pt, params, base_dir, check_fmu)
+        if "model" not in data:
+            raise ctx.err("plant.fmu", "an FMU plant needs a [model] section: the model (name, params) the "
+                          "quantizer predicts with and the controller is designed on")
+        plant = None
+        n, m = len(fmu.states), len(fmu.inputs)
+        plant_name = f"fmu:{Path(fmu.path).name}"
+    else:
+        if "name" not in pt:
+            raise ctx.err("plant.name", f"missing; registered plants: {', '.join(plants.names())} (or "
+                          "'module.path:ClassName', or fmu = \"file.fmu\")")
+        for k in ("inputs", "states"):
+            if k in pt:
+                raise ctx.err(f"plant.{k}", "only with fmu = \"file.fmu\"")
+        plant = _make_plant(ctx, "plant", pt["name"], params, base_dir)
+        n, m = plant.n, plant.m
+        plant_name = plant.name or type(plant).__name__
     if "x0" not in pt:
         raise ctx.err("plant.x0", "missing")
     x0 = _matrix(ctx, "plant.x0", [pt["x0"]], (1, n))[0]
@@ -347,19 +413,21 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     if "model" in data:
         mt = _table(ctx, "model", data["model"])
         _unknown(ctx, "model", mt, _KEYS["model"])
-        mname = mt.get("name", pt["name"])
+        if fmu is not None and "name" not in mt:
+            raise ctx.err("model.name", "missing: an FMU plant has no equations to default to")
+        mname = mt.get("name", pt.get("name"))
         if "params" in mt:
             mparams = _table(ctx, "model.params", mt["params"])
         else:
-            mparams = params if mname == pt["name"] else {}
-        model_obj = _make_plant(ctx, "model", mname, mparams)
+            mparams = params if mname == pt.get("name") else {}
+        model_obj = _make_plant(ctx, "model", mname, mparams, base_dir)
         if (model_obj.n, model_obj.m) != (n, m):
             raise ctx.err("model", f"{model_obj.name} has n = {model_obj.n}, m = {model_obj.m}; the plant "
-                                   f"{plant.name} has n = {n}, m = {m}")
-        model = ModelSpec(model_obj.name, _freeze(mparams), explicit=True)
+                                   f"{plant_name} has n = {n}, m = {m}")
+        model = ModelSpec(mname, _freeze(mparams), explicit=True, base_dir=base_dir)
     else:
         model_obj = plant
-        model = ModelSpec(plant.name, _freeze(params))
+        model = ModelSpec(pt["name"], _freeze(params), base_dir=base_dir)
 
     # [run] (its timing decides the quantizer's default rule)
     rt = data["run"]
@@ -563,15 +631,45 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     flow = FlowOptions(**{k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
                           for k, v in ft.items()})
 
-    sc = Scenario(name=name, plant=PlantSpec(plant.name, _freeze(params), x0), quantizer=qp,
+    spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu)
+    sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
-                  description=description, model=model, L_u=L_u)
+                  description=description, model=model, L_u=L_u, base_dir=base_dir)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
     except (ValueError, TypeError, KeyError) as e:
         raise ctx.err("attack", str(e)) from None
     return sc
+
+
+def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) -> FMUSpec:
+    """``[plant] fmu``, ``inputs``, ``states``, ``params``, checked against the FMU's model description."""
+    if "name" in pt:
+        raise ctx.err("plant", "give either name = \"...\" or fmu = \"file.fmu\", not both")
+    f = pt["fmu"]
+    if not isinstance(f, str) or not f:
+        raise ctx.err("plant.fmu", f"must be a path to an .fmu file, got {f!r}")
+    path = Path(f).expanduser()
+    if not path.is_absolute():
+        path = Path(base_dir or ".") / path
+    lists = {}
+    for k in ("inputs", "states"):
+        v = pt.get(k)
+        if not isinstance(v, list) or not v or not all(isinstance(x, str) and x for x in v):
+            raise ctx.err(f"plant.{k}", f"must be a non-empty list of the FMU's variable names, got {v!r}")
+        if len(set(v)) != len(v):
+            raise ctx.err(f"plant.{k}", f"names a variable twice: {v}")
+        lists[k] = tuple(v)
+    if check:
+        from plants.fmu import FMUError, describe
+
+        try:
+            describe(str(path.resolve()), inputs=lists["inputs"], states=lists["states"], params=params)
+        except FMUError as e:
+            raise ctx.err("plant.fmu", str(e)) from None
+    return FMUSpec(path=str(path.resolve()), inputs=lists["inputs"], states=lists["states"],
+                   params=_freeze(params), checked=check)
 
 
 def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
@@ -604,23 +702,25 @@ def load(ref: str | Path) -> Scenario:
         if not p.is_file():
             raise ScenarioError(f"{ref}: no such scenario file (bundled: {', '.join(bundled_names())})")
         text = p.read_text()
-        name, where = p.stem, str(p)
+        name, where, base_dir = p.stem, str(p), str(p.resolve().parent)
     else:
         res = resources.files("testbed").joinpath(BUNDLED_DIR, f"{ref}.toml")
         if not res.is_file():
             raise ScenarioError(f"{ref!r} is neither a scenario file nor a bundled scenario "
                                 f"(bundled: {', '.join(bundled_names())})")
         text = res.read_text()
-        name, where = str(ref), f"bundled:{ref}"
-    return loads(text, name=name, where=where)
+        name, where, base_dir = str(ref), f"bundled:{ref}", None
+    return loads(text, name=name, where=where, base_dir=base_dir)
 
 
-def loads(text: str, *, name: str = "scenario", where: str = "<string>") -> Scenario:
+def loads(text: str, *, name: str = "scenario", where: str = "<string>",
+          base_dir: str | Path | None = None, check_fmu: bool = True) -> Scenario:
+    """A scenario from TOML text; ``base_dir``, ``check_fmu`` as in ``from_dict``."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
-    return from_dict(data, name=name, where=where, source=text)
+    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir, check_fmu=check_fmu)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
@@ -644,5 +744,6 @@ def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
     for k, v in over.items():
         table, key = OVERRIDES[k]
         data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) else v
-    sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source)
+    sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
+                    base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked)
     return dataclasses.replace(sc2, path=sc.path)

@@ -17,3 +17,15 @@ def paper():
     from testbed import scenario
 
     return scenario.load("paper")
+
+
+@pytest.fixture(scope="session")
+def lienard_fmu(tmp_path_factory):
+    """The test FMU of the Lienard plant (tests/fmu: C source built with gcc against fmpy's FMI headers)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("testbed_test_fmu_build", Path(__file__).parent / "fmu" / "build.py")
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    return build.build(tmp_path_factory.mktemp("fmu") / "lienard.fmu")

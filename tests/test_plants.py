@@ -5,45 +5,66 @@ import pytest
 from numpy.testing import assert_allclose
 
 import plants
+from testbed.plantcheck import check_plant
 
 ALL = plants.names()
 
 
 @pytest.mark.parametrize("name", ALL)
 def test_contract(name):
+    """The contract of testbed.plantcheck (the checks testbed check-plant runs) on every registered plant.
+
+    Assumption 2 depends on the scenario's L, T, M: it is checked with each plant's bundled scenario.
+    """
     p = plants.make(name)
-    n, m = p.n, p.m
-    assert n >= 1 and m >= 1
-    # equilibrium at the origin
-    assert_allclose(p.f(p.x_eq, p.u_eq), np.zeros(n), atol=1e-14)
-    # vectorized f over a batch equals f one by one, shapes right, finite, repeatable
-    rng = np.random.default_rng(0)
-    X = rng.uniform(-0.5, 0.5, (64, n))
-    U = rng.uniform(-1, 1, (64, m))
-    F = p.f(X, U)
-    assert F.shape == (64, n)
-    assert np.all(np.isfinite(F))
-    for i in range(0, 64, 7):
-        assert_allclose(p.f(X[i], U[i]), F[i], rtol=0, atol=0)
-    assert_allclose(p.f(X, U), F, rtol=0, atol=0)
-    # broadcast: one state, many inputs
-    assert p.f(X[0], U).shape == (64, n)
-    # linearization against central finite differences
+    checks = {c.name: c for c in check_plant(p, grid=21)}
+    assert list(checks) == ["shapes", "equilibrium", "jacobian", "remainder", "lipschitz", "assumption2",
+                            "stabilizable"]
+    for c in checks.values():
+        if c.name != "assumption2":
+            assert c.ok, f"{name}: {c.name}: {c.detail}"
+    # the analytic linearization within 1e-6 of central finite differences (absolute)
     A, B = p.linearization()
-    assert A.shape == (n, n) and B.shape == (n, m)
     Jx, Ju = p.jacobian_fd()
     assert_allclose(A, Jx, atol=1e-6)
     assert_allclose(B, Ju, atol=1e-6)
-    # remainder g vanishes faster than linearly at the origin
-    x = np.full(n, 1e-3)
-    u = np.full(m, 1e-3)
-    assert np.max(np.abs(p.remainder(x, u))) <= 1e-4 * 1e-3
     # the origin of the linearization is unstable for the bundled nonlinear plants
     if name != "linear":
         assert np.max(np.linalg.eigvals(A).real) > 0
     # Lipschitz estimate is positive and finite on a small box
     L = p.lipschitz(0.2, u_bound=1.0, grid=9)
     assert 0 < L < np.inf
+
+
+@pytest.mark.parametrize("scenario", ["paper", "pendulum", "cartpole"])
+def test_contract_with_bundled_scenario(scenario):
+    from testbed import scenario as scn
+
+    sc = scn.load(scenario)
+    q = sc.quantizer
+    checks = check_plant(sc.make_plant(), L=q.L, T=q.T, M=q.M, grid=21)
+    assert all(c.ok for c in checks), [c for c in checks if not c.ok]
+
+
+def test_check_plant_finds_faults():
+    """Each check fails on a plant broken in its way (the verdict names it)."""
+    lin = plants.make("linear", A=[[0.0, 1.0], [2.0, -1.0]], B=[[0.0], [1.0]])
+
+    class WrongA(type(lin)):
+        def linearization(self):
+            A, B = super().linearization()
+            return A + np.array([[0.0, 0.0], [0.5, 0.0]]), B
+
+    bad = {c.name: c for c in check_plant(WrongA(lin.A_, lin.B_))}
+    assert not bad["jacobian"].ok and "A_fd" in bad["jacobian"].detail
+    assert all(c.ok for n, c in bad.items() if n not in ("jacobian", "remainder"))
+    # uncontrollable unstable mode: x2' = x2, u enters x1 only
+    unstab = plants.make("linear", A=[[-1.0, 0.0], [0.0, 1.0]], B=[[1.0], [0.0]])
+    c = {c.name: c for c in check_plant(unstab)}
+    assert not c["stabilizable"].ok and "uncontrollable" in c["stabilizable"].detail
+    # Lipschitz above the stated L, and Assumption 2 broken by that L
+    c = {c.name: c for c in check_plant(plants.make("lienard"), L=5.0, T=0.5, M=6)}
+    assert not c["lipschitz"].ok and not c["assumption2"].ok
 
 
 def test_registry_errors():

@@ -23,7 +23,7 @@ topic                      schema                      content
 ``/recorder/malformed``    ``testbed.Malformed``       anything that did not decode, as received
 =========================  ==========================  ===============================================
 
-Metadata records: ``testbed.scenario`` (name, TOML text, reference),
+Metadata records: ``testbed.scenario`` (name, TOML text, reference, folder, plant module source),
 ``testbed.software`` (versions), ``testbed.run`` (source live|simulate, run id,
 host, command line, options), and at a clean close ``testbed.recorder``
 (message counts).  ``log_time`` is when the recorder got a message
@@ -122,8 +122,34 @@ def software_versions() -> dict[str, str]:
     return out
 
 
+def _module_keys(prefix: str, ref: str, info: dict) -> dict[str, str]:
+    bundled = info.get("module", "").startswith("plants.")  # ships with the testbed (testbed.software)
+    return {f"{prefix}_ref": ref, f"{prefix}_module": info.get("module", ""), f"{prefix}_class": info.get("class", ""),
+            f"{prefix}_file": info.get("file", ""), f"{prefix}_source": "" if bundled else info.get("source", ""),
+            f"{prefix}_sha256": info.get("sha256", "")}
+
+
 def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
-    return {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name}
+    """The ``testbed.scenario`` record: the scenario's name, TOML, reference, folder, plant and model modules."""
+    from plants.refs import source_info
+
+    out = {"name": sc.name, "toml": sc.source or "", "ref": ref or sc.name, "base_dir": sc.base_dir or ""}
+    fmu = sc.plant.fmu is not None
+    try:
+        info = sc.plant.source_info()
+    except (ValueError, AttributeError):
+        info = {}
+    out.update(_module_keys("plant", "" if fmu else (sc.plant.ref or sc.plant.name), info))
+    model = sc.model
+    if model is not None and (fmu or model.name != sc.plant.ref):  # a [model] that is not the plant's class
+        import plants
+
+        try:
+            minfo = source_info(plants.resolve(model.name, model.base_dir or None))
+        except ValueError:
+            minfo = {}
+        out.update(_module_keys("model", model.name, minfo))
+    return out
 
 
 class RecordingWriter:
@@ -244,6 +270,9 @@ class Recording:
     counts: Counter = field(default_factory=Counter)
     duplicates: int = 0
     last_log_time: int = 0
+    plant_source: dict | None = None   # set by ``scenario()``: how the plant module was loaded
+    model_source: dict | None = None   # ... and the [model]'s, when it is another class
+    _resolved: bool = field(default=False, repr=False)
 
     @property
     def source(self) -> str:
@@ -254,17 +283,59 @@ class Recording:
         return self.metadata.get("testbed.scenario", {}).get("toml")
 
     def scenario(self):
-        """The scenario the run used, rebuilt from the TOML stored in the recording."""
-        from ..scenario import loads, with_overrides
+        """The scenario the run used, rebuilt from the TOML stored in the recording.
+
+        The plant is imported as the run did (its reference, from the scenario's
+        folder first); only when that fails is the plant module's source stored in
+        the recording loaded, which runs code from the recording: a line on stderr
+        says so.  ``plant_source`` tells which happened (``plants.refs.resolve_recorded``).
+        """
+        from ..scenario import ScenarioError, loads, with_overrides
 
         toml = self.scenario_toml
         if not toml:
             raise ValueError(f"{self.path}: no scenario in the recording's metadata")
         meta = self.metadata.get("testbed.scenario", {})
-        sc = loads(toml, name=meta.get("name", "recorded"))
+        base_dir = meta.get("base_dir") or None
+        if not self._resolved:   # once per recording (report and replay both rebuild the scenario)
+            self.plant_source = self._resolve_plant(meta, base_dir, "plant")
+            self.model_source = self._resolve_plant(meta, base_dir, "model")
+            self._resolved = True
+        sc = loads(toml, name=meta.get("name", "recorded"), where=f"{self.path} (recorded scenario)",
+                   base_dir=base_dir, check_fmu=False)
         over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
-        sc = with_overrides(sc, json.loads(over)) if over else sc
+        try:
+            sc = with_overrides(sc, json.loads(over)) if over else sc
+        except ValueError as e:
+            raise ScenarioError(f"{self.path}: recorded overrides: {e}") from None
         return _with_resolved(sc, self.metadata.get("testbed.resolved"))
+
+    def _resolve_plant(self, meta: dict, base_dir: str | None, prefix: str) -> dict | None:
+        """Resolve the recorded plant (or model) reference, pinning the stored source when it is not importable."""
+        from plants.refs import PlantRefError, resolve_recorded
+
+        ref = meta.get(f"{prefix}_ref")
+        if not ref:
+            return None  # an FMU plant, a model that is the plant, or a recording from before references were stored
+        try:
+            _cls, status = resolve_recorded(ref, base_dir, module=meta.get(f"{prefix}_module", ""),
+                                            class_name=meta.get(f"{prefix}_class", ""),
+                                            source=meta.get(f"{prefix}_source", ""),
+                                            sha256=meta.get(f"{prefix}_sha256", ""))
+        except PlantRefError as e:
+            from ..scenario import ScenarioError
+
+            raise ScenarioError(f"{self.path}: {e}") from None
+        status["module"] = meta.get(f"{prefix}_module", "")
+        if status["loaded_from"] == "recording":
+            print(f"note: {prefix} module {status['module']!r} is not importable ({status['reason']}); "
+                  f"loaded the source stored in {self.path} (sha256 {status['sha256'][:12]}): "
+                  "this runs code from the recording", file=sys.stderr)
+        elif status["differs"]:
+            print(f"note: {prefix} module {status['module']!r} as imported now differs from the one recorded "
+                  f"in {self.path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
+                  file=sys.stderr)
+        return status
 
 
 def _with_resolved(sc, meta: dict | None):
@@ -629,7 +700,13 @@ Foxglove opens the file as it is and Rerun decodes it natively.
 
 ## Metadata records
 
-- `testbed.scenario`: `name`, `toml` (the scenario file's text), `ref` (as given on the command line).
+- `testbed.scenario`: `name`, `toml` (the scenario file's text), `ref` (as given on the command line),
+  `base_dir` (the scenario file's folder, empty for a bundled scenario), `plant_ref` (`[plant] name`),
+  `plant_module`, `plant_class`, `plant_file` (where the plant class came from), `plant_source` (that module's
+  text; empty for the bundled plants, which ship with the testbed) and `plant_sha256` (its sha256; for an FMU
+  plant `plant_ref` is empty, `plant_file` the FMU and `plant_sha256` the file's); the same `model_*` keys for a
+  `[model]` of another class than the plant's.
+  `testbed report` loads `plant_source` only when the module cannot be imported (see docs/own-plant.md).
 - `testbed.software`: versions of Python, the platform, dos-testbed (and its git commit when run from a
   checkout), numpy, scipy, numba, eclipse-zenoh, mcap, protobuf, rerun-sdk; `format` (this format's version).
 - `testbed.run`: `source` (`live` or `simulate`), `run_id`, `host`, `pid`, `command`, `started_utc`,

@@ -114,7 +114,8 @@ def run_digest(sc, opts: RunOptions) -> str:
     """What all nodes must agree on: the scenario text, the resolved loop and the run options."""
     d = {"source": sc.source, "K": sc.K.tolist(), "T": sc.T, "n_steps": sc.n_steps,
          "quantizer": dataclasses.asdict(sc.quantizer), "run": dataclasses.asdict(sc.run),
-         "ack_via_attacker": opts.ack_via_attacker}
+         "ack_via_attacker": opts.ack_via_attacker,
+         "plant_sha256": sc.plant.source_info()["sha256"]}  # the same plant module in every node
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -1,0 +1,291 @@
+"""Plant references: a registered name, an installed entry point, or ``"module.path:ClassName"``.
+
+``resolve(ref, base_dir)`` turns the ``[plant] name`` of a scenario into a
+``Plant`` subclass, the same way in every process of a run:
+
+1. ``"module.path:ClassName"``: the module is imported from ``base_dir`` (the
+   scenario file's folder) first, then from ``sys.path``.  A plant module of the
+   same name imported earlier from another scenario's folder is dropped, so two
+   scenarios in two folders each get their own file; a file that would shadow a
+   module imported otherwise (``plants.py``, ``numpy.py``) is refused.
+2. a name registered with ``plants.register`` (the bundled plants are);
+3. an entry point of the group ``dos_testbed.plants`` (``pip install`` of a plant
+   package), whose value is ``"pkg.module:ClassName"``.
+
+A recording stores the reference, the module's source text and its sha256
+(``source_info``).  ``resolve_recorded`` imports the plant as above, and only when
+that fails loads the stored source (``load_source``): that runs code read from a
+recording, so callers say so.
+"""
+
+from __future__ import annotations
+
+import atexit
+import hashlib
+import importlib
+import importlib.metadata
+import importlib.util
+import os
+import re
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+from .base import RHS, Plant
+
+ENTRY_POINT_GROUP = "dos_testbed.plants"
+
+#: a stored source larger than this is not written into recordings (a plant module is a few kB)
+MAX_SOURCE_BYTES = 1 << 20
+
+_IDENT = r"[A-Za-z_][A-Za-z0-9_]*"
+_MODULE_REF = re.compile(rf"^({_IDENT}(?:\.{_IDENT})*):({_IDENT})$")
+
+
+class PlantRefError(ValueError):
+    """A plant reference that cannot be resolved, with the reason (one line)."""
+
+
+#: what this process resolved a (ref, base_dir) to: module references and entry points only
+_RESOLVED: dict[tuple[str, str], type[Plant]] = {}
+#: top-level plant modules imported from a scenario's folder, and that folder
+_FROM_FOLDER: dict[str, str] = {}
+
+
+def is_module_ref(ref: str) -> bool:
+    return ":" in ref
+
+
+def check_plant_class(obj, ref: str) -> type[Plant]:
+    """``obj`` if it is a usable ``Plant`` subclass, else ``PlantRefError``."""
+    if not (isinstance(obj, type) and issubclass(obj, Plant)) or obj is Plant:
+        raise PlantRefError(f"plant {ref!r}: {obj!r} is not a subclass of plants.Plant")
+    if not isinstance(getattr(obj, "rhs", None), RHS):
+        raise PlantRefError(f"plant {ref!r}: class {obj.__name__} has no right-hand side "
+                            "(set rhs = a function decorated with @plants.base.rhs_function)")
+    return obj
+
+
+def _module_file(mod) -> Path | None:
+    f = getattr(mod, "__file__", None)
+    if f:
+        return Path(f).resolve()
+    paths = list(getattr(mod, "__path__", []) or [])
+    return Path(paths[0]).resolve() if paths else None
+
+
+def _is_under(mod, base: Path) -> bool:
+    f = _module_file(mod)
+    return f is not None and (f == base or base in f.parents)
+
+
+def _import(modname: str, base_dir: str | None):
+    top = modname.split(".")[0]
+    if base_dir:
+        base = Path(base_dir).resolve()
+        if (base / f"{top}.py").is_file() or (base / top / "__init__.py").is_file():
+            old = sys.modules.get(top)
+            if old is not None and not _is_under(old, base):
+                if _FROM_FOLDER.get(top) is None:
+                    # not a plant module of another scenario folder: the testbed's own packages, a library
+                    raise PlantRefError(f"module {top!r} in {base} has the name of a module already imported from "
+                                        f"{_module_file(old)}: rename it")
+                for k in [k for k in sys.modules if k == top or k.startswith(top + ".")]:
+                    del sys.modules[k]   # the same name in another scenario folder: each gets its own
+            sys.path.insert(0, str(base))
+            try:
+                importlib.invalidate_caches()
+                mod = importlib.import_module(modname)
+            finally:
+                try:
+                    sys.path.remove(str(base))
+                except ValueError:
+                    pass
+            if _is_under(sys.modules.get(top, mod), base):
+                _FROM_FOLDER[top] = str(base)
+            return mod
+    return importlib.import_module(modname)
+
+
+def _from_module(ref: str, base_dir: str | None) -> type[Plant]:
+    m = _MODULE_REF.match(ref)
+    if not m:
+        raise PlantRefError(f"plant {ref!r}: a module reference is 'module.path:ClassName'")
+    modname, attr = m.groups()
+    where = f"{base_dir}, then sys.path" if base_dir else "sys.path"
+    try:
+        mod = _import(modname, base_dir)
+    except ModuleNotFoundError as e:
+        if e.name and (modname == e.name or modname.startswith(e.name + ".")):
+            raise PlantRefError(f"plant {ref!r}: no module {modname!r} (looked in {where})") from None
+        raise PlantRefError(f"plant {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
+    except Exception as e:  # noqa: BLE001 - anything a user's module raises: one line
+        raise PlantRefError(f"plant {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
+    if not hasattr(mod, attr):
+        raise PlantRefError(f"plant {ref!r}: module {modname!r} ({_module_file(mod)}) has no {attr!r}")
+    return check_plant_class(getattr(mod, attr), ref)
+
+
+# ----------------------------------------------------------------------------- entry points
+def entry_points() -> dict[str, importlib.metadata.EntryPoint]:
+    """The installed entry points of the group ``dos_testbed.plants``, by name (first one wins)."""
+    out: dict[str, importlib.metadata.EntryPoint] = {}
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        out.setdefault(ep.name, ep)
+    return out
+
+
+def _dist_name(ep) -> str | None:
+    d = getattr(ep, "dist", None)
+    return getattr(d, "name", None) if d is not None else None
+
+
+def load_entry_point(ep) -> type[Plant]:
+    try:
+        obj = ep.load()
+    except Exception as e:  # noqa: BLE001 - a broken installed package: one line
+        raise PlantRefError(f"plant {ep.name!r}: entry point {ep.value!r} of {_dist_name(ep) or 'a package'} "
+                            f"failed to load: {type(e).__name__}: {e}") from None
+    return check_plant_class(obj, ep.name)
+
+
+# ----------------------------------------------------------------------------- resolving
+def resolve(ref: str, base_dir: str | os.PathLike | None = None, *, registry: dict | None = None) -> type[Plant]:
+    """The ``Plant`` subclass a reference names (see the module docstring for the order).
+
+    Raises ``PlantRefError`` (a ``ValueError``) with one line when it cannot.
+    """
+    from . import _REGISTRY, names
+
+    reg = _REGISTRY if registry is None else registry
+    if not isinstance(ref, str) or not ref:
+        raise PlantRefError(f"plant name must be a non-empty string, got {ref!r}")
+    bd = str(base_dir) if base_dir else ""
+    if is_module_ref(ref):
+        key = (ref, bd)
+        cls = _RESOLVED.get(key)
+        if cls is None:
+            cls = _RESOLVED[key] = _from_module(ref, bd or None)
+        return cls
+    if ref in reg:
+        return reg[ref]
+    key = (ref, "")
+    if key in _RESOLVED:
+        return _RESOLVED[key]
+    ep = entry_points().get(ref)
+    if ep is None:
+        raise PlantRefError(f"unknown plant {ref!r}; registered plants: {', '.join(names())}; or an installed "
+                            f"plant package ({ENTRY_POINT_GROUP} entry point), or 'module.path:ClassName'")
+    cls = _RESOLVED[key] = load_entry_point(ep)
+    return cls
+
+
+def display_name(cls: type[Plant]) -> str:
+    """``cls.name``, or the class name for a plant that sets none."""
+    return cls.name or cls.__name__
+
+
+# ----------------------------------------------------------------------------- stored source
+def _sha256(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def source_info(cls: type[Plant]) -> dict[str, str]:
+    """Where ``cls`` comes from and its module's source: ``module``, ``class``, ``file``, ``source``, ``sha256``.
+
+    ``source`` is empty (and ``sha256`` too) when the file cannot be read or is
+    larger than ``MAX_SOURCE_BYTES``.
+    """
+    mod = sys.modules.get(cls.__module__)
+    f = _module_file(mod) if mod is not None else None
+    text = ""
+    if f is not None and f.is_file():
+        try:
+            if f.stat().st_size <= MAX_SOURCE_BYTES:
+                text = f.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError):
+            text = ""
+    return {"module": cls.__module__, "class": cls.__qualname__, "file": str(f) if f else "",
+            "source": text, "sha256": _sha256(text) if text else ""}
+
+
+_TMP_DIRS: list[str] = []
+
+
+def _cleanup() -> None:
+    for d in _TMP_DIRS:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+atexit.register(_cleanup)
+
+
+def load_source(ref: str, base_dir: str | None, module: str, class_name: str, source: str,
+                sha256: str) -> type[Plant]:
+    """Load a plant class from a module's stored source text (``source_info``) and pin it to ``ref``.
+
+    THIS RUNS THE STORED CODE.  The text is written to a private temporary
+    folder (numba caches the right-hand side next to it) and imported under its
+    original module name; afterwards ``resolve(ref, base_dir)`` returns the class
+    in this process.  The sha256 must match the text.
+    """
+    if not source:
+        raise PlantRefError(f"plant {ref!r}: no stored source")
+    if _sha256(source) != sha256:
+        raise PlantRefError(f"plant {ref!r}: the stored source does not match its sha256 (corrupt recording)")
+    if not re.fullmatch(rf"{_IDENT}(?:\.{_IDENT})*", module or "") or not re.fullmatch(_IDENT, class_name or ""):
+        raise PlantRefError(f"plant {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
+    d = tempfile.mkdtemp(prefix="testbed-recorded-plant-")
+    _TMP_DIRS.append(d)
+    path = Path(d) / f"{module.rsplit('.', 1)[-1]}.py"
+    path.write_text(source, encoding="utf-8")
+    spec = importlib.util.spec_from_file_location(module, path)
+    mod = importlib.util.module_from_spec(spec)
+    old = sys.modules.get(module)
+    sys.modules[module] = mod
+    try:
+        spec.loader.exec_module(mod)
+        cls = check_plant_class(getattr(mod, class_name, None), ref)
+    except Exception as e:  # noqa: BLE001 - the stored code failed: one line
+        if old is not None:
+            sys.modules[module] = old
+        else:
+            sys.modules.pop(module, None)
+        if isinstance(e, PlantRefError):
+            raise
+        raise PlantRefError(f"plant {ref!r}: the stored source of {module!r} failed to load: "
+                            f"{type(e).__name__}: {e}") from None
+    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
+    if not is_module_ref(ref):
+        _RESOLVED[(ref, "")] = cls
+    return cls
+
+
+def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "",
+                     source: str = "", sha256: str = "") -> tuple[type[Plant], dict]:
+    """Resolve a recorded plant reference; fall back to the recorded source when it cannot be imported.
+
+    Returns the class and a status ``{"ref", "sha256", "loaded_from": "import" | "recording",
+    "differs", "importable_sha256", "reason"}``: ``differs`` is True when the
+    importable module's source is not the recorded one; ``reason`` says why the
+    import failed when the recorded source was used.
+    """
+    status = {"ref": ref, "sha256": sha256, "loaded_from": "import", "differs": False,
+              "importable_sha256": None, "reason": None}
+    try:
+        cls = resolve(ref, base_dir)
+    except PlantRefError as e:
+        if not source:
+            raise
+        cls = load_source(ref, base_dir, module, class_name, source, sha256)
+        status.update(loaded_from="recording", reason=str(e))
+        return cls, status
+    now = source_info(cls)["sha256"]
+    status["importable_sha256"] = now or None
+    status["differs"] = bool(sha256) and now != sha256
+    return cls, status
+
+
+__all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "resolve", "entry_points", "load_entry_point", "source_info",
+           "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class"]
