@@ -14,8 +14,15 @@ and the latency over the floor as a ratio.  The loop crosses four one-way hops
 (plant -> encoder -> attacker -> controller -> plant), i.e. two round trips, so
 the floor of the sensor-to-actuator latency is taken as 2 x the ping-pong RTT.
 
+With ``--variants`` it runs the live loop once per variant at each period, in
+the same invocation, so that a change is measured as an A/B: ``default`` (the
+router topology, authenticated), ``insecure`` (the same without authentication
+and access control) and ``peer`` (direct links between the nodes, unauthenticated).
+``--auth`` is ``--variants default,insecure``: the latency cost of authentication.
+
     python benchmarks/bench_live.py                    # 30 s at T = 0.1 s and at T = 1 ms
     python benchmarks/bench_live.py --duration 10 --periods 0.001 --realtime --json out.json
+    python benchmarks/bench_live.py --auth --periods 0.1 --duration 20
 """
 
 from __future__ import annotations
@@ -166,11 +173,15 @@ def _p(d: dict | None, key: str) -> str:
     return "   n/a" if v is None else f"{v:6.0f}"
 
 
-def report(T: float, floor: dict, s: dict) -> dict:
+#: the live loop's variants for A/B runs: name -> extra flags of testbed run
+VARIANTS = {"default": [], "insecure": ["--insecure"], "peer": ["--topology", "peer", "--insecure"]}
+
+
+def report(T: float, floor: dict, s: dict, variant: str = "default") -> dict:
     tm = s["timing"]
     s2a = tm["sensor_to_actuator_us"]
     ns = s.get("node_summaries", {})
-    print(f"\n=== T = {T:g} s: {s['samples']} samples over {s['samples'] * T:g} s "
+    print(f"\n=== T = {T:g} s, {variant}: {s['samples']} samples over {s['samples'] * T:g} s "
           f"(deadline {s['deadline']:g} T, outcome {s['outcome']}, exit {s['_exit_code']})")
     print(f"  {'':28s}{'p50 us':>8s}{'p99 us':>8s}{'max us':>9s}")
     rows = [("sampling jitter", tm["sampling_jitter_us"]), ("sensor-to-actuator", s2a)]
@@ -190,7 +201,8 @@ def report(T: float, floor: dict, s: dict) -> dict:
     goal = (T <= 0.001 + 1e-12, tm["deadline_misses"] == 0 and (s2a.get("p99") or 1e9) < 1000)
     if goal[0]:
         print(f"  goal (no misses, p99 sensor-to-actuator < 1 ms at 1 kHz): {'MET' if goal[1] else 'NOT met'}")
-    return {"T": T, "floor_rtt_us": floor, "timing": tm, "samples": s["samples"], "outcome": s["outcome"],
+    return {"T": T, "variant": variant, "flags": VARIANTS.get(variant, []), "security": s.get("security"),
+            "floor_rtt_us": floor, "timing": tm, "samples": s["samples"], "outcome": s["outcome"],
             "ratio_p50": r50, "ratio_p99": r99, "cpu_share": {r: ns[r].get("cpu_share") for r in ns},
             "lost": int(sum(v for v in s["theta"] if v)), "exit_code": s["_exit_code"]}
 
@@ -203,6 +215,9 @@ def main() -> int:
     ap.add_argument("--deadline", type=float, help="[run] deadline (default 0.5, 0.8 at T <= 2 ms)")
     ap.add_argument("--realtime", action="store_true", help="nodes and ping-pong under SCHED_FIFO")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    ap.add_argument("--variants", default="default",
+                    help=f"comma-separated live-loop variants, run one after the other at each period ({', '.join(VARIANTS)})")
+    ap.add_argument("--auth", action="store_true", help="--variants default,insecure: the cost of authentication")
     ap.add_argument("--echo", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--echo-seconds", type=float, default=60.0, help=argparse.SUPPRESS)
     args, extra = ap.parse_known_args()
@@ -212,12 +227,24 @@ def main() -> int:
     out = []
     print(f"host: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, "
           f"{'SCHED_FIFO' if args.realtime else 'normal scheduling'}")
+    variants = ["default", "insecure"] if args.auth else args.variants.split(",")
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown variant(s) {unknown}; known: {', '.join(VARIANTS)}")
     for T in (float(t) for t in args.periods.split(",")):
         deadline = args.deadline if args.deadline is not None else (0.8 if T <= 0.002 else 0.5)
         floor = ping_pong(T, args.pingpong_seconds, args.realtime)
         extra_T = list(extra) + (["--loss-fraction", "0.95"] if T <= 0.002 and "--loss-fraction" not in extra else [])
-        s = live_run(T, args.duration, deadline, args.realtime, extra_T)
-        out.append(report(T, floor, s))
+        rows = []
+        for v in variants:
+            s = live_run(T, args.duration, deadline, args.realtime, extra_T + VARIANTS[v])
+            rows.append(report(T, floor, s, v))
+        out.extend(rows)
+        if len(rows) > 1:
+            base = rows[0]["timing"]["sensor_to_actuator_us"]["p50"]
+            print(f"\n  T = {T:g} s, sensor-to-actuator p50 against {rows[0]['variant']}: " + ", ".join(
+                f"{r['variant']} {r['timing']['sensor_to_actuator_us']['p50'] / base:.2f}x" for r in rows[1:]
+                if base and r["timing"]["sensor_to_actuator_us"]["p50"]))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0

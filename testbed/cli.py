@@ -23,6 +23,7 @@ EPILOG = "exit codes: 0 ok, 1 the run or job failed, 2 bad input"
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("testbed.cmd_simulate", "run a scenario in the in-process simulator"),
     "scenarios": ("testbed.cmd_simulate", "list the bundled scenarios"),
+    "secret": ("testbed.cmd_secret", "write a new credentials file for nodes started by hand"),
     "plants": ("testbed.cmd_plants", "list the built-in and installed plants"),
     "check-plant": ("testbed.cmd_plants", "check a plant: shapes, f(0, 0), A, B, L, Assumption 2"),
 }

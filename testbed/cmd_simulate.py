@@ -18,7 +18,9 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
     add_run_option_arguments(p, title="run options (as testbed run takes them)")
     p.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="the attacker corrupts the payload of these samples (as testbed run --corrupt)")
-    cliargs.add_out(p, "also write the run as an MCAP recording (the topics of a live run; see testbed report)")
+    cliargs.add_out(p, "also write the run as an MCAP recording (the topics of a live run; see testbed report); "
+                       "never overwritten")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file")
     cliargs.add_rrd(p, "also write a Rerun recording of the run (see testbed replay)")
     cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded) into this PNG")
     cliargs.add_no_roa(p)
@@ -36,6 +38,11 @@ def main_simulate(args) -> int:
     opts = RunOptions.from_args(args)
     overrides = opts.overrides()
     sc = scenario.with_overrides(scenario.load(args.scenario), overrides)
+    sc, over = scenario.with_seed(sc, overrides)
+    if over != overrides:
+        overrides = over
+        print(f"testbed simulate: the random attack has no seed; drew seed = {over['seed']} (--seed "
+              f"{over['seed']} repeats it{'; recorded' if args.out else ''})", file=sys.stderr)
     try:
         corrupt = parse_corrupt(args.corrupt)
     except ValueError as e:
@@ -47,7 +54,7 @@ def main_simulate(args) -> int:
         from .io.recording import record_simulation
 
         record_simulation(args.out, sc, res, overrides={k: v for k, v in overrides.items() if v is not None},
-                          ref=args.scenario)
+                          ref=args.scenario, exclusive=not args.force)
     if args.rrd:
         from .io.viewer import simulation_to_rrd
 

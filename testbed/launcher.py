@@ -18,6 +18,7 @@ Exit codes: 0 clean run, 1 a node died or the run did not complete,
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import secrets
@@ -30,7 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import cliargs
+from . import cliargs, scenario
+from .errors import BadInput
 from .io import messages as msg
 from .io import transport
 from .io.viewer import LiveRerun, add_rerun_run_arguments
@@ -39,10 +41,10 @@ from .nodes.common import RunOptions, add_run_option_arguments, load_scenario
 RECORDER = "recorder"
 
 
-def recording_default_path(name: str) -> Path:
+def recording_default_path(name: str, run_id: str) -> Path:
     from .io.recording import default_path
 
-    return default_path(name)
+    return default_path(name, run_id=run_id)
 
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:
@@ -60,9 +62,19 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
+    g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
+                   help="router: the launcher routes and checks every message (default); peer: direct links "
+                        "between the nodes, unauthenticated (with --insecure only)")
+    g.add_argument("--secret-file", metavar="PATH",
+                   help="use these credentials (testbed secret PATH) instead of making new ones for the run: "
+                        "for nodes on other hosts, which need the file at the same path")
+    g.add_argument("--insecure", action="store_true",
+                   help="no authentication and no access control: any local process can join, stop or steer "
+                        "the run (recorded as such)")
     g = p.add_argument_group("recording")
-    cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap)",
-                    aliases=("--record",))
+    cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
+                       "never overwritten", aliases=("--record",))
+    g.add_argument("--force", action="store_true", help="replace an existing --out file")
     g.add_argument("--no-record", action="store_true", help="do not record the run")
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
@@ -100,6 +112,11 @@ class Launcher:
         self.args = args
         self.opts = RunOptions.from_args(args)
         self.sc = load_scenario(args.scenario, self.opts)
+        self.sc, over = scenario.with_seed(self.sc, self.opts.overrides())
+        if over.get("seed") != self.opts.seed:
+            self.opts = dataclasses.replace(self.opts, seed=over["seed"])
+            print(f"testbed run: the random attack has no seed; drew seed = {self.opts.seed} (recorded; "
+                  f"--seed {self.opts.seed} repeats it)", file=sys.stderr)
         ref = args.scenario
         self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
         self.run_id = args.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
@@ -119,7 +136,19 @@ class Launcher:
         self.kill_sent: dict[str, int] = {}
         self.signal: int | None = None
         self.stopping = False
-        self.record_path = None if args.no_record else Path(args.out or recording_default_path(self.sc.name))
+        self.record_path = None if args.no_record else Path(args.out or recording_default_path(self.sc.name,
+                                                                                                self.run_id))
+        if self.record_path is not None and self.record_path.exists() and not args.force:
+            raise BadInput(f"{self.record_path} exists: a recording is never overwritten (remove it, choose "
+                           "another --out, or pass --force)")
+        self.topology = args.topology
+        self.secure = not args.insecure
+        if self.topology == "peer" and self.secure:
+            from .nodes.common import PEER_NEEDS_INSECURE
+
+            raise BadInput(PEER_NEEDS_INSECURE)
+        self.secret_dir = None
+        self.secret_path: Path | None = None
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0
@@ -131,10 +160,8 @@ class Launcher:
         cmd = shlex.split(self.node_prefix.get(role, ""))
         cmd += [sys.executable, "-P", "-m", "testbed.cli", "node", role, self.scenario_ref, *self.opts.cli(),
                 "--run-id", self.run_id, "--connect", self.node_connect,
-                "--listen", self.node_listen.get(role, transport.LOOPBACK_ANY),
                 "--ready-timeout", str(a.startup_timeout), "--launched"]
-        if a.zenoh_config:
-            cmd += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
+        cmd += self.session_flags(role)
         if role not in self.node_prefix or self.node_prefix[role].startswith("ip netns exec"):
             cmd += ["--parent-pid", str(os.getpid())]
         if a.realtime:
@@ -157,14 +184,71 @@ class Launcher:
     def recorder_command(self) -> list[str]:
         a = self.args
         cmd = [sys.executable, "-P", "-m", "testbed.cli", "record", self.scenario_ref, *self.opts.cli(),
-               "--run-id", self.run_id, "--connect", self.node_connect, "--listen", transport.LOOPBACK_ANY,
+               "--run-id", self.run_id, "--connect", self.node_connect,
                "--out", str(self.record_path), "--loop", a.record_loop, "--launched",
                "--parent-pid", str(os.getpid()), "--scenario-ref", a.scenario]
-        if a.zenoh_config:
-            cmd += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
+        if a.force:
+            cmd.append("--force")
+        cmd += self.session_flags(RECORDER)
         if a.verbose:
             cmd.append("--verbose")
         return cmd
+
+    # ---- sessions: topology and credentials
+    def make_secrets(self) -> None:
+        """The run's credentials: one password per process, in 0600 files under a 0700 folder.
+
+        The launcher (the router) keeps the whole dictionary; every process gets a file
+        with its own line only.
+        """
+        if not self.secure:
+            return
+        if self.args.secret_file:
+            self.secret_path = Path(self.args.secret_file).resolve()
+            transport.Credentials.read(self.secret_path)  # checked now: one clear line if unusable
+            return
+        self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
+        cred = transport.Credentials.new()
+        self.secret_path = cred.write(self.secret_dir / "run.secret")
+        for u in (*transport.ROLES, RECORDER):
+            cred.only(u).write(self.secret_dir / f"{u}.secret")
+
+    def remove_secrets(self) -> None:
+        if self.secret_dir is not None:
+            shutil.rmtree(self.secret_dir, ignore_errors=True)
+
+    def secret_for(self, who: str) -> Path:
+        if self.secret_dir is not None:
+            return self.secret_dir / f"{who}.secret"
+        return self.secret_path
+
+    def session_flags(self, who: str) -> list[str]:
+        """``--topology``, credentials (a file path, never the secret itself) and listeners of a process."""
+        a = self.args
+        out = ["--topology", self.topology]
+        out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
+        if self.topology == "peer":
+            out += ["--listen", self.node_listen.get(who, transport.LOOPBACK_ANY)]
+        if a.zenoh_config:
+            out += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
+        return out
+
+    def session_config(self):
+        """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""
+        a = self.args
+        mode = "router" if self.topology == "router" else "peer"
+        if not self.secure:
+            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode)
+        cred = transport.Credentials.read(self.secret_path)
+        return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
+                                     user=transport.LAUNCHER, password=cred.users.get(transport.LAUNCHER),
+                                     dictionary_file=self.secret_path,
+                                     acl=transport.acl_config(self.keys))
+
+    def security(self) -> dict:
+        return {"authenticated": self.secure, "topology": self.topology,
+                "access_control": "every message" if self.secure else "none",
+                "credentials": None if not self.secure else ("given" if self.args.secret_file else "made for the run")}
 
     def spawn_recorder(self, col) -> bool:
         """Start the recorder and wait for its ready token (False: it died or never came up)."""
@@ -385,11 +469,15 @@ class Launcher:
             self.signal = signum
 
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        conf = transport.make_config(listen=[self.listen], config_file=self.args.zenoh_config)
+        self.make_secrets()
+        conf = self.session_config()
+        if not self.secure:
+            print(f"testbed run: INSECURE: no authentication and no access control; any local process can join, "
+                  f"stop or steer run {self.run_id}", file=sys.stderr)
         outcome = "?"
         try:
             with zenoh.open(conf) as session:
-                col = Collector(session, self.keys)
+                col = Collector(session, self.keys, self.sc.n_steps)
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
                 try:
                     # the plant starts once the collector is ready: after the recorder is
@@ -410,6 +498,9 @@ class Launcher:
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     self.publish_faults(session)
+                if self.signal is None:  # every node's own account of its telemetry against what arrived
+                    self.faults.extend(col.telemetry_check())
+                    self.publish_faults(session)
                 plant = self.sc.make_model()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
@@ -417,6 +508,7 @@ class Launcher:
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
                                         faults=self.faults, codebook=cb)
                 summary["outcome"] = outcome
+                summary["security"] = self.security()
                 try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
                     launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
                     session.put(self.keys.summary("launcher"),
@@ -435,6 +527,7 @@ class Launcher:
         finally:
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above
                 self.stop_recorder()
+            self.remove_secrets()
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)

@@ -25,6 +25,7 @@ from .flow import FlowOptions
 from .quantizer import RULES, Codebook, CodebookTooLarge, QuantizerParams, delay_margin_gain
 
 BUNDLED_DIR = "scenarios"
+MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML
 
 
 class ScenarioError(BadInput):
@@ -701,7 +702,15 @@ def load(ref: str | Path) -> Scenario:
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
             raise ScenarioError(f"{ref}: no such scenario file (bundled: {', '.join(bundled_names())})")
-        text = p.read_text()
+        try:
+            if p.stat().st_size > MAX_SCENARIO_BYTES:
+                raise ScenarioError(f"{ref}: {p.stat().st_size} bytes is not a scenario file "
+                                    f"(at most {MAX_SCENARIO_BYTES // 1024} kB)")
+            text = p.read_text(encoding="utf-8")
+        except UnicodeDecodeError as e:
+            raise ScenarioError(f"{ref}: not a text (UTF-8) file: {e.reason} at byte {e.start}") from None
+        except OSError as e:
+            raise ScenarioError(f"{ref}: {e.strerror or e}") from None
         name, where, base_dir = p.stem, str(p), str(p.resolve().parent)
     else:
         res = resources.files("testbed").joinpath(BUNDLED_DIR, f"{ref}.toml")
@@ -726,7 +735,26 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
              "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
-             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule")}
+             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule"), "seed": ("attack", "seed")}
+
+
+_INT_OVERRIDES = {"seed", "M"}
+
+
+def unseeded(sc: Scenario) -> bool:
+    """A random attack without a seed: the run must draw one, print it and store it (``with_seed``)."""
+    return sc.attack.kind == "random" and "seed" not in sc.attack.params_dict
+
+
+def with_seed(sc: Scenario, overrides: dict) -> tuple[Scenario, dict]:
+    """``sc`` with a drawn attack seed when it has none (the overrides then carry it, so a
+    recording repeats it); otherwise unchanged."""
+    if not unseeded(sc) or overrides.get("seed") is not None:
+        return sc, overrides
+    import secrets
+
+    over = dict(overrides, seed=secrets.randbelow(2**31))
+    return with_overrides(sc, {"seed": over["seed"]}), over
 
 
 def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
@@ -743,7 +771,7 @@ def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
     data = tomllib.loads(sc.source)
     for k, v in over.items():
         table, key = OVERRIDES[k]
-        data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+        data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES else v
     sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
                     base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked)
     return dataclasses.replace(sc2, path=sc.path)

@@ -82,15 +82,18 @@ def schema_for_topic(topic: str) -> str | None:
     return None
 
 
-def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None) -> Path:
-    """``recordings/<scenario>-<UTC start, YYYYmmdd-HHMMSS>.mcap`` (a suffix avoids overwriting).
+def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None,
+                 run_id: str | None = None) -> Path:
+    """``recordings/<scenario>-<UTC start, YYYYmmdd-HHMMSS>-<run id>.mcap`` (a suffix avoids an existing file).
 
     The directory is ``$TESTBED_RECORDINGS_DIR`` if set, else ``recordings/`` under the current directory.
+    The run id makes the name unique to the run; the writer also creates the file exclusively.
     """
     if directory is None:
         directory = os.environ.get("TESTBED_RECORDINGS_DIR") or "recordings"
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(time.time() if when is None else when))
-    base = Path(directory) / f"{scenario_name}-{stamp}"
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in (run_id or ""))[:80]
+    base = Path(directory) / (f"{scenario_name}-{stamp}-{safe}" if safe else f"{scenario_name}-{stamp}")
     p = base.with_suffix(".mcap")
     i = 1
     while p.exists():
@@ -156,12 +159,21 @@ class RecordingWriter:
     """Thread-safe MCAP writer of protobuf messages, flushed at least every ``flush_interval`` seconds."""
 
     def __init__(self, path: str | Path, *, flush_interval: float = 0.5, chunk_size: int = 1 << 20,
-                 compression: str = "zstd"):
+                 compression: str = "zstd", exclusive: bool = True):
         from mcap.writer import CompressionType, Writer
 
+        from ..errors import BadInput
+
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "wb")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # exclusive create: two runs can never write into one file
+            self._f = open(self.path, "xb" if exclusive else "wb")
+        except FileExistsError:
+            raise BadInput(f"{self.path} exists: a recording is never overwritten (remove it, choose another "
+                           "path, or pass --force)") from None
+        except OSError as e:
+            raise BadInput(f"cannot write the recording {self.path}: {e.strerror or e}") from None
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         self._w = Writer(self._f, chunk_size=chunk_size, compression=comp)
         self._w.start(profile=PROFILE, library=f"testbed-recorder/{FORMAT_VERSION}")
@@ -593,7 +605,7 @@ def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref
 
 
 def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
-                      t0_ns: int | None = None, flush_interval: float = 5.0) -> dict:
+                      t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True) -> dict:
     """Write a simulated run (``testbed.simulate.SimResult``) with the topics and schemas of a live run.
 
     Times are nominal and latencies zero (t_k = k T, every message at its sample
@@ -609,7 +621,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     plant = sc.make_model()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = f"sim-{sc.name}-{t0}"
-    w = RecordingWriter(path, flush_interval=flush_interval)
+    w = RecordingWriter(path, flush_interval=flush_interval, exclusive=exclusive)
     try:
         write_text_metadata(w, sc, source="simulate", run_id=run_id, ref=ref,
                             extra={"scenario_overrides": overrides or {}, "bits": cb.bits})

@@ -22,9 +22,25 @@ key (after the prefix)          publisher -> reader    message (``testbed.io.mes
 ``ready/<node>``                liveliness tokens      node warmed up and sees all its peers
 ==============================  =====================  ======================================
 
-Nodes are Zenoh peers with multicast scouting off, so nothing else on the
-network joins a run: they meet through explicit endpoints (one listener, the
-others connect; gossip then links every pair directly).
+Sessions.  Multicast scouting is off, so nothing else on the network joins a run:
+processes meet through explicit endpoints.  Two topologies (``TOPOLOGIES``):
+
+* ``router`` (default): one process (the launcher, or a standalone plant) is the
+  run's Zenoh router; every other process is a client of it.  Every link is
+  opened by a client and accepted by the router, so the router knows who is at
+  the other end of every link and enforces least privilege on every message
+  (``acl_config``: each process may publish only on its own keys).
+* ``peer``: every process is a peer and gossip links every pair directly (one
+  hop less per message), without authentication (``--insecure``): with
+  user/password authentication a mesh of peers that open links to each other at
+  the same moment sometimes never completes (seen here in about one start-up of
+  six), and Zenoh's access control would only know the remote's user name on the
+  links a peer accepted.  For latency experiments on a trusted machine.
+
+Authentication (``Credentials``): a run has one password per process, made for
+the run and kept in 0600 files; a session that presents no or a wrong password
+gets no link at all (it can neither receive nor publish).  ``--insecure`` runs
+without, on request.
 """
 
 from __future__ import annotations
@@ -37,6 +53,12 @@ from pathlib import Path
 ROOT = "testbed"
 ROLES = ("plant", "encoder", "attacker", "controller")
 COLLECTOR = "collector"          # the launcher's liveliness name
+RECORDER = "recorder"
+LAUNCHER = "launcher"            # the launcher's user name (its liveliness name is COLLECTOR)
+USERS = (*ROLES, RECORDER, LAUNCHER)
+TOPOLOGIES = ("router", "peer")
+MAX_MESSAGE_BYTES = 1 << 20      # a received message above this size is dropped (a run's are a few kB)
+CLIENT_CONNECT_TIMEOUT_MS = 30_000  # a client waits this long for its router before it gives up
 DEFAULT_RUN_ID = "default"
 DEFAULT_HUB = "tcp/127.0.0.1:7447"   # standalone nodes: the plant listens here, the others connect
 LOOPBACK_ANY = "tcp/127.0.0.1:0"     # a peer's own listener for direct links (loopback only)
@@ -132,27 +154,167 @@ class Keys:
 
 
 def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | tuple[str, ...] = (),
-                config_file: str | Path | None = None, multicast: bool = False):
-    """A peer-mode ``zenoh.Config``: explicit endpoints, multicast scouting off.
+                config_file: str | Path | None = None, multicast: bool = False, *, mode: str = "peer",
+                user: str | None = None, password: str | None = None, dictionary_file: str | Path | None = None,
+                acl: dict | None = None):
+    """A ``zenoh.Config``: explicit endpoints, multicast scouting off.
 
+    ``mode``: "peer", "router" or "client" (a client has no listener of its own).
     ``config_file`` (JSON5, e.g. with a ``transport/link/tls`` section) is read
     first; mode, scouting, ``listen`` and ``connect`` given here override it.
-    With no ``listen`` endpoint the peer listens on loopback only (Zenoh's own
-    default would be every interface).
+    With no ``listen`` endpoint a peer or router listens on loopback only (Zenoh's
+    own default would be every interface).  ``user``/``password``: the credentials
+    this session presents; ``dictionary_file``: the ``user:password`` lines it
+    accepts from the sessions that connect to it; ``acl``: Zenoh access control
+    (``acl_config``).
     """
     import zenoh
 
+    if mode not in ("peer", "router", "client"):
+        raise ValueError(f"zenoh mode {mode!r}")
     conf = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
-    conf.insert_json5("mode", json.dumps("peer"))
+    conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
-    file_listen = _json_or_none(conf, "listen/endpoints")
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    elif not file_listen:
-        conf.insert_json5("listen/endpoints", json.dumps([LOOPBACK_ANY]))
+    if mode != "client":
+        file_listen = _json_or_none(conf, "listen/endpoints")
+        if listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        elif not file_listen:
+            conf.insert_json5("listen/endpoints", json.dumps([LOOPBACK_ANY]))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if mode == "client":  # wait for the router a while (nodes may start in any order), then fail loudly
+        conf.insert_json5("connect/timeout_ms", json.dumps(CLIENT_CONNECT_TIMEOUT_MS))
+        conf.insert_json5("connect/retry", json.dumps({"period_init_ms": 100, "period_max_ms": 1000,
+                                                        "period_increase_factor": 2}))
+    # no message of a run is larger than a few kB: a larger one is dropped by Zenoh itself
+    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
+    if user is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password or ""))
+    if dictionary_file is not None:
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(Path(dictionary_file).resolve())))
+    if acl is not None:
+        conf.insert_json5("access_control", json.dumps(acl))
     return conf
+
+
+# ============================================================================ credentials
+class Credentials:
+    """The run's secret: one ``user:password`` line per process (``USERS``), in a 0600 file.
+
+    A router (or a peer that accepts links) authenticates against every line (the
+    file is Zenoh's ``dictionary_file``); a process presents its own line.  Made
+    fresh for every ``testbed run`` (``Credentials.new``), or once with
+    ``testbed secret PATH`` for nodes started by hand, on one host or several.
+    """
+
+    def __init__(self, users: dict[str, str]):
+        self.users = dict(users)
+
+    @classmethod
+    def new(cls, users=USERS) -> "Credentials":
+        import secrets
+
+        return cls({u: secrets.token_urlsafe(24) for u in users})
+
+    @classmethod
+    def read(cls, path: str | Path) -> "Credentials":
+        """Read and check a secret file: it must be a regular file that only its owner can read."""
+        import os
+        import stat
+
+        from ..errors import BadInput
+
+        p = Path(path)
+        try:
+            st = p.stat()
+        except OSError as e:
+            raise BadInput(f"secret file {p}: {e.strerror}") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise BadInput(f"secret file {p}: not a regular file")
+        if st.st_mode & 0o077:
+            raise BadInput(f"secret file {p}: readable by others (mode {stat.S_IMODE(st.st_mode):o}); "
+                           f"chmod 600 {p}")
+        if st.st_size > 65536:
+            raise BadInput(f"secret file {p}: {st.st_size} bytes is not a secret file")
+        users = {}
+        try:
+            text = p.read_text(encoding="ascii")
+        except (OSError, UnicodeDecodeError) as e:
+            raise BadInput(f"secret file {p}: {e}") from None
+        for n, line in enumerate(text.splitlines(), 1):
+            line = line.strip()
+            if not line:
+                continue
+            user, sep, pw = line.partition(":")
+            if not sep or not user.strip() or not pw.strip():
+                raise BadInput(f"secret file {p}, line {n}: expected user:password")
+            users[user.strip()] = pw.strip()
+        if not users:
+            raise BadInput(f"secret file {p}: empty")
+        return cls(users)
+
+    def write(self, path: str | Path) -> Path:
+        """Write the secret to a new 0600 file (never overwrites)."""
+        import os
+
+        p = Path(path)
+        fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as f:
+            f.write("".join(f"{u}:{pw}\n" for u, pw in self.users.items()))
+        return p
+
+    def password(self, user: str) -> str:
+        from ..errors import BadInput
+
+        try:
+            return self.users[user]
+        except KeyError:
+            raise BadInput(f"the secret has no line for {user!r} (it has {', '.join(self.users)})") from None
+
+    def only(self, user: str) -> "Credentials":
+        return Credentials({user: self.password(user)})
+
+
+#: the keys (after ``testbed/<run_id>/``) each process may publish on, and its liveliness tokens
+def publish_keys(user: str) -> list[str]:
+    own = {"plant": ["loop/sensor", "control/start", "control/stop"],
+           "encoder": ["loop/symbol/tx"],
+           "attacker": ["loop/symbol/rx", "loop/ack/rx", "attacker/status"],
+           "controller": ["loop/actuation", "loop/ack/tx"],
+           RECORDER: ["recorder/stats"],
+           LAUNCHER: ["control/stop"]}[user]
+    name = COLLECTOR if user == LAUNCHER else user
+    if user in ROLES or user == LAUNCHER:
+        own += [f"telemetry/{user}", f"events/{user}", f"summary/{user}"] if user in ROLES else \
+            [f"events/{user}", f"summary/{user}"]
+    return own + [f"alive/{name}", f"ready/{name}"]
+
+
+def acl_config(keys: Keys) -> dict:
+    """Zenoh access control of the run's router: each process may publish only on its own keys.
+
+    Default deny; every authenticated client may subscribe to and receive everything of
+    the run, and put (and declare liveliness tokens, queryables and replies) only on
+    ``publish_keys(user)``.  The router accepted every link, so it knows the user name
+    at the other end of each and checks every message.
+    """
+    p = keys.prefix
+    every = f"{p}/**"
+    listen_msgs = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"]
+    pub_msgs = ["put", "liveliness_token", "declare_queryable", "reply"]
+    subjects = [{"id": u, "usernames": [u]} for u in USERS]
+    rules = [{"id": "listen", "messages": listen_msgs, "flows": ["ingress", "egress"], "permission": "allow",
+              "key_exprs": [every]},
+             {"id": "receive", "messages": listen_msgs + pub_msgs + ["delete"], "flows": ["egress"],
+              "permission": "allow", "key_exprs": [every]}]
+    rules += [{"id": f"publish_{u}", "messages": pub_msgs, "flows": ["ingress"], "permission": "allow",
+               "key_exprs": [f"{p}/{k}" for k in publish_keys(u)]} for u in USERS]
+    policies = [{"id": f"policy_{u}", "rules": ["listen", "receive", f"publish_{u}"], "subjects": [u]}
+                for u in USERS]
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
 
 
 def _json_or_none(conf, key):

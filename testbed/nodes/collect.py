@@ -20,11 +20,17 @@ PT = msg.PlantTelemetry
 class Collector:
     """Telemetry, events, node summaries, start/stop and liveliness of one run."""
 
-    def __init__(self, session, keys: transport.Keys):
+    #: events kept (the rest are counted): a flood cannot grow the launcher without bound
+    MAX_EVENTS = 10_000
+
+    def __init__(self, session, keys: transport.Keys, n_steps: int):
         import zenoh
 
         self._zenoh = zenoh
         self.keys = keys
+        self.n_steps = int(n_steps)
+        self.rejected = 0        # telemetry records for a sample outside [0, N), or a second copy of one
+        self.events_dropped = 0
         self.lock = threading.Lock()
         self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}
         self.plant_final: msg.PlantTelemetry | None = None
@@ -60,12 +66,19 @@ class Collector:
         except msg.MessageError:
             self.bad += 1
             return
+        N = self.n_steps
         with self.lock:
+            d = self.tele[role]
             for t in recs:
                 if role == "plant" and t.flags & PT.FLAG_FINAL:
+                    if not 0 <= t.k <= N or self.plant_final is not None:
+                        self.rejected += 1
+                        continue
                     self.plant_final = t
+                elif not 0 <= t.k < N or t.k in d:
+                    self.rejected += 1  # never stored: a k from the wire sizes nothing
                 else:
-                    self.tele[role][t.k] = t
+                    d[t.k] = t
 
     def _on_event(self, sample) -> None:
         try:
@@ -74,12 +87,18 @@ class Collector:
             self.bad += 1
             return
         with self.lock:
-            self.events.append(e)
+            if len(self.events) < self.MAX_EVENTS:
+                self.events.append(e)
+            else:
+                self.events_dropped += 1
 
     def _on_summary(self, sample) -> None:
         try:
             s = msg.NodeSummary.decode(sample.payload)
         except msg.MessageError:
+            self.bad += 1
+            return
+        if s.node != transport.Keys.node_of(sample.key_expr) or s.node not in transport.ROLES:
             self.bad += 1
             return
         with self.lock:
@@ -91,7 +110,8 @@ class Collector:
         except msg.MessageError:
             return
         with self.lock:
-            self.status.append(s)
+            if len(self.status) < self.MAX_EVENTS:
+                self.status.append(s)
 
     def _on_start(self, sample) -> None:
         try:
@@ -109,7 +129,8 @@ class Collector:
         except msg.MessageError:
             return
         with self.lock:
-            self.stops.append(s)
+            if len(self.stops) < 100:
+                self.stops.append(s)
 
     def _on_alive(self, sample) -> None:
         node = transport.Keys.node_of(sample.key_expr)
@@ -144,6 +165,29 @@ class Collector:
     def plant_done(self) -> bool:
         with self.lock:
             return any(s.origin == "plant" for s in self.stops)
+
+    def telemetry_check(self) -> list[dict]:
+        """Each node's own account of its telemetry (records and digest, in its summary) against what
+        arrived here: a difference means records were lost, forged or altered on the way."""
+        import hashlib
+
+        out = []
+        with self.lock:
+            for role in transport.ROLES:
+                s = self.summaries.get(role) or {}
+                if "telemetry_sha256" not in s:
+                    continue
+                recs = [self.tele[role][k] for k in sorted(self.tele[role])]
+                if role == "plant" and self.plant_final is not None:
+                    recs.append(self.plant_final)
+                h = hashlib.sha256()
+                for r in recs:
+                    h.update(r.encode())
+                if len(recs) != s.get("telemetry_records") or h.hexdigest() != s["telemetry_sha256"]:
+                    out.append({"node": role, "kind": "telemetry_mismatch",
+                                "why": f"{len(recs)} records collected, the node published {s.get('telemetry_records')}"
+                                       + ("" if len(recs) != s.get("telemetry_records") else "; digests differ")})
+        return out
 
     def snapshot(self) -> RunData:
         """A copy of what has arrived so far (for ``testbed.runsummary.build_summary``)."""

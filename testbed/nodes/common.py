@@ -53,11 +53,12 @@ class RunOptions:
     loss_fraction: float | None = None
     actuation: str | None = None
     rule: str | None = None
+    seed: int | None = None
     ack_via_attacker: bool = False
 
     _OVERRIDES = (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"), ("deadline", "--deadline"),
                   ("mode", "--mode"), ("loss_fraction", "--loss-fraction"), ("actuation", "--actuation"),
-                  ("rule", "--rule"))
+                  ("rule", "--rule"), ("seed", "--seed"))
 
     @classmethod
     def from_args(cls, args) -> "RunOptions":
@@ -95,6 +96,8 @@ def add_run_option_arguments(p: argparse.ArgumentParser,
     g.add_argument("--actuation", choices=["scheduled", "arrival"],
                    help="override [run] actuation (physical timing: u_k acts at its scheduled instant or on arrival)")
     g.add_argument("--rule", choices=["paper", "delay-aware"], help="override [quantizer] rule (the prediction rule)")
+    g.add_argument("--seed", type=int, metavar="S",
+                   help="override [attack] seed (a random attack without one draws one, prints it and records it)")
     g.add_argument("--ack-via-attacker", action="store_true",
                    help="route the controller's acks through the attacker proxy too")
 
@@ -283,6 +286,17 @@ def set_realtime(on: bool, priority: int = 1) -> bool:
 
 
 # ============================================================================ zenoh options
+def add_security_arguments(g) -> None:
+    """``--topology``, ``--secret-file``, ``--insecure`` (nodes, the recorder; the launcher makes its own secret)."""
+    g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
+                   help="router: one process routes and checks every message (default); peer: direct links "
+                        "between the processes, unauthenticated (with --insecure only)")
+    g.add_argument("--secret-file", metavar="PATH",
+                   help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed secret')")
+    g.add_argument("--insecure", action="store_true",
+                   help="no authentication and no access control: any local process can join the run")
+
+
 def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("zenoh")
     g.add_argument("--run-id", default=transport.DEFAULT_RUN_ID,
@@ -293,17 +307,57 @@ def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
                    help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
     g.add_argument("--zenoh-config", metavar="FILE",
                    help="Zenoh JSON5 config read first (e.g. TLS certificates); flags override it")
+    add_security_arguments(g)
 
 
-def zenoh_config(args, role: str):
-    """Standalone defaults: the plant listens on tcp/127.0.0.1:7447, the others connect to it."""
+PEER_NEEDS_INSECURE = ("the peer topology runs without authentication only: add --insecure (for latency "
+                       "experiments on a trusted machine), or use the router topology")
+
+
+def security_info(args) -> dict:
+    """How a process's session is secured (it goes into the recording and the summary)."""
+    return {"authenticated": not args.insecure, "topology": args.topology,
+            "access_control": "none" if args.insecure else "every message"}
+
+
+def zenoh_config(args, role: str, keys: transport.Keys):
+    """The session of ``role`` (a node or the recorder).
+
+    Standalone defaults: the plant listens on tcp/127.0.0.1:7447, the others connect to
+    it.  Router topology: the hub (the launcher, or a standalone plant) is the run's
+    router and checks every message; the others are its clients.  Peer topology: every
+    process is a peer.  Unless ``--insecure``, the session authenticates with the
+    secret file's line of ``role``; a router or a peer also accepts the file's other lines.
+    """
+    from ..errors import BadInput
+
+    hub = role == "plant" and not getattr(args, "launched", False)
     listen, connect = list(args.listen), list(args.connect)
     if not listen and not connect and not args.zenoh_config:
-        if role == "plant":
+        if hub:
             listen = [transport.DEFAULT_HUB]
         else:
             connect = [transport.DEFAULT_HUB]
-    return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config)
+    peer = args.topology == "peer"
+    mode = "peer" if peer else ("router" if hub else "client")
+    if args.insecure:
+        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode)
+    if peer:
+        raise BadInput(PEER_NEEDS_INSECURE)
+    if not args.secret_file:
+        raise BadInput("no --secret-file: make one with 'testbed secret PATH' and give it to every process "
+                       "of the run (or run unauthenticated with --insecure)")
+    cred = transport.Credentials.read(args.secret_file)
+    accepts = hub
+    if accepts:
+        missing = [u for u in (*transport.ROLES, transport.RECORDER) if u not in cred.users]
+        if missing:
+            raise BadInput(f"secret file {args.secret_file}: no line for {', '.join(missing)} (a {mode} that "
+                           "accepts the others needs all of them)")
+    return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
+                                 user=role, password=cred.password(role),
+                                 dictionary_file=args.secret_file if accepts else None,
+                                 acl=transport.acl_config(keys) if accepts else None)
 
 
 # ============================================================================ node context
@@ -421,13 +475,19 @@ class NodeContext:
             self.clock = RunClock(st.t0_ns)
         self._start_ev.set()
 
+    #: who may stop a run (the access control of the router topology enforces it as well)
+    STOP_ORIGINS = ("plant", "launcher")
+
     def _on_stop(self, sample) -> None:
         try:
             s = msg.Stop.decode(sample.payload)
-            reason = f"stop from {s.origin or '?'}: {s.reason}"
-        except msg.MessageError:
-            reason = "stop"
-        self.request_stop(reason)
+        except msg.MessageError as e:
+            self.event("stop_rejected", detail=f"malformed stop message: {e}")
+            return
+        if s.origin not in self.STOP_ORIGINS:
+            self.event("stop_rejected", detail=f"stop from {s.origin!r}: only the plant or the launcher stops a run")
+            return
+        self.request_stop(f"stop from {s.origin}: {s.reason}")
 
     def request_stop(self, reason: str) -> None:
         if not self.stop.is_set():
@@ -514,12 +574,21 @@ class TelemetryOut:
         self.buf: list[bytes] = []
         self.lock = threading.Lock()
         self.tap = None  # testbed run --rerun: a deque's append (testbed.nodes.rerun_tap), nothing more
+        self._digest = hashlib.sha256()  # of every record, in order: the launcher checks what it received
+        self.records = 0
+
+    def digest(self) -> dict:
+        """The node's own account of its telemetry (it goes into its summary)."""
+        with self.lock:
+            return {"telemetry_records": self.records, "telemetry_sha256": self._digest.hexdigest()}
 
     def put(self, record: bytes) -> None:
         tap = self.tap
         if tap is not None:
             tap(record)
         with self.lock:
+            self._digest.update(record)
+            self.records += 1
             self.buf.append(record)
             if len(self.buf) < self.n:
                 return

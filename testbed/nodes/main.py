@@ -101,11 +101,21 @@ def main_node(args) -> int:
             raise KeyboardInterrupt
 
     on_stop_signals(on_signal, main_handler=before_context, grace=STOP_GRACE_S)
-    conf = zenoh_config(args, role)
+    keys = transport.Keys.for_run(args.run_id)
+    conf = zenoh_config(args, role, keys)
+    if args.insecure and not args.launched:
+        print(f"testbed node {role}: INSECURE: no authentication, any local process can join run {args.run_id}",
+              file=sys.stderr)
     code = 0
     cpu_info: dict = {}
-    with zenoh.open(conf) as session:
-        ctx = NodeContext(role, session, sc, opts, transport.Keys.for_run(args.run_id))
+    try:
+        session_cm = zenoh.open(conf)
+    except zenoh.ZError as e:
+        print(f"testbed node {role}: no Zenoh session (the router is not there, or it refused the credentials): "
+              f"{str(e).split(' at /')[0]}", file=sys.stderr)
+        return 3
+    with session_cm as session:
+        ctx = NodeContext(role, session, sc, opts, keys)
         holder["ctx"] = ctx
         ctx.watch_collector = args.launched
         args.wait_collector = args.wait_collector or args.launched
@@ -164,6 +174,7 @@ def main_node(args) -> int:
         if tap is not None:
             ctx.telemetry.tap = None
             data.update(tap.close())
+        data.update(ctx.telemetry.digest())
         data["events_sent"], data["events_suppressed"] = ctx.events_sent, ctx.events_suppressed
         data["stop_reason"] = ctx.stop_reason
         data["pid"] = os.getpid()

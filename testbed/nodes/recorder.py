@@ -33,7 +33,7 @@ from pathlib import Path
 from ..io import messages as msg
 from ..io import recording, transport
 from .common import (RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, on_stop_signals,
-                     tune_process)
+                     security_info, tune_process, zenoh_config)
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
@@ -61,8 +61,16 @@ def stats_key(keys: transport.Keys) -> str:
 class Recorder:
     """Subscribes to one run and writes it to ``writer``; ``close()`` drains and finishes the file."""
 
-    def __init__(self, session, keys: transport.Keys, writer: recording.RecordingWriter, *, loop: bool):
+    #: malformed messages written as such (the rest only counted): a flood cannot fill the disk
+    MAX_MALFORMED = 1000
+
+    def __init__(self, session, keys: transport.Keys, writer: recording.RecordingWriter, *, loop: bool,
+                 n_steps: int = 2**31):
         import zenoh
+
+        self.n_steps = int(n_steps)
+        self.rejected = 0
+        self.overflow = 0
 
         self._zenoh = zenoh
         self.keys = keys
@@ -103,7 +111,13 @@ class Recorder:
         query.reply(query.key_expr, json.dumps(d).encode())
 
     # ---- Zenoh threads: just enqueue
+    #: messages waiting for the writer; beyond that they are counted, not kept (a flood cannot exhaust memory)
+    MAX_QUEUE = 500_000
+
     def _on_sample(self, sample) -> None:
+        if len(self.q) >= self.MAX_QUEUE:
+            self.overflow += 1
+            return
         att = sample.attachment
         self.q.append((str(sample.key_expr), sample.payload.to_bytes(), None if att is None else att.to_bytes(),
                        time.time_ns()))
@@ -146,6 +160,8 @@ class Recorder:
 
     def _malformed(self, key: str, payload: bytes, attachment: bytes | None, error: str, log_time: int) -> None:
         self.malformed += 1
+        if self.malformed > self.MAX_MALFORMED:
+            return
         self.w.write("/recorder/malformed", {"key": key, "payload": payload, "attachment": attachment or b"",
                                              "error": error}, log_time)
 
@@ -164,9 +180,14 @@ class Recorder:
                     raise msg.MessageError(f"no telemetry type for node {role!r}")
                 recs = [typ.decode(r) for r in msg.unpack_batch(payload)]
                 name = recording.TELEMETRY_SCHEMA[role]
+                N = self.n_steps
                 for t in recs:
+                    final = role == "plant" and t.flags & msg.PlantTelemetry.FLAG_FINAL
+                    if not (0 <= t.k <= N if final else 0 <= t.k < N):
+                        self.rejected += 1  # a sample outside the run: never recorded as one
+                        continue
                     self.w.write(topic, t, log_time, self._pub(_stamp(t), log_time), name=name)
-                self.written += len(recs)
+                    self.written += 1
                 return
             if rel in _LOOP_TYPES:
                 m = _LOOP_TYPES[rel].decode(payload, attachment)
@@ -196,7 +217,7 @@ class Recorder:
     # ---- end
     def stats(self) -> dict:
         return {"received": self.received, "written": self.written, "warmup_skipped": self.warmup,
-                "malformed": self.malformed, "max_queue": self.max_queue, "write_errors": self.write_errors,
+                "malformed": self.malformed, "rejected_k": self.rejected, "queue_overflow": self.overflow, "max_queue": self.max_queue, "write_errors": self.write_errors,
                 "loop_recorded": self.loop}
 
     def close(self, timeout: float = 30.0) -> dict:
@@ -217,7 +238,8 @@ class Recorder:
 def add_arguments_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="the run's scenario (file or bundled name): stored in the recording")
     p.add_argument("--out", metavar="PATH.mcap",
-                   help="recording file (default recordings/<scenario>-<UTC start>.mcap)")
+                   help="recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); never overwritten")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file")
     p.add_argument("--loop", choices=["auto", "on", "off"], default="auto",
                    help="record the control-path messages too (auto: when T >= 10 ms; default %(default)s)")
     p.add_argument("--flush", type=float, default=0.5, metavar="S",
@@ -259,20 +281,28 @@ def main_record(args) -> int:
         stop.set()
 
     on_stop_signals(on_signal, grace=RECORDER_STOP_GRACE_S)
-    out = Path(args.out) if args.out else recording.default_path(sc.name)
+    out = Path(args.out) if args.out else recording.default_path(sc.name, run_id=args.run_id)
     keys = transport.Keys.for_run(args.run_id)
-    listen, connect = list(args.listen), list(args.connect)
-    if not listen and not connect and not args.zenoh_config:
-        connect = [transport.DEFAULT_HUB]
-    conf = transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config)
-    w = recording.RecordingWriter(out, flush_interval=args.flush)
+    conf = zenoh_config(args, ROLE, keys)
+    if args.insecure and not args.launched:
+        print(f"testbed record: INSECURE: no authentication, any local process can join run {args.run_id}",
+              file=sys.stderr)
+    w = recording.RecordingWriter(out, flush_interval=args.flush, exclusive=not args.force)
     recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
                                   extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
-                                         "ack_via_attacker": opts.ack_via_attacker})
+                                         "ack_via_attacker": opts.ack_via_attacker,
+                                         "security": security_info(args)})
     loop = loop_default(sc, args.loop)
     print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
-    with zenoh.open(conf) as session:
-        rec = Recorder(session, keys, w, loop=loop)
+    try:
+        session_cm = zenoh.open(conf)
+    except zenoh.ZError as e:
+        w.close()
+        print(f"testbed record: no Zenoh session (the router is not there, or it refused the credentials): "
+              f"{str(e).split(' at /')[0]}", file=sys.stderr)
+        return 3
+    with session_cm as session:
+        rec = Recorder(session, keys, w, loop=loop, n_steps=sc.n_steps)
         tokens = [session.liveliness().declare_token(keys.alive(ROLE)),
                   session.liveliness().declare_token(keys.ready(ROLE))]
         try:
