@@ -186,7 +186,8 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
 def print_text(s: dict) -> None:
     r = s["recording"]
     verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
-    print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
+    print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}"
+          + (f", model {s['model']}" if s.get("model") not in (None, s["plant"]) else "") + "), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
     for what in ("plant", "model"):
@@ -202,6 +203,8 @@ def print_text(s: dict) -> None:
         print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")
     else:
         print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
+    if s.get("plant_fault"):
+        print(f"  PLANT FAULT at sample {s['plant_fault_at']}: {s['plant_fault']} (the run ended there)")
     d = s["dos"]
     lens = ", ".join(f"{x:g}" for x in d["lengths"][:8]) + (" ..." if len(d["lengths"]) > 8 else "")
     print(f"  DoS: {d['count']} intervals (lengths {lens or '-'} s), {s['packets_dropped']} samples lost "
