@@ -69,6 +69,9 @@ def main_simulate(args) -> int:
         print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, M={out['M']}, "
               f"Lambda={out['Lambda']:.4f}, {out['bits']} bits/symbol, quantizer {out['mode']}")
         print(f"  K = {out['K']}")
+        if sc.model is not None and sc.model.explicit:
+            print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
+                  "(predictions, design)")
         print(f"  {len(out['t'])} samples, {out['packets_dropped']} dropped in {len(out['dos_intervals'])} "
               f"DoS intervals, {out['saturations']} saturations, encoder/decoder agree: "
               f"{out['encoder_decoder_agree']}")

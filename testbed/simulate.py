@@ -659,6 +659,19 @@ def json_clean(o):
     return o
 
 
+def plant_and_model(sc) -> dict:
+    """The true plant and the model of a scenario by name and parameters (the JSON outputs name both).
+
+    ``plant``: what the simulator and the live plant node integrate (``[plant]``; "fmu:FILE"
+    for an FMU, whose ``plant_params`` are the FMU parameters set); ``model``: what the
+    predictions, the design and the analysis use (``[model]``, default ``[plant]``).
+    """
+    model = sc.make_model()
+    pparams = dict(sc.plant.params) if sc.plant.fmu is not None else sc.make_plant().params_dict()
+    return {"plant": sc.plant.name, "model": model.name, "plant_params": pparams,
+            "model_params": model.params_dict()}
+
+
 def summarize(sc, res: SimResult) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
@@ -678,8 +691,7 @@ def summarize(sc, res: SimResult) -> dict:
     cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     return json_clean({
         "scenario": sc.name,
-        "plant": sc.plant.name,
-        "model": model.name,
+        **plant_and_model(sc),
         "n": model.n,
         "m": model.m,
         "T": sc.T,
