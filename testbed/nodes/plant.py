@@ -36,11 +36,11 @@ import time
 
 import numpy as np
 
+from plants.base import PlantFault
+
 from ..flow import FLOW_OK, STATUS_NAMES
 from ..io import messages as msg
 from ..io import transport
-from plants.base import PlantFault
-
 from ..protocol import PlantProtocol
 from ..runsummary import percentiles
 from .common import Node
