@@ -186,10 +186,12 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
 def print_text(s: dict) -> None:
     r = s["recording"]
     verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
-    print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}"
-          + (f", model {s['model']}" if s.get("model") not in (None, s["plant"]) else "") + "), "
+    print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
+    if (s.get("plant"), s.get("plant_params")) != (s.get("model"), s.get("model_params")):
+        print(f"  true plant {s['plant']} {s.get('plant_params')}, model {s.get('model')} {s.get('model_params')} "
+              "(predictions, design)")
     for what in ("plant", "model"):
         ps = s.get(f"{what}_source")
         if ps and ps["loaded_from"] == "recording":
