@@ -23,6 +23,7 @@ fmpy is the optional extra ``fmu`` (``pip install 'dos-testbed[fmu]'``).
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import shutil
@@ -162,6 +163,38 @@ def describe(path: str | Path, *, inputs, states, params: dict | None = None) ->
                    states=tuple(sts), params=tuple(prs))
 
 
+#: the log buffer of each open FMUPlant, by the key its FMU passes back as componentEnvironment
+_LOGS: dict[int, list] = {}
+_LOG_KEYS = itertools.count(1)
+_LOGGER = []
+
+
+def _process_logger():
+    """The one FMI logger callback of this process (kept alive for the process's life).
+
+    fmpy's C proxy that formats the FMU's printf-style messages (``addLoggerProxy``)
+    keeps a single, process-wide pointer to the Python logger, overwritten by every
+    FMU that registers: with one logger per FMUPlant, an FMU instantiated first would
+    call the callback of the last one, freed once that one was closed (a crash).  So
+    every FMUPlant registers this one callback, which routes each message to its
+    FMUPlant's buffer by the ``componentEnvironment`` key the FMU passes back.
+    """
+    if not _LOGGER:
+        from fmpy.fmi2 import fmi2CallbackLoggerTYPE
+
+        def logger(env, _instance, status, _category, message):
+            buf = _LOGS.get(env or 0)
+            if buf is None:
+                return
+            text = message.decode("utf-8", "replace") if message else ""
+            buf.append(f"[{['ok', 'warning', 'discard', 'error', 'fatal', 'pending'][status]}] {text}"
+                       if 0 <= status <= 5 else text)
+            del buf[:-20]
+
+        _LOGGER.append(fmi2CallbackLoggerTYPE(logger))
+    return _LOGGER[0]
+
+
 class FMUPlant:
     """An FMI 2.0 Co-Simulation FMU as the true plant: a ``plants.PlantProcess``.
 
@@ -210,20 +243,15 @@ class FMUPlant:
         from ctypes import byref
 
         from fmpy import calloc, free
-        from fmpy.fmi2 import (fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions,
-                               fmi2CallbackLoggerTYPE)
-
-        def logger(_env, _instance, status, _category, message):
-            text = message.decode("utf-8", "replace") if message else ""
-            self._log.append(f"[{['ok', 'warning', 'discard', 'error', 'fatal', 'pending'][status]}] {text}"
-                             if 0 <= status <= 5 else text)
-            del self._log[:-20]
+        from fmpy.fmi2 import fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions
 
         cb = fmi2CallbackFunctions()
-        cb.logger = fmi2CallbackLoggerTYPE(logger)
+        cb.logger = _process_logger()
         cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
         cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-        self._logger_ref = cb.logger
+        self._log_key = next(_LOG_KEYS)
+        _LOGS[self._log_key] = self._log
+        cb.componentEnvironment = self._log_key   # the FMU hands it back with every message
         try:
             from fmpy.logging import addLoggerProxy
 
@@ -311,6 +339,7 @@ class FMUPlant:
         return self._x.copy()
 
     def close(self) -> None:
+        _LOGS.pop(getattr(self, "_log_key", None), None)
         f, self._fmu = self._fmu, None
         self._ready = False
         if f is not None:

@@ -71,20 +71,30 @@ def main_simulate(args) -> int:
         sys.stdout.write("\n")
     else:
         verdict = "converged" if out["converged"] else ("ESCAPED" if out["escaped"] else "not converged")
+        if out["plant_fault"] is not None:
+            verdict = f"PLANT FAULT at sample {out['plant_fault_at']}: the run ended there"
         print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, M={out['M']}, "
               f"Lambda={out['Lambda']:.4f}, {out['bits']} bits/symbol, quantizer {out['mode']}")
         print(f"  K = {out['K']}")
+        if sc.model is not None and sc.model.explicit:
+            print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
+                  "(predictions, design)")
         print(f"  {len(out['t'])} samples, {out['packets_dropped']} dropped in {len(out['dos_intervals'])} "
               f"DoS intervals, {out['saturations']} saturations, encoder/decoder agree: "
               f"{out['encoder_decoder_agree']}")
         print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}"
-              + (f" (flow diverged at sample {out['diverged_at']})" if out["diverged"] else ""))
+              + (f" (flow diverged at sample {out['diverged_at']})"
+                 if out["diverged"] and out["plant_fault"] is None else ""))
         if args.out:
             print(f"  recording: {args.out}")
         if args.rrd:
             print(f"  rerun recording: {args.rrd}")
         if args.plot:
             print(f"  figure: {args.plot}")
+    if res.plant_fault is not None:  # the true plant failed (an FMU step): the run is data, the job failed
+        print(f"testbed simulate: plant fault at sample {res.plant_fault_at} (t = {res.plant_fault_at * sc.T:g} s): "
+              f"{res.plant_fault}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -189,6 +189,9 @@ def print_text(s: dict) -> None:
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
+    if (s.get("plant"), s.get("plant_params")) != (s.get("model"), s.get("model_params")):
+        print(f"  true plant {s['plant']} {s.get('plant_params')}, model {s.get('model')} {s.get('model_params')} "
+              "(predictions, design)")
     for what in ("plant", "model"):
         ps = s.get(f"{what}_source")
         if ps and ps["loaded_from"] == "recording":
@@ -202,6 +205,8 @@ def print_text(s: dict) -> None:
         print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")
     else:
         print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
+    if s.get("plant_fault"):
+        print(f"  PLANT FAULT at sample {s['plant_fault_at']}: {s['plant_fault']} (the run ended there)")
     d = s["dos"]
     lens = ", ".join(f"{x:g}" for x in d["lengths"][:8]) + (" ..." if len(d["lengths"]) > 8 else "")
     print(f"  DoS: {d['count']} intervals (lengths {lens or '-'} s), {s['packets_dropped']} samples lost "

@@ -143,6 +143,9 @@ def build_summary(sc, data: RunData, *, run_id: str, ack_via_attacker: bool, nod
     res = SimResult(T=sc.T, t=np.arange(N) * sc.T, x=x, u=u, q=q, q_enc=q_enc, xi_enc=xi_enc, E_enc=E_enc,
                     xi_dec=xi_dec, E_dec=E_dec, theta=theta, symbols=symbols, saturated=sat, x_final=x_final,
                     flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float))
+    pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
+    if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample
+        res.plant_fault, res.plant_fault_at = pf.detail, int(pf.k)
     if not np.all(np.isfinite(x_final)):
         res.x_final = np.array(sc.x0, dtype=float)
         out = summarize(sc, res)

@@ -25,6 +25,7 @@ import numba as nb
 import numpy as np
 
 from attackers.greedy import greedy_init, greedy_step
+from plants.base import PlantFault
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
@@ -64,6 +65,8 @@ class SimResult:
     delays: np.ndarray | None = None     # physical timing: delta_k [ns] (None: ideal timing)
     u_missing: np.ndarray | None = None  # u_k never reached the plant (u = 0 after the deadline)
     counters: dict = field(default_factory=dict)
+    plant_fault: str | None = None  # the true plant failed (``plants.PlantFault``): its one line
+    plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
 
     @property
     def saturations(self) -> int:
@@ -161,6 +164,11 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     (ns, a scalar or (N,)): when u_k reaches the plant after t_k (a lost sample's after the
     loss deadline).  ``replay``: re-run what a recording says happened (the attacker is
     then ignored: theta_k follows the recorded decisions; delta_k is the recorded one).
+
+    A true-plant process that raises ``plants.PlantFault`` (an FMU step that failed) ends
+    the run at that sample: the result holds samples 0..k, x_final is the process's state
+    at the fault, and ``plant_fault`` / ``plant_fault_at`` say what and where (a failed
+    ``reset`` gives a run of no samples).  Nothing is raised.
     """
     model = plant if model is None else model
     n, m = model.n, model.m
@@ -170,7 +178,15 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     corrupt = dict(net.corrupt)
     if process is None:
         process = OdeProcess(plant, flow)
-    process.reset(np.asarray(x0, dtype=np.float64))
+    try:
+        process.reset(np.asarray(x0, dtype=np.float64))
+    except PlantFault as e:  # the true plant cannot start: a run of no samples, reported as data
+        z = np.zeros((0, n))
+        return SimResult(T=qp.T, t=np.zeros(0), x=z, u=np.zeros((0, m)), q=z, q_enc=z, xi_enc=z,
+                         E_enc=np.zeros(0), xi_dec=z, E_dec=np.zeros(0), theta=np.zeros(0, dtype=np.uint8),
+                         symbols=np.zeros(0, dtype=np.int64), saturated=np.zeros(0, dtype=bool),
+                         x_final=np.asarray(x0, dtype=np.float64).copy(), K=K, plant_fault=str(e),
+                         plant_fault_at=0)
     tpar = np.zeros(5, dtype=np.int64) if timing is None else np.asarray(timing, dtype=np.int64)
     physical = bool(tpar[0])
     if replay is not None and replay.delays is not None:
@@ -195,6 +211,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     u_missing = np.zeros(N, dtype=bool)
     acks: list = []          # acks on their way to the encoder (delivered before the next sensor sample)
     status, diverged_at = FLOW_OK, -1
+    fault, fault_at = None, -1
     last = N
 
     def record(d) -> None:
@@ -262,7 +279,11 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
             u_missing[k] = True
         if physical:
             delays[k] = dns
-        st = pp.step(u_k, dns)
+        try:
+            st = pp.step(u_k, dns)
+        except PlantFault as e:  # the run stops at this sample (x_final = x_k): reported, not raised
+            fault, fault_at, last = str(e), k, k + 1
+            break
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
@@ -276,7 +297,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl],
                      delays=None if delays is None else delays[:last].copy(),
                      counters={"encoder": encp.counters(), "controller": ctlp.counters(),
-                               "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}})
+                               "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
+                     plant_fault=fault, plant_fault_at=fault_at)
 
 
 # ============================================================================ batch kernel
@@ -637,24 +659,39 @@ def json_clean(o):
     return o
 
 
+def plant_and_model(sc) -> dict:
+    """The true plant and the model of a scenario by name and parameters (the JSON outputs name both).
+
+    ``plant``: what the simulator and the live plant node integrate (``[plant]``; "fmu:FILE"
+    for an FMU, whose ``plant_params`` are the FMU parameters set); ``model``: what the
+    predictions, the design and the analysis use (``[model]``, default ``[plant]``).
+    """
+    model = sc.make_model()
+    pparams = dict(sc.plant.params) if sc.plant.fmu is not None else sc.make_plant().params_dict()
+    return {"plant": sc.plant.name, "model": model.name, "plant_params": pparams,
+            "model_params": model.params_dict()}
+
+
 def summarize(sc, res: SimResult) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
     ``escaped``: x_N outside the nominal region of attraction of the model's loop (or the
-    flow diverged).
+    flow diverged).  A run the true plant ended with a fault (``plant_fault``: its line,
+    ``plant_fault_at``: the sample) counts as diverged and not converged; ``escaped`` is
+    then about the state at the fault.
     """
     model = sc.make_model()
     tol = sc.run.converge_tol
-    diverged = res.flow_status != FLOW_OK
+    flow_diverged = res.flow_status != FLOW_OK
+    diverged = flow_diverged or res.plant_fault is not None
     converged = (not diverged) and res.final_norm < tol
-    escaped = diverged or not bool(in_nominal_roa(model, res.K, sc.T, res.x_final[None, :], tol=tol,
-                                                   flow=sc.flow)[0])
+    escaped = flow_diverged or not bool(in_nominal_roa(model, res.K, sc.T, res.x_final[None, :], tol=tol,
+                                                        flow=sc.flow)[0])
     sch = res.intervals()
     cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     return json_clean({
         "scenario": sc.name,
-        "plant": sc.plant.name,
-        "model": model.name,
+        **plant_and_model(sc),
         "n": model.n,
         "m": model.m,
         "T": sc.T,
@@ -682,7 +719,9 @@ def summarize(sc, res: SimResult) -> dict:
         "converged": bool(converged),
         "escaped": bool(escaped),
         "diverged": bool(diverged),
-        "diverged_at": res.diverged_at,
+        "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
+        "plant_fault": res.plant_fault,
+        "plant_fault_at": res.plant_fault_at,
         "timing_mode": sc.run.timing,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),

@@ -9,7 +9,10 @@ must give one clear line.
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
+import secrets
+import subprocess
 import sys
 from pathlib import Path
 
@@ -207,3 +210,174 @@ def test_paper_scenario_with_the_fmu_as_true_plant(lienard_fmu, tmp_path):
     res = simulate_scenario(scenario.load(tmp_path / "fmu.toml"))
     assert np.abs(res.x - ref.x).max() < 1e-6 and np.abs(res.x_final - ref.x_final).max() < 1e-6
     assert not res.saturated.any() and np.array_equal(res.theta, ref.theta)
+
+
+# ====================================================================== plant faults, the analysis, live runs
+def fmu_scenario(tmp_path, lienard_fmu, fmu_params: str = "", name: str = "fmu.toml") -> Path:
+    """The paper scenario with the test FMU as [plant] (``fmu_params``: its params table) and the built-in
+    Lienard as [model], E_min = 1e-9 (see test_paper_scenario_with_the_fmu_as_true_plant)."""
+    from testbed import scenario
+
+    text = scenario.load("paper").source.replace('mode = "resilient"', 'mode = "resilient"\nE_min = 1e-9')
+    if not (tmp_path / "lienard.fmu").exists():
+        (tmp_path / "lienard.fmu").write_bytes(Path(lienard_fmu).read_bytes())
+    text = text.replace('[plant]\nname = "lienard"\nparams = { a = 0.3333333333333333, b = 0.02 }\n',
+                        '[plant]\nfmu = "lienard.fmu"\ninputs = ["u"]\nstates = ["x1", "x2"]\n'
+                        + (f"params = {{ {fmu_params} }}\n" if fmu_params else "")) \
+        + '\n[model]\nname = "lienard"\nparams = { a = 0.3333333333333333, b = 0.02 }\n'
+    (tmp_path / name).write_text(text)
+    return tmp_path / name
+
+
+def test_two_fmu_plants_in_one_process_keep_their_own_log(lienard_fmu):
+    """Each FMUPlant's fault line carries its own FMU's message, after another FMUPlant came and went
+    (fmpy's message formatter holds one process-wide logger: a freed one crashed the process)."""
+    import gc
+
+    a = FMUPlant(lienard_fmu, **IO, params={"fail_at": 0.15})
+    b = FMUPlant(lienard_fmu, **IO, params={"fail_at": 0.05})
+    a.reset([0.1, 0.1])
+    b.reset([0.1, 0.1])
+    b.advance([0.0], 0.1)
+    with pytest.raises(PlantFault, match=r"fail_at = 0\.05"):
+        b.advance([0.0], 0.1)
+    b.close()
+    del b
+    gc.collect()
+    a.advance([0.0], 0.1)
+    a.advance([0.0], 0.1)
+    with pytest.raises(PlantFault, match=r"the plant broke at t = 0\.2 s \(fail_at = 0\.15\)"):
+        a.advance([0.0], 0.1)
+    a.close()
+
+
+def test_plant_fault_stops_the_simulation_and_is_reported(lienard_fmu, tmp_path, capsys):
+    """A failing FMU step ends testbed simulate at that sample: the samples before it are the good FMU's,
+    the fault is in the JSON and in one line on stderr, exit 1; a failing reset is a run of no samples."""
+    from testbed import cli, scenario
+    from testbed.simulate import simulate_scenario, summarize
+
+    good = simulate_scenario(scenario.load(fmu_scenario(tmp_path, lienard_fmu, name="good.toml")))
+    bad_sc = scenario.load(fmu_scenario(tmp_path, lienard_fmu, "fail_at = 1.0", name="bad.toml"))
+    res = simulate_scenario(bad_sc)
+    k = res.plant_fault_at
+    assert k == 11 and len(res.t) == k + 1   # the FMU's t = 1.1 s >= fail_at (0.1 summed ten times < 1.0)
+    assert "the plant broke at t = 1.1 s (fail_at = 1)" in res.plant_fault and "\n" not in res.plant_fault
+    assert np.array_equal(res.x, good.x[:k + 1]) and np.array_equal(res.u, good.u[:k + 1])
+    assert np.array_equal(res.x_final, good.x[k])   # the state at the fault: the failed step moved nothing
+    out = summarize(bad_sc, res)
+    assert out["plant_fault"] == res.plant_fault and out["plant_fault_at"] == 11
+    assert out["diverged"] and not out["converged"] and out["diverged_at"] == 11
+    assert summarize(bad_sc, good)["plant_fault"] is None
+    assert cli.main(["simulate", str(tmp_path / "bad.toml"), "--json"]) == 1
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["plant_fault_at"] == 11
+    assert cap.err.count("\n") == 1 and "testbed simulate: plant fault at sample 11 (t = 1.1 s): FMU lienard.fmu: " \
+        "step from t = 1.1 s by 0.1 s failed" in cap.err
+    res0 = simulate_scenario(scenario.load(fmu_scenario(tmp_path, lienard_fmu, "n_sub = 0", name="bad0.toml")))
+    assert len(res0.t) == 0 and res0.plant_fault_at == 0 and "initialization failed" in res0.plant_fault
+    assert "n_sub must be >= 1" in res0.plant_fault
+
+
+def test_analysis_that_needs_the_true_plant_refuses_an_fmu(lienard_fmu, tmp_path, capsys):
+    """The batch simulator integrates equation (1) plants only: one line, exit 2; the model's theorems run."""
+    from testbed import cli
+
+    f = str(fmu_scenario(tmp_path, lienard_fmu))
+    for cmd in (["sweep", f], ["worst-attack", f], ["vulnerability", f], ["roa", f, "--vulnerable"],
+                ["analyze", f, "--full"]):
+        assert cli.main(cmd) == 2, cmd
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "the true plant is the FMU lienard.fmu, which the batch simulator" in err
+        assert 'whose [plant] is its [model] (name = "lienard")' in err
+    assert cli.main(["roa", f, "--grid", "5", "--horizon", "1", "--workers", "1", "--no-progress", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert (d["plant"], d["model"]) == ("fmu:lienard.fmu", "lienard")
+
+
+def _run(cmd, cwd, timeout=300.0, env=None):
+    r = subprocess.run([sys.executable, "-m", "testbed.cli", *map(str, cmd)], cwd=cwd, capture_output=True,
+                       text=True, timeout=timeout, start_new_session=True, env={**os.environ, **(env or {})})
+    return r.returncode, r.stdout, r.stderr
+
+
+def _live(tmp_path, scenario_file, rid, *args):
+    """``testbed run --json`` with the processes' temporary files (the extracted FMUs) in ``tmp_path/tmp``."""
+    (tmp_path / "tmp").mkdir(exist_ok=True)
+    rc, out, err = _run(["run", scenario_file, "--json", "--run-id", rid, "--run-dir", tmp_path / f"logs-{rid}",
+                         *args], tmp_path, env={"TMPDIR": str(tmp_path / "tmp")})
+    try:
+        return rc, json.loads(out), err
+    except json.JSONDecodeError:
+        pytest.fail(f"no JSON summary (exit {rc})\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
+
+
+@pytest.mark.process
+def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, tmp_path):
+    """testbed run with the FMU in the plant node, ideal timing: testbed simulate of it, bit for bit."""
+    from test_live_process import BIT_EXACT_KEYS, reap, stalled
+
+    f = fmu_scenario(tmp_path, lienard_fmu)
+    rid = f"t{os.getpid()}xfmu{secrets.token_hex(3)}"
+    try:
+        rc, s, err = _live(tmp_path, f, rid, "--duration", "3", "--no-record")
+        if stalled(s):  # a machine stall makes a sample a loss: rerun once (as test_live_process does)
+            reap(rid)
+            rid += "r"
+            rc, s, err = _live(tmp_path, f, rid, "--duration", "3", "--no-record")
+    finally:
+        assert not reap(rid)
+    assert rc == 0, (s.get("faults"), err[-2000:])
+    assert s["complete"] and s["samples"] == 30 and s["plant"] == "fmu:lienard.fmu" and s["model"] == "lienard"
+    rc, out, err = _run(["simulate", f, "--duration", "3", "--json"], tmp_path)
+    assert rc == 0, err
+    sim = json.loads(out)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], key
+    assert s["plant_fault"] is None
+    assert not list((tmp_path / "tmp").glob("testbed-fmu-*")), "the plant node left an extracted FMU behind"
+
+
+@pytest.mark.process
+def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp_path):
+    """doStep fails from t = 1.1 s: exit 1, a fault entry naming it, the recording readable up to the fault
+    (testbed report: the samples testbed simulate has up to its fault); a failing reset: a startup failure."""
+    from test_live_process import BIT_EXACT_KEYS, reap
+
+    f = fmu_scenario(tmp_path, lienard_fmu, "fail_at = 1.0")
+    rec = tmp_path / "fault.mcap"
+    rid = f"t{os.getpid()}xfmuf{secrets.token_hex(3)}"
+    try:
+        rc, s, err = _live(tmp_path, f, rid, "--duration", "3", "--out", rec)
+    finally:
+        assert not reap(rid)
+    assert rc == 1, err[-2000:]
+    assert s["plant_fault_at"] == 11 and "the plant broke at t = 1.1 s" in s["plant_fault"]
+    (fault,) = s["faults"]
+    assert fault["node"] == "plant" and fault["exit_code"] == 1 and fault["at_sample"] == 11
+    assert "plant_fault k=11 FMU lienard.fmu: step from t = 1.1 s by 0.1 s failed" in fault["last_log_line"]
+    assert "Traceback" not in (tmp_path / f"logs-{rid}" / "plant.log").read_text()
+    assert s["node_summaries"]["plant"]["plant_fault_at"] == 11
+    assert s["node_summaries"]["encoder"]["stop_reason"].startswith("stop from plant: plant fault at sample 11: ")
+    rc, out, err = _run(["report", rec, "--json"], tmp_path)
+    assert rc == 0, err
+    rep = json.loads(out)
+    rc, out, _ = _run(["simulate", f, "--duration", "3", "--json"], tmp_path)
+    assert rc == 1
+    sim = json.loads(out)
+    assert rep["samples"] == 12 and rep["plant_fault"] == sim["plant_fault"] and rep["plant_fault_at"] == 11
+    for key in BIT_EXACT_KEYS:
+        assert rep[key] == sim[key], key
+    assert rep["resimulation"]["reproduced"] is True
+    # the FMU cannot even initialize: the plant node fails at start-up, with the FMU's line in its log
+    f0 = fmu_scenario(tmp_path, lienard_fmu, "n_sub = 0", name="bad0.toml")
+    rid0 = rid + "s"
+    try:
+        rc, s, err = _live(tmp_path, f0, rid0, "--duration", "3", "--no-record")
+    finally:
+        assert not reap(rid0)
+    assert rc == 1 and s["samples"] == 0 and s["outcome"] == "plant exited before the start"
+    line = "testbed node plant: startup failed: plant fault: FMU lienard.fmu: initialization failed"
+    assert any(line in (x.get("last_log_line") or "") and "n_sub must be >= 1" in x["last_log_line"]
+               for x in s["faults"]), s["faults"]
+    assert (tmp_path / f"logs-{rid0}" / "plant.log").read_text().strip().startswith(line)

@@ -73,6 +73,37 @@ def _write_json(obj) -> None:
     sys.stdout.write("\n")
 
 
+def true_plant(sc, what: str):
+    """The true plant ([plant]) for the batch simulator, or one line (exit 2) when it is an FMU.
+
+    The experiments (sweeps, vulnerable states, the worst attack, escape searches) run
+    the true plant with the model's predictions; the batch kernel integrates equation (1)
+    plants only, so an FMU true plant cannot run there.
+    """
+    from ..errors import BadInput
+
+    if sc.plant.fmu is not None:
+        raise BadInput(f"the true plant is the FMU {Path(sc.plant.fmu.path).name}, which the batch simulator of "
+                       f"{what} cannot run (it integrates equation (1) plants only): run {what} on a copy of the "
+                       f"scenario whose [plant] is its [model] (name = \"{sc.model.name}\"), or the FMU itself with "
+                       "testbed simulate or testbed run")
+    return sc.make_plant()
+
+
+def plant_and_model(sc) -> dict:
+    """``plant``, ``model`` and their parameters for the JSON outputs (``testbed.simulate.plant_and_model``)."""
+    from ..simulate import plant_and_model as names
+
+    return names(sc)
+
+
+def _mismatch_line(d: dict) -> str | None:
+    """'  true plant P {...}, model M {...}' when the true plant is not the model, else None."""
+    if (d.get("plant"), d.get("plant_params")) == (d.get("model"), d.get("model_params")):
+        return None
+    return f"  true plant {d['plant']} {d['plant_params']}, model {d['model']} {d['model_params']}"
+
+
 def _fmt(v, spec=".4g"):
     if v is None:
         return "n/a"
@@ -114,6 +145,8 @@ def main_analyze(args) -> int:
     from .summary import analyze, to_json
 
     sc = scenario.load(args.scenario)
+    if args.full or args.plot:
+        true_plant(sc, "testbed analyze --full / --plot")
     gamma = args.gamma if args.gamma == "auto" else float(args.gamma)
     res = analyze(sc, budget=args.budget, gamma=gamma, share=args.share, rule=args.rule)
     extra = {}
@@ -149,6 +182,9 @@ def _print_analysis(r: dict) -> None:
     b = r["budget"]
     print(f"scenario {r['scenario']}: plant {r['plant']} (n={r['n']}), T={r['T']}, M={r['M']}, L={r['L']}, "
           f"Lambda={r['Lambda']:.4f}, K={r['K']}")
+    mismatch = _mismatch_line(r)
+    if mismatch:
+        print(mismatch + ": the theorems are the model's")
     print(f"  rho(A~+B~K) = {r['rho_Phi0']:.4f}, rho(A~) = {r['rho_Phi1']:.4f}")
     t1 = r["theorem1"]
     print("Theorem 1 (stability)")
@@ -205,9 +241,9 @@ def _full(sc, res, args, ex=None) -> dict:
     from .summary import sweep_kappas
     from .sweep import sweep, vulnerable_states
 
-    plant = sc.make_model()
+    model, plant = sc.make_model(), true_plant(sc, "testbed analyze --full")
     out = {}
-    roa = nominal_roa(plant, sc.K, sc.T, grid=201, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
+    roa = nominal_roa(model, sc.K, sc.T, grid=201, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                       progress=Progress("region of attraction", not args.no_progress), executor=ex)
     out["_roa"] = roa
     out["roa"] = roa.to_dict()
@@ -215,7 +251,8 @@ def _full(sc, res, args, ex=None) -> dict:
     rF = np.linspace(0.0, 2.0, 21)
     rD = np.linspace(0.0, 0.5, 21)
     sw = sweep(plant, sc.K, sc.quantizer, sc.x0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=4, horizon=60.0,
-               tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress), executor=ex)
+               tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress), executor=ex,
+               model=model)
     out["_sweep"] = sw
     out["sweep"] = _sweep_summary(sw, res)
     t1 = res["theorem1"]
@@ -223,18 +260,19 @@ def _full(sc, res, args, ex=None) -> dict:
     hiD = 1.15 * t1["paper"]["rho_D_max"]
     swz = sweep(plant, sc.K, sc.quantizer, sc.x0, np.linspace(0.0, hiF, 12), np.linspace(0.0, hiD, 12),
                 kappa_F=kF, kappa_D=kD, seeds=4, horizon=60.0, tol=sc.run.converge_tol, flow=sc.flow,
-                progress=Progress("sweep (zoom)", not args.no_progress), executor=ex)
+                progress=Progress("sweep (zoom)", not args.no_progress), executor=ex, model=model)
     out["_sweep_zoom"] = swz
     out["sweep_zoom"] = _sweep_summary(swz, res)
     t1 = res["theorem1"]
     reg = t1.get("tight") or t1["paper"]
     vb = _vulnerable_budget(sc, reg["rho_F_max"], reg["rho_D_max"])
     vu = vulnerable_states(plant, sc.K, sc.quantizer, vb, roa, stride=2, horizon=30.0, tol=sc.run.converge_tol,
-                           flow=sc.flow, progress=Progress("vulnerable states", not args.no_progress), executor=ex)
+                           flow=sc.flow, progress=Progress("vulnerable states", not args.no_progress), executor=ex,
+                           model=model)
     out["_vulnerable"] = vu
     out["vulnerable"] = vu.to_dict()
     base = vulnerable_states(plant, sc.K, sc.quantizer, (0.0, 0.0, 0.0, 0.0), roa, stride=2, horizon=30.0,
-                             tol=sc.run.converge_tol, flow=sc.flow, executor=ex)
+                             tol=sc.run.converge_tol, flow=sc.flow, executor=ex, model=model)
     out["_vulnerable_baseline"] = base
     out["vulnerable_baseline"] = base.to_dict()
     return out
@@ -354,12 +392,15 @@ def main_roa(args) -> int:
     from .. import scenario
 
     sc = scenario.load(args.scenario)
+    if args.vulnerable:
+        true_plant(sc, "testbed roa --vulnerable")
     plant = sc.make_model()
     with _executor(args) as ex:
         return _roa(sc, plant, args, ex)
 
 
 def _roa(sc, plant, args, ex) -> int:
+    """``plant``: the model, whose nominal loop the region is; --vulnerable runs the true plant."""
     from . import figures
     from ..simulate import simulate_scenario
     from .roa import nominal_roa
@@ -367,7 +408,7 @@ def _roa(sc, plant, args, ex) -> int:
     roa = nominal_roa(plant, sc.K, sc.T, grid=args.grid, window=args.window, dims=args.dims, horizon=args.horizon,
                       tol=sc.run.converge_tol, flow=sc.flow,
                       progress=Progress("region of attraction", not args.no_progress), executor=ex)
-    out = {"scenario": sc.name, "plant": plant.name, "roa": roa.to_dict(), "parallel": ex.describe()}
+    out = {"scenario": sc.name, **plant_and_model(sc), "roa": roa.to_dict(), "parallel": ex.describe()}
     vu = None
     if args.vulnerable:
         from .sweep import vulnerable_states
@@ -379,9 +420,10 @@ def _roa(sc, plant, args, ex) -> int:
 
             reg = allowable_region(Loop.from_scenario(sc), "tight", n_phi0=16, n_phi1=3)
             vb = _vulnerable_budget(sc, reg.rho_F_max, reg.rho_D_max)
-        vu = vulnerable_states(plant, sc.K, sc.quantizer, vb, roa, stride=args.stride, kind=args.kind,
-                               threshold=args.threshold, tol=sc.run.converge_tol, flow=sc.flow,
-                               progress=Progress("vulnerable states", not args.no_progress), executor=ex)
+        vu = vulnerable_states(true_plant(sc, "testbed roa --vulnerable"), sc.K, sc.quantizer, vb, roa,
+                               stride=args.stride, kind=args.kind, threshold=args.threshold, tol=sc.run.converge_tol,
+                               flow=sc.flow, progress=Progress("vulnerable states", not args.no_progress), executor=ex,
+                               model=plant)
         out["vulnerable"] = vu.to_dict()
     if args.plot:
         sim = simulate_scenario(sc)
@@ -396,6 +438,9 @@ def _roa(sc, plant, args, ex) -> int:
         r = out["roa"]
         print(f"scenario {sc.name}: nominal region of attraction on a {r['grid'][0]} x {r['grid'][1]} grid, "
               f"window {r['window']}, horizon {r['horizon']:g} s")
+        if _mismatch_line(out):
+            print(_mismatch_line(out) + ": the region is the model's nominal loop"
+                  + ("; --vulnerable runs the true plant" if vu is not None else ""))
         print(f"  inside: {r['fraction_inside']:.4f} of the grid, area {r['area']:.4g}")
         print(f"  {r['traj_steps']} trajectory-steps in {r['wall_s']:.2f} s = {r['traj_steps_per_s']:.3g} per s")
         if vu is not None:
@@ -442,7 +487,7 @@ def main_sweep(args) -> int:
     from .theorem1 import Loop, allowable_region, plain_certificate
 
     sc = scenario.load(args.scenario)
-    plant = sc.make_model()
+    model, plant = sc.make_model(), true_plant(sc, "testbed sweep")
     kF0, kD0 = sweep_kappas(sc)
     kF = kF0 if args.kappa_F is None else args.kappa_F
     kD = kD0 if args.kappa_D is None else args.kappa_D
@@ -461,7 +506,7 @@ def main_sweep(args) -> int:
         sw = sweep(plant, sc.K, sc.quantizer, X0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=args.seeds, seed=args.seed,
                    horizon=args.horizon, kinds=tuple(args.kinds), threshold=args.threshold,
                    tol=sc.run.converge_tol, flow=sc.flow, progress=Progress("sweep", not args.no_progress),
-                   executor=ex)
+                   executor=ex, model=model)
         par = ex.describe()
     loop = Loop.from_scenario(sc)
     regions = {rule: allowable_region(loop, rule) for rule in ("paper", "tight")}
@@ -472,6 +517,7 @@ def main_sweep(args) -> int:
     d = sw.to_dict()
     d["theory"] = theory
     d["scenario"] = sc.name
+    d.update(plant_and_model(sc))
     d["parallel"] = par
     # budget points where the theorem holds but some run failed (the theorem is local: x0 may be too large)
     th = regions["tight"].holds(rF[:, None], rD[None, :]) | regions["paper"].holds(rF[:, None], rD[None, :])
@@ -488,6 +534,8 @@ def main_sweep(args) -> int:
         print(f"scenario {sc.name}: {len(rF)} x {len(rD)} budgets (rho_F <= {args.rho_F_max:g}, rho_D <= "
               f"{args.rho_D_max:g}), kappa_F={kF:g}, kappa_D={kD:g}, {len(X0)} initial state(s), "
               f"kinds {', '.join(sw.kinds)}, {args.seeds} random seeds, horizon {args.horizon:g} s")
+        if _mismatch_line(d):
+            print(_mismatch_line(d) + ": the runs integrate the true plant, the quantizer predicts with the model")
         print(f"  {sw.runs} runs, {sw.traj_steps} trajectory-steps in {sw.wall:.2f} s = {sw.rate:.3g} per s")
         w = sw.worst()
         print(f"  budget points where every run converged: {int(np.sum(sw.all_converged()))} of {w.size}")
@@ -549,19 +597,21 @@ def main_worst_attack(args) -> int:
 
     sc = scenario.load(args.scenario)
     kw = _search_args(args, sc)
-    plant = sc.make_plant()
+    plant = true_plant(sc, "testbed worst-attack")
     x0 = sc.x0 if args.x0 is None else np.asarray(args.x0, dtype=float)
     if x0.shape != (plant.n,) or not np.all(np.isfinite(x0)):
         raise BadInput(f"--x0 needs {plant.n} finite numbers, got {args.x0}")
     with _executor(args) as ex:
         w = worst_attack(Loop.from_scenario(sc), x0, greedy=not args.no_greedy, executor=ex,
                          progress=Progress("worst attack", not args.no_progress), **kw)
-        out = {"scenario": sc.name, "plant": plant.name, **w.to_dict(), "parallel": ex.describe()}
+        out = {"scenario": sc.name, **plant_and_model(sc), **w.to_dict(), "parallel": ex.describe()}
     if args.json:
         _write_json(out)
         return 0
     print(f"scenario {sc.name}: x0 = {out['x0']}, E0 = {out['E0']:g}, {out['n_steps']} samples of "
           f"T = {out['T']:g} s, at most {out['attacks']} attack(s)")
+    if _mismatch_line(out):
+        print(_mismatch_line(out) + ": the runs integrate the true plant, the quantizer predicts with the model")
     if out["unattacked_escapes"]:
         print("  the quantized loop escapes without any attack")
     elif out["escaped"]:
@@ -609,7 +659,8 @@ def main_vulnerability(args) -> int:
     kw = _search_args(args, sc)
     if not 2 <= args.grid <= 1001:
         raise BadInput(f"--grid must be in 2..1001, got {args.grid}")
-    plant = sc.make_plant()
+    true_plant(sc, "testbed vulnerability")
+    plant = sc.make_model()  # the nominal region is the model's loop; the attacks run on the true plant
     if args.dims is not None and (len(set(args.dims)) != 2 or not all(0 <= d < plant.n for d in args.dims)):
         raise BadInput(f"--dims needs two different coordinates in 0..{plant.n - 1}, got {args.dims}")
     delta = analyze(sc)["delta"]
@@ -619,7 +670,7 @@ def main_vulnerability(args) -> int:
                           progress=Progress("region of attraction", not args.no_progress), executor=ex)
         vm = vulnerability_map(Loop.from_scenario(sc), roa, delta=delta, executor=ex,
                                progress=Progress("least attack per state", not args.no_progress), **kw)
-        out = {"scenario": sc.name, "plant": plant.name, **vm.to_dict(), "roa_inside_digest": roa.digest,
+        out = {"scenario": sc.name, **plant_and_model(sc), **vm.to_dict(), "roa_inside_digest": roa.digest,
                "parallel": ex.describe()}
     if args.plot:
         from . import figures
@@ -634,6 +685,8 @@ def main_vulnerability(args) -> int:
         return 0
     print(f"scenario {sc.name}: {out['states_in_region']} states of the nominal region of attraction on a "
           f"{args.grid} x {args.grid} grid, at most {out['attacks']} attack(s), {out['n_steps']} samples")
+    if _mismatch_line(out):
+        print(_mismatch_line(out) + ": the region is the model's, the attacks run on the true plant")
     print(f"  {out['escape_unattacked']} escape without any attack; {out['no_escape_found']} resist every "
           "schedule tried")
     print(f"  least duration over the region: {_fmt(out['least_duration'])} s, median "

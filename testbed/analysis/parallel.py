@@ -272,11 +272,13 @@ class BatchChunk:
     flow: FlowOptions
     fields: tuple
     specialize: bool = True
+    model: object = None     # the predictions' model (rule (xi)); None: the plant itself
 
     @property
     def warm_key(self):
-        return (type(self.plant).__module__, type(self.plant).__name__, self.mode, self.theta is None,
-                self.greedy_params is None)
+        m = self.model if self.model is not None else self.plant
+        return (type(self.plant).__module__, type(self.plant).__name__, type(m).__module__, type(m).__name__,
+                self.mode, self.theta is None, self.greedy_params is None)
 
 
 def run_chunk(c: BatchChunk) -> dict:
@@ -294,7 +296,7 @@ def run_chunk(c: BatchChunk) -> dict:
         if c.greedy_params is not None:
             kw["greedy_params"] = c.greedy_params[sel]
         res = simulate_batch(c.plant, c.K, replace(c.qp, E0=float(e)), c.X0[sel], c.n_steps, score=c.score,
-                             mode=c.mode, flow=c.flow, specialize=c.specialize, **kw)
+                             mode=c.mode, flow=c.flow, specialize=c.specialize, model=c.model, **kw)
         for k in c.fields:
             v = getattr(res, k)
             if k not in out:
@@ -306,12 +308,14 @@ def run_chunk(c: BatchChunk) -> dict:
 def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=None, greedy_params=None,
               score: str = "state", mode: str | None = None, flow: FlowOptions = DEFAULT_FLOW,
               fields=FIELDS, executor: Executor | None = None, progress=None, chunk: int | None = None,
-              specialize: bool = True) -> dict:
+              specialize: bool = True, model=None) -> dict:
     """Run B closed loops in chunks on ``executor``; per-trajectory ``fields`` in input order.
 
     Parameters
     ----------
     plant, K, qp, n_steps, score, mode, flow : as for ``testbed.simulate.simulate_batch``.
+    model : the model of the encoder's and decoder's predictions (default: ``plant``), as for
+        ``simulate_batch``: ``plant`` is the true plant the state follows.
     X0 : (B, n) initial states.
     E0 : (B,) E_0 per trajectory (default: ``qp.E0`` for all).
     theta, sched_idx : an (S, N) attack table and the row of each trajectory (default row 0).
@@ -354,7 +358,7 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
             t, s = np.ascontiguousarray(tab[rows]), inv.astype(np.int64).ravel()
         return BatchChunk(plant, Kc, qp, X0[sl], np.array(E0[sl]), int(n_steps), t, s,
                           None if gp is None else np.ascontiguousarray(gp[sl]), score, mode, flow, fields,
-                          specialize)
+                          specialize, None if model is plant else model)
 
     # strided chunks (chunk j holds trajectories j, j + C, j + 2 C, ...): neighbouring trajectories
     # often cost alike (an escaping one stiffens the flow), so this balances the workers

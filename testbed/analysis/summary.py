@@ -12,7 +12,7 @@ import numpy as np
 
 from attackers.budget import check as budget_check
 
-from ..simulate import in_nominal_roa, simulate_batch
+from ..simulate import in_nominal_roa, plant_and_model, simulate_batch
 from .sweep import classify, run_grouped
 from .theorem1 import RULES, Loop, analyze_theorem1
 from .theorem2 import RemainderRadius, delta_for_gamma, gamma_for_delta, theorem2, theorem2_auto
@@ -69,8 +69,11 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
     scenario's own attack, escapes (``sweep.classify``) although s x_0 is in the nominal region.
 
     E_0 = max(scenario E_0, ||s x_0||_inf) (Assumption 5).  Returns (s, x0) or None.
+    The loop runs the true plant (``[plant]``) with the model's predictions; "nominal
+    region" and "escaped" are the model's nominal loop.  Needs an equation (1) true plant
+    (the batch simulator cannot run an FMU).
     """
-    plant = sc.make_model()
+    plant, model = sc.make_plant(), sc.make_model()
     x0 = sc.x0
     nx = float(np.max(np.abs(x0)))
     if nx == 0:
@@ -78,13 +81,13 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
     s_max = s_max or max(2.0, 10.0 / nx if nx < 1 else 3.0)
     S = np.arange(1.0, s_max + 1e-9, step)
     X = S[:, None] * x0[None, :]
-    inside = in_nominal_roa(plant, sc.K, sc.T, X, horizon=roa_horizon, tol=sc.run.converge_tol, flow=sc.flow)
+    inside = in_nominal_roa(model, sc.K, sc.T, X, horizon=roa_horizon, tol=sc.run.converge_tol, flow=sc.flow)
     theta, gp = scenario_theta(sc)
     kw = {"theta": theta, "sched_idx": np.zeros(len(X), dtype=int)} if theta is not None else {"greedy_params": gp}
     E0s = np.maximum(sc.quantizer.E0, np.max(np.abs(X), axis=1))
     out = run_grouped(plant, sc.K, sc.quantizer, X, E0s, sc.n_steps,
-                      score=sc.attack.score if sc.attack.online else "state", flow=sc.flow, **kw)
-    _, esc = classify(plant, sc.K, sc.T, out["x_final"], out["status"], sc.run.converge_tol,
+                      score=sc.attack.score if sc.attack.online else "state", flow=sc.flow, model=model, **kw)
+    _, esc = classify(model, sc.K, sc.T, out["x_final"], out["status"], sc.run.converge_tol,
                       escape_horizon=roa_horizon, flow=sc.flow)
     hit = np.flatnonzero(inside & esc)
     if hit.size == 0:
@@ -94,16 +97,17 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
 
 
 def trajectory(sc, x0, *, E0: float | None = None):
-    """x_k of the scenario's loop from ``x0`` (batch simulator, recorded), shape (N, n)."""
+    """x_k of the scenario's loop from ``x0`` (batch simulator, recorded), shape (N, n): the true plant
+    (``[plant]``, an equation (1) plant) with the model's predictions."""
     import dataclasses
 
-    plant = sc.make_model()
+    plant, model = sc.make_plant(), sc.make_model()
     qp = dataclasses.replace(sc.quantizer, E0=float(E0 if E0 is not None else max(sc.quantizer.E0,
                                                                                     np.max(np.abs(x0)))))
     theta, gp = scenario_theta(sc)
     res = simulate_batch(plant, sc.K, qp, np.asarray(x0, dtype=float)[None, :], sc.n_steps, theta=theta,
                          greedy_params=gp, score=sc.attack.score if sc.attack.online else "state", record=True,
-                         flow=sc.flow)
+                         flow=sc.flow, model=model)
     k = int(res.stop_k[0])
     return np.vstack([res.x[0, :k], res.x_final[0][None, :]])
 
@@ -127,7 +131,7 @@ def _clean(v):
 
 def analyze(sc, *, budget=None, gamma="auto", share: float = 0.5, rules=RULES, n_phi0: int | None = None,
             n_phi1: int | None = None, rule: str = "paper") -> dict:
-    """Theorems 1 and 2 for a scenario.
+    """Theorems 1 and 2 for a scenario, on its plant model (``[model]``, default ``[plant]``).
 
     Parameters
     ----------
@@ -175,7 +179,7 @@ def analyze(sc, *, budget=None, gamma="auto", share: float = 0.5, rules=RULES, n
         row["E0_bound"] = r2.E0_bound if r2.holds else None
     c = t1["certificate"]
     out = {
-        "scenario": sc.name, "plant": plant.name, "n": plant.n, "m": plant.m, "T": sc.T, "M": sc.quantizer.M,
+        "scenario": sc.name, **plant_and_model(sc), "n": plant.n, "m": plant.m, "T": sc.T, "M": sc.quantizer.M,
         "L": sc.quantizer.L, "Lambda": sc.quantizer.Lambda, "K": np.asarray(sc.K).tolist(),
         "rho_Phi0": loop.rho0, "rho_Phi1": loop.rho1,
         "budget": dict(zip(("kappa_F", "rho_F", "kappa_D", "rho_D"), budget)), "budget_source": src,

@@ -36,6 +36,11 @@ unchanged (checked on the README sweep) and a sweep runs about 5 times faster.
 Each initial state x_0 runs with E_0 = max(quantizer E_0, ||x_0||_inf) rounded up
 to a power of 1.25 (Assumption 5 with little slack; the simulator takes one E_0
 per call, so states are grouped by that value).
+
+With model mismatch (a scenario's ``[model]``), ``plant`` is the true plant the
+state follows and ``model`` the plant model of the encoder's and decoder's
+predictions (rule (xi)); the escape test is the model's nominal loop, as in
+``testbed.simulate.summarize``.
 """
 
 from __future__ import annotations
@@ -85,17 +90,21 @@ def e0_levels(X0, E0: float, ratio: float = 1.25, floor: float = 1e-6) -> np.nda
 
 
 def run_grouped(plant, K, qp, X0, E0s, n_steps, *, theta=None, sched_idx=None, greedy_params=None,
-                score="state", flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> dict:
-    """The batch simulator with one E_0 per trajectory; arrays in input order (``parallel.run_batch``)."""
+                score="state", flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None, model=None) -> dict:
+    """The batch simulator with one E_0 per trajectory; arrays in input order (``parallel.run_batch``).
+
+    ``plant`` is the true plant, ``model`` the predictions' model (default ``plant``)."""
     return run_batch(plant, K, qp, X0, n_steps, E0=E0s, theta=theta, sched_idx=sched_idx,
                      greedy_params=greedy_params, score=score, flow=flow,
                      fields=("x_final", "status", "attacked", "saturations", "max_norm", "stop_k"),
-                     executor=executor, progress=progress)
+                     executor=executor, progress=progress, model=model)
 
 
 def classify(plant, K, T, x_final, status, tol, *, escape_horizon: float = 30.0,
              flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
-    """(converged, escaped) per run: ||x_N|| < tol; not converged and (diverged or x_N outside the nominal region)."""
+    """(converged, escaped) per run: ||x_N|| < tol; not converged and (diverged or x_N outside the nominal region).
+
+    ``plant`` is the one whose nominal loop decides the escape: the model (``[model]``)."""
     conv = (status == FLOW_OK) & (np.max(np.abs(x_final), axis=1) < tol)
     esc = status != FLOW_OK
     check = np.flatnonzero(~conv & ~esc)
@@ -178,12 +187,14 @@ def _capped(flow: FlowOptions, x_max: float | None) -> FlowOptions:
 def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: float = 0.5, seeds: int = 4,
           horizon: float = 60.0, kinds=KINDS, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
           escape_horizon: float = 30.0, seed: int = 0, flow: FlowOptions = DEFAULT_FLOW,
-          x_max: float | None = 1e3, progress=None, executor=None) -> SweepResult:
+          x_max: float | None = 1e3, progress=None, executor=None, model=None) -> SweepResult:
     """Run the loop over a grid of budgets (rho_F x rho_D) and attacker kinds.
 
     Parameters
     ----------
-    plant, K, qp : the loop (QuantizerParams; E_0 per initial state as in the module docstring).
+    plant, K, qp : the loop (QuantizerParams; E_0 per initial state as in the module docstring);
+        ``plant`` is the true plant.
+    model : the predictions' model and the escape test's nominal loop (default ``plant``).
     X0 : (B0, n) initial states (or (n,)).
     rho_F, rho_D : 1-D grids (rho_D < 1).
     kappa_F, kappa_D : the fixed constants of Assumptions 3 and 4.
@@ -198,6 +209,7 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
     escape checks a third, each split into chunks on the executor.
     """
     flow = _capped(flow, x_max)
+    model = plant if model is None else model
     X0 = np.atleast_2d(np.asarray(X0, dtype=float))
     rho_F = np.asarray(rho_F, dtype=float)
     rho_D = np.asarray(rho_D, dtype=float)
@@ -235,7 +247,7 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         sidx = np.repeat(np.arange(len(rows)), B0)
         parts.append(run_grouped(plant, K, qp, np.tile(X0, (len(rows), 1)), np.tile(E0x, len(rows)), N,
                                  theta=tab, sched_idx=sidx, flow=flow, executor=executor,
-                                 progress=stages.next()))
+                                 progress=stages.next(), model=model))
         run_tags += [tags[r] for r in sidx]
     else:
         stages.next()
@@ -243,13 +255,13 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         gp = np.array([[kappa_F, rF, kappa_D, rD, threshold] for rF in rho_F for rD in rho_D for _ in range(B0)])
         parts.append(run_grouped(plant, K, qp, np.tile(X0, (nF * nD, 1)), np.tile(E0x, nF * nD), N,
                                  greedy_params=gp, score=score, flow=flow, executor=executor,
-                                 progress=stages.next()))
+                                 progress=stages.next(), model=model))
         run_tags += [("greedy", i, j) for i in range(nF) for j in range(nD) for _ in range(B0)]
     else:
         stages.next()
     if parts:
         out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        conv, esc = classify(plant, K, T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
+        conv, esc = classify(model, K, T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
                              flow=flow, executor=executor, progress=stages.next())
         lost = out["attacked"] / np.maximum(out["stop_k"], 1)
         _accumulate(res, run_tags, conv, esc, lost)
@@ -330,11 +342,13 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
                       horizon: float = 30.0, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
                       seed: int = 0, escape_horizon: float = 30.0, flow: FlowOptions = DEFAULT_FLOW,
                       x_max: float | None = 1e3, kappa_D_shares=(0.0, 0.5, 1.0),
-                      progress=None, executor=None) -> VulnerableResult:
+                      progress=None, executor=None, model=None) -> VulnerableResult:
     """Which states of the nominal region fail under a budget-limited attacker.
 
     Parameters
     ----------
+    plant, K, qp : the loop; ``plant`` is the true plant, ``model`` (default ``plant``) the
+        predictions' model and the escape test's nominal loop.
     budget : (kappa_F, rho_F, kappa_D, rho_D).
     roa : a :class:`RoaResult` (its grid, subsampled by ``stride``, gives the states).
     kind : "greedy" (online), "random" (one schedule, ``seed``) or "periodic".
@@ -353,6 +367,7 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
     converged, 2 when some strategy made it escape, 1 otherwise (some did not converge).
     """
     flow = _capped(flow, x_max)
+    model = plant if model is None else model
     kF, rF, kD, rD = budget
     xs, ys = roa.xs[::stride], roa.ys[::stride]
     inside = roa.inside[::stride, ::stride]
@@ -368,8 +383,9 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
         gp = np.array([[kF, rF, sh * kD, rD, threshold] for sh in shares for _ in range(len(X))])
         stages = Stages(progress, [n_chunks(len(gp), N, executor), n_chunks(len(gp), N, executor)])
         out = run_grouped(plant, K, qp, np.tile(X, (len(shares), 1)), np.tile(E0s, len(shares)), N,
-                          greedy_params=gp, score=score, flow=flow, executor=executor, progress=stages.next())
-        c, e = classify(plant, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
+                          greedy_params=gp, score=score, flow=flow, executor=executor, progress=stages.next(),
+                          model=model)
+        c, e = classify(model, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
                         flow=flow, executor=executor, progress=stages.next())
         conv = np.all(c.reshape(len(shares), len(X)), axis=0)
         esc = np.any(e.reshape(len(shares), len(X)), axis=0)
@@ -385,8 +401,8 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
         tab = sch.theta_samples(qp.T, N)[None, :]
         stages = Stages(progress, [n_chunks(len(X), N, executor), n_chunks(len(X), N, executor)])
         out = run_grouped(plant, K, qp, X, E0s, N, theta=tab, sched_idx=np.zeros(len(X), dtype=int), flow=flow,
-                          executor=executor, progress=stages.next())
-        conv, esc = classify(plant, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
+                          executor=executor, progress=stages.next(), model=model)
+        conv, esc = classify(model, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
                              flow=flow, executor=executor, progress=stages.next())
         shares = (None,)
     wall = time.perf_counter() - t0

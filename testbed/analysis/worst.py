@@ -60,7 +60,12 @@ GREEDY_SCORES = ("state", "E")
 # ============================================================================ the loop and its candidates
 @dataclass(frozen=True)
 class Loop:
-    """The closed loop whose attacks are searched: plant, gain, quantizer, N samples, escape test."""
+    """The closed loop whose attacks are searched: plant, gain, quantizer, N samples, escape test.
+
+    ``plant`` is the true plant the state follows; ``model`` (default ``plant``) the plant
+    model of the encoder's and decoder's predictions (a scenario's ``[model]``) and of the
+    escape test's nominal loop.
+    """
 
     plant: object
     K: np.ndarray
@@ -68,15 +73,21 @@ class Loop:
     n_steps: int
     tol: float = 1e-4
     flow: FlowOptions = DEFAULT_FLOW
+    model: object = None
 
     @property
     def T(self) -> float:
         return float(self.qp.T)
 
+    @property
+    def nominal(self):
+        """The plant model of the predictions and of the escape test."""
+        return self.plant if self.model is None else self.model
+
     @classmethod
     def from_scenario(cls, sc) -> "Loop":
         return cls(sc.make_plant(), np.asarray(sc.K, dtype=float), sc.quantizer, sc.n_steps, sc.run.converge_tol,
-                   sc.flow)
+                   sc.flow, sc.make_model())
 
 
 def e0_for(loop: Loop, X0) -> np.ndarray:
@@ -117,8 +128,8 @@ def evaluate(loop: Loop, X0, E0, tab, sched_idx, *, executor=None, progress=None
     st = stages or Stages(progress, [n_chunks(len(sched_idx), loop.n_steps, executor), 1])
     out = run_batch(loop.plant, loop.K, loop.qp, X0, loop.n_steps, E0=E0, theta=tab, sched_idx=sched_idx,
                     flow=loop.flow, fields=("x_final", "status", "max_norm"), executor=executor,
-                    progress=st.next())
-    _, esc = classify(loop.plant, loop.K, loop.T, out["x_final"], out["status"], loop.tol,
+                    progress=st.next(), model=loop.nominal)
+    _, esc = classify(loop.nominal, loop.K, loop.T, out["x_final"], out["status"], loop.tol,
                       escape_horizon=ESCAPE_HORIZON, flow=loop.flow, executor=executor, progress=st.next())
     return esc, out["max_norm"]
 
@@ -507,8 +518,8 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
             idx = [j for j, c in enumerate(sel) if c[2] == sc]
             out = run_batch(loop.plant, loop.K, loop.qp, np.repeat(x0[None, :], len(idx), 0), N,
                             E0=np.full(len(idx), e0), greedy_params=gp[idx], score=sc, flow=loop.flow,
-                            fields=("x_final", "status"), executor=executor)
-            _, esc = classify(loop.plant, loop.K, T, out["x_final"], out["status"], loop.tol,
+                            fields=("x_final", "status"), executor=executor, model=loop.nominal)
+            _, esc = classify(loop.nominal, loop.K, T, out["x_final"], out["status"], loop.tol,
                               escape_horizon=ESCAPE_HORIZON, flow=loop.flow, executor=executor)
             for j in np.flatnonzero(esc):
                 d, th, _ = sel[idx[j]]
@@ -521,7 +532,7 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
                 "thresholds": list(GREEDY_THRESHOLDS), "scores": list(GREEDY_SCORES)}
     d, th, sc, gp = best
     res = simulate_batch(loop.plant, loop.K, replace(loop.qp, E0=e0), x0[None, :], N, greedy_params=gp, score=sc,
-                         record=True, flow=loop.flow)
+                         record=True, flow=loop.flow, model=loop.nominal)
     from attackers.schedule import Schedule
 
     sch = Schedule.from_theta(res.theta[0], T)

@@ -640,6 +640,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         u_missing = res.u_missing if res.u_missing is not None else np.zeros(N, dtype=bool)
         withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
         reasons = res.reason
+        fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
         for k in range(N):
             tk = k * Tn
             lt = t0 + tk
@@ -652,6 +653,8 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
                 flags=(msg.PlantTelemetry.FLAG_NO_U | msg.PlantTelemetry.FLAG_MISS) if miss else 0,
                 flow_status=int(res.flow_status) if k == res.diverged_at else 0,
                 x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k])), lt)
+            if fault is not None and k == res.plant_fault_at:  # the event a live plant node publishes
+                w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=k, t_ns=tk, detail=fault), lt)
             sym = int(res.symbols[k])
             if withheld[k]:
                 w.write("/telemetry/encoder", msg.EncoderTelemetry(
@@ -684,7 +687,11 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
             k=N, t_ns=tN, sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0, theta=msg.THETA_NONE,
             flags=msg.PlantTelemetry.FLAG_FINAL, flow_status=int(res.flow_status),
             x=tuple(np.asarray(res.x_final, dtype=float)), u=()), t0 + tN)
-        w.write("/control/stop", msg.Stop(reason="end of run", origin="simulator"), t0 + tN)
+        if fault is not None and N == 0:  # the true plant failed to start
+            w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=0, t_ns=0, detail=fault), t0)
+        w.write("/control/stop", msg.Stop(reason="end of run" if fault is None else
+                                          f"plant fault at sample {res.plant_fault_at}: {fault}",
+                                          origin="simulator"), t0 + tN)
     finally:
         w.close()
     return dict(w.counts)

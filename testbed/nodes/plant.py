@@ -20,14 +20,23 @@ and |u_k| is clamped to ``[controller] u_max``; an actuation whose header names 
 sample whose instant has not come yet is rejected.  Each is counted and logged as
 an event.  If the controller's liveliness token disappears the plant stops waiting
 and runs on with u = 0; the run is marked (``controller_lost_at``).
+
+Plant faults: a true plant that raises ``plants.PlantFault`` (an FMU step that failed)
+ends the run at that sample, as ``testbed simulate`` does: sample k's telemetry, an
+event ``plant_fault`` with the plant's line, the final record (x at the fault) and a
+``Stop`` naming the fault; the node then exits with status 1.  A plant that fails
+already in its start-up reset is a startup failure (one line in the log, exit 1).
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
 import numpy as np
+
+from plants.base import PlantFault
 
 from ..flow import FLOW_OK, STATUS_NAMES
 from ..io import messages as msg
@@ -64,6 +73,8 @@ class PlantNode(Node):
         self.k_done = 0
         self.flow_status = FLOW_OK
         self.diverged_at = -1
+        self.plant_fault: str | None = None
+        self.plant_fault_at = -1
         self.timing = self.sc.run.timing
         self.spin_ns = int(self.args.spin_us * 1e3) if self.args.spin_us is not None \
             else min(200_000, self.ctx.T_ns // 10)
@@ -73,10 +84,15 @@ class PlantNode(Node):
     def warmup(self) -> None:
         sc = self.sc
         p = self.sc.make_process()
-        p.reset(sc.x0)
-        p.advance(np.zeros(p.m), sc.T)
-        p.advance(np.zeros(p.m), 0.5 * sc.T)
-        p.close()
+        try:
+            p.reset(sc.x0)
+            p.advance(np.zeros(p.m), sc.T)
+            p.advance(np.zeros(p.m), 0.5 * sc.T)
+        except PlantFault as e:  # the true plant cannot start (an FMU that fails to initialize): one line
+            self.process.close()
+            raise SystemExit(f"testbed node plant: startup failed: plant fault: {e}") from None
+        finally:
+            p.close()
 
     def warm_publishers(self) -> None:
         from .common import warm_publisher
@@ -149,10 +165,15 @@ class PlantNode(Node):
         d_ns = int(sc.run.deadline * T_ns)
         physical = self.timing == "physical"
         proc = self.process
-        proc.reset(np.array(sc.x0, dtype=np.float64))
+        fault = None
+        try:
+            proc.reset(np.array(sc.x0, dtype=np.float64))
+        except PlantFault as e:
+            fault = e
+            self._on_plant_fault(e, 0)
         pp = PlantProtocol.for_scenario(sc, proc)
         tel = ctx.telemetry
-        for k in range(N):
+        for k in range(N if fault is None else 0):
             if ctx.stop.is_set():
                 break
             t_act = clock.sleep_until(k * T_ns, self.spin_ns, ctx.stop)
@@ -215,11 +236,17 @@ class PlantNode(Node):
                 delay = pp.delay_ns(u_rx - t_act, theta)
             else:  # u_{k-1} held until the (nominal) deadline, then 0
                 delay = min(max(deadline - t_act, 0), T_ns)
-            st = pp.step(u, delay)
+            try:
+                st = pp.step(u, delay)
+            except PlantFault as e:  # the run ends at this sample, as in testbed simulate
+                fault, st = e, FLOW_OK
             u_applied = np.zeros(proc.m) if u is None else u
             tel.put(PT(k=k, t_ns=t_act, sensor_tx_ns=sensor_tx, u_rx_ns=u_rx, delay_ns=delay, theta=theta,
                        flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u_applied.tolist())).encode())
             self.k_done = k + 1
+            if fault is not None:
+                self._on_plant_fault(fault, k)
+                break
             if st != FLOW_OK:
                 self.flow_status, self.diverged_at = st, k
                 ctx.event("flow_diverged", k=k, detail=f"phi_T status {STATUS_NAMES.get(st, st)}: run ends")
@@ -233,10 +260,19 @@ class PlantNode(Node):
                    x=tuple(x.tolist()), u=()).encode())
         reason = "done" if final_k == N else (f"flow diverged at sample {self.diverged_at}"
                                                if self.diverged_at >= 0 else ctx.stop_reason or "stopped")
+        if fault is not None:
+            reason = f"plant fault at sample {self.plant_fault_at}: {fault}"
         tel.flush()
         self.pub_stop.put(msg.Stop(reason=reason, origin="plant").encode())
         if not ctx.stop.is_set():
             ctx.request_stop(reason)
+        proc.close()
+        if fault is not None:
+            self.error = fault  # exit status 1, without a traceback: the fault's line is in the event and the log
+
+    def _on_plant_fault(self, e: PlantFault, k: int) -> None:
+        self.plant_fault, self.plant_fault_at = str(e), k
+        self.ctx.event("plant_fault", k=k, detail=str(e), level=logging.ERROR)
 
     def summary(self) -> dict:
         return {"samples": self.k_done, "deadline_misses": self.misses, "u_missing": self.no_u,
@@ -244,5 +280,6 @@ class PlantNode(Node):
                 "inputs_rejected": getattr(self, "rejected_nonfinite", 0), "inputs_clamped": getattr(self, "clamped", 0),
                 "overruns": self.overruns, "malformed": self.malformed,
                 "controller_lost_at": self.controller_lost_at, "timing": self.timing,
+                "plant_fault": self.plant_fault, "plant_fault_at": self.plant_fault_at,
                 "jitter_us": percentiles(self.jitter), "latency_us": percentiles(self.latency),
                 "spin_us": self.spin_ns / 1e3}
