@@ -507,6 +507,11 @@ class Launcher:
                 summary = build_summary(self.sc, col.snapshot(), run_id=self.run_id,
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
                                         faults=self.faults, codebook=cb)
+                if summary.get("plant_fault"):  # the true plant (an FMU) failed: say so, not "crashed"
+                    outcome = f"plant fault at sample {summary.get('plant_fault_at')}"
+                    for f in (*self.faults, *summary["faults"]):
+                        if f.get("node") == "plant" and f.get("kind") == "crashed":
+                            f.update(kind="plant_fault", why=summary["plant_fault"])
                 summary["outcome"] = outcome
                 summary["security"] = self.security()
                 try:  # the launcher's own view (exits, faults, outcome) goes into the recording too

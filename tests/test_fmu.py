@@ -354,7 +354,8 @@ def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp
     assert rc == 1, err[-2000:]
     assert s["plant_fault_at"] == 11 and "the plant broke at t = 1.1 s" in s["plant_fault"]
     (fault,) = s["faults"]
-    assert fault["node"] == "plant" and fault["exit_code"] == 1 and fault["at_sample"] == 11
+    assert fault["node"] == "plant" and fault["kind"] == "plant_fault" and fault["exit_code"] == 1
+    assert fault["at_sample"] == 11 and s["outcome"] == "plant fault at sample 11"
     assert "plant_fault k=11 FMU lienard.fmu: step from t = 1.1 s by 0.1 s failed" in fault["last_log_line"]
     assert "Traceback" not in (tmp_path / f"logs-{rid}" / "plant.log").read_text()
     assert s["node_summaries"]["plant"]["plant_fault_at"] == 11
