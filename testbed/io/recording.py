@@ -55,6 +55,7 @@ from . import messages as msg
 from . import schema
 
 PROFILE = "testbed"           # MCAP header profile
+_U64_MAX = 2**64 - 1          # MCAP times are uint64 ns
 FORMAT_VERSION = "1"          # bump when a topic or field changes meaning
 
 TELEMETRY_TOPICS = {r: f"/telemetry/{r}" for r in ("plant", "encoder", "controller", "attacker")}
@@ -221,8 +222,9 @@ class RecordingWriter:
             if self.closed:
                 return
             ch = self._channel(topic, name)
-            self._w.add_message(channel_id=ch, log_time=max(log_time, 0),
-                                data=data, publish_time=max(int(log_time if publish_time is None else publish_time), 0))
+            pub = int(log_time if publish_time is None else publish_time)
+            self._w.add_message(channel_id=ch, log_time=min(max(log_time, 0), _U64_MAX),
+                                data=data, publish_time=min(max(pub, 0), _U64_MAX))
             self.counts[topic] += 1
             if time.monotonic() - self._last_flush >= self.flush_interval:
                 self._flush_locked()

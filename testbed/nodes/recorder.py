@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import signal
+import struct
 import sys
 import threading
 import time
@@ -211,8 +212,9 @@ class Recorder:
             else:
                 raise msg.MessageError(f"not a key of a run: {rel}")
             self.written += 1
-        except msg.MessageError as e:
-            self._malformed(key, payload, attachment, str(e), log_time)
+        except (msg.MessageError, ValueError, OverflowError, TypeError, struct.error) as e:
+            # not a message of a run, or one whose numbers no schema can hold: counted and kept as bytes
+            self._malformed(key, payload, attachment, f"{type(e).__name__}: {e}", log_time)
 
     # ---- end
     def stats(self) -> dict:
