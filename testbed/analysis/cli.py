@@ -9,7 +9,7 @@
 Every command that runs batches takes --workers N (default: every core) and --scheduler tcp://HOST:PORT
 (a Dask cluster); the results do not depend on either (testbed.analysis.parallel).
 
-The figures and numbers of docs/analysis.md come from ``python docs/numbers.py`` (see there).
+The figures and numbers of docs/analysis.md come from ``python docs/make_numbers.py`` (see there).
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
     g.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
     g.add_argument("--crash-at", type=int, metavar="K", help="fault injection: raise at sample K")
-    g.add_argument("-v", "--verbose", action="store_true")
+    g.add_argument("-v", "--verbose", action="store_true", help="log at INFO (start-up, every event)")
     g = p.add_argument_group("rerun (testbed run --rerun passes these)")
     g.add_argument("--rerun-url", metavar="URL", help="stream this node's telemetry to a Rerun gRPC URL")
     g.add_argument("--rerun-save", metavar="PATH.rrd", help="write this node's telemetry to a Rerun file")

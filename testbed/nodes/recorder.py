@@ -253,7 +253,7 @@ def add_arguments_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
     p.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
     p.add_argument("--scenario-ref", help=argparse.SUPPRESS)
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (start-up, every event)")
     add_run_option_arguments(p)
     add_zenoh_arguments(p)
 

@@ -1,0 +1,127 @@
+"""The front door: one name per meaning across commands, old names still working, help and exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+
+import pytest
+
+from testbed import cli
+
+PY = sys.executable
+
+
+def _parsers() -> dict[str, argparse.ArgumentParser]:
+    ap = cli.build_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def _options(p: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    return {s: a for a in p._actions for s in a.option_strings}
+
+
+#: the shared options and the commands that must have them (docs/cli.md)
+SHARED = {
+    "--json": ["scenarios", "simulate", "run", "report", "replay", "analyze", "roa", "sweep", "resimulate",
+               "plants", "check-plant", "worst-attack", "vulnerability", "secret", "compare"],
+    "--out": ["run", "simulate", "record"],
+    "--rrd": ["run", "simulate", "replay"],
+    "--plot": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
+    "--no-roa": ["run", "simulate", "replay"],
+    "--no-progress": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
+    "--workers": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
+}
+
+
+@pytest.mark.parametrize("flag", sorted(SHARED))
+def test_every_command_has_the_shared_options_with_one_meaning(flag):
+    parsers = _parsers()
+    dests, metavars = set(), set()
+    for name in SHARED[flag]:
+        assert name in parsers, name
+        opts = _options(parsers[name])
+        assert flag in opts, f"testbed {name} has no {flag}"
+        a = opts[flag]
+        assert a.help and a.help != argparse.SUPPRESS, f"testbed {name} {flag}: no help line"
+        dests.add(a.dest)
+        metavars.add(a.metavar)
+    assert len(dests) == 1, (flag, dests)
+    if flag in ("--out", "--rrd", "--plot"):
+        assert metavars == {{"--out": "PATH.mcap", "--rrd": "PATH.rrd", "--plot": "PATH.png"}[flag]}, metavars
+
+
+def test_every_option_of_every_command_has_a_help_line():
+    for name, p in _parsers().items():
+        for a in p._actions:
+            if a.option_strings and a.help is not argparse.SUPPRESS and a.dest != "help":
+                assert a.help, f"testbed {name} {a.option_strings}: no help line"
+
+
+def test_old_names_are_hidden_aliases_of_the_new_ones():
+    ps = _parsers()
+    run = ps["run"]
+    args = run.parse_args(["paper", "--record", "x.mcap", "--rerun-no-roa"])
+    assert args.out == "x.mcap" and args.no_roa
+    args = run.parse_args(["paper", "--out", "y.mcap", "--no-roa", "--rrd", "r.rrd"])
+    assert args.out == "y.mcap" and args.no_roa and args.rrd == "r.rrd"
+    helptext = run.format_help()
+    assert not re.search(r"--record[ ,\]]", helptext) and "--rerun-no-roa" not in helptext
+
+
+def test_help_has_no_markup_and_the_version_prints():
+    r = subprocess.run([PY, "-m", "testbed.cli", "--help"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "``" not in r.stdout and "exit codes" in r.stdout
+    r = subprocess.run([PY, "-m", "testbed.cli", "--version"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("testbed (dos-testbed) ")
+
+
+def test_scenarios_lists_descriptions_and_json(capsys):
+    assert cli.main(["scenarios", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["scenarios"]
+    assert {r["name"] for r in rows} >= {"paper", "paper-escape", "paper-greedy", "pendulum", "cartpole"}
+    assert all(r["description"] for r in rows)
+    assert cli.main(["scenarios"]) == 0
+    assert "the paper's example" in capsys.readouterr().out
+
+
+def test_simulate_plot_draws_fig_2(tmp_path, capsys):
+    png = tmp_path / "fig2.png"
+    assert cli.main(["simulate", "paper", "--plot", str(png), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["figure"] == str(png) and png.stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_analyze_plot_is_a_file_path_and_a_folder_still_works(tmp_path):
+    png = tmp_path / "an.png"
+    assert cli.main(["analyze", "paper", "--plot", str(png), "--no-progress"]) == 0
+    assert png.exists() and (tmp_path / "an-time-series.png").exists() and (tmp_path / "an-delta.png").exists()
+    folder = tmp_path / "figs"
+    assert cli.main(["analyze", "paper", "--plot", str(folder), "--no-progress"]) == 0
+    assert (folder / "paper-allowable-region.png").exists()
+
+
+def test_exit_codes_bad_input_is_2_with_one_line(tmp_path):
+    cases = [
+        ["simulate", "no-such-scenario"],
+        ["simulate", "paper", "--duration", "-1"],
+        ["report", str(tmp_path / "missing.mcap")],
+        ["resimulate", str(tmp_path / "missing.mcap")],
+        ["run", "paper", "--topology", "peer"],
+    ]
+    for args in cases:
+        r = subprocess.run([PY, "-m", "testbed.cli", *args], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2, (args, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, (args, r.stderr)
+
+
+def test_the_theorem_2_verdict_does_not_read_as_a_contradiction(capsys):
+    assert cli.main(["analyze", "paper", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "theorem2_holds=True" not in out and "within: False" not in out
+    assert "does not cover it" in out
