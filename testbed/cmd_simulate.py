@@ -18,6 +18,9 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
     add_run_option_arguments(p, title="run options (as testbed run takes them)")
     p.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="the attacker corrupts the payload of these samples (as testbed run --corrupt)")
+    p.add_argument("--latency-from", metavar="RUN.mcap",
+                   help="physical timing: the latency of u_k sample by sample as a recorded live run measured it "
+                        "(instead of [run] sim_delay)")
     cliargs.add_out(p, "also write the run as an MCAP recording (the topics of a live run; see testbed report); "
                        "never overwritten")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
@@ -48,7 +51,12 @@ def main_simulate(args) -> int:
     except ValueError as e:
         raise BadInput(str(e)) from None
     net = Network(ack_via_attacker=opts.ack_via_attacker, corrupt=tuple(sorted(corrupt.items())))
-    res = simulate_scenario(sc, network=net)
+    latency = None
+    if args.latency_from:
+        if sc.run.timing != "physical":
+            raise BadInput("--latency-from applies to physical timing: add --timing physical")
+        latency = recorded_latency(args.latency_from, sc)
+    res = simulate_scenario(sc, network=net, latency=latency)
     out = summarize(sc, res)
     if args.out:
         from .io.recording import record_simulation
@@ -96,6 +104,32 @@ def main_simulate(args) -> int:
               f"{res.plant_fault}", file=sys.stderr)
         return 1
     return 0
+
+
+def recorded_latency(path, sc):
+    """The latency [ns] of u_k per sample in a recorded run: when it reached the plant after t_k (a lost
+    sample's counted from the controller's loss deadline); a sample without a record: the latest one."""
+    import numpy as np
+
+    from .errors import BadInput
+    from .io import messages as msg
+    from .io import recording
+
+    try:
+        rec = recording.read(path)
+    except (OSError, ValueError) as e:
+        raise BadInput(f"{path}: {e}") from None
+    P = rec.telemetry.get("plant", {})
+    N = sc.n_steps
+    loss_ns = int(sc.timing_params[4])
+    out = np.zeros(N, dtype=np.int64)
+    last = 0
+    for k in range(N):
+        p = P.get(k)
+        if p is not None and p.u_rx_ns != msg.NO_TIME and p.t_ns != msg.NO_TIME:
+            last = max(0, p.u_rx_ns - p.t_ns - (loss_ns if p.theta == 1 else 0))
+        out[k] = last
+    return out
 
 
 def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
