@@ -416,7 +416,7 @@ class Launcher:
                 plant = self.sc.make_plant()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
-                summary = build_summary(self.sc, col.snapshot(), run_id=self.run_id,
+                summary = build_summary(self.sc, col.snapshot(self.sc), run_id=self.run_id,
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
                                         faults=self.faults, codebook=cb)
                 summary["outcome"] = outcome

@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import recording as rec_io
-from .runsummary import ROLES, RunData, build_summary
+from .runsummary import SUMMARY_FIELDS, build_summary, to_lists, write_json
 
 
 def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
@@ -54,66 +53,90 @@ def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
     return out
 
 
-def _agreement(data: RunData, N: int) -> dict:
-    enc, ctl = data.tele.get("encoder", {}), data.tele.get("controller", {})
-    compared, differ, missing = 0, [], []
-    for k in range(N):
-        e, c = enc.get(k), ctl.get(k)
-        if e is None or c is None or e.silent:
-            missing.append(k)
-            continue
-        compared += 1
-        if e.E != c.E or tuple(e.xi) != tuple(c.xi):
-            differ.append(k)
-    return {"samples": N, "compared": compared, "disagree": len(differ), "disagree_at": differ[:50],
-            "not_compared": len(missing), "not_compared_at": missing[:50], "all_agree": not differ and not missing}
+def _agreement(cols, N: int) -> dict:
+    """Encoder and decoder (xi_k, E_k) compared bit for bit at every sample both recorded."""
+    e_ok = cols.has("encoder")[:N] & (cols.get("encoder", "silent")[:N] == 0)
+    both = e_ok & cols.has("controller")[:N]
+    xi_e, xi_c = cols.get("encoder", "xi")[:N], cols.get("controller", "xi")[:N]
+    E_e, E_c = cols.get("encoder", "E")[:N], cols.get("controller", "E")[:N]
+    differ = np.flatnonzero(both & ((E_e != E_c) | np.any(xi_e != xi_c, axis=1)))
+    missing = np.flatnonzero(~both)
+    compared = int(np.count_nonzero(both))
+    return {"samples": N, "compared": compared, "disagree": int(differ.size), "disagree_at": differ[:50].tolist(),
+            "not_compared": int(missing.size), "not_compared_at": missing[:50].tolist(),
+            "all_agree": not differ.size and not missing.size}
 
 
-def report(path: str | Path | rec_io.Recording) -> dict:
-    """The report of one recording (a path, or a ``Recording`` already read), as a JSON-able dict."""
-    with rec_io.no_gc():
-        return _report(path)
+#: the per-stage times, read only for the timing section of live runs
+TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker.tx_ns"}
 
 
-def _report(path: str | Path | rec_io.Recording) -> dict:
+def _fields(meta: dict) -> set[str]:
+    live = meta.get("testbed.run", {}).get("source") == "live"
+    return SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS
+
+
+def load(path: str | Path):
+    """The columns of a recording and its scenario (``BadInput`` for anything unusable)."""
+    from .io.columns import read_columns, scenario_of
+
+    cols = read_columns(path, fields=_fields)
+    return cols, scenario_of(cols.metadata, str(path))
+
+
+def report(path, *, arrays: bool = False) -> dict:
+    """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
+
+    ``arrays``: the per-sample values stay numpy arrays (``runsummary.write_json`` streams them).
+    """
+    cols, sc = load(path) if isinstance(path, (str, Path)) else path
+    out = _report(cols, sc, arrays=arrays)
+    return out if arrays else to_lists(out)
+
+
+def _report(cols, sc, *, arrays: bool) -> dict:
     from .quantizer import Codebook
 
-    rec = path if isinstance(path, rec_io.Recording) else rec_io.read(path)
-    path = rec.path
-    sc = rec.scenario()
-    runmeta = rec.metadata.get("testbed.run", {})
-    data = RunData(tele={r: rec.telemetry.get(r, {}) for r in ROLES}, plant_final=rec.plant_final,
-                   events=rec.events, status=rec.status, summaries=rec.summaries)
-    launcher = rec.summaries.get("launcher", {})
+    path = cols.path
+    runmeta = cols.metadata.get("testbed.run", {})
+    launcher = cols.summaries.get("launcher", {})
     plant = sc.make_plant()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
-    run_id = rec.start.run_id if rec.start else runmeta.get("run_id", "?")
-    ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(rec.start and rec.start.ack_via_attacker)
-    out = build_summary(sc, data, run_id=run_id, ack_via_attacker=ack_via, nodes=launcher.get("nodes") or {},
-                        faults=launcher.get("faults") or [], codebook=cb)
-    live = rec.source == "live"
+    start = cols.start
+    run_id = start.run_id if start else runmeta.get("run_id", "?")
+    ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(start and start.ack_via_attacker)
+    out = build_summary(sc, cols, run_id=run_id, ack_via_attacker=ack_via,
+                        nodes=launcher.get("nodes") or {}, faults=launcher.get("faults") or [], codebook=cb,
+                        arrays=True)
+    live = cols.source == "live"
     out["live"] = live
-    out["source"] = rec.source
+    out["source"] = cols.source
     N = out["samples"]
     if not live:
         out["timing"] = None  # a simulation has nominal times only
-    A = data.tele.get("attacker", {})
-    attack_on = np.array([bool(A[k].attack_on) if k in A else False for k in range(N)])
-    dropped = np.array([bool(A[k].dropped) if k in A else False for k in range(N)])
+    A = cols.has("attacker")[:N]
+    attack_on = A & (cols.get("attacker", "attack_on")[:N] != 0)
+    dropped = A & (cols.get("attacker", "dropped")[:N] != 0)
     out["dos"] = _budget_section(sc, attack_on, N * sc.T)
-    out["dos"]["attacker_log_samples"] = len(A)
+    out["dos"]["attacker_log_samples"] = int(np.count_nonzero(cols.has("attacker")))
     out["dropped_by_attacker"] = int(dropped.sum())
-    out["agreement"] = _agreement(data, N)
-    out["saturation_events"] = [e.k for e in rec.events if e.kind == "saturation"]
+    out["agreement"] = _agreement(cols, N)
+    out["saturation_events"] = [e.k for e in cols.events if e.kind == "saturation"]
     out["outcome"] = launcher.get("outcome", "simulated" if not live else None)
-    last_t = (rec.last_log_time - rec.start.t0_ns) / 1e9 if rec.start and rec.last_log_time else None
+    last_t = (cols.last_log_time - start.t0_ns) / 1e9 if start and cols.last_log_time else None
+    try:
+        overrides = json.loads(runmeta.get("scenario_overrides", "{}") or "{}")
+    except ValueError:
+        overrides = None
     out["recording"] = {
-        "path": str(path), "source": rec.source, "truncated": rec.truncated, "read_error": rec.read_error,
-        "complete": not rec.truncated and "testbed.recorder" in rec.metadata,
-        "messages": dict(rec.counts), "last_message_s": last_t, "duplicates": rec.duplicates,
-        "malformed": len(rec.malformed), "software": rec.metadata.get("testbed.software", {}),
-        "recorder": rec.metadata.get("testbed.recorder"), "scenario_ref": rec.metadata.get("testbed.scenario", {}).get("ref"),
-        "overrides": json.loads(runmeta.get("scenario_overrides", "{}") or "{}"),
+        "path": str(path), "source": cols.source, "truncated": cols.truncated, "read_error": cols.read_error,
+        "complete": not cols.truncated and "testbed.recorder" in cols.metadata,
+        "messages": dict(cols.counts), "last_message_s": last_t, "duplicates": cols.duplicates,
+        "malformed": cols.malformed, "rejected": dict(cols.rejected),
+        "software": cols.metadata.get("testbed.software", {}),
+        "recorder": cols.metadata.get("testbed.recorder"),
+        "scenario_ref": cols.metadata.get("testbed.scenario", {}).get("ref"),
+        "overrides": overrides,
     }
     return out
 
@@ -125,7 +148,10 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
     from .analysis.figures import plot_time_series
 
     def arr(key):
-        v = summary.get(key) or []
+        v = summary.get(key)
+        if isinstance(v, np.ndarray):
+            return v.astype(float)
+        v = v or []
         return np.array([[np.nan if a is None else a for a in row] if isinstance(row, list) else
                          (np.nan if row is None else row) for row in v], dtype=float)
 
@@ -142,6 +168,10 @@ def print_text(s: dict) -> None:
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
+    bad = sum(r["rejected"].values()) if r.get("rejected") else 0
+    if bad or r.get("malformed"):
+        print(f"  WARNING: {bad} telemetry messages rejected (k outside [0, N)), {r.get('malformed', 0)} malformed:"
+              " the results below leave them out")
     fn = s.get("final_norm")
     if s["samples"] == 0:
         print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")
@@ -187,15 +217,11 @@ def add_arguments_report(p: argparse.ArgumentParser) -> None:
 
 
 def main_report(args) -> int:
-    try:
-        s = report(args.recording)
-    except (OSError, ValueError) as e:
-        print(f"testbed report: {args.recording}: {e}", file=sys.stderr)
-        return 2
+    s = report(args.recording, arrays=True)
     if args.plot:
         plot(s, args.plot)
     if args.json:
-        sys.stdout.write(json.dumps(s))  # the C encoder in one go: 2x json.dump on long runs
+        write_json(s, sys.stdout)  # streamed: no list of every sample in memory
         sys.stdout.write("\n")
     else:
         print_text(s)

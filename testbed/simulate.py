@@ -369,8 +369,12 @@ def simulate_scenario(sc, *, n_steps: int | None = None) -> SimResult:
     return simulate_loop(plant, sc.K, sc.quantizer, sc.x0, N, att, sc.flow)
 
 
-def summarize(sc, res: SimResult) -> dict:
-    """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``)."""
+def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
+    """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
+
+    ``arrays``: the per-sample values stay numpy arrays (``testbed report`` streams them out).
+    """
+    L = (lambda a: a) if arrays else (lambda a: a.tolist())
     plant = sc.make_plant()
     tol = sc.run.converge_tol
     diverged = res.flow_status != FLOW_OK
@@ -390,17 +394,17 @@ def summarize(sc, res: SimResult) -> dict:
         "mode": sc.quantizer.mode,
         "bits": cb.bits,
         "K": res.K.tolist(),
-        "t": res.t.tolist(),
-        "x": res.x.tolist(),
-        "u": res.u.tolist(),
-        "q": res.q.tolist(),
-        "xi": res.xi_enc.tolist(),
-        "E": res.E_enc.tolist(),
-        "E_dec": res.E_dec.tolist(),
-        "theta": res.theta.astype(int).tolist(),
-        "symbols": res.symbols.tolist(),
+        "t": L(res.t),
+        "x": L(res.x),
+        "u": L(res.u),
+        "q": L(res.q),
+        "xi": L(res.xi_enc),
+        "E": L(res.E_enc),
+        "E_dec": L(res.E_dec),
+        "theta": L(res.theta.astype(int)),
+        "symbols": L(res.symbols),
         "saturations": res.saturations,
-        "saturated_at": np.nonzero(res.saturated)[0].tolist(),
+        "saturated_at": L(np.nonzero(res.saturated)[0]),
         "dos_intervals": [list(iv) for iv in sch.intervals],
         "packets_dropped": int(res.theta.sum()),
         "encoder_decoder_agree": res.agree,
