@@ -41,6 +41,8 @@ for _name, _mod, _help in [
     ("record", "testbed.nodes.recorder", "record a live run to MCAP (testbed run starts one itself)"),
     ("report", "testbed.report", "post-mortem of a recording"),
     ("replay", "testbed.io.viewer", "open a recording in Rerun"),
+    ("export", "testbed.export", "a recording as Parquet or CSV, one row per sample"),
+    ("compare", "testbed.compare", "two runs (recordings or scenarios) compared sample by sample"),
 ]:
     try:
         _optional(_name, _mod, _help)
