@@ -196,7 +196,8 @@ def print_text(s: dict) -> None:
     print(f"  encoder/decoder agreement: {ag['compared'] - ag['disagree']}/{ag['compared']} samples identical"
           + (f", {ag['not_compared']} not comparable (withheld or missing)" if ag["not_compared"] else "")
           + (f"; DISAGREE at {ag['disagree_at'][:10]}" if ag["disagree"] else ""))
-    print(f"  saturations: {s.get('saturations', 0)}" + (f" at {s['saturated_at'][:10]}" if s.get("saturated_at") else ""))
+    sat_at = list(s.get("saturated_at", [])[:10])
+    print(f"  saturations: {s.get('saturations', 0)}" + (f" at {[int(k) for k in sat_at]}" if sat_at else ""))
     tm = s.get("timing")
     if tm:
         from .launcher import _fmt

@@ -688,7 +688,9 @@ def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, ev
                 continue
             vals = []
             for (_, name), col in mine:
-                v = getattr(t, name)
+                v = getattr(t, name, None)
+                if v is None:  # a field the wire dataclass does not carry (derived: log10_E)
+                    continue
                 if col.group == G_VEC:
                     v = v if len(v) else (col.default,) * col.width
                     if len(v) != col.width:

@@ -21,6 +21,11 @@ topic                      schema                      content
 ``/control/start|stop``    ``testbed.RunStart|RunStop``  t0 and the run's identity; stops
 ``/liveliness``            ``testbed.Liveliness``      nodes appearing and going away
 ``/recorder/malformed``    ``testbed.Malformed``       anything that did not decode, as received
+``/log``                   ``foxglove.Log``            start, end, attacks on and off, saturations,
+                                                       faults, every node event (Foxglove's Log panel)
+``/phase``                 ``foxglove.SceneUpdate``    one a sample: the phase plane (trajectory so far,
+                                                       x_k, xi_k, the box Q(xi_k, E_k)), Foxglove's 3D panel
+``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2)
 =========================  ==========================  ===============================================
 
 Metadata records: ``testbed.scenario`` (name, TOML text, reference),
@@ -79,7 +84,9 @@ def schema_for_topic(topic: str) -> str | None:
         return "Event"
     if topic.startswith("/summary/"):
         return "NodeSummary"
-    return None
+    from .foxglove_topics import TOPICS as FOXGLOVE
+
+    return FOXGLOVE.get(topic)
 
 
 def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None) -> Path:
@@ -137,7 +144,7 @@ class RecordingWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "wb")
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        self._w = Writer(self._f, chunk_size=chunk_size, compression=comp)
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
         self._w.start(profile=PROFILE, library=f"testbed-recorder/{FORMAT_VERSION}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -152,8 +159,13 @@ class RecordingWriter:
         if ch is None:
             sid = self._schemas.get(name)
             if sid is None:
-                sid = self._w.register_schema(name=schema.full_name(name), encoding="protobuf",
-                                              data=schema.file_descriptor_set())
+                if "." in name:  # a Foxglove schema, as foxglove-sdk publishes it
+                    from .foxglove_topics import descriptor_set
+
+                    full, data = name, descriptor_set(name)
+                else:
+                    full, data = schema.full_name(name), schema.file_descriptor_set()
+                sid = self._w.register_schema(name=full, encoding="protobuf", data=data)
                 self._schemas[name] = sid
             ch = self._w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
             self._channels[topic] = ch
@@ -167,14 +179,17 @@ class RecordingWriter:
                 self._f.flush()
 
     def write(self, topic: str, obj, log_time: int, publish_time: int | None = None,
-              name: str | None = None) -> None:
-        """``obj``: a ``testbed.io.messages`` dataclass, a dict with the schema's fields, or a protobuf message."""
+              name: str | None = None, extra: dict | None = None) -> None:
+        """``obj``: a ``testbed.io.messages`` dataclass, a dict with the schema's fields, or a protobuf message.
+
+        ``extra``: fields beside the dataclass's (``foxglove_topics.telemetry_extra``).
+        """
         if name is None:
             name = schema_for_topic(topic)
             if name is None:
                 raise ValueError(f"{topic!r} is not a topic of a recording")
         data = obj.SerializeToString() if hasattr(obj, "SerializeToString") else \
-            schema.to_pb(obj, name).SerializeToString()
+            schema.to_pb(obj, name, extra).SerializeToString()
         self.write_bytes(topic, name, data, log_time, publish_time)
 
     def write_bytes(self, topic: str, name: str, data: bytes, log_time: int, publish_time: int | None = None) -> None:
@@ -483,15 +498,19 @@ def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref
 
 
 def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
-                      t0_ns: int | None = None, flush_interval: float = 5.0) -> dict:
+                      t0_ns: int | None = None, flush_interval: float = 5.0, roa: bool = True) -> dict:
     """Write a simulated run (``testbed.simulate.SimResult``) with the topics and schemas of a live run.
 
     Times are nominal and latencies zero (t_k = k T, every message at its sample
-    instant); t0 is the wall-clock time of the call.  Returns the writer's counts.
+    instant); t0 is the wall-clock time of the call.  The Foxglove topics
+    (``foxglove_topics``) come from the same tap as a live recorder's; ``roa``:
+    draw the nominal region of attraction there.  Returns the writer's counts.
     """
     import numpy as np
 
+    from ..api import attack_on_samples
     from ..quantizer import Codebook
+    from .foxglove_topics import FoxgloveTopics, telemetry_extra
 
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)
     Tn = int(round(sc.T * 1e9))
@@ -500,54 +519,69 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = f"sim-{sc.name}-{t0}"
     w = RecordingWriter(path, flush_interval=flush_interval)
+    fox = FoxgloveTopics(sc, roa=roa)
+
+    def tap(items):
+        for topic, name, data, lt in items:
+            w.write_bytes(topic, name, data, lt)
+
+    def tele(topic, name, t, lt):
+        w.write(topic, t, lt, name=name, extra=telemetry_extra(name, t, t0, Tn))
+
     try:
         write_text_metadata(w, sc, source="simulate", run_id=run_id, ref=ref,
                             extra={"scenario_overrides": overrides or {}, "bits": cb.bits})
         start = msg.Start(run_id=run_id, t0_ns=t0, T_ns=Tn, n_steps=sc.n_steps, digest="", timing="ideal",
                           ack_via_attacker=False)
         w.write("/control/start", start, t0)
+        tap(fox.start(start, t0))
         theta = np.asarray(res.theta, dtype=np.int64)
-        sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
-        if sched is None or not N:  # an online attacker (greedy) has no schedule: it is on when it drops
-            attack_on = theta.astype(bool)
-        else:
-            attack_on = np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta.astype(bool)
+        attack_on = attack_on_samples(sc, res)  # an online attacker (greedy) is on when it drops
         dropped_total = np.cumsum(theta)
         prev_on = False
         for k in range(N):
             tk = k * Tn
             lt = t0 + tk
             th = int(theta[k])
-            w.write("/telemetry/plant", msg.PlantTelemetry(
-                k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=tk, delay_ns=0, theta=th, flags=0,
-                flow_status=int(res.flow_status) if k == res.diverged_at else 0,
-                x=tuple(res.x[k]), u=tuple(res.u[k])), lt)
+            p = msg.PlantTelemetry(k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=tk, delay_ns=0, theta=th, flags=0,
+                                   flow_status=int(res.flow_status) if k == res.diverged_at else 0,
+                                   x=tuple(res.x[k]), u=tuple(res.u[k]))
+            tele("/telemetry/plant", "PlantSample", p, lt)
             sym = int(res.symbols[k])
-            w.write("/telemetry/encoder", msg.EncoderTelemetry(
-                k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym, saturated=int(res.saturated[k]), silent=0,
-                E=float(res.E_enc[k]), xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k])), lt)
+            e = msg.EncoderTelemetry(k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym,
+                                     saturated=int(res.saturated[k]), silent=0, E=float(res.E_enc[k]),
+                                     xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k]))
+            tele("/telemetry/encoder", "EncoderSample", e, lt)
+            tap(fox.plant(p, lt))
+            tap(fox.encoder(e, lt))
             if res.saturated[k]:
-                w.write("/events/encoder", msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
-                                                     detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"), lt)
+                ev = msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
+                               detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}")
+                w.write("/events/encoder", ev, lt)
+                tap(fox.event(ev, lt))
             on = bool(attack_on[k])
-            w.write("/telemetry/attacker", msg.AttackerTelemetry(
+            tele("/telemetry/attacker", "AttackerSample", msg.AttackerTelemetry(
                 k=k, rx_ns=tk, tx_ns=msg.NO_TIME if th else tk, dropped=th, corrupted=0, attack_on=int(on),
                 dropped_total=int(dropped_total[k]), forwarded_total=int(k + 1 - dropped_total[k])), lt)
             if on != prev_on:
-                w.write("/attacker/status", msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
-                                                               forwarded=int(k + 1 - dropped_total[k])), lt)
+                st = msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
+                                        forwarded=int(k + 1 - dropped_total[k]))
+                w.write("/attacker/status", st, lt)
+                tap(fox.status(st, lt))
                 prev_on = on
-            w.write("/telemetry/controller", msg.ControllerTelemetry(
+            tele("/telemetry/controller", "ControllerSample", msg.ControllerTelemetry(
                 k=k, sym_stamp_ns=msg.NO_TIME if th else tk, rx_ns=msg.NO_TIME if th else tk, tx_ns=tk,
                 symbol=-1 if th else sym, theta=th,
                 reason=msg.ControllerTelemetry.DEADLINE if th else msg.ControllerTelemetry.RECEIVED,
                 E=float(res.E_dec[k]), xi=tuple(res.xi_dec[k]), q=tuple(res.q[k]), u=tuple(res.u[k])), lt)
         tN = N * Tn
-        w.write("/telemetry/plant", msg.PlantTelemetry(
+        tele("/telemetry/plant", "PlantSample", msg.PlantTelemetry(
             k=N, t_ns=tN, sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0, theta=msg.THETA_NONE,
             flags=msg.PlantTelemetry.FLAG_FINAL, flow_status=int(res.flow_status),
             x=tuple(np.asarray(res.x_final, dtype=float)), u=()), t0 + tN)
-        w.write("/control/stop", msg.Stop(reason="end of run", origin="simulator"), t0 + tN)
+        stop = msg.Stop(reason="end of run", origin="simulator")
+        w.write("/control/stop", stop, t0 + tN)
+        tap(fox.stop(stop, t0 + tN))
     finally:
         w.close()
     return dict(w.counts)

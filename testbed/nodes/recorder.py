@@ -61,7 +61,8 @@ def stats_key(keys: transport.Keys) -> str:
 class Recorder:
     """Subscribes to one run and writes it to ``writer``; ``close()`` drains and finishes the file."""
 
-    def __init__(self, session, keys: transport.Keys, writer: recording.RecordingWriter, *, loop: bool):
+    def __init__(self, session, keys: transport.Keys, writer: recording.RecordingWriter, *, loop: bool,
+                 foxglove=None):
         import zenoh
 
         self._zenoh = zenoh
@@ -76,6 +77,8 @@ class Recorder:
         self.malformed = 0
         self.max_queue = 0
         self.write_errors = 0
+        self.fox = foxglove   # testbed.io.foxglove_topics.FoxgloveTopics, or None
+        self.T_ns = 0 if foxglove is None else foxglove.T_ns
         self.stop_seen: msg.Stop | None = None
         self.stop_seen_mono = 0.0
         self.lost: dict[str, float] = {}
@@ -165,7 +168,9 @@ class Recorder:
                 recs = [typ.decode(r) for r in msg.unpack_batch(payload)]
                 name = recording.TELEMETRY_SCHEMA[role]
                 for t in recs:
-                    self.w.write(topic, t, log_time, self._pub(_stamp(t), log_time), name=name)
+                    self.w.write(topic, t, log_time, self._pub(_stamp(t), log_time), name=name,
+                                 extra=self._foxglove_extra(name, t))
+                    self._foxglove(role, t, log_time)
                 self.written += len(recs)
                 return
             if rel in _LOOP_TYPES:
@@ -177,6 +182,7 @@ class Recorder:
             elif rel.startswith("events/"):
                 e = msg.Event.decode(payload)
                 self.w.write(topic, e, log_time, self._pub(e.t_ns, log_time))
+                self._foxglove("event", e, log_time)
             elif rel.startswith("summary/"):
                 s = msg.NodeSummary.decode(payload)
                 self.w.write(topic, {"node": s.node, "json": json.dumps(s.data, default=str)}, log_time)
@@ -187,11 +193,43 @@ class Recorder:
                 if isinstance(m, msg.Stop) and self.stop_seen is None and m.origin == "plant":
                     self.stop_seen, self.stop_seen_mono = m, time.monotonic()
                 self.w.write(topic, m, log_time)
+                self._foxglove({msg.Start: "start", msg.Stop: "stop", msg.AttackerStatus: "status"}[type(m)], m,
+                               log_time)
             else:
                 raise msg.MessageError(f"not a key of a run: {rel}")
             self.written += 1
         except msg.MessageError as e:
             self._malformed(key, payload, attachment, str(e), log_time)
+
+    # ---- Foxglove topics (testbed.io.foxglove_topics): derived from what was just written
+    def _foxglove_extra(self, name: str, t) -> dict | None:
+        """The telemetry's derived fields (header stamp t0 + k T, log10 E_k) once t0 is known."""
+        if self.fox is None:
+            return None
+        from ..io.foxglove_topics import telemetry_extra
+
+        return telemetry_extra(name, t, self.t0, self.T_ns)
+
+    def _foxglove(self, kind: str, m, log_time: int) -> None:
+        """Write the /log, /phase, /phase/roa messages that ``m`` makes (a failure never costs the recording)."""
+        if self.fox is None:
+            return
+        try:
+            handler = getattr(self.fox, kind, None)
+            for topic, name, data, lt in (handler(m, log_time) if handler is not None else ()):
+                self.w.write_bytes(topic, name, data, lt)
+        except Exception:  # noqa: BLE001
+            self.write_errors += 1
+            log.exception("recorder: could not write a Foxglove message")
+
+    def _foxglove_flush(self) -> None:
+        """The phase-plane samples still waiting for their partner (the end of the run)."""
+        if self.fox is not None:
+            try:
+                for topic, name, data, lt in self.fox.flush(time.time_ns()):
+                    self.w.write_bytes(topic, name, data, lt)
+            except Exception:  # noqa: BLE001
+                self.write_errors += 1
 
     # ---- end
     def stats(self) -> dict:
@@ -208,6 +246,7 @@ class Recorder:
         self._done.set()
         self._wake.set()
         self._thread.join(timeout)
+        self._foxglove_flush()
         st = self.stats()
         self.w.close(st)
         return st
@@ -272,7 +311,9 @@ def main_record(args) -> int:
     loop = loop_default(sc, args.loop)
     print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
     with zenoh.open(conf) as session:
-        rec = Recorder(session, keys, w, loop=loop)
+        from ..io.foxglove_topics import FoxgloveTopics
+
+        rec = Recorder(session, keys, w, loop=loop, foxglove=FoxgloveTopics(sc))
         tokens = [session.liveliness().declare_token(keys.alive(ROLE)),
                   session.liveliness().declare_token(keys.ready(ROLE))]
         try:
