@@ -153,7 +153,7 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
     message) at ``pos``; 2 a record runs past the end (corrupt).  ``py_pos[:n_py]``:
     offsets of the messages of channels decoded in Python (events, status, ...).
     ``stats``: [0] largest log time, [1] messages of unregistered channels.
-    ``role_stats[r]``: malformed, k >= N, duplicates, k < N but beyond the rows allocated.
+    ``role_stats[r]``: malformed, k >= N, duplicates, k < N but beyond the rows allocated, final samples.
     """
     n = buf.size
     n_py = 0
@@ -212,6 +212,7 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
                     F2[lo2:hi2] = s2[lo2:hi2]
                     F3[lo3:hi3] = s3[lo3:hi3]
                     final_k[0] = k
+                    role_stats[r, 4] += 1
             elif k >= N:
                 role_stats[r, 1] += 1
             elif k >= rows:

@@ -220,6 +220,7 @@ class Columns:
     malformed: int = 0          # messages that did not decode (and the recorder's own malformed log)
     rejected: dict[str, int] = field(default_factory=dict)   # telemetry with k outside [0, N), by role
     duplicates: int = 0
+    finals: int = 0             # plant messages of the final state x_N (the last one counts)
     unknown_channel: int = 0
     last_log_time: int = 0
     truncated: bool = False
@@ -501,7 +502,7 @@ class _Reader:
         self.channels: dict[int, tuple[str, str]] = {}     # id -> (topic, schema short name)
         self.schemas: dict[int, tuple[str, str]] = {}      # id -> (full name, encoding)
         self.stats = np.zeros(8, dtype=np.int64)           # see _wire.walk
-        self.role_stats = np.zeros((len(ROLES), 4), dtype=np.int64)
+        self.role_stats = np.zeros((len(ROLES), 5), dtype=np.int64)
         self.final_tabs = {t: L.defaults[t].copy() for t in range(4)}
         self.final_k = np.full(1, -1, dtype=np.int64)
         self.py_pos = np.zeros(1, dtype=np.int64)
@@ -601,7 +602,7 @@ class _Reader:
         data_crc = None
         try:
             for off, op, body in _records(fh, bodies={_OP_CHUNK, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE,
-                                                      _OP_DATA_END}, crc=crc):
+                                                      _OP_DATA_END, _OP_FOOTER}, crc=crc):
                 if op is None:
                     if body is not None:
                         c.truncated, c.read_error = True, body
@@ -618,11 +619,36 @@ class _Reader:
                                                "(the file was changed after it was written); its results "
                                                "cannot be trusted")
                 elif op == _OP_FOOTER:
+                    self.check_summary(fh, off, body)
                     break
         finally:
             fh.close()
         self.finish()
         return c
+
+    def check_summary(self, fh: _File, off: int, body: bytes) -> None:
+        """The footer's CRC of the summary section (what indexed readers such as Foxglove rely on)."""
+        if body is None or len(body) < 20:
+            raise CorruptRecording(f"{self.path}: corrupt recording: a footer of the wrong size at byte {off}")
+        start, _offs, crc = struct.unpack_from("<QQI", body, 0)
+        if not crc:
+            return
+        end = off + 9 + 16
+        if start == 0:
+            start = end - 9 - 16       # no summary section: the CRC covers the footer's own fields
+        if not 0 < start <= off:
+            raise CorruptRecording(f"{self.path}: corrupt recording: the footer points outside the file")
+        fh.f.seek(start)
+        got, left = 0, end - start
+        while left > 0:
+            b = fh.f.read(min(left, 1 << 20))
+            if not b:
+                break
+            got = zlib.crc32(b, got)
+            left -= len(b)
+        if got != crc:
+            raise CorruptRecording(f"{self.path}: corrupt recording: the summary section fails its CRC (the file "
+                                   "was changed after it was written); its results cannot be trusted")
 
     def finish(self):
         c, L = self.cols, self.lay
@@ -633,6 +659,7 @@ class _Reader:
         c.rejected = {r: int(self.role_stats[i, 1] + self.role_stats[i, 3]) for i, r in enumerate(ROLES)
                       if self.role_stats[i, 1] + self.role_stats[i, 3]}
         c.duplicates = int(self.role_stats[:, 2].sum())
+        c.finals = int(self.role_stats[0, 4])
         c.last_log_time = int(self.stats[0])
         c.unknown_channel = int(self.stats[1])
         normalize(c)
