@@ -283,7 +283,8 @@ class FoxgloveTopics:
         self.t0: int | None = None
         self.pending: dict[int, list] = {}
         self.pending_max = pending_max
-        self.next_k = 0
+        self.done: set[int] = set()       # samples whose scene went out (late partners are dropped)
+        self.done_order: list[int] = []
         self.attack_on = False
 
     def _stamp(self, k: int) -> int:
@@ -322,9 +323,7 @@ class FoxgloveTopics:
         return out
 
     def stop(self, s: msg.Stop, log_time: int) -> list:
-        out = self.flush(log_time)
-        out.append(self._log(log_time, INFO, f"run ended: {s.reason} ({s.origin})", s.origin or "run", log_time))
-        return out
+        return [self._log(log_time, INFO, f"run ended: {s.reason} ({s.origin})", s.origin or "run", log_time)]
 
     def event(self, e: msg.Event, log_time: int) -> list:
         level = _LEVEL_OF_KIND.get(e.kind, ERROR if "kill" in e.kind or "fault" in e.kind else INFO)
@@ -340,13 +339,13 @@ class FoxgloveTopics:
         return [self._log(self._stamp(s.k), WARNING if s.attack_on else INFO, text, "attacker", log_time)]
 
     def plant(self, t: msg.PlantTelemetry, log_time: int) -> list:
-        if t.flags & msg.PlantTelemetry.FLAG_FINAL or not 0 <= t.k < self.N:
+        if t.flags & msg.PlantTelemetry.FLAG_FINAL or not 0 <= t.k < self.N or t.k in self.done:
             return []
         self.pending.setdefault(t.k, [None, None, log_time])[0] = t
         return self._ready(t.k, log_time)
 
     def encoder(self, t: msg.EncoderTelemetry, log_time: int) -> list:
-        if not 0 <= t.k < self.N:
+        if not 0 <= t.k < self.N or t.k in self.done:
             return []
         self.pending.setdefault(t.k, [None, None, log_time])[1] = t
         return self._ready(t.k, log_time)
@@ -361,7 +360,7 @@ class FoxgloveTopics:
         return out
 
     def flush(self, log_time: int) -> list:
-        """Everything still waiting for its partner (the end of the run)."""
+        """Everything still waiting for its partner (when the recorder or server closes)."""
         out = []
         for k in sorted(self.pending):
             out += self._emit(k, log_time)
@@ -369,6 +368,12 @@ class FoxgloveTopics:
 
     def _emit(self, k: int, log_time: int) -> list:
         p, e, _ = self.pending.pop(k)
+        self.done.add(k)
+        self.done_order.append(k)
+        if len(self.done_order) > 4 * self.pending_max:
+            for old in self.done_order[:2 * self.pending_max]:
+                self.done.discard(old)
+            del self.done_order[:2 * self.pending_max]
         self._ensure_scene()
         x = p.x if p is not None else ()
         xi = E = None
