@@ -114,7 +114,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     N = final["k"] if final is not None else cols.last_k("plant") + 1
     N = max(0, min(N, cols.rows))
     g = cols.get
-    P, EN, C, A = (cols.has(r)[:N] for r in ROLES)
+    P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
     silent = g("encoder", "silent")[:N] != 0
     E_ok = EN & ~silent
     k = np.arange(N, dtype=np.int64)

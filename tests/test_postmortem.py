@@ -302,3 +302,26 @@ def test_compare_identical_and_different_runs(tmp_path):
     c = json.loads(_cli("compare", a, text, "--json").stdout)
     assert not c["identical"] and c["first_divergence"] == 40 and c["theta_differs_at"][0] == 40
     assert c["theta_differs"] == 2 and c["max_state_error"] > 0
+
+
+def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
+    """A node's telemetry that stops (killed): every count comes from the role that recorded it."""
+    from collections import Counter
+
+    from testbed.quantizer import Codebook
+    from testbed.runsummary import build_summary
+
+    sc, res, path = _sim(tmp_path, "paper", duration=5.0)
+    rec = recording.read(path)
+    tele = {r: dict(d) for r, d in rec.telemetry.items()}
+    for role in ("encoder", "attacker"):   # both die after sample 9
+        tele[role] = {k: t for k, t in tele[role].items() if k < 10}
+    tele["controller"] = {k: dataclasses.replace(t, reason=msg.ControllerTelemetry.DEADLINE, theta=1)
+                          if k >= 10 else t for k, t in tele["controller"].items()}
+    cols = columns.from_records(sc, tele, plant_final=rec.plant_final)
+    s = build_summary(sc, cols, run_id="r", ack_via_attacker=False, nodes={}, faults=[],
+                      codebook=Codebook(2, 6, True))
+    want = Counter(t.reason for t in tele["controller"].values())
+    assert s["loss_reasons"]["deadline"] == want[msg.ControllerTelemetry.DEADLINE] == 40 + int(res.theta[:10].sum())
+    assert s["theta"][10:] == [1] * 40 and s["E"][10:] == [None] * 40 and s["symbols"][10:] == [-1] * 40
+    assert s["attacker_dropped_at"] == [k for k in range(10) if res.theta[k]]
