@@ -72,7 +72,8 @@ def test_phase_plane_scene_updates(sim_recording):
     for k in (0, 17, len(res.t) - 1):
         u = cls.FromString(msgs[k][1].data)
         ents = {e.id: e for e in u.entities}
-        assert set(ents) == {"trajectory", "state"} and all(e.frame_id == fx.FRAME for e in u.entities)
+        assert set(ents) == {"trajectory", "recent", "state"} and all(e.frame_id == fx.FRAME for e in u.entities)
+        assert not ents["recent"].lines             # T = 0.1 s: every update has the whole trajectory
         t_ns = ents["state"].timestamp.seconds * 10**9 + ents["state"].timestamp.nanos
         assert t_ns == msgs[0][1].log_time + k * 100_000_000          # t_k = t0 + k T
         traj = ents["trajectory"].lines[0]
@@ -88,6 +89,21 @@ def test_phase_plane_scene_updates(sim_recording):
                                                                                             tuple(xi)]
     (roa,) = list(_messages(path, fx.TOPIC_ROA))
     assert cls.FromString(roa[1].data).entities[0].id == "roa"
+
+
+def test_fast_runs_send_the_trajectory_every_50_ms_and_what_is_new_between():
+    cls = schema.classes_from(fx.descriptor_set(fx.SCENE))[fx.SCENE]
+    ps = fx.PhaseScene(window=1.0, refresh=10)
+    x = np.stack([np.cos(np.arange(100) / 10.0), np.sin(np.arange(100) / 10.0)], axis=1)
+    for k in range(100):
+        ents = {e.id: e for e in cls.FromString(ps.sample(k, x[k])).entities}
+        if k % 10 == 0:
+            assert (ents["trajectory"].lines[0].points[-1].x, ents["trajectory"].lines[0].points[-1].y) == \
+                tuple(x[k]) and not ents["recent"].lines
+            start = tuple(x[k])
+        else:
+            pts = [(p.x, p.y) for p in ents["recent"].lines[0].points]
+            assert "trajectory" not in ents and pts[0] == start and pts[-1] == tuple(x[k]) and len(pts) <= 11
 
 
 def test_trajectory_stays_small_at_any_rate():
@@ -261,7 +277,7 @@ def test_run_foxglove_serves_the_run_live(tmp_path):
     assert ch["schemaName"] == "foxglove.SceneUpdate"
     fds = base64.b64decode(ch["schema"])
     u = schema.classes_from(fds)["foxglove.SceneUpdate"].FromString(data)
-    assert {e.id for e in u.entities} == {"trajectory", "state"}
+    assert {"recent", "state"} <= {e.id for e in u.entities}
     ch, data = got["/telemetry/plant"][0]
     m = schema.classes_from(base64.b64decode(ch["schema"]))["testbed.PlantSample"].FromString(data)
     assert len(m.x) == 2 and m.header.stamp.seconds > 1_600_000_000

@@ -49,7 +49,7 @@ ROLE_SCHEMA = {"plant": "PlantSample", "encoder": "EncoderSample", "controller":
                "attacker": "AttackerSample"}
 
 MAX_CHUNK_BYTES = 256 << 20   # largest decompressed chunk accepted (the recorder writes 1 MiB chunks)
-MAX_RATIO = 64                # largest decompressed / compressed size of a chunk (ours: about 4)
+MAX_RATIO = 200               # largest decompressed / compressed size of a chunk (ours: 4 to 15)
 ROW_BYTES_MIN = 8             # a recorded sample takes more file than this: rows <= file size / 8
 MIN_ROWS = 1 << 16            # ... but room for this many samples whatever the file's size
 MAX_FIELD = 64                # protobuf field numbers the parser maps (larger: skipped as unknown)

@@ -26,8 +26,12 @@ The phase plane uses one fixed frame, ``phase``, with x1 to the right and x2 up
 shrinks by tens of decades.  The trajectory so far is kept at the resolution
 of the view: a point is kept when it is more than 1/400 of the window from the
 last one kept (at most ``MAX_POINTS``, coarser beyond), and the samples since
-(the last ``TAIL`` of them) follow in full, so x_k is always the strip's end
-and each message stays small at any rate.
+(the last ``TAIL`` of them) follow in full, so x_k is always the strip's end.
+At T >= ``REFRESH_S`` every update carries that whole trajectory (entity
+``trajectory``).  At faster rates it is sent every ``REFRESH_S`` of the run and
+the updates between carry only entity ``recent``, the strip from its end to
+x_k, so a 1 kHz run writes about a kilobyte a sample instead of ten; after a
+seek, Foxglove shows the whole trajectory again from the next such update.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ FRAME = "phase"
 PHASE_DIMS = (0, 1)
 MAX_POINTS = 512
 TAIL = 16
+REFRESH_S = 0.05   # at T < 50 ms the whole trajectory is sent every 50 ms of the run, only what is new between
 
 # Log levels (foxglove.Log.Level)
 DEBUG, INFO, WARNING, ERROR, FATAL = 1, 2, 3, 4, 5
@@ -180,7 +185,7 @@ C_ROA = (0.5, 0.5, 0.5, 1.0)
 class PhaseScene:
     """The per-sample ``foxglove.SceneUpdate`` of the phase plane (state kept between samples)."""
 
-    def __init__(self, window: float, dims=PHASE_DIMS):
+    def __init__(self, window: float, dims=PHASE_DIMS, refresh: int = 1):
         self.enc = _Enc()
         self.dims = dims
         self.window = float(window) if window and math.isfinite(window) and window > 0 else 1.0
@@ -189,6 +194,9 @@ class PhaseScene:
         self.kept_bytes: list[bytes] = []
         self.tail: list[tuple[float, float]] = []
         self.size = 0.012 * self.window
+        self.refresh = max(1, int(refresh))
+        self.i = 0
+        self.recent: list[tuple[float, float]] = []   # the samples since the last "trajectory" entity
 
     def _xy(self, v) -> tuple[float, float] | None:
         a, b = self.dims
@@ -218,8 +226,19 @@ class PhaseScene:
         p = self._xy(x)
         if p is not None:  # the tail: the samples since the last point kept (the last TAIL of them)
             self.tail = [] if self._keep(p) else (self.tail + [p])[-TAIL:]
-        traj = b"".join(self.kept_bytes) + enc.points(self.tail)
-        ents = [enc.entity("trajectory", t_ns, lines=[enc.line(traj, loop=False, width_px=2.0, rgba=C_TRAJ)])]
+        ents = []
+        if self.i % self.refresh == 0:   # the whole trajectory so far (decimated); "recent" starts again
+            traj = b"".join(self.kept_bytes) + enc.points(self.tail)
+            ents.append(enc.entity("trajectory", t_ns, lines=[enc.line(traj, loop=False, width_px=2.0,
+                                                                       rgba=C_TRAJ)]))
+            self.recent = [p] if p is not None else self.recent[-1:]
+            ents.append(enc.entity("recent", t_ns))
+        else:                            # what is new since: a strip from the trajectory's end to x_k
+            if p is not None:
+                self.recent.append(p)
+            ents.append(enc.entity("recent", t_ns, lines=[enc.line(enc.points(self.recent), loop=False,
+                                                                   width_px=2.0, rgba=C_TRAJ)]))
+        self.i += 1
         spheres, lines = [], []
         if p is not None:
             spheres.append(enc.sphere(p[0], p[1], self.size, C_X))
@@ -307,7 +326,7 @@ class FoxgloveTopics:
                 except Exception:  # noqa: BLE001 - a picture only: never lose the recording over it
                     roa = None
             self.roa = roa
-            self.scene = PhaseScene(window_of(self.sc, roa))
+            self.scene = PhaseScene(window_of(self.sc, roa), refresh=round(REFRESH_S / self.sc.T))
 
     # ---- messages
     def start(self, s: msg.Start, log_time: int) -> list:
