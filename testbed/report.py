@@ -132,7 +132,7 @@ def _report(cols, sc, *, arrays: bool) -> dict:
         "path": str(path), "source": cols.source, "truncated": cols.truncated, "read_error": cols.read_error,
         "complete": not cols.truncated and "testbed.recorder" in cols.metadata,
         "messages": dict(cols.counts), "last_message_s": last_t, "duplicates": cols.duplicates,
-        "malformed": cols.malformed, "rejected": dict(cols.rejected),
+        "malformed": cols.malformed, "rejected": dict(cols.rejected), "events_not_kept": cols.not_kept,
         "software": cols.metadata.get("testbed.software", {}),
         "recorder": cols.metadata.get("testbed.recorder"),
         "scenario_ref": cols.metadata.get("testbed.scenario", {}).get("ref"),

@@ -17,7 +17,8 @@ Trust (``testbed.errors.BadInput``, one line, exit 2):
   sample, never by a number read from the file); telemetry whose k is outside
   [0, N) is rejected and counted (``Columns.rejected``);
 * a chunk is decompressed only up to the size it declares, which is itself
-  capped (``MAX_CHUNK_BYTES``, ``MAX_RATIO`` times its compressed size);
+  capped (``MAX_CHUNK_BYTES``, ``MAX_RATIO`` times its compressed size); at most
+  ``MAX_KEPT`` events, status and liveliness messages are kept as objects;
 * a chunk whose CRC fails, that does not decompress or whose records overrun it,
   a data section whose CRC fails, a record that runs past the end of a file that
   was closed (it ends with the MCAP magic), an invalid opcode: the file is
@@ -53,6 +54,7 @@ MAX_RATIO = 200               # largest decompressed / compressed size of a chun
 ROW_BYTES_MIN = 8             # a recorded sample takes more file than this: rows <= file size / 8
 MIN_ROWS = 1 << 16            # ... but room for this many samples whatever the file's size
 MAX_FIELD = 64                # protobuf field numbers the parser maps (larger: skipped as unknown)
+MAX_KEPT = 1_000_000          # events, attacker status, liveliness kept as objects (beyond: counted only)
 
 _MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -222,6 +224,7 @@ class Columns:
     duplicates: int = 0
     finals: int = 0             # plant messages of the final state x_N (the last one counts)
     unknown_channel: int = 0
+    not_kept: int = 0           # events, status, liveliness beyond MAX_KEPT (counted, not kept)
     last_log_time: int = 0
     truncated: bool = False
     read_error: str | None = None
@@ -538,6 +541,10 @@ class _Reader:
             m = self.classes[name].FromString(data)
         except Exception:  # noqa: BLE001 - protobuf DecodeError (and friends on crafted input)
             c.malformed += 1
+            return
+        if name in ("Event", "AttackerStatus", "Liveliness") and \
+                len(c.events) + len(c.status) + len(c.liveliness) >= MAX_KEPT:
+            c.not_kept += 1   # a decompression bomb of tiny messages must not fill the memory
             return
         if name == "Event":
             c.events.append(schema.from_pb(m, name))

@@ -1,4 +1,8 @@
-"""MCAP recordings of runs (live or simulated): one writer, one reader, one set of topics.
+"""MCAP recordings of runs (live or simulated): the writer, the reference reader, one set of topics.
+
+``read`` decodes every message into a dataclass (simple, slow: the reference
+the tests hold the fast reader to); the commands and ``testbed.open`` use the
+streaming columnar reader, ``testbed.io.columns``.
 
 Topics are the run's Zenoh keys without the ``testbed/<run_id>`` prefix; every
 channel is protobuf (``testbed.io.schema``):
@@ -391,7 +395,10 @@ def no_gc():
 
 
 def read(path: str | Path, *, loop: bool = True) -> Recording:
-    """Decode a recording.  A file cut short by a crash is read up to its last complete chunk."""
+    """Decode a recording into dataclasses (the reference reader; ``testbed.io.columns`` is the fast one).
+
+    A file cut short by a crash is read up to its last complete chunk.
+    """
     with no_gc():
         return _read(Path(path), loop)
 
