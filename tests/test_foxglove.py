@@ -282,3 +282,17 @@ def test_run_foxglove_serves_the_run_live(tmp_path):
     m = schema.classes_from(base64.b64decode(ch["schema"]))["testbed.PlantSample"].FromString(data)
     assert len(m.x) == 2 and m.header.stamp.seconds > 1_600_000_000
     assert len(got["/phase"]) >= 30
+
+
+def test_the_outline_is_computed_off_the_writers_thread_and_not_at_fast_rates():
+    """A recorder's writer thread must never wait for the outline's grid (a minute at T = 1 ms)."""
+    from testbed.io import messages as msg
+
+    fast = scenario.with_overrides(scenario.load("paper"), {"T": 0.001})
+    assert not fx.FoxgloveTopics(fast, background=True).roa_wanted
+    tap = fx.FoxgloveTopics(scenario.load("paper"), background=True)
+    start = msg.Start(run_id="r", t0_ns=10**18, T_ns=10**8, n_steps=300, digest="", timing="ideal",
+                      ack_via_attacker=False)
+    tap.start(start, 10**18)
+    items = tap.flush(10**18)                 # waits for the background thread
+    assert [(t, lt) for t, _n, _d, lt in items] == [(fx.TOPIC_ROA, 10**18)] and tap.roa_sent

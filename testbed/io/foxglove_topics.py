@@ -8,7 +8,7 @@ topic              schema                    content
 ``/phase``         ``foxglove.SceneUpdate``  one a sample: the phase plane at t_k (the
                                              trajectory so far, x_k, xi_k, the box Q(xi_k, E_k))
 ``/phase/roa``     ``foxglove.SceneUpdate``  once: the nominal region of attraction's outline
-                                             (n = 2)
+                                             (n = 2, T >= 10 ms)
 =================  ========================  ==================================================
 
 The schemas are Foxglove's own, as published by ``foxglove-sdk``
@@ -53,6 +53,7 @@ FRAME = "phase"
 PHASE_DIMS = (0, 1)
 MAX_POINTS = 512
 TAIL = 16
+ROA_MIN_T = 0.01   # the nominal region's outline is drawn at T >= 10 ms (its grid costs ~1/T)
 REFRESH_S = 0.05   # at T < 50 ms the whole trajectory is sent every 50 ms of the run, only what is new between
 
 # Log levels (foxglove.Log.Level)
@@ -291,13 +292,22 @@ class FoxgloveTopics:
     samples wait for their partner; older ones go out with what they have).
     """
 
-    def __init__(self, sc, *, roa: bool = True, pending_max: int = 256):
+    def __init__(self, sc, *, roa: bool = True, background: bool = False, pending_max: int = 256):
         self.sc = sc
         self.T_ns = int(round(sc.T * 1e9))
         self.N = int(sc.n_steps)
         self.n = sc.make_plant().n
-        self.roa_wanted = roa
+        # the outline's grid costs about 1 s at T = 0.1 s and grows as 1/T (a minute at 1 ms): drawn at
+        # T >= ROA_MIN_T only, and off the caller's thread when ``background`` (a recorder's writer)
+        self.roa_wanted = roa and self.n == 2 and sc.T >= ROA_MIN_T
         self.roa = None
+        self.roa_sent = False
+        self._roa_thread = None
+        if self.roa_wanted and background:
+            import threading
+
+            self._roa_thread = threading.Thread(target=self._compute_roa, name="roa-outline", daemon=True)
+            self._roa_thread.start()
         self.scene: PhaseScene | None = None
         self.t0: int | None = None
         self.pending: dict[int, list] = {}
@@ -315,18 +325,32 @@ class FoxgloveTopics:
     def _log(self, t: int, level: int, text: str, name: str, log_time: int):
         return (TOPIC_LOG, LOG, log_message(t, level, text, name), log_time)
 
+    def _compute_roa(self):
+        from .viewer import roa_outline
+
+        try:
+            self.roa = roa_outline(self.sc)
+        except Exception:  # noqa: BLE001 - a picture only: never lose the recording over it
+            self.roa = None
+
+    def _roa_items(self, wait: float = 0.0) -> list:
+        """The outline's one SceneUpdate (log time t0), once it is computed and t0 is known."""
+        if not self.roa_wanted or self.roa_sent or self.t0 is None:
+            return []
+        if self._roa_thread is None:
+            self._compute_roa()
+            self._roa_thread = False
+        elif self._roa_thread:
+            self._roa_thread.join(wait)
+            if self._roa_thread.is_alive():
+                return []
+        self.roa_sent = True
+        r = roa_update(self.roa, self.t0)
+        return [] if r is None else [(TOPIC_ROA, SCENE, r, self.t0)]
+
     def _ensure_scene(self):
         if self.scene is None:
-            roa = None
-            if self.roa_wanted and self.n == 2:
-                from .viewer import roa_outline
-
-                try:
-                    roa = roa_outline(self.sc)
-                except Exception:  # noqa: BLE001 - a picture only: never lose the recording over it
-                    roa = None
-            self.roa = roa
-            self.scene = PhaseScene(window_of(self.sc, roa), refresh=round(REFRESH_S / self.sc.T))
+            self.scene = PhaseScene(window_of(self.sc, None), refresh=round(REFRESH_S / self.sc.T))
 
     # ---- messages
     def start(self, s: msg.Start, log_time: int) -> list:
@@ -334,12 +358,8 @@ class FoxgloveTopics:
             return []
         self.t0 = s.t0_ns
         self._ensure_scene()
-        out = [self._log(s.t0_ns, INFO, f"run {s.run_id} started: scenario {self.sc.name}, {s.n_steps} samples "
-                         f"of T = {s.T_ns / 1e9:g} s, timing {s.timing}", "launcher", log_time)]
-        r = roa_update(self.roa, s.t0_ns)
-        if r is not None:
-            out.append((TOPIC_ROA, SCENE, r, log_time))
-        return out
+        return [self._log(s.t0_ns, INFO, f"run {s.run_id} started: scenario {self.sc.name}, {s.n_steps} samples "
+                          f"of T = {s.T_ns / 1e9:g} s, timing {s.timing}", "launcher", log_time)] + self._roa_items()
 
     def stop(self, s: msg.Stop, log_time: int) -> list:
         return [self._log(log_time, INFO, f"run ended: {s.reason} ({s.origin})", s.origin or "run", log_time)]
@@ -370,7 +390,7 @@ class FoxgloveTopics:
         return self._ready(t.k, log_time)
 
     def _ready(self, k: int, log_time: int) -> list:
-        out = []
+        out = self._roa_items()
         p, e, _ = self.pending[k]
         if p is not None and e is not None:
             out += self._emit(k, log_time)
@@ -380,7 +400,7 @@ class FoxgloveTopics:
 
     def flush(self, log_time: int) -> list:
         """Everything still waiting for its partner (when the recorder or server closes)."""
-        out = []
+        out = self._roa_items(wait=10.0)
         for k in sorted(self.pending):
             out += self._emit(k, log_time)
         return out

@@ -29,7 +29,8 @@ topic                      schema                      content
                                                        faults, every node event (Foxglove's Log panel)
 ``/phase``                 ``foxglove.SceneUpdate``    one a sample: the phase plane (trajectory so far,
                                                        x_k, xi_k, the box Q(xi_k, E_k)), Foxglove's 3D panel
-``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2)
+``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2,
+                                                       T >= 10 ms)
 =========================  ==========================  ===============================================
 
 Metadata records: ``testbed.scenario`` (name, TOML text, reference),

@@ -42,7 +42,7 @@ class FoxgloveLive:
         self._fg = foxglove
         self.sc, self.run_id, self.port, self.host = sc, run_id, int(port), host
         self.T_ns = int(round(sc.T * 1e9))
-        self.tap = FoxgloveTopics(sc)
+        self.tap = FoxgloveTopics(sc, background=True)
         self.q: collections.deque = collections.deque()
         self.server = None
         self.channels: dict[str, object] = {}

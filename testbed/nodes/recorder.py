@@ -313,7 +313,7 @@ def main_record(args) -> int:
     with zenoh.open(conf) as session:
         from ..io.foxglove_topics import FoxgloveTopics
 
-        rec = Recorder(session, keys, w, loop=loop, foxglove=FoxgloveTopics(sc))
+        rec = Recorder(session, keys, w, loop=loop, foxglove=FoxgloveTopics(sc, background=True))
         tokens = [session.liveliness().declare_token(keys.alive(ROLE)),
                   session.liveliness().declare_token(keys.ready(ROLE))]
         try:
