@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import os
 import random
 import resource
 import subprocess
@@ -29,7 +28,7 @@ from testbed.errors import BadInput
 from testbed.io import columns, recording, schema
 from testbed.io import messages as msg
 from testbed.report import report
-from testbed.runsummary import to_lists, write_json
+from testbed.runsummary import write_json
 from testbed.simulate import simulate_scenario
 
 PY = sys.executable
