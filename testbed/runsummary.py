@@ -117,7 +117,6 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
     silent = g("encoder", "silent")[:N] != 0
     E_ok = EN & ~silent
-    k = np.arange(N, dtype=np.int64)
     # the columns hold NaN (u: 0, symbol: -1) where a sample was not recorded or its symbol withheld
     x, u = g("plant", "x")[:N], g("plant", "u")[:N]
     q_enc, xi_enc, E_enc = g("encoder", "q")[:N], g("encoder", "xi")[:N], g("encoder", "E")[:N]
@@ -138,7 +137,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     reason = g("controller", "reason")[:N]
     d_ns = int(sc.run.deadline * Tn)
     has_t = P & (t_ns != msg.NO_TIME)
-    jitter = t_ns[has_t] - k[has_t] * Tn
+    jitter = t_ns[has_t] - np.flatnonzero(has_t) * Tn
     overruns = int(np.count_nonzero(jitter > d_ns))
     s2a = _diffs(u_rx, t_ns, P & (p_theta == 0))
     misses = int(np.count_nonzero(P & (flags & PT.FLAG_MISS != 0)))

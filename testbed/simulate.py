@@ -401,7 +401,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "xi": L(res.xi_enc),
         "E": L(res.E_enc),
         "E_dec": L(res.E_dec),
-        "theta": L(res.theta.astype(int)),
+        "theta": res.theta if arrays else res.theta.astype(int).tolist(),
         "symbols": L(res.symbols),
         "saturations": res.saturations,
         "saturated_at": L(np.nonzero(res.saturated)[0]),
