@@ -1,6 +1,7 @@
-"""Recording benchmarks: recorder throughput over Zenoh, and ``testbed report`` on a 10-minute 1 kHz recording.
+"""Recording benchmarks: recorder throughput over Zenoh, and ``testbed report`` on 10-minute and 1-hour 1 kHz runs.
 
-    python benchmarks/bench_recording.py [--minutes 10] [--rates 2000,10000,40000,0] [--seconds 3]
+    python benchmarks/bench_recording.py [--report-only] [--minutes 10,60] [--recording RUN.mcap ...]
+                                         [--reference short|all|none] [--rates 2000,10000,40000,0] [--seconds 3]
 
 1. Writer baseline: ``RecordingWriter`` alone, in-process (protobuf + MCAP + zstd), messages/s.
 2. Recorder node: a real ``testbed record`` process subscribed over Zenoh on loopback; this
@@ -10,9 +11,13 @@
    Printed: records sent, records in the file (drops = the difference), the recorder's
    sustained rate (records / time from the first put to the file being closed) and its
    largest backlog.  Rate 0 means "as fast as this publisher can".
-3. Report: a 10-minute run at T = 1 ms (600,000 samples, ~2.4 M messages) recorded by
-   ``testbed simulate --out`` (the same topics and schemas as a live recording), then
-   ``testbed report`` on it, timed (read, and the whole report).
+3. Report: runs of 10 and 60 minutes at T = 1 ms (600,000 and 3.6 M samples) recorded by
+   ``testbed simulate --out`` (the same topics and schemas as a live recording; the hour
+   with a floor E_min on E_k, since the paper's run underflows to 0 within it), then
+   ``testbed report RUN.mcap --json``: its wall time and peak RSS, and beside it the
+   reference reader (``testbed.io.recording.read``, protobuf classes and one dataclass a
+   message: the reader ``testbed report`` was built on before) on the same file.  Making the
+   hour's recording takes about half an hour (``--recording`` reuses one).
 
 Figures depend on the machine; they are printed, not asserted.
 """
@@ -136,38 +141,82 @@ def recorder_phase(tmp: Path, rate: float, seconds: float, batch: int) -> dict:
             "file_mb": out.stat().st_size / 1e6}
 
 
-def report_timing(tmp: Path, minutes: float) -> dict:
-    path = tmp / "tenminutes.mcap"
-    t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "simulate", "paper", "--T", "0.001",
-                        "--duration", str(60 * minutes), "--out", str(path)], capture_output=True, text=True)
-    if r.returncode:
-        raise RuntimeError(r.stderr)
-    t_write = time.perf_counter() - t
-    t = time.perf_counter()
-    rec = recording.read(path)
-    t_read = time.perf_counter() - t
-    n_msgs = sum(rec.counts.values())
-    del rec
+def _measure(cmd: list[str]) -> tuple[float, float, str]:
+    """Run ``cmd``; its wall time (s), peak RSS (MB, ``os.wait4``) and stdout (in a temporary file)."""
     with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
         t = time.perf_counter()
-        p = subprocess.Popen([sys.executable, "-P", "-m", "testbed.cli", "report", str(path), "--json"],
-                             stdout=fo, stderr=fe, text=True)
+        p = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True)
         _, status, ru = os.wait4(p.pid, 0)  # reaps it, with its resource usage (peak RSS)
-        t_report = time.perf_counter() - t
-        p.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.perf_counter() - t
         fo.seek(0), fe.seek(0)
-        if p.returncode:
-            raise RuntimeError(fe.read())
-        s = json.loads(fo.read())
-    return {"samples": s["samples"], "messages": n_msgs, "file_mb": path.stat().st_size / 1e6,
-            "simulate_and_write_s": t_write, "read_s": t_read, "report_cli_s": t_report,
-            "report_messages_per_s": n_msgs / t_report, "report_peak_rss_mb": ru.ru_maxrss / 1024}
+        if os.waitstatus_to_exitcode(status):
+            raise RuntimeError(fe.read()[-2000:])
+        return wall, ru.ru_maxrss / 1024, fo.read()
+
+
+_FLOOR = "E_min = 1e-6   # a floor: the paper's run underflows (x_k, E_k -> 0) within the hour\n"
+
+
+def scenario_for(minutes: float, tmp: Path) -> str:
+    """The paper's example; past 20 minutes with a floor E_min on E_k (without it the state underflows
+    to 0 and the simulator's flow map fails, about 20 minutes in)."""
+    if minutes <= 20:
+        return "paper"
+    from testbed import scenario
+
+    src = scenario.load("paper").source.replace('mode = "resilient"\n', 'mode = "resilient"\n' + _FLOOR)
+    path = tmp / "paper-floor.toml"
+    path.write_text(src.replace('name = "paper"', 'name = "paper-floor"'))
+    return str(path)
+
+
+def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, reference: bool = True) -> dict:
+    """``testbed report --json`` on a 1 kHz recording of ``minutes`` (made by ``testbed simulate --out`` unless
+    ``path`` is given), and the reference reader (``recording.read``, the reader ``report`` used before) on it."""
+    out: dict = {"minutes": minutes}
+    if path is None:
+        path = tmp / f"run-{minutes:g}min.mcap"
+        t = time.perf_counter()
+        r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "simulate", scenario_for(minutes, tmp),
+                            "--T", "0.001", "--duration", str(60 * minutes), "--out", str(path)],
+                           capture_output=True, text=True)
+        if r.returncode:
+            raise RuntimeError(r.stderr)
+        out["simulate_and_write_s"] = time.perf_counter() - t
+    wall, rss, text = _measure([sys.executable, "-P", "-m", "testbed.cli", "report", str(path), "--json"])
+    s = json.loads(text)
+    out.update(samples=s["samples"], messages=sum(s["recording"]["messages"].values()),
+               file_mb=path.stat().st_size / 1e6, report_cli_s=wall, report_peak_rss_mb=rss,
+               report_json_mb=len(text) / 1e6)
+    del s, text
+    if reference:
+        code = f"from testbed.io import recording; recording.read({str(path)!r})"
+        wall, rss, _ = _measure([sys.executable, "-P", "-c", code])
+        out.update(reference_read_s=wall, reference_read_peak_rss_mb=rss)
+    return out
+
+
+def _print_report(rr: dict) -> None:
+    line = (f"  {rr['minutes']:g} min: {rr['samples']:,} samples, {rr['messages']:,} messages, {rr['file_mb']:.0f} MB"
+            + (f" (simulate + write {rr['simulate_and_write_s']:.0f} s)" if "simulate_and_write_s" in rr else "")
+            + f"\n    testbed report --json: {rr['report_cli_s']:.1f} s, peak RSS {rr['report_peak_rss_mb']:,.0f} MB "
+            f"({rr['report_json_mb']:.0f} MB of JSON)")
+    if "reference_read_s" in rr:
+        line += (f"\n    reference reader (recording.read, today's report reads with it): "
+                 f"{rr['reference_read_s']:.1f} s, peak RSS {rr['reference_read_peak_rss_mb']:,.0f} MB "
+                 f"-> report is {rr['reference_read_s'] / rr['report_cli_s']:.1f}x faster, "
+                 f"{rr['reference_read_peak_rss_mb'] / rr['report_peak_rss_mb']:.1f}x less memory")
+    print(line, flush=True)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--minutes", type=float, default=10.0, help="length of the 1 kHz recording (default 10)")
+    ap.add_argument("--minutes", default="10,60", help="lengths of the 1 kHz recordings, minutes (default 10,60)")
+    ap.add_argument("--recording", action="append", default=[], metavar="PATH.mcap",
+                    help="use this recording instead of simulating one (in the order of --minutes)")
+    ap.add_argument("--reference", choices=["short", "all", "none"], default="short",
+                    help="time the reference reader too: on recordings up to 10 minutes (default; it needs "
+                         "about 14 GB for an hour), on all, or on none")
     ap.add_argument("--rates", default="2000,10000,40000,0", help="offered records/s (0: as fast as possible)")
     ap.add_argument("--seconds", type=float, default=3.0, help="publishing time per phase")
     ap.add_argument("--report-only", action="store_true", help="skip the recorder phases")
@@ -190,12 +239,14 @@ def main() -> int:
                       f"{r['sent']:>8,} {r['recorded']:>9,} {r['dropped']:>7,} {r['sustained_per_s']:>12,.0f} "
                       f"{r['sustained_per_s'] / out['writer_baseline_per_s']:>9.2f} {r['max_queue']!s:>11}",
                       flush=True)
-        print(f"\nreport on a {a.minutes:g}-minute recording at 1 kHz ...", flush=True)
-        out["report"] = rr = report_timing(tmp, a.minutes)
-        print(f"  {rr['samples']:,} samples, {rr['messages']:,} messages, {rr['file_mb']:.1f} MB; "
-              f"simulate + write {rr['simulate_and_write_s']:.1f} s; read {rr['read_s']:.1f} s; "
-              f"testbed report {rr['report_cli_s']:.1f} s ({rr['report_messages_per_s']:,.0f} messages/s, "
-              f"peak RSS {rr['report_peak_rss_mb']:,.0f} MB)")
+        out["report"] = []
+        given = [Path(p) for p in a.recording]
+        for i, minutes in enumerate(float(m) for m in a.minutes.split(",")):
+            print(f"\nreport on a {minutes:g}-minute recording at 1 kHz ...", flush=True)
+            ref = a.reference == "all" or (a.reference == "short" and minutes <= 10)
+            rr = report_timing(tmp, minutes, path=given[i] if i < len(given) else None, reference=ref)
+            out["report"].append(rr)
+            _print_report(rr)
     if a.json:
         print(json.dumps(out))
     return 0

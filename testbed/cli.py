@@ -47,6 +47,8 @@ for _name, _mod, _help in [
     ("report", "testbed.report", "post-mortem of a recording"),
     ("resimulate", "testbed.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
     ("replay", "testbed.io.viewer", "open a recording in Rerun"),
+    ("export", "testbed.export", "a recording as Parquet or CSV, one row per sample"),
+    ("compare", "testbed.compare", "two runs (recordings or scenarios) compared sample by sample"),
 ]:
     try:
         _optional(_name, _mod, _help)

@@ -79,6 +79,9 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
     add_rerun_run_arguments(p)
+    from .nodes.foxglove_tap import add_foxglove_run_arguments
+
+    add_foxglove_run_arguments(p)
     g = p.add_argument_group("run control")
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the nodes are not running after S seconds (default %(default)s)")
@@ -153,6 +156,11 @@ class Launcher:
         self.recorder_exit: dict | None = None
         self._faults_published = 0
         self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
+        self.foxglove = None                                           # testbed run --foxglove PORT
+        if getattr(args, "foxglove", None) is not None:
+            from .nodes.foxglove_tap import FoxgloveLive
+
+            self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
 
     # ---- processes
     def command(self, role: str) -> list[str]:
@@ -487,6 +495,8 @@ class Launcher:
                         tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
                         if self.rerun is not None:
                             self.rerun.start()
+                        if self.foxglove is not None:
+                            self.foxglove.start(session, self.keys)
                         self.spawn()
                         outcome = self.watch(session, col)
                 finally:
@@ -504,7 +514,7 @@ class Launcher:
                 plant = self.sc.make_model()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
-                summary = build_summary(self.sc, col.snapshot(), run_id=self.run_id,
+                summary = build_summary(self.sc, col.snapshot(self.sc), run_id=self.run_id,
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
                                         faults=self.faults, codebook=cb)
                 if summary.get("plant_fault"):  # the true plant (an FMU) failed: say so, not "crashed"
@@ -529,6 +539,9 @@ class Launcher:
                 if self.rerun is not None:
                     self.rerun.finish()
                     summary["rerun"] = self.rerun.info()
+                if self.foxglove is not None:
+                    self.foxglove.finish(getattr(self.args, "foxglove_linger", 0.0))
+                    summary["foxglove"] = self.foxglove.info()
         finally:
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above
                 self.stop_recorder()

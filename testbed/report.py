@@ -14,11 +14,15 @@ the same thing here.  Added beside them:
 * ``agreement``: encoder and decoder xi_k, E_k compared at every sample;
 * ``saturation_events``, ``dropped_by_attacker``, ``recording`` (source,
   truncation, message counts, software versions);
+* ``actuation`` (physical timing): the delays the plant measured, the bounds and
+  margins the quantizer used;
+* ``resimulation``: the recording re-run through the simulator (``testbed resimulate``);
+* ``telemetry_check``: each node's own account of its telemetry (records and digest,
+  in its summary) against what the recording holds;
 * ``plant_source``: how the plant module was loaded, ``{"ref", "sha256",
   "loaded_from": "import" | "recording", "differs", ...}`` (None for recordings
   that store no plant module), and ``model_source`` the same for a ``[model]`` of
-  another class.  The stored source is used only when the module cannot be
-  imported, and then the report says so.
+  another class.
 
 Exit codes: 0 report written, 2 unreadable file or no scenario in it.
 """
@@ -33,8 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .io import messages as msg
-from .io import recording as rec_io
-from .runsummary import ROLES, RunData, build_summary
+from .runsummary import SUMMARY_FIELDS, build_summary, to_lists, write_json
 
 
 def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
@@ -60,25 +63,21 @@ def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
     return out
 
 
-def _actuation_section(sc, data: RunData, N: int) -> dict | None:
+def _actuation_section(sc, cols, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
     from .runsummary import percentiles
 
-    P = data.tele.get("plant", {})
+    have = cols.has("plant")[:N]
+    theta = cols.get("plant", "theta")[:N]
+    delay = cols.get("plant", "delay_ns")[:N]
+    rx, t = cols.get("plant", "u_rx_ns")[:N], cols.get("plant", "t_ns")[:N]
+    recv = have & (theta == 0)
+    arrived = recv & (rx != msg.NO_TIME) & (t != msg.NO_TIME)
+    arrival = rx[arrived] - t[arrived]
     tp = sc.timing_params
     qp = sc.quantizer
-    recv, lost, arrival, late = [], [], [], 0
-    for k in range(N):
-        p = P.get(k)
-        if p is None:
-            continue
-        (lost if p.theta == 1 else recv).append(p.delay_ns)
-        if p.u_rx_ns != msg.NO_TIME and p.t_ns != msg.NO_TIME and p.theta == 0:
-            arrival.append(p.u_rx_ns - p.t_ns)
-            if sc.run.actuation == "scheduled" and p.theta == 0 and p.u_rx_ns - p.t_ns > int(tp[2]):
-                late += 1
 
     def bound(d):
         return None if d is None else {"nominal": d.nominal, "min": d.min, "max": d.max, "declared": d.declared}
@@ -88,80 +87,146 @@ def _actuation_section(sc, data: RunData, N: int) -> dict | None:
             "bound": bound(sc.run.delay), "bound_lost": bound(sc.run.delay_lost),
             "delay_hat": qp.delay_hat, "margin_gain": qp.margin_gain, "delay_hat_lost": qp.delay_hat_lost,
             "margin_gain_lost": qp.margin_gain_lost, "L_u": sc.L_u,
-            "delay_us": {"received": percentiles(recv), "lost": percentiles(lost)},
-            "arrival_us": percentiles(arrival), "late_for_schedule": late}
+            "delay_us": {"received": percentiles(delay[recv]), "lost": percentiles(delay[have & (theta == 1)])},
+            "arrival_us": percentiles(arrival),
+            "late_for_schedule": int(np.count_nonzero(arrival > int(tp[2]))) if sc.run.actuation == "scheduled"
+            else 0}
 
 
-def _agreement(data: RunData, N: int) -> dict:
-    enc, ctl = data.tele.get("encoder", {}), data.tele.get("controller", {})
-    compared, differ, missing = 0, [], []
-    for k in range(N):
-        e, c = enc.get(k), ctl.get(k)
-        if e is None or c is None or e.silent:
-            missing.append(k)
+def telemetry_check(cols, N: int) -> list[dict]:
+    """Each node's own account of its telemetry (the count of records in its summary) against the
+    records the recording holds: a difference means records were lost, forged or altered on the way
+    (the launcher compares digests too; a recording keeps the decoded fields, not the bytes)."""
+    out = []
+    for role in ("plant", "encoder", "attacker", "controller"):
+        s = cols.summaries.get(role) or {}
+        if "telemetry_records" not in s:
             continue
-        compared += 1
-        if e.E != c.E or tuple(e.xi) != tuple(c.xi):
-            differ.append(k)
-    return {"samples": N, "compared": compared, "disagree": len(differ), "disagree_at": differ[:50],
-            "not_compared": len(missing), "not_compared_at": missing[:50], "all_agree": not differ and not missing}
+        held = int(np.count_nonzero(cols.has(role)[:N])) + (1 if role == "plant" and cols.final is not None else 0)
+        if held != s["telemetry_records"] or cols.rejected.get(role):
+            out.append({"node": role, "kind": "telemetry_mismatch",
+                        "why": f"the recording holds {held} records, the node published {s['telemetry_records']}"
+                               + (f"; {cols.rejected[role]} rejected (k outside [0, N))"
+                                  if cols.rejected.get(role) else "")})
+    return out
 
 
-def report(path: str | Path | rec_io.Recording) -> dict:
-    """The report of one recording (a path, or a ``Recording`` already read), as a JSON-able dict."""
-    with rec_io.no_gc():
-        return _report(path)
+def _security(runmeta: dict) -> dict | None:
+    """How the recorded run's sessions were secured (``None`` for a simulation or an older recording)."""
+    v = runmeta.get("security")
+    try:
+        return json.loads(v) if v else None
+    except ValueError:
+        return None
 
 
-def _report(path: str | Path | rec_io.Recording) -> dict:
+def _agreement(cols, N: int) -> dict:
+    """Encoder and decoder (xi_k, E_k) compared bit for bit at every sample both recorded."""
+    e_ok = cols.has("encoder")[:N] & (cols.get("encoder", "silent")[:N] == 0)
+    both = e_ok & cols.has("controller")[:N]
+    xi_e, xi_c = cols.get("encoder", "xi")[:N], cols.get("controller", "xi")[:N]
+    E_e, E_c = cols.get("encoder", "E")[:N], cols.get("controller", "E")[:N]
+    differ = np.flatnonzero(both & ((E_e != E_c) | np.any(xi_e != xi_c, axis=1)))
+    missing = np.flatnonzero(~both)
+    compared = int(np.count_nonzero(both))
+    return {"samples": N, "compared": compared, "disagree": int(differ.size), "disagree_at": differ[:50].tolist(),
+            "not_compared": int(missing.size), "not_compared_at": missing[:50].tolist(),
+            "all_agree": not differ.size and not missing.size}
+
+
+#: the per-stage times, read only for the timing section of live runs
+TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker.tx_ns"}
+
+
+#: what the resimulation and the actuation section read beyond the summary's fields
+REPLAY_FIELDS = {"plant.delay_ns"}
+
+
+def _fields(meta: dict) -> set[str]:
+    live = meta.get("testbed.run", {}).get("source") == "live"
+    return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
+
+
+def load(path: str | Path):
+    """The columns of a recording and its scenario (``BadInput`` for anything unusable).
+
+    The columns carry ``plant_source`` and ``model_source`` (``recording.recorded_scenario``).
+    """
+    from .io.columns import read_columns, read_metadata
+    from .io.recording import recorded_scenario
+
+    meta, _ = read_metadata(path)
+    sc, ps, ms = recorded_scenario(meta, str(path))
+    cols = read_columns(path, fields=_fields, sc=sc)
+    cols.plant_source, cols.model_source = ps, ms
+    return cols, sc
+
+
+def report(path, *, arrays: bool = False) -> dict:
+    """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
+
+    ``arrays``: the per-sample values stay numpy arrays (``runsummary.write_json`` streams them).
+    """
+    cols, sc = load(path) if isinstance(path, (str, Path)) else path
+    out = _report(cols, sc, arrays=arrays)
+    return out if arrays else to_lists(out)
+
+
+def _report(cols, sc, *, arrays: bool) -> dict:
     from .quantizer import Codebook
 
-    rec = path if isinstance(path, rec_io.Recording) else rec_io.read(path)
-    path = rec.path
-    sc = rec.scenario()
-    runmeta = rec.metadata.get("testbed.run", {})
-    data = RunData(tele={r: rec.telemetry.get(r, {}) for r in ROLES}, plant_final=rec.plant_final,
-                   events=rec.events, status=rec.status, summaries=rec.summaries)
-    launcher = rec.summaries.get("launcher", {})
+    path = cols.path
+    runmeta = cols.metadata.get("testbed.run", {})
+    launcher = cols.summaries.get("launcher", {})
     plant = sc.make_model()
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
-    run_id = rec.start.run_id if rec.start else runmeta.get("run_id", "?")
-    ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(rec.start and rec.start.ack_via_attacker)
-    out = build_summary(sc, data, run_id=run_id, ack_via_attacker=ack_via, nodes=launcher.get("nodes") or {},
-                        faults=launcher.get("faults") or [], codebook=cb)
-    live = rec.source == "live"
+    start = cols.start
+    run_id = start.run_id if start else runmeta.get("run_id", "?")
+    ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(start and start.ack_via_attacker)
+    out = build_summary(sc, cols, run_id=run_id, ack_via_attacker=ack_via,
+                        nodes=launcher.get("nodes") or {}, faults=launcher.get("faults") or [], codebook=cb,
+                        arrays=True)
+    live = cols.source == "live"
     out["live"] = live
-    out["source"] = rec.source
+    out["source"] = cols.source
     N = out["samples"]
     if not live:
         out["timing"] = None  # a simulation has nominal times only
-    A = data.tele.get("attacker", {})
-    attack_on = np.array([bool(A[k].attack_on) if k in A else False for k in range(N)])
-    dropped = np.array([bool(A[k].dropped) if k in A else False for k in range(N)])
+    A = cols.has("attacker")[:N]
+    attack_on = A & (cols.get("attacker", "attack_on")[:N] != 0)
+    dropped = A & (cols.get("attacker", "dropped")[:N] != 0)
     out["dos"] = _budget_section(sc, attack_on, N * sc.T)
-    out["dos"]["attacker_log_samples"] = len(A)
+    out["dos"]["attacker_log_samples"] = int(np.count_nonzero(cols.has("attacker")))
     out["dropped_by_attacker"] = int(dropped.sum())
-    out["agreement"] = _agreement(data, N)
-    out["saturation_events"] = [e.k for e in rec.events if e.kind == "saturation"]
+    out["agreement"] = _agreement(cols, N)
+    out["saturation_events"] = [e.k for e in cols.events if e.kind == "saturation"]
     out["outcome"] = launcher.get("outcome", "simulated" if not live else None)
-    out["actuation"] = _actuation_section(sc, data, N)
+    out["actuation"] = _actuation_section(sc, cols, N)
+    out["telemetry_check"] = telemetry_check(cols, N)
     from .resimulate import compare, recorded_run
 
     try:
-        out["resimulation"] = compare(recorded_run(rec))
+        out["resimulation"] = compare(recorded_run(cols, sc))
     except Exception as e:  # noqa: BLE001 - the report stands without it; say why
         out["resimulation"] = {"reproduced": None, "verdict": f"not resimulated: {type(e).__name__}: {e}"}
-    last_t = (rec.last_log_time - rec.start.t0_ns) / 1e9 if rec.start and rec.last_log_time else None
+    last_t = (cols.last_log_time - start.t0_ns) / 1e9 if start and cols.last_log_time else None
+    try:
+        overrides = json.loads(runmeta.get("scenario_overrides", "{}") or "{}")
+    except ValueError:
+        overrides = None
     out["recording"] = {
-        "path": str(path), "source": rec.source, "truncated": rec.truncated, "read_error": rec.read_error,
-        "complete": not rec.truncated and "testbed.recorder" in rec.metadata,
-        "messages": dict(rec.counts), "last_message_s": last_t, "duplicates": rec.duplicates,
-        "malformed": len(rec.malformed), "software": rec.metadata.get("testbed.software", {}),
-        "recorder": rec.metadata.get("testbed.recorder"), "scenario_ref": rec.metadata.get("testbed.scenario", {}).get("ref"),
-        "overrides": json.loads(runmeta.get("scenario_overrides", "{}") or "{}"),
+        "path": str(path), "source": cols.source, "truncated": cols.truncated, "read_error": cols.read_error,
+        "complete": not cols.truncated and "testbed.recorder" in cols.metadata,
+        "messages": dict(cols.counts), "last_message_s": last_t, "duplicates": cols.duplicates,
+        "malformed": cols.malformed, "rejected": dict(cols.rejected), "events_not_kept": cols.not_kept,
+        "software": cols.metadata.get("testbed.software", {}),
+        "recorder": cols.metadata.get("testbed.recorder"),
+        "scenario_ref": cols.metadata.get("testbed.scenario", {}).get("ref"),
+        "overrides": overrides,
+        "security": _security(runmeta),
     }
-    out["plant_source"] = rec.plant_source
-    out["model_source"] = rec.model_source
+    out["plant_source"] = getattr(cols, "plant_source", None)
+    out["model_source"] = getattr(cols, "model_source", None)
     return out
 
 
@@ -172,7 +237,10 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
     from .analysis.figures import plot_time_series
 
     def arr(key):
-        v = summary.get(key) or []
+        v = summary.get(key)
+        if isinstance(v, np.ndarray):
+            return v.astype(float)
+        v = v or []
         return np.array([[np.nan if a is None else a for a in row] if isinstance(row, list) else
                          (np.nan if row is None else row) for row in v], dtype=float)
 
@@ -200,6 +268,13 @@ def print_text(s: dict) -> None:
         elif ps and ps["differs"]:
             print(f"  {what} {ps['ref']}: the importable module {ps.get('module')!r} DIFFERS from the recorded one "
                   f"(sha256 {(ps['importable_sha256'] or '')[:12]} now, {ps['sha256'][:12]} recorded)")
+    sec = r.get("security")
+    if sec and not sec.get("authenticated"):
+        print("  INSECURE run: no authentication, no access control (any local process could have joined it)")
+    bad = sum(r["rejected"].values()) if r.get("rejected") else 0
+    if bad or r.get("malformed"):
+        print(f"  WARNING: {bad} telemetry messages rejected (k outside [0, N)), {r.get('malformed', 0)} malformed:"
+              " the results below leave them out")
     fn = s.get("final_norm")
     if s["samples"] == 0:
         print("  NO SAMPLES recorded (the run never started, or the recorder died before it did)")
@@ -207,6 +282,8 @@ def print_text(s: dict) -> None:
         print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
     if s.get("plant_fault"):
         print(f"  PLANT FAULT at sample {s['plant_fault_at']}: {s['plant_fault']} (the run ended there)")
+    for f in s.get("telemetry_check") or []:
+        print(f"  TELEMETRY MISMATCH {f['node']}: {f['why']}")
     d = s["dos"]
     lens = ", ".join(f"{x:g}" for x in d["lengths"][:8]) + (" ..." if len(d["lengths"]) > 8 else "")
     print(f"  DoS: {d['count']} intervals (lengths {lens or '-'} s), {s['packets_dropped']} samples lost "
@@ -226,14 +303,8 @@ def print_text(s: dict) -> None:
     print(f"  encoder/decoder agreement: {ag['compared'] - ag['disagree']}/{ag['compared']} samples identical"
           + (f", {ag['not_compared']} not comparable (withheld or missing)" if ag["not_compared"] else "")
           + (f"; DISAGREE at {ag['disagree_at'][:10]}" if ag["disagree"] else ""))
-    print(f"  saturations: {s.get('saturations', 0)}" + (f" at {s['saturated_at'][:10]}" if s.get("saturated_at") else ""))
-    tm = s.get("timing")
-    if tm:
-        from .launcher import _fmt
-
-        print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
-        print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
-        print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
+    sat_at = list(s.get("saturated_at", [])[:10])
+    print(f"  saturations: {s.get('saturations', 0)}" + (f" at {[int(k) for k in sat_at]}" if sat_at else ""))
     act = s.get("actuation")
     if act:
         from .launcher import _fmt
@@ -249,6 +320,13 @@ def print_text(s: dict) -> None:
     if rs:
         print(f"  resimulation: {rs['verdict']}"
               + (f" (max state error {rs['max_state_error']:.3g})" if rs.get("max_state_error") else ""))
+    tm = s.get("timing")
+    if tm:
+        from .launcher import _fmt
+
+        print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
+        print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
+        print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
     for f in s.get("faults") or []:
         print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
     if s.get("events"):
@@ -262,15 +340,11 @@ def add_arguments_report(p: argparse.ArgumentParser) -> None:
 
 
 def main_report(args) -> int:
-    try:
-        s = report(args.recording)
-    except (OSError, ValueError) as e:
-        print(f"testbed report: {args.recording}: {e}", file=sys.stderr)
-        return 2
+    s = report(args.recording, arrays=True)
     if args.plot:
         plot(s, args.plot)
     if args.json:
-        sys.stdout.write(json.dumps(s))  # the C encoder in one go: 2x json.dump on long runs
+        write_json(s, sys.stdout)  # streamed: no list of every sample in memory
         sys.stdout.write("\n")
     else:
         print_text(s)

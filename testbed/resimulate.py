@@ -37,53 +37,32 @@ from . import cliargs
 PHYSICAL_TOLERANCE = 1e-9
 
 
-def recorded_run(rec) -> dict:
-    """The per-sample record a resimulation needs, from a ``testbed.io.recording.Recording``."""
+def recorded_run(cols, sc) -> dict:
+    """The per-sample record a resimulation needs, from ``testbed.io.columns.Columns`` and its scenario."""
     from .io import messages as msg
     from .simulate import Replay
 
-    sc = rec.scenario()
-    P = rec.telemetry.get("plant", {})
-    EN = rec.telemetry.get("encoder", {})
-    C = rec.telemetry.get("controller", {})
-    N = rec.plant_final.k if rec.plant_final is not None else (max(P) + 1 if P else 0)
-    N = max(0, min(int(N), sc.n_steps))
-    model = sc.make_model()
-    n = model.n
-    nan = np.full((N, n), np.nan)
-    live = {"x": nan.copy(), "symbols": np.full(N, -1, dtype=np.int64), "E": np.full(N, np.nan),
-            "E_dec": np.full(N, np.nan), "theta": np.full(N, -1, dtype=np.int64), "have_x": np.zeros(N, bool),
-            "have_sym": np.zeros(N, bool), "have_dec": np.zeros(N, bool)}
-    reason = np.full(N, -1, dtype=np.int64)
-    sensed = np.zeros(N, dtype=bool)
-    withheld = np.zeros(N, dtype=bool)
-    u_missing = np.zeros(N, dtype=bool)
-    delays = np.zeros(N, dtype=np.int64)
-    for k in range(N):
-        p = P.get(k)
-        if p is not None:
-            live["x"][k] = p.x
-            live["have_x"][k] = True
-            u_missing[k] = bool(p.flags & msg.PlantTelemetry.FLAG_NO_U)
-            delays[k] = p.delay_ns
-        e = EN.get(k)
-        if e is not None:
-            sensed[k] = True
-            withheld[k] = bool(e.silent)
-            if not e.silent:
-                live["symbols"][k] = e.symbol
-                live["E"][k] = e.E
-                live["have_sym"][k] = True
-        c = C.get(k)
-        if c is not None:
-            reason[k] = c.reason
-            live["theta"][k] = c.theta
-            live["E_dec"][k] = c.E
-            live["have_dec"][k] = True
+    final = cols.final
+    N = final["k"] if final is not None else cols.last_k("plant") + 1
+    N = max(0, min(int(N), sc.n_steps, cols.rows))
+    hp, he, hc = cols.has("plant")[:N], cols.has("encoder")[:N], cols.has("controller")[:N]
+    silent = he & (cols.get("encoder", "silent")[:N] != 0)
+    have_sym = he & ~silent
+    live = {
+        "x": np.where(hp[:, None], cols.get("plant", "x")[:N], np.nan),
+        "symbols": np.where(have_sym, cols.get("encoder", "symbol")[:N], -1).astype(np.int64),
+        "E": np.where(have_sym, cols.get("encoder", "E")[:N], np.nan),
+        "E_dec": np.where(hc, cols.get("controller", "E")[:N], np.nan),
+        "theta": np.where(hc, cols.get("controller", "theta")[:N], -1).astype(np.int64),
+        "have_x": hp.copy(), "have_sym": have_sym, "have_dec": hc.copy(),
+    }
+    reason = np.where(hc, cols.get("controller", "reason")[:N], -1).astype(np.int64)
+    u_missing = hp & ((cols.get("plant", "flags")[:N].astype(np.int64) & msg.PlantTelemetry.FLAG_NO_U) != 0)
+    delays = np.where(hp, cols.get("plant", "delay_ns")[:N], 0).astype(np.int64)
     physical = sc.run.timing == "physical"
-    replay = Replay(reason=reason, sensed=sensed, withheld=withheld, u_missing=u_missing,
+    replay = Replay(reason=reason, sensed=he.copy(), withheld=silent, u_missing=u_missing,
                     delays=delays if physical else None)
-    x_final = None if rec.plant_final is None else np.asarray(rec.plant_final.x, dtype=float)
+    x_final = None if final is None else np.asarray(final["x"], dtype=float)
     return {"scenario": sc, "N": N, "replay": replay, "live": live, "x_final": x_final}
 
 
@@ -148,10 +127,10 @@ def compare(run: dict) -> dict:
 
 def resimulate(path) -> dict:
     """``testbed resimulate PATH --json`` as a dict."""
-    from .io import recording as rec_io
+    from .report import load
 
-    rec = path if isinstance(path, rec_io.Recording) else rec_io.read(path)
-    return compare(recorded_run(rec))
+    cols, sc = load(path)
+    return compare(recorded_run(cols, sc))
 
 
 def add_arguments_resimulate(p: argparse.ArgumentParser) -> None:

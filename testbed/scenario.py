@@ -735,7 +735,8 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
              "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
-             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule"), "seed": ("attack", "seed")}
+             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule"), "seed": ("attack", "seed"),
+             "x0": ("plant", "x0"), "E0": ("quantizer", "E0"), "M": ("quantizer", "M"), "attack": ("attack", None)}
 
 
 _INT_OVERRIDES = {"seed", "M"}
@@ -771,6 +772,12 @@ def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
     data = tomllib.loads(sc.source)
     for k, v in over.items():
         table, key = OVERRIDES[k]
+        if key is None:  # attack: a table merged into [attack] (a new kind replaces it)
+            if not isinstance(v, dict):
+                raise ScenarioError(f"override {k} must be a table of [{table}] keys, got {v!r}")
+            old = data.get(table, {})
+            data[table] = {**({} if "kind" in v and v["kind"] != old.get("kind") else old), **v}
+            continue
         data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES else v
     sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
                     base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked)

@@ -672,14 +672,16 @@ def plant_and_model(sc) -> dict:
             "model_params": model.params_dict()}
 
 
-def summarize(sc, res: SimResult) -> dict:
+def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
     ``escaped``: x_N outside the nominal region of attraction of the model's loop (or the
     flow diverged).  A run the true plant ended with a fault (``plant_fault``: its line,
     ``plant_fault_at``: the sample) counts as diverged and not converged; ``escaped`` is
-    then about the state at the fault.
+    then about the state at the fault.  ``arrays``: the per-sample values stay numpy arrays
+    (``testbed report`` streams them out).
     """
+    L = (lambda a: a) if arrays else (lambda a: a.tolist())
     model = sc.make_model()
     tol = sc.run.converge_tol
     flow_diverged = res.flow_status != FLOW_OK
@@ -700,17 +702,17 @@ def summarize(sc, res: SimResult) -> dict:
         "mode": sc.quantizer.mode,
         "bits": cb.bits,
         "K": res.K.tolist(),
-        "t": res.t.tolist(),
-        "x": res.x.tolist(),
-        "u": res.u.tolist(),
-        "q": res.q.tolist(),
-        "xi": res.xi_enc.tolist(),
-        "E": res.E_enc.tolist(),
-        "E_dec": res.E_dec.tolist(),
-        "theta": res.theta.astype(int).tolist(),
-        "symbols": res.symbols.tolist(),
+        "t": L(res.t),
+        "x": L(res.x),
+        "u": L(res.u),
+        "q": L(res.q),
+        "xi": L(res.xi_enc),
+        "E": L(res.E_enc),
+        "E_dec": L(res.E_dec),
+        "theta": res.theta if arrays else res.theta.astype(int).tolist(),
+        "symbols": L(res.symbols),
         "saturations": res.saturations,
-        "saturated_at": np.nonzero(res.saturated)[0].tolist(),
+        "saturated_at": L(np.nonzero(res.saturated)[0]),
         "dos_intervals": [list(iv) for iv in sch.intervals],
         "packets_dropped": int(res.theta.sum()),
         "encoder_decoder_agree": res.agree,

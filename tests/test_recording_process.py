@@ -15,7 +15,12 @@ import pytest
 from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, cmdlines, live, live_exact, procs_with,  # noqa: F401 - run_id is a fixture
                                run_id, simulate, tb_cmd)
 
-from testbed.io import recording
+import numpy as np
+from test_postmortem import assert_columns_equal_reference
+
+import testbed
+from testbed.compare import compare
+from testbed.io import columns, recording
 from testbed.report import report
 
 pytestmark = pytest.mark.process
@@ -44,6 +49,15 @@ def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
             "/summary/launcher"} <= set(msgs)
     # and the report's timing equals the launcher's
     assert r["timing"]["sensor_to_actuator_us"] == s["timing"]["sensor_to_actuator_us"]
+    # the columnar reader equals the reference reader on a live recording, and the run is the simulation
+    assert_columns_equal_reference(columns.read_columns(path), recording.read(path))
+    c = compare(path, "paper")
+    assert c["identical"] and c["first_divergence"] is None and c["samples"]["a"] == 50, c
+    run = testbed.open(path)
+    assert run.source == "live" and np.isfinite(run.arrays["sensor_to_actuator"]).sum() == 50 - sim["packets_dropped"]
+    assert np.nanmax(run.arrays["stage_encoder"]) > 0 and not run.arrays["deadline_miss"].any()
+    # the Foxglove topics: one phase-plane update a sample, the run's events in the Log panel's topic
+    assert msgs["/phase"] == 50 and msgs["/phase/roa"] == 1 and msgs["/log"] >= 4
 
 
 def test_recorder_killed_the_run_goes_on_and_the_file_reads(run_id, tmp_path):

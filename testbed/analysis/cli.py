@@ -373,7 +373,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
     p.add_argument("--window", nargs=2, type=float, metavar=("WX", "WY"),
                    help="half-widths of the window (default per plant)")
     p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
-    p.add_argument("--plot", metavar="PATH", help="write the phase portrait (PNG)")
+    cliargs.add_plot(p, "write the phase portrait (PNG)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--vulnerable", action="store_true",
                    help="also map the states of the region from which the attacker defeats the loop")
@@ -472,7 +472,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
                    help="extra initial states drawn uniformly with ||x0||_inf <= --state-radius (default 0)")
     p.add_argument("--state-radius", type=float, default=None,
                    help="radius of the extra initial states (default 3 ||x0||_inf)")
-    p.add_argument("--plot", metavar="PATH", help="write the allowable-region figure with the map (PNG)")
+    cliargs.add_plot(p, "write the allowable-region figure with the map (PNG)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     cliargs.add_no_progress(p)
     cliargs.add_workers(p)

@@ -1,4 +1,8 @@
-"""MCAP recordings of runs (live or simulated): one writer, one reader, one set of topics.
+"""MCAP recordings of runs (live or simulated): the writer, the reference reader, one set of topics.
+
+``read`` decodes every message into a dataclass (simple, slow: the reference
+the tests hold the fast reader to); the commands and ``testbed.open`` use the
+streaming columnar reader, ``testbed.io.columns``.
 
 Topics are the run's Zenoh keys without the ``testbed/<run_id>`` prefix; every
 channel is protobuf (``testbed.io.schema``):
@@ -21,6 +25,12 @@ topic                      schema                      content
 ``/control/start|stop``    ``testbed.RunStart|RunStop``  t0 and the run's identity; stops
 ``/liveliness``            ``testbed.Liveliness``      nodes appearing and going away
 ``/recorder/malformed``    ``testbed.Malformed``       anything that did not decode, as received
+``/log``                   ``foxglove.Log``            start, end, attacks on and off, saturations,
+                                                       faults, every node event (Foxglove's Log panel)
+``/phase``                 ``foxglove.SceneUpdate``    one a sample: the phase plane (trajectory so far,
+                                                       x_k, xi_k, the box Q(xi_k, E_k)), Foxglove's 3D panel
+``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2,
+                                                       T >= 10 ms)
 =========================  ==========================  ===============================================
 
 Metadata records: ``testbed.scenario`` (name, TOML text, reference, folder, plant module source),
@@ -80,7 +90,9 @@ def schema_for_topic(topic: str) -> str | None:
         return "Event"
     if topic.startswith("/summary/"):
         return "NodeSummary"
-    return None
+    from .foxglove_topics import TOPICS as FOXGLOVE
+
+    return FOXGLOVE.get(topic)
 
 
 def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None,
@@ -176,7 +188,7 @@ class RecordingWriter:
         except OSError as e:
             raise BadInput(f"cannot write the recording {self.path}: {e.strerror or e}") from None
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        self._w = Writer(self._f, chunk_size=chunk_size, compression=comp)
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
         self._w.start(profile=PROFILE, library=f"testbed-recorder/{FORMAT_VERSION}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -191,8 +203,13 @@ class RecordingWriter:
         if ch is None:
             sid = self._schemas.get(name)
             if sid is None:
-                sid = self._w.register_schema(name=schema.full_name(name), encoding="protobuf",
-                                              data=schema.file_descriptor_set())
+                if "." in name:  # a Foxglove schema, as foxglove-sdk publishes it
+                    from .foxglove_topics import descriptor_set
+
+                    full, data = name, descriptor_set(name)
+                else:
+                    full, data = schema.full_name(name), schema.file_descriptor_set()
+                sid = self._w.register_schema(name=full, encoding="protobuf", data=data)
                 self._schemas[name] = sid
             ch = self._w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
             self._channels[topic] = ch
@@ -206,14 +223,17 @@ class RecordingWriter:
                 self._f.flush()
 
     def write(self, topic: str, obj, log_time: int, publish_time: int | None = None,
-              name: str | None = None) -> None:
-        """``obj``: a ``testbed.io.messages`` dataclass, a dict with the schema's fields, or a protobuf message."""
+              name: str | None = None, extra: dict | None = None) -> None:
+        """``obj``: a ``testbed.io.messages`` dataclass, a dict with the schema's fields, or a protobuf message.
+
+        ``extra``: fields beside the dataclass's (``foxglove_topics.telemetry_extra``).
+        """
         if name is None:
             name = schema_for_topic(topic)
             if name is None:
                 raise ValueError(f"{topic!r} is not a topic of a recording")
         data = obj.SerializeToString() if hasattr(obj, "SerializeToString") else \
-            schema.to_pb(obj, name).SerializeToString()
+            schema.to_pb(obj, name, extra).SerializeToString()
         self.write_bytes(topic, name, data, log_time, publish_time)
 
     def write_bytes(self, topic: str, name: str, data: bytes, log_time: int, publish_time: int | None = None) -> None:
@@ -297,59 +317,73 @@ class Recording:
         return self.metadata.get("testbed.scenario", {}).get("toml")
 
     def scenario(self):
-        """The scenario the run used, rebuilt from the TOML stored in the recording.
+        """The scenario the run used (``recorded_scenario``); sets ``plant_source``, ``model_source``."""
+        sc, ps, ms = recorded_scenario(self.metadata, self.path, _cache=self)
+        self.plant_source, self.model_source = ps, ms
+        return sc
 
-        The plant is imported as the run did (its reference, from the scenario's
-        folder first); only when that fails is the plant module's source stored in
-        the recording loaded, which runs code from the recording: a line on stderr
-        says so.  ``plant_source`` tells which happened (``plants.refs.resolve_recorded``).
-        """
-        from ..scenario import ScenarioError, loads, with_overrides
 
-        toml = self.scenario_toml
-        if not toml:
-            raise ValueError(f"{self.path}: no scenario in the recording's metadata")
-        meta = self.metadata.get("testbed.scenario", {})
-        base_dir = meta.get("base_dir") or None
-        if not self._resolved:   # once per recording (report and replay both rebuild the scenario)
-            self.plant_source = self._resolve_plant(meta, base_dir, "plant")
-            self.model_source = self._resolve_plant(meta, base_dir, "model")
-            self._resolved = True
-        sc = loads(toml, name=meta.get("name", "recorded"), where=f"{self.path} (recorded scenario)",
-                   base_dir=base_dir, check_fmu=False)
-        over = self.metadata.get("testbed.run", {}).get("scenario_overrides")
-        try:
-            sc = with_overrides(sc, json.loads(over)) if over else sc
-        except ValueError as e:
-            raise ScenarioError(f"{self.path}: recorded overrides: {e}") from None
-        return _with_resolved(sc, self.metadata.get("testbed.resolved"))
+def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, _cache=None):
+    """The scenario a recorded run used, rebuilt from the TOML stored in its metadata.
 
-    def _resolve_plant(self, meta: dict, base_dir: str | None, prefix: str) -> dict | None:
-        """Resolve the recorded plant (or model) reference, pinning the stored source when it is not importable."""
-        from plants.refs import PlantRefError, resolve_recorded
+    Returns ``(scenario, plant_source, model_source)``.  The run's overrides are applied
+    and what the run resolved (``testbed.resolved``: the quantizer, the timing) wins over
+    this version's defaults.  The plant is imported as the run did (its reference, from
+    the scenario's folder first); only when that fails is the plant module's source
+    stored in the recording loaded, which runs code from the recording: a line on
+    stderr says so.  ``plant_source`` tells which happened (``plants.refs.resolve_recorded``).
+    """
+    from ..scenario import ScenarioError, loads, with_overrides
 
-        ref = meta.get(f"{prefix}_ref")
-        if not ref:
-            return None  # an FMU plant, a model that is the plant, or a recording from before references were stored
-        try:
-            _cls, status = resolve_recorded(ref, base_dir, module=meta.get(f"{prefix}_module", ""),
-                                            class_name=meta.get(f"{prefix}_class", ""),
-                                            source=meta.get(f"{prefix}_source", ""),
-                                            sha256=meta.get(f"{prefix}_sha256", ""))
-        except PlantRefError as e:
-            from ..scenario import ScenarioError
+    meta = metadata.get("testbed.scenario", {})
+    toml = meta.get("toml")
+    if not toml:
+        raise ScenarioError(f"{path}: no scenario in the recording's metadata (not a recording of testbed run or "
+                            "testbed simulate --out)")
+    base_dir = meta.get("base_dir") or None
+    if _cache is not None and getattr(_cache, "_resolved", False):  # once per recording: report and replay
+        ps, ms = _cache.plant_source, _cache.model_source
+    else:
+        ps = _resolve_plant(meta, base_dir, "plant", path)
+        ms = _resolve_plant(meta, base_dir, "model", path)
+        if _cache is not None:
+            _cache._resolved = True
+    sc = loads(toml, name=str(meta.get("name", "recorded"))[:200], where=f"{path} (recorded scenario)",
+               base_dir=base_dir, check_fmu=False)
+    over = metadata.get("testbed.run", {}).get("scenario_overrides")
+    try:
+        sc = with_overrides(sc, json.loads(over)) if over else sc
+    except (ValueError, TypeError) as e:
+        raise ScenarioError(f"{path}: recorded overrides: {e}") from None
+    return _with_resolved(sc, metadata.get("testbed.resolved")), ps, ms
 
-            raise ScenarioError(f"{self.path}: {e}") from None
-        status["module"] = meta.get(f"{prefix}_module", "")
-        if status["loaded_from"] == "recording":
-            print(f"note: {prefix} module {status['module']!r} is not importable ({status['reason']}); "
-                  f"loaded the source stored in {self.path} (sha256 {status['sha256'][:12]}): "
-                  "this runs code from the recording", file=sys.stderr)
-        elif status["differs"]:
-            print(f"note: {prefix} module {status['module']!r} as imported now differs from the one recorded "
-                  f"in {self.path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
-                  file=sys.stderr)
-        return status
+
+def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> dict | None:
+    """Resolve the recorded plant (or model) reference, pinning the stored source when it is not importable."""
+    from plants.refs import PlantRefError, resolve_recorded
+
+    ref = meta.get(f"{prefix}_ref")
+    if not ref:
+        return None  # an FMU plant, a model that is the plant, or a recording from before references were stored
+    try:
+        _cls, status = resolve_recorded(ref, base_dir, module=meta.get(f"{prefix}_module", ""),
+                                        class_name=meta.get(f"{prefix}_class", ""),
+                                        source=meta.get(f"{prefix}_source", ""),
+                                        sha256=meta.get(f"{prefix}_sha256", ""))
+    except PlantRefError as e:
+        from ..scenario import ScenarioError
+
+        raise ScenarioError(f"{path}: {e}") from None
+    status["module"] = meta.get(f"{prefix}_module", "")
+    if status["loaded_from"] == "recording":
+        print(f"note: {prefix} module {status['module']!r} is not importable ({status['reason']}); "
+              f"loaded the source stored in {path} (sha256 {status['sha256'][:12]}): "
+              "this runs code from the recording", file=sys.stderr)
+    elif status["differs"]:
+        print(f"note: {prefix} module {status['module']!r} as imported now differs from the one recorded "
+              f"in {path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
+              file=sys.stderr)
+    return status
 
 
 def _with_resolved(sc, meta: dict | None):
@@ -488,7 +522,10 @@ def no_gc():
 
 
 def read(path: str | Path, *, loop: bool = True) -> Recording:
-    """Decode a recording.  A file cut short by a crash is read up to its last complete chunk."""
+    """Decode a recording into dataclasses (the reference reader; ``testbed.io.columns`` is the fast one).
+
+    A file cut short by a crash is read up to its last complete chunk.
+    """
     with no_gc():
         return _read(Path(path), loop)
 
@@ -607,15 +644,20 @@ def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref
 
 
 def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
-                      t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True) -> dict:
+                      t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True,
+                      roa: bool = True) -> dict:
     """Write a simulated run (``testbed.simulate.SimResult``) with the topics and schemas of a live run.
 
     Times are nominal and latencies zero (t_k = k T, every message at its sample
-    instant); t0 is the wall-clock time of the call.  Returns the writer's counts.
+    instant); t0 is the wall-clock time of the call.  The Foxglove topics
+    (``foxglove_topics``) come from the same tap as a live recorder's; ``roa``:
+    draw the nominal region of attraction there.  Returns the writer's counts.
     """
     import numpy as np
 
+    from ..api import attack_on_samples
     from ..quantizer import Codebook
+    from .foxglove_topics import FoxgloveTopics, telemetry_extra
 
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)
     Tn = int(round(sc.T * 1e9))
@@ -624,18 +666,24 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     run_id = f"sim-{sc.name}-{t0}"
     w = RecordingWriter(path, flush_interval=flush_interval, exclusive=exclusive)
+    fox = FoxgloveTopics(sc, roa=roa)
+
+    def tap(items):
+        for topic, name, data, lt in items:
+            w.write_bytes(topic, name, data, lt)
+
+    def tele(topic, name, t, lt):
+        w.write(topic, t, lt, name=name, extra=telemetry_extra(name, t, t0, Tn))
+
     try:
         write_text_metadata(w, sc, source="simulate", run_id=run_id, ref=ref,
                             extra={"scenario_overrides": overrides or {}, "bits": cb.bits})
         start = msg.Start(run_id=run_id, t0_ns=t0, T_ns=Tn, n_steps=sc.n_steps, digest="", timing="ideal",
                           ack_via_attacker=False)
         w.write("/control/start", start, t0)
+        tap(fox.start(start, t0))
         theta = np.asarray(res.theta, dtype=np.int64)
-        sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
-        if sched is None or not N:  # an online attacker (greedy) has no schedule: it is on when it drops
-            attack_on = theta.astype(bool)
-        else:
-            attack_on = np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta.astype(bool)
+        attack_on = attack_on_samples(sc, res)  # an online attacker (greedy) is on when it drops
         dropped_total = np.cumsum(theta)
         prev_on = False
         delays = res.delays
@@ -649,51 +697,61 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
             th = int(theta[k])
             dk = 0 if delays is None else int(delays[k])
             miss = bool(u_missing[k])
-            w.write("/telemetry/plant", msg.PlantTelemetry(
+            p = msg.PlantTelemetry(
                 k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=msg.NO_TIME if miss else tk + dk, delay_ns=dk,
                 theta=msg.THETA_NONE if miss else th,
                 flags=(msg.PlantTelemetry.FLAG_NO_U | msg.PlantTelemetry.FLAG_MISS) if miss else 0,
                 flow_status=int(res.flow_status) if k == res.diverged_at else 0,
-                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k])), lt)
+                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k]))
+            tele("/telemetry/plant", "PlantSample", p, lt)
+            tap(fox.plant(p, lt))
             if fault is not None and k == res.plant_fault_at:  # the event a live plant node publishes
-                w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=k, t_ns=tk, detail=fault), lt)
+                ev = msg.Event(node="plant", kind="plant_fault", k=k, t_ns=tk, detail=fault)
+                w.write("/events/plant", ev, lt)
+                tap(fox.event(ev, lt))
             sym = int(res.symbols[k])
             if withheld[k]:
-                w.write("/telemetry/encoder", msg.EncoderTelemetry(
-                    k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=msg.NO_TIME, symbol=-1, saturated=0, silent=1,
-                    E=float("nan"), xi=(), q=()), lt)
+                e = msg.EncoderTelemetry(k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=msg.NO_TIME, symbol=-1, saturated=0,
+                                         silent=1, E=float("nan"), xi=(), q=())
             else:
-                w.write("/telemetry/encoder", msg.EncoderTelemetry(
-                    k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym, saturated=int(res.saturated[k]),
-                    silent=0, E=float(res.E_enc[k]), xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k])), lt)
+                e = msg.EncoderTelemetry(k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym,
+                                         saturated=int(res.saturated[k]), silent=0, E=float(res.E_enc[k]),
+                                         xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k]))
+            tele("/telemetry/encoder", "EncoderSample", e, lt)
+            tap(fox.encoder(e, lt))
             if res.saturated[k]:
-                w.write("/events/encoder", msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
-                                                     detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"), lt)
+                ev = msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
+                               detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}")
+                w.write("/events/encoder", ev, lt)
+                tap(fox.event(ev, lt))
             on = bool(attack_on[k])
-            w.write("/telemetry/attacker", msg.AttackerTelemetry(
+            tele("/telemetry/attacker", "AttackerSample", msg.AttackerTelemetry(
                 k=k, rx_ns=tk, tx_ns=msg.NO_TIME if th else tk, dropped=th, corrupted=0, attack_on=int(on),
                 dropped_total=int(dropped_total[k]), forwarded_total=int(k + 1 - dropped_total[k])), lt)
             if on != prev_on:
-                w.write("/attacker/status", msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
-                                                               forwarded=int(k + 1 - dropped_total[k])), lt)
+                st = msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
+                                        forwarded=int(k + 1 - dropped_total[k]))
+                w.write("/attacker/status", st, lt)
+                tap(fox.status(st, lt))
                 prev_on = on
             reason = (msg.ControllerTelemetry.DEADLINE if th else msg.ControllerTelemetry.RECEIVED) \
                 if reasons is None else int(reasons[k])
             received = reason == msg.ControllerTelemetry.RECEIVED
-            w.write("/telemetry/controller", msg.ControllerTelemetry(
+            tele("/telemetry/controller", "ControllerSample", msg.ControllerTelemetry(
                 k=k, sym_stamp_ns=tk if received else msg.NO_TIME, rx_ns=tk if received else msg.NO_TIME, tx_ns=tk,
                 symbol=sym if received else -1, theta=th, reason=reason,
                 E=float(res.E_dec[k]), xi=tuple(res.xi_dec[k]), q=tuple(res.q[k]), u=tuple(res.u[k])), lt)
         tN = N * Tn
-        w.write("/telemetry/plant", msg.PlantTelemetry(
+        tele("/telemetry/plant", "PlantSample", msg.PlantTelemetry(
             k=N, t_ns=tN, sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0, theta=msg.THETA_NONE,
             flags=msg.PlantTelemetry.FLAG_FINAL, flow_status=int(res.flow_status),
             x=tuple(np.asarray(res.x_final, dtype=float)), u=()), t0 + tN)
         if fault is not None and N == 0:  # the true plant failed to start
             w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=0, t_ns=0, detail=fault), t0)
-        w.write("/control/stop", msg.Stop(reason="end of run" if fault is None else
-                                          f"plant fault at sample {res.plant_fault_at}: {fault}",
-                                          origin="simulator"), t0 + tN)
+        stop = msg.Stop(reason="end of run" if fault is None else f"plant fault at sample {res.plant_fault_at}: {fault}",
+                        origin="simulator")
+        w.write("/control/stop", stop, t0 + tN)
+        tap(fox.stop(stop, t0 + tN))
     finally:
         w.close()
     return dict(w.counts)

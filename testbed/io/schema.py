@@ -10,8 +10,11 @@ a time that never happened (``messages.NO_TIME``) is an *absent* field (proto3
 ``optional``), not a sentinel number.
 
 Field types: ``u32`` uint32, ``i32`` int32, ``i64`` int64, ``f64`` double,
-``bool``, ``str`` string, ``bytes``; a trailing ``?`` is proto3 ``optional``,
-``*`` is ``repeated`` (packed).  The spec below is the documentation of every
+``bool``, ``str`` string, ``bytes``, ``ts`` ``google.protobuf.Timestamp`` (an
+absolute time), ``hdr`` a ``testbed.Header`` (its ``stamp``: the field
+Foxglove's and Lichtblick's Plot panels read as the "header stamp" of a
+message, for their x axis); a trailing ``?`` is proto3 ``optional``, ``*`` is
+``repeated`` (packed).  The spec below is the documentation of every
 field; the README's recording section points here.
 """
 
@@ -38,6 +41,7 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
         ("flow_status", "i32", "status of the flow map phi_T over this period (0 ok)"),
         ("x", "f64*", "plant state x_k"),
         ("u", "f64*", "input applied over [t_k, t_k+1) (empty for the final state)"),
+        ("header", "hdr", "header.stamp = t_k = t0 + k T, the sample instant, absolute (a Plot panel's x axis)"),
     ],
     "EncoderSample": [
         ("k", "u32", "sample index"),
@@ -50,6 +54,8 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
         ("E", "f64", "E_k at the encoder (Algorithm 1)"),
         ("xi", "f64*", "xi_k at the encoder"),
         ("q", "f64*", "q_k at the encoder"),
+        ("header", "hdr", "header.stamp = t_k = t0 + k T, absolute"),
+        ("log10_E", "f64?", "log10 E_k (absent when E_k is 0 or not sent): E_k spans tens of decades"),
     ],
     "ControllerSample": [
         ("k", "u32", "sample index"),
@@ -63,6 +69,8 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
         ("xi", "f64*", "xi_k at the decoder"),
         ("q", "f64*", "q_k at the decoder"),
         ("u", "f64*", "u_k = (1 - theta_k) K q_k"),
+        ("header", "hdr", "header.stamp = t_k = t0 + k T, absolute"),
+        ("log10_E", "f64?", "log10 E_k at the decoder (absent when E_k is 0)"),
     ],
     "AttackerSample": [
         ("k", "u32", "sample index"),
@@ -73,7 +81,9 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
         ("attack_on", "bool", "the DoS schedule is active at t_k"),
         ("dropped_total", "u32", "symbols dropped so far"),
         ("forwarded_total", "u32", "symbols forwarded so far"),
+        ("header", "hdr", "header.stamp = t_k = t0 + k T, absolute"),
     ],
+    "Header": [("stamp", "ts", "an absolute time (t0 + k T for telemetry)")],
     # ---- control path as it crossed the network (topics /loop/...)
     "Sensor": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"), ("x", "f64*", "x_k")],
     "Symbol": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
@@ -110,18 +120,24 @@ DATACLASS = {
 }
 SCHEMA_OF = {cls: name for name, cls in DATACLASS.items()}
 
-_TYPES = {"u32": 13, "i32": 5, "i64": 3, "f64": 1, "bool": 8, "str": 9, "bytes": 12}  # FieldDescriptorProto.Type
+_TYPES = {"u32": 13, "i32": 5, "i64": 3, "f64": 1, "bool": 8, "str": 9, "bytes": 12, "ts": 11,
+          "hdr": 11}  # FieldDescriptorProto.Type
+_MESSAGE_TYPES = {"ts": ".google.protobuf.Timestamp", "hdr": f".{PACKAGE}.Header"}
+_TIMESTAMP_FILE = "google/protobuf/timestamp.proto"
 
 
 def _file_descriptor():
     from google.protobuf import descriptor_pb2
 
     fd = descriptor_pb2.FileDescriptorProto(name=FILE_NAME, package=PACKAGE, syntax="proto3")
+    fd.dependency.append(_TIMESTAMP_FILE)
     for name, fields in SPEC.items():
         m = fd.message_type.add(name=name)
         for number, (fname, ftype, _doc) in enumerate(fields, start=1):
             base = ftype.rstrip("?*")
             f = m.field.add(name=fname, number=number, type=_TYPES[base], json_name=fname)
+            if base in _MESSAGE_TYPES:
+                f.type_name = _MESSAGE_TYPES[base]
             if ftype.endswith("*"):
                 f.label = f.LABEL_REPEATED
             else:
@@ -139,7 +155,11 @@ def file_descriptor_set() -> bytes:
     """The schema data stored in the MCAP file (one ``FileDescriptorSet`` for every message)."""
     from google.protobuf import descriptor_pb2
 
+    from google.protobuf import timestamp_pb2
+
     fds = descriptor_pb2.FileDescriptorSet()
+    ts = fds.file.add()
+    timestamp_pb2.DESCRIPTOR.CopyToProto(ts)   # the well-known type, so the set is self-contained
     fds.file.append(_file_descriptor())
     return fds.SerializeToString()
 
@@ -163,7 +183,8 @@ def classes_from(fds_bytes: bytes) -> dict[str, type]:
 @lru_cache(maxsize=1)
 def classes() -> dict[str, type]:
     """This version's message classes, by short name (``PlantSample`` ...)."""
-    return {full.rsplit(".", 1)[-1]: cls for full, cls in classes_from(file_descriptor_set()).items()}
+    return {full.rsplit(".", 1)[-1]: cls for full, cls in classes_from(file_descriptor_set()).items()
+            if full.startswith(PACKAGE + ".")}
 
 
 def full_name(name: str) -> str:
@@ -173,18 +194,27 @@ def full_name(name: str) -> str:
 @lru_cache(maxsize=None)
 def _layout(name: str):
     fields = SPEC[name]
-    plain = tuple(f for f, t, _ in fields if not t.endswith(("?", "*")))
+    plain = tuple(f for f, t, _ in fields if not t.endswith(("?", "*")) and t not in _MESSAGE_TYPES)
     optional = tuple(f for f, t, _ in fields if t.endswith("?"))
     repeated = tuple(f for f, t, _ in fields if t.endswith("*"))
-    return plain, optional, repeated
+    stamps = tuple(f for f, t, _ in fields if t == "ts")
+    headers = tuple(f for f, t, _ in fields if t == "hdr")
+    return plain, optional, repeated, stamps, headers
 
 
-def to_pb(obj, name: str | None = None):
-    """A messages dataclass (or a dict with the schema's field names) -> protobuf message."""
+def to_pb(obj, name: str | None = None, extra: dict | None = None):
+    """A messages dataclass (or a dict with the schema's field names) -> protobuf message.
+
+    ``extra``: fields the dataclass does not have (``header``: its stamp in ns since the epoch, ``log10_E``).
+    """
     if name is None:
         name = SCHEMA_OF[type(obj)]
-    get = obj.get if isinstance(obj, dict) else (lambda f, _o=obj: getattr(_o, f))
-    plain, optional, repeated = _layout(name)
+    if isinstance(obj, dict):
+        get = obj.get if not extra else {**obj, **extra}.get
+    else:
+        def get(f, _o=obj, _x=extra or {}):
+            return _x[f] if f in _x else getattr(_o, f, None)
+    plain, optional, repeated, stamps, headers = _layout(name)
     m = classes()[name]()
     for f in plain:
         v = get(f)
@@ -198,6 +228,16 @@ def to_pb(obj, name: str | None = None):
         v = get(f)
         if v:
             getattr(m, f).extend(v)
+    for f in stamps:
+        v = get(f)
+        if v is not None and v != msg.NO_TIME:
+            ts = getattr(m, f)
+            ts.seconds, ts.nanos = divmod(int(v), 1_000_000_000)
+    for f in headers:
+        v = get(f)
+        if v is not None and v != msg.NO_TIME:
+            ts = getattr(m, f).stamp
+            ts.seconds, ts.nanos = divmod(int(v), 1_000_000_000)
     return m
 
 

@@ -344,9 +344,14 @@ class Trace:
         T = float(s["T"])
         x = np.asarray(s["x"], dtype=float)
         N = len(x)
+        x = x.reshape(N, -1)
 
         def arr(key, width=None):
-            v = s.get(key) or []
+            v = s.get(key)
+            if isinstance(v, np.ndarray):  # report(..., arrays=True): NaN already marks what is missing
+                v = v.astype(float)
+                return v.reshape(len(v), -1) if width else v
+            v = v or []
             rows = [r if r is not None and len(np.atleast_1d(r)) else [np.nan] * (width or 1) for r in v]
             return np.asarray(rows, dtype=float).reshape(len(rows), -1) if width else \
                 np.asarray([np.nan if r is None else r for r in v], dtype=float)
@@ -355,9 +360,10 @@ class Trace:
         sat = np.zeros(N, dtype=np.uint8)
         sat[[k for k in s.get("saturated_at", []) if k < N]] = 1
         xf = s.get("x_final")
-        return cls(T=T, x=x, u=arr("u", len(s["u"][0]) if s.get("u") else 1), E_enc=arr("E"),
+        m = s["u"].shape[1] if isinstance(s.get("u"), np.ndarray) else (len(s["u"][0]) if s.get("u") else 1)
+        return cls(T=T, x=x, u=arr("u", m), E_enc=arr("E"),
                    xi_enc=arr("xi", n), E_dec=arr("E_dec"), xi_dec=arr("xi_dec", n),
-                   theta=np.asarray(s.get("theta") or np.zeros(N), dtype=float),
+                   theta=np.asarray(s["theta"] if s.get("theta") is not None else np.zeros(N), dtype=float),
                    attack_on=cls.attack_from_intervals(s.get("dos", {}).get("intervals", []), T, N),
                    saturated=sat, x_final=None if xf is None else np.asarray(xf, dtype=float))
 
@@ -393,7 +399,14 @@ def trace_to_rrd(path, sc, tr: Trace, *, recording_id: str | None = None, roa: b
     if path is not None:
         sinks.append(rr.FileSink(str(path)))
     if spawn:
-        rr.spawn(connect=False, recording=rec)
+        try:
+            rr.spawn(connect=False, recording=rec)
+        except (RuntimeError, OSError) as e:
+            from ..errors import BadInput
+
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise BadInput(f"no Rerun viewer to open ({first}); write the view to a file with --rrd PATH.rrd") \
+                from None
         sinks.append(rr.GrpcSink())
     rec.set_sinks(*sinks)
     rec.send_blueprint(bp)
@@ -421,13 +434,10 @@ def add_arguments_replay(p: argparse.ArgumentParser) -> None:
 
 
 def main_replay(args) -> int:
-    from ..report import report
+    from ..report import load, report
 
-    from . import recording
-
-    rec = recording.read(args.recording)
-    s = report(rec)
-    sc = rec.scenario()
+    cols, sc = load(args.recording)
+    s = report((cols, sc), arrays=True)
     spawn = args.spawn or not args.rrd
     trace_to_rrd(args.rrd, sc, Trace.from_report(s), recording_id=str(s.get("run_id") or sc.name),
                  roa=not args.no_roa, spawn=spawn)

@@ -1,7 +1,7 @@
 """The launcher's collector: subscribes to a run's telemetry, events and liveliness.
 
 Everything arrives over Zenoh as it happens, so a node killed mid-run leaves
-its telemetry up to the kill.  ``snapshot()`` hands it to
+its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
 ``testbed.runsummary.build_summary`` (shared with ``testbed report``).
 """
 
@@ -12,7 +12,6 @@ import time
 
 from ..io import messages as msg
 from ..io import transport
-from ..runsummary import RunData
 
 PT = msg.PlantTelemetry
 
@@ -189,8 +188,12 @@ class Collector:
                                        + ("" if len(recs) != s.get("telemetry_records") else "; digests differ")})
         return out
 
-    def snapshot(self) -> RunData:
-        """A copy of what has arrived so far (for ``testbed.runsummary.build_summary``)."""
+    def snapshot(self, sc):
+        """What has arrived so far as columns (``testbed.io.columns.Columns``, for ``runsummary.build_summary``)."""
+        from ..io.columns import from_records
+
         with self.lock:
-            return RunData(tele={r: dict(d) for r, d in self.tele.items()}, plant_final=self.plant_final,
-                           events=list(self.events), status=list(self.status), summaries=dict(self.summaries))
+            tele = {r: dict(d) for r, d in self.tele.items()}
+            final, events, status, summaries = self.plant_final, list(self.events), list(self.status), \
+                dict(self.summaries)
+        return from_records(sc, tele, plant_final=final, events=events, status=status, summaries=summaries)

@@ -66,7 +66,7 @@ class Recorder:
     MAX_MALFORMED = 1000
 
     def __init__(self, session, keys: transport.Keys, writer: recording.RecordingWriter, *, loop: bool,
-                 n_steps: int = 2**31):
+                 n_steps: int = 2**31, foxglove=None):
         import zenoh
 
         self.n_steps = int(n_steps)
@@ -85,6 +85,8 @@ class Recorder:
         self.malformed = 0
         self.max_queue = 0
         self.write_errors = 0
+        self.fox = foxglove   # testbed.io.foxglove_topics.FoxgloveTopics, or None
+        self.T_ns = 0 if foxglove is None else foxglove.T_ns
         self.stop_seen: msg.Stop | None = None
         self.stop_seen_mono = 0.0
         self.lost: dict[str, float] = {}
@@ -187,7 +189,9 @@ class Recorder:
                     if not (0 <= t.k <= N if final else 0 <= t.k < N):
                         self.rejected += 1  # a sample outside the run: never recorded as one
                         continue
-                    self.w.write(topic, t, log_time, self._pub(_stamp(t), log_time), name=name)
+                    self.w.write(topic, t, log_time, self._pub(_stamp(t), log_time), name=name,
+                                 extra=self._foxglove_extra(name, t))
+                    self._foxglove(role, t, log_time)
                     self.written += 1
                 return
             if rel in _LOOP_TYPES:
@@ -199,6 +203,7 @@ class Recorder:
             elif rel.startswith("events/"):
                 e = msg.Event.decode(payload)
                 self.w.write(topic, e, log_time, self._pub(e.t_ns, log_time))
+                self._foxglove("event", e, log_time)
             elif rel.startswith("summary/"):
                 s = msg.NodeSummary.decode(payload)
                 self.w.write(topic, {"node": s.node, "json": json.dumps(s.data, default=str)}, log_time)
@@ -209,12 +214,44 @@ class Recorder:
                 if isinstance(m, msg.Stop) and self.stop_seen is None and m.origin == "plant":
                     self.stop_seen, self.stop_seen_mono = m, time.monotonic()
                 self.w.write(topic, m, log_time)
+                self._foxglove({msg.Start: "start", msg.Stop: "stop", msg.AttackerStatus: "status"}[type(m)], m,
+                               log_time)
             else:
                 raise msg.MessageError(f"not a key of a run: {rel}")
             self.written += 1
         except (msg.MessageError, ValueError, OverflowError, TypeError, struct.error) as e:
             # not a message of a run, or one whose numbers no schema can hold: counted and kept as bytes
             self._malformed(key, payload, attachment, f"{type(e).__name__}: {e}", log_time)
+
+    # ---- Foxglove topics (testbed.io.foxglove_topics): derived from what was just written
+    def _foxglove_extra(self, name: str, t) -> dict | None:
+        """The telemetry's derived fields (header stamp t0 + k T, log10 E_k) once t0 is known."""
+        if self.fox is None:
+            return None
+        from ..io.foxglove_topics import telemetry_extra
+
+        return telemetry_extra(name, t, self.t0, self.T_ns)
+
+    def _foxglove(self, kind: str, m, log_time: int) -> None:
+        """Write the /log, /phase, /phase/roa messages that ``m`` makes (a failure never costs the recording)."""
+        if self.fox is None:
+            return
+        try:
+            handler = getattr(self.fox, kind, None)
+            for topic, name, data, lt in (handler(m, log_time) if handler is not None else ()):
+                self.w.write_bytes(topic, name, data, lt)
+        except Exception:  # noqa: BLE001
+            self.write_errors += 1
+            log.exception("recorder: could not write a Foxglove message")
+
+    def _foxglove_flush(self) -> None:
+        """The phase-plane samples still waiting for their partner (the end of the run)."""
+        if self.fox is not None:
+            try:
+                for topic, name, data, lt in self.fox.flush(time.time_ns()):
+                    self.w.write_bytes(topic, name, data, lt)
+            except Exception:  # noqa: BLE001
+                self.write_errors += 1
 
     # ---- end
     def stats(self) -> dict:
@@ -231,6 +268,7 @@ class Recorder:
         self._done.set()
         self._wake.set()
         self._thread.join(timeout)
+        self._foxglove_flush()
         st = self.stats()
         self.w.close(st)
         return st
@@ -304,7 +342,9 @@ def main_record(args) -> int:
               f"{str(e).split(' at /')[0]}", file=sys.stderr)
         return 3
     with session_cm as session:
-        rec = Recorder(session, keys, w, loop=loop, n_steps=sc.n_steps)
+        from ..io.foxglove_topics import FoxgloveTopics
+
+        rec = Recorder(session, keys, w, loop=loop, n_steps=sc.n_steps, foxglove=FoxgloveTopics(sc, background=True))
         tokens = [session.liveliness().declare_token(keys.alive(ROLE)),
                   session.liveliness().declare_token(keys.ready(ROLE))]
         try:

@@ -1,0 +1,231 @@
+"""The Python API for notebooks: ``testbed.open(PATH)`` and ``testbed.simulate(SCENARIO, **overrides)``.
+
+Both return a :class:`Run`: the scenario, one numpy array per quantity with one
+entry per sample k (``arrays``), the events, the timing summary, and
+``to_pandas()`` / ``to_polars()`` when those libraries are installed::
+
+    import testbed
+    run = testbed.open("recordings/paper.mcap")     # a recording of testbed run / simulate --out
+    run.arrays["E"][:5], run.arrays["theta"].sum()
+    sim = testbed.simulate("paper", x0=[0.2, 0.0], M=8, duration=10)
+    df = sim.to_pandas()
+
+The array names follow the paper and ``testbed simulate --json``: ``k``, ``t``
+(t_k = k T), ``x`` (N, n), ``u`` (N, m), ``q`` (q_k at the decoder), ``xi`` and
+``E`` (xi_k, E_k at the encoder, Algorithm 1), ``xi_dec`` and ``E_dec`` (at the
+decoder, Algorithm 2), ``q_enc``, ``theta``, ``symbols``, ``saturated``,
+``attack_on``, ``dropped``; for live runs also the timing in seconds
+(``t_sample``, ``jitter``, ``delay``, ``sensor_to_actuator``, ``stage_encoder``,
+``stage_proxy``, ``stage_controller``, ``stage_plant``) and the flags
+``deadline_miss``, ``u_missing``.  NaN marks what a run did not record.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BadInput
+
+#: per-sample arrays of every run (vectors expand to x1..xn in tables)
+CORE = ("k", "t", "x", "u", "q", "xi", "E", "E_dec", "xi_dec", "q_enc", "theta", "symbols", "saturated",
+        "attack_on", "dropped")
+#: per-sample arrays of live runs only (seconds; NaN where unknown)
+TIMING = ("t_sample", "jitter", "delay", "sensor_to_actuator", "stage_encoder", "stage_proxy", "stage_controller",
+          "stage_plant", "deadline_miss", "u_missing")
+
+
+class MissingExtra(ImportError):
+    """An optional library a method needs is not installed (one line says which)."""
+
+
+@dataclass
+class Run:
+    """One run, live or simulated, as arrays (see the module docstring)."""
+
+    scenario: object
+    arrays: dict[str, np.ndarray]
+    events: list[dict] = field(default_factory=list)
+    timing: dict | None = None
+    summary: dict = field(default_factory=dict)
+    source: str = "simulate"
+    path: str | None = None
+    metadata: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def N(self) -> int:
+        """The number of samples."""
+        return len(self.arrays["k"])
+
+    def __repr__(self) -> str:
+        where = f" from {self.path}" if self.path else ""
+        return (f"Run({self.source}{where}: scenario {self.scenario.name}, {self.N} samples of T = "
+                f"{self.scenario.T:g} s, {int(np.sum(self.arrays['theta']))} lost)")
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """Flat 1-D columns, one row per sample: vectors as x1..xn, u1..um, ... (what ``export`` writes)."""
+        return flat_columns(self.arrays)
+
+    def to_pandas(self):
+        """A ``pandas.DataFrame``, one row per sample (``columns()``)."""
+        try:
+            import pandas as pd
+        except ImportError:
+            raise MissingExtra("to_pandas() needs pandas: pip install pandas "
+                               "(or pip install 'dos-testbed[dataframes]')") from None
+        return pd.DataFrame(self.columns())
+
+    def to_polars(self):
+        """A ``polars.DataFrame``, one row per sample (``columns()``)."""
+        try:
+            import polars as pl
+        except ImportError:
+            raise MissingExtra("to_polars() needs polars: pip install polars "
+                               "(or pip install 'dos-testbed[dataframes]')") from None
+        return pl.DataFrame(self.columns())
+
+
+def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Vectors (N, w) become columns name1..namew; the rest stay as they are."""
+    out = {}
+    for name, a in arrays.items():
+        a = np.asarray(a)
+        if a.ndim == 2:
+            for j in range(a.shape[1]):
+                out[f"{name}{j + 1}"] = np.ascontiguousarray(a[:, j])
+        else:
+            out[name] = a
+    return out
+
+
+# ============================================================================ from a recording
+def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    from .io import messages as msg
+
+    ok = ok & (a != msg.NO_TIME)
+    out = np.full(a.shape, np.nan)
+    out[ok] = a[ok] / 1e9
+    return out
+
+
+def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
+    from .io import messages as msg
+
+    g = cols.get
+    P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
+    t_ns, u_rx = g("plant", "t_ns")[:N], g("plant", "u_rx_ns")[:N]
+    e_tx, c_tx, a_tx = g("encoder", "tx_ns")[:N], g("controller", "tx_ns")[:N], g("attacker", "tx_ns")[:N]
+
+    def diff(a, b, ok):
+        ok = ok & (a != msg.NO_TIME) & (b != msg.NO_TIME)
+        out = np.full(N, np.nan)
+        out[ok] = (a[ok] - b[ok]) / 1e9
+        return out
+
+    t_sample = _ns_to_s(t_ns, P)
+    flags = g("plant", "flags")[:N]
+    return {
+        "t_sample": t_sample,
+        "jitter": t_sample - np.arange(N) * T,
+        "delay": np.where(P, g("plant", "delay_ns")[:N] / 1e9, np.nan),
+        "sensor_to_actuator": diff(u_rx, t_ns, P & (g("plant", "theta")[:N] == 0)),
+        "stage_encoder": diff(e_tx, t_ns, EN & P & (g("encoder", "silent")[:N] == 0)),
+        "stage_proxy": diff(a_tx, e_tx, A & EN),
+        "stage_controller": diff(c_tx, a_tx, A & C & (g("controller", "reason")[:N] == 0)),
+        "stage_plant": diff(u_rx, c_tx, C & P),
+        "deadline_miss": P & (flags & msg.PlantTelemetry.FLAG_MISS != 0),
+        "u_missing": P & (flags & msg.PlantTelemetry.FLAG_NO_U != 0),
+    }
+
+
+def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue names it
+    """A recording (``testbed run`` or ``testbed simulate --out``) as a :class:`Run`.
+
+    Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
+    """
+    from .io.columns import read_columns, scenario_of
+    from .report import report
+
+    cols = read_columns(path)
+    sc = scenario_of(cols.metadata, str(path))
+    s = report((cols, sc), arrays=True)
+    N = s["samples"]
+    A = cols.has("attacker")[:N]
+    sat = np.zeros(N, dtype=bool)
+    sat[np.asarray(s["saturated_at"], dtype=np.int64)] = True
+    arrays = {
+        "k": np.arange(N), "t": np.asarray(s["t"]), "x": s["x"], "u": s["u"], "q": s["q"], "xi": s["xi"],
+        "E": s["E"], "E_dec": s["E_dec"], "xi_dec": s["xi_dec"], "q_enc": cols.get("encoder", "q")[:N],
+        "theta": np.asarray(s["theta"]), "symbols": np.asarray(s["symbols"], dtype=np.int64), "saturated": sat,
+        "attack_on": A & (cols.get("attacker", "attack_on")[:N] != 0),
+        "dropped": A & (cols.get("attacker", "dropped")[:N] != 0),
+    }
+    live = cols.source == "live"
+    if live:
+        arrays.update(_timing_arrays(cols, N, sc.T))
+    t0 = cols.start.t0_ns if cols.start else None
+    from .io import messages as msg
+
+    events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
+               "detail": e.detail} for e in cols.events]
+    summary = {k: v for k, v in s.items() if not isinstance(v, np.ndarray) and k not in
+               ("u_controller",)}
+    summary["t0_ns"] = t0
+    return Run(scenario=sc, arrays=arrays, events=events, timing=s.get("timing"), summary=summary,
+               source=cols.source, path=str(path), metadata=cols.metadata)
+
+
+# ============================================================================ from the simulator
+def attack_on_samples(sc, res) -> np.ndarray:
+    """Per sample: the DoS schedule is active at t_k (an online attacker: when it dropped)."""
+    theta = np.asarray(res.theta, dtype=bool)
+    N = len(theta)
+    sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
+    if sched is None or not N:
+        return theta.copy()
+    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
+
+
+def run_of_simulation(sc, res) -> Run:
+    """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result."""
+    from .simulate import summarize
+
+    N = len(res.t)
+    arrays = {"k": np.arange(N), "t": np.asarray(res.t), "x": res.x, "u": res.u, "q": res.q, "xi": res.xi_enc,
+              "E": res.E_enc, "E_dec": res.E_dec, "xi_dec": res.xi_dec, "q_enc": res.q_enc,
+              "theta": np.asarray(res.theta).astype(np.int64), "symbols": np.asarray(res.symbols, dtype=np.int64),
+              "saturated": np.asarray(res.saturated, dtype=bool), "attack_on": attack_on_samples(sc, res),
+              "dropped": np.asarray(res.theta, dtype=bool)}
+    events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",
+               "detail": f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"} for k in np.flatnonzero(res.saturated)]
+    s = summarize(sc, res, arrays=True)
+    summary = {k: v for k, v in s.items() if not isinstance(v, np.ndarray)}
+    return Run(scenario=sc, arrays=arrays, events=events, timing=None, summary=summary, source="simulate")
+
+
+def resolve_scenario(scenario, overrides: dict | None = None):
+    """A scenario object, bundled name or .toml path, with overrides applied (``BadInput`` if unusable)."""
+    from . import scenario as scen
+
+    sc = scenario if isinstance(scenario, scen.Scenario) else scen.load(str(scenario))
+    return scen.with_overrides(sc, overrides or {})
+
+
+def simulate(scenario, **overrides) -> Run:
+    """Simulate a scenario (object, bundled name or .toml path) with ``overrides`` and return a :class:`Run`.
+
+    Overrides (validated as if written in the scenario file): ``x0``, ``E0``,
+    ``M``, ``T``, ``duration``, ``mode``, and ``attack`` (a table merged into
+    ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new ``kind``
+    replaces the table).
+    """
+    from .simulate import simulate_scenario
+
+    sc = resolve_scenario(scenario, overrides)
+    return run_of_simulation(sc, simulate_scenario(sc))
+
+
+__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "attack_on_samples", "MissingExtra",
+           "resolve_scenario", "BadInput"]

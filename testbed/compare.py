@@ -1,0 +1,204 @@
+"""``testbed compare A B [--json] [--plot PNG]``: two runs compared sample by sample.
+
+A and B are each a recording (``.mcap``) or a scenario (bundled name or
+``.toml``) to simulate.  A scenario compared with a recording is simulated with
+the recording's overrides (``--duration``, ``--T``, ``--mode``, ...), so
+``testbed compare live.mcap paper`` asks: did the live run compute exactly what
+the simulator computes?
+
+Compared bit for bit (NaN equal to NaN) over the samples both runs have: x, u,
+xi and E at the encoder, xi and E at the decoder, theta, the symbols.  Keys of
+``--json``: ``identical`` (same number of samples and every value equal),
+``first_divergence`` (the first k where any of them differ, or the first
+sample only one run has; null when identical), ``max_state_error``
+(max_k ||x_A(k) - x_B(k)||_inf over the common samples), ``theta_differs_at``,
+``symbols_differ_at`` (the first ``LIST_MAX`` ks; their counts beside), and
+per quantity the first k where it differs (``differs_first``).
+
+Exit codes: 0 compared (identical or not), 2 unusable input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+LIST_MAX = 1000
+QUANTITIES = ("x", "u", "xi", "E", "xi_dec", "E_dec", "theta", "symbols")
+
+
+def _is_recording(ref: str) -> bool:
+    p = Path(ref)
+    if p.suffix.lower() == ".mcap":
+        return True
+    if p.suffix.lower() == ".toml" or not p.is_file():
+        return False
+    with open(p, "rb") as f:
+        return f.read(8) == b"\x89MCAP0\r\n"
+
+
+def load_side(ref, other_overrides: dict | None = None):
+    """A ``testbed.api.Run`` from a recording path, a scenario, or a ``Run`` as it is."""
+    from .api import Run, open as open_run, resolve_scenario, run_of_simulation
+    from .simulate import simulate_scenario
+
+    if isinstance(ref, Run):
+        return ref
+    if _is_recording(str(ref)):
+        return open_run(ref)
+    sc = resolve_scenario(ref, other_overrides)
+    return run_of_simulation(sc, simulate_scenario(sc))
+
+
+def _overrides(run) -> dict:
+    if run is None or not run.metadata:
+        return {}
+    try:
+        over = json.loads(run.metadata.get("testbed.run", {}).get("scenario_overrides", "{}") or "{}")
+    except ValueError:
+        return {}
+    return over if isinstance(over, dict) else {}
+
+
+def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per row: some value differs (bit for bit; NaN equals NaN)."""
+    a = np.asarray(a)
+    b = np.asarray(b)
+    if a.dtype.kind == "f" or b.dtype.kind == "f":
+        a, b = a.astype(float), b.astype(float)
+        d = ~((a == b) | (np.isnan(a) & np.isnan(b)))
+    else:
+        d = a != b
+    return d.reshape(len(d), -1).any(axis=1) if d.ndim > 1 else d
+
+
+def load_pair(a, b):
+    """Both sides as ``Run``s; a scenario opposite a recording gets the recording's overrides."""
+    if _is_scenario_ref(a) and not _is_scenario_ref(b):
+        rb = load_side(b)
+        return load_side(a, _overrides(rb)), rb
+    ra = load_side(a)
+    return ra, load_side(b, _overrides(ra))
+
+
+def compare(a, b) -> dict:
+    """The comparison of two runs (recordings, scenarios or ``Run`` objects) as a JSON-able dict."""
+    ra, rb = load_pair(a, b)
+    A, B = ra.arrays, rb.arrays
+    n = min(ra.N, rb.N)
+    first = {}
+    per = {}
+    for q in QUANTITIES:
+        if q not in A or q not in B or np.shape(A[q])[1:] != np.shape(B[q])[1:]:
+            first[q] = 0 if n else None
+            per[q] = np.ones(n, dtype=bool)
+            continue
+        d = _differs(A[q][:n], B[q][:n])
+        per[q] = d
+        idx = np.flatnonzero(d)
+        first[q] = int(idx[0]) if idx.size else None
+    cands = [v for v in first.values() if v is not None]
+    if ra.N != rb.N:
+        cands.append(n)
+    fd = min(cands) if cands else None
+    xa, xb = np.asarray(A["x"][:n], dtype=float), np.asarray(B["x"][:n], dtype=float)
+    if xa.shape == xb.shape and n:
+        err = np.abs(xa - xb).reshape(n, -1).max(axis=1)
+        both = np.isfinite(err)
+        max_err = float(err[both].max()) if both.any() else None
+    else:
+        max_err = None
+    th, sy = np.flatnonzero(per["theta"]), np.flatnonzero(per["symbols"])
+    return {
+        "a": _describe(a, ra), "b": _describe(b, rb),
+        "samples": {"a": ra.N, "b": rb.N, "compared": n},
+        "identical": fd is None,
+        "first_divergence": fd,
+        "max_state_error": max_err,
+        "theta_differs_at": th[:LIST_MAX].tolist(), "theta_differs": int(th.size),
+        "symbols_differ_at": sy[:LIST_MAX].tolist(), "symbols_differ": int(sy.size),
+        "differs_first": first,
+    }
+
+
+def _is_scenario_ref(ref) -> bool:
+    from .api import Run
+
+    return not isinstance(ref, Run) and not _is_recording(str(ref))
+
+
+def _describe(ref, run) -> dict:
+    return {"ref": str(ref) if not hasattr(ref, "arrays") else repr(ref), "source": run.source,
+            "scenario": run.scenario.name, "T": run.scenario.T, "samples": run.N}
+
+
+def plot(a_run, b_run, path, *, title: str = "") -> Path:
+    """States of both runs over t, their difference ||x_A - x_B||_inf (log scale), and theta of each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(a_run.N, b_run.N)
+    fig, ax = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    ta, tb = a_run.arrays["t"], b_run.arrays["t"]
+    for i in range(a_run.arrays["x"].shape[1]):
+        ax[0].plot(ta, a_run.arrays["x"][:, i], lw=1.5, label=f"A x{i + 1}")
+        ax[0].plot(tb, b_run.arrays["x"][:, i], "--", lw=1.0, label=f"B x{i + 1}")
+    ax[0].set_ylabel("x_k")
+    ax[0].legend(ncol=4, fontsize=8)
+    if n:
+        err = np.abs(np.asarray(a_run.arrays["x"][:n], float) - np.asarray(b_run.arrays["x"][:n], float)).max(axis=1)
+        with np.errstate(divide="ignore"):
+            ax[1].semilogy(ta[:n], np.where(err > 0, err, np.nan), ".", ms=3)
+    ax[1].set_ylabel("||x_A - x_B||_inf")
+    ax[2].step(ta, a_run.arrays["theta"], where="post", label="A theta_k")
+    ax[2].step(tb, np.asarray(b_run.arrays["theta"]) * 0.9, where="post", label="B theta_k (x 0.9)")
+    ax[2].set_ylabel("theta_k")
+    ax[2].set_xlabel("t [s]")
+    ax[2].legend(fontsize=8)
+    fig.suptitle(title or "testbed compare")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def add_arguments_compare(p: argparse.ArgumentParser) -> None:
+    from . import cliargs
+
+    p.add_argument("a", help="a recording (.mcap) or a scenario (bundled name or .toml) to simulate")
+    p.add_argument("b", help="the other run: a recording or a scenario (simulated with the recording's overrides)")
+    cliargs.add_json(p, "the comparison")
+    cliargs.add_plot(p, "draw both trajectories, their difference and theta_k of each")
+
+
+def main_compare(args) -> int:
+    ra, rb = load_pair(args.a, args.b)
+    c = compare(ra, rb)
+    c["a"]["ref"], c["b"]["ref"] = str(args.a), str(args.b)
+    if args.plot:
+        plot(ra, rb, args.plot, title=f"{args.a} vs {args.b}")
+    if args.json:
+        print(json.dumps(c))
+    else:
+        s = c["samples"]
+        print(f"A {args.a} ({c['a']['source']}, {s['a']} samples) vs B {args.b} ({c['b']['source']}, "
+              f"{s['b']} samples)")
+        if c["identical"]:
+            print("  IDENTICAL: every compared value is equal, bit for bit")
+        else:
+            print(f"  first divergence at k = {c['first_divergence']}; max ||x_A - x_B||_inf = "
+                  f"{c['max_state_error']!s}")
+            print(f"  theta differs at {c['theta_differs']} samples {c['theta_differs_at'][:10]}, symbols at "
+                  f"{c['symbols_differ']} {c['symbols_differ_at'][:10]}")
+            print("  first k per quantity: " + ", ".join(f"{q} {v}" for q, v in c["differs_first"].items()))
+        if args.plot:
+            print(f"  figure: {args.plot}")
+    return 0
+
+
+__all__ = ["compare", "load_side", "load_pair", "plot", "add_arguments_compare", "main_compare", "QUANTITIES"]
