@@ -236,7 +236,7 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
             sub.undeclare()
     finally:
         rc, s, err = finish(p)
-    assert len(forged) == 3, forged
+    assert len(forged) == 3, (forged, s.get("faults"), s.get("samples"), s.get("outcome"), err[-2500:])
     ev = s["events"]
     # a falsified sample never reads as a clean run: the plant's own account differs from what arrived
     assert rc == 1 and any(f["kind"] == "telemetry_mismatch" and f["node"] == "plant" for f in s["faults"]), \

@@ -260,7 +260,9 @@ def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
     assert s["rerun"] == {"mode": "spawn", "recording_id": run_id, "target": viewer.DEFAULT_URL}
     for role in ("plant", "encoder", "controller", "attacker"):
         ns = s["node_summaries"][role]
-        assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= 20, (role, ns)
+        # every sample a node handled is logged (the attacker handles the symbols the encoder sent)
+        handled = ns["dropped"] + ns["forwarded"] if role == "attacker" else 20
+        assert ns["rerun_errors"] == 0 and ns["rerun_logged"] >= handled >= 15, (role, ns)
     ents, recs = _stream_entities(got)
     assert [r.recording_id for r in recs] == [run_id]
     assert ENTITIES | {"/phase/roa", "/scenario"} <= ents

@@ -206,10 +206,10 @@ class PlantNode(Node):
             flags = 0
             u = None
             if a is not None:
-                u, fault = pp.check_input(a.u)
-                if fault == "nonfinite":
+                u, refused = pp.check_input(a.u)
+                if refused == "nonfinite":
                     ctx.event("input_rejected", k=k, detail="u_k has a non-finite entry: u_k = 0 applied")
-                elif fault == "clamped":
+                elif refused == "clamped":
                     ctx.event("input_clamped", k=k, detail=f"|u_k| above u_max = {sc.controller.u_max:g}: clamped")
             if u is not None:
                 theta = a.theta
