@@ -53,6 +53,7 @@ def dop853_step(rhs, y, u, p, h, K, ytmp, rtol, atol):
         a3 = (-0.18980075407240762 * K[0, i] + 4.450312892752409 * K[5, i] + 1.8915178993145003 * K[6, i] + -5.801203960010585 * K[7, i] + -0.4226823213237919 * K[8, i] + -0.1521609496625161 * K[9, i] + 0.20136540080403034 * K[10, i] + 0.02265179219836082 * K[11, i]) / sc
         e5 += a5 * a5
         e3 += a3 * a3
-    if e5 == 0.0 and e3 == 0.0:
+    den = (e5 + 0.01 * e3) * n
+    if den == 0.0:  # every error term below the smallest double (a state that decayed to ~1e-160)
         return 0.0
-    return abs(h) * e5 / math.sqrt((e5 + 0.01 * e3) * n)
+    return abs(h) * e5 / math.sqrt(den)

@@ -76,3 +76,19 @@ def test_divergence_is_data_not_nan():
     y, st = phi_T(q, np.array([3.0, 0.0]), np.array([0.0]), 1.0)
     assert st != FLOW_OK
     assert np.all(np.isfinite(y))
+
+
+def test_a_state_decayed_to_the_bottom_of_the_doubles_still_flows():
+    """Near 1e-163 the embedded error terms underflow to 0 one at a time: the step is exact, not 0 / 0.
+
+    A converging run at T = 1 ms gets there within about 20 minutes (E_k and x_k shrink by
+    Lambda / M every sample); this used to end it with a ZeroDivisionError.
+    """
+    from plants.lienard import Lienard
+
+    pl = Lienard()
+    for e in np.linspace(-150, -320, 681):
+        for v in ([1.0, 1.0], [1.0, -0.3], [0.2, 1.0]):
+            x = np.array(v) * 10.0 ** e
+            y, status = phi_T(pl, x, np.zeros(1), 0.001)
+            assert status == FLOW_OK and np.all(np.isfinite(y)) and np.max(np.abs(y)) <= 2 * np.max(np.abs(x)) + 1e-320, (e, v, y)
