@@ -12,8 +12,7 @@
    sustained rate (records / time from the first put to the file being closed) and its
    largest backlog.  Rate 0 means "as fast as this publisher can".
 3. Report: runs of 10 and 60 minutes at T = 1 ms (600,000 and 3.6 M samples) recorded by
-   ``testbed simulate --out`` (the same topics and schemas as a live recording; the hour
-   with a floor E_min on E_k, since the paper's run underflows to 0 within it), then
+   ``testbed simulate --out`` (the same topics and schemas as a live recording), then
    ``testbed report RUN.mcap --json``: its wall time and peak RSS, and beside it the
    reference reader (``testbed.io.recording.read``, protobuf classes and one dataclass a
    message: the reader ``testbed report`` was built on before) on the same file.  Making the
@@ -154,22 +153,6 @@ def _measure(cmd: list[str]) -> tuple[float, float, str]:
         return wall, ru.ru_maxrss / 1024, fo.read()
 
 
-_FLOOR = "E_min = 1e-6   # a floor: the paper's run underflows (x_k, E_k -> 0) within the hour\n"
-
-
-def scenario_for(minutes: float, tmp: Path) -> str:
-    """The paper's example; past 20 minutes with a floor E_min on E_k (without it the state underflows
-    to 0 and the simulator's flow map fails, about 20 minutes in)."""
-    if minutes <= 20:
-        return "paper"
-    from testbed import scenario
-
-    src = scenario.load("paper").source.replace('mode = "resilient"\n', 'mode = "resilient"\n' + _FLOOR)
-    path = tmp / "paper-floor.toml"
-    path.write_text(src.replace('name = "paper"', 'name = "paper-floor"'))
-    return str(path)
-
-
 def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, reference: bool = True) -> dict:
     """``testbed report --json`` on a 1 kHz recording of ``minutes`` (made by ``testbed simulate --out`` unless
     ``path`` is given), and the reference reader (``recording.read``, the reader ``report`` used before) on it."""
@@ -177,7 +160,7 @@ def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, refere
     if path is None:
         path = tmp / f"run-{minutes:g}min.mcap"
         t = time.perf_counter()
-        r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "simulate", scenario_for(minutes, tmp),
+        r = subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "simulate", "paper",
                             "--T", "0.001", "--duration", str(60 * minutes), "--out", str(path)],
                            capture_output=True, text=True)
         if r.returncode:
