@@ -14,7 +14,8 @@ decides can be reproduced in-process (``testbed resimulate``).
   theta_k itself is recovered from any later ack (``last_rx``).  A missing ack
   costs samples, never lockstep.
 * ``ControllerProtocol``: Algorithm 2 and control law (2).  Samples are decided
-  strictly in order: when the symbol arrives (theta_k = 0; an invalid payload
+  strictly in order (with ``defer_update`` the decoder's update (xi), (E) of the last
+  decision waits for ``settle``, so that the shell sends u_k first; nothing else changes): when the symbol arrives (theta_k = 0; an invalid payload
   is a loss, theta_k = 1), when the loss deadline passes with nothing (theta_k = 1),
   or when a later sample's symbol arrives first (the earlier ones are lost).  A
   symbol for a sample already decided is late and ignored; a symbol whose header
@@ -192,10 +193,17 @@ class Decision:
 
 
 class ControllerProtocol:
-    """Algorithm 2 and control law (2), samples decided strictly in order."""
+    """Algorithm 2 and control law (2), samples decided strictly in order.
 
-    def __init__(self, dec: Decoder, n_steps: int):
+    ``defer_update``: a decision leaves the decoder's update (xi), (E) pending until
+    ``settle()`` (or the next decision, which settles it first), so that u_k goes out
+    before the prediction phi_T(q_k, u_k) is computed.  The numbers are the same.
+    """
+
+    def __init__(self, dec: Decoder, n_steps: int, defer_update: bool = False):
         self.dec = dec
+        self.defer_update = bool(defer_update)
+        self._unsettled = False
         self.codebook: Codebook = dec.codebook
         self.n_steps = int(n_steps)
         self.next_k = 0
@@ -207,10 +215,21 @@ class ControllerProtocol:
         self.superseded = 0
         self.future = 0
 
+    def settle(self) -> None:
+        """Apply the decoder's update (xi), (E) of the last decision, if it is still pending."""
+        if self._unsettled:
+            self._unsettled = False
+            self.dec.commit()
+
     def _decide(self, k: int, symbol: int | None, reason: int) -> Decision:
+        self.settle()
         dec = self.dec
         xi, E = dec.xi, dec.E
-        u, q, theta = dec.step(symbol)
+        u, q, theta = dec.decide(symbol)
+        if self.defer_update:
+            self._unsettled = True
+        else:
+            dec.commit()
         if theta == 0:
             self.last_rx = k
         self.next_k = k + 1

@@ -380,13 +380,27 @@ class Decoder(_End):
         super().__init__(*a, **kw)
         self.overflows = 0
         self.invalid = 0
+        self._pending: tuple[int, bool, np.ndarray] | None = None
 
     def step(self, symbol: int | None):
         """Decode the symbol received at t_k (None: lost), return (u_k, q_k, theta_k).
 
         An out-of-range symbol is counted in ``invalid`` and treated as a loss
         (theta_k = 1), which the ack tells the encoder, so both stay in lockstep.
+        ``decide`` then ``commit``: the same in two steps.
         """
+        out = self.decide(symbol)
+        self.commit()
+        return out
+
+    def decide(self, symbol: int | None):
+        """(u_k, q_k, theta_k) of Algorithm 2 and law (2), without the update (xi), (E) of ``commit``.
+
+        A live controller sends u_k between the two: the prediction xi_k+1 = phi_T(q_k, u_k)
+        is not on the path of u_k.  ``decide`` again before ``commit`` is an error.
+        """
+        if self._pending is not None:
+            raise RuntimeError("Decoder.decide() twice without commit()")
         n = self.plant.n
         cb = self.codebook
         overflow = False
@@ -407,5 +421,13 @@ class Decoder(_End):
                 box_center(int(symbol), self.xi, self.E, self.qp.M, q)
         u = np.empty(self.plant.m)
         control_input(self.K, q, theta, overflow, u)
-        self._update(theta, overflow, q)
+        self._pending = (theta, overflow, q)
         return u, q, theta
+
+    def commit(self) -> None:
+        """Apply (xi), (E) for the sample ``decide`` decided: xi_k+1, E_k+1 (Algorithm 2)."""
+        if self._pending is None:
+            raise RuntimeError("Decoder.commit() without decide()")
+        theta, overflow, q = self._pending
+        self._pending = None
+        self._update(theta, overflow, q)

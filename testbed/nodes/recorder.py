@@ -291,6 +291,8 @@ def main_record(args) -> int:
     recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
                                   extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
                                          "ack_via_attacker": opts.ack_via_attacker,
+                                         "ack_on_actuation": opts.ack_on_actuation,
+                                         "colocate": list(opts.colocate),
                                          "security": security_info(args)})
     loop = loop_default(sc, args.loop)
     print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
