@@ -203,11 +203,20 @@ class Ack:
 
 
 # ============================================================================ telemetry
+_VEC: dict[int, struct.Struct] = {}  # length-prefixed float64 vectors, one compiled struct per length
+
+
 def _vec(v) -> bytes:
-    v = tuple(float(a) for a in v)
-    if len(v) > 255:
-        raise MessageError("vector longer than 255")
-    return struct.pack(f"<B{len(v)}d", len(v), *v)
+    n = len(v)
+    s = _VEC.get(n)
+    if s is None:
+        if n > 255:
+            raise MessageError("vector longer than 255")
+        s = _VEC[n] = struct.Struct(f"<B{n}d")
+    try:
+        return s.pack(n, *v)
+    except struct.error as e:
+        raise MessageError(f"vector: {e}") from None
 
 
 def _unvec(data: bytes, off: int) -> tuple[tuple[float, ...], int]:
@@ -228,8 +237,10 @@ class _Telemetry:
     _vector_fields: ClassVar[tuple[str, ...]]
 
     def encode(self) -> bytes:
-        head = self._scalars.pack(*(getattr(self, f) for f in self._scalar_fields))
-        return head + b"".join(_vec(getattr(self, f)) for f in self._vector_fields)
+        out = self._scalars.pack(*[getattr(self, f) for f in self._scalar_fields])
+        for f in self._vector_fields:
+            out += _vec(getattr(self, f))
+        return out
 
     @classmethod
     def decode(cls, payload):

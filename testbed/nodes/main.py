@@ -78,7 +78,7 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g.add_argument("--start-lead", type=float, default=0.2, metavar="S",
                    help="t0 = now + S once everybody is ready (default %(default)s)")
     g.add_argument("--spin-us", type=float, metavar="US",
-                   help="busy-wait this long before each sample instant (default min(200, T/10 in us))")
+                   help="busy-wait this long before each sample instant (default min(200, T/20 in us))")
     g.add_argument("--encoder-crash-at", type=int, metavar="K",
                    help="--colocate encoder: fault injection: the colocated encoder raises at sample K (it alone stops)")
     g = p.add_argument_group("encoder")

@@ -89,7 +89,7 @@ class PlantNode(Node):
         self.plant_fault_at = -1
         self.timing = self.sc.run.timing
         self.spin_ns = int(self.args.spin_us * 1e3) if self.args.spin_us is not None \
-            else min(200_000, self.ctx.T_ns // 10)
+            else min(200_000, self.ctx.T_ns // 20)
         self.process = self.sc.make_process()
         ctx.on_peer(self._on_peer)
 
