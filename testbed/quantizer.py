@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .flow import DEFAULT_FLOW, FlowOptions, flow_into
+from .flow import DEFAULT_FLOW, FlowOptions, compiled_for, flow_into
 
 MODE_IDEAL = 0
 MODE_RESILIENT = 1
@@ -323,14 +323,20 @@ class _End:
         self.E = float(qp.E0)
         self.u_prev = np.zeros(plant.m)  # u_{k-1} as both ends know it (u_{-1} = 0)
         self.flow_status = 0
+        self._zoom = None
 
     def _update(self, theta: int, overflow: bool, q: np.ndarray) -> None:
         xi_next = np.empty(self.plant.n)
         u_k = np.empty(self.plant.m)
         qp = self.qp
-        E_next, st = zoom_update(self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
-                                 self.xi, self.E, q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
-                                 self._dpar, self._Ks, self._ytmp, u_k, xi_next)
+        args = (self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
+                self.xi, float(self.E), q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
+                self._dpar, self._Ks, self._ytmp, u_k, xi_next)
+        if self._zoom is None:
+            E_next, st = zoom_update(*args)
+            self._zoom = compiled_for(zoom_update, args)  # once per sample on a live node: no type dispatch
+        else:
+            E_next, st = self._zoom(*args)
         self.xi = xi_next
         self.E = float(E_next)
         self.u_prev = u_k
