@@ -9,7 +9,9 @@ SIGINT to each group, then SIGKILL.  Nodes also die with the launcher
 (PR_SET_PDEATHSIG) and stop when its liveliness token goes away, so no node is
 left behind.  A node that dies is reported with its exit status, the last lines
 of its log and when its liveliness token went away; the run goes on without it
-(unless it was the plant).
+(unless it was the plant).  With ``--colocate encoder`` there are three node
+processes; the plant's runs the encoder, whose death alone (``--kill encoder@S``:
+SIGUSR2 to the plant) the launcher reports from its liveliness token.
 
 Exit codes: 0 clean run, 1 a node died or the run did not complete,
 2 bad scenario, 128 + signal when interrupted.

@@ -382,7 +382,8 @@ PEER_NEEDS_INSECURE = ("the peer topology runs without authentication only: add 
 def security_info(args) -> dict:
     """How a process's session is secured (it goes into the recording and the summary)."""
     return {"authenticated": not args.insecure, "topology": args.topology,
-            "access_control": "none" if args.insecure else "every message"}
+            "access_control": "none" if args.insecure else "every message",
+            "low_latency": bool(getattr(args, "low_latency", False))}
 
 
 def zenoh_config(args, role: str, keys: transport.Keys):

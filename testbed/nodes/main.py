@@ -1,10 +1,13 @@
 """``testbed node plant|encoder|attacker|controller SCENARIO [zenoh options]``: one node of a live run.
 
-Life of a node: open the Zenoh session, declare, warm up (JIT), declare the
-``alive/<role>`` token, wait until the four roles are alive, declare
-``ready/<role>``; the plant then waits for every ``ready`` token and publishes
-``Start`` (t0), the others wait for it; warm up the publishers; run; publish a
-summary; close the session.  SIGINT / SIGTERM, a ``Stop`` message, the loss of
+Life of a node: open the Zenoh session, declare, warm up (JIT), collect and
+freeze the garbage, declare the ``alive/<role>`` token, wait until the four
+roles are alive, warm up the publishers, declare ``ready/<role>``; the plant
+then waits for every ``ready`` token and publishes ``Start`` (t0), the others
+wait for it; run; publish a summary; close the session.  With ``-v`` each step
+is a ``phase`` line in the log (``benchmarks/bench_startup.py`` reads them).
+A plant with ``--colocate encoder`` runs the encoder too, under the encoder's
+name (SIGUSR2: the encoder alone dies, for ``testbed run --kill encoder@S``).  SIGINT / SIGTERM, a ``Stop`` message, the loss of
 the plant or the end of the run (+ grace) stop a node cleanly.
 
 Exit codes: 0 stopped cleanly, 1 crashed (traceback on stderr), 2 bad scenario or
@@ -146,12 +149,19 @@ def main_node(args) -> int:
         args.wait_collector = args.wait_collector or args.launched
         node = _classes()[role](ctx, args)
         holder["node"] = node
-        tap = None
+        tap = guest_tap = None
         try:
             tap = rerun_tap.from_args(args, role, sc)
             if tap is not None:
                 ctx.telemetry.tap = tap.put
             node.setup()
+            guest = getattr(node, "encoder", None)
+            if tap is not None and guest is not None:  # the colocated encoder's own stream (its part file)
+                ga = argparse.Namespace(**vars(args))
+                if ga.rerun_save:
+                    ga.rerun_save = os.path.join(os.path.dirname(ga.rerun_save), "encoder.rrd")
+                guest_tap = rerun_tap.from_args(ga, "encoder", sc)
+                guest.ctx.telemetry.tap = guest_tap.put
             node.warmup()
             phase(role, "warm")
             # no cyclic-GC pauses in the loop (the loop makes no reference cycles worth collecting);
@@ -206,12 +216,17 @@ def main_node(args) -> int:
         if guest is not None and not guest.killed:  # the colocated encoder's own account, under its name
             guest.ctx.telemetry.flush()
             gd = guest.summary()
+            if guest_tap is not None:
+                guest.ctx.telemetry.tap = None
+                gd.update(guest_tap.close())
             gd.update(guest.ctx.telemetry.digest())
             gd["events_sent"], gd["events_suppressed"] = guest.ctx.events_sent, guest.ctx.events_suppressed
             gd.update(stop_reason=ctx.stop_reason if not guest.dead else "died", pid=os.getpid(), netns=_netns(),
                       error=None if guest.error is None else f"{type(guest.error).__name__}: {guest.error}")
             guest.ctx.publish_summary(gd)
             guest.ctx.close()
+        elif guest_tap is not None:
+            guest_tap.close()
         ctx.telemetry.flush()
         data = node.summary()
         data.update(cpu_info)

@@ -33,7 +33,7 @@ from pathlib import Path
 from ..io import messages as msg
 from ..io import recording, transport
 from .common import (RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, on_stop_signals,
-                     security_info, tune_process, zenoh_config)
+                     parse_cpus, security_info, tune_process, zenoh_config)
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
@@ -248,6 +248,7 @@ def add_arguments_record(p: argparse.ArgumentParser) -> None:
                    help="standalone: stop S seconds after the plant's Stop (default %(default)s)")
     p.add_argument("--nice", type=int, default=10, metavar="N",
                    help="run at this nice value so the loop's nodes go first on a busy machine (default %(default)s)")
+    p.add_argument("--cpus", metavar="LIST", help="pin the recorder to these CPUs, e.g. 6 or 6,7")
     p.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
     p.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
     p.add_argument("--scenario-ref", help=argparse.SUPPRESS)
@@ -266,7 +267,9 @@ def main_record(args) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
                         format="%(asctime)s recorder   %(levelname)s %(message)s")
     opts = RunOptions.from_args(args)
-    sc = load_scenario(args.scenario, opts)
+    if args.cpus:
+        os.sched_setaffinity(0, parse_cpus(args.cpus))
+    sc = load_scenario(args.scenario, opts, check_design=not args.launched)
     tune_process(args.parent_pid)
     if args.nice:
         try:  # recording is off the loop's path: under CPU contention the loop nodes go first
