@@ -39,8 +39,16 @@ class RHS:
         self.py = fn
         self.__name__ = fn.__name__
         self.__doc__ = fn.__doc__
-        self.cfunc = nb.cfunc(RHS_SIG, cache=True)(fn)
+        self._cfunc = None
         self.jit = nb.njit(cache=True, inline="always")(fn)
+
+    @property
+    def cfunc(self):
+        """The compiled C function, made on first use: importing the bundled plants loads none of
+        theirs (each costs tens of ms even from numba's disk cache), a process loads only its own."""
+        if self._cfunc is None:
+            self._cfunc = nb.cfunc(RHS_SIG, cache=True)(self.py)
+        return self._cfunc
 
 
 def rhs_function(fn) -> RHS:

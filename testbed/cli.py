@@ -29,8 +29,21 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def _module_exists(module: str) -> bool:
+    """Whether ``module`` can be imported, without importing it or its parent packages.
+
+    ``importlib.util.find_spec("a.b.c")`` imports ``a.b`` first: here that would load
+    ``testbed.analysis`` (scipy.optimize and more) into every process, live nodes included.
+    """
+    parts = module.split(".")
+    if parts[0] != __package__:
+        return importlib.util.find_spec(module) is not None
+    base = os.path.join(os.path.dirname(os.path.abspath(__file__)), *parts[1:])
+    return os.path.isfile(base + ".py") or os.path.isfile(os.path.join(base, "__init__.py"))
+
+
 def _optional(name: str, module: str, help_: str) -> None:
-    if importlib.util.find_spec(module) is not None:
+    if _module_exists(module):
         COMMANDS[name] = (module, help_)
 
 
@@ -81,8 +94,26 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+#: commands that end their process straight after the result is out, without the interpreter's
+#: teardown (unloading numba's compiled kernels takes about 0.3 s): ``testbed run``
+FAST_EXIT = {"run"}
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    if argv is None:  # the process's own command line: it ends with the command
+        code = _main(sys.argv[1:])
+        if sys.argv[1:2] and sys.argv[1] in FAST_EXIT:
+            try:
+                sys.stdout.flush()
+                sys.stderr.flush()
+            except (OSError, ValueError):
+                pass
+            os._exit(code)
+        return code
+    return _main(argv)
+
+
+def _main(argv: list[str]) -> int:
     # build only the parser of the requested command when possible (fast start)
     if argv and argv[0] in ("--version", "-V"):
         print(_version())

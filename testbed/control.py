@@ -11,13 +11,14 @@ T = 0.1, Q = 1e-4 I, R = 1.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import expm, solve_discrete_are
 
 
 def c2d(A: np.ndarray, B: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact ZOH discretization (A~, B~) of (A, B) with sampling period T."""
     A = np.atleast_2d(np.asarray(A, dtype=float))
     B = np.asarray(B, dtype=float).reshape(A.shape[0], -1)
+    from scipy.linalg import expm  # here, not at import: a live node loading a scenario needs no scipy
+
     n, m = B.shape
     Mx = np.zeros((n + m, n + m))
     Mx[:n, :n] = A
@@ -31,6 +32,8 @@ def dlqr(Ad: np.ndarray, Bd: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.nda
 
     Minimizes sum x'Qx + u'Ru; K = -(R + B'PB)^{-1} B'PA with P the DARE solution.
     """
+    from scipy.linalg import solve_discrete_are
+
     Q = np.atleast_2d(np.asarray(Q, dtype=float))
     R = np.atleast_2d(np.asarray(R, dtype=float))
     P = solve_discrete_are(Ad, Bd, Q, R)

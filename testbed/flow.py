@@ -115,6 +115,20 @@ def flow_batch_kernel(rhs, X, U, p, T, opts, out, status):
         status[b] = flow_into(rhs, X[b], U[b], p, T, opts, K, ytmp, out[b])
 
 
+def compiled_for(dispatcher, args):
+    """The compiled overload of a numba ``dispatcher`` for the types of ``args`` (call it once first).
+
+    Calling it skips numba's type dispatch of every call, which costs about 20 us when an
+    argument is a function pointer (a plant's ``cfunc``): more than the flow map over a
+    short period, on the path of every live sample.  The same machine code, so the same
+    numbers.  The dispatcher itself where the overload is not found.
+    """
+    try:
+        return dispatcher.overloads[tuple(nb.typeof(a) for a in args)].entry_point
+    except Exception:  # noqa: BLE001 - an internal of numba: fall back to the ordinary call
+        return dispatcher
+
+
 def phi_T(plant, x, u, T: float, opts: FlowOptions = DEFAULT_FLOW):
     """Flow map phi_T(x, u) over a batch.
 

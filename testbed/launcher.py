@@ -9,7 +9,9 @@ SIGINT to each group, then SIGKILL.  Nodes also die with the launcher
 (PR_SET_PDEATHSIG) and stop when its liveliness token goes away, so no node is
 left behind.  A node that dies is reported with its exit status, the last lines
 of its log and when its liveliness token went away; the run goes on without it
-(unless it was the plant).
+(unless it was the plant).  With ``--colocate encoder`` there are three node
+processes; the plant's runs the encoder, whose death alone (``--kill encoder@S``:
+SIGUSR2 to the plant) the launcher reports from its liveliness token.
 
 Exit codes: 0 clean run, 1 a node died or the run did not complete,
 2 bad scenario, 128 + signal when interrupted.
@@ -28,6 +30,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -36,7 +39,7 @@ from .errors import BadInput
 from .io import messages as msg
 from .io import transport
 from .io.viewer import LiveRerun, add_rerun_run_arguments
-from .nodes.common import RunOptions, add_run_option_arguments, load_scenario
+from .nodes.common import RX_MODES, RunOptions, add_run_option_arguments, load_scenario, parse_cpus
 
 RECORDER = "recorder"
 
@@ -71,6 +74,9 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--insecure", action="store_true",
                    help="no authentication and no access control: any local process can join, stop or steer "
                         "the run (recorded as such)")
+    g.add_argument("--low-latency", action="store_true",
+                   help="Zenoh's low-latency transport for every session of the run (no batching, no priority "
+                        "queues)")
     g = p.add_argument_group("recording")
     cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
                        "never overwritten", aliases=("--record",))
@@ -87,6 +93,11 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="give up if the nodes are not running after S seconds (default %(default)s)")
     g.add_argument("--run-dir", help="directory for node logs (default: a temporary one, kept on faults)")
     g.add_argument("--realtime", action="store_true", help="nodes try SCHED_FIFO")
+    g.add_argument("--cpu", action="append", default=[], metavar="WHO=CPUS",
+                   help="pin a node (plant, encoder, attacker, controller), the recorder or the launcher (the "
+                        "run's router) to CPUs, e.g. plant=2 or launcher=0,1 (repeatable)")
+    g.add_argument("--rx", choices=RX_MODES, help="how the nodes receive control messages (testbed node --rx)")
+    g.add_argument("--rx-spin-us", type=float, help="--rx spin: spin budget per sample (us)")
     g.add_argument("--spin-us", type=float, help="plant busy-wait before each sample instant (us)")
     g.add_argument("--ack-grace", type=float, help="encoder grace for a late ack, fraction of T")
     g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
@@ -113,8 +124,10 @@ def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
 class Launcher:
     def __init__(self, args):
         self.args = args
+        self.phase("up")
         self.opts = RunOptions.from_args(args)
         self.sc = load_scenario(args.scenario, self.opts)
+        self.phase("scenario")
         self.sc, over = scenario.with_seed(self.sc, self.opts.overrides())
         if over.get("seed") != self.opts.seed:
             self.opts = dataclasses.replace(self.opts, seed=over["seed"])
@@ -130,6 +143,14 @@ class Launcher:
         self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
         self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, RECORDER)).items()}
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
+        self.colocated = self.opts.colocate           # roles run inside another node's process
+        self.processes = self.opts.processes          # the node processes
+        self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, RECORDER, transport.LAUNCHER))
+        for who, spec in self.cpus.items():
+            parse_cpus(spec)  # one clear line now if unusable
+            if who in self.colocated:
+                raise BadInput(f"--cpu {who}=...: the {who} runs in the {self.opts.process_of(who)}'s process "
+                               f"(--colocate {who}); pin that one")
         self.own_dir = args.run_dir is None
         self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -155,12 +176,22 @@ class Launcher:
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0
+        self._collector_ready = False
+        self._tokens: list = []
         self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
         self.foxglove = None                                           # testbed run --foxglove PORT
         if getattr(args, "foxglove", None) is not None:
             from .nodes.foxglove_tap import FoxgloveLive
 
             self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
+
+    def phase(self, name: str) -> None:
+        """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
+        if self.args.verbose:
+            from .nodes.common import process_age
+
+            print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}",
+                  file=sys.stderr, flush=True)
 
     # ---- processes
     def command(self, role: str) -> list[str]:
@@ -170,6 +201,12 @@ class Launcher:
                 "--run-id", self.run_id, "--connect", self.node_connect,
                 "--ready-timeout", str(a.startup_timeout), "--launched"]
         cmd += self.session_flags(role)
+        if a.rx:
+            cmd += ["--rx", a.rx]
+        if a.rx_spin_us is not None:
+            cmd += ["--rx-spin-us", str(a.rx_spin_us)]
+        if role in self.cpus:
+            cmd += ["--cpus", self.cpus[role]]
         if role not in self.node_prefix or self.node_prefix[role].startswith("ip netns exec"):
             cmd += ["--parent-pid", str(os.getpid())]
         if a.realtime:
@@ -178,10 +215,13 @@ class Launcher:
             cmd.append("--verbose")
         if role in self.crashes:
             cmd += ["--crash-at", str(self.crashes[role])]
+        for guest in self.colocated:
+            if self.opts.process_of(guest) == role and guest in self.crashes:
+                cmd += [f"--{guest}-crash-at", str(self.crashes[guest])]
         if role == "plant":
             if a.spin_us is not None:
                 cmd += ["--spin-us", str(a.spin_us)]
-        if role == "encoder" and a.ack_grace is not None:
+        if (role == "encoder" or self.opts.process_of("encoder") == role) and a.ack_grace is not None:
             cmd += ["--ack-grace", str(a.ack_grace)]
         if role == "attacker" and a.corrupt:
             cmd += ["--corrupt", a.corrupt]
@@ -198,6 +238,8 @@ class Launcher:
         if a.force:
             cmd.append("--force")
         cmd += self.session_flags(RECORDER)
+        if RECORDER in self.cpus:
+            cmd += ["--cpus", self.cpus[RECORDER]]
         if a.verbose:
             cmd.append("--verbose")
         return cmd
@@ -235,6 +277,8 @@ class Launcher:
         a = self.args
         out = ["--topology", self.topology]
         out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
+        if a.low_latency:
+            out.append("--low-latency")
         if self.topology == "peer":
             out += ["--listen", self.node_listen.get(who, transport.LOOPBACK_ANY)]
         if a.zenoh_config:
@@ -246,33 +290,65 @@ class Launcher:
         a = self.args
         mode = "router" if self.topology == "router" else "peer"
         if not self.secure:
-            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode)
+            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
+                                         low_latency=a.low_latency)
         cred = transport.Credentials.read(self.secret_path)
         return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
                                      user=transport.LAUNCHER, password=cred.users.get(transport.LAUNCHER),
                                      dictionary_file=self.secret_path,
-                                     acl=transport.acl_config(self.keys))
+                                     acl=transport.acl_config(self.keys, self.colocated), low_latency=a.low_latency)
 
     def security(self) -> dict:
-        return {"authenticated": self.secure, "topology": self.topology,
+        return {"authenticated": self.secure, "topology": self.topology, "low_latency": bool(self.args.low_latency),
                 "access_control": "every message" if self.secure else "none",
                 "credentials": None if not self.secure else ("given" if self.args.secret_file else "made for the run")}
 
-    def spawn_recorder(self, col) -> bool:
-        """Start the recorder and wait for its ready token (False: it died or never came up)."""
-        self.recorder = self._popen(self.recorder_command(), RECORDER)
-        end = time.monotonic() + self.args.startup_timeout
-        while time.monotonic() < end and self.signal is None:
-            if RECORDER in col.ready_nodes():
-                return True
-            if self.recorder.poll() is not None:
-                break
-            time.sleep(0.02)
+    def declare_collector_ready(self, session) -> None:
+        """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
+        if not self._collector_ready:
+            self._collector_ready = True
+            self._tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
+
+    def recorder_started(self, session, col) -> bool:
+        """During start-up: declare the collector ready once the recorder is (False: it died first)."""
+        if self._collector_ready or self.recorder is None:
+            return True
+        if RECORDER in col.ready_nodes():
+            self.declare_collector_ready(session)
+            return True
         rc = self.recorder.poll()
-        self.faults.append({"node": RECORDER, "kind": "startup_failed",
-                            "why": f"exit code {rc}" if rc is not None else "not ready in time",
+        if rc is None:
+            return True
+        self.faults.append({"node": RECORDER, "kind": "startup_failed", "why": f"exit code {rc}",
                             "last_log_line": (self.log_tail(RECORDER).splitlines() or [""])[-1]})
         return False
+
+    def wait_summaries(self, col, timeout: float = 0.3) -> None:
+        """Until every node that exited cleanly has its summary in (they publish it before they exit)."""
+        want = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
+        want |= {g for g in self.colocated if self.opts.process_of(g) in want and g not in self.exits}
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not want <= set(col.snapshot_summaries()):
+            time.sleep(0.01)
+
+    def _warm_summary(self) -> None:
+        """Load the summary's kernels (the region-of-attraction check) while a slow loop runs, at low
+        priority, so that the summary is quick once the run is over (a fast loop is left alone)."""
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except (OSError, AttributeError):
+            pass
+        try:
+            import numpy as np
+
+            from . import runsummary  # noqa: F401
+            from .simulate import in_nominal_roa
+
+            model = self.sc.make_model()
+            in_nominal_roa(model, self.sc.K, self.sc.T, np.zeros((1, model.n)), horizon=2 * self.sc.T,
+                           flow=self.sc.flow)
+        except Exception:  # noqa: BLE001 - only a warm-up: the summary computes it anyway
+            pass
 
     def check_recorder(self, col, t0_mono: int | None) -> None:
         if self.recorder is None or self.recorder_exit is not None:
@@ -334,7 +410,7 @@ class Launcher:
                                     start_new_session=True, env=env)
 
     def spawn(self) -> None:
-        for role in transport.ROLES:
+        for role in self.processes:
             self.procs[role] = self._popen(self.command(role), role)
 
     def _signal_group(self, role: str, sig: int) -> None:
@@ -399,6 +475,25 @@ class Launcher:
             print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}"
                   + (f": {last}" if last else ""), file=sys.stderr)
 
+    def check_guest(self, role: str, col, t0_mono: int) -> None:
+        """A colocated role whose liveliness went while its host runs on: it died alone (killed or crashed)."""
+        host = self.opts.process_of(role)
+        if col.lost_at(role) is None or host in self.exits or col.plant_done():
+            return
+        now = time.monotonic_ns()
+        crash = col.event_of(role, "crash")
+        injected = role in self.kill_sent
+        why = (f"exception: {crash.detail}" if crash is not None else
+               f"killed (colocated in the {host}: the {role} alone stopped)")
+        info = {"exit_code": None, "signal": None if crash is not None else "SIGKILL",
+                "at_sample": col.last_k(role), "t_s": round((now - t0_mono) / 1e9, 4), "colocated_in": host}
+        self.exits[role] = info
+        self.faults.append({"node": role, "kind": "crashed" if crash is not None else "killed", "why": why,
+                            "last_log_line": (self.log_tail(host).splitlines() or [""])[-1],
+                            "exit_code": None, "signal": info["signal"], "at_sample": info["at_sample"],
+                            "t_s": info["t_s"], "injected": injected, "colocated_in": host})
+        print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}", file=sys.stderr)
+
     def _plant_ok(self, col) -> bool:
         return col.plant_done() or self.exits.get("plant", {}).get("exit_code") == 0
 
@@ -424,12 +519,21 @@ class Launcher:
                 return f"interrupted by {signal.Signals(self.signal).name}"
             if t0_mono is None and col.start is not None:
                 st = col.start
+                self.phase("start")
+                if st.T_ns >= 10_000_000:  # a slow loop leaves the CPU idle: load the summary's kernels now
+                    threading.Thread(target=self._warm_summary, daemon=True, name="warm-summary").start()
                 t0_mono = st.t0_ns - (time.time_ns() - time.monotonic_ns())
                 end_mono = t0_mono + st.n_steps * st.T_ns + int(10e9)
             for role, p in self.procs.items():
                 rc = p.poll()
                 if rc is not None and role not in self.exits:
                     self.record_exit(role, rc, col, t0_mono)
+            if t0_mono is not None:
+                for guest in self.colocated:
+                    if guest not in self.exits:
+                        self.check_guest(guest, col, t0_mono)
+            if t0_mono is None and not self.recorder_started(session, col):
+                return "recorder did not start"
             self.check_recorder(col, t0_mono)
             self.publish_faults(session)
             if all(r in self.exits for r in self.procs):
@@ -450,6 +554,8 @@ class Launcher:
                         if role == RECORDER:
                             if self.recorder is not None and self.recorder.poll() is None:
                                 os.killpg(self.recorder.pid, signal.SIGKILL)
+                        elif role in self.colocated:  # its host process kills it alone (SIGUSR2)
+                            self._signal_group(self.opts.process_of(role), signal.SIGUSR2)
                         else:
                             self._signal_group(role, signal.SIGKILL)
                 if now > end_mono:
@@ -470,13 +576,14 @@ class Launcher:
         import zenoh
 
         from .nodes.collect import Collector
-        from .runsummary import build_summary
         from .quantizer import Codebook
 
         def on_signal(signum, _frame):
             self.signal = signum
 
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        if transport.LAUNCHER in self.cpus:  # before Zenoh starts its threads: the router's CPUs
+            os.sched_setaffinity(0, parse_cpus(self.cpus[transport.LAUNCHER]))
         self.make_secrets()
         conf = self.session_config()
         if not self.secure:
@@ -485,35 +592,48 @@ class Launcher:
         outcome = "?"
         try:
             with zenoh.open(conf) as session:
+                self.phase("router")
                 col = Collector(session, self.keys, self.sc.n_steps)
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
+                self._tokens = tokens
                 try:
-                    # the plant starts once the collector is ready: after the recorder is
-                    if self.record_path is not None and not self.spawn_recorder(col):
-                        outcome = "recorder did not start"
+                    # the recorder and the nodes start together; the plant starts the run once the
+                    # collector is ready, which it declares once the recorder is (``watch``)
+                    if self.record_path is not None:
+                        self.recorder = self._popen(self.recorder_command(), RECORDER)
                     else:
-                        tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
-                        if self.rerun is not None:
-                            self.rerun.start()
-                        if self.foxglove is not None:
-                            self.foxglove.start(session, self.keys)
-                        self.spawn()
-                        outcome = self.watch(session, col)
+                        self.declare_collector_ready(session)
+                    if self.rerun is not None:
+                        self.rerun.start()
+                    if self.foxglove is not None:
+                        self.foxglove.start(session, self.keys)
+                    self.spawn()
+                    self.phase("spawned")
+                    outcome = self.watch(session, col)
+                    self.phase("watched")
                 finally:
                     self.stop_all(session, outcome)
                     for r, p in self.procs.items():
                         if r not in self.exits and p.poll() is not None:
                             self.record_exit(r, p.returncode, col, None)
-                    time.sleep(0.3)  # late telemetry and summaries
+                    self.phase("stopped")
+                    self.wait_summaries(col)  # late telemetry and summaries
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     self.publish_faults(session)
                 if self.signal is None:  # every node's own account of its telemetry against what arrived
                     self.faults.extend(col.telemetry_check())
                     self.publish_faults(session)
+                from .runsummary import build_summary  # loaded meanwhile by ``_warm_summary``
+
                 plant = self.sc.make_model()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
-                nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in transport.ROLES}
+                nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in self.processes}
+                for r in self.colocated:  # a role inside another process: that process's exit, unless it died alone
+                    host = self.opts.process_of(r)
+                    nodes[r] = dict(self.exits.get(r) or self.exits.get(host, {}), colocated_in=host,
+                                    log=str(self.run_dir / f"{host}.log"))
+                nodes = {r: nodes[r] for r in transport.ROLES}
                 summary = build_summary(self.sc, col.snapshot(self.sc), run_id=self.run_id,
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
                                         faults=self.faults, codebook=cb)
@@ -528,7 +648,8 @@ class Launcher:
                     launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
                     session.put(self.keys.summary("launcher"),
                                 msg.NodeSummary(node="launcher", data=launcher_view).encode())
-                    time.sleep(0.1)
+                    if self.recorder is not None and self.recorder.poll() is None:
+                        time.sleep(0.1)
                 except Exception:  # noqa: BLE001
                     pass
                 self.stop_recorder()
@@ -536,6 +657,7 @@ class Launcher:
                 for t in tokens:
                     t.undeclare()
                 summary["recording"] = self.recording_info()
+                self.phase("summary")
                 if self.rerun is not None:
                     self.rerun.finish()
                     summary["rerun"] = self.rerun.info()
@@ -610,10 +732,12 @@ def print_text(s: dict) -> None:
 def main_run(args) -> int:
     launcher = Launcher(args)
     code, summary = launcher.run()
+    launcher.phase("closed")
     if args.json:
         json.dump(summary, sys.stdout)
         sys.stdout.write("\n")
     else:
         print_text(summary)
     sys.stdout.flush()
+    launcher.phase("printed")
     return code

@@ -14,7 +14,8 @@ decides can be reproduced in-process (``testbed resimulate``).
   theta_k itself is recovered from any later ack (``last_rx``).  A missing ack
   costs samples, never lockstep.
 * ``ControllerProtocol``: Algorithm 2 and control law (2).  Samples are decided
-  strictly in order: when the symbol arrives (theta_k = 0; an invalid payload
+  strictly in order (with ``defer_update`` the decoder's update (xi), (E) of the last
+  decision waits for ``settle``, so that the shell sends u_k first; nothing else changes): when the symbol arrives (theta_k = 0; an invalid payload
   is a loss, theta_k = 1), when the loss deadline passes with nothing (theta_k = 1),
   or when a later sample's symbol arrives first (the earlier ones are lost).  A
   symbol for a sample already decided is late and ignored; a symbol whose header
@@ -34,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, phi_T
+from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
 from .quantizer import Codebook, Decoder, Encoder, InvalidSymbol
 
 # controller decision reasons (the telemetry's ``reason`` field)
@@ -192,10 +193,17 @@ class Decision:
 
 
 class ControllerProtocol:
-    """Algorithm 2 and control law (2), samples decided strictly in order."""
+    """Algorithm 2 and control law (2), samples decided strictly in order.
 
-    def __init__(self, dec: Decoder, n_steps: int):
+    ``defer_update``: a decision leaves the decoder's update (xi), (E) pending until
+    ``settle()`` (or the next decision, which settles it first), so that u_k goes out
+    before the prediction phi_T(q_k, u_k) is computed.  The numbers are the same.
+    """
+
+    def __init__(self, dec: Decoder, n_steps: int, defer_update: bool = False):
         self.dec = dec
+        self.defer_update = bool(defer_update)
+        self._unsettled = False
         self.codebook: Codebook = dec.codebook
         self.n_steps = int(n_steps)
         self.next_k = 0
@@ -207,10 +215,21 @@ class ControllerProtocol:
         self.superseded = 0
         self.future = 0
 
+    def settle(self) -> None:
+        """Apply the decoder's update (xi), (E) of the last decision, if it is still pending."""
+        if self._unsettled:
+            self._unsettled = False
+            self.dec.commit()
+
     def _decide(self, k: int, symbol: int | None, reason: int) -> Decision:
+        self.settle()
         dec = self.dec
         xi, E = dec.xi, dec.E
-        u, q, theta = dec.step(symbol)
+        u, q, theta = dec.decide(symbol)
+        if self.defer_update:
+            self._unsettled = True
+        else:
+            dec.commit()
         if theta == 0:
             self.last_rx = k
         self.next_k = k + 1
@@ -272,16 +291,32 @@ class OdeProcess:
         self.flow = flow
         self.n, self.m = plant.n, plant.m
         self._x = np.zeros(plant.n)
+        self._call = None   # the flow map phi_dt of one state (``flow_into``), set on the first advance
 
     def reset(self, x0) -> None:
         self._x = np.array(x0, dtype=np.float64)
 
     def advance(self, u, dt: float) -> int:
-        """Hold u for dt seconds; returns the FLOW_* status (x stays finite)."""
+        """Hold u for dt seconds; returns the FLOW_* status (x stays finite).
+
+        phi_dt(x, u) by ``flow_into``, the kernel ``phi_T`` runs for each state of a batch, called
+        straight (no batch arrays, no type dispatch): the same numbers, a fraction of the cost.
+        """
         if dt <= 0.0:
             return FLOW_OK
-        x, st = phi_T(self.plant, self._x, np.asarray(u, dtype=np.float64), dt, self.flow)
-        self._x = x
+        u = np.ascontiguousarray(u, dtype=np.float64).reshape(self.m)
+        if self._call is None:
+            plant = self.plant
+            self._rhs, self._p, self._opts = type(plant).rhs.cfunc, plant.p, self.flow.as_array()
+            self._K, self._ytmp = np.empty((13, self.n)), np.empty(self.n)
+        out = np.empty(self.n)
+        args = (self._rhs, self._x, u, self._p, float(dt), self._opts, self._K, self._ytmp, out)
+        if self._call is None:
+            st = flow_into(*args)
+            self._call = compiled_for(flow_into, args)
+        else:
+            st = self._call(*args)
+        self._x = out
         return int(st)
 
     @property

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .flow import DEFAULT_FLOW, FlowOptions, flow_into
+from .flow import DEFAULT_FLOW, FlowOptions, compiled_for, flow_into
 
 MODE_IDEAL = 0
 MODE_RESILIENT = 1
@@ -323,14 +323,20 @@ class _End:
         self.E = float(qp.E0)
         self.u_prev = np.zeros(plant.m)  # u_{k-1} as both ends know it (u_{-1} = 0)
         self.flow_status = 0
+        self._zoom = None
 
     def _update(self, theta: int, overflow: bool, q: np.ndarray) -> None:
         xi_next = np.empty(self.plant.n)
         u_k = np.empty(self.plant.m)
         qp = self.qp
-        E_next, st = zoom_update(self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
-                                 self.xi, self.E, q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
-                                 self._dpar, self._Ks, self._ytmp, u_k, xi_next)
+        args = (self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
+                self.xi, float(self.E), q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
+                self._dpar, self._Ks, self._ytmp, u_k, xi_next)
+        if self._zoom is None:
+            E_next, st = zoom_update(*args)
+            self._zoom = compiled_for(zoom_update, args)  # once per sample on a live node: no type dispatch
+        else:
+            E_next, st = self._zoom(*args)
         self.xi = xi_next
         self.E = float(E_next)
         self.u_prev = u_k
@@ -380,13 +386,27 @@ class Decoder(_End):
         super().__init__(*a, **kw)
         self.overflows = 0
         self.invalid = 0
+        self._pending: tuple[int, bool, np.ndarray] | None = None
 
     def step(self, symbol: int | None):
         """Decode the symbol received at t_k (None: lost), return (u_k, q_k, theta_k).
 
         An out-of-range symbol is counted in ``invalid`` and treated as a loss
         (theta_k = 1), which the ack tells the encoder, so both stay in lockstep.
+        ``decide`` then ``commit``: the same in two steps.
         """
+        out = self.decide(symbol)
+        self.commit()
+        return out
+
+    def decide(self, symbol: int | None):
+        """(u_k, q_k, theta_k) of Algorithm 2 and law (2), without the update (xi), (E) of ``commit``.
+
+        A live controller sends u_k between the two: the prediction xi_k+1 = phi_T(q_k, u_k)
+        is not on the path of u_k.  ``decide`` again before ``commit`` is an error.
+        """
+        if self._pending is not None:
+            raise RuntimeError("Decoder.decide() twice without commit()")
         n = self.plant.n
         cb = self.codebook
         overflow = False
@@ -407,5 +427,13 @@ class Decoder(_End):
                 box_center(int(symbol), self.xi, self.E, self.qp.M, q)
         u = np.empty(self.plant.m)
         control_input(self.K, q, theta, overflow, u)
-        self._update(theta, overflow, q)
+        self._pending = (theta, overflow, q)
         return u, q, theta
+
+    def commit(self) -> None:
+        """Apply (xi), (E) for the sample ``decide`` decided: xi_k+1, E_k+1 (Algorithm 2)."""
+        if self._pending is None:
+            raise RuntimeError("Decoder.commit() without decide()")
+        theta, overflow, q = self._pending
+        self._pending = None
+        self._update(theta, overflow, q)

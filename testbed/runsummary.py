@@ -18,22 +18,11 @@ import numpy as np
 
 from .io import messages as msg
 from .simulate import json_clean as _clean
+from .stats import percentiles
 
 ROLES = ("plant", "encoder", "attacker", "controller")
 PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
-
-
-def percentiles(values, unit: float = 1e3) -> dict:
-    """p50 / p99 / max / count of ns values, in microseconds by default (None when empty)."""
-    if isinstance(values, np.ndarray) and values.dtype.kind in "iu":
-        a = values[values != msg.NO_TIME].astype(float)
-    else:
-        a = np.asarray([v for v in values if v is not None and v != msg.NO_TIME], dtype=float)
-    if a.size == 0:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    return {"p50": float(np.percentile(a, 50) / unit), "p99": float(np.percentile(a, 99) / unit),
-            "max": float(a.max() / unit), "n": int(a.size)}
 
 
 def _nan(n: int) -> np.ndarray:
@@ -180,7 +169,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         "controller_lost_at": ps.get("controller_lost_at", -1),
         "sizes": {"symbol_payload_bytes": codebook.nbytes, "symbol_bits": codebook.bits,
                   "header_bytes": msg.HEADER_SIZE, "sensor_payload_bytes": 8 * n,
-                  "actuation_payload_bytes": 1 + 8 * m, "ack_payload_bytes": 5,
+                  "actuation_payload_bytes": 5 + 8 * m, "ack_payload_bytes": 5,
                   "header_overhead_per_symbol": msg.HEADER_SIZE / codebook.nbytes},
         "timing": {
             "T_us": Tn / 1e3,

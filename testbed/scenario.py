@@ -362,12 +362,14 @@ def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
 
 
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
-              base_dir: str | Path | None = None, check_fmu: bool = True) -> Scenario:
+              base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
     from there first and an FMU path is relative to it.  ``check_fmu=False`` skips
     reading an FMU plant's file (a recording's scenario: the report needs only the model).
+    ``check_design=False`` skips the Schur check of a given K (scipy's expm): for the
+    nodes of a run whose launcher checked the same text and overrides already.
     """
     base_dir = str(Path(base_dir).resolve()) if base_dir else ""
     ctx = _Ctx(where)
@@ -577,11 +579,13 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     if ("K" in ct) == ("lqr" in ct):
         raise ctx.err("controller", "give exactly one of K = [[...]] or lqr = { Q = ..., R = ... }")
     u_max = _num(ctx, "controller.u_max", ct.get("u_max", 1e6), positive=True)
-    Ad, Bd = c2d(model_obj.A, model_obj.B, T)
     if "K" in ct:
         K = _matrix(ctx, "controller.K", ct["K"], (m, n))
         ctrl = ControllerSpec(K=K, source="K", u_max=u_max)
+        if check_design:
+            Ad, Bd = c2d(model_obj.A, model_obj.B, T)
     else:
+        Ad, Bd = c2d(model_obj.A, model_obj.B, T)
         lq = _table(ctx, "controller.lqr", ct["lqr"])
         _unknown(ctx, "controller.lqr", lq, {"Q", "R"})
         Q = _matrix(ctx, "controller.lqr.Q", lq.get("Q", np.eye(n).tolist()), (n, n))
@@ -591,9 +595,10 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         except (np.linalg.LinAlgError, ValueError) as e:
             raise ctx.err("controller.lqr", f"discrete LQR failed: {e}") from None
         ctrl = ControllerSpec(K=tuple(tuple(float(v) for v in r) for r in Kd), source="lqr", Q=Q, R=R, u_max=u_max)
-    rad = spectral_radius(closed_loop(Ad, Bd, ctrl.K_array))
-    if not rad < 1:
-        raise ctx.err("controller.K", f"A~ + B~ K is not Schur stable (spectral radius {rad:.4g})")
+    if check_design or ctrl.source != "K":
+        rad = spectral_radius(closed_loop(Ad, Bd, ctrl.K_array))
+        if not rad < 1:
+            raise ctx.err("controller.K", f"A~ + B~ K is not Schur stable (spectral radius {rad:.4g})")
 
     # [attack]
     at = _table(ctx, "attack", data.get("attack", {"kind": "none"}))
@@ -696,7 +701,7 @@ def bundled_names() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
 
 
-def load(ref: str | Path) -> Scenario:
+def load(ref: str | Path, *, check_design: bool = True) -> Scenario:
     """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...)."""
     p = Path(ref)
     if p.suffix == ".toml" or p.exists():
@@ -719,17 +724,18 @@ def load(ref: str | Path) -> Scenario:
                                 f"(bundled: {', '.join(bundled_names())})")
         text = res.read_text()
         name, where, base_dir = str(ref), f"bundled:{ref}", None
-    return loads(text, name=name, where=where, base_dir=base_dir)
+    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design)
 
 
 def loads(text: str, *, name: str = "scenario", where: str = "<string>",
-          base_dir: str | Path | None = None, check_fmu: bool = True) -> Scenario:
-    """A scenario from TOML text; ``base_dir``, ``check_fmu`` as in ``from_dict``."""
+          base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True) -> Scenario:
+    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design`` as in ``from_dict``."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
-    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir, check_fmu=check_fmu)
+    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir, check_fmu=check_fmu,
+                     check_design=check_design)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
@@ -758,7 +764,7 @@ def with_seed(sc: Scenario, overrides: dict) -> tuple[Scenario, dict]:
     return with_overrides(sc, {"seed": over["seed"]}), over
 
 
-def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
+def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool = True) -> Scenario:
     """``sc`` with run-time overrides applied and validated as if written in its file.
 
     ``sc.source`` stays the original text; recordings store the overrides beside it.
@@ -780,5 +786,6 @@ def with_overrides(sc: Scenario, overrides: dict | None) -> Scenario:
             continue
         data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES else v
     sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
-                    base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked)
+                    base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
+                    check_design=check_design)
     return dataclasses.replace(sc2, path=sc.path)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -53,10 +55,13 @@ def test_paper_symbol_is_one_byte():
     assert len(p) == 1 and len(a) == msg.HEADER_SIZE
 
 
-@given(k=u32, stamp=i64, theta=st.integers(0, 1), u=vec)
-def test_actuation_roundtrip(k, stamp, theta, u):
-    m = msg.Actuation(k, stamp, theta, u)
-    assert msg.Actuation.decode(*m.encode()) == m
+@given(k=u32, stamp=i64, theta=st.integers(0, 1), u=vec, last=st.integers(-1, 2**31 - 1))
+def test_actuation_roundtrip(k, stamp, theta, u, last):
+    m = msg.Actuation(k, stamp, theta, u, last)
+    p, a = m.encode()
+    assert len(p) == 5 + 8 * len(u)  # theta, last_rx (the ack it carries), u
+    assert msg.Actuation.decode(p, a) == m
+    assert m.ack() == msg.Ack(k, stamp, theta, last)
 
 
 @given(k=u32, stamp=i64, theta=st.integers(0, 1), last=st.integers(-1, 2**31 - 1))
@@ -222,11 +227,89 @@ def test_free_port_and_endpoint_host():
 def test_run_options_cli_roundtrip():
     from testbed.nodes.common import RunOptions, add_run_option_arguments
 
-    o = RunOptions(duration=5.0, T=0.05, timing="physical", deadline=0.4, mode="ideal", ack_via_attacker=True)
+    o = RunOptions(duration=5.0, T=0.05, timing="physical", deadline=0.4, mode="ideal", ack_via_attacker=True,
+                   separate_ack=True, colocate=("encoder",))
     p = argparse.ArgumentParser()
     add_run_option_arguments(p)
     assert RunOptions.from_args(p.parse_args(o.cli())) == o
     assert RunOptions().cli() == []
+    assert RunOptions().ack_on_actuation and not o.ack_on_actuation
+    assert not RunOptions(separate_ack=True).ack_on_actuation
+    assert o.processes == ("plant", "attacker", "controller") and o.process_of("encoder") == "plant"
+    assert RunOptions().processes == transport.ROLES
+
+
+def test_colocated_encoder_keys_move_to_the_plant():
+    """--colocate encoder: the plant's user publishes the encoder's keys, the encoder's user nothing."""
+    keys = transport.Keys.for_run("r")
+    assert "loop/symbol/tx" not in transport.publish_keys("plant")
+    co = ("encoder",)
+    plant = transport.publish_keys("plant", co)
+    assert {"loop/symbol/tx", "telemetry/encoder", "events/encoder", "summary/encoder", "alive/encoder",
+            "ready/encoder", "loop/sensor", "telemetry/plant"} <= set(plant)
+    assert transport.publish_keys("encoder", co) == []
+    assert transport.publish_keys("attacker", co) == transport.publish_keys("attacker")
+    acl = transport.acl_config(keys, co)
+    rules = {r["id"]: r for r in acl["rules"]}
+    assert "publish_encoder" not in rules
+    assert "testbed/r/loop/symbol/tx" in rules["publish_plant"]["key_exprs"]
+    plain = {r["id"]: r for r in transport.acl_config(keys)["rules"]}
+    assert "testbed/r/loop/symbol/tx" not in plain["publish_plant"]["key_exprs"]
+    (pol,) = [p for p in acl["policies"] if p["subjects"] == ["encoder"]]
+    assert pol["rules"] == ["listen", "receive"]
+    assert keys.ack_for_encoder(False, on_actuation=True) == keys.actuation
+    assert keys.ack_for_encoder(False) == keys.ack_tx and keys.ack_for_encoder(True, True) == keys.ack_rx
+
+
+def test_low_latency_config_and_router_without_scouting_delay():
+    c = transport.make_config(mode="router", low_latency=True)
+    assert json.loads(c.get_json("transport/unicast/lowlatency")) is True
+    assert json.loads(c.get_json("transport/unicast/qos/enabled")) is False
+    assert json.loads(c.get_json("scouting/delay")) == 0
+    assert json.loads(transport.make_config(mode="peer").get_json("transport/unicast/lowlatency")) is False
+
+
+def test_parse_cpus():
+    from testbed.errors import BadInput
+    from testbed.nodes.common import parse_cpus
+
+    cpu = min(os.sched_getaffinity(0))
+    assert parse_cpus(str(cpu)) == {cpu}
+    assert parse_cpus(f"{cpu}-{cpu}") == {cpu}
+    for bad in ("x", "", "999999", "1-"):
+        with pytest.raises(BadInput):
+            parse_cpus(bad)
+
+
+def test_telemetry_is_published_off_the_callers_thread_in_order():
+    import threading
+
+    from testbed.nodes.common import TelemetryOut
+
+    got, threads = [], []
+
+    class Pub:
+        def put(self, data):
+            got.append(data)
+            threads.append(threading.get_ident())
+
+    t = TelemetryOut(Pub(), T_ns=1_000_000)  # 20 records a batch, published by its own thread
+    recs = [bytes([i]) * 3 for i in range(45)]
+    for r in recs:
+        t.put(r)
+    deadline = time.monotonic() + 5
+    while len(got) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(got) == 2 and threading.get_ident() not in threads
+    t.flush()  # the rest, from the caller
+    assert [r for d in got for r in msg.unpack_batch(d)] == recs
+    assert t.digest()["telemetry_records"] == 45
+    slow = TelemetryOut(Pub(), T_ns=100_000_000)
+    assert slow.n == 1 and slow.quiet_ns == 20_000_000  # at T = 0.1 s: 20 ms after the sample
+    inline = TelemetryOut(Pub(), T_ns=100_000_000, background=False)
+    n = len(got)
+    inline.put(b"x")
+    assert len(got) == n + 1 and threads[-1] == threading.get_ident()
 
 
 def test_load_scenario_overrides_and_digest(paper):

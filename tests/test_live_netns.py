@@ -21,8 +21,8 @@ import warnings
 
 import pytest
 
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, TIMEOUT, _node_logs, reap, run_cli,  # noqa: F401
-                               simulate, stalled)
+from test_live_process import (_LOGS, BIT_EXACT_KEYS, TIMEOUT, TOPOLOGIES, _node_logs, reap,  # noqa: F401
+                               run_cli, simulate, stalled)
 
 pytestmark = pytest.mark.process
 
@@ -78,11 +78,11 @@ def netns():
         assert not left, f"namespaces left behind: {left}"
 
 
-def _run_in_namespaces(names, addr, run_id):
+def _run_in_namespaces(names, addr, run_id, topology=()):
     port = 7447
     cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
            "--duration", "5", "--json", "--run-id", run_id, "--listen", f"tcp/{addr['hub']}:{port}",
-           "--run-dir", os.path.join(_LOGS, run_id)]
+           "--run-dir", os.path.join(_LOGS, run_id), *topology]
     for r in ROLES:
         cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}=tcp/{addr[r]}:0"]
     try:
@@ -93,18 +93,20 @@ def _run_in_namespaces(names, addr, run_id):
     return rc, json.loads(out), err
 
 
-def test_paper_across_network_namespaces(netns):
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_paper_across_network_namespaces(netns, topology):
     names, addr = netns
     run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
-    rc, s, err = _run_in_namespaces(names, addr, run_id)
+    rc, s, err = _run_in_namespaces(names, addr, run_id, topology)
     stall = stalled(s)
     if stall:  # as live_exact: a starved node makes a loss, and the run says so; rerun once
         warnings.warn(f"netns run reports {stall} (machine stalled); rerunning once")
-        rc, s, err = _run_in_namespaces(names, addr, run_id + "r")
+        rc, s, err = _run_in_namespaces(names, addr, run_id + "r", topology)
     assert rc == 0, (s["faults"], err[-3000:])
-    # every node ran in its own network namespace
+    # every node process ran in its own network namespace (a colocated encoder in the plant's)
     netns_ids = {r: s["node_summaries"][r]["netns"] for r in ROLES}
-    assert len(set(netns_ids.values())) == 4, netns_ids
+    assert len(set(netns_ids.values())) == (3 if topology else 4), netns_ids
+    assert (netns_ids["encoder"] == netns_ids["plant"]) == bool(topology)
     assert os.readlink("/proc/self/ns/net") not in netns_ids.values()
     sim = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:

@@ -166,13 +166,17 @@ def simulate(scenario: str, duration: float) -> dict:
 
 BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "saturated_at", "x_final")
 
+#: the two topologies every key live test runs in: four node processes, and the encoder inside the
+#: plant's process (``--colocate encoder``, three network hops per sample)
+TOPOLOGIES = [pytest.param((), id="4proc"), pytest.param(("--colocate", "encoder"), id="colocated")]
+
 
 # ====================================================================== ideal timing: bit for bit
-@pytest.fixture(scope="module")
-def paper_run():
+@pytest.fixture(scope="module", params=TOPOLOGIES)
+def paper_run(request):
     rid = f"t{os.getpid()}xpaper{secrets.token_hex(3)}"
     try:
-        yield live_exact(rid, "paper", "--duration", "5")
+        yield live_exact(rid, "paper", "--duration", "5", *request.param)
     finally:
         left = reap(rid)
         assert not left
@@ -212,12 +216,17 @@ def test_paper_live_reports_sizes_and_timing(paper_run):
     for r in ("plant", "encoder", "attacker", "controller"):
         assert s["nodes"][r]["exit_code"] == 0
         assert r in s["node_summaries"]
+    colocated = s["node_summaries"]["plant"]["colocated"] == ["encoder"]
+    assert (s["nodes"]["encoder"].get("colocated_in") == "plant") == colocated
+    assert (s["node_summaries"]["encoder"]["pid"] == s["node_summaries"]["plant"]["pid"]) == colocated
+    assert s["node_summaries"]["controller"]["ack"] == "on the actuation"
     # nodes leaving at the end of a clean run are not reported as lost peers
     assert "peer_lost" not in s["events"] and "controller_lost" not in s["events"], s["events"]
 
 
-def test_greedy_attacker_live_equals_simulator(run_id):
-    rc, s, err = live_exact(run_id, "paper-greedy", "--duration", "4")
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_greedy_attacker_live_equals_simulator(run_id, topology):
+    rc, s, err = live_exact(run_id, "paper-greedy", "--duration", "4", *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     sim = simulate("paper-greedy", 4)
     for key in BIT_EXACT_KEYS:
@@ -233,9 +242,10 @@ def resimulated(s: dict) -> dict:
     return json.loads(out)
 
 
-def test_malformed_and_out_of_range_payloads_are_losses(run_id):
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_malformed_and_out_of_range_payloads_are_losses(run_id, topology):
     """The attacker corrupts samples 4 (out-of-range code) and 6 (wrong length)."""
-    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--corrupt", "4:range,6:length")
+    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--corrupt", "4:range,6:length", *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["invalid_payloads"] == 2
     assert s["theta"][4] == 1 and s["theta"][6] == 1 and s["symbols"][4] != -1
@@ -254,8 +264,9 @@ def _after(s, k0):
     return range(k0 + 2, s["samples"])
 
 
-def test_controller_killed_plant_runs_on_with_zero_input(run_id):
-    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", "controller@1.05")
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_controller_killed_plant_runs_on_with_zero_input(run_id, topology):
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", "controller@1.05", *topology)
     assert rc == 1
     (f,) = [f for f in s["faults"] if f["node"] == "controller"]
     assert f["kind"] == "killed" and f["signal"] == "SIGKILL" and f["injected"]
@@ -283,9 +294,12 @@ def assert_recording_kept_the_run(s: dict, killed: str, k_kill: int) -> None:
     assert any(e.node == "launcher" and e.kind == f"{killed}_killed" for e in rec.events)
 
 
+@pytest.mark.parametrize("topology", TOPOLOGIES)
 @pytest.mark.parametrize("node", ["encoder", "attacker"])
-def test_uplink_node_killed_controller_counts_losses(run_id, node):
-    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", f"{node}@0.55")
+def test_uplink_node_killed_controller_counts_losses(run_id, node, topology):
+    """Killing the encoder when it is colocated kills it alone (the launcher's SIGUSR2 to the plant's
+    process): the plant runs on, and the run looks as if the encoder's own process had been killed."""
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", f"{node}@0.55", *topology)
     assert rc == 1
     (f,) = [f for f in s["faults"] if f["node"] == node]
     assert f["kind"] == "killed" and f["liveliness_lost"]
@@ -337,8 +351,9 @@ def test_launcher_signal_stops_everything(run_id, sig):
 
 
 # ====================================================================== ack channel, timing modes
-def test_ack_through_the_attacker_keeps_lockstep(run_id):
-    rc, s, err = live_exact(run_id, "paper", "--duration", "6", "--ack-via-attacker")
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_ack_through_the_attacker_keeps_lockstep(run_id, topology):
+    rc, s, err = live_exact(run_id, "paper", "--duration", "6", "--ack-via-attacker", *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["attacker"]["acks_dropped"] >= 13
     ns = s["node_summaries"]["encoder"]
@@ -359,13 +374,17 @@ def test_ack_through_the_attacker_keeps_lockstep(run_id):
     assert r["reproduced"] and r["max_state_error"] == 0 and r["symbols_identical"] and r["E_identical"]
 
 
-def test_physical_timing_converges_on_the_paper_and_resimulates(run_id):
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_physical_timing_converges_on_the_paper_and_resimulates(run_id, topology):
     """The paper's scenario and attacks with u_k acting at a real instant: scheduled actuation,
-    the delay-aware rule; it converges, and the recording re-simulates exactly."""
-    rc, s, err = live_exact(run_id, "paper", "--duration", "30", "--timing", "physical")
+    the delay-aware rule; it converges, and the recording re-simulates exactly.  (Colocated: the
+    first 8 s, through both attacks, against the simulator's first 80 samples.)"""
+    duration = "8" if topology else "30"
+    rc, s, err = live_exact(run_id, "paper", "--duration", duration, "--timing", "physical", *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["timing_mode"] == "physical" and s["complete"] and s["rule"] == "delay-aware"
-    assert s["converged"] and s["final_norm"] < 1e-4, s["final_norm"]
+    if not topology:
+        assert s["converged"] and s["final_norm"] < 1e-4, s["final_norm"]
     assert s["encoder_decoder_agree_where_known"] is True
     r = resimulated(s)
     assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
@@ -375,7 +394,7 @@ def test_physical_timing_converges_on_the_paper_and_resimulates(run_id):
     late = s["timing"]["sensor_to_actuator_us"]["max"] > 20_000  # received samples: scheduled at 20 ms
     if not late:
         for key in ("symbols", "theta", "E", "x"):
-            assert s[key] == sim[key], key
+            assert s[key] == sim[key][:s["samples"]], key
 
 
 def test_physical_timing_on_arrival_survives_latency(run_id, tmp_path):

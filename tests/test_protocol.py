@@ -74,6 +74,36 @@ def test_controller_decides_in_order_and_rejects_late_future_and_invalid(paper):
     assert cp.deadline(7) is None and cp.deadline(5).reason == DEADLINE
 
 
+def test_deferred_decoder_update_changes_no_number(paper):
+    """The live controller sends u_k before the decoder's prediction for k+1 (``defer_update``, settled
+    after the send or by the next decision): every decision and state equals the undeferred one."""
+    rng = np.random.default_rng(3)
+    cps = [ControllerProtocol(_ends(paper)[1], 40, defer_update=d) for d in (False, True)]
+    cb = cps[0].codebook
+    out = [[], []]
+    for k in range(40):
+        r = rng.random()
+        for i, cp in enumerate(cps):
+            if r < 0.2:
+                decs = [cp.deadline(k)]
+            elif r < 0.3:
+                decs = cp.symbol(k, b"\xff\xff")
+            elif r < 0.4 and k + 1 < 40:
+                continue  # superseded by the next sample's symbol
+            else:
+                decs = cp.symbol(k, cb.pack(int(rng.integers(0, cb.n_codes)) if i == 0 else out[0][-1][1]))
+            out[i].extend((d.k, d.symbol, d.theta, d.u.tolist(), d.xi.tolist(), d.E, d.reason) for d in decs)
+            if i == 1 and rng.random() < 0.5:
+                cp.settle()  # sometimes settled after the send, sometimes by the next decision
+    cps[1].settle()
+    assert out[0] == out[1]
+    assert cps[0].dec.xi.tolist() == cps[1].dec.xi.tolist() and cps[0].dec.E == cps[1].dec.E
+    d = cps[1].dec
+    d.decide(0)
+    with pytest.raises(RuntimeError):
+        d.decide(0)  # a decision before the last one's update: refused
+
+
 def test_plant_checks_inputs_and_applies_the_actuation_policy(paper):
     proc = OdeProcess(paper.make_plant())
     pp = PlantProtocol(proc, 0.1, timing="physical", actuation="scheduled", sched_ns=20_000_000,

@@ -12,8 +12,8 @@ import subprocess
 import time
 
 import pytest
-from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, cmdlines, live, live_exact, procs_with,  # noqa: F401 - run_id is a fixture
-                               run_id, simulate, tb_cmd)
+from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, TOPOLOGIES, cmdlines, live, live_exact,  # noqa: F401 - run_id
+                               procs_with, run_id, simulate, tb_cmd)
 
 import numpy as np
 from test_postmortem import assert_columns_equal_reference
@@ -26,9 +26,10 @@ from testbed.report import report
 pytestmark = pytest.mark.process
 
 
-def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path, topology):
     path = tmp_path / "live.mcap"
-    rc, s, err = live_exact(run_id, "paper", "--duration", "5", "--out", str(path))
+    rc, s, err = live_exact(run_id, "paper", "--duration", "5", "--out", str(path), *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["recording"]["complete"] and s["recording"]["path"] == str(path)
     r = report(path)
@@ -43,7 +44,9 @@ def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path):
     assert r["timing"]["sampling_jitter_us"]["n"] == 50
     # what crossed the network is there too (T = 0.1 s: the control path is recorded)
     msgs = recording.read(path).counts
-    assert msgs["/loop/sensor"] == 50 and msgs["/loop/symbol/tx"] == 50 and msgs["/loop/actuation"] == 50
+    assert msgs["/loop/symbol/tx"] == 50 and msgs["/loop/actuation"] == 50
+    # four messages a sample (the ack rides on the actuation), three when the encoder is colocated
+    assert msgs.get("/loop/sensor", 0) == (0 if topology else 50) and "/loop/ack/tx" not in msgs
     assert msgs["/loop/symbol/rx"] == 50 - sim["packets_dropped"]
     assert {"/summary/plant", "/summary/encoder", "/summary/attacker", "/summary/controller",
             "/summary/launcher"} <= set(msgs)

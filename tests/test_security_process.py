@@ -87,7 +87,7 @@ def wait_running(run_id: str, p: subprocess.Popen, timeout: float = TIMEOUT) -> 
         if len(procs_with(f"--run-id {run_id}")) >= 5:
             break
         time.sleep(0.1)
-    time.sleep(4.0)  # start-up (imports, JIT warm-up)
+    time.sleep(1.5)  # start-up (imports, JIT warm-up)
 
 
 def forge_everything(session, keys: transport.Keys, n_steps: int, k_now: int, symbol_tx: bool = True) -> None:
@@ -159,21 +159,27 @@ def insider(secret: str, user: str, port: int):
     return zenoh.open(conf)
 
 
-def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_path):
-    """The encoder's credentials, used to publish on every other node's keys: all of it dropped."""
+@pytest.mark.parametrize("colocated", [False, True], ids=["4proc", "colocated"])
+def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_path, colocated):
+    """The encoder's credentials, used to publish on every other node's keys: all of it dropped.
+
+    Colocated (the encoder runs in the plant's process), the encoder's user has no keys at all:
+    not even its symbols get through."""
     secret = str(tmp_path / "run.secret")
     assert subprocess.run(tb_cmd("secret", secret), capture_output=True).returncode == 0
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
-    p = start_run(run_id, "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret)
+    p = start_run(run_id, "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret,
+                  *(("--colocate", "encoder") if colocated else ()))
     try:
         wait_running(run_id, p)
         with insider(secret, "encoder", port) as session:
             started = threading.Event()
-            sub = session.declare_subscriber(keys.sensor, lambda smp: started.set())
+            sub = session.declare_subscriber(keys.actuation, lambda smp: started.set())
             assert started.wait(TIMEOUT), "the run never started"
             sub.undeclare()
-            forge_everything(session, keys, 60, 30, symbol_tx=False)  # its own key: an encoder sends symbols
+            # its own key, unless colocated: an encoder sends symbols
+            forge_everything(session, keys, 60, 30, symbol_tx=colocated)
             time.sleep(0.3)
     finally:
         rc, s, err = finish(p)

@@ -10,8 +10,10 @@ the sample index and a time stamp travel beside it as a Zenoh attachment
 * ``Sensor``     payload n float64: x_k                           (plant -> encoder)
 * ``Symbol``     payload the packed symbol bits, ``Codebook.pack`` (encoder -> controller),
                  1 byte for the paper's M = 6, n = 2
-* ``Actuation``  payload uint8 theta_k + m float64 u_k             (controller -> plant)
-* ``Ack``        payload uint8 theta_k + int32 last_rx             (controller -> encoder)
+* ``Actuation``  payload uint8 theta_k + int32 last_rx + m float64 u_k  (controller -> plant, and
+                 -> encoder: the ideal ack rides on it, ``last_rx`` as in ``Ack``)
+* ``Ack``        payload uint8 theta_k + int32 last_rx             (controller -> encoder, when the
+                 ack is a message of its own: ``--separate-ack``, or routed via the attacker)
 
 Telemetry (``telemetry/<node>``: one little-endian binary record per sample,
 records batched ``pack_batch`` / ``unpack_batch`` so that a message carries at
@@ -130,32 +132,42 @@ class Symbol:
         return cls(h.k, h.stamp_ns, _bytes(payload))
 
 
-_ACT = struct.Struct("<B")
+_ACT = struct.Struct("<Bi")
 
 
 @dataclass(frozen=True, slots=True)
 class Actuation:
-    """u_k = (1 - theta_k) K q_k for sample k (control law (2)), controller -> plant."""
+    """u_k = (1 - theta_k) K q_k for sample k (control law (2)), controller -> plant.
+
+    It also carries the ack of sample k (Algorithms 1 and 2): theta_k and ``last_rx``,
+    the latest sample whose symbol the decoder accepted (-1: none), as ``Ack`` does; with
+    the paper's ideal ack the encoder reads them from this message (one put, two readers).
+    """
 
     k: int
     stamp_ns: int
     theta: int
     u: tuple[float, ...]
+    last_rx: int = -1
 
     def encode(self) -> tuple[bytes, bytes]:
-        return (_ACT.pack(self.theta) + struct.pack(f"<{len(self.u)}d", *self.u),
+        return (_ACT.pack(self.theta, self.last_rx) + struct.pack(f"<{len(self.u)}d", *self.u),
                 Header(self.k, self.stamp_ns).encode())
 
     @classmethod
     def decode(cls, payload, attachment) -> "Actuation":
         h = Header.decode(attachment)
         data = _bytes(payload)
-        if len(data) < 1 + 8:
+        if len(data) < _ACT.size + 8:
             raise MessageError(f"actuation of {len(data)} bytes is too short")
-        theta = data[0]
+        theta, last_rx = _ACT.unpack_from(data)
         if theta > 1:
             raise MessageError(f"actuation: theta = {theta} is not 0 or 1")
-        return cls(h.k, h.stamp_ns, theta, _floats(data[1:], "actuation"))
+        return cls(h.k, h.stamp_ns, theta, _floats(data[_ACT.size:], "actuation"), last_rx)
+
+    def ack(self) -> "Ack":
+        """The ack this actuation carries."""
+        return Ack(self.k, self.stamp_ns, self.theta, self.last_rx)
 
 
 _ACK = struct.Struct("<Bi")
@@ -191,11 +203,20 @@ class Ack:
 
 
 # ============================================================================ telemetry
+_VEC: dict[int, struct.Struct] = {}  # length-prefixed float64 vectors, one compiled struct per length
+
+
 def _vec(v) -> bytes:
-    v = tuple(float(a) for a in v)
-    if len(v) > 255:
-        raise MessageError("vector longer than 255")
-    return struct.pack(f"<B{len(v)}d", len(v), *v)
+    n = len(v)
+    s = _VEC.get(n)
+    if s is None:
+        if n > 255:
+            raise MessageError("vector longer than 255")
+        s = _VEC[n] = struct.Struct(f"<B{n}d")
+    try:
+        return s.pack(n, *v)
+    except struct.error as e:
+        raise MessageError(f"vector: {e}") from None
 
 
 def _unvec(data: bytes, off: int) -> tuple[tuple[float, ...], int]:
@@ -216,8 +237,10 @@ class _Telemetry:
     _vector_fields: ClassVar[tuple[str, ...]]
 
     def encode(self) -> bytes:
-        head = self._scalars.pack(*(getattr(self, f) for f in self._scalar_fields))
-        return head + b"".join(_vec(getattr(self, f)) for f in self._vector_fields)
+        out = self._scalars.pack(*[getattr(self, f) for f in self._scalar_fields])
+        for f in self._vector_fields:
+            out += _vec(getattr(self, f))
+        return out
 
     @classmethod
     def decode(cls, payload):

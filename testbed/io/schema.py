@@ -89,7 +89,9 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
     "Symbol": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
                ("data", "bytes", "the packed symbol bits exactly as sent (Codebook.pack)")],
     "Actuation": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
-                  ("theta", "u32", "theta_k"), ("u", "f64*", "u_k")],
+                  ("theta", "u32", "theta_k"), ("u", "f64*", "u_k"),
+                  ("last_rx", "i32", "the ack it carries: latest sample whose symbol the decoder accepted "
+                                     "(-1 none; reads 0 in recordings that predate the field)")],
     "Ack": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"), ("theta", "u32", "theta_k"),
             ("last_rx", "i32", "latest sample whose symbol the decoder accepted (-1 none)")],
     # ---- bookkeeping

@@ -8,9 +8,11 @@ key (after the prefix)          publisher -> reader    message (``testbed.io.mes
 ``loop/sensor``                 plant -> encoder       ``Sensor``     x_k (control path)
 ``loop/symbol/tx``              encoder -> attacker    ``Symbol``     packed symbol bits
 ``loop/symbol/rx``              attacker -> controller ``Symbol``     forwarded symbol
-``loop/actuation``              controller -> plant    ``Actuation``  theta_k, u_k
-``loop/ack/tx``                 controller -> encoder  ``Ack``        theta_k (ideal ack channel),
-                                (or -> attacker)                      or into the attacker
+``loop/actuation``              controller -> plant    ``Actuation``  theta_k, u_k; with the ideal
+                                (and -> encoder)                      ack also last_rx: the ack
+``loop/ack/tx``                 controller -> encoder  ``Ack``        theta_k as a message of its own
+                                (or -> attacker)                      (``--separate-ack``), or into
+                                                                      the attacker
 ``loop/ack/rx``                 attacker -> encoder    ``Ack``        ack routed through the attacker
 ``telemetry/<node>``            each node              ``PlantTelemetry`` ... per sample
 ``attacker/status``             attacker               ``AttackerStatus`` on every change
@@ -102,8 +104,11 @@ class Keys:
     def ack_rx(self) -> str:
         return f"{self.prefix}/loop/ack/rx"
 
-    def ack_for_encoder(self, via_attacker: bool) -> str:
-        return self.ack_rx if via_attacker else self.ack_tx
+    def ack_for_encoder(self, via_attacker: bool, on_actuation: bool = False) -> str:
+        """Where the encoder reads theta_k: the attacker's forward, the actuation it rides on, or ack/tx."""
+        if via_attacker:
+            return self.ack_rx
+        return self.actuation if on_actuation else self.ack_tx
 
     # ---- telemetry and bookkeeping
     def telemetry(self, node: str) -> str:
@@ -156,7 +161,7 @@ class Keys:
 def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | tuple[str, ...] = (),
                 config_file: str | Path | None = None, multicast: bool = False, *, mode: str = "peer",
                 user: str | None = None, password: str | None = None, dictionary_file: str | Path | None = None,
-                acl: dict | None = None):
+                acl: dict | None = None, low_latency: bool = False):
     """A ``zenoh.Config``: explicit endpoints, multicast scouting off.
 
     ``mode``: "peer", "router" or "client" (a client has no listener of its own).
@@ -166,7 +171,8 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
     own default would be every interface).  ``user``/``password``: the credentials
     this session presents; ``dictionary_file``: the ``user:password`` lines it
     accepts from the sessions that connect to it; ``acl``: Zenoh access control
-    (``acl_config``).
+    (``acl_config``).  ``low_latency``: Zenoh's low-latency unicast transport (no
+    batching, no priority queues: QoS off), which every session of a run must share.
     """
     import zenoh
 
@@ -175,6 +181,9 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
     conf = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
+    if mode == "router" and not multicast:
+        # a router otherwise spends 500 ms scouting for peers before it opens; there are none to find
+        conf.insert_json5("scouting/delay", "0")
     if mode != "client":
         file_listen = _json_or_none(conf, "listen/endpoints")
         if listen:
@@ -196,6 +205,9 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(Path(dictionary_file).resolve())))
     if acl is not None:
         conf.insert_json5("access_control", json.dumps(acl))
+    if low_latency:
+        conf.insert_json5("transport/unicast/lowlatency", "true")
+        conf.insert_json5("transport/unicast/qos/enabled", "false")
     return conf
 
 
@@ -277,8 +289,25 @@ class Credentials:
         return Credentials({user: self.password(user)})
 
 
+#: roles that may run inside another node's process (``--colocate encoder``: in the plant's)
+COLOCATABLE = {"encoder": "plant"}
+
+
+def host_of(role: str, colocate: tuple[str, ...] = ()) -> str:
+    """The process (user) that runs ``role``: its own, or its host's when colocated."""
+    return COLOCATABLE[role] if role in colocate else role
+
+
 #: the keys (after ``testbed/<run_id>/``) each process may publish on, and its liveliness tokens
-def publish_keys(user: str) -> list[str]:
+def publish_keys(user: str, colocate: tuple[str, ...] = ()) -> list[str]:
+    """What ``user`` may publish on; a process that hosts a colocated role also publishes that role's keys."""
+    if user in colocate:
+        return []  # no process of its own
+    guests = [r for r in colocate if COLOCATABLE.get(r) == user]
+    return _own_keys(user) + [k for r in guests for k in _own_keys(r)]
+
+
+def _own_keys(user: str) -> list[str]:
     own = {"plant": ["loop/sensor", "control/start", "control/stop"],
            "encoder": ["loop/symbol/tx"],
            "attacker": ["loop/symbol/rx", "loop/ack/rx", "attacker/status"],
@@ -292,13 +321,15 @@ def publish_keys(user: str) -> list[str]:
     return own + [f"alive/{name}", f"ready/{name}"]
 
 
-def acl_config(keys: Keys) -> dict:
+def acl_config(keys: Keys, colocate: tuple[str, ...] = ()) -> dict:
     """Zenoh access control of the run's router: each process may publish only on its own keys.
 
     Default deny; every authenticated client may subscribe to and receive everything of
     the run, and put (and declare liveliness tokens, queryables and replies) only on
     ``publish_keys(user)``.  The router accepted every link, so it knows the user name
-    at the other end of each and checks every message.
+    at the other end of each and checks every message.  ``colocate``: roles run inside
+    another process (``COLOCATABLE``): their keys move to the host's user, and their own
+    user may publish nothing.
     """
     p = keys.prefix
     every = f"{p}/**"
@@ -309,10 +340,11 @@ def acl_config(keys: Keys) -> dict:
               "key_exprs": [every]},
              {"id": "receive", "messages": listen_msgs + pub_msgs + ["delete"], "flows": ["egress"],
               "permission": "allow", "key_exprs": [every]}]
+    own = {u: publish_keys(u, colocate) for u in USERS}
     rules += [{"id": f"publish_{u}", "messages": pub_msgs, "flows": ["ingress"], "permission": "allow",
-               "key_exprs": [f"{p}/{k}" for k in publish_keys(u)]} for u in USERS]
-    policies = [{"id": f"policy_{u}", "rules": ["listen", "receive", f"publish_{u}"], "subjects": [u]}
-                for u in USERS]
+               "key_exprs": [f"{p}/{k}" for k in own[u]]} for u in USERS if own[u]]
+    policies = [{"id": f"policy_{u}", "rules": ["listen", "receive"] + ([f"publish_{u}"] if own[u] else []),
+                 "subjects": [u]} for u in USERS]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

@@ -79,15 +79,17 @@ class AttackerNode(Node):
         self.score_wait_ns = max(int(0.25 * sc.run.deadline * ctx.T_ns), 100_000)
         self.pub_fwd = self.publisher(keys.symbol_rx)
         self.pub_status = ctx.session.declare_publisher(keys.attacker_status)
-        self._subs = [ctx.session.declare_subscriber(keys.symbol_tx, self.guard(self._on_symbol))]
+        # the online (greedy) gate may wait for a score while it holds its lock: those handlers must not
+        # run on Zenoh's own receive thread, which delivers the score
+        online = self.gate.is_online
+        self._subs = [self.subscribe(keys.symbol_tx, self._on_symbol, blocking=online, primary=True)]
         if ctx.opts.ack_via_attacker:
             self.pub_ack = self.publisher(keys.ack_rx)
-            self._subs.append(ctx.session.declare_subscriber(keys.ack_tx, self.guard(self._on_ack)))
+            self._subs.append(self.subscribe(keys.ack_tx, self._on_ack, blocking=online))
         if self.score_kind == "state":
-            self._subs.append(ctx.session.declare_subscriber(keys.sensor, self.guard(self._on_sensor)))
+            self._subs.append(self.subscribe(keys.sensor, self._on_sensor))
         elif self.score_kind == "E":
-            self._subs.append(ctx.session.declare_subscriber(keys.telemetry("encoder"),
-                                                             self.guard(self._on_enc_telemetry)))
+            self._subs.append(self.subscribe(keys.telemetry("encoder"), self._on_enc_telemetry))
         self._last_on = False
 
     def warmup(self) -> None:
@@ -159,22 +161,22 @@ class AttackerNode(Node):
                                                    acks_dropped=self.acks_dropped).encode())
 
     # ---- callbacks
-    def _on_symbol(self, sample) -> None:
+    def _on_symbol(self, sample):
         ctx = self.ctx
-        clock = ctx.clock
-        if clock is None:
-            return
-        rx = clock.now()
         h = self.rx_header(sample, "symbol header (dropped)")
         if h is None:
-            return
+            return None
+        clock = ctx.wait_clock()
+        if clock is None:
+            return None
+        rx = clock.now()
         k = h.k
         if k >= ctx.n_steps:
-            return
+            return None
         if k > ctx.newest_k(rx):
             self.future_symbols += 1
             ctx.event("future_symbol", k=k, detail=f"symbol for sample {k} before its instant: dropped")
-            return
+            return None
         self.maybe_crash(k)
         drop = self.decide(k)
         corrupted = 0
@@ -197,6 +199,7 @@ class AttackerNode(Node):
         self._publish_status(k)
         if corrupted:
             ctx.event("corrupted", k=k, detail=f"payload replaced ({self.corrupt[k]})", level=20)
+        return k
 
     def _corrupt(self, payload: bytes, kind: str) -> bytes:
         return corrupt_payload(self.codebook, payload, kind)
@@ -220,5 +223,5 @@ class AttackerNode(Node):
                 "acks_forwarded": self.acks_forwarded, "missing_scores": self.missing_scores,
                 "attacks_started": self.gate.attacks_started, "malformed": self.malformed,
                 "future_symbols": self.future_symbols,
-                "score": self.score_kind}
+                "score": self.score_kind, **self.rx_summary()}
 

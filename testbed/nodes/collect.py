@@ -161,6 +161,15 @@ class Collector:
                     return None if alive else t
         return None
 
+    def snapshot_summaries(self) -> dict[str, dict]:
+        with self.lock:
+            return dict(self.summaries)
+
+    def event_of(self, node: str, kind: str):
+        """The first event ``kind`` of ``node``, or None."""
+        with self.lock:
+            return next((e for e in self.events if e.node == node and e.kind == kind), None)
+
     def plant_done(self) -> bool:
         with self.lock:
             return any(s.origin == "plant" for s in self.stops)

@@ -13,6 +13,7 @@ microseconds.  All stamps are integer ns since t0; sample k is due at t_k = k T_
 from __future__ import annotations
 
 import argparse
+import collections
 import ctypes
 import dataclasses
 import faulthandler
@@ -55,6 +56,8 @@ class RunOptions:
     rule: str | None = None
     seed: int | None = None
     ack_via_attacker: bool = False
+    separate_ack: bool = False
+    colocate: tuple[str, ...] = ()
 
     _OVERRIDES = (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"), ("deadline", "--deadline"),
                   ("mode", "--mode"), ("loss_fraction", "--loss-fraction"), ("actuation", "--actuation"),
@@ -62,8 +65,25 @@ class RunOptions:
 
     @classmethod
     def from_args(cls, args) -> "RunOptions":
+        co = getattr(args, "colocate", None) or ()
         return cls(**{k: getattr(args, k, None) for k, _ in cls._OVERRIDES},
-                   ack_via_attacker=bool(getattr(args, "ack_via_attacker", False)))
+                   ack_via_attacker=bool(getattr(args, "ack_via_attacker", False)),
+                   separate_ack=bool(getattr(args, "separate_ack", False)),
+                   colocate=tuple(sorted({co} if isinstance(co, str) else set(co))))
+
+    @property
+    def ack_on_actuation(self) -> bool:
+        """The ideal ack rides on the actuation message (one put, read by the plant and the encoder)."""
+        return not (self.ack_via_attacker or self.separate_ack)
+
+    def process_of(self, role: str) -> str:
+        """The process that runs ``role`` (its own, or the plant's for a colocated encoder)."""
+        return transport.host_of(role, self.colocate)
+
+    @property
+    def processes(self) -> tuple[str, ...]:
+        """The node processes of the run (the four roles, less the colocated ones)."""
+        return tuple(r for r in transport.ROLES if r not in self.colocate)
 
     def overrides(self) -> dict:
         """The scenario overrides (``testbed.scenario.with_overrides``), None fields left out."""
@@ -78,6 +98,10 @@ class RunOptions:
                 out += [flag, repr(v) if isinstance(v, float) else str(v)]
         if self.ack_via_attacker:
             out.append("--ack-via-attacker")
+        if self.separate_ack:
+            out.append("--separate-ack")
+        for r in self.colocate:
+            out += ["--colocate", r]
         return out
 
 
@@ -100,13 +124,24 @@ def add_run_option_arguments(p: argparse.ArgumentParser,
                    help="override [attack] seed (a random attack without one draws one, prints it and records it)")
     g.add_argument("--ack-via-attacker", action="store_true",
                    help="route the controller's acks through the attacker proxy too")
+    g.add_argument("--separate-ack", action="store_true",
+                   help="send the ideal ack as a message of its own (loop/ack/tx) instead of on the actuation "
+                        "message the encoder also reads")
+    g.add_argument("--colocate", choices=sorted(transport.COLOCATABLE), metavar="encoder",
+                   help="run the encoder inside the plant's process, as a smart sensor does: no sensor hop "
+                        "(three network hops per sample instead of four)")
 
 
-def load_scenario(ref: str, opts: RunOptions):
-    """Load a scenario and apply the run overrides (validated as if written in the file)."""
+def load_scenario(ref: str, opts: RunOptions, *, check_design: bool = True):
+    """Load a scenario and apply the run overrides (validated as if written in the file).
+
+    ``check_design=False`` (a node started by the launcher, which checked the same text and
+    overrides): skip the Schur check of a given K, so that the node needs no scipy.
+    """
     from .. import scenario
 
-    return scenario.with_overrides(scenario.load(ref), opts.overrides())
+    return scenario.with_overrides(scenario.load(ref, check_design=check_design), opts.overrides(),
+                                   check_design=check_design)
 
 
 def T_ns(sc) -> int:
@@ -117,7 +152,8 @@ def run_digest(sc, opts: RunOptions) -> str:
     """What all nodes must agree on: the scenario text, the resolved loop and the run options."""
     d = {"source": sc.source, "K": sc.K.tolist(), "T": sc.T, "n_steps": sc.n_steps,
          "quantizer": dataclasses.asdict(sc.quantizer), "run": dataclasses.asdict(sc.run),
-         "ack_via_attacker": opts.ack_via_attacker,
+         "ack_via_attacker": opts.ack_via_attacker, "ack_on_actuation": opts.ack_on_actuation,
+         "colocate": list(opts.colocate),
          "plant_sha256": sc.plant.source_info()["sha256"]}  # the same plant module in every node
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -198,7 +234,7 @@ def tune_process(parent_pid: int | None = None) -> dict:
 
 
 def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
-                    signals=(signal.SIGINT, signal.SIGTERM)) -> None:
+                    signals=(signal.SIGINT, signal.SIGTERM), others: dict | None = None) -> None:
     """Call ``callback(signum)`` on a helper thread when one of ``signals`` arrives.
 
     A Python signal handler runs on the main thread between two bytecodes, which
@@ -211,17 +247,19 @@ def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
 
     ``grace``: after the first signal, exit hard (``os._exit(1)``) if the process
     is still alive ``grace`` seconds later, so a stop that hangs anyway cannot leave
-    an orphan behind.
+    an orphan behind.  ``others``: {signal: handler()} for signals that do not stop
+    the process (fault injection), called the same way.
     """
     r, w = os.pipe()
     os.set_blocking(w, False)
     wanted = {int(s) for s in signals}
+    extra = {int(s): h for s, h in (others or {}).items()}
 
     def py_handler(signum, _frame):
-        if main_handler is not None:
+        if main_handler is not None and signum in wanted:
             main_handler(signum)
 
-    for s in signals:
+    for s in (*signals, *extra):
         signal.signal(s, py_handler)
     signal.set_wakeup_fd(w, warn_on_full_buffer=False)
 
@@ -233,6 +271,12 @@ def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
             except OSError:
                 return
             for b in data:
+                if b in extra:
+                    try:
+                        extra[b]()
+                    except Exception:  # noqa: BLE001 - must not kill the pump
+                        logging.getLogger(__name__).exception("signal handler failed")
+                    continue
                 if b not in wanted:
                     continue
                 if grace is not None and not armed:
@@ -255,6 +299,24 @@ def _exit_after(seconds: float, signum: int) -> None:
         name = str(signum)
     print(f"testbed: still running {seconds:g} s after {name}; exiting hard", file=sys.stderr, flush=True)
     os._exit(1)
+
+
+def parse_cpus(spec: str) -> set[int]:
+    """``2``, ``2,3``, ``0-3,6`` -> a set of CPU numbers (BadInput on anything else)."""
+    from ..errors import BadInput
+
+    out: set[int] = set()
+    try:
+        for part in spec.split(","):
+            part = part.strip()
+            lo, sep, hi = part.partition("-")
+            out.update(range(int(lo), int(hi) + 1) if sep else [int(lo)])
+    except ValueError:
+        raise BadInput(f"CPU list {spec!r}: expected e.g. 2 or 2,3 or 0-3") from None
+    avail = os.sched_getaffinity(0)
+    if not out or not out <= avail:
+        raise BadInput(f"CPU list {spec!r}: this machine offers CPUs {','.join(map(str, sorted(avail)))}")
+    return out
 
 
 def set_realtime(on: bool, priority: int = 1) -> bool:
@@ -295,6 +357,9 @@ def add_security_arguments(g) -> None:
                    help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed secret')")
     g.add_argument("--insecure", action="store_true",
                    help="no authentication and no access control: any local process can join the run")
+    g.add_argument("--low-latency", action="store_true",
+                   help="Zenoh's low-latency transport (no batching, no priorities); every process of a run "
+                        "must use it or none")
 
 
 def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
@@ -317,7 +382,8 @@ PEER_NEEDS_INSECURE = ("the peer topology runs without authentication only: add 
 def security_info(args) -> dict:
     """How a process's session is secured (it goes into the recording and the summary)."""
     return {"authenticated": not args.insecure, "topology": args.topology,
-            "access_control": "none" if args.insecure else "every message"}
+            "access_control": "none" if args.insecure else "every message",
+            "low_latency": bool(getattr(args, "low_latency", False))}
 
 
 def zenoh_config(args, role: str, keys: transport.Keys):
@@ -340,8 +406,11 @@ def zenoh_config(args, role: str, keys: transport.Keys):
             connect = [transport.DEFAULT_HUB]
     peer = args.topology == "peer"
     mode = "peer" if peer else ("router" if hub else "client")
+    ll = bool(getattr(args, "low_latency", False))
+    colocate = RunOptions.from_args(args).colocate
     if args.insecure:
-        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode)
+        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
+                                     low_latency=ll)
     if peer:
         raise BadInput(PEER_NEEDS_INSECURE)
     if not args.secret_file:
@@ -357,7 +426,7 @@ def zenoh_config(args, role: str, keys: transport.Keys):
     return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
                                  user=role, password=cred.password(role),
                                  dictionary_file=args.secret_file if accepts else None,
-                                 acl=transport.acl_config(keys) if accepts else None)
+                                 acl=transport.acl_config(keys, colocate) if accepts else None, low_latency=ll)
 
 
 # ============================================================================ node context
@@ -393,7 +462,7 @@ class NodeContext:
         self._ev_lock = threading.Lock()
         self._ev_pub = session.declare_publisher(keys.events(role), **transport.telemetry_qos())
         self.telemetry = TelemetryOut(session.declare_publisher(keys.telemetry(role), **transport.telemetry_qos()),
-                                      self.T_ns)
+                                      self.T_ns, background=not ab_off("telemetry-thread"))
         self._subs = [
             session.declare_subscriber(keys.start, self._on_start),
             session.declare_subscriber(keys.stop, self._on_stop),
@@ -501,6 +570,12 @@ class NodeContext:
         self._start_ev.wait(timeout)
         return self.start_msg if not self.stop.is_set() else None
 
+    def wait_clock(self, timeout: float = 1.0) -> RunClock | None:
+        """The run clock, waiting up to ``timeout`` for the Start (a control message may overtake it)."""
+        if self.clock is None:
+            self._start_ev.wait(timeout)
+        return self.clock
+
     def adopt_start(self, st: msg.Start) -> None:
         """The plant chose t0 itself."""
         with self._lock:
@@ -564,11 +639,15 @@ class TelemetryOut:
     """Per-sample telemetry records, published in batches of at most ~``max_delay`` worth of samples.
 
     One record per message at T = 0.1 s; at T = 1 ms 20 records every 20 ms, so the
-    per-message cost of Zenoh and of the readers stays off the control loop.  A node
-    killed mid-run loses at most one batch.
+    per-message cost of Zenoh and of the readers stays off the control loop.  The batches
+    are published by a thread of their own, not by the thread that sent the control
+    message, and at T >= 10 ms half a period (at most 20 ms) after the record, when the
+    loop's messages of that sample have long gone (``quiet_ns``).  ``immediate``: publish
+    each batch at once from the caller (a reader waits for it: the greedy attacker's
+    score E_k).  A node killed mid-run loses at most one batch.
     """
 
-    def __init__(self, pub, T_ns: int, max_delay_ns: int = 20_000_000):
+    def __init__(self, pub, T_ns: int, max_delay_ns: int = 20_000_000, *, background: bool = True):
         self.pub = pub
         self.n = int(max(1, min(64, max_delay_ns // max(T_ns, 1))))
         self.buf: list[bytes] = []
@@ -576,6 +655,13 @@ class TelemetryOut:
         self.tap = None  # testbed run --rerun: a deque's append (testbed.nodes.rerun_tap), nothing more
         self._digest = hashlib.sha256()  # of every record, in order: the launcher checks what it received
         self.records = 0
+        self.immediate = not background
+        self.quiet_ns = min(T_ns // 2, max_delay_ns) if T_ns >= 10_000_000 else 0
+        self._queue: list[tuple[int, bytes]] = []   # (monotonic ns due, batch) for the publisher thread
+        self._cv = threading.Condition(self.lock)
+        self._pub_lock = threading.Lock()           # one publisher at a time, batches in order
+        self._thread: threading.Thread | None = None
+        self._closed = False
 
     def digest(self) -> dict:
         """The node's own account of its telemetry (it goes into its summary)."""
@@ -587,6 +673,8 @@ class TelemetryOut:
         if tap is not None:
             tap(record)
         with self.lock:
+            if self._closed:
+                return
             self._digest.update(record)
             self.records += 1
             self.buf.append(record)
@@ -594,21 +682,260 @@ class TelemetryOut:
                 return
             data = msg.pack_batch(self.buf)
             self.buf.clear()
-        self.pub.put(data)
+            if not self.immediate:
+                self._queue.append((time.monotonic_ns() + self.quiet_ns, data))
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._publisher, daemon=True, name="telemetry")
+                    self._thread.start()
+                self._cv.notify()
+                return
+        self._publish(data)
+
+    def _publish(self, data: bytes) -> None:
+        with self._pub_lock:
+            try:
+                self.pub.put(data)
+            except Exception:  # noqa: BLE001 - the session may be closing
+                pass
+
+    def _publisher(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue:
+                    self._cv.wait()
+                due = self._queue[0][0]
+            rem = due - time.monotonic_ns()
+            if rem > 0:
+                time.sleep(rem / 1e9)
+            with self._pub_lock:
+                with self.lock:
+                    if not self._queue:
+                        continue
+                    _due, data = self._queue.pop(0)
+                try:
+                    self.pub.put(data)
+                except Exception:  # noqa: BLE001 - the session may be closing
+                    pass
 
     def flush(self) -> None:
+        """Publish everything now (from the caller), queued batches first."""
+        with self._pub_lock:
+            with self.lock:
+                batches = [d for _due, d in self._queue]
+                self._queue.clear()
+                if self.buf:
+                    batches.append(msg.pack_batch(self.buf))
+                    self.buf.clear()
+            for data in batches:
+                try:
+                    self.pub.put(data)
+                except Exception:  # noqa: BLE001 - the session may be closing
+                    pass
+
+    def discard(self) -> None:
+        """Drop what is not published yet and publish nothing more (a colocated role that died)."""
         with self.lock:
-            if not self.buf:
-                return
-            data = msg.pack_batch(self.buf)
+            self._closed = True
+            self._queue.clear()
             self.buf.clear()
+
+
+class RoleView:
+    """Another role's face on a node's context: a role run inside this node's process (``--colocate``).
+
+    It has its own name, telemetry, events, summary and liveliness tokens (so readers see
+    the role as if it were a process of its own); everything else (session, clock, stop,
+    peers) is the host node's.
+    """
+
+    def __init__(self, ctx: "NodeContext", role: str):
+        self._ctx = ctx
+        self.role = role
+        self.events_sent = 0
+        self.events_suppressed = 0
+        self._ev_window: dict[str, tuple[float, int]] = {}
+        self._ev_lock = threading.Lock()
+        self._ev_pub = ctx.session.declare_publisher(ctx.keys.events(role), **transport.telemetry_qos())
+        self.telemetry = TelemetryOut(ctx.session.declare_publisher(ctx.keys.telemetry(role),
+                                                                    **transport.telemetry_qos()), ctx.T_ns,
+                                      background=not ab_off("telemetry-thread"))
+        self._tokens: list = []
+
+    def __getattr__(self, name):
+        return getattr(self._ctx, name)
+
+    event = NodeContext.event
+    publish_summary = NodeContext.publish_summary
+    declare_alive = NodeContext.declare_alive
+    declare_ready = NodeContext.declare_ready
+    close = NodeContext.close
+
+
+# ============================================================================ receiving
+#: how a node receives its control-path messages (``--rx``)
+RX_MODES = ("thread", "direct", "spin")
+
+
+class Inlet:
+    """A node's primary input under rx mode ``spin``: a callback as usual, and a spin just before it is due.
+
+    Each sample reaches two subscribers of the same key in the node's session: a callback
+    (zenoh-python's thread, which sleeps until a sample wakes it) and a FIFO that Zenoh's
+    receive thread fills without Python.  From ``margin_ns`` before the earliest arrival,
+    relative to its sample instant t_k, of the last 8 samples, for at most ``budget_ns``,
+    the node's thread polls the FIFO: a sample that comes then is handled at once, without
+    a thread to wake; the callback's copy is then skipped (both streams hold the same
+    samples in the same order, so a sample is the n-th of each).  Outside that window the
+    callback handles it and drops the FIFO's copy.  One sample at a time, in order.
+
+    ``handler(sample)`` returns the sample index k of a control message (or None): the
+    arrivals teach the inlet when to spin.  ``thread``: a spinner thread of its own; else
+    the node's loop calls ``window`` and ``spin`` (the plant, waiting for u_k).
+    """
+
+    HISTORY = 8
+
+    def __init__(self, node: "Node", key: str, handler, *, budget_ns: int, margin_ns: int = 300_000,
+                 thread: bool = True):
+        import zenoh
+
+        self.node = node
+        self.handler = handler
+        self.budget_ns = int(budget_ns)
+        self.margin_ns = int(margin_ns)
+        self.lock = threading.Lock()
+        self.n_fifo = 0       # samples taken from the FIFO
+        self.n_cb = 0         # samples that reached the callback
+        self.handled = 0      # the index of the next sample to handle
+        self.offsets: collections.deque = collections.deque(maxlen=self.HISTORY)
+        self.last_k = -1
+        self.spun = 0         # samples handled while spinning
+        self.woken = 0        # samples the callback handled
+        self.spin_ns = 0      # time spent spinning
+        self.broken = False   # the two streams differed once: the callback alone from then on
+        self._seen: dict[int, bytes] = {}  # the samples the spinner handled, by index (the last 64)
+        session = node.ctx.session
+        self.fifo = session.declare_subscriber(key, zenoh.handlers.FifoChannel(1024))
+        self.sub = session.declare_subscriber(key, self._on_callback)
+        if thread:
+            threading.Thread(target=self._spinner, daemon=True, name=f"spin-{key.rsplit('/', 1)[-1]}").start()
+
+    # ---- the two streams
+    @staticmethod
+    def _ident(sample) -> bytes:
+        att = sample.attachment
+        return (b"" if att is None else att.to_bytes()) + b"|" + sample.payload.to_bytes()
+
+    def _on_callback(self, sample) -> None:
+        with self.lock:
+            i = self.n_cb
+            self.n_cb += 1
+            if self.broken:
+                self._handle(sample)
+                return
+            mine = self._ident(sample)
+            while self.n_fifo <= i:  # keep the FIFO in step: drop its copies of what the callback got
+                try:
+                    s = self.fifo.try_recv()
+                except Exception:  # noqa: BLE001 - undeclared: the session is closing
+                    s = None
+                if s is None:
+                    break
+                if self.n_fifo == i and self._ident(s) != mine:
+                    self.broken = True
+                self.n_fifo += 1
+            if i < self.handled and not self.broken:
+                if self._seen.get(i, mine) == mine:
+                    return  # the spinner had it
+                self.broken = True
+            if self.broken:  # the two streams differ (samples on one key from two links): no more spinning
+                logging.getLogger(__name__).warning("rx spin: the two copies of a stream differ; spinning off")
+                self.offsets.clear()
+                self.budget_ns = 0
+            self.handled = max(self.handled, i + 1)
+            self.woken += 1
+            self._handle(sample)
+
+    def spin(self, until_ns: int) -> bool:
+        """Poll the FIFO until a sample is handled or ``until_ns`` (run clock); True if one was."""
+        import zenoh
+
+        clock = self.node.ctx.clock
+        t = time.monotonic_ns()
         try:
-            self.pub.put(data)
-        except Exception:  # noqa: BLE001 - the session may be closing
-            pass
+            while clock.now() < until_ns:
+                try:
+                    s = self.fifo.try_recv()
+                except zenoh.ZError:  # undeclared: the session is closing
+                    return False
+                if s is None:
+                    os.sched_yield()  # releases the GIL and lets this CPU's other threads (Zenoh's) run
+                    continue
+                with self.lock:
+                    if self.broken:
+                        return False
+                    i = self.n_fifo
+                    self.n_fifo += 1
+                    if i < self.handled:
+                        continue  # the callback had it
+                    self.handled = i + 1
+                    self.spun += 1
+                    self._seen[i] = self._ident(s)
+                    self._seen.pop(i - 64, None)
+                    self._handle(s)
+                return True
+            return False
+        finally:
+            self.spin_ns += time.monotonic_ns() - t
+
+    def _handle(self, sample) -> None:
+        ctx = self.node.ctx
+        clock = ctx.clock
+        rx = clock.now() if clock is not None else None
+        k = self.handler(sample)
+        if k is not None and rx is not None and k > self.last_k:
+            self.last_k = k
+            self.offsets.append(rx - k * ctx.T_ns)
+
+    # ---- when to spin
+    def window(self, now: int) -> tuple[int, int] | None:
+        """(start, end) of the spin window of the next sample due, in run-clock ns, or None."""
+        if not self.offsets or self.budget_ns <= 0:
+            return None
+        T_ns = self.node.ctx.T_ns
+        lead = min(self.offsets) - self.margin_ns
+        j = max(self.last_k + 1, -(-(now - lead - self.budget_ns) // T_ns))
+        start = j * T_ns + lead
+        return start, start + self.budget_ns
+
+    def _spinner(self) -> None:
+        ctx = self.node.ctx
+        stop = ctx.stop
+        while not stop.is_set():
+            clock = ctx.clock
+            now = clock.now() if clock is not None else 0
+            w = self.window(now) if clock is not None else None
+            if w is None:
+                stop.wait(0.05)
+                continue
+            if now < w[0]:
+                stop.wait(min((w[0] - now) / 1e9, 0.05))
+                continue
+            j = (w[0] - min(self.offsets) + self.margin_ns) // ctx.T_ns
+            if not self.spin(w[1]):  # nothing in this window: no second one for this sample
+                with self.lock:
+                    self.last_k = max(self.last_k, j)
+
+    def stats(self) -> dict:
+        return {"spun": self.spun, "woken": self.woken, "spin_ms": round(self.spin_ns / 1e6, 3)}
 
 
-def warm_publisher(pub, payload: bytes, times: int = 3, pause: float = 0.005) -> None:
+def ab_off(change: str) -> bool:
+    """Whether the benchmark switched a change of the loop off (``TESTBED_AB_OFF=name,...``, for A/B runs only)."""
+    return change in {c.strip() for c in os.environ.get("TESTBED_AB_OFF", "").split(",")}
+
+
+def warm_publisher(pub, payload: bytes, times: int = 3, pause: float = 0.001) -> None:
     """First puts on a publisher are slow: send a few with the warm-up index (readers ignore them)."""
     att = msg.Header(msg.WARMUP_K, 0).encode()
     for _ in range(times):
@@ -619,6 +946,22 @@ def warm_publisher(pub, payload: bytes, times: int = 3, pause: float = 0.005) ->
 def setup_logging(role: str, verbose: bool) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
                         format=f"%(asctime)s {role:10s} %(levelname)s %(message)s")
+
+
+def process_age() -> float:
+    """Seconds since this process was created (10 ms resolution), or NaN."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        return time.clock_gettime(time.CLOCK_BOOTTIME) - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return float("nan")
+
+
+def phase(who: str, name: str) -> None:
+    """A start-up or shut-down milestone in the log (``-v``): ``benchmarks/bench_startup.py`` reads them."""
+    if log.isEnabledFor(logging.INFO):
+        log.info("%s: phase %s t=%.6f age=%.3f cpu=%.3f", who, name, time.time(), process_age(), time.process_time())
 
 
 # ============================================================================ node base
@@ -636,9 +979,19 @@ class Node:
         self.malformed = 0
         self.error: BaseException | None = None
         self._pubs: list = []
+        self.rx_mode = getattr(args, "rx", None) or "thread"
+        spin_us = getattr(args, "rx_spin_us", None)
+        self.rx_spin_ns = int(spin_us * 1e3) if spin_us is not None else min(1_000_000, ctx.T_ns // 20)
+        self.inlet: Inlet | None = None
 
     # -- to override
     def setup(self) -> None: ...
+
+    def declare_alive(self) -> None:
+        self.ctx.declare_alive()
+
+    def declare_ready(self) -> None:
+        self.ctx.declare_ready()
 
     def warmup(self) -> None: ...
 
@@ -660,13 +1013,42 @@ class Node:
 
         def wrapped(sample):
             if self.error is not None:
-                return
+                return None
             try:
-                fn(sample)
+                return fn(sample)
             except Exception as e:  # noqa: BLE001
                 self.fail(e)
+                return None
 
         return wrapped
+
+    def subscribe(self, key: str, fn, *, blocking: bool = False, primary: bool = False, thread: bool = True):
+        """Subscribe ``fn(sample)`` (guarded) the way the node's ``--rx`` mode says.
+
+        ``thread``: zenoh-python's callback thread runs it (one thread per subscriber, woken
+        for each sample).  ``direct``: Zenoh's own receive thread runs it, one thread wake-up
+        less per message; only for a handler that never waits (``blocking=False``): one that
+        waits for another message there would wait for ever.  ``spin``: as ``direct``, and the
+        node's primary input (``primary``, the one on the loop's path) is an ``Inlet``: its
+        own thread handles it and spins just before it is due (``thread=False``: the node's
+        loop calls ``Inlet.step`` itself).  ``fn`` returns the sample index of a control
+        message (the inlet learns when it is due) or None.
+        """
+        import zenoh
+
+        h = self.guard(fn)
+        if self.rx_mode == "spin" and primary:
+            self.inlet = Inlet(self, key, h, budget_ns=self.rx_spin_ns, thread=thread)
+            return self.inlet.sub
+        if self.rx_mode != "thread" and not blocking:
+            return self.ctx.session.declare_subscriber(key, zenoh.handlers.Callback(h, indirect=False))
+        return self.ctx.session.declare_subscriber(key, h)
+
+    def rx_summary(self) -> dict:
+        d = {"rx": self.rx_mode}
+        if self.inlet is not None:
+            d["rx_inlet"] = self.inlet.stats()
+        return d
 
     def fail(self, e: BaseException) -> None:
         if self.error is None:

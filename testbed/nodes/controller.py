@@ -19,8 +19,8 @@ import threading
 from ..io import messages as msg
 from ..protocol import ControllerProtocol, Decision
 from ..quantizer import Decoder
-from ..runsummary import percentiles
-from .common import Node, warm_publisher
+from ..stats import percentiles
+from .common import Node, ab_off, warm_publisher
 
 CT = msg.ControllerTelemetry
 
@@ -31,15 +31,17 @@ class ControllerNode(Node):
     def setup(self) -> None:
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
         self.dec = Decoder(self.model, sc.K, sc.quantizer, sc.flow)
-        self.proto = ControllerProtocol(self.dec, ctx.n_steps)
+        # u_k goes out before the decoder's prediction for k+1 is computed (the same numbers)
+        self.proto = ControllerProtocol(self.dec, ctx.n_steps, defer_update=not ab_off("deferred-update"))
         self.codebook = self.dec.codebook
         self.pub_act = self.publisher(keys.actuation)
-        self.pub_ack = self.publisher(keys.ack_tx)
+        # the ideal ack rides on the actuation message; a message of its own only on request or via the attacker
+        self.pub_ack = None if ctx.opts.ack_on_actuation else self.publisher(keys.ack_tx)
         self._cond = threading.Condition()
         self.decode_time: list[int] = []
         self.net_latency: list[int] = []
         self.loss_ns = int(sc.timing_params[4])  # t_k + loss_fraction d T
-        self._sub = ctx.session.declare_subscriber(keys.symbol_rx, self.guard(self._on_symbol))
+        self._sub = self.subscribe(keys.symbol_rx, self._on_symbol, primary=True)
         ctx.on_peer(self._on_peer)
 
     @property
@@ -56,7 +58,8 @@ class ControllerNode(Node):
     def warm_publishers(self) -> None:
         m = self.model.m
         warm_publisher(self.pub_act, msg.Actuation(0, 0, 1, (0.0,) * m).encode()[0])
-        warm_publisher(self.pub_ack, msg.Ack(0, 0, 1, -1).encode()[0])
+        if self.pub_ack is not None:
+            warm_publisher(self.pub_ack, msg.Ack(0, 0, 1, -1).encode()[0])
 
     def _on_peer(self, node: str, alive: bool) -> None:
         if self.ctx.start_msg is None or self.ctx.stop.is_set():
@@ -77,10 +80,11 @@ class ControllerNode(Node):
         clock = self.ctx.clock
         tx = clock.now()
         ut = tuple(d.u.tolist())
-        p, a = msg.Actuation(d.k, tx, d.theta, ut).encode()
+        p, a = msg.Actuation(d.k, tx, d.theta, ut, d.last_rx).encode()
         self.pub_act.put(p, attachment=a)
-        p, a = msg.Ack(d.k, tx, d.theta, d.last_rx).encode()
-        self.pub_ack.put(p, attachment=a)
+        if self.pub_ack is not None:
+            p, a = msg.Ack(d.k, tx, d.theta, d.last_rx).encode()
+            self.pub_ack.put(p, attachment=a)
         self._cond.notify_all()
         if rx != msg.NO_TIME:
             self.decode_time.append(tx - rx)
@@ -88,15 +92,15 @@ class ControllerNode(Node):
                                   reason=d.reason, E=d.E, xi=tuple(d.xi.tolist()), q=tuple(d.q.tolist()),
                                   u=ut).encode())
 
-    def _on_symbol(self, sample) -> None:
+    def _on_symbol(self, sample):
         ctx = self.ctx
-        clock = ctx.clock
-        if clock is None:
-            return
-        rx = clock.now()
         h = self.rx_header(sample, "symbol header")
         if h is None:
-            return
+            return None
+        clock = ctx.wait_clock()
+        if clock is None:
+            return None
+        rx = clock.now()
         k = h.k
         proto = self.proto
         with self._cond:
@@ -116,8 +120,10 @@ class ControllerNode(Node):
                     self._publish(d, rx, h.stamp_ns)
                 else:
                     self._publish(d, msg.NO_TIME, msg.NO_TIME)
+            proto.settle()  # the decoder's prediction for the next sample, after u_k went out
             if proto.invalid > invalid:
                 ctx.event("invalid_payload", k=k, detail="not a code of the codebook: treated as a loss (theta = 1)")
+        return k
 
     # ---- the loss deadlines
     def run(self) -> None:
@@ -137,10 +143,16 @@ class ControllerNode(Node):
                 d = proto.deadline(k)
                 if d is not None:
                     self._publish(d, msg.NO_TIME, msg.NO_TIME)
+                proto.settle()
+        with self._cond:
+            proto.settle()
         self.wait_end()
 
     def summary(self) -> dict:
         d = self.proto.counters()
         d.update({"malformed": self.malformed, "loss_deadline_us": self.loss_ns / 1e3,
-                  "decode_us": percentiles(self.decode_time), "uplink_us": percentiles(self.net_latency)})
+                  "decode_us": percentiles(self.decode_time), "uplink_us": percentiles(self.net_latency),
+                  "ack": "separate" if self.pub_ack is not None and not self.ctx.opts.ack_via_attacker
+                  else ("via attacker" if self.ctx.opts.ack_via_attacker else "on the actuation")})
+        d.update(self.rx_summary())
         return d

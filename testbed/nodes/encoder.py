@@ -1,27 +1,43 @@
-"""Encoder node: Algorithm 1 on x_k from the plant; symbol out, theta_k back on the ack channel.
+"""Encoder node: Algorithm 1 on x_k from the plant; symbol out, theta_k back with the actuation (or an ack).
 
 The logic is ``testbed.protocol.EncoderProtocol`` (the simulator runs the same
 object); this shell adds the clock, the grace for a late ack, publishing and
 telemetry.  If x_k+1 arrives and theta_k is still unknown (a lost or late ack:
 the ack is routed through the attacker, or the controller is slow or dead), it
 waits ``ack_grace`` and then withholds the symbol; theta_k is recovered from any
-later ack (``Ack.last_rx``).  So a missing ack costs samples, never lockstep.
+later ack (``last_rx``).  So a missing ack costs samples, never lockstep.
+
+Where theta_k comes from: with the paper's ideal ack it rides on the controller's
+actuation message, which the encoder reads beside the plant (``loop/actuation``);
+with ``--separate-ack`` it is a message of its own (``loop/ack/tx``); with
+``--ack-via-attacker`` the attacker's forward (``loop/ack/rx``).
+
+Colocated (``--colocate encoder``): the plant's process runs this shell as a part of
+itself (``embedded``): x_k comes from the plant's loop (``sensor_in``), no sensor
+message, and the acks from the plant's actuation handler (``ack_in``); telemetry,
+events, summary and liveliness are still the encoder's own.  Its failure (an
+exception, or ``kill``: the launcher's ``--kill encoder@S``) ends the encoder, not
+the plant.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
 from ..io import messages as msg
 from ..protocol import EncoderProtocol, Send, skip_sample
 from ..quantizer import Encoder
-from ..runsummary import percentiles
+from ..stats import percentiles
 from .common import Node, warm_publisher
+
+log = logging.getLogger("testbed.nodes")
 
 
 class EncoderNode(Node):
     role = "encoder"
+    embedded = False   # run inside the plant's process (``--colocate encoder``)
 
     def setup(self) -> None:
         ctx, keys = self.ctx, self.ctx.keys
@@ -35,15 +51,22 @@ class EncoderNode(Node):
         self.ack_latency: list[int] = []
         self.encode_time: list[int] = []
         self.future_sensor = 0
+        self.dead = False
+        self.killed = False
         self.ack_grace_ns = int(self.args.ack_grace * ctx.T_ns) if self.args.ack_grace is not None \
             else max(int(0.2 * sc.run.deadline * ctx.T_ns), 50_000)
         if sc.attack.online and sc.attack.score == "E":
             ctx.telemetry.n = 1  # the greedy attacker reads E_k from it before deciding sample k
-        self._subs = [
-            ctx.session.declare_subscriber(keys.sensor, self.guard(self._on_sensor)),
-            ctx.session.declare_subscriber(keys.ack_for_encoder(ctx.opts.ack_via_attacker),
-                                           self.guard(self._on_ack)),
-        ]
+            ctx.telemetry.immediate = True
+        opts = ctx.opts
+        self._subs = []
+        if not self.embedded:
+            self._subs.append(self.subscribe(keys.sensor, self._on_sensor, blocking=True, primary=True))
+        if opts.ack_on_actuation:
+            if not self.embedded:  # embedded: the plant's actuation handler hands the ack over (``ack_in``)
+                self._subs.append(self.subscribe(keys.actuation, self._on_actuation))
+        else:
+            self._subs.append(self.subscribe(keys.ack_for_encoder(opts.ack_via_attacker), self._on_ack))
 
     def warmup(self) -> None:
         e = Encoder(self.model, self.sc.K, self.sc.quantizer, self.sc.flow)
@@ -55,23 +78,29 @@ class EncoderNode(Node):
     def warm_publishers(self) -> None:
         warm_publisher(self.pub_symbol, self.codebook.pack(0))
 
-    # ---- callbacks
-    def _on_sensor(self, sample) -> None:
-        ctx = self.ctx
-        clock = ctx.clock
-        if clock is None:
-            return
-        rx = clock.now()
+    # ---- x_k
+    def _on_sensor(self, sample):
         try:
             s = msg.Sensor.decode(sample.payload, sample.attachment)
             if len(s.x) != self.model.n:
                 raise msg.MessageError(f"x has {len(s.x)} entries, plant has n = {self.model.n}")
         except msg.MessageError as e:
             self.bad_message("sensor", e)
-            return
+            return None
         if s.k == msg.WARMUP_K:
+            return None
+        clock = self.ctx.wait_clock()
+        if clock is None:
+            return None
+        self.sensor_in(s.k, s.stamp_ns, s.x, clock.now())
+        return s.k
+
+    def sensor_in(self, k: int, stamp_ns: int, x, rx: int) -> None:
+        """x_k (sampled at ``stamp_ns``) reached the encoder at ``rx`` (run clock): encode, send."""
+        if self.dead:
             return
-        k = s.k
+        ctx = self.ctx
+        clock = ctx.clock
         if k > ctx.newest_k(rx):
             self.future_sensor += 1
             ctx.event("future_sensor", k=k, detail=f"x for sample {k} before its instant: rejected")
@@ -86,7 +115,7 @@ class EncoderNode(Node):
                     if rem <= 0:
                         break
                     self._cond.wait(rem / 1e9)
-            act = proto.sensor(k, s.x)
+            act = proto.sensor(k, x)
             if act is None:
                 return
             if isinstance(act, Send):
@@ -95,7 +124,7 @@ class EncoderNode(Node):
                 self.pub_symbol.put(data, attachment=msg.Header(k, tx).encode())
                 self.pending_tx = tx
                 self.encode_time.append(tx - rx)
-                tel = msg.EncoderTelemetry(k=k, sensor_tx_ns=s.stamp_ns, rx_ns=rx, tx_ns=tx, symbol=act.symbol,
+                tel = msg.EncoderTelemetry(k=k, sensor_tx_ns=stamp_ns, rx_ns=rx, tx_ns=tx, symbol=act.symbol,
                                            saturated=int(act.saturated), silent=0, E=act.E,
                                            xi=tuple(act.xi.tolist()), q=tuple(act.q.tolist()))
             else:
@@ -103,7 +132,7 @@ class EncoderNode(Node):
                     ctx.event("ack_missing", k=act.pending,
                               detail=f"theta_{act.pending} unknown at sample {k}: withholding symbols "
                                      "until an ack resolves it", level=20)
-                tel = msg.EncoderTelemetry(k=k, sensor_tx_ns=s.stamp_ns, rx_ns=rx, tx_ns=msg.NO_TIME,
+                tel = msg.EncoderTelemetry(k=k, sensor_tx_ns=stamp_ns, rx_ns=rx, tx_ns=msg.NO_TIME,
                                            symbol=-1, saturated=0, silent=1, E=float("nan"), xi=(), q=())
         ctx.telemetry.put(tel.encode())
         if isinstance(act, Send) and act.saturated:
@@ -111,25 +140,78 @@ class EncoderNode(Node):
                       + (" (OVERFLOW sent)" if act.symbol == self.codebook.overflow else " (clipped)"),
                       level=20)
 
-    def _on_ack(self, sample) -> None:
+    # ---- theta_k
+    def _on_actuation(self, sample):
+        rx = time.monotonic_ns()
+        try:
+            a = msg.Actuation.decode(sample.payload, sample.attachment)
+        except msg.MessageError as e:
+            self.bad_message("actuation (the ack it carries)", e)
+            return None
+        if a.k == msg.WARMUP_K:
+            return None
+        self.ack_in(a.k, a.theta, a.last_rx, rx)
+        return a.k
+
+    def _on_ack(self, sample):
         rx = time.monotonic_ns()
         try:
             a = msg.Ack.decode(sample.payload, sample.attachment)
         except msg.MessageError as e:
             self.bad_message("ack", e)
-            return
+            return None
         if a.k == msg.WARMUP_K:
+            return None
+        self.ack_in(a.k, a.theta, a.last_rx, rx)
+        return a.k
+
+    def ack_in(self, k: int, theta: int, last_rx: int, rx_mono: int) -> None:
+        """The ack of sample k (theta_k, last_rx) arrived at ``rx_mono`` (CLOCK_MONOTONIC ns)."""
+        if self.dead:
             return
         proto = self.proto
         with self._cond:
             p, silent = proto.pending, len(proto.silent)
-            what = proto.ack(a.k, a.theta, a.last_rx)
+            what = proto.ack(k, theta, last_rx)
             if what == "resolved" and self.ctx.clock is not None:
-                self.ack_latency.append(rx - self.ctx.clock.t0_mono_ns - self.pending_tx)
+                self.ack_latency.append(rx_mono - self.ctx.clock.t0_mono_ns - self.pending_tx)
             elif what == "resync":
-                self.ctx.event("ack_resync", k=p, detail=f"theta_{p} recovered from the ack of sample {a.k}; "
+                self.ctx.event("ack_resync", k=p, detail=f"theta_{p} recovered from the ack of sample {k}; "
                                                          f"{silent} samples withheld", level=20)
             self._cond.notify_all()
+
+    # ---- colocated: the encoder alone dies
+    def fail(self, e: BaseException) -> None:
+        if not self.embedded:
+            return super().fail(e)
+        if self.error is None:
+            self.error = e
+            import traceback
+
+            log.error("encoder (colocated in the plant) crashed:\n%s",
+                      "".join(traceback.format_exception(e)).rstrip())
+            self.ctx.event("crash", detail=f"{type(e).__name__}: {e}", level=logging.ERROR)
+            self.die()
+
+    def kill(self) -> None:
+        """Fault injection (``--kill encoder@S`` when colocated): the encoder stops at once, as if
+        SIGKILLed: nothing more sent, its unpublished telemetry lost, its liveliness tokens gone."""
+        if not self.dead:
+            self.killed = True
+            log.warning("encoder (colocated in the plant): killed")
+            self.ctx.telemetry.discard()
+            self.die()
+
+    def die(self) -> None:
+        with self._cond:
+            self.dead = True
+            self._cond.notify_all()
+        for s in self._subs:
+            try:
+                s.undeclare()
+            except Exception:  # noqa: BLE001 - the session may be closing
+                pass
+        self.ctx.close()  # its alive/ready tokens: the peers see it go
 
     def run(self) -> None:
         self.wait_end()
@@ -138,4 +220,7 @@ class EncoderNode(Node):
         d = self.proto.counters()
         d.update({"malformed": self.malformed, "future_sensor": self.future_sensor, "ack_grace_us": self.ack_grace_ns / 1e3,
                   "encode_us": percentiles(self.encode_time), "ack_rtt_us": percentiles(self.ack_latency)})
+        d.update(self.rx_summary())
+        if self.embedded:
+            d["colocated_in"] = "plant"
         return d

@@ -1,10 +1,13 @@
 """``testbed node plant|encoder|attacker|controller SCENARIO [zenoh options]``: one node of a live run.
 
-Life of a node: open the Zenoh session, declare, warm up (JIT), declare the
-``alive/<role>`` token, wait until the four roles are alive, declare
-``ready/<role>``; the plant then waits for every ``ready`` token and publishes
-``Start`` (t0), the others wait for it; warm up the publishers; run; publish a
-summary; close the session.  SIGINT / SIGTERM, a ``Stop`` message, the loss of
+Life of a node: open the Zenoh session, declare, warm up (JIT), collect and
+freeze the garbage, declare the ``alive/<role>`` token, wait until the four
+roles are alive, warm up the publishers, declare ``ready/<role>``; the plant
+then waits for every ``ready`` token and publishes ``Start`` (t0), the others
+wait for it; run; publish a summary; close the session.  With ``-v`` each step
+is a ``phase`` line in the log (``benchmarks/bench_startup.py`` reads them).
+A plant with ``--colocate encoder`` runs the encoder too, under the encoder's
+name (SIGUSR2: the encoder alone dies, for ``testbed run --kill encoder@S``).  SIGINT / SIGTERM, a ``Stop`` message, the loss of
 the plant or the end of the run (+ grace) stop a node cleanly.
 
 Exit codes: 0 stopped cleanly, 1 crashed (traceback on stderr), 2 bad scenario or
@@ -24,8 +27,8 @@ import time
 
 from ..io import transport
 from . import rerun_tap
-from .common import (NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
-                     on_stop_signals, set_realtime, setup_logging, tune_process, zenoh_config)
+from .common import (RX_MODES, NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
+                     on_stop_signals, parse_cpus, phase, set_realtime, setup_logging, tune_process, zenoh_config)
 
 log = logging.getLogger("testbed.nodes")
 
@@ -57,6 +60,13 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the other nodes are not up after S seconds (default %(default)s)")
     g.add_argument("--realtime", action="store_true", help="run the loop under SCHED_FIFO (needs CAP_SYS_NICE)")
+    g.add_argument("--cpus", metavar="LIST", help="pin this node to these CPUs, e.g. 2 or 2,3 or 2-3")
+    g.add_argument("--rx", choices=RX_MODES, default="thread",
+                   help="how control messages are received: thread (zenoh-python's callback thread), direct "
+                        "(on Zenoh's own receive thread where the handler never waits), spin (direct, and the "
+                        "node's input on the loop's path is polled just before it is due) (default %(default)s)")
+    g.add_argument("--rx-spin-us", type=float, metavar="US",
+                   help="--rx spin: spin at most this long per sample (default min(1000, T/20 in us))")
     g.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
     g.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
     g.add_argument("--crash-at", type=int, metavar="K", help="fault injection: raise at sample K")
@@ -68,10 +78,12 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("plant")
     g.add_argument("--wait-collector", action="store_true",
                    help="also wait for the launcher's collector before starting")
-    g.add_argument("--start-lead", type=float, default=0.5, metavar="S",
+    g.add_argument("--start-lead", type=float, default=0.2, metavar="S",
                    help="t0 = now + S once everybody is ready (default %(default)s)")
     g.add_argument("--spin-us", type=float, metavar="US",
-                   help="busy-wait this long before each sample instant (default min(200, T/10 in us))")
+                   help="busy-wait this long before each sample instant (default min(200, T/20 in us))")
+    g.add_argument("--encoder-crash-at", type=int, metavar="K",
+                   help="--colocate encoder: fault injection: the colocated encoder raises at sample K (it alone stops)")
     g = p.add_argument_group("encoder")
     g.add_argument("--ack-grace", type=float, metavar="FRACTION",
                    help="wait this fraction of T for a late ack before withholding (default 0.2 d)")
@@ -85,8 +97,17 @@ def main_node(args) -> int:
 
     role = args.role
     setup_logging(role, args.verbose)
+    phase(role, "up")
+    if args.cpus:
+        os.sched_setaffinity(0, parse_cpus(args.cpus))
     opts = RunOptions.from_args(args)
-    sc = load_scenario(args.scenario, opts)  # ScenarioError -> exit 2 in the CLI
+    if role in opts.colocate:
+        from ..errors import BadInput
+
+        raise BadInput(f"--colocate {role}: the {role} runs inside the {opts.process_of(role)}'s process; "
+                       f"start no {role} node")
+    sc = load_scenario(args.scenario, opts, check_design=not args.launched)  # ScenarioError -> exit 2 in the CLI
+    phase(role, "scenario")
     tune_process(args.parent_pid)
     sys.setswitchinterval(1e-4)  # a callback thread waiting for the GIL waits 100 us, not 5 ms
     holder: dict = {}
@@ -100,7 +121,13 @@ def main_node(args) -> int:
         if holder.get("ctx") is None:
             raise KeyboardInterrupt
 
-    on_stop_signals(on_signal, main_handler=before_context, grace=STOP_GRACE_S)
+    def kill_guest():  # SIGUSR2 (the launcher's --kill encoder@S with --colocate encoder)
+        node = holder.get("node")
+        if node is not None and hasattr(node, "kill_encoder"):
+            node.kill_encoder()
+
+    on_stop_signals(on_signal, main_handler=before_context, grace=STOP_GRACE_S,
+                    others={signal.SIGUSR2: kill_guest} if "encoder" in opts.colocate and role == "plant" else None)
     keys = transport.Keys.for_run(args.run_id)
     conf = zenoh_config(args, role, keys)
     if args.insecure and not args.launched:
@@ -115,26 +142,46 @@ def main_node(args) -> int:
               f"{str(e).split(' at /')[0]}", file=sys.stderr)
         return 3
     with session_cm as session:
+        phase(role, "session")
         ctx = NodeContext(role, session, sc, opts, keys)
         holder["ctx"] = ctx
         ctx.watch_collector = args.launched
         args.wait_collector = args.wait_collector or args.launched
         node = _classes()[role](ctx, args)
-        tap = None
+        holder["node"] = node
+        tap = guest_tap = None
         try:
             tap = rerun_tap.from_args(args, role, sc)
             if tap is not None:
                 ctx.telemetry.tap = tap.put
             node.setup()
+            guest = getattr(node, "encoder", None)
+            if tap is not None and guest is not None:  # the colocated encoder's own stream (its part file)
+                ga = argparse.Namespace(**vars(args))
+                if ga.rerun_save:
+                    ga.rerun_save = os.path.join(os.path.dirname(ga.rerun_save), "encoder.rrd")
+                guest_tap = rerun_tap.from_args(ga, "encoder", sc)
+                guest.ctx.telemetry.tap = guest_tap.put
             node.warmup()
-            ctx.declare_alive()
+            phase(role, "warm")
+            # no cyclic-GC pauses in the loop (the loop makes no reference cycles worth collecting);
+            # collected now, while the slower peers still start up
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+            node.declare_alive()
             if not ctx.wait_for("alive", transport.ROLES, args.ready_timeout):
                 if ctx.stop.is_set():
                     return 0
                 print(f"testbed node {role}: peers not up after {args.ready_timeout:g} s: "
                       f"{', '.join(ctx.missing('alive', transport.ROLES))}", file=sys.stderr)
                 return 3
-            ctx.declare_ready()
+            phase(role, "peers")
+            # every peer's subscribers are declared (before its alive token): warm the publishers
+            # now, while the others still start up, not in the lead before t0
+            node.warm_publishers()
+            node.declare_ready()
+            phase(role, "ready")
             if role == "plant":
                 st = node.start_run(args.start_lead, args.ready_timeout)
             else:
@@ -148,12 +195,8 @@ def main_node(args) -> int:
                     return 0
                 print(f"testbed node {role}: no start after {args.ready_timeout:g} s", file=sys.stderr)
                 return 3
-            node.warm_publishers()
+            phase(role, "start")
             log.info("%s: start, t0 = %d, %d samples of %g s", role, st.t0_ns, st.n_steps, st.T_ns / 1e9)
-            # no cyclic-GC pauses in the loop (the loop makes no reference cycles worth collecting)
-            gc.collect()
-            gc.freeze()
-            gc.disable()
             rt = set_realtime(True) if args.realtime else False
             ru0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
             try:
@@ -168,6 +211,22 @@ def main_node(args) -> int:
                             "sched_fifo": rt}
         except Exception as e:  # noqa: BLE001 - reported below, exit code 1
             node.fail(e)
+        phase(role, "end")
+        guest = getattr(node, "encoder", None)
+        if guest is not None and not guest.killed:  # the colocated encoder's own account, under its name
+            guest.ctx.telemetry.flush()
+            gd = guest.summary()
+            if guest_tap is not None:
+                guest.ctx.telemetry.tap = None
+                gd.update(guest_tap.close())
+            gd.update(guest.ctx.telemetry.digest())
+            gd["events_sent"], gd["events_suppressed"] = guest.ctx.events_sent, guest.ctx.events_suppressed
+            gd.update(stop_reason=ctx.stop_reason if not guest.dead else "died", pid=os.getpid(), netns=_netns(),
+                      error=None if guest.error is None else f"{type(guest.error).__name__}: {guest.error}")
+            guest.ctx.publish_summary(gd)
+            guest.ctx.close()
+        elif guest_tap is not None:
+            guest_tap.close()
         ctx.telemetry.flush()
         data = node.summary()
         data.update(cpu_info)
@@ -182,6 +241,7 @@ def main_node(args) -> int:
         data["error"] = None if node.error is None else f"{type(node.error).__name__}: {node.error}"
         ctx.publish_summary(data)
         ctx.close()
+        phase(role, "closing")
         if node.error is not None:
             code = 1
     return code

@@ -21,6 +21,11 @@ sample whose instant has not come yet is rejected.  Each is counted and logged a
 an event.  If the controller's liveliness token disappears the plant stops waiting
 and runs on with u = 0; the run is marked (``controller_lost_at``).
 
+Colocated encoder (``--colocate encoder``, a smart sensor): the plant's process also
+runs the encoder (``testbed.nodes.encoder.EncoderNode``, ``embedded``) on x_k as it is
+sampled: no sensor message (x_k is still published for a greedy attacker that scores
+by the state), and the ack of the actuation message handed over in the process.
+
 Plant faults: a true plant that raises ``plants.PlantFault`` (an FMU step that failed)
 ends the run at that sample, as ``testbed simulate`` does: sample k's telemetry, an
 event ``plant_fault`` with the plant's line, the final record (x at the fault) and a
@@ -42,8 +47,8 @@ from ..flow import FLOW_OK, STATUS_NAMES
 from ..io import messages as msg
 from ..io import transport
 from ..protocol import PlantProtocol
-from ..runsummary import percentiles
-from .common import Node
+from ..stats import percentiles
+from .common import Node, RoleView
 
 PT = msg.PlantTelemetry
 
@@ -53,10 +58,17 @@ class PlantNode(Node):
 
     def setup(self) -> None:
         ctx, keys = self.ctx, self.ctx.keys
-        self.pub_sensor = self.publisher(keys.sensor)
+        sc = self.sc
+        self.encoder = None
+        if "encoder" in ctx.opts.colocate:
+            self.encoder = self._embedded_encoder()
+        # x_k on the wire: for the encoder, or (colocated) only for an attacker that scores by the state
+        wanted = sc.attack.online and sc.attack.score == "state"
+        self.pub_sensor = self.publisher(keys.sensor) if self.encoder is None or wanted else None
         self.pub_start = ctx.session.declare_publisher(keys.start)
         self.pub_stop = ctx.session.declare_publisher(keys.stop)
-        self._sub_act = ctx.session.declare_subscriber(keys.actuation, self.guard(self._on_actuation))
+        self._ack_to_encoder = self.encoder is not None and ctx.opts.ack_on_actuation
+        self._sub_act = self.subscribe(keys.actuation, self._on_actuation, primary=True, thread=False)
         self._lock = threading.Lock()
         self._got = threading.Event()
         self._waiting_k = 0                  # the sample whose u_k the loop needs next
@@ -77,11 +89,40 @@ class PlantNode(Node):
         self.plant_fault_at = -1
         self.timing = self.sc.run.timing
         self.spin_ns = int(self.args.spin_us * 1e3) if self.args.spin_us is not None \
-            else min(200_000, self.ctx.T_ns // 10)
+            else min(200_000, self.ctx.T_ns // 20)
         self.process = self.sc.make_process()
         ctx.on_peer(self._on_peer)
 
+    def _embedded_encoder(self):
+        import argparse
+
+        from .encoder import EncoderNode
+
+        a = argparse.Namespace(**vars(self.args))
+        a.crash_at = getattr(self.args, "encoder_crash_at", None)
+        enc = EncoderNode(RoleView(self.ctx, "encoder"), a)
+        enc.embedded = True
+        enc.setup()
+        return enc
+
+    def declare_alive(self) -> None:
+        super().declare_alive()
+        if self.encoder is not None:
+            self.encoder.ctx.declare_alive()
+
+    def declare_ready(self) -> None:
+        if self.encoder is not None and not self.encoder.dead:
+            self.encoder.ctx.declare_ready()
+        super().declare_ready()
+
+    def kill_encoder(self) -> None:
+        """``--kill encoder@S`` when colocated (SIGUSR2 from the launcher): the encoder alone dies."""
+        if self.encoder is not None:
+            self.encoder.kill()
+
     def warmup(self) -> None:
+        if self.encoder is not None:
+            self.encoder.warmup()
         sc = self.sc
         p = self.sc.make_process()
         try:
@@ -97,7 +138,10 @@ class PlantNode(Node):
     def warm_publishers(self) -> None:
         from .common import warm_publisher
 
-        warm_publisher(self.pub_sensor, msg.Sensor(0, 0, tuple(self.sc.x0)).encode()[0])
+        if self.pub_sensor is not None:
+            warm_publisher(self.pub_sensor, msg.Sensor(0, 0, tuple(self.sc.x0)).encode()[0])
+        if self.encoder is not None:
+            self.encoder.warm_publishers()
 
     # ---- callbacks
     def _on_peer(self, node: str, alive: bool) -> None:
@@ -109,29 +153,33 @@ class PlantNode(Node):
                            detail="controller liveliness lost: running on with u = 0")
             self._got.set()
 
-    def _on_actuation(self, sample) -> None:
+    def _on_actuation(self, sample):
         rx = time.monotonic_ns()
         try:
             a = msg.Actuation.decode(sample.payload, sample.attachment)
-            if len(a.u) != self.process.m:
-                raise msg.MessageError(f"u has {len(a.u)} entries, plant has m = {self.process.m}")
         except msg.MessageError as e:
             self.bad_message("actuation", e)
-            return
+            return None
         if a.k == msg.WARMUP_K:
-            return
+            return None
+        if self._ack_to_encoder:  # the colocated encoder's ack rides on this message
+            self.encoder.ack_in(a.k, a.theta, a.last_rx, rx)
+        if len(a.u) != self.process.m:
+            self.bad_message("actuation", msg.MessageError(f"u has {len(a.u)} entries, plant has m = {self.process.m}"))
+            return None
         ctx = self.ctx
         if ctx.clock is not None and a.k > ctx.newest_k(rx - ctx.clock.t0_mono_ns):
             self.future_u += 1
             ctx.event("future_actuation", k=a.k, detail=f"u for sample {a.k} before its instant: rejected")
-            return
+            return None
         with self._lock:
             if a.k < self._waiting_k or a.k in self._acts or a.k >= ctx.n_steps:
                 self.late_u += 1
-                return
+                return None
             self._acts[a.k] = (a, rx)  # may come before the loop reaches k when the plant runs late
             if a.k == self._waiting_k:
                 self._got.set()
+        return a.k
 
     # ---- the time master
     def start_run(self, lead_s: float, timeout: float) -> msg.Start | None:
@@ -187,15 +235,33 @@ class PlantNode(Node):
                 else:
                     self._got.clear()
             x = proc.x
-            payload, att = msg.Sensor(k, t_act, tuple(x.tolist())).encode()
-            self.pub_sensor.put(payload, attachment=att)
+            if self.pub_sensor is not None:
+                payload, att = msg.Sensor(k, t_act, tuple(x.tolist())).encode()
+                self.pub_sensor.put(payload, attachment=att)
             sensor_tx = clock.now()
+            if self.encoder is not None:  # the colocated encoder: x_k handed over in the process
+                enc = self.encoder
+                try:
+                    enc.sensor_in(k, t_act, x, clock.now())
+                except Exception as e:  # noqa: BLE001 - the encoder fails alone
+                    enc.fail(e)
             # -- hold t_k until u_k or the deadline t_k + d T (ideal), or until u_k acts (physical).
             # The deadline is nominal: a plant that runs late waits less and catches up.
             deadline = k * T_ns + d_ns
+            inlet = self.inlet
             while not self.controller_dead:
-                rem = deadline - clock.now()
-                if rem <= 0 or self._got.wait(rem / 1e9):
+                now = clock.now()
+                rem = deadline - now
+                if rem <= 0 or self._got.is_set():
+                    break
+                w = inlet.window(now) if inlet is not None else None
+                if w is not None and w[0] <= now < w[1]:  # rx "spin": u_k is due, poll for it
+                    if not inlet.spin(min(w[1], deadline)) and clock.now() >= w[1]:
+                        inlet.last_k = max(inlet.last_k, k)  # not this window: wait as usual
+                    continue
+                if w is not None and w[0] > now:
+                    rem = min(rem, w[0] - now)
+                if self._got.wait(rem / 1e9):
                     break
             with self._lock:
                 a, rx_mono = self._acts.pop(k, (None, msg.NO_TIME))
@@ -282,4 +348,5 @@ class PlantNode(Node):
                 "controller_lost_at": self.controller_lost_at, "timing": self.timing,
                 "plant_fault": self.plant_fault, "plant_fault_at": self.plant_fault_at,
                 "jitter_us": percentiles(self.jitter), "latency_us": percentiles(self.latency),
-                "spin_us": self.spin_ns / 1e3}
+                "spin_us": self.spin_ns / 1e3, "colocated": ["encoder"] if self.encoder is not None else [],
+                **self.rx_summary()}

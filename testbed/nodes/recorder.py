@@ -34,7 +34,7 @@ from pathlib import Path
 from ..io import messages as msg
 from ..io import recording, transport
 from .common import (RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, on_stop_signals,
-                     security_info, tune_process, zenoh_config)
+                     parse_cpus, security_info, tune_process, zenoh_config)
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
@@ -288,6 +288,7 @@ def add_arguments_record(p: argparse.ArgumentParser) -> None:
                    help="standalone: stop S seconds after the plant's Stop (default %(default)s)")
     p.add_argument("--nice", type=int, default=10, metavar="N",
                    help="run at this nice value so the loop's nodes go first on a busy machine (default %(default)s)")
+    p.add_argument("--cpus", metavar="LIST", help="pin the recorder to these CPUs, e.g. 6 or 6,7")
     p.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
     p.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
     p.add_argument("--scenario-ref", help=argparse.SUPPRESS)
@@ -306,7 +307,9 @@ def main_record(args) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
                         format="%(asctime)s recorder   %(levelname)s %(message)s")
     opts = RunOptions.from_args(args)
-    sc = load_scenario(args.scenario, opts)
+    if args.cpus:
+        os.sched_setaffinity(0, parse_cpus(args.cpus))
+    sc = load_scenario(args.scenario, opts, check_design=not args.launched)
     tune_process(args.parent_pid)
     if args.nice:
         try:  # recording is off the loop's path: under CPU contention the loop nodes go first
@@ -331,6 +334,8 @@ def main_record(args) -> int:
     recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
                                   extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
                                          "ack_via_attacker": opts.ack_via_attacker,
+                                         "ack_on_actuation": opts.ack_on_actuation,
+                                         "colocate": list(opts.colocate),
                                          "security": security_info(args)})
     loop = loop_default(sc, args.loop)
     print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
