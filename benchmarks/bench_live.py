@@ -95,7 +95,20 @@ def echo_main(port: int, seconds: float, realtime: bool) -> None:
 
 
 def ping_pong(T: float, seconds: float, realtime: bool) -> dict:
-    """RTT of a bare Zenoh ping-pong paced at period T (same pacing as the plant)."""
+    """RTT of a bare Zenoh ping-pong paced at period T (same pacing as the plant).
+
+    The echo listens on a port found free a moment before; another process may take it in
+    between, so a ping-pong whose echo died is tried again on a new port (three times).
+    """
+    for attempt in range(3):
+        r = _ping_pong(T, seconds, realtime)
+        if r is not None:
+            return r
+        print(f"  ping-pong: the echo did not come up (its port was taken?): attempt {attempt + 2}", file=sys.stderr)
+    raise SystemExit("bench_live: the ping-pong echo did not come up three times")
+
+
+def _ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
     import zenoh
 
     from testbed.io import messages as msg
@@ -127,6 +140,8 @@ def ping_pong(T: float, seconds: float, realtime: bool) -> dict:
                 pub.put(b"\x00", attachment=att)
                 if got.wait(0.2):
                     break
+                if echo.poll() is not None:
+                    return None
             for _ in range(20):
                 got.clear()
                 pub.put(b"\x00", attachment=att)
@@ -321,6 +336,8 @@ def main() -> int:
                 row["rep"] = rep
                 rows.append(row)
         out.extend(rows)
+        if args.json:  # after every period: a later failure keeps what was measured
+            Path(args.json).write_text(json.dumps(out, indent=1))
         if len(variants) > 1:
             def med(name):
                 v = sorted(r["timing"]["sensor_to_actuator_us"]["p50"] for r in rows
