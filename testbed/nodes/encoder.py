@@ -142,23 +142,18 @@ class EncoderNode(Node):
 
     # ---- theta_k
     def _on_actuation(self, sample):
-        rx = time.monotonic_ns()
-        try:
-            a = msg.Actuation.decode(sample.payload, sample.attachment)
-        except msg.MessageError as e:
-            self.bad_message("actuation (the ack it carries)", e)
-            return None
-        if a.k == msg.WARMUP_K:
-            return None
-        self.ack_in(a.k, a.theta, a.last_rx, rx)
-        return a.k
+        return self._ack_from(sample, msg.Actuation, "actuation (the ack it carries)")
 
     def _on_ack(self, sample):
+        return self._ack_from(sample, msg.Ack, "ack")
+
+    def _ack_from(self, sample, cls, what: str):
+        """theta_k and last_rx from an Ack or an Actuation message: the sample index, or None."""
         rx = time.monotonic_ns()
         try:
-            a = msg.Ack.decode(sample.payload, sample.attachment)
+            a = cls.decode(sample.payload, sample.attachment)
         except msg.MessageError as e:
-            self.bad_message("ack", e)
+            self.bad_message(what, e)
             return None
         if a.k == msg.WARMUP_K:
             return None
