@@ -150,7 +150,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
     cols = read_columns(path)
     sc = scenario_of(cols.metadata, str(path))
-    s = report((cols, sc), arrays=True)
+    s = report((cols, sc), arrays=True, resimulate=0)  # Run.arrays need no resimulation
     N = s["samples"]
     A = cols.has("attacker")[:N]
     sat = np.zeros(N, dtype=bool)

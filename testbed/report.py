@@ -162,17 +162,23 @@ def load(path: str | Path):
     return cols, sc
 
 
-def report(path, *, arrays: bool = False) -> dict:
+#: how many samples ``testbed report`` resimulates by default (about 1.3 s; every sample of a
+#: run up to 1,000 s at T = 0.1 s or 10 s at 1 kHz): ``--resimulate all`` or ``testbed resimulate`` for more
+RESIMULATE_SAMPLES = 10_000
+
+
+def report(path, *, arrays: bool = False, resimulate: int | None = RESIMULATE_SAMPLES) -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
     ``arrays``: the per-sample values stay numpy arrays (``runsummary.write_json`` streams them).
+    ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none).
     """
     cols, sc = load(path) if isinstance(path, (str, Path)) else path
-    out = _report(cols, sc, arrays=arrays)
+    out = _report(cols, sc, arrays=arrays, resimulate=resimulate)
     return out if arrays else to_lists(out)
 
 
-def _report(cols, sc, *, arrays: bool) -> dict:
+def _report(cols, sc, *, arrays: bool, resimulate: int | None = RESIMULATE_SAMPLES) -> dict:
     from .quantizer import Codebook
 
     path = cols.path
@@ -206,7 +212,8 @@ def _report(cols, sc, *, arrays: bool) -> dict:
     from .resimulate import compare, recorded_run
 
     try:
-        out["resimulation"] = compare(recorded_run(cols, sc))
+        out["resimulation"] = (compare(recorded_run(cols, sc), limit=resimulate) if resimulate != 0 else
+                               {"reproduced": None, "verdict": "not resimulated (testbed resimulate checks the run)"})
     except Exception as e:  # noqa: BLE001 - the report stands without it; say why
         out["resimulation"] = {"reproduced": None, "verdict": f"not resimulated: {type(e).__name__}: {e}"}
     last_t = (cols.last_log_time - start.t0_ns) / 1e9 if start and cols.last_log_time else None
@@ -337,10 +344,25 @@ def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
     p.add_argument("--plot", metavar="PATH.png", help="draw states, input, E_k and the DoS intervals")
+    p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
+                   help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
+                        "all: every sample, as testbed resimulate; 0: none)")
+
+
+def _resimulate_count(text: str) -> int | None:
+    if text == "all":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of samples or 'all', got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a number of samples >= 0 or 'all', got {text!r}")
+    return n
 
 
 def main_report(args) -> int:
-    s = report(args.recording, arrays=True)
+    s = report(args.recording, arrays=True, resimulate=args.resimulate)
     if args.plot:
         plot(s, args.plot)
     if args.json:

@@ -137,6 +137,29 @@ def test_report_cli_json_and_plot(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_path, monkeypatch):
+    """The report's resimulation check covers RESIMULATE_SAMPLES samples and says so; all or none on request."""
+    import testbed.report as rep_mod
+
+    _, res, path = _sim_recording(tmp_path, "paper")
+    N = len(res.t)
+    monkeypatch.setattr(rep_mod, "RESIMULATE_SAMPLES", 100)
+    part = rep_mod.report(path, resimulate=100)["resimulation"]
+    assert part["checked"] == 100 and part["samples"] == N and part["reproduced"] is True
+    assert f"samples 0 to 99 of {N}" in part["verdict"] and part["first_divergence"] is None
+    full = rep_mod.report(path, resimulate=None)["resimulation"]
+    assert full["checked"] == N and full["reproduced"] is True and "of" not in full["verdict"]
+    none = rep_mod.report(path, resimulate=0)["resimulation"]
+    assert none["reproduced"] is None and "not resimulated" in none["verdict"]
+    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(path), "--json", "--resimulate", "all"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["resimulation"]["checked"] == N
+    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(path), "--resimulate", "-3"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "--resimulate" in r.stderr
+
+
 def test_simulate_out_flag_writes_a_recording(tmp_path):
     out = tmp_path / "s.mcap"
     r = subprocess.run([PY, "-m", "testbed.cli", "simulate", "paper", "--duration", "2", "--out", str(out)],
