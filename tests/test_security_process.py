@@ -110,7 +110,8 @@ def forge_everything(session, keys: transport.Keys, n_steps: int, k_now: int, sy
         session.put(keys.symbol_rx, b"\x07", attachment=msg.Header(k_now, 0).encode())
 
 
-def test_an_outsider_without_credentials_changes_nothing(run_id):
+def _outsider_run(run_id):
+    """A 6 s run with an outsider forging everything on every port it listens on, until it ends."""
     import zenoh
 
     port = transport.free_port()
@@ -137,8 +138,16 @@ def test_an_outsider_without_credentials_changes_nothing(run_id):
     finally:
         rc, s, err = finish(p)
     assert port in seen and len(tried) >= 10, (seen, len(tried))
-    if stalled(s):
-        pytest.skip(f"the machine stalled the run ({stalled(s)}): nothing to compare")
+    return rc, s, err
+
+
+def test_an_outsider_without_credentials_changes_nothing(run_id):
+    for rid in (run_id, run_id + "r"):  # a run the machine stalled is run once more (a new run id)
+        rc, s, err = _outsider_run(rid)
+        if not stalled(s):
+            break
+    else:
+        pytest.skip(f"the machine stalled the run twice ({stalled(s)}): nothing to compare")
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and s["outcome"] == "done" and not s["faults"]
     assert s["security"]["authenticated"] and s["security"]["topology"] == "router"
@@ -159,14 +168,8 @@ def insider(secret: str, user: str, port: int):
     return zenoh.open(conf)
 
 
-@pytest.mark.parametrize("colocated", [False, True], ids=["4proc", "colocated"])
-def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_path, colocated):
-    """The encoder's credentials, used to publish on every other node's keys: all of it dropped.
-
-    Colocated (the encoder runs in the plant's process), the encoder's user has no keys at all:
-    not even its symbols get through."""
-    secret = str(tmp_path / "run.secret")
-    assert subprocess.run(tb_cmd("secret", secret), capture_output=True).returncode == 0
+def _insider_run(run_id, secret, colocated):
+    """A 6 s run with the encoder's credentials used to forge everything."""
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     p = start_run(run_id, "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret,
@@ -183,8 +186,23 @@ def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_pa
             time.sleep(0.3)
     finally:
         rc, s, err = finish(p)
-    if stalled(s):
-        pytest.skip(f"the machine stalled the run ({stalled(s)}): nothing to compare")
+    return rc, s, err
+
+
+@pytest.mark.parametrize("colocated", [False, True], ids=["4proc", "colocated"])
+def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_path, colocated):
+    """The encoder's credentials, used to publish on every other node's keys: all of it dropped.
+
+    Colocated (the encoder runs in the plant's process), the encoder's user has no keys at all:
+    not even its symbols get through."""
+    secret = str(tmp_path / "run.secret")
+    assert subprocess.run(tb_cmd("secret", secret), capture_output=True).returncode == 0
+    for rid in (run_id, run_id + "r"):  # a run the machine stalled is run once more (a new run id)
+        rc, s, err = _insider_run(rid, secret, colocated)
+        if not stalled(s):
+            break
+    else:
+        pytest.skip(f"the machine stalled the run twice ({stalled(s)}): nothing to compare")
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and not s["faults"]
     sim = simulate("paper", 6)
