@@ -144,7 +144,8 @@ def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     if stall:
         warnings.warn(f"{scenario}: the run reports {stall} (machine stalled); rerunning once")
         reap(run_id)
-        res = live(run_id + "r", scenario, *args, timeout=timeout)
+        again = (*args, "--force") if "--out" in args else args  # the stalled run's recording is replaced
+        res = live(run_id + "r", scenario, *again, timeout=timeout)
     return res
 
 
