@@ -144,6 +144,7 @@ class Launcher:
         self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, RECORDER)).items()}
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
         self.colocated = self.opts.colocate           # roles run inside another node's process
+        self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
         self.processes = self.opts.processes          # the node processes
         self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, RECORDER, transport.LAUNCHER))
         for who, spec in self.cpus.items():
@@ -475,18 +476,41 @@ class Launcher:
             print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}"
                   + (f": {last}" if last else ""), file=sys.stderr)
 
-    def check_guest(self, role: str, col, t0_mono: int) -> None:
-        """A colocated role whose liveliness went while its host runs on: it died alone (killed or crashed)."""
+    #: a colocated role's liveliness loss without a crash counts as its death only this long after:
+    #: its host also closes it at the run's end, and that loss can arrive before the plant's Stop
+    GUEST_GRACE_NS = 500_000_000
+
+    def check_guest(self, role: str, col, t0_mono: int | None, *, final: bool = False) -> None:
+        """A colocated role whose liveliness went while its host runs on: it died alone (killed or crashed).
+
+        At the run's end its host closes it as well, after its summary and the plant's Stop, which
+        may still be on their way when the liveliness loss arrives: a loss without a crash event
+        counts once ``GUEST_GRACE_NS`` has passed with neither in, or (``final``, after the
+        summaries were waited for) when the host exited cleanly and published its summary but the
+        role's, which the host publishes first, never came.
+        """
         host = self.opts.process_of(role)
-        if col.lost_at(role) is None or host in self.exits or col.plant_done():
+        lost = col.lost_at(role)
+        if lost is None or t0_mono is None:
             return
-        now = time.monotonic_ns()
         crash = col.event_of(role, "crash")
+        if final:
+            if self.exits.get(host, {}).get("exit_code") != 0:
+                return  # the host itself died or was stopped: its fault says it
+            got = col.snapshot_summaries()
+            if crash is None and (role in got or host not in got):
+                return  # closed by its host at the end (its account is published before the host's)
+        else:
+            if host in self.exits or col.plant_done():
+                return
+            if crash is None and (time.monotonic_ns() - lost < self.GUEST_GRACE_NS
+                                  or role in col.snapshot_summaries()):
+                return
         injected = role in self.kill_sent
         why = (f"exception: {crash.detail}" if crash is not None else
                f"killed (colocated in the {host}: the {role} alone stopped)")
         info = {"exit_code": None, "signal": None if crash is not None else "SIGKILL",
-                "at_sample": col.last_k(role), "t_s": round((now - t0_mono) / 1e9, 4), "colocated_in": host}
+                "at_sample": col.last_k(role), "t_s": round((lost - t0_mono) / 1e9, 4), "colocated_in": host}
         self.exits[role] = info
         self.faults.append({"node": role, "kind": "crashed" if crash is not None else "killed", "why": why,
                             "last_log_line": (self.log_tail(host).splitlines() or [""])[-1],
@@ -523,6 +547,7 @@ class Launcher:
                 if st.T_ns >= 10_000_000:  # a slow loop leaves the CPU idle: load the summary's kernels now
                     threading.Thread(target=self._warm_summary, daemon=True, name="warm-summary").start()
                 t0_mono = st.t0_ns - (time.time_ns() - time.monotonic_ns())
+                self.t0_mono = t0_mono
                 end_mono = t0_mono + st.n_steps * st.T_ns + int(10e9)
             for role, p in self.procs.items():
                 rc = p.poll()
@@ -618,6 +643,9 @@ class Launcher:
                             self.record_exit(r, p.returncode, col, None)
                     self.phase("stopped")
                     self.wait_summaries(col)  # late telemetry and summaries
+                    for guest in self.colocated:  # one that died alone just before the end
+                        if guest not in self.exits:
+                            self.check_guest(guest, col, self.t0_mono, final=True)
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     self.publish_faults(session)

@@ -317,6 +317,19 @@ def test_uplink_node_killed_controller_counts_losses(run_id, node, topology):
     assert_recording_kept_the_run(s, node, k0)
 
 
+def test_colocated_encoder_killed_just_before_the_end_is_reported(run_id):
+    """Its host closes a colocated encoder at the end too: the launcher tells that apart from a
+    death near the end (no summary from the encoder, though the plant's came), and a clean run's
+    closing is never reported as a death (``test_greedy_attacker_live_equals_simulator[colocated]``)."""
+    rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", "encoder@2.85",
+                      "--colocate", "encoder", "--no-record")
+    assert rc == 1, err[-2000:]
+    (f,) = [f for f in s["faults"] if f["node"] == "encoder"]
+    assert f["kind"] == "killed" and f["injected"] and f["colocated_in"] == "plant"
+    assert 26 <= f["at_sample"] <= 29
+    assert s["complete"]
+
+
 def test_node_crash_is_reported_with_its_reason(run_id):
     rc, s, err = live(run_id, "paper", "--duration", "3", "--crash", "controller@8")
     assert rc == 1
