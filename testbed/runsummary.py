@@ -106,6 +106,8 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     jitter = t_ns[has_t] - np.flatnonzero(has_t) * Tn
     overruns = int(np.count_nonzero(jitter > d_ns))
     s2a = _diffs(u_rx, t_ns, P & (p_theta == 0))
+    tp = sc.timing_params  # physical timing, scheduled actuation: received u_k that came after their instant
+    late_sched = int(np.count_nonzero(s2a > tp[2])) if (tp[0] and tp[1]) else 0
     misses = int(np.count_nonzero(P & (flags & PT.FLAG_MISS != 0)))
     no_u = int(np.count_nonzero(P & (flags & PT.FLAG_NO_U != 0)))
     st_enc = _diffs(e_tx, t_ns, E_ok & P)
@@ -180,6 +182,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
             "deadline_misses": misses,
             "u_missing": no_u,
             "overruns": overruns,
+            "late_for_schedule": late_sched,
             "ack_rtt_us": es.get("ack_rtt_us"),
         },
         "events": dict(ev_count),

@@ -111,7 +111,9 @@ def stalled(summary: dict) -> dict | None:
     Deadline misses, overruns, late symbols, symbols superseded by a later one,
     sensor samples that reached the encoder out of order, and - when the ack is
     ideal (straight from the controller) - an ack that missed the encoder's grace
-    window, which only a stall of about one sampling period can cause.
+    window, which only a stall of about one sampling period can cause.  Under
+    physical timing with scheduled actuation, a u_k that arrived after its instant
+    (a stall of tens of ms: the paper's example can escape after one).
     """
     tm = summary.get("timing", {})
     ev = summary.get("events", {})
@@ -119,7 +121,8 @@ def stalled(summary: dict) -> dict | None:
     stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
              "late_symbols": summary.get("late_symbols"),
              "superseded": summary.get("loss_reasons", {}).get("superseded"),
-             "stale_sensor": enc.get("stale_sensor")}
+             "stale_sensor": enc.get("stale_sensor"),
+             "late_for_schedule": tm.get("late_for_schedule")}
     if not summary.get("ack_via_attacker"):
         stall["ack_missing"] = ev.get("ack_missing")
     if not any(stall.values()):
@@ -405,8 +408,7 @@ def test_physical_timing_converges_on_the_paper_and_resimulates(run_id, topology
     # with no stall, u_k acted exactly on schedule: the live run is the simulator's, bit for bit
     rc, out, err = run_cli(tb_cmd("simulate", "paper", "--timing", "physical", "--json"))
     sim = json.loads(out)
-    late = s["timing"]["sensor_to_actuator_us"]["max"] > 20_000  # received samples: scheduled at 20 ms
-    if not late:
+    if not s["timing"]["late_for_schedule"]:  # received samples: scheduled at 20 ms
         for key in ("symbols", "theta", "E", "x"):
             assert s[key] == sim[key][:s["samples"]], key
 
