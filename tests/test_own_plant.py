@@ -285,9 +285,9 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     work = plant_dir.parent / "elsewhere"
     rec = plant_dir.parent / "live.mcap"
 
-    def live(rid):
+    def live(rid, *more):
         rc, out, err = tb("run", "../plantdir/vdp.toml", "--json", "--duration", "3", "--run-id", rid,
-                          "--run-dir", plant_dir.parent / f"logs-{rid}", "--out", rec, cwd=work)
+                          "--run-dir", plant_dir.parent / f"logs-{rid}", "--out", rec, *more, cwd=work)
         try:
             return rc, json.loads(out), err
         except json.JSONDecodeError:
@@ -299,7 +299,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
         if stalled(s):  # a machine stall makes a sample a loss: rerun once (as test_live_process does)
             reap(rid)
             rid = rid + "r"
-            rc, s, err = live(rid)
+            rc, s, err = live(rid, "--force")  # the stalled run's recording is replaced
     finally:
         assert not reap(rid)
     assert rc == 0, (s.get("faults"), err[-2000:])
