@@ -16,16 +16,21 @@ This package depends only on numpy and numba; it never imports ``testbed`` or ``
 from .budget import BudgetReport, RealizedRates, check, realized_rates, satisfies
 from .gate import Gate
 from .generators import GENERATORS, ONLINE_KINDS, is_online, make_greedy, make_schedule
-from .greedy import (
-    GREEDY_PARAMS_SIZE,
-    GREEDY_STATE_SIZE,
-    GreedyAttacker,
-    greedy_init,
-    greedy_params,
-    greedy_run,
-    greedy_step,
-)
 from .schedule import Schedule, sample_eps
+
+#: the greedy attacker's names, imported on first use (``attackers.greedy`` needs numba; the
+#: offline schedules do not)
+_GREEDY = ("GREEDY_PARAMS_SIZE", "GREEDY_STATE_SIZE", "GreedyAttacker", "greedy_init", "greedy_params",
+           "greedy_run", "greedy_step")
+
+
+def __getattr__(name):
+    if name in _GREEDY:
+        from . import greedy
+
+        return getattr(greedy, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "Schedule",

@@ -11,10 +11,20 @@ from __future__ import annotations
 
 import math
 
-from .greedy import GreedyAttacker
+from typing import TYPE_CHECKING
+
 from .schedule import Schedule, sample_eps
 
+if TYPE_CHECKING:  # numba: imported only for an online (greedy) gate
+    from .greedy import GreedyAttacker
+
 __all__ = ["Gate"]
+
+
+def _is_greedy(source) -> bool:
+    from .greedy import GreedyAttacker
+
+    return isinstance(source, GreedyAttacker)
 
 
 class Gate:
@@ -33,7 +43,7 @@ class Gate:
     def __init__(self, source, T: float | None = None):
         if isinstance(source, Schedule):
             self.mode = "schedule"
-        elif isinstance(source, GreedyAttacker):
+        elif _is_greedy(source):
             self.mode = "greedy"
             if T is None:
                 T = source.T

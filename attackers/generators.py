@@ -21,12 +21,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 
-from .greedy import GreedyAttacker
 from .schedule import Schedule
+
+if TYPE_CHECKING:  # numba: imported only where the online attacker is built (make_greedy)
+    from .greedy import GreedyAttacker
 
 __all__ = ["GENERATORS", "ONLINE_KINDS", "make_schedule", "make_greedy", "is_online"]
 
@@ -337,4 +339,6 @@ def make_greedy(params: Mapping | None, *, T: float) -> GreedyAttacker:
     Tf = _num(kind, "T", T)
     if Tf <= 0.0:
         raise ValueError(f"attack kind {kind!r}: sampling period T={T!r} must be > 0")
+    from .greedy import GreedyAttacker
+
     return GreedyAttacker(vals[0], vals[1], vals[2], rho_D, Tf, threshold=threshold)

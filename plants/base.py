@@ -12,15 +12,26 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
-import numba as nb
 import numpy as np
 
+# numba is imported on first use, not here: a process that only reads a scenario (the
+# launcher before it starts the nodes, the attacker) never pays its import (~0.3 s of CPU).
 
-#: The one signature of every plant's right-hand side ``rhs(x, u, p, dx)``.  Plants
-#: compile it as a numba ``cfunc``; kernels receive it as a first-class function
-#: (a function pointer), so one compiled, cached kernel serves every plant.
-_arr = nb.types.float64[::1]
-RHS_SIG = nb.types.void(_arr, _arr, _arr, _arr)
+
+def _signature():
+    """The one signature of every plant's right-hand side ``rhs(x, u, p, dx)``.  Plants compile
+    it as a numba ``cfunc``; kernels receive it as a first-class function (a function
+    pointer), so one compiled, cached kernel serves every plant."""
+    import numba as nb
+
+    arr = nb.types.float64[::1]
+    return nb.types.void(arr, arr, arr, arr)
+
+
+def __getattr__(name):  # ``RHS_SIG``, made on first use
+    if name == "RHS_SIG":
+        return _signature()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class RHS:
@@ -33,6 +44,7 @@ class RHS:
     is inlined: about twice the speed), but numba cannot cache such a
     specialization across processes, so each process pays the compilation
     (seconds).  The batch simulator uses ``jit`` on request for big jobs.
+    Both are made on first use.
     """
 
     def __init__(self, fn):
@@ -40,14 +52,25 @@ class RHS:
         self.__name__ = fn.__name__
         self.__doc__ = fn.__doc__
         self._cfunc = None
-        self.jit = nb.njit(cache=True, inline="always")(fn)
+        self._jit = None
+
+    @property
+    def jit(self):
+        """The numba dispatcher (``njit(cache=True, inline="always")``)."""
+        if self._jit is None:
+            import numba as nb
+
+            self._jit = nb.njit(cache=True, inline="always")(self.py)
+        return self._jit
 
     @property
     def cfunc(self):
         """The compiled C function, made on first use: importing the bundled plants loads none of
         theirs (each costs tens of ms even from numba's disk cache), a process loads only its own."""
         if self._cfunc is None:
-            self._cfunc = nb.cfunc(RHS_SIG, cache=True)(self.py)
+            import numba as nb
+
+            self._cfunc = nb.cfunc(_signature(), cache=True)(self.py)
         return self._cfunc
 
 
@@ -56,10 +79,22 @@ def rhs_function(fn) -> RHS:
     return RHS(fn)
 
 
-@nb.njit(cache=True)
-def _batch_rhs(rhs, x, u, p, out):
+def _batch_rhs_py(rhs, x, u, p, out):
     for i in range(x.shape[0]):
         rhs(x[i], u[i], p, out[i])
+
+
+_BATCH_RHS = None
+
+
+def _batch_rhs(rhs, x, u, p, out):
+    """f over a batch through the ``cfunc`` (compiled, or loaded from numba's cache, on first use)."""
+    global _BATCH_RHS
+    if _BATCH_RHS is None:
+        import numba as nb
+
+        _BATCH_RHS = nb.njit(cache=True)(_batch_rhs_py)
+    _BATCH_RHS(rhs, x, u, p, out)
 
 
 @dataclass(frozen=True)

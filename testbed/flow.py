@@ -19,40 +19,12 @@ method); divergence is reported as a status code, never as NaN:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numba as nb
 import numpy as np
 
 from ._dop853 import dop853_step
 
-FLOW_OK = 0
-FLOW_DIVERGED = 1
-FLOW_STEP_LIMIT = 2
-
-STATUS_NAMES = {FLOW_OK: "ok", FLOW_DIVERGED: "diverged", FLOW_STEP_LIMIT: "step_limit"}
-
-
-
-@dataclass(frozen=True)
-class FlowOptions:
-    """Tolerances of the flow map.
-
-    rtol, atol : local error tolerances of the adaptive integrator.
-    x_max      : a state with ||x||_inf above this is reported as diverged.
-    max_steps  : step budget for one call of phi_T.
-    """
-
-    rtol: float = 1e-11
-    atol: float = 1e-13
-    x_max: float = 1e8
-    max_steps: int = 20000
-
-    def as_array(self) -> np.ndarray:
-        return np.array([self.rtol, self.atol, self.x_max, float(self.max_steps)], dtype=np.float64)
-
-
-DEFAULT_FLOW = FlowOptions()
+from .loopspec import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401
 
 
 @nb.njit(cache=True)

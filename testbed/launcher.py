@@ -601,7 +601,7 @@ class Launcher:
         import zenoh
 
         from .nodes.collect import Collector
-        from .quantizer import Codebook
+        from .loopspec import Codebook
 
         def on_signal(signum, _frame):
             self.signal = signum

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
+from .loopspec import corrupt_payload
 from .quantizer import Codebook, Decoder, Encoder, InvalidSymbol
 
 # controller decision reasons (the telemetry's ``reason`` field)
@@ -272,14 +273,6 @@ class ControllerProtocol:
         return {"received": self.received, "lost_deadline": self.lost_deadline, "invalid": self.invalid,
                 "late": self.late, "superseded": self.superseded, "future": self.future,
                 "overflows": self.dec.overflows, "decided": self.next_k}
-
-
-def corrupt_payload(codebook: Codebook, payload: bytes, kind: str) -> bytes:
-    """The attacker's fault injection: an out-of-range code, or one byte too many."""
-    if kind == "range" and codebook.n_codes < 256 ** codebook.nbytes:
-        return (256 ** codebook.nbytes - 1).to_bytes(codebook.nbytes, "big")
-    return payload + b"\xff"
-
 
 
 # ============================================================================ plant

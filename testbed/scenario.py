@@ -21,8 +21,7 @@ from attackers import generators as attack_generators
 
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
-from .flow import FlowOptions
-from .quantizer import RULES, Codebook, CodebookTooLarge, QuantizerParams, delay_margin_gain
+from .loopspec import RULES, Codebook, CodebookTooLarge, FlowOptions, QuantizerParams, delay_margin_gain
 
 BUNDLED_DIR = "scenarios"
 MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML

@@ -99,3 +99,20 @@ def test_missing_file_and_unknown_name():
         scenario.load("does/not/exist.toml")
     with pytest.raises(ScenarioError, match="neither a scenario file nor a bundled scenario"):
         scenario.load("not-a-scenario")
+
+
+def test_reading_a_scenario_imports_no_numba():
+    """The launcher until the run starts and the attacker node never import numba (about 0.3 s of
+    CPU per process at a live run's start-up): reading and checking a scenario needs none."""
+    import subprocess
+    import sys
+
+    code = ("import sys, testbed.cli, testbed.launcher, testbed.nodes.main, testbed.nodes.attacker\n"
+            "from testbed import scenario\n"
+            "for name in ('paper', 'pendulum', 'paper-greedy'):\n"
+            "    sc = scenario.load(name)\n"
+            "    sc.make_model()\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite'))[:3])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]", out.stdout

@@ -21,10 +21,10 @@ import threading
 
 import numpy as np
 
-from attackers import Gate, GreedyAttacker
+from attackers.gate import Gate
 
 from ..io import messages as msg
-from ..protocol import corrupt_payload
+from ..loopspec import corrupt_payload
 from .common import Node, attack_horizon, warm_publisher
 
 
@@ -54,13 +54,15 @@ class AttackerNode(Node):
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
         a = sc.attack
         if a.online:
+            from attackers.greedy import GreedyAttacker  # numba: only for the online attacker
+
             gp = a.greedy_params()
             self.gate = Gate(GreedyAttacker(gp[0], gp[1], gp[2], gp[3], sc.T, threshold=gp[4]))
             self.score_kind = a.score
         else:
             self.gate = Gate(a.schedule(sc.T, attack_horizon(sc)), sc.T)
             self.score_kind = None
-        from ..quantizer import Codebook
+        from ..loopspec import Codebook
 
         self.codebook = Codebook(self.model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
         self.corrupt = parse_corrupt(getattr(self.args, "corrupt", None))
@@ -94,6 +96,8 @@ class AttackerNode(Node):
 
     def warmup(self) -> None:
         if self.gate.is_online:
+            from attackers.greedy import GreedyAttacker
+
             GreedyAttacker(1.0, 0.0, 0.0, 0.0, self.sc.T).decide(0, 0.0)
 
     def warm_publishers(self) -> None:

@@ -35,13 +35,13 @@ log = logging.getLogger("testbed.nodes")
 STOP_GRACE_S = 15.0  # a node still alive this long after SIGINT/SIGTERM exits hard
 
 
-def _classes():
-    from .attacker import AttackerNode
-    from .controller import ControllerNode
-    from .encoder import EncoderNode
-    from .plant import PlantNode
+def _node_class(role: str):
+    """The role's node class; only its module is imported (the attacker's needs no numba)."""
+    import importlib
 
-    return {"plant": PlantNode, "encoder": EncoderNode, "attacker": AttackerNode, "controller": ControllerNode}
+    module, name = {"plant": ("plant", "PlantNode"), "encoder": ("encoder", "EncoderNode"),
+                    "attacker": ("attacker", "AttackerNode"), "controller": ("controller", "ControllerNode")}[role]
+    return getattr(importlib.import_module(f"{__package__}.{module}"), name)
 
 
 def _netns() -> str | None:
@@ -147,7 +147,7 @@ def main_node(args) -> int:
         holder["ctx"] = ctx
         ctx.watch_collector = args.launched
         args.wait_collector = args.wait_collector or args.launched
-        node = _classes()[role](ctx, args)
+        node = _node_class(role)(ctx, args)
         holder["node"] = node
         tap = guest_tap = None
         try:
