@@ -206,12 +206,13 @@ VARIANTS = {
     "rx-direct": (["--rx", "direct"], {}),                            # handlers on Zenoh's receive thread
     "rx-spin": (["--rx", "spin"], {}),                                # ... and a spin before the input is due
     "realtime": (["--realtime"], {}),                                 # SCHED_FIFO
+    "exec": (["--spawn", "exec"], {}),                                # OFF: nodes forked from the launcher
     "separate-ack": (["--separate-ack"], {}),                         # OFF: the ack on the actuation message
     "update-first": ([], {"TESTBED_AB_OFF": "deferred-update"}),      # OFF: u_k before the decoder's update
     "telemetry-inline": ([], {"TESTBED_AB_OFF": "telemetry-thread"}),  # OFF: telemetry off the control thread
 }
 #: ``--ab``: every change of the faster loop against the default, at each period
-AB_SET = ("default", "separate-ack+update-first+telemetry-inline", "separate-ack", "update-first", "telemetry-inline",
+AB_SET = ("default", "exec", "separate-ack+update-first+telemetry-inline", "separate-ack", "update-first", "telemetry-inline",
           "low-latency", "rx-direct", "rx-spin",
           "colocated", "insecure", "peer", "peer+colocated")
 

@@ -92,6 +92,10 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the nodes are not running after S seconds (default %(default)s)")
     g.add_argument("--run-dir", help="directory for node logs (default: a temporary one, kept on faults)")
+    g.add_argument("--spawn", choices=["fork", "exec"], default="fork",
+                   help="how local nodes start: fork (default) from the launcher, which has loaded Python, numba "
+                        "and the loop's compiled kernels once, or exec (a fresh 'python -m testbed.cli node' per "
+                        "node, as with --node-prefix, which always execs)")
     g.add_argument("--realtime", action="store_true", help="nodes try SCHED_FIFO")
     g.add_argument("--cpu", action="append", default=[], metavar="WHO=CPUS",
                    help="pin a node (plant, encoder, attacker, controller), the recorder or the launcher (the "
@@ -121,6 +125,75 @@ def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
     return out
 
 
+class Forked:
+    """A node forked from the launcher (``--spawn fork``): the part of ``subprocess.Popen`` the launcher uses."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped elsewhere: its status is gone
+                self.returncode = 1
+                return self.returncode
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        end = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if end is not None and time.monotonic() > end:
+                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
+            time.sleep(0.005)
+        return self.returncode
+
+
+def _forked_node(argv: list[str], log_fd: int) -> None:
+    """In the forked child: become ``testbed node ...`` (``argv``) with its output in the log; never returns."""
+    code = 1
+    try:
+        os.setsid()  # its own session and process group, as with Popen(start_new_session=True)
+        null = os.open(os.devnull, os.O_RDONLY)
+        os.dup2(null, 0)
+        os.dup2(log_fd, 1)
+        os.dup2(log_fd, 2)
+        os.close(null)
+        os.close(log_fd)
+        for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
+            signal.signal(s, signal.SIG_DFL)
+        try:  # its name in ps -o comm / top (its command line stays the launcher's): tb-plant, ...
+            import ctypes
+
+            ctypes.CDLL(None).prctl(15, ctypes.c_char_p(f"tb-{argv[1]}"[:15].encode()), 0, 0, 0)  # PR_SET_NAME
+        except (OSError, AttributeError, IndexError):
+            pass
+        sys.stdout.reconfigure(line_buffering=True)
+        import logging
+
+        logging.root.handlers.clear()
+        from .cli import main
+
+        code = main(argv)
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        if not isinstance(e.code, int) and e.code is not None:
+            print(e.code, file=sys.stderr)
+    except BaseException:  # noqa: BLE001 - a child of the launcher never returns into the launcher's code
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            os._exit(code)
+
+
 class Launcher:
     def __init__(self, args):
         self.args = args
@@ -145,6 +218,7 @@ class Launcher:
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
         self.colocated = self.opts.colocate           # roles run inside another node's process
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
+        self.fork_ok = getattr(args, "spawn", "exec") == "fork"  # --spawn fork (``forks``)
         self.processes = self.opts.processes          # the node processes
         self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, RECORDER, transport.LAUNCHER))
         for who, spec in self.cpus.items():
@@ -410,9 +484,68 @@ class Launcher:
             return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
                                     start_new_session=True, env=env)
 
-    def spawn(self) -> None:
+    def forks(self, role: str) -> bool:
+        """Whether ``role`` is forked from the launcher (``--spawn fork``, and no ``--node-prefix`` for it).
+
+        Only while the launcher has started no threads of a library (Zenoh's session, rerun's
+        streams: a fork copies none of them, and a lock one of them held stays held in the child);
+        ``run`` forks before it opens its session, and nothing imports rerun before that."""
+        return self.fork_ok and role not in self.node_prefix
+
+    def spawn(self, *, forked: bool) -> None:
+        """Start the node processes that are forked (before the launcher has any Zenoh thread) or exec'd."""
         for role in self.processes:
-            self.procs[role] = self._popen(self.command(role), role)
+            if self.forks(role) == forked and role not in self.procs:
+                self.procs[role] = self._fork(role) if forked else self._popen(self.command(role), role)
+
+    def _fork(self, role: str) -> Forked:
+        import gc
+
+        cmd = self.command(role)
+        argv = cmd[cmd.index("testbed.cli") + 1:]
+        gc.freeze()  # the launcher's objects: the child's collector never walks them (nor copies their pages)
+        log_fd = os.open(self.run_dir / f"{role}.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            _forked_node(argv, log_fd)  # never returns
+        os.close(log_fd)
+        return Forked(pid)
+
+    def prewarm(self) -> None:
+        """Before forking the nodes: load numba and the loop's compiled kernels once, here, so that
+        no forked node loads them again (about 0.3 s of import and 0.6 s of kernel loading each)."""
+        try:
+            self._prewarm()
+        except Exception:  # noqa: BLE001 - only a warm-up: each node loads what it needs anyway, and says why not
+            pass
+        self.phase("prewarmed")
+
+    def _prewarm(self) -> None:
+        import numpy as np
+
+        from .protocol import skip_sample
+        from .quantizer import Decoder, Encoder
+
+        sc = self.sc
+        model = sc.make_model()
+        e = Encoder(model, sc.K, sc.quantizer, sc.flow)
+        e.encode(sc.x0)
+        e.ack(0)
+        skip_sample(e)
+        d = Decoder(model, sc.K, sc.quantizer, sc.flow)
+        d.step(0)
+        d.step(None)
+        if d.codebook.resilient:
+            d.step(d.codebook.overflow)
+        if sc.plant.fmu is None:  # an FMU is opened by the plant node alone
+            p = sc.make_process()
+            try:
+                p.reset(sc.x0)
+                p.advance(np.zeros(p.m), sc.T)
+            finally:
+                p.close()
 
     def _signal_group(self, role: str, sig: int) -> None:
         p = self.procs[role]
@@ -616,7 +749,19 @@ class Launcher:
                   f"stop or steer run {self.run_id}", file=sys.stderr)
         outcome = "?"
         try:
-            with zenoh.open(conf) as session:
+            self.fork_ok = self.fork_ok and "rerun" not in sys.modules  # its import starts threads
+            if any(self.forks(r) for r in self.processes):  # before Zenoh starts any thread here
+                if self.rerun is not None:
+                    self.rerun.prepare()  # the part files the nodes' flags name
+                self.prewarm()
+                self.spawn(forked=True)
+            try:
+                session_cm = zenoh.open(conf)
+            except BaseException:
+                for r in self.procs:
+                    self._signal_group(r, signal.SIGKILL)
+                raise
+            with session_cm as session:
                 self.phase("router")
                 col = Collector(session, self.keys, self.sc.n_steps)
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
@@ -632,7 +777,7 @@ class Launcher:
                         self.rerun.start()
                     if self.foxglove is not None:
                         self.foxglove.start(session, self.keys)
-                    self.spawn()
+                    self.spawn(forked=False)
                     self.phase("spawned")
                     outcome = self.watch(session, col)
                     self.phase("watched")

@@ -320,6 +320,17 @@ def test_uplink_node_killed_controller_counts_losses(run_id, node, topology):
     assert_recording_kept_the_run(s, node, k0)
 
 
+def test_exec_spawn_equals_simulator(run_id):
+    """``--spawn exec``: each node a fresh ``python -m testbed.cli node`` (the path ``--node-prefix``
+    takes) instead of a fork of the launcher; the same run, bit for bit."""
+    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--spawn", "exec", "--no-record")
+    assert rc == 0, (s["faults"], err[-2000:])
+    sim = simulate("paper", 3)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], key
+    assert len({s["node_summaries"][r]["pid"] for r in ("plant", "encoder", "attacker", "controller")}) == 4
+
+
 def test_colocated_encoder_killed_just_before_the_end_is_reported(run_id):
     """Its host closes a colocated encoder at the end too: the launcher tells that apart from a
     death near the end (no summary from the encoder, though the plant's came), and a clean run's

@@ -110,13 +110,17 @@ def forge_everything(session, keys: transport.Keys, n_steps: int, k_now: int, sy
         session.put(keys.symbol_rx, b"\x07", attachment=msg.Header(k_now, 0).encode())
 
 
+#: the outsider's run: long enough for at least 10 attempts after the start-up
+OUTSIDER_S = 8
+
+
 def _outsider_run(run_id):
-    """A 6 s run with an outsider forging everything on every port it listens on, until it ends."""
+    """An 8 s run with an outsider forging everything on every port it listens on, until it ends."""
     import zenoh
 
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
-    p = start_run(run_id, "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}")
+    p = start_run(run_id, "--duration", str(OUTSIDER_S), "--listen", f"tcp/127.0.0.1:{port}")
     tried, seen = [], set()
     try:
         wait_running(run_id, p)
@@ -129,7 +133,7 @@ def _outsider_run(run_id):
                                                  password=pw)
                     try:
                         with zenoh.open(conf) as session:
-                            forge_everything(session, keys, 60, 30)
+                            forge_everything(session, keys, 10 * OUTSIDER_S, 30)
                             time.sleep(0.1)
                     except zenoh.ZError:
                         pass
@@ -151,7 +155,7 @@ def test_an_outsider_without_credentials_changes_nothing(run_id):
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and s["outcome"] == "done" and not s["faults"]
     assert s["security"]["authenticated"] and s["security"]["topology"] == "router"
-    sim = simulate("paper", 6)
+    sim = simulate("paper", OUTSIDER_S)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], key
     assert s["recording"]["complete"]

@@ -583,20 +583,26 @@ class LiveRerun:
             return out + ["--rerun-save", self.part(role)]
         return out + ["--rerun-url", self.url]
 
-    def start(self) -> None:
-        """Before the nodes start: open the launcher's stream, send the blueprint and the statics."""
+    def prepare(self) -> None:
+        """``save``: the folder of the part files, which the nodes' flags name (no rerun import here:
+        the launcher forks its nodes after this, and importing rerun starts threads)."""
         import tempfile
         from pathlib import Path
 
+        if self.mode == "save" and self.parts_dir is None:
+            out = Path(self.target).resolve()
+            out.parent.mkdir(parents=True, exist_ok=True)
+            self.parts_dir = tempfile.mkdtemp(prefix=f".{out.name}.parts-", dir=out.parent)
+
+    def start(self) -> None:
+        """Before the nodes start: open the launcher's stream, send the blueprint and the statics."""
         import rerun as rr
 
+        self.prepare()
         roa = roa_outline(self.sc) if self.roa else None
         bp = blueprint(self.sc, phase_bounds(self.sc, None, roa))
         self.rec = new_stream(self.recording_id)
         if self.mode == "save":
-            out = Path(self.target).resolve()
-            out.parent.mkdir(parents=True, exist_ok=True)
-            self.parts_dir = tempfile.mkdtemp(prefix=f".{out.name}.parts-", dir=out.parent)
             self.rec.save(self.part("launcher"), default_blueprint=bp)
         else:
             if self.mode == "spawn":
