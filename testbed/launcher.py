@@ -154,6 +154,8 @@ class Forked:
 
 def _forked_node(argv: list[str], log_fd: int) -> None:
     """In the forked child: become ``testbed node ...`` (``argv``) with its output in the log; never returns."""
+    import logging
+
     code = 1
     try:
         os.setsid()  # its own session and process group, as with Popen(start_new_session=True)
@@ -161,8 +163,8 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
         os.dup2(null, 0)
         os.dup2(log_fd, 1)
         os.dup2(log_fd, 2)
-        os.close(null)
-        os.close(log_fd)
+        for fd in {null, log_fd} - {0, 1, 2}:
+            os.close(fd)
         for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
             signal.signal(s, signal.SIG_DFL)
         try:  # its name in ps -o comm / top (its command line stays the launcher's): tb-plant, ...
@@ -172,8 +174,6 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
         except (OSError, AttributeError, IndexError):
             pass
         sys.stdout.reconfigure(line_buffering=True)
-        import logging
-
         logging.root.handlers.clear()
         from .cli import main
 
@@ -188,10 +188,11 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
         traceback.print_exc()
     finally:
         try:
+            logging.shutdown()
             sys.stdout.flush()
             sys.stderr.flush()
         finally:
-            os._exit(code)
+            os._exit(code if isinstance(code, int) else 1)
 
 
 class Launcher:
@@ -525,20 +526,12 @@ class Launcher:
     def _prewarm(self) -> None:
         import numpy as np
 
-        from .protocol import skip_sample
-        from .quantizer import Decoder, Encoder
+        from .nodes import controller, encoder, plant  # noqa: F401 - imported once, for every forked node
 
         sc = self.sc
         model = sc.make_model()
-        e = Encoder(model, sc.K, sc.quantizer, sc.flow)
-        e.encode(sc.x0)
-        e.ack(0)
-        skip_sample(e)
-        d = Decoder(model, sc.K, sc.quantizer, sc.flow)
-        d.step(0)
-        d.step(None)
-        if d.codebook.resilient:
-            d.step(d.codebook.overflow)
+        encoder.warm_kernels(sc, model)
+        controller.warm_kernels(sc, model)
         if sc.plant.fmu is None:  # an FMU is opened by the plant node alone
             p = sc.make_process()
             try:

@@ -25,6 +25,15 @@ from .common import Node, ab_off, warm_publisher
 CT = msg.ControllerTelemetry
 
 
+def warm_kernels(sc, model) -> None:
+    """Load the decoder's compiled kernels: the node's warm-up, and the launcher's before it forks."""
+    d = Decoder(model, sc.K, sc.quantizer, sc.flow)
+    d.step(0)
+    d.step(None)
+    if d.codebook.resilient:
+        d.step(d.codebook.overflow)
+
+
 class ControllerNode(Node):
     role = "controller"
 
@@ -49,11 +58,7 @@ class ControllerNode(Node):
         return self.proto.next_k
 
     def warmup(self) -> None:
-        d = Decoder(self.model, self.sc.K, self.sc.quantizer, self.sc.flow)
-        d.step(0)
-        d.step(None)
-        if self.codebook.resilient:
-            d.step(self.codebook.overflow)
+        warm_kernels(self.sc, self.model)
 
     def warm_publishers(self) -> None:
         m = self.model.m

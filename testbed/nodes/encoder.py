@@ -35,6 +35,15 @@ from .common import Node, warm_publisher
 log = logging.getLogger("testbed.nodes")
 
 
+def warm_kernels(sc, model) -> None:
+    """Load the encoder's compiled kernels (quantizer, flow map, the plant's right-hand side): the
+    node's warm-up, and the launcher's before it forks its nodes."""
+    e = Encoder(model, sc.K, sc.quantizer, sc.flow)
+    e.encode(sc.x0)
+    e.ack(0)
+    skip_sample(e)
+
+
 class EncoderNode(Node):
     role = "encoder"
     embedded = False   # run inside the plant's process (``--colocate encoder``)
@@ -69,10 +78,7 @@ class EncoderNode(Node):
             self._subs.append(self.subscribe(keys.ack_for_encoder(opts.ack_via_attacker), self._on_ack))
 
     def warmup(self) -> None:
-        e = Encoder(self.model, self.sc.K, self.sc.quantizer, self.sc.flow)
-        e.encode(self.sc.x0)
-        e.ack(0)
-        skip_sample(e)
+        warm_kernels(self.sc, self.model)
         self.codebook.pack(0)
 
     def warm_publishers(self) -> None:
