@@ -764,12 +764,12 @@ class Launcher:
                     # collector is ready, which it declares once the recorder is (``watch``)
                     if self.record_path is not None:
                         self.recorder = self._popen(self.recorder_command(), RECORDER)
-                    else:
-                        self.declare_collector_ready(session)
                     if self.rerun is not None:
                         self.rerun.start()
                     if self.foxglove is not None:
                         self.foxglove.start(session, self.keys)
+                    if self.record_path is None:  # forked nodes are ready at once: the taps listen first
+                        self.declare_collector_ready(session)
                     self.spawn(forked=False)
                     self.phase("spawned")
                     outcome = self.watch(session, col)
