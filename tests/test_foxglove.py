@@ -231,7 +231,9 @@ def test_run_foxglove_serves_the_run_live(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    p = subprocess.Popen(tb_cmd("run", "paper", "--duration", "4", "--json", "--no-record", "--foxglove", str(port),
+    # 8 s: the nodes start at once, so a viewer that connects and subscribes while the run is already
+    # going (on a loaded machine, seconds late) still sees every topic
+    p = subprocess.Popen(tb_cmd("run", "paper", "--duration", "8", "--json", "--no-record", "--foxglove", str(port),
                                 "--foxglove-linger", "1"),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     got: dict[str, list] = {}
