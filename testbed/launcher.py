@@ -524,21 +524,14 @@ class Launcher:
         self.phase("prewarmed")
 
     def _prewarm(self) -> None:
-        import numpy as np
-
-        from .nodes import controller, encoder, plant  # noqa: F401 - imported once, for every forked node
+        from .nodes import controller, encoder, plant  # imported once, for every forked node
 
         sc = self.sc
         model = sc.make_model()
         encoder.warm_kernels(sc, model)
         controller.warm_kernels(sc, model)
         if sc.plant.fmu is None:  # an FMU is opened by the plant node alone
-            p = sc.make_process()
-            try:
-                p.reset(sc.x0)
-                p.advance(np.zeros(p.m), sc.T)
-            finally:
-                p.close()
+            plant.warm_process(sc)
 
     def _signal_group(self, role: str, sig: int) -> None:
         p = self.procs[role]

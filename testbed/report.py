@@ -67,7 +67,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
-    from .runsummary import percentiles
+    from .runsummary import late_for_schedule, percentiles
 
     have = cols.has("plant")[:N]
     theta = cols.get("plant", "theta")[:N]
@@ -89,8 +89,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
             "margin_gain_lost": qp.margin_gain_lost, "L_u": sc.L_u,
             "delay_us": {"received": percentiles(delay[recv]), "lost": percentiles(delay[have & (theta == 1)])},
             "arrival_us": percentiles(arrival),
-            "late_for_schedule": int(np.count_nonzero(arrival > int(tp[2]))) if sc.run.actuation == "scheduled"
-            else 0}
+            "late_for_schedule": late_for_schedule(sc, arrival)}
 
 
 def telemetry_check(cols, N: int) -> list[dict]:

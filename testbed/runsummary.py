@@ -62,6 +62,13 @@ def _diffs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return a[ok] - b[ok]
 
 
+def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
+    """Physical timing, scheduled actuation: how many received u_k arrived (``arrival_ns`` after
+    t_k) later than their scheduled instant; 0 otherwise."""
+    tp = sc.timing_params
+    return int(np.count_nonzero(arrival_ns > int(tp[2]))) if (tp[0] and tp[1]) else 0
+
+
 def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict, faults: list, codebook,
                   arrays: bool = False) -> dict:
     """One JSON-able dict: ``testbed simulate --json`` keys plus timing, faults and node reports.
@@ -106,8 +113,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     jitter = t_ns[has_t] - np.flatnonzero(has_t) * Tn
     overruns = int(np.count_nonzero(jitter > d_ns))
     s2a = _diffs(u_rx, t_ns, P & (p_theta == 0))
-    tp = sc.timing_params  # physical timing, scheduled actuation: received u_k that came after their instant
-    late_sched = int(np.count_nonzero(s2a > tp[2])) if (tp[0] and tp[1]) else 0
+    late_sched = late_for_schedule(sc, s2a)
     misses = int(np.count_nonzero(P & (flags & PT.FLAG_MISS != 0)))
     no_u = int(np.count_nonzero(P & (flags & PT.FLAG_NO_U != 0)))
     st_enc = _diffs(e_tx, t_ns, E_ok & P)

@@ -53,6 +53,18 @@ from .common import Node, RoleView
 PT = msg.PlantTelemetry
 
 
+def warm_process(sc) -> None:
+    """Load the true plant's compiled flow map (or start an FMU) on a throw-away copy of the plant:
+    the node's warm-up, and the launcher's before it forks (for an ODE plant only)."""
+    p = sc.make_process()
+    try:
+        p.reset(sc.x0)
+        p.advance(np.zeros(p.m), sc.T)
+        p.advance(np.zeros(p.m), 0.5 * sc.T)
+    finally:
+        p.close()
+
+
 class PlantNode(Node):
     role = "plant"
 
@@ -123,17 +135,11 @@ class PlantNode(Node):
     def warmup(self) -> None:
         if self.encoder is not None:
             self.encoder.warmup()
-        sc = self.sc
-        p = self.sc.make_process()
         try:
-            p.reset(sc.x0)
-            p.advance(np.zeros(p.m), sc.T)
-            p.advance(np.zeros(p.m), 0.5 * sc.T)
+            warm_process(self.sc)
         except PlantFault as e:  # the true plant cannot start (an FMU that fails to initialize): one line
             self.process.close()
             raise SystemExit(f"testbed node plant: startup failed: plant fault: {e}") from None
-        finally:
-            p.close()
 
     def warm_publishers(self) -> None:
         from .common import warm_publisher
