@@ -67,10 +67,13 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
     g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
                    help="router: the launcher routes and checks every message (default); peer: direct links "
-                        "between the nodes, unauthenticated (with --insecure only)")
+                        "between the processes, each mutual TLS, and every process checks what it receives")
     g.add_argument("--secret-file", metavar="PATH",
                    help="use these credentials (testbed secret PATH) instead of making new ones for the run: "
                         "for nodes on other hosts, which need the file at the same path")
+    g.add_argument("--tls-dir", metavar="DIR",
+                   help="--topology peer: use this TLS folder (testbed secret --tls DIR) instead of making "
+                        "certificates for the run")
     g.add_argument("--insecure", action="store_true",
                    help="no authentication and no access control: any local process can join, stop or steer "
                         "the run (recorded as such)")
@@ -211,7 +214,10 @@ class Launcher:
         self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
         self.run_id = args.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = transport.Keys.for_run(self.run_id)
-        self.listen = args.listen or f"tcp/127.0.0.1:{transport.free_port()}"
+        self.topology = args.topology
+        self.secure = not args.insecure
+        self.tls = self.topology == "peer" and self.secure    # mutual TLS links (``TlsCredentials``)
+        self.listen = args.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
         self.node_connect = args.node_connect or self.listen
         self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
         self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
@@ -241,18 +247,24 @@ class Launcher:
         if self.record_path is not None and self.record_path.exists() and not args.force:
             raise BadInput(f"{self.record_path} exists: a recording is never overwritten (remove it, choose "
                            "another --out, or pass --force)")
-        self.topology = args.topology
-        self.secure = not args.insecure
-        if self.topology == "peer" and self.secure:
-            from .nodes.common import PEER_NEEDS_INSECURE
-
-            raise BadInput(PEER_NEEDS_INSECURE)
+        if self.tls:
+            if args.secret_file:
+                raise BadInput("--secret-file: the peer topology's credentials are TLS certificates (--tls-dir DIR, "
+                               "made with 'testbed secret --tls DIR'; by default made for the run)")
+            for ep in (self.listen, self.node_connect, *self.node_listen.values()):
+                if not ep.startswith("tls/"):
+                    raise BadInput(f"--topology peer: endpoint {ep}: the links are mutual TLS (tls/HOST:PORT)")
+        elif getattr(args, "tls_dir", None):
+            raise BadInput("--tls-dir: only for --topology peer (the router topology's credentials are --secret-file)")
         self.secret_dir = None
         self.secret_path: Path | None = None
+        self.tls_dir: Path | None = None              # the peer topology's TLS folder (``make_secrets``)
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0
         self._collector_ready = False
+        self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
+        self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
         self._tokens: list = []
         self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
         self.foxglove = None                                           # testbed run --foxglove PORT
@@ -329,6 +341,14 @@ class Launcher:
         """
         if not self.secure:
             return
+        if self.tls:
+            if getattr(self.args, "tls_dir", None):
+                self.tls_dir = Path(self.args.tls_dir).resolve()
+            else:
+                self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
+                self.tls_dir = transport.TlsCredentials.new(self.secret_dir / "tls").folder
+            transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
+            return
         if self.args.secret_file:
             self.secret_path = Path(self.args.secret_file).resolve()
             transport.Credentials.read(self.secret_path)  # checked now: one clear line if unusable
@@ -352,11 +372,15 @@ class Launcher:
         """``--topology``, credentials (a file path, never the secret itself) and listeners of a process."""
         a = self.args
         out = ["--topology", self.topology]
-        out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
+        if self.tls:
+            out += ["--tls-dir", str(self.tls_dir)]
+        else:
+            out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
         if a.low_latency:
             out.append("--low-latency")
         if self.topology == "peer":
-            out += ["--listen", self.node_listen.get(who, transport.LOOPBACK_ANY)]
+            out += ["--listen", self.node_listen.get(who, transport.TLS_LOOPBACK_ANY if self.tls
+                                                     else transport.LOOPBACK_ANY)]
         if a.zenoh_config:
             out += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
         return out
@@ -368,6 +392,11 @@ class Launcher:
         if not self.secure:
             return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
                                          low_latency=a.low_latency)
+        if self.tls:
+            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
+                                         acl=transport.acl_config(self.keys, self.colocated, by="cert_common_names"),
+                                         low_latency=a.low_latency,
+                                         tls=transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER))
         cred = transport.Credentials.read(self.secret_path)
         return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
                                      user=transport.LAUNCHER, password=cred.users.get(transport.LAUNCHER),
@@ -375,9 +404,13 @@ class Launcher:
                                      acl=transport.acl_config(self.keys, self.colocated), low_latency=a.low_latency)
 
     def security(self) -> dict:
+        from .nodes.common import access_control, transport_security
+
+        given = self.args.secret_file or getattr(self.args, "tls_dir", None)
         return {"authenticated": self.secure, "topology": self.topology, "low_latency": bool(self.args.low_latency),
-                "access_control": "every message" if self.secure else "none",
-                "credentials": None if not self.secure else ("given" if self.args.secret_file else "made for the run")}
+                "access_control": access_control(self.topology) if self.secure else "none",
+                "transport": transport_security(self.topology, not self.secure),
+                "credentials": None if not self.secure else ("given" if given else "made for the run")}
 
     def declare_collector_ready(self, session) -> None:
         """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
@@ -637,6 +670,21 @@ class Launcher:
                             "t_s": info["t_s"], "injected": injected, "colocated_in": host})
         print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}", file=sys.stderr)
 
+    def router_realtime(self, on: bool) -> None:
+        """With ``--realtime``, the launcher's threads (the run's router) run under SCHED_FIFO during the
+        loop as the nodes' do: a router thread at normal priority waits behind every other process for
+        each message it forwards."""
+        from .nodes.common import ab_off, set_realtime
+
+        if not self.args.realtime or ab_off("router-realtime") or on == self._router_rt:
+            return
+        if on:
+            self._router_rt = set_realtime(True)
+            self.router_fifo = self.router_fifo or self._router_rt
+        else:
+            set_realtime(False)
+            self._router_rt = False
+
     def _plant_ok(self, col) -> bool:
         return col.plant_done() or self.exits.get("plant", {}).get("exit_code") == 0
 
@@ -667,6 +715,7 @@ class Launcher:
                     threading.Thread(target=self._warm_summary, daemon=True, name="warm-summary").start()
                 t0_mono = st.t0_ns - (time.time_ns() - time.monotonic_ns())
                 self.t0_mono = t0_mono
+                self.router_realtime(True)
                 end_mono = t0_mono + st.n_steps * st.T_ns + int(10e9)
             for role, p in self.procs.items():
                 rc = p.poll()
@@ -768,6 +817,7 @@ class Launcher:
                     outcome = self.watch(session, col)
                     self.phase("watched")
                 finally:
+                    self.router_realtime(False)
                     self.stop_all(session, outcome)
                     for r, p in self.procs.items():
                         if r not in self.exits and p.poll() is not None:
@@ -803,6 +853,8 @@ class Launcher:
                             f.update(kind="plant_fault", why=summary["plant_fault"])
                 summary["outcome"] = outcome
                 summary["security"] = self.security()
+                summary["launcher"] = {"pid": os.getpid(), "sched_fifo": self.router_fifo,
+                                       "spawn": "fork" if any(self.forks(r) for r in self.processes) else "exec"}
                 try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
                     launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
                     session.put(self.keys.summary("launcher"),

@@ -112,7 +112,11 @@ def test_exit_codes_bad_input_is_2_with_one_line(tmp_path):
         ["simulate", "paper", "--duration", "-1"],
         ["report", str(tmp_path / "missing.mcap")],
         ["resimulate", str(tmp_path / "missing.mcap")],
-        ["run", "paper", "--topology", "peer"],
+        ["run", "paper", "--topology", "peer", "--secret-file", str(tmp_path / "x.secret")],  # certificates
+        ["run", "paper", "--topology", "peer", "--listen", "tcp/127.0.0.1:7999"],  # a plain TCP endpoint
+        ["run", "paper", "--tls-dir", str(tmp_path)],                              # TLS is the peer topology's
+        ["node", "plant", "paper", "--topology", "peer"],                          # no --tls-dir
+        ["node", "plant", "paper", "--topology", "peer", "--tls-dir", str(tmp_path)],  # no certificate in it
     ]
     for args in cases:
         r = subprocess.run([PY, "-m", "testbed.cli", *args], capture_output=True, text=True, timeout=120)

@@ -173,6 +173,9 @@ BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "satura
 #: the two topologies every key live test runs in: four node processes, and the encoder inside the
 #: plant's process (``--colocate encoder``, three network hops per sample)
 TOPOLOGIES = [pytest.param((), id="4proc"), pytest.param(("--colocate", "encoder"), id="colocated")]
+#: ... and the peer topology (direct links, mutual TLS, every receiver checks), for a few of them
+WITH_PEER = TOPOLOGIES + [pytest.param(("--topology", "peer"), id="peer"),
+                          pytest.param(("--topology", "peer", "--colocate", "encoder"), id="peer-colocated")]
 
 
 # ====================================================================== ideal timing: bit for bit
@@ -228,10 +231,12 @@ def test_paper_live_reports_sizes_and_timing(paper_run):
     assert "peer_lost" not in s["events"] and "controller_lost" not in s["events"], s["events"]
 
 
-@pytest.mark.parametrize("topology", TOPOLOGIES)
+@pytest.mark.parametrize("topology", WITH_PEER)
 def test_greedy_attacker_live_equals_simulator(run_id, topology):
     rc, s, err = live_exact(run_id, "paper-greedy", "--duration", "4", *topology)
     assert rc == 0, (s["faults"], err[-2000:])
+    assert s["security"]["authenticated"]
+    assert s["security"]["transport"] == ("mutual tls" if "peer" in topology else "user/password")
     sim = simulate("paper-greedy", 4)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], key
@@ -268,7 +273,7 @@ def _after(s, k0):
     return range(k0 + 2, s["samples"])
 
 
-@pytest.mark.parametrize("topology", TOPOLOGIES)
+@pytest.mark.parametrize("topology", WITH_PEER)
 def test_controller_killed_plant_runs_on_with_zero_input(run_id, topology):
     rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", "controller@1.05", *topology)
     assert rc == 1

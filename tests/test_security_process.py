@@ -114,13 +114,29 @@ def forge_everything(session, keys: transport.Keys, n_steps: int, k_now: int, sy
 OUTSIDER_S = 8
 
 
-def _outsider_run(run_id):
+def _outsider_configs(run_id, pt, peer, foreign):
+    """How an outsider tries port ``pt``: no credentials and a wrong password (router), or (peer, whose
+    links are TLS) plain TCP, and TLS that trusts the run's authority (its certificate is no secret) with a
+    certificate named "plant" of another authority (``foreign``)."""
+    if not peer:
+        return [transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer", user=user, password=pw)
+                for user, pw in ((None, None), ("plant", "guess"))]
+    import glob
+
+    (ca,) = glob.glob(os.path.join(_LOGS, run_id, "secrets-*", "tls", "ca.pem"))
+    tls = dict(transport.TlsCredentials(foreign).zenoh("plant"), root_ca_certificate=ca)
+    return [transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer"),
+            transport.make_config(connect=[f"tls/127.0.0.1:{pt}"], mode="peer", tls=tls)]
+
+
+def _outsider_run(run_id, peer=False, foreign=None):
     """An 8 s run with an outsider forging everything on every port it listens on, until it ends."""
     import zenoh
 
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
-    p = start_run(run_id, "--duration", str(OUTSIDER_S), "--listen", f"tcp/127.0.0.1:{port}")
+    p = start_run(run_id, "--duration", str(OUTSIDER_S), "--listen", f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}",
+                  *(("--topology", "peer") if peer else ()))
     tried, seen = [], set()
     try:
         wait_running(run_id, p)
@@ -128,9 +144,7 @@ def _outsider_run(run_id):
             ports = listening_ports(run_id)
             seen.update(ports)
             for pt in ports:
-                for user, pw in ((None, None), ("plant", "guess")):  # no credentials; a wrong password
-                    conf = transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer", user=user,
-                                                 password=pw)
+                for conf in _outsider_configs(run_id, pt, peer, foreign):
                     try:
                         with zenoh.open(conf) as session:
                             forge_everything(session, keys, 10 * OUTSIDER_S, 30)
@@ -145,16 +159,22 @@ def _outsider_run(run_id):
     return rc, s, err
 
 
-def test_an_outsider_without_credentials_changes_nothing(run_id):
+@pytest.mark.parametrize("topology", ["router", "peer"])
+def test_an_outsider_without_credentials_changes_nothing(run_id, topology, tmp_path):
+    """Router: no password or a wrong one.  Peer (mutual TLS): plain TCP, or a certificate named after a
+    node but made by another authority.  Neither gets a link: nothing reaches a node."""
+    peer = topology == "peer"
+    foreign = transport.TlsCredentials.new(tmp_path / "foreign").folder if peer else None
     for rid in (run_id, run_id + "r"):  # a run the machine stalled is run once more (a new run id)
-        rc, s, err = _outsider_run(rid)
+        rc, s, err = _outsider_run(rid, peer, foreign)
         if not stalled(s):
             break
     else:
         pytest.skip(f"the machine stalled the run twice ({stalled(s)}): nothing to compare")
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and s["outcome"] == "done" and not s["faults"]
-    assert s["security"]["authenticated"] and s["security"]["topology"] == "router"
+    assert s["security"]["authenticated"] and s["security"]["topology"] == topology
+    assert s["security"]["transport"] == ("mutual tls" if peer else "user/password")
     sim = simulate("paper", OUTSIDER_S)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], key
@@ -163,24 +183,31 @@ def test_an_outsider_without_credentials_changes_nothing(run_id):
         assert ev not in s["events"], s["events"]  # nothing even reached the nodes
 
 
-def insider(secret: str, user: str, port: int):
+def insider(secret: str, user: str, port: int, peer: bool = False):
+    """A session with ``user``'s credentials: a client of the run's router, or (``peer``: ``secret`` is the
+    run's TLS folder) a peer of the mesh holding ``user``'s certificate."""
     import zenoh
 
+    if peer:
+        conf = transport.make_config(connect=[f"tls/127.0.0.1:{port}"], mode="peer",
+                                     tls=transport.TlsCredentials(secret).zenoh(user))
+        return zenoh.open(conf)
     cred = transport.Credentials.read(secret)
     conf = transport.make_config(connect=[f"tcp/127.0.0.1:{port}"], mode="client", user=user,
                                  password=cred.password(user))
     return zenoh.open(conf)
 
 
-def _insider_run(run_id, secret, colocated):
+def _insider_run(run_id, secret, colocated, peer=False):
     """A 6 s run with the encoder's credentials used to forge everything."""
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
-    p = start_run(run_id, "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret,
-                  *(("--colocate", "encoder") if colocated else ()))
+    net = (("--listen", f"tls/127.0.0.1:{port}", "--topology", "peer", "--tls-dir", secret) if peer else
+           ("--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret))
+    p = start_run(run_id, "--duration", "6", *net, *(("--colocate", "encoder") if colocated else ()))
     try:
         wait_running(run_id, p)
-        with insider(secret, "encoder", port) as session:
+        with insider(secret, "encoder", port, peer) as session:
             started = threading.Event()
             sub = session.declare_subscriber(keys.actuation, lambda smp: started.set())
             assert started.wait(TIMEOUT), "the run never started"
@@ -193,16 +220,19 @@ def _insider_run(run_id, secret, colocated):
     return rc, s, err
 
 
-@pytest.mark.parametrize("colocated", [False, True], ids=["4proc", "colocated"])
-def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_path, colocated):
+@pytest.mark.parametrize("colocated,peer", [(False, False), (True, False), (False, True)],
+                         ids=["4proc", "colocated", "peer"])
+def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_path, colocated, peer):
     """The encoder's credentials, used to publish on every other node's keys: all of it dropped.
 
     Colocated (the encoder runs in the plant's process), the encoder's user has no keys at all:
-    not even its symbols get through."""
-    secret = str(tmp_path / "run.secret")
-    assert subprocess.run(tb_cmd("secret", secret), capture_output=True).returncode == 0
+    not even its symbols get through.  Peer: the encoder's certificate, on a peer of the mesh that
+    links to every process; each receiver drops it."""
+    secret = str(tmp_path / ("tls" if peer else "run.secret"))
+    assert subprocess.run(tb_cmd("secret", secret, *(("--tls",) if peer else ())),
+                          capture_output=True).returncode == 0
     for rid in (run_id, run_id + "r"):  # a run the machine stalled is run once more (a new run id)
-        rc, s, err = _insider_run(rid, secret, colocated)
+        rc, s, err = _insider_run(rid, secret, colocated, peer)
         if not stalled(s):
             break
     else:

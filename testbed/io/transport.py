@@ -33,16 +33,23 @@ processes meet through explicit endpoints.  Two topologies (``TOPOLOGIES``):
   the other end of every link and enforces least privilege on every message
   (``acl_config``: each process may publish only on its own keys).
 * ``peer``: every process is a peer and gossip links every pair directly (one
-  hop less per message), without authentication (``--insecure``): with
-  user/password authentication a mesh of peers that open links to each other at
-  the same moment sometimes never completes (seen here in about one start-up of
-  six), and Zenoh's access control would only know the remote's user name on the
-  links a peer accepted.  For latency experiments on a trusted machine.
+  hop less per message).  Every link is mutual TLS (``TlsCredentials``): both
+  ends present a certificate of the run's own authority, whose common name is the
+  process's name, so each end knows who is at the other, whichever opened the
+  link, and every process checks every message it receives (the same
+  ``acl_config``, by certificate name).  User/password authentication cannot do
+  this in a mesh: only the end that accepted a link learns the other's name (and
+  a mesh of such peers opening links to each other at the same moment sometimes
+  never completed here, about one start-up in six).  ``--insecure``: plain TCP,
+  no authentication.
 
-Authentication (``Credentials``): a run has one password per process, made for
-the run and kept in 0600 files; a session that presents no or a wrong password
-gets no link at all (it can neither receive nor publish).  ``--insecure`` runs
-without, on request.
+Authentication: in the router topology (``Credentials``) a run has one password
+per process, made for the run and kept in 0600 files; a session that presents no
+or a wrong password gets no link at all (it can neither receive nor publish).  In
+the peer topology (``TlsCredentials``) a run has one key and certificate per
+process, signed by an authority made for the run whose own key is thrown away at
+once: no other certificate can be made for it.  ``--insecure`` runs without, on
+request.
 """
 
 from __future__ import annotations
@@ -64,6 +71,7 @@ CLIENT_CONNECT_TIMEOUT_MS = 30_000  # a client waits this long for its router be
 DEFAULT_RUN_ID = "default"
 DEFAULT_HUB = "tcp/127.0.0.1:7447"   # standalone nodes: the plant listens here, the others connect
 LOOPBACK_ANY = "tcp/127.0.0.1:0"     # a peer's own listener for direct links (loopback only)
+TLS_LOOPBACK_ANY = "tls/127.0.0.1:0"  # ... with TLS (the authenticated peer topology)
 
 
 @dataclass(frozen=True)
@@ -161,7 +169,7 @@ class Keys:
 def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | tuple[str, ...] = (),
                 config_file: str | Path | None = None, multicast: bool = False, *, mode: str = "peer",
                 user: str | None = None, password: str | None = None, dictionary_file: str | Path | None = None,
-                acl: dict | None = None, low_latency: bool = False):
+                acl: dict | None = None, low_latency: bool = False, tls: dict | None = None):
     """A ``zenoh.Config``: explicit endpoints, multicast scouting off.
 
     ``mode``: "peer", "router" or "client" (a client has no listener of its own).
@@ -173,6 +181,8 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
     accepts from the sessions that connect to it; ``acl``: Zenoh access control
     (``acl_config``).  ``low_latency``: Zenoh's low-latency unicast transport (no
     batching, no priority queues: QoS off), which every session of a run must share.
+    ``tls``: mutual TLS (``TlsCredentials.zenoh``): the session speaks TLS only, and
+    its own listener, when none is given, is ``tls/127.0.0.1:0``.
     """
     import zenoh
 
@@ -184,12 +194,17 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
     if mode == "router" and not multicast:
         # a router otherwise spends 500 ms scouting for peers before it opens; there are none to find
         conf.insert_json5("scouting/delay", "0")
+    if mode == "peer":
+        # of two peers that learn of each other, only the one with the greater id opens the link: both
+        # opening at once is what sometimes left a pair of a run's peers without any link
+        conf.insert_json5("scouting/gossip/autoconnect_strategy",
+                          json.dumps({"peer": {"to_router": "always", "to_peer": "greater-zid"}}))
     if mode != "client":
         file_listen = _json_or_none(conf, "listen/endpoints")
         if listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
         elif not file_listen:
-            conf.insert_json5("listen/endpoints", json.dumps([LOOPBACK_ANY]))
+            conf.insert_json5("listen/endpoints", json.dumps([TLS_LOOPBACK_ANY if tls else LOOPBACK_ANY]))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if mode == "client":  # wait for the router a while (nodes may start in any order), then fail loudly
@@ -205,6 +220,9 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(Path(dictionary_file).resolve())))
     if acl is not None:
         conf.insert_json5("access_control", json.dumps(acl))
+    if tls is not None:
+        conf.insert_json5("transport/link/tls", json.dumps(tls))
+        conf.insert_json5("transport/link/protocols", json.dumps(["tls"]))  # no plain TCP link at all
     if low_latency:
         conf.insert_json5("transport/unicast/lowlatency", "true")
         conf.insert_json5("transport/unicast/qos/enabled", "false")
@@ -289,6 +307,108 @@ class Credentials:
         return Credentials({user: self.password(user)})
 
 
+class TlsCredentials:
+    """The peer topology's credentials: a key and a certificate per process (``USERS``), in a 0700 folder.
+
+    ``ca.pem`` is the run's own certificate authority; its key signs one certificate
+    per process (common name: the process's name, ``USERS``) and is then thrown away,
+    so no further certificate of the run can ever be made.  ``NAME.key`` (0600) and
+    ``NAME.pem`` are a process's own.  Zenoh's mutual TLS checks that both ends of a
+    link hold a certificate of that authority, and its access control reads the
+    common name at the other end of every link (``acl_config(..., by="cert_common_names")``).
+    """
+
+    VALID_DAYS = 30
+    MAX_FILE = 65536
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+
+    @classmethod
+    def new(cls, folder: str | Path, users=USERS) -> "TlsCredentials":
+        """Make the authority and every process's key and certificate in the new folder ``folder``."""
+        import datetime
+        import os
+
+        try:
+            from cryptography import x509
+            from cryptography.hazmat.primitives import hashes, serialization
+            from cryptography.hazmat.primitives.asymmetric import ec
+            from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+        except ImportError:
+            from ..errors import BadInput
+
+            raise BadInput("the authenticated peer topology makes TLS certificates with the 'cryptography' "
+                           "package: pip install 'testbed[tls]' (or run the router topology)") from None
+        d = Path(folder)
+        d.mkdir(mode=0o700)
+        now = datetime.datetime.now(datetime.timezone.utc)
+        start, end = now - datetime.timedelta(hours=1), now + datetime.timedelta(days=cls.VALID_DAYS)
+        ca_key = ec.generate_private_key(ec.SECP256R1())
+        ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"testbed run authority {os.urandom(6).hex()}")])
+        ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
+              .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+              .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+              .add_extension(x509.KeyUsage(digital_signature=False, content_commitment=False, key_encipherment=False,
+                                           data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                                           crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
+              .sign(ca_key, hashes.SHA256()))
+        _write_new(d / "ca.pem", ca.public_bytes(serialization.Encoding.PEM), 0o644)
+        import ipaddress
+
+        for u in users:
+            key = ec.generate_private_key(ec.SECP256R1())
+            cert = (x509.CertificateBuilder()
+                    .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, u)])).issuer_name(ca_name)
+                    .public_key(key.public_key()).serial_number(x509.random_serial_number())
+                    .not_valid_before(start).not_valid_after(end)
+                    .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+                    .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                          ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+                    .add_extension(x509.SubjectAlternativeName([x509.DNSName("localhost"),
+                                                                x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+                                   critical=False)
+                    .sign(ca_key, hashes.SHA256()))
+            _write_new(d / f"{u}.key", key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                                         serialization.NoEncryption()), 0o600)
+            _write_new(d / f"{u}.pem", cert.public_bytes(serialization.Encoding.PEM), 0o644)
+        del ca_key  # never written: the run's authority signs nothing more
+        return cls(d)
+
+    def zenoh(self, user: str) -> dict:
+        """``transport/link/tls`` of ``user``'s session (checked: BadInput if a file is missing or unsafe)."""
+        import stat
+
+        from ..errors import BadInput
+
+        files = {"ca": self.folder / "ca.pem", "cert": self.folder / f"{user}.pem", "key": self.folder / f"{user}.key"}
+        for what, f in files.items():
+            try:
+                st = f.stat()
+            except OSError as e:
+                raise BadInput(f"TLS folder {self.folder}: {f.name}: {e.strerror} (testbed run makes one per run; "
+                               f"testbed secret --tls DIR makes one for nodes started by hand)") from None
+            if not stat.S_ISREG(st.st_mode) or st.st_size > self.MAX_FILE or st.st_size == 0:
+                raise BadInput(f"TLS folder {self.folder}: {f.name} is not a PEM file")
+            if what == "key" and st.st_mode & 0o077:
+                raise BadInput(f"TLS folder {self.folder}: {f.name} is readable by others "
+                               f"(mode {stat.S_IMODE(st.st_mode):o}); chmod 600 {f}")
+        ca, cert, key = (str(files[k].resolve()) for k in ("ca", "cert", "key"))
+        # the name in a certificate is the identity; which address was dialled is not (nodes move between
+        # namespaces and hosts): the authority and the access control by common name decide
+        return {"root_ca_certificate": ca, "listen_private_key": key, "listen_certificate": cert,
+                "connect_private_key": key, "connect_certificate": cert, "enable_mtls": True,
+                "verify_name_on_connect": False}
+
+
+def _write_new(path: Path, data: bytes, mode: int) -> None:
+    import os
+
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+
+
 #: roles that may run inside another node's process (``--colocate encoder``: in the plant's)
 COLOCATABLE = {"encoder": "plant"}
 
@@ -321,13 +441,15 @@ def _own_keys(user: str) -> list[str]:
     return own + [f"alive/{name}", f"ready/{name}"]
 
 
-def acl_config(keys: Keys, colocate: tuple[str, ...] = ()) -> dict:
-    """Zenoh access control of the run's router: each process may publish only on its own keys.
+def acl_config(keys: Keys, colocate: tuple[str, ...] = (), by: str = "usernames") -> dict:
+    """Zenoh access control of the run's router (or of every peer): each process may publish only on its own keys.
 
     Default deny; every authenticated client may subscribe to and receive everything of
     the run, and put (and declare liveliness tokens, queryables and replies) only on
     ``publish_keys(user)``.  The router accepted every link, so it knows the user name
-    at the other end of each and checks every message.  ``colocate``: roles run inside
+    at the other end of each and checks every message.  ``by="cert_common_names"`` (the
+    peer topology): the remote is known by its certificate on every link, whichever end
+    opened it, and every peer checks what it receives.  ``colocate``: roles run inside
     another process (``COLOCATABLE``): their keys move to the host's user, and their own
     user may publish nothing.
     """
@@ -335,7 +457,9 @@ def acl_config(keys: Keys, colocate: tuple[str, ...] = ()) -> dict:
     every = f"{p}/**"
     listen_msgs = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"]
     pub_msgs = ["put", "liveliness_token", "declare_queryable", "reply"]
-    subjects = [{"id": u, "usernames": [u]} for u in USERS]
+    if by not in ("usernames", "cert_common_names"):
+        raise ValueError(f"access control by {by!r}")
+    subjects = [{"id": u, by: [u]} for u in USERS]
     rules = [{"id": "listen", "messages": listen_msgs, "flows": ["ingress", "egress"], "permission": "allow",
               "key_exprs": [every]},
              {"id": "receive", "messages": listen_msgs + pub_msgs + ["delete"], "flows": ["egress"],

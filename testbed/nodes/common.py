@@ -352,9 +352,12 @@ def add_security_arguments(g) -> None:
     """``--topology``, ``--secret-file``, ``--insecure`` (nodes, the recorder; the launcher makes its own secret)."""
     g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
                    help="router: one process routes and checks every message (default); peer: direct links "
-                        "between the processes, unauthenticated (with --insecure only)")
+                        "between the processes, mutual TLS (--tls-dir), every process checks what it receives")
     g.add_argument("--secret-file", metavar="PATH",
                    help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed secret')")
+    g.add_argument("--tls-dir", metavar="DIR",
+                   help="--topology peer: the run's TLS folder (ca.pem, NAME.pem, NAME.key; make one with "
+                        "'testbed secret --tls DIR')")
     g.add_argument("--insecure", action="store_true",
                    help="no authentication and no access control: any local process can join the run")
     g.add_argument("--low-latency", action="store_true",
@@ -375,14 +378,26 @@ def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
     add_security_arguments(g)
 
 
-PEER_NEEDS_INSECURE = ("the peer topology runs without authentication only: add --insecure (for latency "
-                       "experiments on a trusted machine), or use the router topology")
+PEER_NEEDS_TLS = ("--topology peer: no --tls-dir: its links are mutual TLS; make the folder with "
+                  "'testbed secret --tls DIR' and give it to every process of the run (or run unauthenticated "
+                  "with --insecure)")
+
+
+def access_control(topology: str) -> str:
+    """Who checks the messages of a run (the ``access_control`` of its ``security``)."""
+    return "every message, by every receiver" if topology == "peer" else "every message"
+
+
+def transport_security(topology: str, insecure: bool) -> str:
+    """How the links of a run are authenticated (the ``transport`` of its ``security``)."""
+    return "tcp" if insecure else ("mutual tls" if topology == "peer" else "user/password")
 
 
 def security_info(args) -> dict:
     """How a process's session is secured (it goes into the recording and the summary)."""
     return {"authenticated": not args.insecure, "topology": args.topology,
-            "access_control": "none" if args.insecure else "every message",
+            "access_control": "none" if args.insecure else access_control(args.topology),
+            "transport": transport_security(args.topology, args.insecure),
             "low_latency": bool(getattr(args, "low_latency", False))}
 
 
@@ -391,20 +406,23 @@ def zenoh_config(args, role: str, keys: transport.Keys):
 
     Standalone defaults: the plant listens on tcp/127.0.0.1:7447, the others connect to
     it.  Router topology: the hub (the launcher, or a standalone plant) is the run's
-    router and checks every message; the others are its clients.  Peer topology: every
-    process is a peer.  Unless ``--insecure``, the session authenticates with the
-    secret file's line of ``role``; a router or a peer also accepts the file's other lines.
+    router and checks every message; the others are its clients.  Unless ``--insecure``,
+    the session authenticates with the secret file's line of ``role``; the router accepts
+    the file's other lines.  Peer topology: every process is a peer, every link mutual TLS
+    with ``role``'s certificate of the ``--tls-dir`` folder, and every process checks what
+    it receives.
     """
     from ..errors import BadInput
 
     hub = role == "plant" and not getattr(args, "launched", False)
+    peer = args.topology == "peer"
+    hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if peer and not args.insecure else transport.DEFAULT_HUB
     listen, connect = list(args.listen), list(args.connect)
     if not listen and not connect and not args.zenoh_config:
         if hub:
-            listen = [transport.DEFAULT_HUB]
+            listen = [hub_ep]
         else:
-            connect = [transport.DEFAULT_HUB]
-    peer = args.topology == "peer"
+            connect = [hub_ep]
     mode = "peer" if peer else ("router" if hub else "client")
     ll = bool(getattr(args, "low_latency", False))
     colocate = RunOptions.from_args(args).colocate
@@ -412,7 +430,15 @@ def zenoh_config(args, role: str, keys: transport.Keys):
         return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
                                      low_latency=ll)
     if peer:
-        raise BadInput(PEER_NEEDS_INSECURE)
+        if not getattr(args, "tls_dir", None):
+            raise BadInput(PEER_NEEDS_TLS)
+        tls = transport.TlsCredentials(args.tls_dir).zenoh(role)
+        for ep in (*listen, *connect):
+            if not ep.startswith("tls/"):
+                raise BadInput(f"--topology peer: endpoint {ep}: the links are mutual TLS (tls/HOST:PORT)")
+        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
+                                     acl=transport.acl_config(keys, colocate, by="cert_common_names"), low_latency=ll,
+                                     tls=tls)
     if not args.secret_file:
         raise BadInput("no --secret-file: make one with 'testbed secret PATH' and give it to every process "
                        "of the run (or run unauthenticated with --insecure)")
