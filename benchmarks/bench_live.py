@@ -288,14 +288,14 @@ def table(runs: list[dict]) -> str:
     lines = ["| T | variant | sensor-to-actuator p50 / p99 | vs default p50 | stages p50 (enc / proxy / ctl / plant) "
              "| jitter p99 | misses | ping-pong RTT p50 |", "|---|---|---|---|---|---|---|---|"]
     base = {}
-    for r in runs:
+    for r in runs:  # against the default of the same repetition (``--reps``)
         if r["variant"] == "default":
-            base[r["T"]] = r["timing"]["sensor_to_actuator_us"]["p50"]
+            base[r["T"], r.get("rep", 0)] = r["timing"]["sensor_to_actuator_us"]["p50"]
     for r in runs:
         tm = r["timing"]
         s2a = tm["sensor_to_actuator_us"]
         st = tm["stages_us"]
-        b = base.get(r["T"])
+        b = base.get((r["T"], r.get("rep", 0)))
         ratio = f"{s2a['p50'] / b:.2f}x" if b and s2a.get("p50") and r["variant"] != "default" else ""
         stages = " / ".join(f"{(st[k] or {}).get('p50') or 0:.0f}" for k in ("encoder", "proxy", "controller", "plant"))
         T = f"{r['T'] * 1000:g} ms" if r["T"] < 0.1 else f"{r['T']:g} s"

@@ -454,23 +454,28 @@ def test_physical_timing_on_arrival_survives_latency(run_id, tmp_path):
     assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
 
 
-def test_standalone_nodes(run_id, tmp_path):
+@pytest.mark.parametrize("topology", ["router", "peer"])
+def test_standalone_nodes(run_id, tmp_path, topology):
     """Four ``testbed node`` processes started by hand (no launcher) run a scenario to the end.
 
-    The plant is the run's router; the others authenticate with a secret file made by ``testbed secret``.
+    Router: the plant is the run's router; the others authenticate with a secret file made by
+    ``testbed secret``.  Peer: every link mutual TLS with a folder made by ``testbed secret --tls``;
+    the others find each other through the plant.
     """
     from testbed.io import transport
 
-    secret = str(tmp_path / "run.secret")
-    assert subprocess.run(tb_cmd("secret", secret), capture_output=True).returncode == 0
+    peer = topology == "peer"
+    secret = str(tmp_path / ("tls" if peer else "run.secret"))
+    assert subprocess.run(tb_cmd("secret", secret, *(["--tls"] if peer else [])), capture_output=True).returncode == 0
+    cred = ["--topology", "peer", "--tls-dir", secret] if peer else ["--secret-file", secret]
     port = transport.free_port()
-    ep = f"tcp/127.0.0.1:{port}"
+    ep = f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}"
     procs = {}
     try:
         for role in ("encoder", "attacker", "controller", "plant"):  # plant last: the others wait for it
             net = ["--listen", ep] if role == "plant" else ["--connect", ep]
             procs[role] = subprocess.Popen(tb_cmd("node", role, "paper", "--duration", "2", "--run-id", run_id,
-                                                   "--secret-file", secret, *net),
+                                                   *cred, *net),
                                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                            text=True, start_new_session=True)
         outs = {r: p.communicate(timeout=TIMEOUT)[0] for r, p in procs.items()}

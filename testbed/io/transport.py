@@ -339,7 +339,7 @@ class TlsCredentials:
             from ..errors import BadInput
 
             raise BadInput("the authenticated peer topology makes TLS certificates with the 'cryptography' "
-                           "package: pip install 'testbed[tls]' (or run the router topology)") from None
+                           "package: pip install 'dos-testbed[tls]' (or run the router topology)") from None
         d = Path(folder)
         d.mkdir(mode=0o700)
         now = datetime.datetime.now(datetime.timezone.utc)
