@@ -243,6 +243,31 @@ def test_greedy_attacker_live_equals_simulator(run_id, topology):
     assert s["node_summaries"]["attacker"]["missing_scores"] == 0
 
 
+def _fifo_permitted() -> bool:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (OSError, AttributeError):
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
+def test_realtime_runs_the_nodes_and_the_router_under_sched_fifo(run_id):
+    """--realtime: every node's loop and the launcher's router threads under SCHED_FIFO; the run is the
+    simulator's bit for bit."""
+    if not _fifo_permitted():
+        pytest.skip("SCHED_FIFO is not permitted here (needs root or CAP_SYS_NICE)")
+    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--realtime", "--no-record")
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["launcher"]["sched_fifo"] is True and s["launcher"]["spawn"] == "fork"
+    assert all(s["node_summaries"][r]["sched_fifo"] is True for r in ("plant", "encoder", "attacker", "controller"))
+    sim = simulate("paper", 3)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], key
+    rc, s, err = live(run_id + "n", "paper", "--duration", "1", "--no-record")
+    assert rc == 0 and s["launcher"]["sched_fifo"] is False
+
+
 # ====================================================================== faults
 def resimulated(s: dict) -> dict:
     """``testbed resimulate --json`` of a live run's recording."""
