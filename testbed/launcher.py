@@ -378,12 +378,21 @@ class Launcher:
             out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
         if a.low_latency:
             out.append("--low-latency")
-        if self.topology == "peer":
-            out += ["--listen", self.node_listen.get(who, transport.TLS_LOOPBACK_ANY if self.tls
-                                                     else transport.LOOPBACK_ANY)]
+        if self.topology == "peer":  # every process's own listener: the peers link to each other directly
+            out += ["--listen", self.node_listen.get(who) or self.own_listener(who)]
         if a.zenoh_config:
             out += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
         return out
+
+    def own_listener(self, who: str) -> str:
+        """A peer's listener when ``--node-listen`` names none: loopback for a node, and for the recorder
+        (which runs beside the launcher) the launcher's own address, where nodes on other hosts or in
+        other network namespaces reach it too."""
+        scheme = "tls" if self.tls else "tcp"
+        if who == RECORDER:
+            host = transport.endpoint_host(self.listen)
+            return f"{scheme}/[{host}]:0" if ":" in host else f"{scheme}/{host}:0"
+        return f"{scheme}/127.0.0.1:0"
 
     def session_config(self):
         """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""

@@ -80,11 +80,12 @@ def netns():
 
 def _run_in_namespaces(names, addr, run_id, topology=()):
     port = 7447
+    scheme = "tls" if "peer" in topology else "tcp"
     cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
-           "--duration", "5", "--json", "--run-id", run_id, "--listen", f"tcp/{addr['hub']}:{port}",
+           "--duration", "5", "--json", "--run-id", run_id, "--listen", f"{scheme}/{addr['hub']}:{port}",
            "--run-dir", os.path.join(_LOGS, run_id), *topology]
     for r in ROLES:
-        cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}=tcp/{addr[r]}:0"]
+        cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}={scheme}/{addr[r]}:0"]
     try:
         rc, out, err = run_cli(cmd, TIMEOUT)
     finally:
@@ -93,8 +94,10 @@ def _run_in_namespaces(names, addr, run_id, topology=()):
     return rc, json.loads(out), err
 
 
-@pytest.mark.parametrize("topology", TOPOLOGIES)
+@pytest.mark.parametrize("topology", TOPOLOGIES + [pytest.param(("--topology", "peer"), id="peer")])
 def test_paper_across_network_namespaces(netns, topology):
+    """Router: every node a client of the launcher's router.  Peer: every process links to every other
+    across the bridge, mutual TLS with the run's certificates (which name processes, not addresses)."""
     names, addr = netns
     run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
     rc, s, err = _run_in_namespaces(names, addr, run_id, topology)
@@ -105,9 +108,18 @@ def test_paper_across_network_namespaces(netns, topology):
     assert rc == 0, (s["faults"], err[-3000:])
     # every node process ran in its own network namespace (a colocated encoder in the plant's)
     netns_ids = {r: s["node_summaries"][r]["netns"] for r in ROLES}
-    assert len(set(netns_ids.values())) == (3 if topology else 4), netns_ids
-    assert (netns_ids["encoder"] == netns_ids["plant"]) == bool(topology)
+    colocated = "--colocate" in topology
+    assert len(set(netns_ids.values())) == (3 if colocated else 4), netns_ids
+    assert (netns_ids["encoder"] == netns_ids["plant"]) == colocated
+    assert s["security"]["transport"] == ("mutual tls" if "peer" in topology else "user/password")
     assert os.readlink("/proc/self/ns/net") not in netns_ids.values()
     sim = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:  # a deadline miss the machine caused (rerun above) must not have changed a thing
         assert s[key] == sim[key], key
+    # the recorder, beside the launcher, got every node's telemetry across the bridge
+    from testbed.io import recording
+
+    rec = recording.read(s["recording"]["path"])
+    assert s["recording"]["complete"] and not rec.truncated
+    for r in ROLES:
+        assert sorted(rec.telemetry[r]) == list(range(s["samples"])), r
