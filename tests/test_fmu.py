@@ -332,7 +332,7 @@ def _live_exact(tmp_path, scenario_file, rid: str, *args):
 @pytest.mark.process
 def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, tmp_path):
     """testbed run with the FMU in the plant node, ideal timing: testbed simulate of it, bit for bit."""
-    from test_live_process import BIT_EXACT_KEYS
+    from test_live_process import BIT_EXACT_KEYS, mismatch
 
     f = fmu_scenario(tmp_path, lienard_fmu)
     rid = f"t{os.getpid()}xfmu{secrets.token_hex(3)}"
@@ -343,7 +343,7 @@ def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, 
     assert rc == 0, err
     sim = json.loads(out)
     for key in BIT_EXACT_KEYS:
-        assert s[key] == sim[key], key
+        assert s[key] == sim[key], mismatch(s, sim, key)
     assert s["plant_fault"] is None
     assert not list((tmp_path / "tmp").glob("testbed-fmu-*")), "the plant node left an extracted FMU behind"
 
@@ -352,7 +352,7 @@ def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, 
 def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp_path):
     """doStep fails from t = 1.1 s: exit 1, a fault entry naming it, the recording readable up to the fault
     (testbed report: the samples testbed simulate has up to its fault); a failing reset: a startup failure."""
-    from test_live_process import BIT_EXACT_KEYS, reap
+    from test_live_process import BIT_EXACT_KEYS, mismatch, reap
 
     f = fmu_scenario(tmp_path, lienard_fmu, "fail_at = 1.0")
     rec = tmp_path / "fault.mcap"

@@ -21,7 +21,7 @@ import warnings
 
 import pytest
 
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, TIMEOUT, TOPOLOGIES, _node_logs, reap,  # noqa: F401
+from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, TOPOLOGIES, _node_logs, reap,  # noqa: F401
                                run_cli, simulate, stalled)
 
 pytestmark = pytest.mark.process
@@ -115,7 +115,7 @@ def test_paper_across_network_namespaces(netns, topology):
     assert os.readlink("/proc/self/ns/net") not in netns_ids.values()
     sim = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:  # a deadline miss the machine caused (rerun above) must not have changed a thing
-        assert s[key] == sim[key], key
+        assert s[key] == sim[key], mismatch(s, sim, key)
     # the recorder, beside the launcher, got every node's telemetry across the bridge
     from testbed.io import recording
 

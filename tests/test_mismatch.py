@@ -123,7 +123,7 @@ def test_sweep_and_roa_json_name_plant_and_model(capsys):
 @pytest.mark.process
 def test_paper_mismatch_live_equals_its_simulation():
     """testbed run paper-mismatch (ideal timing) past the first OVERFLOW (sample 63): the simulator's run."""
-    from test_live_process import BIT_EXACT_KEYS, live_exact, reap, simulate
+    from test_live_process import BIT_EXACT_KEYS, mismatch, live_exact, reap, simulate
 
     rid = f"t{os.getpid()}xmm{secrets.token_hex(3)}"
     try:
@@ -134,6 +134,6 @@ def test_paper_mismatch_live_equals_its_simulation():
     assert s["complete"] and s["samples"] == 65 and s["saturated_at"] == [63]
     sim = simulate("paper-mismatch", 6.5)
     for key in BIT_EXACT_KEYS:
-        assert s[key] == sim[key], key
+        assert s[key] == sim[key], mismatch(s, sim, key)
     assert s["encoder_decoder_agree"] is True
     assert (s["plant_params"]["b"], s["model_params"]["b"]) == (0.03, 0.02)

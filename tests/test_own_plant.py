@@ -280,7 +280,7 @@ def test_installed_plant_package_entry_point(tmp_path, monkeypatch):
 def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     """testbed run from another folder: every node and the recorder import the module from the scenario's
     folder; the run equals testbed simulate bit for bit, and testbed report reads its recording."""
-    from test_live_process import BIT_EXACT_KEYS, reap, stalled
+    from test_live_process import BIT_EXACT_KEYS, mismatch, reap, stalled
 
     work = plant_dir.parent / "elsewhere"
     rec = plant_dir.parent / "live.mcap"
@@ -308,7 +308,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     assert rc == 0, err
     sim = json.loads(out)
     for key in BIT_EXACT_KEYS:
-        assert s[key] == sim[key], key
+        assert s[key] == sim[key], mismatch(s, sim, key)
     rc, out, err = tb("report", rec, "--json", cwd=plant_dir.parent)
     assert rc == 0, err
     rep = json.loads(out)

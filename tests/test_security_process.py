@@ -25,7 +25,7 @@ import threading
 import time
 
 import pytest
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, TIMEOUT, live, procs_with, reap,  # noqa: F401 - fixture
+from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, live, procs_with, reap,  # noqa: F401 - fixture
                                run_id, simulate, stalled, tb_cmd)
 
 from testbed.io import messages as msg
@@ -177,7 +177,7 @@ def test_an_outsider_without_credentials_changes_nothing(run_id, topology, tmp_p
     assert s["security"]["transport"] == ("mutual tls" if peer else "user/password")
     sim = simulate("paper", OUTSIDER_S)
     for key in BIT_EXACT_KEYS:
-        assert s[key] == sim[key], key
+        assert s[key] == sim[key], mismatch(s, sim, key)
     assert s["recording"]["complete"]
     for ev in ("stop_rejected", "future_symbol", "future_actuation", "input_rejected", "input_clamped"):
         assert ev not in s["events"], s["events"]  # nothing even reached the nodes
@@ -241,7 +241,7 @@ def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_pa
     assert s["complete"] and not s["faults"]
     sim = simulate("paper", 6)
     for key in ("symbols", "theta", "E", "x", "u"):
-        assert s[key] == sim[key], key
+        assert s[key] == sim[key], mismatch(s, sim, key)
 
 
 def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_path):

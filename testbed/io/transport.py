@@ -196,7 +196,7 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
         conf.insert_json5("scouting/delay", "0")
     if mode == "peer":
         # of two peers that learn of each other, only the one with the greater id opens the link (not both
-        # at once): without it 4 of 16 start-ups of a peer run with --low-latency here never saw every peer
+        # at once): without it 4 of 24 start-ups of a peer run with --low-latency here never saw every peer
         # (and earlier about one in six with passwords); with it 34 of 34 did
         conf.insert_json5("scouting/gossip/autoconnect_strategy",
                           json.dumps({"peer": {"to_router": "always", "to_peer": "greater-zid"}}))
