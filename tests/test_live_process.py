@@ -169,17 +169,26 @@ def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     A timing fault the run reports about itself (``stalled``: a node starved of CPU
     for tens of ms on these shared 2-core machines) makes that sample a loss, so
     the loop legitimately leaves the simulator's.  Such a run proves nothing
-    either way; the test reruns once and says so.  Two stalled runs in a row
-    fail, and so does any mismatch in a run that reports no timing fault.
+    either way; the test reruns it (up to ``STALL_RERUNS`` times) and says so.
+    The last run is compared whatever it reports (three stalled runs in a row
+    fail), and so is any run that reports no timing fault.
     """
     res = live(run_id, scenario, *args, timeout=timeout)
-    stall = stalled(res[1]) or clock_fault(res[1])
-    if stall:
-        warnings.warn(f"{scenario}: the run reports {stall} (machine stalled); rerunning once")
+    for attempt in range(1, STALL_RERUNS + 1):
+        stall = stalled(res[1]) or clock_fault(res[1])
+        if not stall:
+            break
+        warnings.warn(f"{scenario}: the run reports {stall} (machine stalled); rerun {attempt} of {STALL_RERUNS}")
         reap(run_id)
         again = (*args, "--force") if "--out" in args else args  # the stalled run's recording is replaced
-        res = live(run_id + "r", scenario, *again, timeout=timeout)
+        res = live(run_id + "r" * attempt, scenario, *again, timeout=timeout)
     return res
+
+
+#: how often ``live_exact`` runs a stalled run again: a run the machine stalled proves nothing, and on
+#: these shared 2-core machines a busy hour stalled two runs in a row of one test (clean-clone CI runs);
+#: the last run is compared whatever it reports, so a change that made every run stall still fails
+STALL_RERUNS = 2
 
 
 @pytest.fixture
