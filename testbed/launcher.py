@@ -251,9 +251,7 @@ class Launcher:
             if args.secret_file:
                 raise BadInput("--secret-file: the peer topology's credentials are TLS certificates (--tls-dir DIR, "
                                "made with 'testbed secret --tls DIR'; by default made for the run)")
-            for ep in (self.listen, self.node_connect, *self.node_listen.values()):
-                if not ep.startswith("tls/"):
-                    raise BadInput(f"--topology peer: endpoint {ep}: the links are mutual TLS (tls/HOST:PORT)")
+            transport.require_tls((self.listen, self.node_connect, *self.node_listen.values()))
         elif getattr(args, "tls_dir", None):
             raise BadInput("--tls-dir: only for --topology peer (the router topology's credentials are --secret-file)")
         self.secret_dir = None
@@ -388,11 +386,11 @@ class Launcher:
         """A peer's listener when ``--node-listen`` names none: loopback for a node, and for the recorder
         (which runs beside the launcher) the launcher's own address, where nodes on other hosts or in
         other network namespaces reach it too."""
-        scheme = "tls" if self.tls else "tcp"
         if who == RECORDER:
+            scheme = "tls" if self.tls else "tcp"
             host = transport.endpoint_host(self.listen)
             return f"{scheme}/[{host}]:0" if ":" in host else f"{scheme}/{host}:0"
-        return f"{scheme}/127.0.0.1:0"
+        return transport.TLS_LOOPBACK_ANY if self.tls else transport.LOOPBACK_ANY
 
     def session_config(self):
         """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""

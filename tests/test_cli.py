@@ -117,6 +117,7 @@ def test_exit_codes_bad_input_is_2_with_one_line(tmp_path):
         ["run", "paper", "--tls-dir", str(tmp_path)],                              # TLS is the peer topology's
         ["node", "plant", "paper", "--topology", "peer"],                          # no --tls-dir
         ["node", "plant", "paper", "--topology", "peer", "--tls-dir", str(tmp_path)],  # no certificate in it
+        ["secret", "--tls", str(tmp_path)],                                        # never overwritten
     ]
     for args in cases:
         r = subprocess.run([PY, "-m", "testbed.cli", *args], capture_output=True, text=True, timeout=120)

@@ -433,9 +433,7 @@ def zenoh_config(args, role: str, keys: transport.Keys):
         if not getattr(args, "tls_dir", None):
             raise BadInput(PEER_NEEDS_TLS)
         tls = transport.TlsCredentials(args.tls_dir).zenoh(role)
-        for ep in (*listen, *connect):
-            if not ep.startswith("tls/"):
-                raise BadInput(f"--topology peer: endpoint {ep}: the links are mutual TLS (tls/HOST:PORT)")
+        transport.require_tls((*listen, *connect))
         return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
                                      acl=transport.acl_config(keys, colocate, by="cert_common_names"), low_latency=ll,
                                      tls=tls)
