@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 import pytest
+from failclosed import import_or_require
 
 from testbed import scenario
 from testbed.analysis.parallel import Executor, run_batch, shutdown
@@ -148,7 +149,7 @@ def test_cli_roa_digest_is_the_same_for_1_and_2_workers():
 
 # ============================================================================ process: Dask
 def _local_cluster():
-    distributed = pytest.importorskip("distributed")
+    distributed = import_or_require("distributed", "dask")
     return distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                     env={"NUMBA_NUM_THREADS": "1"}, silence_logs=logging.ERROR)
 
@@ -230,7 +231,7 @@ def test_killed_dask_worker_chunks_are_retried(paper_sc):
 
 @pytest.mark.process
 def test_scheduler_that_does_not_answer_is_bad_input(capsys):
-    pytest.importorskip("distributed")
+    import_or_require("distributed", "dask")
     from testbed.cli import main
 
     assert main(["roa", "paper", "--grid", "5", "--no-progress", "--scheduler", "tcp://127.0.0.1:9"]) == 2

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from failclosed import require
 
 from testbed import scenario
 from testbed.io import messages as msg
@@ -276,7 +277,7 @@ def test_rerun_decodes_the_protobuf_channels(tmp_path):
     """Rerun's own MCAP importer reads the file and decodes our schemas (not raw bytes)."""
     rerun_cli = os.path.join(os.path.dirname(PY), "rerun")
     if not os.path.exists(rerun_cli):
-        pytest.skip("rerun CLI not installed next to this Python")
+        require("rerun", "rerun CLI not installed next to this Python")
     _, _, path = _sim_recording(tmp_path, "paper", duration=2.0)
     rrd = tmp_path / "conv.rrd"
     r = subprocess.run([rerun_cli, "mcap", "convert", str(path), "-o", str(rrd)], capture_output=True, text=True,

@@ -16,8 +16,9 @@ import sys
 import numpy as np
 import pytest
 
-rr = pytest.importorskip("rerun")
-from rerun.chunk import RrdReader  # noqa: E402
+import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
+from failclosed import require
+from rerun.chunk import RrdReader
 
 from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
 
@@ -245,7 +246,7 @@ def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
     from test_live_process import run_cli, tb_cmd
 
     if _port_busy(9876):
-        pytest.skip("port 9876 is taken on this machine")
+        require("port9876", "port 9876 is taken on this machine")
     got = tmp_path / "spawned.rrd"
     with viewer.saving_server(got, port=9876):
         before = _rerun_pids()
