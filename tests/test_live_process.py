@@ -7,6 +7,7 @@ port, runs under a timeout, and checks that no process of its run survives.
 from __future__ import annotations
 
 import json
+import math
 import os
 import secrets
 import shutil
@@ -15,6 +16,7 @@ import subprocess
 import sys
 import tempfile
 import time
+
 import pytest
 from failclosed import rerun_while_stalled, require
 
@@ -471,8 +473,16 @@ def test_standalone_nodes(run_id, tmp_path, topology):
 
     Router: the plant is the run's router; the others authenticate with a secret file made by
     ``testbed secret``.  Peer: every link mutual TLS with a folder made by ``testbed secret --tls``;
-    the others find each other through the plant.
+    the others find each other through the plant.  The test itself is the run's collector (the
+    launcher's credentials; the plant, started with ``--wait-collector``, waits for it): every node's
+    summary says the run ended because the plant finished all 20 samples, and the plant's telemetry
+    holds every sample and the final state.
     """
+    import threading
+
+    import zenoh
+
+    from testbed.io import messages as msg
     from testbed.io import transport
 
     peer = topology == "peer"
@@ -481,15 +491,45 @@ def test_standalone_nodes(run_id, tmp_path, topology):
     cred = ["--topology", "peer", "--tls-dir", secret] if peer else ["--secret-file", secret]
     port = transport.free_port()
     ep = f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}"
+    keys = transport.Keys.for_run(run_id)
+    summaries, rows, lock = {}, {}, threading.Lock()
+
+    def on_summary(sample):
+        s = msg.NodeSummary.decode(sample.payload)
+        with lock:
+            summaries[s.node] = s.data
+
+    def on_telemetry(sample):
+        role = transport.Keys.node_of(sample.key_expr)
+        for rec in msg.unpack_batch(sample.payload):
+            t = msg.TELEMETRY_TYPES[role].decode(rec)
+            with lock:
+                rows.setdefault(role, {})[t.k] = t
+
     procs = {}
     try:
         for role in ("encoder", "attacker", "controller", "plant"):  # plant last: the others wait for it
-            net = ["--listen", ep] if role == "plant" else ["--connect", ep]
+            net = ["--listen", ep, "--wait-collector"] if role == "plant" else ["--connect", ep]
             procs[role] = subprocess.Popen(tb_cmd("node", role, "paper", "--duration", "2", "--run-id", run_id,
                                                    *cred, *net),
                                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                            text=True, start_new_session=True)
-        outs = {r: p.communicate(timeout=TIMEOUT)[0] for r, p in procs.items()}
+        if peer:
+            conf = transport.make_config(connect=[ep], mode="peer",
+                                         tls=transport.TlsCredentials(secret).zenoh(transport.LAUNCHER))
+        else:
+            cred_file = transport.Credentials.read(secret)
+            conf = transport.make_config(connect=[ep], mode="client", user=transport.LAUNCHER,
+                                         password=cred_file.password(transport.LAUNCHER))
+        with zenoh.open(conf) as session:
+            subs = [session.declare_subscriber(keys.summary("*"), on_summary),
+                    session.declare_subscriber(keys.telemetry("*"), on_telemetry)]
+            ready = session.liveliness().declare_token(keys.ready(transport.COLLECTOR))
+            outs = {r: p.communicate(timeout=TIMEOUT)[0] for r, p in procs.items()}
+            time.sleep(0.5)  # the last summaries in flight
+            ready.undeclare()
+            for sub in subs:
+                sub.undeclare()
     finally:
         for p in procs.values():
             if p.poll() is None:
@@ -497,6 +537,22 @@ def test_standalone_nodes(run_id, tmp_path, topology):
                 p.communicate()
     for r, p in procs.items():
         assert p.returncode == 0, (r, outs[r][-2000:])
+    # the plant ran every sample and ended the run: "done"
+    done = ("done", "stop from plant: done")  # the plant's own: whichever of its stop and its message comes first
+    assert summaries["plant"]["stop_reason"] in done and summaries["plant"]["samples"] == 20, summaries["plant"]
+    assert summaries["plant"]["error"] is None
+    plant_rows = dict(rows["plant"])
+    final = plant_rows.pop(20)
+    assert final.flags & msg.PlantTelemetry.FLAG_FINAL and len(final.x) == 2
+    assert sorted(plant_rows) == list(range(20))
+    assert all(math.isfinite(v) for t in plant_rows.values() for v in (*t.x, *t.u)), plant_rows
+    # every other node took part from the first sample on (its telemetry), and ended when the plant did (its
+    # stop, or its going away when that came first): the plant is the router, so a summary sent after it
+    # closed is lost; those that arrived say so
+    for r in ("encoder", "attacker", "controller"):
+        assert set(range(10)) <= set(rows.get(r, {})), (r, sorted(rows.get(r, {})))
+    for r, d in summaries.items():
+        assert d["error"] is None and d["stop_reason"] in done + ("plant lost",), (r, d)
 
 
 def test_mismatched_run_options_are_refused(run_id):

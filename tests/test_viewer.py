@@ -2,7 +2,8 @@
 
 Every test writes a ``.rrd`` and reads it back with ``rerun.chunk.RrdReader``:
 the entities are there and the logged E_k is the recording's (bit for bit);
-``rerun rrd verify`` accepts the file.
+``rerun rrd verify`` accepts every file the testbed writes (``simulate --rrd``, ``replay``,
+``--rerun save`` and its merge after a kill; not the files a Rerun server saved).
 """
 
 from __future__ import annotations
@@ -112,6 +113,8 @@ def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
     paths = entity_paths(path)
     assert ENTITIES <= paths and "/phase/roa" not in paths
     assert len(scalars(path, "/plant/x")[0]) == 4
+    v = rrd_verify(path)
+    assert v.returncode == 0, v.stderr[-2000:]
 
 
 # ---------------------------------------------------------------- replay of an MCAP recording
