@@ -117,7 +117,7 @@ def test_a_stalled_run_is_run_again_at_most_twice_and_the_last_is_returned():
     stall = {"timing": {"deadline_misses": 1}}
     run, calls = _runs(stall, stall, dict(stall, last=True))
     with pytest.warns(UserWarning, match="machine stalled"):
-        rc, s, _ = rerun_while_stalled(run, "x")
+        _, s, _ = rerun_while_stalled(run, "x")
     assert calls == [0, 1, 2] and s["last"]  # the caller compares it, stalled or not
     run, calls = _runs(stall, {"clean": True}, stall)
     with pytest.warns(UserWarning):

@@ -18,7 +18,7 @@ import tempfile
 import time
 
 import pytest
-from failclosed import rerun_while_stalled, require
+from failclosed import require, rerun_while_stalled
 
 pytestmark = pytest.mark.process
 
