@@ -56,6 +56,7 @@ def required() -> set[str]:
 
 def require(capability: str, reason: str) -> None:
     """``capability`` is missing here (``reason``): fail if it is required, else skip with the reason."""
+    __tracebackhide__ = True  # the skip or failure is reported at the test's line
     if capability not in CAPABILITIES:
         raise ValueError(f"unknown capability {capability!r}")
     if capability in required():
@@ -66,6 +67,7 @@ def require(capability: str, reason: str) -> None:
 
 def import_or_require(module: str, capability: str):
     """``import module``, or ``require(capability, ...)`` when it cannot be imported."""
+    __tracebackhide__ = True
     import importlib
 
     try:
