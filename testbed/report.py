@@ -166,18 +166,21 @@ def load(path: str | Path):
 RESIMULATE_SAMPLES = 10_000
 
 
-def report(path, *, arrays: bool = False, resimulate: int | None = RESIMULATE_SAMPLES) -> dict:
+def report(path, *, arrays: bool = False, resimulate: int | None | str = "default") -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
     ``arrays``: the per-sample values stay numpy arrays (``runsummary.write_json`` streams them).
-    ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none).
+    ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none;
+    "default": ``RESIMULATE_SAMPLES``, read when the report is made).
     """
+    if resimulate == "default":
+        resimulate = RESIMULATE_SAMPLES
     cols, sc = load(path) if isinstance(path, (str, Path)) else path
     out = _report(cols, sc, arrays=arrays, resimulate=resimulate)
     return out if arrays else to_lists(out)
 
 
-def _report(cols, sc, *, arrays: bool, resimulate: int | None = RESIMULATE_SAMPLES) -> dict:
+def _report(cols, sc, *, arrays: bool, resimulate: int | None) -> dict:
     from .quantizer import Codebook
 
     path = cols.path

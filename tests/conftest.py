@@ -29,3 +29,17 @@ def lienard_fmu(tmp_path_factory):
     build = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(build)
     return build.build(tmp_path_factory.mktemp("fmu") / "lienard.fmu")
+
+
+def pytest_configure(config):
+    """An unknown name in ``TESTBED_REQUIRE`` is a usage error (a typo must not make a capability optional)."""
+    from failclosed import required
+
+    required()
+
+
+def pytest_report_header(config):
+    from failclosed import REQUIRE_ENV, required
+
+    req = required()
+    return f"{REQUIRE_ENV}: {', '.join(sorted(req)) if req else 'none (a missing capability skips with its reason)'}"

@@ -313,20 +313,21 @@ def _live(tmp_path, scenario_file, rid, *args):
 
 
 def _live_exact(tmp_path, scenario_file, rid: str, *args):
-    """``_live`` for the bit-exact tests: a run the machine stalled (a starved node makes a sample a
-    loss, and the run says so) is run once more, as ``test_live_process.live_exact`` does."""
-    from test_live_process import reap, stalled
+    """``_live`` for the bit-exact tests, under the one rerun policy (``failclosed.rerun_while_stalled``):
+    a stalled run is run again (run id ``rid`` + "r" per rerun), the last run is returned to be compared."""
+    from failclosed import rerun_while_stalled
+    from test_live_process import reap
+
+    def run(attempt):
+        if attempt:
+            assert not reap(rid + "r" * (attempt - 1))
+        again = (*args, "--force") if attempt and "--out" in args else args  # a stalled run's recording is replaced
+        return _live(tmp_path, scenario_file, rid + "r" * attempt, *again)
 
     try:
-        res = _live(tmp_path, scenario_file, rid, *args)
-        if stalled(res[1]):
-            reap(rid)
-            rid += "r"
-            again = (*args, "--force") if "--out" in args else args  # the stalled run's recording is replaced
-            res = _live(tmp_path, scenario_file, rid, *again)
+        return rerun_while_stalled(run, f"FMU run {scenario_file}")
     finally:
-        assert not reap(rid)
-    return res
+        assert not reap(rid)  # every attempt's processes (their run ids begin with rid)
 
 
 @pytest.mark.process

@@ -3,7 +3,8 @@
 * the shipped descriptor sets are foxglove-sdk's, and the layout file is current;
 * ``/phase`` (one ``foxglove.SceneUpdate`` a sample) and ``/log`` (``foxglove.Log``) decode with the
   protobuf classes of their descriptor sets and say what the run did;
-* slow: npm ``@mcap/core`` + ``protobufjs`` decode a recording with zero errors (skipped without npm);
+* slow: npm ``@mcap/core`` + ``protobufjs`` decode a recording with zero errors (skipped without npm,
+  failed instead where the capability ``npm`` is required: ``failclosed.require``);
 * process: ``testbed run --foxglove PORT`` serves the run over Foxglove's WebSocket protocol.
 """
 
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from failclosed import import_or_require, require
 
 from testbed import scenario
 from testbed.io import foxglove_topics as fx
@@ -51,14 +53,14 @@ def _messages(path, topic):
 
 
 def test_shipped_schemas_are_foxglove_sdks():
-    fm = pytest.importorskip("foxglove.messages", reason="foxglove-sdk not installed (pip install '.[foxglove]')")
+    fm = import_or_require("foxglove.messages", "foxglove")
     for name in ("Log", "SceneUpdate"):
         s = getattr(fm, name).get_schema()
         assert fx.descriptor_set(s.name) == s.data, f"regenerate: python tools/gen_foxglove_schemas.py ({name})"
 
 
 def test_the_layout_file_is_current():
-    pytest.importorskip("foxglove.layouts", reason="foxglove-sdk not installed")
+    import_or_require("foxglove.layouts", "foxglove")
     doc = ROOT / "docs" / "foxglove-layout.json"
     assert doc.read_text() == fx.layout_json(), "regenerate: python -m testbed.io.foxglove_topics > " \
                                                 "docs/foxglove-layout.json"
@@ -143,7 +145,7 @@ def test_telemetry_header_stamp_and_log10_E(sim_recording):
 # ---------------------------------------------------------------------------- Foxglove's own stack (npm)
 def _npm_modules() -> Path:
     if not shutil.which("npm") or not shutil.which("node"):
-        pytest.skip("npm/node not installed: cannot run @mcap/core + protobufjs")
+        require("npm", "npm/node not installed: cannot run @mcap/core + protobufjs")
     cache = Path(os.environ.get("TESTBED_NPM_CACHE", Path.home() / ".cache" / "testbed-npm"))
     mods = cache / "node_modules"
     if not all((mods / p).exists() for p in ("@mcap/core", "protobufjs", "fzstd")):
@@ -152,7 +154,7 @@ def _npm_modules() -> Path:
                             "@mcap/core@2", "protobufjs@7", "fzstd@0.1"], capture_output=True, text=True,
                            timeout=300)
         if r.returncode:
-            pytest.skip(f"npm install of @mcap/core, protobufjs, fzstd failed: {r.stderr.strip()[-300:]}")
+            require("npm", f"npm install of @mcap/core, protobufjs, fzstd failed: {r.stderr.strip()[-300:]}")
     return mods
 
 
@@ -225,7 +227,7 @@ class WsClient:
 
 @pytest.mark.process
 def test_run_foxglove_serves_the_run_live(tmp_path):
-    pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
+    import_or_require("foxglove", "foxglove")
     from test_live_process import tb_cmd
 
     with socket.socket() as s:

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from failclosed import require
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -423,7 +424,7 @@ def test_realtime_leaves_niced_background_threads_alone():
     ready.wait(10)
     try:
         if not set_realtime(True):
-            pytest.skip("SCHED_FIFO not permitted here")
+            require("fifo", "SCHED_FIFO not permitted here")
         assert os.sched_getscheduler(os.getpid()) == os.SCHED_FIFO
         assert os.sched_getscheduler(tid["bg"]) == os.SCHED_OTHER
     finally:

@@ -6,7 +6,8 @@ bridge that lives in a sixth namespace (the "switch").  Nothing is added to the
 host's own namespace.  Every node listens on its own address and connects to the
 launcher; Zenoh gossip then links the nodes directly across the bridge.
 Skipped (with the reason) where namespaces cannot be created (not root, no
-iproute2, no CAP_NET_ADMIN, no veth/bridge support).
+iproute2, no CAP_NET_ADMIN, no veth/bridge support), and failed instead where the
+capability ``netns`` is required (``TESTBED_REQUIRE``, as CI sets it).
 """
 
 from __future__ import annotations
@@ -17,12 +18,12 @@ import secrets
 import shutil
 import subprocess
 import sys
-import warnings
 
 import pytest
+from failclosed import require, rerun_while_stalled
 
 from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, TOPOLOGIES, _node_logs, reap,  # noqa: F401
-                               run_cli, simulate, stalled)
+                               run_cli, simulate)
 
 pytestmark = pytest.mark.process
 
@@ -36,9 +37,9 @@ def _ip(*args: str) -> None:
 @pytest.fixture
 def netns():
     if os.geteuid() != 0:
-        pytest.skip("network namespaces need root (CAP_SYS_ADMIN, CAP_NET_ADMIN)")
+        require("netns", "network namespaces need root (CAP_SYS_ADMIN, CAP_NET_ADMIN)")
     if shutil.which("ip") is None:
-        pytest.skip("network namespaces need iproute2 ('ip' not found)")
+        require("netns", "network namespaces need iproute2 ('ip' not found)")
     tag = secrets.token_hex(3)
     net = 1 + int(tag, 16) % 250
     names = {r: f"tb{tag}-{r[:4]}" for r in ("hub", *ROLES)}
@@ -68,7 +69,7 @@ def netns():
     except (subprocess.CalledProcessError, subprocess.TimeoutExpired, OSError) as e:
         cleanup()
         reason = getattr(e, "stderr", None) or str(e)
-        pytest.skip(f"cannot build network namespaces with veth links here: {reason.strip()}")
+        require("netns", f"cannot build network namespaces with veth links here: {reason.strip()}")
     try:
         yield names, addr
     finally:
@@ -100,11 +101,9 @@ def test_paper_across_network_namespaces(netns, topology):
     across the bridge, mutual TLS with the run's certificates (which name processes, not addresses)."""
     names, addr = netns
     run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
-    rc, s, err = _run_in_namespaces(names, addr, run_id, topology)
-    stall = stalled(s)
-    if stall:  # as live_exact: a starved node makes a loss, and the run says so; rerun once
-        warnings.warn(f"netns run reports {stall} (machine stalled); rerunning once")
-        rc, s, err = _run_in_namespaces(names, addr, run_id + "r", topology)
+    # the one rerun policy: a stalled run is run again, the last run is compared whatever it reports
+    rc, s, err = rerun_while_stalled(lambda n: _run_in_namespaces(names, addr, run_id + "r" * n, topology),
+                                     "netns run")
     assert rc == 0, (s["faults"], err[-3000:])
     # every node process ran in its own network namespace (a colocated encoder in the plant's)
     netns_ids = {r: s["node_summaries"][r]["netns"] for r in ROLES}
@@ -114,7 +113,7 @@ def test_paper_across_network_namespaces(netns, topology):
     assert s["security"]["transport"] == ("mutual tls" if "peer" in topology else "user/password")
     assert os.readlink("/proc/self/ns/net") not in netns_ids.values()
     sim = simulate("paper", 5)
-    for key in BIT_EXACT_KEYS:  # a deadline miss the machine caused (rerun above) must not have changed a thing
+    for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)
     # the recorder, beside the launcher, got every node's telemetry across the bridge
     from testbed.io import recording

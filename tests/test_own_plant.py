@@ -280,7 +280,8 @@ def test_installed_plant_package_entry_point(tmp_path, monkeypatch):
 def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     """testbed run from another folder: every node and the recorder import the module from the scenario's
     folder; the run equals testbed simulate bit for bit, and testbed report reads its recording."""
-    from test_live_process import BIT_EXACT_KEYS, mismatch, reap, stalled
+    from failclosed import rerun_while_stalled
+    from test_live_process import BIT_EXACT_KEYS, mismatch, reap
 
     work = plant_dir.parent / "elsewhere"
     rec = plant_dir.parent / "live.mcap"
@@ -294,14 +295,15 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
             pytest.fail(f"no JSON summary (exit {rc})\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
 
     rid = f"t{os.getpid()}xown{secrets.token_hex(3)}"
+    def attempt(n):  # the one rerun policy: a stalled run again (its recording replaced), the last compared
+        if n:
+            assert not reap(rid + "r" * (n - 1))
+        return live(rid + "r" * n, *(("--force",) if n else ()))
+
     try:
-        rc, s, err = live(rid)
-        if stalled(s):  # a machine stall makes a sample a loss: rerun once (as test_live_process does)
-            reap(rid)
-            rid = rid + "r"
-            rc, s, err = live(rid, "--force")  # the stalled run's recording is replaced
+        rc, s, err = rerun_while_stalled(attempt, "module plant")
     finally:
-        assert not reap(rid)
+        assert not reap(rid)  # every attempt's processes (their run ids begin with rid)
     assert rc == 0, (s.get("faults"), err[-2000:])
     assert s["complete"] and s["samples"] == 30 and s["outcome"] == "done"
     rc, out, err = tb("simulate", "../plantdir/vdp.toml", "--duration", "3", "--json", cwd=work)

@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 import pytest
+from failclosed import import_or_require
 
 from testbed import scenario
 from testbed.analysis.parallel import Executor, run_batch, shutdown
@@ -73,10 +74,58 @@ def test_specialized_kernel_depends_on_every_source(paper_sc):
     for f in ("testbed/simulate.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
               "attackers/greedy.py"):
         assert f in names, f
-    # a change to any of them (or to the plant's module) gives another file name
-    files = sorted(gen.files)
-    base = kernelcache._digest("src", files)
-    assert kernelcache._digest("src", files[:-1]) != base
+
+
+_FLIP = r"""
+import json, sys
+from pathlib import Path
+import plants
+from testbed import kernelcache
+from testbed.simulate import _batch_kernel
+
+def flip(path):  # the case of the first letter of the file: one byte, and the source still parses
+    data = bytearray(Path(path).read_bytes())
+    i = next(i for i, c in enumerate(data) if chr(c).isalpha())
+    data[i] ^= 0x20
+    Path(path).write_bytes(bytes(data))
+
+def path():
+    kernelcache._memo.clear()  # the per-process memo is keyed on the objects, not on the sources
+    p = plants.make("lienard")
+    return kernelcache.specialized(_batch_kernel, {"rhs": type(p).rhs, "rhs_m": type(p).rhs}).path
+
+base = path()
+out = {"base": base, "flipped": {}}
+for f in sys.argv[1:]:
+    flip(f)
+    out["flipped"][f] = path()
+    flip(f)
+    assert path() == base, f
+print(json.dumps(out))
+"""
+
+
+def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
+    """A copy of the packages; one byte of each source the specialized kernel depends on flipped in turn
+    (and flipped back): each flip gives a newly generated module (a cache miss), the flip back the first."""
+    import shutil
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for pkg in ("testbed", "plants", "attackers"):
+        shutil.copytree(root / pkg, tmp_path / "src" / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    src = tmp_path / "src"
+    deps = [src / f for f in ("testbed/simulate.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+                              "attackers/greedy.py", "plants/lienard.py")]
+    env = dict(os.environ, PYTHONPATH=str(src), TESTBED_CACHE_DIR=str(tmp_path / "cache"))
+    r = subprocess.run([sys.executable, "-c", _FLIP, *map(str, deps)], capture_output=True, text=True, env=env,
+                       cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout)
+    assert out["base"].startswith(str(tmp_path / "cache" / "kernels"))
+    paths = [out["base"], *out["flipped"].values()]
+    assert len(set(paths)) == len(deps) + 1, out  # every flip: another module
+    assert set(os.listdir(tmp_path / "cache" / "kernels")) >= {os.path.basename(p) for p in paths}
 
 
 def test_plant_without_module_level_rhs_falls_back(paper_sc, caplog):
@@ -148,7 +197,7 @@ def test_cli_roa_digest_is_the_same_for_1_and_2_workers():
 
 # ============================================================================ process: Dask
 def _local_cluster():
-    distributed = pytest.importorskip("distributed")
+    distributed = import_or_require("distributed", "dask")
     return distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                     env={"NUMBA_NUM_THREADS": "1"}, silence_logs=logging.ERROR)
 
@@ -230,7 +279,7 @@ def test_killed_dask_worker_chunks_are_retried(paper_sc):
 
 @pytest.mark.process
 def test_scheduler_that_does_not_answer_is_bad_input(capsys):
-    pytest.importorskip("distributed")
+    import_or_require("distributed", "dask")
     from testbed.cli import main
 
     assert main(["roa", "paper", "--grid", "5", "--no-progress", "--scheduler", "tcp://127.0.0.1:9"]) == 2

@@ -167,19 +167,56 @@ def _bad_files(tmp_path) -> dict[str, Path]:
     return out
 
 
-def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path):
+def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, capsys):
+    """Not MCAP, missing, a directory, a foreign MCAP file, a bit-flipped recording: each in report, replay,
+    export and compare (in this process), and testbed.open; report as its own process too."""
+    from testbed import cli
+
     bad = _bad_files(tmp_path)
+    assert sorted(bad) == ["bit-flipped", "directory", "foreign", "missing", "not MCAP"]
     for what, path in bad.items():
-        every = what == "bit-flipped"
         for cmd in (["report", path], ["replay", path, "--rrd", tmp_path / "x.rrd"],
-                    ["export", path, "-o", tmp_path / "x.parquet"], ["compare", path, "paper"])[:4 if every else 1]:
-            r = _cli(*cmd)
-            lines = r.stderr.strip().splitlines()
-            assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (what, cmd, r.stderr)
+                    ["export", path, "-o", tmp_path / "x.parquet"], ["compare", path, "paper"]):
+            code = cli.main([str(c) for c in cmd])
+            err = capsys.readouterr().err
+            assert code == 2 and len(err.strip().splitlines()) == 1, (what, cmd, err)
         with pytest.raises((BadInput, OSError)):
             testbed.open(path)
+        r = _cli("report", path)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, \
+            (what, r.stderr)
     assert "corrupt recording" in _cli("report", bad["bit-flipped"]).stderr
     assert "no scenario" in _cli("report", bad["foreign"]).stderr
+
+
+def test_a_cut_recording_is_read_up_to_the_cut_by_every_command(tmp_path, capsys):
+    """A file cut mid-chunk (a killed recorder): report, replay, export and compare read what it holds."""
+    from mcap.reader import make_reader
+
+    from testbed import cli
+
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 20.0})
+    path = tmp_path / "full.mcap"
+    recording.record_simulation(path, sc, simulate_scenario(sc), overrides={"duration": 20.0}, flush_interval=0.0)
+    data = path.read_bytes()
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    c = chunks[len(chunks) // 2]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:c.chunk_start_offset + c.chunk_length // 2])
+    n = columns.read_columns(cut).last_k("plant") + 1
+    assert 0 < n < sc.n_steps
+    assert cli.main(["report", str(cut)]) == 0 and "TRUNCATED" in capsys.readouterr().out
+    rrd = tmp_path / "cut.rrd"
+    assert cli.main(["replay", str(cut), "--rrd", str(rrd)]) == 0 and rrd.stat().st_size > 0
+    assert cli.main(["export", str(cut), "-o", str(tmp_path / "cut.csv")]) == 0
+    assert len((tmp_path / "cut.csv").read_text().splitlines()) == n + 1  # a header and the samples read
+    capsys.readouterr()
+    assert cli.main(["compare", str(cut), "paper", "--json"]) in (0, 1)  # paper with the recording's overrides
+    cmp = json.loads(capsys.readouterr().out)
+    assert cmp["samples"]["a"] == cmp["samples"]["compared"] == n and cmp["max_state_error"] == 0.0, cmp
+    run = testbed.open(cut)
+    assert run.N == n and len(run.arrays["x"]) == n
 
 
 def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):

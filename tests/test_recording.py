@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from failclosed import require
 
 from testbed import scenario
 from testbed.io import messages as msg
@@ -137,16 +138,22 @@ def test_report_cli_json_and_plot(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_path, monkeypatch):
-    """The report's resimulation check covers RESIMULATE_SAMPLES samples and says so; all or none on request."""
+def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_path, monkeypatch, capsys):
+    """The report's resimulation check covers RESIMULATE_SAMPLES samples by default (the API's and the
+    command's default, read when the report is made) and says so; all or none on request."""
     import testbed.report as rep_mod
+    from testbed import cli
 
     _, res, path = _sim_recording(tmp_path, "paper")
     N = len(res.t)
+    assert rep_mod.RESIMULATE_SAMPLES == 10_000 > N
+    assert rep_mod.report(path)["resimulation"]["checked"] == N  # the real default: all of a 30 s run
     monkeypatch.setattr(rep_mod, "RESIMULATE_SAMPLES", 100)
-    part = rep_mod.report(path, resimulate=100)["resimulation"]
+    part = rep_mod.report(path)["resimulation"]  # the default, not an argument
     assert part["checked"] == 100 and part["samples"] == N and part["reproduced"] is True
     assert f"samples 0 to 99 of {N}" in part["verdict"] and part["first_divergence"] is None
+    assert cli.main(["report", str(path), "--json"]) == 0  # the command's default too
+    assert json.loads(capsys.readouterr().out)["resimulation"]["checked"] == 100
     full = rep_mod.report(path, resimulate=None)["resimulation"]
     assert full["checked"] == N and full["reproduced"] is True and "of" not in full["verdict"]
     none = rep_mod.report(path, resimulate=0)["resimulation"]
@@ -276,7 +283,7 @@ def test_rerun_decodes_the_protobuf_channels(tmp_path):
     """Rerun's own MCAP importer reads the file and decodes our schemas (not raw bytes)."""
     rerun_cli = os.path.join(os.path.dirname(PY), "rerun")
     if not os.path.exists(rerun_cli):
-        pytest.skip("rerun CLI not installed next to this Python")
+        require("rerun", "rerun CLI not installed next to this Python")
     _, _, path = _sim_recording(tmp_path, "paper", duration=2.0)
     rrd = tmp_path / "conv.rrd"
     r = subprocess.run([rerun_cli, "mcap", "convert", str(path), "-o", str(rrd)], capture_output=True, text=True,

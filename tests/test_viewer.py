@@ -2,7 +2,8 @@
 
 Every test writes a ``.rrd`` and reads it back with ``rerun.chunk.RrdReader``:
 the entities are there and the logged E_k is the recording's (bit for bit);
-``rerun rrd verify`` accepts the file.
+``rerun rrd verify`` accepts every file the testbed writes (``simulate --rrd``, ``replay``,
+``--rerun save`` and its merge after a kill; not the files a Rerun server saved).
 """
 
 from __future__ import annotations
@@ -16,8 +17,9 @@ import sys
 import numpy as np
 import pytest
 
-rr = pytest.importorskip("rerun")
-from rerun.chunk import RrdReader  # noqa: E402
+import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
+from failclosed import require
+from rerun.chunk import RrdReader
 
 from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
 
@@ -111,6 +113,8 @@ def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
     paths = entity_paths(path)
     assert ENTITIES <= paths and "/phase/roa" not in paths
     assert len(scalars(path, "/plant/x")[0]) == 4
+    v = rrd_verify(path)
+    assert v.returncode == 0, v.stderr[-2000:]
 
 
 # ---------------------------------------------------------------- replay of an MCAP recording
@@ -245,7 +249,7 @@ def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
     from test_live_process import run_cli, tb_cmd
 
     if _port_busy(9876):
-        pytest.skip("port 9876 is taken on this machine")
+        require("port9876", "port 9876 is taken on this machine")
     got = tmp_path / "spawned.rrd"
     with viewer.saving_server(got, port=9876):
         before = _rerun_pids()
