@@ -25,7 +25,7 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
                        "never overwritten")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
     cliargs.add_rrd(p, "also write a Rerun recording of the run (see testbed replay)")
-    cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded) into this PNG")
+    cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded)")
     cliargs.add_no_roa(p)
 
 
@@ -68,11 +68,10 @@ def main_simulate(args) -> int:
 
         simulation_to_rrd(args.rrd, sc, res, roa=not args.no_roa)
     if args.plot:
-        from .analysis.figures import plot_time_series
+        from .analysis.figures import figure_title, plot_time_series
 
         ivs = None if sc.attack.online else [list(iv) for iv in res.intervals().intervals]
-        plot_time_series(res, args.plot, intervals=ivs,
-                         title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded")
+        plot_time_series(res, args.plot, intervals=ivs, title=figure_title(sc), size=args.figsize)
         out["figure"] = str(args.plot)
     if args.json:
         sys.stdout.write(json.dumps(out))  # the C encoder in one go: 2x json.dump on long runs

@@ -236,7 +236,7 @@ def _report(cols, sc, *, arrays: bool, resimulate: int | None = RESIMULATE_SAMPL
     return out
 
 
-def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
+def plot(summary: dict, path: str | Path, *, title: str = "", size: str = "page") -> Path:
     """The paper's Fig. 2 from a report: states, input, E_k at encoder and decoder, DoS shaded."""
     from types import SimpleNamespace
 
@@ -253,8 +253,9 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
     res = SimpleNamespace(T=summary["T"], t=np.asarray(summary["t"], dtype=float), x=arr("x"), u=arr("u"),
                           E_enc=arr("E"), E_dec=arr("E_dec"), theta=np.asarray(summary["theta"], dtype=int))
     intervals = summary.get("dos", {}).get("intervals")
-    return plot_time_series(res, path, title=title or f"{summary.get('scenario')} ({summary.get('source')})",
-                            intervals=intervals)
+    kind = {"live": "live run", "simulate": "simulation"}.get(summary.get("source"), summary.get("source"))
+    return plot_time_series(res, path, title=title or f"{summary.get('scenario')}, {kind}", intervals=intervals,
+                            size=size)
 
 
 def print_text(s: dict) -> None:
@@ -342,7 +343,9 @@ def print_text(s: dict) -> None:
 def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
-    p.add_argument("--plot", metavar="PATH.png", help="draw states, input, E_k and the DoS intervals")
+    from . import cliargs
+
+    cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
     p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
                         "all: every sample, as testbed resimulate; 0: none)")
@@ -363,7 +366,7 @@ def _resimulate_count(text: str) -> int | None:
 def main_report(args) -> int:
     s = report(args.recording, arrays=True, resimulate=args.resimulate)
     if args.plot:
-        plot(s, args.plot)
+        plot(s, args.plot, size=args.figsize)
     if args.json:
         write_json(s, sys.stdout)  # streamed: no list of every sample in memory
         sys.stdout.write("\n")

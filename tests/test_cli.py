@@ -32,6 +32,7 @@ SHARED = {
     "--out": ["run", "simulate", "record"],
     "--rrd": ["run", "simulate", "replay"],
     "--plot": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
+    "--figsize": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
     "--no-roa": ["run", "simulate", "replay"],
     "--no-progress": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
     "--workers": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
