@@ -133,10 +133,25 @@ def recorded_latency(path, sc):
 
 def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the list (name, description, plant, T, M, attack, duration)")
+    p.add_argument("--show", metavar="NAME",
+                   help="print the TOML of the bundled scenario NAME (a start for your own: "
+                        "testbed scenarios --show paper > my.toml)")
 
 
 def main_scenarios(args) -> int:
     from . import scenario
+    from .errors import BadInput
+
+    if args.show:
+        if args.show not in scenario.bundled_names():
+            raise BadInput(f"no bundled scenario {args.show!r}; the bundled ones are "
+                           f"{', '.join(scenario.bundled_names())}")
+        text = scenario.load(args.show).source
+        if args.json:
+            print(json.dumps({"name": args.show, "toml": text}))
+        else:
+            sys.stdout.write(text if text.endswith("\n") else text + "\n")
+        return 0
 
     rows = []
     for name in scenario.bundled_names():
