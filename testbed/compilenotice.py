@@ -29,6 +29,8 @@ def _describe(dispatcher) -> str:
     if py is None:
         return "a numba kernel"
     mod = getattr(py, "__module__", "") or ""
+    if mod.startswith("_testbed_kernel_"):  # testbed.kernelcache's module for one plant
+        return f"the batch simulator for this plant ({py.__qualname__}, testbed.kernelcache)"
     return f"{mod}.{py.__qualname__}" if mod else py.__qualname__
 
 
@@ -62,9 +64,12 @@ class _Notice:
                 return
             self.t0 = time.perf_counter()
             self.said = False
-            self.timer = threading.Timer(self.delay, self._say, args=(_describe(dispatcher),))
-            self.timer.daemon = True
-            self.timer.start()
+            if self.delay > 0:
+                self.timer = threading.Timer(self.delay, self._say, args=(_describe(dispatcher),))
+                self.timer.daemon = True
+                self.timer.start()
+        if self.delay <= 0:
+            self._say(_describe(dispatcher))
 
     def end(self) -> None:
         with self.lock:
