@@ -255,7 +255,7 @@ def plot_allowable_region(path, *, regions=None, plain=None, sweep=None, budget=
                 ax.set_xlim(-pad_d, hi_d + pad_d)
                 ax.set_ylim(-pad_f, hi_f + pad_f)
                 if k == 1:
-                    ax.set_title("zoom on Theorem 1's region" + (" (finer sweep behind)" if sweep_zoom else ""))
+                    ax.set_title("zoom on Theorem 1's region" + (", finer sweep" if sweep_zoom else ""))
             else:
                 ax.set_xlim(ext[0], ext[1])
                 ax.set_ylim(ext[2], ext[3])
