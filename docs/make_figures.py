@@ -229,7 +229,8 @@ def main(argv=None) -> int:
                 if job.data:
                     write_data(fresh / job.data, data)
                 problems += stale(job, fresh, args.docs)
-        if (args.docs / "figures.md").read_text() != gallery() + "\n" and not args.only:
+        page = args.docs / "figures.md"
+        if not args.only and (not page.exists() or page.read_text() != gallery() + "\n"):
             problems.append("figures.md: not the page make_figures.py writes")
         for p in problems:
             print(f"STALE {p}")

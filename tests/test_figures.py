@@ -29,6 +29,7 @@ DOCS = ROOT / "docs"
 def _make_figures():
     spec = importlib.util.spec_from_file_location("make_figures", DOCS / "make_figures.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
     return mod
 
