@@ -277,3 +277,24 @@ def test_a_refused_run_leaves_no_run_folder(tmp_path):
     r = _cli("run", "paper", "--out", out, env=dict(os.environ, TMPDIR=str(tmp)), timeout=60)
     assert r.returncode == 2 and "exists" in r.stderr
     assert list(tmp.iterdir()) == []
+
+
+@pytest.mark.process
+def test_a_live_runs_summary_has_the_documented_keys_and_no_process_details(tmp_path):
+    """A real live run (four processes over Zenoh): Run.summary is SUMMARY_KEYS, RECORDING_KEYS and
+    LIVE_KEYS, without node PIDs or log paths; the run folder of a finished run is gone."""
+    from testbed.api import LIVE_KEYS, RECORDING_KEYS, SUMMARY_KEYS
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    path = tmp_path / "live.mcap"
+    r = _cli("run", "paper", "--duration", "2", "--out", path, env=dict(os.environ, TMPDIR=str(tmp)), timeout=180)
+    assert r.returncode == 0, r.stderr[-3000:]
+    run = testbed.open(path)
+    assert run.source == "live"
+    assert set(run.summary) <= set(SUMMARY_KEYS) | set(RECORDING_KEYS) | set(LIVE_KEYS)
+    assert set(SUMMARY_KEYS) | set(RECORDING_KEYS) <= set(run.summary)
+    assert set(run.summary) & set(LIVE_KEYS)
+    text = repr(run.summary)
+    assert "pid" not in text and ".log" not in text, text
+    assert not list(tmp.glob("testbed-run-*"))
