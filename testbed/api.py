@@ -1,13 +1,16 @@
 """The Python API for notebooks: ``testbed.open(PATH)`` and ``testbed.simulate(SCENARIO, **overrides)``.
 
 Both return a :class:`Run`: the scenario, one numpy array per quantity with one
-entry per sample k (``arrays``), the events, the timing summary, and
+entry per sample k (``arrays``), the events, the timing summary, the results
+(``summary``: ``SUMMARY_KEYS``, and ``RECORDING_KEYS`` / ``LIVE_KEYS`` for recordings),
+``save(path)`` (a recording), ``plot(path)`` (the figure of ``testbed simulate --plot``), and
 ``to_pandas()`` / ``to_polars()`` when those libraries are installed::
 
     import testbed
     run = testbed.open("recordings/paper.mcap")     # a recording of testbed run / simulate --out
     run.arrays["E"][:5], run.arrays["theta"].sum()
-    sim = testbed.simulate("paper", x0=[0.2, 0.0], M=8, duration=10)
+    sim = testbed.simulate("paper", x0=[0.2, 0.0], E0=0.2, M=8, duration=10)
+    sim.save("variant.mcap"); sim.plot("variant.pdf", size="column")
     df = sim.to_pandas()
 
 The array names follow the paper and ``testbed simulate --json``: ``k``, ``t``

@@ -136,6 +136,7 @@ def legend_below(fig, handles=None, *, ncol: int | None = None, axes=None):
                 if lab not in seen and not lab.startswith("_"):
                     seen.add(lab)
                     handles.append(h)
+        handles.sort(key=lambda h: h.get_label() == "DoS")  # the shading last, after the data
     if not handles:
         return None
     import re

@@ -173,9 +173,9 @@ def plot_phase_portrait(roa, path, *, trajectories=(), vulnerable=None, baseline
 
 #: legend labels and styles of Theorem 1's boundaries (rule -> color, line style, label)
 THEOREM1_STYLES = {
-    "paper": (figstyle.BLUE, "-", "Theorem 1: optimized $P_p$, $\\varphi_p$, $\\mu_0$ and $\\mu_1$ of (mu0), (mu1)"),
-    "tight": (figstyle.GREEN, "-.", "Theorem 1: optimized, smallest $\\mu$ of (mu)"),
-    "plain": (figstyle.BLACK, "--", "Theorem 1: plain choice (dlyap with $I$)"),
+    "paper": (figstyle.BLUE, "-", "Theorem 1: optimized $P_p$, $\\varphi_p$; the paper's $\\mu_0$, $\\mu_1$"),
+    "tight": (figstyle.GREEN, "-.", "Theorem 1: optimized $P_p$, $\\varphi_p$; smallest $\\mu_0$, $\\mu_1$"),
+    "plain": (figstyle.BLACK, "--", "Theorem 1: plain choice ($P_p$ by dlyap with $I$)"),
 }
 #: empirical boundary per attacker kind: color, marker, line style
 KIND_STYLES = {"random": (figstyle.VERMILLION, "o", "-"), "periodic": (figstyle.SKY, "s", "--"),
