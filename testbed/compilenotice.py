@@ -76,8 +76,12 @@ class _Notice:
             self.depth = max(self.depth - 1, 0)
             if self.depth:
                 return
-            if self.timer is not None:
-                self.timer.cancel()
+            timer, self.timer = self.timer, None
+        if timer is not None:
+            # gone before the caller goes on: the analysis forks its workers only when it runs one thread
+            timer.cancel()
+            timer.join()
+        with self.lock:
             said = self.said
         if said:
             print(f"testbed: compiled in {time.perf_counter() - self.t0:.1f} s", file=self._out(), flush=True)

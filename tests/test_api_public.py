@@ -14,6 +14,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 import tomllib
 from pathlib import Path
 
@@ -186,6 +187,7 @@ def test_a_long_compilation_names_the_kernel_and_says_it_happens_once():
 
     out = io.StringIO()
     notice = _Notice(out, delay=0.0)
+    threads = threading.active_count()
 
     class L(event.Listener):
         def on_start(self, ev):
@@ -206,9 +208,32 @@ def test_a_long_compilation_names_the_kernel_and_says_it_happens_once():
     finally:
         event.unregister("numba:compile", listener)
     text = out.getvalue()
+    assert notice.timer is None and threading.active_count() == threads   # no thread left behind
     assert "compiling" in text and "fresh_kernel_for_the_notice" in text, text
     assert "happens once" in text and text.count("compiling") == 1
     assert re.search(r"compiled in \d+\.\d s", text)
+
+    # a compilation shorter than the delay: nothing said, and its timer thread is gone afterwards
+    quiet = io.StringIO()
+    notice2 = _Notice(quiet, delay=60.0)
+
+    class L2(event.Listener):
+        def on_start(self, ev):
+            notice2.start(ev.data["dispatcher"])
+
+        def on_end(self, ev):
+            notice2.end()
+
+    def another_fresh_kernel(x):
+        return x - 1.5
+
+    listener2 = L2()
+    event.register("numba:compile", listener2)
+    try:
+        assert nb.njit(another_fresh_kernel)(2.0) == 0.5
+    finally:
+        event.unregister("numba:compile", listener2)
+    assert quiet.getvalue() == "" and threading.active_count() == threads
 
 
 def test_the_cli_installs_the_notice_where_it_computes():
