@@ -50,7 +50,7 @@ def load_side(ref, other_overrides: dict | None = None):
     if _is_recording(str(ref)):
         return open_run(ref)
     sc = resolve_scenario(ref, other_overrides)
-    return run_of_simulation(sc, simulate_scenario(sc))
+    return run_of_simulation(sc, simulate_scenario(sc), other_overrides)
 
 
 def _overrides(run) -> dict:
