@@ -120,10 +120,11 @@ def shade_dos(ax, spans, *, T: float = 0.0, label: bool = True):
         first = False
 
 
-def dos_handle():
+def dos_handle(label: str = "DoS"):
+    """The legend entry of the DoS shading (for legends made of explicit handles)."""
     from matplotlib.patches import Patch
 
-    return Patch(color=DOS_COLOR, alpha=DOS_ALPHA, lw=0, label="DoS")
+    return Patch(color=DOS_COLOR, alpha=DOS_ALPHA, lw=0, label=label)
 
 
 def legend_below(fig, handles=None, *, ncol: int | None = None, axes=None):
@@ -151,12 +152,6 @@ def legend_below(fig, handles=None, *, ncol: int | None = None, axes=None):
     fit = max(1, int(fig.get_figwidth() // entry))
     n = min(ncol or len(handles), fit, len(handles))
     return fig.legend(handles=handles, loc="outside lower center", ncol=n, frameon=False)
-
-
-def legend_right(ax, handles=None):
-    """A legend to the right of one axes, outside its data."""
-    kw = {"handles": handles} if handles is not None else {}
-    return ax.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False, **kw)
 
 
 # ---------------------------------------------------------------------------- the data a figure drew
@@ -255,5 +250,5 @@ def read_digest(path) -> str | None:
 
 
 __all__ = ["FORMATS", "SIZES", "WIDTHS", "CYCLE", "CMAP", "AB_STYLES", "check_path", "check_size", "subplots",
-           "panels", "shade_dos", "dos_handle", "legend_below", "legend_right", "data_digest", "save", "read_digest",
+           "panels", "shade_dos", "dos_handle", "legend_below", "data_digest", "save", "read_digest",
            "pyplot", "rc", "style"]

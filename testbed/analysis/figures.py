@@ -439,8 +439,7 @@ def plot_compare(a_run, b_run, path, *, names=("A", "B"), title: str = "", size:
                 for a, b in sb:
                     ax.axvspan(a, b, facecolor="none", edgecolor=figstyle.DOS_COLOR, hatch="///", lw=0)
         if sa:
-            handles.append(Patch(color=figstyle.DOS_COLOR, alpha=figstyle.DOS_ALPHA, lw=0,
-                                 label="DoS" if same else f"DoS of {names[0]}"))
+            handles.append(figstyle.dos_handle("DoS" if same else f"DoS of {names[0]}"))
         if sb and not same:
             handles.append(Patch(facecolor="none", edgecolor=figstyle.DOS_COLOR, hatch="///",
                                  label=f"DoS of {names[1]}"))
