@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import cliargs
 from .io import messages as msg
 from .runsummary import SUMMARY_FIELDS, build_summary, to_lists, write_json
 
@@ -343,8 +344,6 @@ def print_text(s: dict) -> None:
 def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
-    from . import cliargs
-
     cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
     p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
