@@ -2,10 +2,11 @@
 
     python docs/walkthrough.py [WORKDIR]
 
-Each ``# %%`` cell runs as it is in a Jupyter or VS Code notebook.
+Each ``# %%`` cell runs as it is in a Jupyter or VS Code notebook. It uses only the public API:
+``testbed.simulate``, ``testbed.open``, ``testbed.compare``, ``testbed.BadInput`` and the ``Run``.
 """
 
-# %% 1. Simulate the paper's example and record it, as `testbed simulate paper --out` does
+# %% 1. Simulate the paper's example, record it and draw it (as `testbed simulate paper --out --plot` do)
 import sys
 import tempfile
 from pathlib import Path
@@ -13,14 +14,12 @@ from pathlib import Path
 import numpy as np
 
 import testbed
-from testbed.io.recording import record_simulation
-from testbed.simulate import simulate_scenario
 
 work = Path(sys.argv[1] if len(sys.argv) > 1 else tempfile.mkdtemp(prefix="walkthrough-"))
 sim = testbed.simulate("paper", duration=10)
 print(sim)                                     # Run(simulate: scenario paper, 100 samples of T = 0.1 s, ...)
-path = work / "paper.mcap"                     # the file `testbed simulate paper --duration 10 --out` writes
-record_simulation(path, sim.scenario, simulate_scenario(sim.scenario), overrides={"duration": 10})
+path = sim.save(work / "paper.mcap")           # the recording `testbed simulate paper --duration 10 --out` writes
+sim.plot(work / "paper.pdf", size="column")    # the figure of `--plot`: .png, .pdf or .svg; one IEEE column
 
 # %% 2. Open the recording: one numpy array per quantity, one entry per sample k
 run = testbed.open(path)
@@ -45,12 +44,14 @@ except ImportError as e:
 # %% 5. What if x0 were further out and the quantizer coarser? Overrides are validated like the file
 far = testbed.simulate("paper", x0=[0.1, -0.1], M=8, duration=10, attack={"intervals": [[2.0, 1.5]]})
 print(far.summary["converged"], far.summary["final_norm"], far.summary["dos_intervals"])
+try:
+    testbed.simulate("paper", x0=[0.5, 0.5])   # outside the quantizer's first box: the message says what to pass
+except testbed.BadInput as e:
+    print("BadInput:", e)
 
 # %% 6. Compare two runs sample by sample (as `testbed compare A B --json` does)
-from testbed.compare import compare
-
-c = compare(run, sim)
+c = testbed.compare(run, sim)
 print(c["identical"], c["first_divergence"])   # True None: the recording is the simulation
-c = compare(run, far)
+c = testbed.compare(run, far)
 print(c["identical"], c["first_divergence"], f"max ||x_A - x_B|| = {c['max_state_error']:.3g}")
 assert c["first_divergence"] == 0              # x0 differs

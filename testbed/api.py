@@ -1,13 +1,16 @@
 """The Python API for notebooks: ``testbed.open(PATH)`` and ``testbed.simulate(SCENARIO, **overrides)``.
 
 Both return a :class:`Run`: the scenario, one numpy array per quantity with one
-entry per sample k (``arrays``), the events, the timing summary, and
+entry per sample k (``arrays``), the events, the timing summary, the results
+(``summary``: ``SUMMARY_KEYS``, and ``RECORDING_KEYS`` / ``LIVE_KEYS`` for recordings),
+``save(path)`` (a recording), ``plot(path)`` (the figure of ``testbed simulate --plot``), and
 ``to_pandas()`` / ``to_polars()`` when those libraries are installed::
 
     import testbed
     run = testbed.open("recordings/paper.mcap")     # a recording of testbed run / simulate --out
     run.arrays["E"][:5], run.arrays["theta"].sum()
-    sim = testbed.simulate("paper", x0=[0.2, 0.0], M=8, duration=10)
+    sim = testbed.simulate("paper", x0=[0.2, 0.0], E0=0.2, M=8, duration=10)
+    sim.save("variant.mcap"); sim.plot("variant.pdf", size="column")
     df = sim.to_pandas()
 
 The array names follow the paper and ``testbed simulate --json``: ``k``, ``t``
@@ -37,6 +40,20 @@ TIMING = ("t_sample", "jitter", "delay", "sensor_to_actuator", "stage_encoder", 
           "stage_plant", "deadline_miss", "u_missing")
 
 
+#: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
+#: docs/api.md explains each)
+SUMMARY_KEYS = ("scenario", "plant", "model", "plant_params", "model_params", "n", "m", "T", "M", "Lambda", "mode",
+                "bits", "K", "timing_mode", "rule", "packets_dropped", "dos_intervals", "saturations", "withheld_at",
+                "encoder_decoder_agree", "x_final", "final_norm", "converged", "escaped", "diverged", "diverged_at",
+                "plant_fault", "plant_fault_at")
+#: ``Run.summary`` of a recording (``testbed.open``), live or simulated, besides ``SUMMARY_KEYS``
+RECORDING_KEYS = ("source", "run_id", "t0_ns", "samples", "complete", "outcome", "dos", "loss_reasons",
+                  "dropped_by_attacker", "agreement")
+#: ``Run.summary`` of a live run only (what only a run over the network can report)
+LIVE_KEYS = ("deadline", "ack_via_attacker", "controller_lost_at", "late_symbols", "invalid_payloads", "faults",
+             "events", "attacker")
+
+
 class MissingExtra(ImportError):
     """An optional library a method needs is not installed (one line says which)."""
 
@@ -53,6 +70,9 @@ class Run:
     source: str = "simulate"
     path: str | None = None
     metadata: dict[str, dict] = field(default_factory=dict)
+    #: the overrides the run was simulated with (``testbed.simulate``), stored by ``save``
+    overrides: dict = field(default_factory=dict)
+    _result: object = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
 
     @property
     def N(self) -> int:
@@ -63,6 +83,44 @@ class Run:
         where = f" from {self.path}" if self.path else ""
         return (f"Run({self.source}{where}: scenario {self.scenario.name}, {self.N} samples of T = "
                 f"{self.scenario.T:g} s, {int(np.sum(self.arrays['theta']))} lost)")
+
+    def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
+        """Write the run as an MCAP recording (what ``testbed simulate --out`` writes; every reader and
+        viewer opens it: ``testbed.open``, ``testbed report``, ``testbed replay``, Foxglove).
+
+        A simulated run is recorded with its scenario and overrides; a run opened from a recording
+        is copied as it is.  An existing file is a ``BadInput`` unless ``overwrite``.
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise BadInput(f"{path} exists: pass overwrite=True to replace it")
+        if self._result is not None:
+            from .io.recording import record_simulation
+
+            path.parent.mkdir(parents=True, exist_ok=True)
+            record_simulation(path, self.scenario, self._result, overrides=dict(self.overrides),
+                              ref=self.scenario.path or self.scenario.name, exclusive=not overwrite)
+            return path
+        if self.path is not None:
+            import shutil
+
+            if Path(self.path).resolve() != path.resolve():
+                path.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(self.path, path)
+            return path
+        raise BadInput("this Run has neither a simulation nor a recording behind it: nothing to save")
+
+    def plot(self, path: str | Path, *, size: str = "page", title: str | None = None) -> Path:
+        """Draw the run as ``testbed simulate --plot`` does (states, input, E_k at both ends, DoS shaded):
+        ``.png``, ``.pdf`` or ``.svg`` by the extension; ``size`` ``"column"`` or ``"page"`` (IEEE widths)."""
+        from . import figstyle
+        from .analysis.figures import figure_title, plot_time_series, series_of_run
+
+        figstyle.check_path(path)
+        figstyle.check_size(size)
+        ivs = self.summary.get("dos_intervals")
+        return plot_time_series(series_of_run(self), path, intervals=ivs, size=size,
+                                title=figure_title(self.scenario) if title is None else title)
 
     def columns(self) -> dict[str, np.ndarray]:
         """Flat 1-D columns, one row per sample: vectors as x1..xn, u1..um, ... (what ``export`` writes)."""
@@ -145,9 +203,11 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
     Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
     """
+    from . import compilenotice
     from .io.columns import read_columns, scenario_of
     from .report import report
 
+    compilenotice.install()
     cols = read_columns(path)
     sc = scenario_of(cols.metadata, str(path))
     s = report((cols, sc), arrays=True, resimulate=0)  # Run.arrays need no resimulation
@@ -170,9 +230,9 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
     events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
                "detail": e.detail} for e in cols.events]
-    summary = {k: v for k, v in s.items() if not isinstance(v, np.ndarray) and k not in
-               ("u_controller",)}
-    summary["t0_ns"] = t0
+    s = dict(s, t0_ns=t0)
+    keys = SUMMARY_KEYS + RECORDING_KEYS + (LIVE_KEYS if live else ())
+    summary = {k: s[k] for k in keys if k in s}
     return Run(scenario=sc, arrays=arrays, events=events, timing=s.get("timing"), summary=summary,
                source=cols.source, path=str(path), metadata=cols.metadata)
 
@@ -188,7 +248,7 @@ def attack_on_samples(sc, res) -> np.ndarray:
     return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
 
 
-def run_of_simulation(sc, res) -> Run:
+def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
     """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result."""
     from .simulate import summarize
 
@@ -201,8 +261,9 @@ def run_of_simulation(sc, res) -> Run:
     events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",
                "detail": f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"} for k in np.flatnonzero(res.saturated)]
     s = summarize(sc, res, arrays=True)
-    summary = {k: v for k, v in s.items() if not isinstance(v, np.ndarray)}
-    return Run(scenario=sc, arrays=arrays, events=events, timing=None, summary=summary, source="simulate")
+    summary = {k: s[k] for k in SUMMARY_KEYS}
+    return Run(scenario=sc, arrays=arrays, events=events, timing=None, summary=summary, source="simulate",
+               overrides=dict(overrides or {}), _result=res)
 
 
 def resolve_scenario(scenario, overrides: dict | None = None):
@@ -216,16 +277,19 @@ def resolve_scenario(scenario, overrides: dict | None = None):
 def simulate(scenario, **overrides) -> Run:
     """Simulate a scenario (object, bundled name or .toml path) with ``overrides`` and return a :class:`Run`.
 
-    Overrides (validated as if written in the scenario file): ``x0``, ``E0``,
-    ``M``, ``T``, ``duration``, ``mode``, and ``attack`` (a table merged into
-    ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new ``kind``
-    replaces the table).
+    Overrides (validated as if written in the scenario file; ``testbed.scenario.OVERRIDES``):
+    ``duration``, ``T``, ``timing``, ``deadline``, ``mode``, ``loss_fraction``, ``actuation``,
+    ``rule``, ``seed`` (these are also command-line flags), ``x0``, ``E0``, ``M`` and ``attack``
+    (a table merged into ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new
+    ``kind`` replaces the table).  A bad override raises ``testbed.BadInput`` with what to change.
     """
+    from . import compilenotice
     from .simulate import simulate_scenario
 
+    compilenotice.install()
     sc = resolve_scenario(scenario, overrides)
-    return run_of_simulation(sc, simulate_scenario(sc))
+    return run_of_simulation(sc, simulate_scenario(sc), {k: v for k, v in overrides.items() if v is not None})
 
 
 __all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "attack_on_samples", "MissingExtra",
-           "resolve_scenario", "BadInput"]
+           "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]

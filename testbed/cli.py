@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+#: commands that compile nothing (or must start fast): no numba listener (``testbed.compilenotice``)
+QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run"}
+
+
 #: commands that end their process straight after the result is out, without the interpreter's
 #: teardown (unloading numba's compiled kernels takes about 0.3 s): ``testbed run``
 FAST_EXIT = {"run"}
@@ -142,6 +146,10 @@ def run_guarded(runner, args, prog: str) -> int:
     """
     from .errors import BadInput
 
+    if prog.split()[-1] not in QUIET_START:
+        from . import compilenotice
+
+        compilenotice.install()
     try:
         return int(runner(args) or 0)
     except BadInput as e:

@@ -4,7 +4,8 @@
 ``--json``          print the result as one JSON object on stdout
 ``--out PATH.mcap`` write an MCAP recording (run, simulate, record)
 ``--rrd PATH.rrd``  write a Rerun recording (run, simulate, replay)
-``--plot PATH.png`` draw the command's figure into one PNG file
+``--plot PATH.png`` draw the command's figure (.png, .pdf or .svg by the extension)
+``--figsize SIZE``  with --plot: ``column`` (one IEEE column) or ``page`` (two columns, default)
 ``--no-roa``        skip the nominal region of attraction outline (a grid computation)
 ``--no-progress``   no progress bars on stderr
 ``--workers N``     processes for batch jobs (default: every core; 1: in this process)
@@ -34,8 +35,25 @@ def add_rrd(p: argparse.ArgumentParser, help_: str) -> None:
     p.add_argument("--rrd", metavar="PATH.rrd", help=help_)
 
 
-def add_plot(p: argparse.ArgumentParser, help_: str) -> None:
-    p.add_argument("--plot", metavar="PATH.png", help=help_)
+def figure_path(v: str) -> str:
+    """``--plot``'s value: a path ending in .png, .pdf or .svg (the format)."""
+    from .figstyle import FORMATS
+
+    if not v.lower().endswith(FORMATS):
+        raise argparse.ArgumentTypeError(f"{v!r}: a figure is written as {', '.join(FORMATS)} (by the extension)")
+    return v
+
+
+def add_figsize(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--figsize", choices=["column", "page"], default="page",
+                   help="figure width: one IEEE column (3.5 in) or both columns (7.16 in, default)")
+
+
+def add_plot(p: argparse.ArgumentParser, help_: str, *, folder: bool = False) -> None:
+    """``--plot PATH`` (.png, .pdf or .svg; ``folder``: a folder too) and ``--figsize column|page``."""
+    p.add_argument("--plot", metavar="PATH.png", type=None if folder else figure_path,
+                   help=help_ + " (.png, .pdf or .svg by the extension)")
+    add_figsize(p)
 
 
 def add_no_roa(p: argparse.ArgumentParser, *, aliases: tuple[str, ...] = ()) -> None:

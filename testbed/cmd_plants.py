@@ -46,11 +46,13 @@ def main_plants(args) -> int:
 
 
 def add_arguments_check_plant(p: argparse.ArgumentParser) -> None:
-    p.add_argument("ref", metavar="REF",
+    p.add_argument("ref", metavar="REF", nargs="?",
                    help="a plant: registered name, installed entry-point name, or 'module.path:ClassName' "
-                        "(imported from the current folder first, or from --scenario's folder)")
+                        "(imported from the current folder first, or from --scenario's folder); "
+                        "default: the plant --scenario names")
     p.add_argument("--scenario", metavar="S",
-                   help="take L, T, M and the plant's parameters from this scenario (file or bundled name)")
+                   help="take the plant (unless REF is given), its parameters, L, T and M from this scenario "
+                        "(file or bundled name)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="a plant parameter (repeatable; default: the scenario's, else the class defaults)")
     p.add_argument("--L", type=float, help="Lipschitz constant to check against (default: the scenario's "
@@ -93,8 +95,17 @@ def main_check_plant(args) -> int:
 
         sc = scenario.load(args.scenario)
         base_dir = sc.base_dir or base_dir
+        if args.ref is None:
+            if sc.plant.fmu is not None:
+                raise BadInput(f"the plant of {args.scenario} is the FMU {sc.plant.fmu.path}: check-plant checks "
+                               f"equation (1) plants; check its [model] with testbed check-plant {sc.model.name} "
+                               f"--scenario {args.scenario}")
+            args.ref = sc.plant.ref or sc.plant.name
         if (sc.plant.ref or sc.plant.name) == args.ref:
             params = dict(sc.plant.params)
+    elif args.ref is None:
+        raise BadInput("name a plant (REF) or a scenario (--scenario S) whose plant to check; "
+                       "testbed plants lists the plants")
     params.update(dict(_param(t) for t in args.param))
     try:
         cls = plants.resolve(args.ref, base_dir)

@@ -25,7 +25,7 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
                        "never overwritten")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
     cliargs.add_rrd(p, "also write a Rerun recording of the run (see testbed replay)")
-    cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded) into this PNG")
+    cliargs.add_plot(p, "draw the paper's Fig. 2 (states, input, E_k at both ends, DoS shaded)")
     cliargs.add_no_roa(p)
 
 
@@ -68,11 +68,10 @@ def main_simulate(args) -> int:
 
         simulation_to_rrd(args.rrd, sc, res, roa=not args.no_roa)
     if args.plot:
-        from .analysis.figures import plot_time_series
+        from .analysis.figures import figure_title, plot_time_series
 
         ivs = None if sc.attack.online else [list(iv) for iv in res.intervals().intervals]
-        plot_time_series(res, args.plot, intervals=ivs,
-                         title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded")
+        plot_time_series(res, args.plot, intervals=ivs, title=figure_title(sc), size=args.figsize)
         out["figure"] = str(args.plot)
     if args.json:
         sys.stdout.write(json.dumps(out))  # the C encoder in one go: 2x json.dump on long runs
@@ -134,10 +133,25 @@ def recorded_latency(path, sc):
 
 def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the list (name, description, plant, T, M, attack, duration)")
+    p.add_argument("--show", metavar="NAME",
+                   help="print the TOML of the bundled scenario NAME (a start for your own: "
+                        "testbed scenarios --show paper > my.toml)")
 
 
 def main_scenarios(args) -> int:
     from . import scenario
+    from .errors import BadInput
+
+    if args.show:
+        if args.show not in scenario.bundled_names():
+            raise BadInput(f"no bundled scenario {args.show!r}; the bundled ones are "
+                           f"{', '.join(scenario.bundled_names())}")
+        text = scenario.load(args.show).source
+        if args.json:
+            print(json.dumps({"name": args.show, "toml": text}))
+        else:
+            sys.stdout.write(text if text.endswith("\n") else text + "\n")
+        return 0
 
     rows = []
     for name in scenario.bundled_names():

@@ -50,7 +50,7 @@ def load_side(ref, other_overrides: dict | None = None):
     if _is_recording(str(ref)):
         return open_run(ref)
     sc = resolve_scenario(ref, other_overrides)
-    return run_of_simulation(sc, simulate_scenario(sc))
+    return run_of_simulation(sc, simulate_scenario(sc), other_overrides)
 
 
 def _overrides(run) -> dict:
@@ -135,36 +135,17 @@ def _describe(ref, run) -> dict:
             "scenario": run.scenario.name, "T": run.scenario.T, "samples": run.N}
 
 
-def plot(a_run, b_run, path, *, title: str = "") -> Path:
-    """States of both runs over t, their difference ||x_A - x_B||_inf (log scale), and theta of each."""
-    import matplotlib
+def plot(a_run, b_run, path, *, title: str = "", size: str = "page") -> Path:
+    """States of both runs over t (A solid, B dashed), ||x_A - x_B||_inf, the lost samples of each, DoS shaded."""
+    from .analysis.figures import plot_compare
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    return plot_compare(a_run, b_run, path, title=title, size=size)
 
-    n = min(a_run.N, b_run.N)
-    fig, ax = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
-    ta, tb = a_run.arrays["t"], b_run.arrays["t"]
-    for i in range(a_run.arrays["x"].shape[1]):
-        ax[0].plot(ta, a_run.arrays["x"][:, i], lw=1.5, label=f"A x{i + 1}")
-        ax[0].plot(tb, b_run.arrays["x"][:, i], "--", lw=1.0, label=f"B x{i + 1}")
-    ax[0].set_ylabel("x_k")
-    ax[0].legend(ncol=4, fontsize=8)
-    if n:
-        err = np.abs(np.asarray(a_run.arrays["x"][:n], float) - np.asarray(b_run.arrays["x"][:n], float)).max(axis=1)
-        with np.errstate(divide="ignore"):
-            ax[1].semilogy(ta[:n], np.where(err > 0, err, np.nan), ".", ms=3)
-    ax[1].set_ylabel("||x_A - x_B||_inf")
-    ax[2].step(ta, a_run.arrays["theta"], where="post", label="A theta_k")
-    ax[2].step(tb, np.asarray(b_run.arrays["theta"]) * 0.9, where="post", label="B theta_k (x 0.9)")
-    ax[2].set_ylabel("theta_k")
-    ax[2].set_xlabel("t [s]")
-    ax[2].legend(fontsize=8)
-    fig.suptitle(title or "testbed compare")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+
+def _name(run) -> str:
+    """A run as a figure names it: its scenario and where it came from (not a file path)."""
+    kind = {"live": "live run", "simulate": "simulation"}.get(run.source, run.source)
+    return f"{run.scenario.name}, {kind}"
 
 
 def add_arguments_compare(p: argparse.ArgumentParser) -> None:
@@ -173,7 +154,8 @@ def add_arguments_compare(p: argparse.ArgumentParser) -> None:
     p.add_argument("a", help="a recording (.mcap) or a scenario (bundled name or .toml) to simulate")
     p.add_argument("b", help="the other run: a recording or a scenario (simulated with the recording's overrides)")
     cliargs.add_json(p, "the comparison")
-    cliargs.add_plot(p, "draw both trajectories, their difference and theta_k of each")
+    cliargs.add_plot(p, "draw both runs' states (A solid, B dashed), their difference and the lost samples of each, "
+                        "DoS shaded")
 
 
 def main_compare(args) -> int:
@@ -181,7 +163,7 @@ def main_compare(args) -> int:
     c = compare(ra, rb)
     c["a"]["ref"], c["b"]["ref"] = str(args.a), str(args.b)
     if args.plot:
-        plot(ra, rb, args.plot, title=f"{args.a} vs {args.b}")
+        plot(ra, rb, args.plot, title=f"A: {_name(ra)}; B: {_name(rb)}", size=args.figsize)
     if args.json:
         print(json.dumps(c))
     else:

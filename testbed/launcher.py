@@ -233,9 +233,6 @@ class Launcher:
             if who in self.colocated:
                 raise BadInput(f"--cpu {who}=...: the {who} runs in the {self.opts.process_of(who)}'s process "
                                f"(--colocate {who}); pin that one")
-        self.own_dir = args.run_dir is None
-        self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
-        self.run_dir.mkdir(parents=True, exist_ok=True)
         self.procs: dict[str, subprocess.Popen] = {}
         self.exits: dict[str, dict] = {}
         self.faults: list[dict] = []
@@ -270,6 +267,10 @@ class Launcher:
             from .nodes.foxglove_tap import FoxgloveLive
 
             self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
+        # the run folder last: a run refused above (bad input) leaves nothing behind
+        self.own_dir = args.run_dir is None
+        self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
+        self.run_dir.mkdir(parents=True, exist_ok=True)
 
     def phase(self, name: str) -> None:
         """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
@@ -948,8 +949,15 @@ def print_text(s: dict) -> None:
 
 
 def main_run(args) -> int:
+    from .errors import BadInput
+
     launcher = Launcher(args)
-    code, summary = launcher.run()
+    try:
+        code, summary = launcher.run()
+    except BadInput:  # refused before any node ran (certificates, ...): no run folder left behind
+        if launcher.own_dir and not any(launcher.run_dir.glob("*.log")):
+            shutil.rmtree(launcher.run_dir, ignore_errors=True)
+        raise
     launcher.phase("closed")
     if args.json:
         json.dump(summary, sys.stdout)

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import cliargs
 from .io import messages as msg
 from .runsummary import SUMMARY_FIELDS, build_summary, to_lists, write_json
 
@@ -239,7 +240,7 @@ def _report(cols, sc, *, arrays: bool, resimulate: int | None) -> dict:
     return out
 
 
-def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
+def plot(summary: dict, path: str | Path, *, title: str = "", size: str = "page") -> Path:
     """The paper's Fig. 2 from a report: states, input, E_k at encoder and decoder, DoS shaded."""
     from types import SimpleNamespace
 
@@ -256,8 +257,9 @@ def plot(summary: dict, path: str | Path, *, title: str = "") -> Path:
     res = SimpleNamespace(T=summary["T"], t=np.asarray(summary["t"], dtype=float), x=arr("x"), u=arr("u"),
                           E_enc=arr("E"), E_dec=arr("E_dec"), theta=np.asarray(summary["theta"], dtype=int))
     intervals = summary.get("dos", {}).get("intervals")
-    return plot_time_series(res, path, title=title or f"{summary.get('scenario')} ({summary.get('source')})",
-                            intervals=intervals)
+    kind = {"live": "live run", "simulate": "simulation"}.get(summary.get("source"), summary.get("source"))
+    return plot_time_series(res, path, title=title or f"{summary.get('scenario')}, {kind}", intervals=intervals,
+                            size=size)
 
 
 def print_text(s: dict) -> None:
@@ -345,7 +347,7 @@ def print_text(s: dict) -> None:
 def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
-    p.add_argument("--plot", metavar="PATH.png", help="draw states, input, E_k and the DoS intervals")
+    cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
     p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
                         "all: every sample, as testbed resimulate; 0: none)")
@@ -366,7 +368,7 @@ def _resimulate_count(text: str) -> int | None:
 def main_report(args) -> int:
     s = report(args.recording, arrays=True, resimulate=args.resimulate)
     if args.plot:
-        plot(s, args.plot)
+        plot(s, args.plot, size=args.figsize)
     if args.json:
         write_json(s, sys.stdout)  # streamed: no list of every sample in memory
         sys.stdout.write("\n")

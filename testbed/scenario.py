@@ -767,24 +767,53 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
     """``sc`` with run-time overrides applied and validated as if written in its file.
 
     ``sc.source`` stays the original text; recordings store the overrides beside it.
+    A bad override raises ``BadInput`` (not ``ScenarioError``: the file is fine) whose message
+    names the overrides and says what to change (:func:`_override_hint`).
     """
     over = {k: v for k, v in (overrides or {}).items() if v is not None}
     if not over:
         return sc
     unknown = set(over) - set(OVERRIDES)
     if unknown:
-        raise ScenarioError(f"unknown override(s): {', '.join(sorted(unknown))}")
+        raise BadInput(f"unknown override(s): {', '.join(sorted(unknown))}; the overrides are "
+                       f"{', '.join(OVERRIDES)} (any other key: write it in a copy of the scenario, "
+                       f"testbed scenarios --show {sc.name} > my.toml)")
     data = tomllib.loads(sc.source)
     for k, v in over.items():
         table, key = OVERRIDES[k]
         if key is None:  # attack: a table merged into [attack] (a new kind replaces it)
             if not isinstance(v, dict):
-                raise ScenarioError(f"override {k} must be a table of [{table}] keys, got {v!r}")
+                raise BadInput(f"override {k} must be a dict of [{table}] keys (e.g. attack={{\"intervals\": "
+                               f"[[1.0, 0.5]]}} or attack={{\"kind\": \"none\"}}), got {v!r}")
             old = data.get(table, {})
             data[table] = {**({} if "kind" in v and v["kind"] != old.get("kind") else old), **v}
             continue
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
         data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES else v
-    sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
-                    base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                    check_design=check_design)
+    try:
+        sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
+                        base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
+                        check_design=check_design)
+    except ScenarioError as e:
+        raise BadInput(_override_hint(str(e), sc, over)) from None
     return dataclasses.replace(sc2, path=sc.path)
+
+
+def _override_hint(msg: str, sc: Scenario, over: dict) -> str:
+    """A scenario error caused by overrides, reworded so that a caller of overrides can act on it."""
+    names = ", ".join(f"{k}={v!r}" for k, v in over.items())
+    x0 = over.get("x0", sc.x0)
+    try:
+        nx = max(abs(float(v)) for v in np.ravel(x0))
+    except (TypeError, ValueError):
+        nx = None
+    if "allow_x0_outside" in msg and nx is not None:
+        msg = msg.replace("(set allow_x0_outside = true to run it anyway)",
+                          f"(pass E0={nx:g} or larger with it; or, to run it anyway, set allow_x0_outside = true in "
+                          f"[quantizer] of a copy of the scenario: testbed scenarios --show {sc.name})")
+    if "allow_M_le_Lambda" in msg:
+        msg = msg.replace("(set allow_M_le_Lambda = true to run it anyway)",
+                          "(pass a larger M or a smaller T; or, to run it anyway, set allow_M_le_Lambda = true in "
+                          f"[quantizer] of a copy of the scenario: testbed scenarios --show {sc.name})")
+    return f"override(s) {names}: {msg}"

@@ -32,6 +32,7 @@ SHARED = {
     "--out": ["run", "simulate", "record"],
     "--rrd": ["run", "simulate", "replay"],
     "--plot": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
+    "--figsize": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
     "--no-roa": ["run", "simulate", "replay"],
     "--no-progress": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
     "--workers": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
@@ -104,6 +105,20 @@ def test_analyze_plot_is_a_file_path_and_a_folder_still_works(tmp_path):
     folder = tmp_path / "figs"
     assert cli.main(["analyze", "paper", "--plot", str(folder), "--no-progress"]) == 0
     assert (folder / "paper-allowable-region.png").exists()
+    pdf = tmp_path / "an.pdf"
+    assert cli.main(["analyze", "paper", "--plot", str(pdf), "--figsize", "column", "--no-progress"]) == 0
+    assert pdf.read_bytes()[:5] == b"%PDF-" and (tmp_path / "an-delta.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+def test_a_figure_in_an_unknown_format_is_bad_input_before_any_work(tmp_path, capsys):
+    assert cli.main(["analyze", "paper", "--plot", str(tmp_path / "an.jpg")]) == 2
+    assert "a figure path ends in .png, .pdf, .svg" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+    with pytest.raises(SystemExit) as e:
+        cli.main(["simulate", "paper", "--plot", str(tmp_path / "a.gif")])
+    assert e.value.code == 2 and "by the extension" in capsys.readouterr().err
+    assert cli.main(["analyze", "paper", "--escape-x0", "0.3"]) == 2
+    assert "--escape-x0 takes 'auto' or 2" in capsys.readouterr().err
 
 
 def test_exit_codes_bad_input_is_2_with_one_line(tmp_path):

@@ -65,7 +65,19 @@ def _tour() -> list[str]:
 
 def test_the_tour_is_what_the_readme_says():
     cmds = _tour()
-    assert [shlex.split(c)[1] for c in cmds] == ["simulate", "run", "report", "replay", "analyze"]
+    assert [shlex.split(c)[1] for c in cmds] == ["simulate", "run", "report", "replay", "simulate", "report",
+                                                 "analyze"]
+    live = shlex.split(cmds[1])
+    assert "--duration" not in live, "the tour's live run is the whole example"
+
+
+def test_the_tours_budget_check_is_on_a_scenario_that_declares_a_budget():
+    from testbed import scenario
+
+    cmds = [shlex.split(c) for c in _tour()]
+    rec = cmds[4][cmds[4].index("--out") + 1]
+    assert cmds[5][1:3] == ["report", rec]
+    assert scenario.load(cmds[4][2]).attack.budget is not None
 
 
 @pytest.mark.process
@@ -76,5 +88,5 @@ def test_the_five_minute_tour_runs_as_written(tmp_path):
     for cmd in _tour():
         r = subprocess.run(cmd, shell=True, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, (cmd, r.stdout[-2000:], r.stderr[-3000:])
-    for f in ("paper.png", "recordings/paper.mcap", "recordings/paper.rrd", "analysis.png"):
+    for f in ("paper.png", "recordings/paper.mcap", "recordings/paper.rrd", "recordings/greedy.mcap", "analysis.png"):
         assert (tmp_path / f).stat().st_size > 1000, f

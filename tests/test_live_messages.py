@@ -328,14 +328,14 @@ def test_load_scenario_overrides_and_digest(paper):
 
 
 def test_load_scenario_T_override_is_validated():
+    from testbed.errors import BadInput
     from testbed.nodes.common import RunOptions, load_scenario
-    from testbed.scenario import ScenarioError
 
     sc = load_scenario("pendulum", RunOptions(T=0.01, duration=1.0))  # LQR gain: recomputed for T
     assert sc.T == 0.01 and sc.n_steps == 100
-    with pytest.raises(ScenarioError, match="M"):
+    with pytest.raises(BadInput, match=r"T=0.2: .*M = 6 <= Lambda .*pass a larger M or a smaller T"):
         load_scenario("paper", RunOptions(T=0.2))  # Lambda = e^2 > M = 6: Assumption 2 broken
-    with pytest.raises(ScenarioError, match="duration"):
+    with pytest.raises(BadInput, match="duration"):
         load_scenario("paper", RunOptions(duration=0.01))
 
 

@@ -298,11 +298,27 @@ def test_simulate_overrides_are_validated_like_the_file():
         testbed.simulate("paper", K=[[0, 0]])
 
 
-def test_the_api_walkthrough_runs(tmp_path):
+def test_the_api_walkthrough_runs_on_the_public_api_only(tmp_path):
+    """docs/walkthrough.py: only ``import testbed`` and the names it exports; it saves and plots a Run."""
+    import ast
+
+    src = (ROOT / "docs" / "walkthrough.py").read_text()
+    tree = ast.parse(src)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            assert not (node.module or "").startswith("testbed"), f"line {node.lineno}: from {node.module} import"
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                assert a.name == "testbed" or not a.name.startswith("testbed"), f"line {node.lineno}: {a.name}"
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "testbed":
+            assert node.attr in {"open", "simulate", "compare", "BadInput", "Run"}, f"line {node.lineno}: {node.attr}"
+    assert ".save(" in src and ".plot(" in src
     r = subprocess.run([PY, str(ROOT / "docs" / "walkthrough.py"), str(tmp_path)], capture_output=True, text=True,
                        timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert "True None" in r.stdout
+    assert "True None" in r.stdout and "BadInput: override(s) x0=[0.5, 0.5]" in r.stdout
+    assert testbed.open(tmp_path / "paper.mcap").N == 100
+    assert (tmp_path / "paper.pdf").read_bytes()[:5] == b"%PDF-"
 
 
 @pytest.mark.parametrize("fmt", ["parquet", "csv"])

@@ -117,10 +117,11 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="PATH.png",
-                   help="draw the allowable DoS region (Theorem 1, with the experiment under --full) into PATH.png "
+                   help="draw the allowable DoS region (Theorem 1, with the empirical map under --full) into PATH.png "
                         "and the other figures beside it as PATH-time-series.png, PATH-phase-portrait.png, "
-                        "PATH-delta.png (and PATH-vulnerable.png under --full); a folder instead of a .png path "
-                        "writes them there as <scenario>-<figure>.png")
+                        "PATH-delta.png (and PATH-vulnerable.png under --full); .pdf or .svg for those formats; "
+                        "a folder instead writes them there as <scenario>-<figure>.png")
+    cliargs.add_figsize(p)
     p.add_argument("--full", action="store_true",
                    help="also the 201 x 201 region of attraction, the budget sweep and the vulnerable states "
                         "(figures 3 and 4 with the experiment; about a minute)")
@@ -132,9 +133,10 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     p.add_argument("--share", type=float, default=0.5,
                    help="part of Theorem 1's decay margin given to nonlinearity and quantization (default 0.5)")
     _add_budget(p)
-    p.add_argument("--escape-x0", nargs="+", type=float, metavar="X",
-                   help="initial state of the escaping trajectory in the phase portrait "
-                        "(default: searched along the ray through the scenario's x0)")
+    p.add_argument("--escape-x0", nargs="+", metavar="X",
+                   help="also draw, in the phase portrait, a trajectory under the scenario's attacks from this "
+                        "initial state, or 'auto': the first state along the ray through the scenario's x0 from "
+                        "which it escapes (default: only the scenario's own trajectory)")
     cliargs.add_no_progress(p)
     cliargs.add_workers(p)
     cliargs.add_scheduler(p)
@@ -147,8 +149,12 @@ def main_analyze(args) -> int:
     sc = scenario.load(args.scenario)
     if args.full or args.plot:
         true_plant(sc, "testbed analyze --full / --plot")
+    if args.plot:
+        figure_paths(args.plot, sc.name, create=False)  # a bad --plot fails before the work
+    args.escape_x0 = _escape_arg(args.escape_x0, sc)
     gamma = args.gamma if args.gamma == "auto" else float(args.gamma)
     res = analyze(sc, budget=args.budget, gamma=gamma, share=args.share, rule=args.rule)
+    res["paper_example"] = is_paper_example(sc)
     extra = {}
     if args.full:
         with _executor(args) as ex:
@@ -173,6 +179,8 @@ def main_analyze(args) -> int:
                                                  "empirical_rho_D_max_at_rho_F_0",
                                                  "empirical_rho_F_max_at_rho_D_0")))
         if "figures" in res:
+            if res.get("escape_note"):
+                print(f"  {res['escape_note']}")
             for f in res["figures"]:
                 print(f"  wrote {f}")
     return 0
@@ -199,8 +207,19 @@ def _print_analysis(r: dict) -> None:
     print(f"  certificate ({t1['choice']}): phi0={r['phi0']:.6g} phi1={r['phi1']:.6g} mu0={r['mu0']:.4g} "
           f"mu1={r['mu1']:.4g} nu0={r['nu0']:.4g} nu1={r['nu1']:.4g}")
     print(f"  budget ({r['budget_source']}): kappa_F={b['kappa_F']:g} rho_F={b['rho_F']:g} "
-          f"kappa_D={b['kappa_D']:g} rho_D={b['rho_D']:g} -> theorem1_holds={r['theorem1_holds']} "
-          f"(by rule: {r['theorem1_holds_by_rule']})")
+          f"kappa_D={b['kappa_D']:g} rho_D={b['rho_D']:g}")
+    by = r["theorem1_holds_by_rule"]
+    names = {"paper": "the paper's mu constants (mu0), (mu1)", "tight": "the smallest mu of (mu)"}
+    held = [names.get(k, k) for k, v in by.items() if v]
+    failed = [names.get(k, k) for k, v in by.items() if not v]
+    if not failed:
+        verdict = "holds"
+    elif not held:
+        verdict = "fails"
+    else:
+        verdict = f"holds with {' and '.join(held)}, fails with {' and '.join(failed)}"
+    print(f"  Theorem 1's condition at this budget {verdict} "
+          f"(the headline certificate, rule {r['rule']}: {'holds' if r['theorem1_holds'] else 'fails'})")
     t2 = r["theorem2"]
     print(f"Theorem 2 (convergence), gamma={r['gamma']:.4g}, for the {r['theorem2_budget']}")
     print(f"  c0={t2['c0']:.4g} c1={t2['c1']:.4g} gamma0={t2['gamma0']:.4g} gamma1={t2['gamma1']:.4g} "
@@ -216,7 +235,8 @@ def _print_analysis(r: dict) -> None:
         print(f"  Theorem 2's conditions hold, and guarantee convergence for E0 <= {_fmt(r['E0_bound'])}; this "
               f"scenario's E0 = {r['E0']:g} is above that bound, so the theorem does not cover it (a sufficient "
               "condition: the run may still converge, see testbed simulate)")
-    print(f"  the paper's delta = 1.94e-7 is gamma = {_fmt(r['gamma_for_paper_delta'])} here")
+    if r.get("paper_example"):
+        print(f"  the paper's delta = {PAPER_DELTA:g} (Section V) is gamma = {_fmt(r['gamma_for_paper_delta'])} here")
 
 
 class _executor:
@@ -304,13 +324,39 @@ def _sweep_summary(sw, res=None) -> dict:
     return d
 
 
-def figure_paths(plot: str | Path, scenario_name: str):
-    """``--plot`` of analyze: a .png path (the allowable region there, the rest beside it) or a folder."""
+def _escape_arg(v, sc):
+    """--escape-x0: None, "auto" or n floats (``BadInput`` otherwise)."""
+    from ..errors import BadInput
+
+    if not v:
+        return None
+    if v == ["auto"]:
+        return "auto"
+    try:
+        x = np.array([float(a) for a in v])
+    except ValueError:
+        raise BadInput(f"--escape-x0 takes 'auto' or {len(sc.x0)} numbers, got {' '.join(v)}") from None
+    if x.shape != sc.x0.shape or not np.all(np.isfinite(x)):
+        raise BadInput(f"--escape-x0 takes 'auto' or {len(sc.x0)} finite numbers, got {' '.join(v)}")
+    return x
+
+
+def figure_paths(plot: str | Path, scenario_name: str, *, create: bool = True):
+    """``--plot`` of analyze: a figure path (the allowable region there, the rest beside it, in its format)
+    or a folder (``<scenario>-<figure>.png`` there); an unknown extension is a ``BadInput``."""
+    from ..errors import BadInput
+    from ..figstyle import FORMATS
+
     plot = Path(plot)
-    if plot.suffix.lower() == ".png":
-        plot.parent.mkdir(parents=True, exist_ok=True)
-        return lambda fig: plot if fig == "allowable-region" else plot.with_name(f"{plot.stem}-{fig}.png")
-    plot.mkdir(parents=True, exist_ok=True)
+    ext = plot.suffix.lower()
+    if ext in FORMATS:
+        if create:
+            plot.parent.mkdir(parents=True, exist_ok=True)
+        return lambda fig: plot if fig == "allowable-region" else plot.with_name(f"{plot.stem}-{fig}{plot.suffix}")
+    if ext and not plot.is_dir():
+        raise BadInput(f"--plot {plot}: a figure path ends in {', '.join(FORMATS)}; a folder has no extension")
+    if create:
+        plot.mkdir(parents=True, exist_ok=True)
     return lambda fig: plot / f"{scenario_name}-{fig}.png"
 
 
@@ -326,43 +372,82 @@ def _analyze_plots(sc, res, extra, plot: Path, args) -> list[str]:
     ivs = None
     if not sc.attack.online:
         ivs = sc.attack.schedule(sc.T, sc.run.duration).intervals
-    files.append(figures.plot_time_series(sim, path("time-series"), intervals=ivs,
-                                          title=f"{sc.name}: $x_0$ = {sc.x0.tolist()}, DoS shaded"))
+    size = args.figsize
+    files.append(figures.plot_time_series(sim, path("time-series"), intervals=ivs, title=figures.figure_title(sc),
+                                          size=size))
     roa = extra.get("_roa")
     if roa is None:
         plant = sc.make_model()
         roa = nominal_roa(plant, sc.K, sc.T, grid=101, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                           progress=Progress("region of attraction", not args.no_progress))
-    trajs = [(f"$x_0$ = {np.round(sc.x0, 3).tolist()}", sim.x, "C0")]
-    if args.escape_x0:
-        esc = (None, np.asarray(args.escape_x0, dtype=float))
-    else:
+    trajs = [(f"the scenario's run from $x_0$ = {np.round(sc.x0, 3).tolist()}", sim.x, None)]
+    esc = None
+    if isinstance(args.escape_x0, str):  # "auto"
         esc = find_escape(sc)
+        if esc is None:
+            res["escape_x0"] = None
+            res["escape_note"] = "no escaping initial state along the ray through x0 (--escape-x0 auto)"
+    elif args.escape_x0 is not None:
+        esc = (None, args.escape_x0)
     if esc is not None:
         X = trajectory(sc, esc[1])
-        trajs.append((f"$x_0$ = {np.round(esc[1], 3).tolist()} (same attacks)", X, "C3"))
+        how = "found along the ray through $x_0$" if esc[0] is not None else "--escape-x0"
+        trajs.append((f"from $x_0$ = {np.round(esc[1], 3).tolist()} under the same attacks ({how})", X, None))
         res["escape_x0"] = np.asarray(esc[1]).tolist()
+        res["escape_note"] = (f"the phase portrait also shows the run from x0 = {np.round(esc[1], 4).tolist()} under "
+                              "the scenario's attacks (--escape-x0)")
     zoom = ((roa.xs[-1] - roa.xs[0]) / 10, (roa.ys[-1] - roa.ys[0]) / 10)
     files.append(figures.plot_phase_portrait(roa, path("phase-portrait"), trajectories=trajs,
-                                             title=f"{sc.name}: nominal region of attraction", zoom=zoom))
+                                             title=f"{sc.name}: nominal region of attraction", zoom=zoom, size=size))
     vu = extra.get("_vulnerable")
     if vu is not None:
         files.append(figures.plot_phase_portrait(roa, path("vulnerable"), vulnerable=vu,
                                                  baseline=extra.get("_vulnerable_baseline"),
                                                  title=f"{sc.name}: initial states the attacker defeats",
-                                                 zoom=zoom))
+                                                 zoom=zoom, size=size))
     bud = res["budget"]
+    sw = extra.get("_sweep")
     files.append(figures.plot_allowable_region(path("allowable-region"), regions=res["_regions"],
-                                               plain=res["_plain"], sweep=extra.get("_sweep"),
+                                               plain=res["_plain"], sweep=sw,
                                                sweep_zoom=extra.get("_sweep_zoom"),
                                                budget=(bud["kappa_F"], bud["rho_F"], bud["kappa_D"],
                                                        bud["rho_D"]),
-                                               title=f"{sc.name}: allowable DoS (Theorem 1) and experiment"))
+                                               budget_label=budget_label(res), size=size,
+                                               title=f"{sc.name}: allowable DoS (Theorem 1)"
+                                                     + (" and the empirical map" if sw is not None else "")))
     files.append(figures.plot_delta(res["delta_table"], path("delta"), gamma_mark=res["gamma"],
-                                    delta_paper=1.94e-7 if sc.plant.name == "lienard" else None,
-                                    title=f"{sc.name}: Lemma 2 radius; Theorem 2 bound for kappa_F = "
-                                          f"{bud['kappa_F']:g}, kappa_D = {bud['kappa_D']:g}"))
+                                    E0_mark=res.get("E0_bound"), size=size,
+                                    delta_paper=PAPER_DELTA if is_paper_example(sc) else None,
+                                    title=f"{sc.name}: Lemma 2's radius; Theorem 2's bound for $\\kappa_F$ = "
+                                          f"{bud['kappa_F']:g}, $\\kappa_D$ = {bud['kappa_D']:g}"))
     return [str(f) for f in files]
+
+
+def budget_label(res: dict) -> str:
+    """The legend entry of the budget star: what the budget is and where it comes from."""
+    b, src = res["budget"], res["budget_source"]
+    at = f"$\\rho_F$ = {b['rho_F']:g}, $\\rho_D$ = {b['rho_D']:g}"
+    if src == "scenario":
+        return f"the scenario's declared budget ({at})"
+    if src == "given":
+        return f"the budget of --budget ({at})"
+    if src.startswith("periodic"):
+        return f"the scenario's periodic attack ({at})"
+    return f"the scenario's finite attack (average rates {at})"
+
+
+#: Lemma 2's delta the paper reports for its example (Section V)
+PAPER_DELTA = 1.94e-7
+
+
+def is_paper_example(sc) -> bool:
+    """The paper's example: the Lienard plant with the paper's parameters, T and K (the bundled ``paper*``)."""
+    from .. import scenario
+
+    ref = scenario.load("paper")
+    return (sc.plant.name == ref.plant.name and sc.make_model().params_dict() == ref.make_model().params_dict()
+            and sc.T == ref.T and sc.quantizer.M == ref.quantizer.M and np.shape(sc.K) == np.shape(ref.K)
+            and np.allclose(sc.K, ref.K))
 
 
 # ============================================================================ roa
@@ -373,7 +458,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
     p.add_argument("--window", nargs=2, type=float, metavar=("WX", "WY"),
                    help="half-widths of the window (default per plant)")
     p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
-    cliargs.add_plot(p, "write the phase portrait (PNG)")
+    cliargs.add_plot(p, "write the phase portrait with the scenario's trajectory")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--vulnerable", action="store_true",
                    help="also map the states of the region from which the attacker defeats the loop")
@@ -427,8 +512,9 @@ def _roa(sc, plant, args, ex) -> int:
         out["vulnerable"] = vu.to_dict()
     if args.plot:
         sim = simulate_scenario(sc)
-        figures.plot_phase_portrait(roa, args.plot, trajectories=[(f"$x_0$ = {sc.x0.tolist()}", sim.x, "C0")],
-                                    vulnerable=vu, title=f"{sc.name}: nominal region of attraction")
+        figures.plot_phase_portrait(roa, args.plot, vulnerable=vu, title=f"{sc.name}: nominal region of attraction",
+                                    trajectories=[(f"the scenario's run from $x_0$ = {np.round(sc.x0, 3).tolist()}",
+                                                   sim.x, None)], size=args.figsize)
         out["figure"] = args.plot
     if args.json:
         from .summary import to_json
@@ -472,7 +558,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
                    help="extra initial states drawn uniformly with ||x0||_inf <= --state-radius (default 0)")
     p.add_argument("--state-radius", type=float, default=None,
                    help="radius of the extra initial states (default 3 ||x0||_inf)")
-    cliargs.add_plot(p, "write the allowable-region figure with the map (PNG)")
+    cliargs.add_plot(p, "write the allowable-region figure over the empirical map")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     cliargs.add_no_progress(p)
     cliargs.add_workers(p)
@@ -524,9 +610,9 @@ def main_sweep(args) -> int:
     d["theorem_holds_but_failed"] = int(np.sum(th & ~sw.all_converged()))
     d["theorem_holds_points"] = int(np.sum(th))
     if args.plot:
-        figures.plot_allowable_region(args.plot, regions=regions, plain=plain, sweep=sw,
+        figures.plot_allowable_region(args.plot, regions=regions, plain=plain, sweep=sw, size=args.figsize,
                                       title=f"{sc.name}: Theorem 1 and the empirical map "
-                                            f"($\\kappa_F$={kF:g}, $\\kappa_D$={kD:g})")
+                                            f"($\\kappa_F$ = {kF:g}, $\\kappa_D$ = {kD:g})")
         d["figure"] = args.plot
     if args.json:
         _write_json(to_json(d))
@@ -641,7 +727,7 @@ def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
     _add_search(p)
     cliargs.add_plot(p, "draw the heat map (least duration per state, the region's outline, Theorem 2's "
-                        "delta-ball) into this PNG")
+                        "delta-ball)")
     cliargs.add_json(p, "the map (least duration per grid state, counts, delta)")
     cliargs.add_no_progress(p)
     cliargs.add_workers(p)
@@ -675,7 +761,7 @@ def main_vulnerability(args) -> int:
     if args.plot:
         from . import figures
 
-        figures.plot_vulnerability(vm, roa, args.plot, x0=sc.x0,
+        figures.plot_vulnerability(vm, roa, args.plot, x0=sc.x0, size=args.figsize,
                                    title=f"{sc.name}: least DoS duration that drives the loop out")
         out["figure"] = str(args.plot)
     if args.json:
