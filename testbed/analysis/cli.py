@@ -614,12 +614,20 @@ def main_worst_attack(args) -> int:
         print(_mismatch_line(out) + ": the runs integrate the true plant, the quantizer predicts with the model")
     if out["unattacked_escapes"]:
         print("  the quantized loop escapes without any attack")
-    elif out["escaped"]:
-        print(f"  shortest attack that escapes: intervals {out['intervals']} (start, length in s), total "
-              f"duration {out['total_duration']:g} s, {out['samples_lost']} packets lost "
-              f"({'exact' if out['exact'] else 'not proven minimal'}: {out['method']})")
     else:
-        print(f"  no schedule escapes (attacks up to {out['max_length_samples']} samples; {out['method']})")
+        for f in out["front"]:
+            if f["escaped"]:
+                print(f"  at most {f['attacks']} attack(s): {f['samples_lost']} lost samples, least duration "
+                      f"{f['total_duration']:g} s, intervals {f['intervals']} (start, length in s; "
+                      f"{'exact' if f['exact'] else 'not proven minimal'})")
+            else:
+                print(f"  at most {f['attacks']} attack(s): no schedule escapes (up to "
+                      f"{out['max_length_samples']} lost samples; {'exact' if f['exact'] else 'not proven'})")
+        for p in out["proof"]:
+            print(f"  proven for at most {p['attacks']} attack(s): no schedule losing fewer than "
+                  f"{p['samples_lost_below']} samples in {p['horizon_samples']} escapes")
+    c = out["escape_criterion"]
+    print(f"  escape: {c['kind']} for {c['horizon_s']:g} s (x_tol {c['x_tol']:g}, E_tol {c['E_tol']:g})")
     g = out.get("greedy")
     if g:
         if g["escaped"]:
