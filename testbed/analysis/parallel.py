@@ -439,16 +439,3 @@ def _serial(fn, it, i, total, progress):
     if progress is not None:
         progress(i + 1, total)
     return r
-
-
-def nominal_converged(plant, K, T: float, X, *, horizon: float, tol: float, flow: FlowOptions = DEFAULT_FLOW,
-                      executor: Executor | None = None, progress=None) -> np.ndarray:
-    """``testbed.simulate.in_nominal_roa`` on an executor: (B,) bool, identical results."""
-    from ..quantizer import QuantizerParams
-
-    qp = QuantizerParams(T=T, M=2, L=0.0, E0=1.0, mode="none")
-    out = run_batch(plant, K, qp, X, int(round(horizon / T)), mode="none", flow=flow,
-                    fields=("x_final", "status"), executor=executor, progress=progress)
-    from ..flow import FLOW_OK
-
-    return (out["status"] == FLOW_OK) & (np.max(np.abs(out["x_final"]), axis=1) < tol)
