@@ -9,7 +9,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 from testbed import scenario
 from testbed.analysis.sweep import classify

@@ -562,6 +562,9 @@ def _add_search(p) -> None:
                         "whole run)")
     p.add_argument("--beam", type=int, default=16,
                    help="beam width of the search beyond the enumeration, for --attacks >= 2 (default 16)")
+    p.add_argument("--exhaustive-limit", type=int, default=100_000, metavar="K",
+                   help="schedules enumerated per number of attacks >= 2 before the beam search takes over "
+                        "(default 100000; more proves more)")
 
 
 def _search_args(args, sc) -> dict:
@@ -571,12 +574,15 @@ def _search_args(args, sc) -> dict:
         raise BadInput(f"--attacks must be >= 1, got {args.attacks}")
     if args.beam < 1:
         raise BadInput(f"--beam must be >= 1, got {args.beam}")
+    if args.exhaustive_limit < 0:
+        raise BadInput(f"--exhaustive-limit must be >= 0, got {args.exhaustive_limit}")
     max_len = None
     if args.max_length is not None:
         if not (math.isfinite(args.max_length) and args.max_length >= 0):
             raise BadInput(f"--max-length must be >= 0 seconds, got {args.max_length}")
         max_len = int(round(args.max_length / sc.T)) + 1
-    return {"attacks": args.attacks, "max_len": max_len, "beam": args.beam}
+    return {"attacks": args.attacks, "max_len": max_len, "beam": args.beam,
+            "exhaustive_limit": args.exhaustive_limit}
 
 
 def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:

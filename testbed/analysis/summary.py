@@ -70,8 +70,8 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
 
     E_0 = max(scenario E_0, ||s x_0||_inf) (Assumption 5).  Returns (s, x0) or None.
     The loop runs the true plant (``[plant]``) with the model's predictions; "nominal
-    region" and "escaped" are the model's nominal loop.  Needs an equation (1) true plant
-    (the batch simulator cannot run an FMU).
+    region" is the model's nominal loop; "escaped" is ``testbed.simulate.judge_escape``.
+    Needs an equation (1) true plant (the batch simulator cannot run an FMU).
     """
     plant, model = sc.make_plant(), sc.make_model()
     x0 = sc.x0

@@ -13,11 +13,11 @@ decoder, plant) from one or more initial states under three attackers:
   threshold, when ||x_k|| is near its running maximum).
 
 Attacks persist over the whole horizon (Theorem 1 is about persistent attacks).
-A run ``converged`` when ||x_N||_inf < tol; it ``escaped`` when it did not and
-either the flow diverged or x_N is outside the nominal region of attraction
-(checked by the nominal loop from x_N, ``testbed.simulate.in_nominal_roa``): the
-attacker has pushed the state where even perfect, unattacked feedback no longer
-brings it back.  The remaining runs are ``bounded`` (not yet converged).
+A run ``escaped`` when the quantized loop, continued without attack from where it
+ended, does not recover (``testbed.simulate.EscapeCriterion``, ``judge_escape``: the
+same verdict as ``testbed simulate``'s): the attacker has pushed the loop where even
+unattacked operation no longer brings it back.  It ``converged`` when
+||x_N||_inf < tol and it did not escape; the remaining runs are ``bounded``.
 
 Impulsive attacks (length 0) only drop a packet when they fall on a sampling
 instant; the random and periodic generators place attacks in continuous time,
@@ -39,8 +39,8 @@ per call, so states are grouped by that value).
 
 With model mismatch (a scenario's ``[model]``), ``plant`` is the true plant the
 state follows and ``model`` the plant model of the encoder's and decoder's
-predictions (rule (xi)); the escape test is the model's nominal loop, as in
-``testbed.simulate.summarize``.
+predictions (rule (xi)); the escape test continues that loop (true plant, model's
+predictions), as ``testbed.simulate.summarize`` does.
 """
 
 from __future__ import annotations
@@ -202,7 +202,7 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
     ----------
     plant, K, qp : the loop (QuantizerParams; E_0 per initial state as in the module docstring);
         ``plant`` is the true plant.
-    model : the predictions' model and the escape test's nominal loop (default ``plant``).
+    model : the predictions' model (default ``plant``).
     X0 : (B0, n) initial states (or (n,)).
     rho_F, rho_D : 1-D grids (rho_D < 1).
     kappa_F, kappa_D : the fixed constants of Assumptions 3 and 4.
@@ -358,7 +358,7 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
     Parameters
     ----------
     plant, K, qp : the loop; ``plant`` is the true plant, ``model`` (default ``plant``) the
-        predictions' model and the escape test's nominal loop.
+        predictions' model.
     budget : (kappa_F, rho_F, kappa_D, rho_D).
     roa : a :class:`RoaResult` (its grid, subsampled by ``stride``, gives the states).
     kind : "greedy" (online), "random" (one schedule, ``seed``) or "periodic".
