@@ -270,6 +270,21 @@ def test_cli_vulnerability_json_and_plot(tmp_path, capsys):
     inside = np.array(d["samples"]) > -2
     dur = np.array([[np.nan if v is None else v for v in row] for row in d["duration"]])
     assert np.all(np.isnan(dur[~inside]))
+    assert d["escape_criterion"]["kind"] and d["show"] == "duration"
+    # at most two attacks, the map of lost samples: the same search and pricing per state
+    png2 = tmp_path / "v2.png"
+    assert main(["vulnerability", "paper", "--grid", "9", "--attacks", "2", "--show", "samples", "--json",
+                 "--no-progress", "--exhaustive-limit", "2000", "--plot", str(png2)]) == 0
+    d2 = json.loads(capsys.readouterr().out)
+    assert d2["attacks"] == 2 and d2["show"] == "samples" and png2.stat().st_size > 1000
+    S1, S2 = np.array(d["samples"]), np.array(d2["samples"])
+    assert np.array_equal(S1 > -2, S2 > -2)
+    hit = S2 > 0
+    assert np.all(S2[hit] <= np.where(S1[hit] > 0, S1[hit], np.inf))  # two attacks never need more samples
+    dur2 = np.array([[np.nan if v is None else v for v in row] for row in d2["duration"]])
+    np.testing.assert_allclose(dur2[hit], (S2[hit] - np.minimum(2, S2[hit])) * d2["T"], atol=1e-9)
+    ex2 = np.array(d2["exact"])
+    assert d2["states_exact"] == int(ex2[S2 > -2].sum())
 
 
 def _cli(*args, timeout=900):
