@@ -651,7 +651,8 @@ def main_worst_attack(args) -> int:
                       f"{'exact' if f['exact'] else 'not proven minimal'})")
             else:
                 print(f"  at most {f['attacks']} attack(s): no schedule escapes (up to "
-                      f"{out['max_length_samples']} lost samples; {'exact' if f['exact'] else 'not proven'})")
+                      f"{out['max_length_samples']} lost samples; "
+                      f"{'every schedule simulated' if f['exact'] else 'not every schedule simulated'})")
         for p in out["proof"]:
             print(f"  proven for at most {p['attacks']} attack(s): no schedule losing fewer than "
                   f"{p['samples_lost_below']} samples in {p['horizon_samples']} escapes")
