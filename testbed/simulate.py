@@ -320,7 +320,7 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                   greedy_params, g_init, score_kind, n_steps, record,
                   X_rec, E_rec, th_rec, x_final, E_final, status, stop_k, sat_count,
                   mismatch, max_norm, theta_count, init_state, stop_par, state_final):
-    # init_state (B, W) or (0, W): both ends' state to start from (``LoopState`` layout) instead of
+    # init_state (B, W) or (0, W): both ends' state to start from (``loop_state_width`` layout) instead of
     # xi_0 = 0, E_0, u_{-1} = 0; stop_par [x_tol, E_tol, x_out]: with x_tol > 0, a trajectory stops
     # at the first sample with ||x_k|| < x_tol and both E_k < E_tol, or with ||x_k|| > x_out
     # (the continuation of ``EscapeCriterion``); state_final (B, W): both ends' state at the stop
@@ -514,7 +514,7 @@ class BatchResult:
     mismatch: np.ndarray    # (B,) samples where encoder and decoder disagreed
     max_norm: np.ndarray    # (B,) max ||x_k||_inf over the run
     attacked: np.ndarray    # (B,) number of samples with theta_k = 1
-    state_final: np.ndarray | None = None  # (B, W) both ends' state at the stop (``LoopState`` layout)
+    state_final: np.ndarray | None = None  # (B, W) both ends' state at the stop (``loop_state_width`` layout)
     x: np.ndarray | None = None      # (B, N, n) x_k
     E: np.ndarray | None = None      # (B, N) E_k at the encoder
     theta: np.ndarray | None = None  # (B, N)
@@ -562,7 +562,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         seconds, later processes load it.  Falls back to the generic kernel
         (one log line) for a plant whose right-hand side is not a module-level
         ``@rhs_function``.  Results are identical either way.
-    init_state : (B, W) both ends' state (xi, E, u_{k-1}; ``LoopState`` layout) to start from
+    init_state : (B, W) both ends' state (xi, E, u_{k-1}; ``loop_state_width`` layout) to start from
         instead of xi_0 = 0, E_0 = ``qp.E0``, u_{-1} = 0 (the continuation of a loop).
     stop : (x_tol, E_tol, x_out): a trajectory stops at the first sample with ||x_k||_inf <
         x_tol and E_k < E_tol at both ends, or with ||x_k||_inf > x_out (``stop_k`` is that sample).
