@@ -147,3 +147,17 @@ def test_the_continuation_stops_on_recovery_and_outside_the_model_region():
     np.testing.assert_array_equal(r.state_final, S)
     esc = judge_escape(sc.make_plant(), sc.K, sc.quantizer, np.array([[0.0, 0.0], [5.0, 0.0]]), S, [0, 0], crit)
     assert list(esc) == [False, True]
+
+
+def test_sweep_and_vulnerable_states_name_their_escape_criterion():
+    from testbed.analysis.roa import nominal_roa
+    from testbed.analysis.sweep import sweep, vulnerable_states
+
+    sc = scenario.load("paper")
+    p = sc.make_plant()
+    sw = sweep(p, sc.K, sc.quantizer, sc.x0, [0.0, 1.0], [0.0, 0.2], seeds=1, horizon=3.0, kinds=("greedy",))
+    crit = EscapeCriterion.for_loop(p, sc.quantizer).to_dict()
+    assert sw.to_dict()["escape_criterion"] == crit
+    roa = nominal_roa(p, sc.K, sc.T, grid=7)
+    vu = vulnerable_states(p, sc.K, sc.quantizer, (1.0, 0.5, 1.0, 0.3), roa, horizon=3.0)
+    assert vu.to_dict()["escape_criterion"] == crit
