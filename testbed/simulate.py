@@ -746,16 +746,22 @@ def loop_state_of(enc, dec) -> np.ndarray:
 
 def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW):
     """Both ends' state after the last sample of a run whose per-sample record is all there is
-    (a recording): the controller's xi, E of its last sample, updated once by rules (xi), (E)
-    with that sample's q and theta (u_{k-1} from the sample before), used for both ends.  None
-    for a run without samples."""
+    (a recording): the controller's xi, E of its last sample (the encoder's if the controller's
+    is missing), updated once by rules (xi), (E) with that sample's symbol and theta (u_{k-1}
+    from the sample before), used for both ends.  None when neither end's state is known."""
     N = len(res.theta)
-    if N == 0 or not np.isfinite(res.E_dec[-1]):
+    if N == 0:
+        return None
+    if np.isfinite(res.E_dec[-1]):
+        xi, E = res.xi_dec[-1], res.E_dec[-1]
+    elif np.isfinite(res.E_enc[-1]):  # no controller record of the last sample: the encoder's (the same
+        xi, E = res.xi_enc[-1], res.E_enc[-1]  # in lockstep)
+    else:
         return None
     dec = Decoder(model, res.K, qp, flow)
     cb = dec.codebook
-    dec.xi = np.array(res.xi_dec[-1], dtype=np.float64)
-    dec.E = float(res.E_dec[-1])
+    dec.xi = np.array(xi, dtype=np.float64)
+    dec.E = float(E)
     if N >= 2 and int(res.theta[-2]) == 0 and int(res.symbols[-2]) != cb.overflow:
         up = np.empty(model.m)
         control_input(dec.K, np.asarray(res.q[-2], dtype=np.float64), 0, False, up)
