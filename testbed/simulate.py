@@ -762,7 +762,8 @@ def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: Fl
     cb = dec.codebook
     dec.xi = np.array(xi, dtype=np.float64)
     dec.E = float(E)
-    if N >= 2 and int(res.theta[-2]) == 0 and int(res.symbols[-2]) != cb.overflow:
+    if (N >= 2 and int(res.theta[-2]) == 0 and int(res.symbols[-2]) != cb.overflow
+            and np.all(np.isfinite(res.q[-2]))):
         up = np.empty(model.m)
         control_input(dec.K, np.asarray(res.q[-2], dtype=np.float64), 0, False, up)
         dec.u_prev = up
