@@ -1,14 +1,15 @@
 """The deterministic numbers of the docs, produced in one place.
 
-    python docs/make_numbers.py            # compute them, write docs/numbers.md and fill every marker
+    python docs/make_numbers.py            # compute them, write docs/numbers.md, fill every marker, 
     python docs/make_numbers.py --check    # compute them and compare: exit 1 and a diff when a page is stale
 
 Every number on these pages that does not depend on the machine (the analysis of the paper's
 example, the bundled scenarios' outcomes, the worst attack, the region of attraction, the sweeps)
 comes from the commands below, run here as a user would run them (``testbed ... --json``). A page
 holds a number as ``<!--n:NAME-->value<!--/n-->`` and a table as ``<!--numbers:NAME-->`` ...
-``<!--/numbers-->``; this script rewrites what is between the markers and nothing else. A slow-tier
-test runs ``--check`` (``tests/test_docs.py``). Timing figures are not here: they depend on the
+``<!--/numbers-->``; this script rewrites what is between the markers and nothing else (the
+figures and their data come from ``docs/make_figures.py``). A slow-tier test runs ``--check``
+(``tests/test_docs.py``). Timing figures are not here: they depend on the
 machine, and ``docs/benchmarks.md`` names the benchmark that measures each.
 """
 
@@ -29,6 +30,7 @@ from pathlib import Path
 DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
 PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+
 
 INLINE = re.compile(r"<!--n:([a-z0-9_]+)-->(.*?)<!--/n-->", re.S)
 BLOCK = re.compile(r"(<!--numbers:([a-z0-9_]+)-->\n)(.*?)(<!--/numbers-->)", re.S)
@@ -240,26 +242,32 @@ def compute() -> tuple[dict[str, str], dict[str, str]]:
 
     # ---- the strongest attacker
     w1 = testbed("worst-attack", "paper", "--no-progress")
-    w2 = testbed("worst-attack", "paper", "--attacks", "2", "--no-progress")
+    w3 = testbed("worst-attack", "paper", "--attacks", "3", "--no-progress", "--no-greedy")
 
     def ivs(x):
         return ", ".join(f"[{g(s)}, {g(L)}]" for s, L in x["intervals"])
 
     gr = w1["greedy"]
-    b["worst_attack"] = "\n".join([
-        "| attacker | intervals [start, length] (s) | total duration | escapes | |", "|---|---|---|---|---|",
-        "| the paper's two attacks | [1.0, 1.2], [4.0, 0.8] | 2.0 s | "
-        f"{'yes' if sims['paper']['escaped'] else 'no'} | converges (Fig. 2) |",
-        f"| shortest single attack ({'exact' if w1['exact'] else 'not proven minimal'}) | {ivs(w1)} | "
-        f"**{g(w1['total_duration'])} s** ({w1['samples_lost']} packets) | {'yes' if w1['escaped'] else 'no'} | "
-        "shorter by one sample at either end: converges |",
-        f"| greedy online attacker, least kappa_D | {ivs(gr) if gr.get('intervals') else '-'} | "
-        f"{g(gr.get('total_duration'))} s (kappa_D = {g(gr.get('kappa_D'))} s) | {'yes' if gr.get('escaped') else 'no'} | |",
-        f"| shortest of at most two (`--attacks 2`, {'exact' if w2['exact'] else 'not proven minimal'}) | {ivs(w2)} | "
-        f"**{g(w2['total_duration'])} s** ({w2['samples_lost']} packets) | {'yes' if w2['escaped'] else 'no'} | |"])
+    rows = ["| attacker | intervals [start, length] (s) | lost samples | total duration | escapes | |",
+            "|---|---|---|---|---|---|",
+            "| the paper's two attacks | [1.0, 1.2], [4.0, 0.8] | "
+            f"{sims['paper']['packets_dropped']} | 2.0 s | {'yes' if sims['paper']['escaped'] else 'no'} | "
+            "converges (Fig. 2) |",
+            f"| greedy online attacker (one attack), least kappa_D | {ivs(gr) if gr.get('intervals') else '-'} | "
+            f"- | {g(gr.get('total_duration'))} s (kappa_D = {g(gr.get('kappa_D'))} s) | "
+            f"{'yes' if gr.get('escaped') else 'no'} | |"]
+    for f, p in zip(w3["front"], w3["proof"]):
+        note = ("shorter by one sample at either end: converges" if f["attacks"] == 1 else
+                f"proven: nothing below {p['samples_lost_below']} lost samples")
+        rows.append(f"| at most {f['attacks']} attack{'s' if f['attacks'] > 1 else ''} "
+                    f"({'exact' if f['exact'] else 'not proven minimal'}) | {ivs(f)} | {f['samples_lost']} | "
+                    f"**{g(f['total_duration'])} s** | {'yes' if f['escaped'] else 'no'} | {note} |")
+    b["worst_attack"] = "\n".join(rows)
     n["worst_single"] = f"{g(w1['total_duration'])} s"
     n["worst_single_packets"] = str(w1["samples_lost"])
-    n["worst_two"] = f"{g(w2['total_duration'])} s"
+    n["worst_three"] = f"{g(w3['total_duration'])} s"
+    n["worst_proof_two"] = str(w3["proof"][1]["samples_lost_below"])
+    n["escape_horizon"] = f"{g(w3['escape_criterion']['horizon_s'])} s"
     vu = testbed("vulnerability", "paper", "--grid", "41", "--no-progress")
     n["vuln_states"] = str(vu["states_in_region"])
     n["vuln_unattacked"] = str(vu["escape_unattacked"])

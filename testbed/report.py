@@ -7,10 +7,12 @@ from the telemetry topics.  They go through the same
 ``testbed.simulate.summarize``), so every key of ``testbed simulate --json`` means
 the same thing here.  Added beside them:
 
-* ``dos``: the attack intervals as the attacker logged them (its per-sample
-  ``attack_on``), their lengths, the realized rates N(H)/H and |A(H)|/H, and the
-  smallest kappa_F, kappa_D at the scenario's rho_F, rho_D (``attackers.budget.check``),
-  checked against the scenario's declared budget when it has one;
+* ``dos``: the attack intervals -- an ``intervals`` attack's as declared (``priced``
+  says so), else the runs of lost samples the attacker logged (its per-sample
+  ``attack_on``, one attack per run; ``logged_intervals`` always) --, their lengths,
+  the realized rates N(H)/H and |A(H)|/H, and the smallest kappa_F, kappa_D at the
+  scenario's rho_F, rho_D (``attackers.budget.check``), checked against the
+  scenario's declared budget when it has one;
 * ``agreement``: encoder and decoder xi_k, E_k compared at every sample;
 * ``saturation_events``, ``dropped_by_attacker``, ``recording`` (source,
   truncation, message counts, software versions);
@@ -45,10 +47,18 @@ def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
     from attackers.budget import check, realized_rates
     from attackers.schedule import Schedule
 
-    sch = Schedule.from_theta(attack_on.astype(np.uint8), sc.T) if attack_on.size else Schedule.empty()
+    logged = Schedule.from_theta(attack_on.astype(np.uint8), sc.T) if attack_on.size else Schedule.empty()
+    if sc.attack.kind == "intervals":
+        # priced as declared: back-to-back attacks lose the samples one longer attack would lose,
+        # for less duration, so the log's runs of lost samples would overprice them
+        full = sc.attack.schedule(sc.T, horizon)
+        sch = Schedule.from_list([iv for iv in full.intervals if iv[0] < horizon - 1e-9]) if horizon > 0 else full
+        priced = "declared intervals"
+    else:
+        sch, priced = logged, "runs of lost samples in the attacker's log (one attack each)"
     out: dict = {"intervals": [list(iv) for iv in sch.intervals], "count": len(sch),
                  "lengths": [float(x) for x in sch.lengths], "total_duration": float(sch.total_duration),
-                 "horizon": horizon}
+                 "horizon": horizon, "priced": priced, "logged_intervals": [list(iv) for iv in logged.intervals]}
     if horizon > 0:
         rr = realized_rates(sch, horizon)
         out["realized"] = {"frequency": rr[0], "duration_fraction": rr[1]}

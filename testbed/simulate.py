@@ -67,6 +67,7 @@ class SimResult:
     counters: dict = field(default_factory=dict)
     plant_fault: str | None = None  # the true plant failed (``plants.PlantFault``): its one line
     plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
+    loop_state: np.ndarray | None = None  # both ends' xi, E, u_{k-1} after the last sample (``loop_state_of``)
 
     @property
     def saturations(self) -> int:
@@ -298,10 +299,16 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      delays=None if delays is None else delays[:last].copy(),
                      counters={"encoder": encp.counters(), "controller": ctlp.counters(),
                                "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
-                     plant_fault=fault, plant_fault_at=fault_at)
+                     plant_fault=fault, plant_fault_at=fault_at, loop_state=loop_state_of(encp.enc, ctlp.dec))
 
 
 # ============================================================================ batch kernel
+def loop_state_width(n: int, m: int) -> int:
+    """Width W of a packed loop state: [xi_e (n), E_e, u_e (m), xi_d (n), E_d, u_d (m)], i.e.
+    xi_k, E_k and u_{k-1} as the encoder and as the decoder know them."""
+    return 2 * (n + 1 + m)
+
+
 #: the kernel parameters that carry a right-hand side (the true plant's, the model's): the cached
 #: specialized kernel (``testbed.kernelcache``) turns each into a global bound to a plant's ``RHS.jit``
 _RHS_ARGS = ("rhs", "rhs_m")
@@ -312,7 +319,11 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                   dpar, u_max, theta_tab, sched_idx, tpar, lat_tab, lat_idx,
                   greedy_params, g_init, score_kind, n_steps, record,
                   X_rec, E_rec, th_rec, x_final, E_final, status, stop_k, sat_count,
-                  mismatch, max_norm, theta_count):
+                  mismatch, max_norm, theta_count, init_state, stop_par, state_final):
+    # init_state (B, W) or (0, W): both ends' state to start from (``loop_state_width`` layout) instead of
+    # xi_0 = 0, E_0, u_{-1} = 0; stop_par [x_tol, E_tol, x_out]: with x_tol > 0, a trajectory stops
+    # at the first sample with ||x_k|| < x_tol and both E_k < E_tol, or with ||x_k|| > x_out
+    # (the continuation of ``EscapeCriterion``); state_final (B, W): both ends' state at the stop
     B = X0.shape[0]
     n = X0.shape[1]
     m = Kgain.shape[0]
@@ -337,6 +348,8 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
     physical = tpar[0] == 1                  # physical timing: u_{k-1} held for delta_k (PlantProtocol)
     u_app = np.empty(m)
     n_codes_box = M ** n
+    from_state = init_state.shape[0] > 0
+    x_tol = stop_par[0]
     for b in range(B):
         for i in range(n):
             x[i] = X0[b, i]
@@ -348,6 +361,15 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
             u_held[r] = 0.0
         E_e = E0
         E_d = E0
+        if from_state:
+            for i in range(n):
+                xi_e[i] = init_state[b, i]
+                xi_d[i] = init_state[b, n + 1 + m + i]
+            E_e = init_state[b, n]
+            E_d = init_state[b, 2 * n + 1 + m]
+            for r in range(m):
+                up_e[r] = init_state[b, n + 1 + r]
+                up_d[r] = init_state[b, 2 * n + 2 + m + r]
         if use_greedy:
             for i in range(gstate.shape[0]):
                 gstate[i] = g_init[i]
@@ -363,6 +385,9 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
             nrm = 0.0
             for i in range(n):
                 nrm = max(nrm, abs(x[i]))
+            if x_tol > 0.0 and ((nrm < x_tol and E_e < stop_par[1] and E_d < stop_par[1]) or nrm > stop_par[2]):
+                stop_k[b] = k
+                break
             mx = max(mx, nrm)
             if record:
                 for i in range(n):
@@ -463,6 +488,14 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
             x_final[b, i] = x[i]
         max_norm[b] = max(mx, nrm)
         E_final[b] = E_e
+        for i in range(n):
+            state_final[b, i] = xi_e[i]
+            state_final[b, n + 1 + m + i] = xi_d[i]
+        state_final[b, n] = E_e
+        state_final[b, 2 * n + 1 + m] = E_d
+        for r in range(m):
+            state_final[b, n + 1 + r] = up_e[r]
+            state_final[b, 2 * n + 2 + m + r] = up_d[r]
         status[b] = st
         sat_count[b] = nsat
         mismatch[b] = nmis
@@ -481,6 +514,7 @@ class BatchResult:
     mismatch: np.ndarray    # (B,) samples where encoder and decoder disagreed
     max_norm: np.ndarray    # (B,) max ||x_k||_inf over the run
     attacked: np.ndarray    # (B,) number of samples with theta_k = 1
+    state_final: np.ndarray | None = None  # (B, W) both ends' state at the stop (``loop_state_width`` layout)
     x: np.ndarray | None = None      # (B, N, n) x_k
     E: np.ndarray | None = None      # (B, N) E_k at the encoder
     theta: np.ndarray | None = None  # (B, N)
@@ -496,7 +530,8 @@ class BatchResult:
 def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=None, theta=None, sched_idx=None,
                    timing=None, latency=None, latency_idx=None, u_max: float = math.inf, greedy_params=None,
                    score: str = "state", mode: str | None = None, record: bool = False,
-                   flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False) -> BatchResult:
+                   flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False, init_state=None,
+                   stop=None) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
 
     Parameters
@@ -527,6 +562,10 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         seconds, later processes load it.  Falls back to the generic kernel
         (one log line) for a plant whose right-hand side is not a module-level
         ``@rhs_function``.  Results are identical either way.
+    init_state : (B, W) both ends' state (xi, E, u_{k-1}; ``loop_state_width`` layout) to start from
+        instead of xi_0 = 0, E_0 = ``qp.E0``, u_{-1} = 0 (the continuation of a loop).
+    stop : (x_tol, E_tol, x_out): a trajectory stops at the first sample with ||x_k||_inf <
+        x_tol and E_k < E_tol at both ends, or with ||x_k||_inf > x_out (``stop_k`` is that sample).
     """
     X0 = np.ascontiguousarray(np.atleast_2d(np.asarray(X0, dtype=np.float64)))
     B, n = X0.shape
@@ -579,6 +618,13 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     out = dict(x_final=np.zeros((B, n)), E_final=np.zeros(B), status=np.zeros(B, np.int8),
                stop_k=np.zeros(B, np.int64), saturations=np.zeros(B, np.int64),
                mismatch=np.zeros(B, np.int64), max_norm=np.zeros(B), attacked=np.zeros(B, np.int64))
+    W = loop_state_width(plant.n, plant.m)
+    if init_state is None:
+        ist = np.zeros((0, W))
+    else:
+        ist = np.ascontiguousarray(np.asarray(init_state, dtype=np.float64).reshape(B, W))
+    spar = np.zeros(3) if stop is None else np.asarray(stop, dtype=np.float64).reshape(3)
+    out["state_final"] = np.zeros((B, W))
     kernel = _batch_kernel
     if specialize:
         from .kernelcache import specialized
@@ -590,7 +636,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
            tpar, ltab, latency_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
-                  out["attacked"])
+                  out["attacked"], ist, spar, out["state_final"])
     res = BatchResult(**out)
     if record:
         res.x, res.E, res.theta = X_rec, E_rec, th_rec
@@ -609,6 +655,122 @@ def in_nominal_roa(plant, K, T: float, X, horizon: float = 60.0, tol: float = 1e
     qp = QuantizerParams(T=T, M=2, L=0.0, E0=1.0, mode="none")
     res = simulate_batch(plant, K, qp, X, int(round(horizon / T)), mode="none", flow=flow)
     return res.converged(tol)
+
+
+# ============================================================================ the escape criterion
+#: seconds the loop is continued without attack after the horizon (``EscapeCriterion.horizon_s``)
+ESCAPE_HORIZON = 60.0
+
+
+@dataclass(frozen=True)
+class EscapeCriterion:
+    """When a run has *escaped*: judged by the quantized loop itself, continued without attack.
+
+    From the state the run ended in (the plant's x_N and both ends' xi_N, E_N, u_{N-1}), the
+    whole loop (encoder, controller with its decoder, plant; ideal timing, the scenario's
+    quantizer and rule) runs on with theta_k = 0 for at most ``horizon_s`` seconds.  It
+    *recovers* when it reaches ||x_k||_inf < ``x_tol`` with E_k < ``E_tol`` at both ends; it
+    stops early when the flow diverges or ||x_k||_inf exceeds ``x_out``, the radius of the box
+    on which the model's Lipschitz bound holds (``lipschitz_region``; outside it the
+    quantizer's growth rate Lambda = e^{L T} is not guaranteed).  The run has escaped when the
+    loop did not recover within the horizon (also: the attacked run itself diverged).
+    """
+
+    horizon_s: float = ESCAPE_HORIZON
+    x_tol: float = 1e-4
+    E_tol: float = 1e-4
+    x_out: float = math.inf
+    kind: str = "quantized loop continued without attack"
+
+    @classmethod
+    def for_loop(cls, model, qp: QuantizerParams, tol: float = 1e-4,
+                 horizon_s: float = ESCAPE_HORIZON) -> "EscapeCriterion":
+        """The criterion of a loop: x_tol = ``tol`` (``[run] converge_tol``), E_tol = max(tol, 2 E_min)
+        (E_k cannot fall below the floor E_min), x_out = the model's ``lipschitz_region``."""
+        return cls(float(horizon_s), float(tol), max(float(tol), 2.0 * float(qp.E_min)),
+                   float(getattr(model, "lipschitz_region", math.inf)))
+
+    def to_dict(self) -> dict:
+        """The JSON key ``escape_criterion``."""
+        return {"kind": self.kind, "horizon_s": self.horizon_s, "x_tol": self.x_tol, "E_tol": self.E_tol,
+                "x_out": None if math.isinf(self.x_out) else self.x_out}
+
+    def steps(self, T: float) -> int:
+        return int(round(self.horizon_s / T))
+
+
+def _batch_runner(plant, K, qp, model, flow):
+    def run(X, S, n_steps, stop):
+        r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop)
+        return {"x_final": r.x_final, "status": r.status, "state_final": r.state_final}
+    return run
+
+
+def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, criterion: EscapeCriterion, *,
+                 model=None, flow: FlowOptions = DEFAULT_FLOW, run=None) -> np.ndarray:
+    """Whether each run escaped (:class:`EscapeCriterion`): (B,) bool.
+
+    Parameters
+    ----------
+    plant, K, qp : the loop (``plant`` the true plant, ``model`` the predictions' model).
+    x_final : (B, n) x_N; state_final : (B, W) both ends' state at N (``loop_state_width``,
+        ``BatchResult.state_final``, :func:`loop_state_of`); status : (B,) flow status of the run
+        (not FLOW_OK: it diverged, hence escaped).
+    run : how the continuation runs, ``run(X, S, n_steps, stop) -> {"x_final", "status",
+        "state_final"}`` (default: ``simulate_batch`` here; the analysis passes its parallel map).
+        Every caller judges with this function, so the per-sample and the batch paths agree
+        bit for bit.
+    """
+    model = plant if model is None else model
+    x_final = np.atleast_2d(np.asarray(x_final, dtype=np.float64))
+    B = x_final.shape[0]
+    esc = np.asarray(status).reshape(B) != FLOW_OK
+    go = np.flatnonzero(~esc)
+    if go.size:
+        run = run or _batch_runner(plant, K, qp, model, flow)
+        S = np.atleast_2d(np.asarray(state_final, dtype=np.float64))[go]
+        c = criterion
+        out = run(x_final[go], S, c.steps(qp.T), (c.x_tol, c.E_tol, c.x_out))
+        n, m = plant.n, plant.m
+        sf = out["state_final"]
+        rec = ((out["status"] == FLOW_OK) & (np.max(np.abs(out["x_final"]), axis=1) < c.x_tol)
+               & (sf[:, n] < c.E_tol) & (sf[:, 2 * n + 1 + m] < c.E_tol))
+        esc[go] = ~rec
+    return esc
+
+
+def loop_state_of(enc, dec) -> np.ndarray:
+    """The packed loop state (``loop_state_width``) of an encoder and a decoder (``quantizer._End``)."""
+    return np.concatenate([enc.xi, [enc.E], enc.u_prev, dec.xi, [dec.E], dec.u_prev]).astype(np.float64)
+
+
+def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW):
+    """Both ends' state after the last sample of a run whose per-sample record is all there is
+    (a recording): the controller's xi, E of its last sample (the encoder's if the controller's
+    is missing), updated once by rules (xi), (E) with that sample's symbol and theta (u_{k-1}
+    from the sample before), used for both ends.  None when neither end's state is known."""
+    N = len(res.theta)
+    if N == 0:
+        return None
+    if np.isfinite(res.E_dec[-1]):
+        xi, E = res.xi_dec[-1], res.E_dec[-1]
+    elif np.isfinite(res.E_enc[-1]):  # no controller record of the last sample: the encoder's (the same
+        xi, E = res.xi_enc[-1], res.E_enc[-1]  # in lockstep)
+    else:
+        return None
+    dec = Decoder(model, res.K, qp, flow)
+    cb = dec.codebook
+    dec.xi = np.array(xi, dtype=np.float64)
+    dec.E = float(E)
+    if (N >= 2 and int(res.theta[-2]) == 0 and int(res.symbols[-2]) != cb.overflow
+            and np.all(np.isfinite(res.q[-2]))):
+        up = np.empty(model.m)
+        control_input(dec.K, np.asarray(res.q[-2], dtype=np.float64), 0, False, up)
+        dec.u_prev = up
+    th = int(res.theta[-1])
+    sym = int(res.symbols[-1])
+    dec.step(None if th == 1 or sym < 0 else sym)
+    return loop_state_of(dec, dec)
 
 
 def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
@@ -672,14 +834,32 @@ def plant_and_model(sc) -> dict:
             "model_params": model.params_dict()}
 
 
+def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
+    """:func:`judge_escape` of one per-sample run of scenario ``sc`` (its own end state, else the one
+    :func:`loop_state_from_samples` rebuilds from its record)."""
+    if res.flow_status != FLOW_OK:
+        return True
+    model = sc.make_model()
+    plant = model if sc.plant.fmu is not None else sc.make_plant()
+    st = res.loop_state
+    if st is None:
+        st = loop_state_from_samples(res, model, sc.quantizer, sc.flow)
+    if st is None:  # no sample: the loop from x_0 as it starts
+        dec = Decoder(model, res.K, sc.quantizer, sc.flow)
+        st = loop_state_of(dec, dec)
+    return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
+                             model=model, flow=sc.flow)[0])
+
+
 def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
-    ``escaped``: x_N outside the nominal region of attraction of the model's loop (or the
-    flow diverged).  A run the true plant ended with a fault (``plant_fault``: its line,
-    ``plant_fault_at``: the sample) counts as diverged and not converged; ``escaped`` is
-    then about the state at the fault.  ``arrays``: the per-sample values stay numpy arrays
-    (``testbed report`` streams them out).
+    ``escaped``: the loop continued without attack from where the run ended does not
+    recover (:class:`EscapeCriterion`, named by ``escape_criterion``; the continuation runs
+    the true plant when it is an equation (1) plant, else the model).  A run the true plant
+    ended with a fault (``plant_fault``: its line, ``plant_fault_at``: the sample) counts as
+    diverged and not converged; ``escaped`` is then about the state at the fault.
+    ``arrays``: the per-sample values stay numpy arrays (``testbed report`` streams them out).
     """
     L = (lambda a: a) if arrays else (lambda a: a.tolist())
     model = sc.make_model()
@@ -687,8 +867,8 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     flow_diverged = res.flow_status != FLOW_OK
     diverged = flow_diverged or res.plant_fault is not None
     converged = (not diverged) and res.final_norm < tol
-    escaped = flow_diverged or not bool(in_nominal_roa(model, res.K, sc.T, res.x_final[None, :], tol=tol,
-                                                        flow=sc.flow)[0])
+    crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
+    escaped = escaped_run(sc, res, crit)
     sch = res.intervals()
     cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
     return json_clean({
@@ -720,6 +900,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "final_norm": res.final_norm,
         "converged": bool(converged),
         "escaped": bool(escaped),
+        "escape_criterion": crit.to_dict(),
         "diverged": bool(diverged),
         "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
         "plant_fault": res.plant_fault,

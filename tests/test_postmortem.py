@@ -377,3 +377,25 @@ def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
     assert s["loss_reasons"]["deadline"] == want[msg.ControllerTelemetry.DEADLINE] == 40 + int(res.theta[:10].sum())
     assert s["theta"][10:] == [1] * 40 and s["E"][10:] == [None] * 40 and s["symbols"][10:] == [-1] * 40
     assert s["attacker_dropped_at"] == [k for k in range(10) if res.theta[k]]
+
+
+def test_report_prices_an_intervals_attack_as_declared(tmp_path):
+    """Three back-to-back attacks (0.1 s each) lose samples 0..5, which the attacker's log shows as one run:
+    the budget check prices what was declared, three attacks of 0.3 s in all, not one of 0.5 s."""
+    f = tmp_path / "three.toml"
+    text = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()
+    text = text.replace("intervals = [[1.0, 1.2], [4.0, 0.8]]",
+                        "intervals = [[0.0, 0.1], [0.2, 0.1], [0.4, 0.1]]\n"
+                        "budget = { kappa_F = 3.0, rho_F = 0.0, kappa_D = 0.3, rho_D = 0.0 }")
+    f.write_text(text.replace("duration = 30.0", "duration = 3.0"))
+    sc = scenario.load(f)
+    res = simulate_scenario(sc)
+    assert res.theta.tolist()[:7] == [1, 1, 1, 1, 1, 1, 0]
+    path = tmp_path / "three.mcap"
+    recording.record_simulation(path, sc, res)
+    dos = report(path)["dos"]
+    assert dos["priced"] == "declared intervals"
+    assert dos["count"] == 3 and dos["total_duration"] == pytest.approx(0.3)
+    assert dos["logged_intervals"] == [[0.0, 0.5]]
+    assert dos["budget"]["kappa_F_min"] == pytest.approx(3.0) and dos["budget"]["kappa_D_min"] == pytest.approx(0.3)
+    assert dos["budget"]["within"] is True

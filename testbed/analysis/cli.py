@@ -3,8 +3,8 @@
     testbed analyze SCENARIO [--json] [--plot PATH.png] [--full] [--gamma G] [--budget KF RF KD RD]
     testbed roa SCENARIO [--grid N] [--plot PATH.png] [--json] [--vulnerable] [--budget ...]
     testbed sweep SCENARIO [--grid NF ND] [--rho-F-max R] [--rho-D-max R] [--seeds S] [--plot PATH.png] [--json]
-    testbed worst-attack SCENARIO [--attacks N] [--x0 X1 X2 ...] [--json]
-    testbed vulnerability SCENARIO [--grid N] [--attacks N] [--plot PATH.png] [--json]
+    testbed worst-attack SCENARIO [--attacks N] [--x0 X1 X2 ...] [--scenario-out PATH [--force]] [--json]
+    testbed vulnerability SCENARIO [--grid N] [--attacks N] [--show samples|duration] [--plot PATH.png] [--json]
 
 Every command that runs batches takes --workers N (default: every core) and --scheduler tcp://HOST:PORT
 (a Dask cluster); the results do not depend on either (testbed.analysis.parallel).
@@ -641,11 +641,16 @@ def main_sweep(args) -> int:
 # ============================================================================ worst-attack
 def _add_search(p) -> None:
     p.add_argument("--attacks", type=int, default=1, metavar="N",
-                   help="at most N sample-aligned attack intervals (default 1: exact; N >= 2: beam search, "
-                        "exact when proven)")
+                   help="at most N attack intervals, back to back where that saves duration (default 1); the "
+                        "answer is given for every n = 1..N (the front), exact where proven")
     p.add_argument("--max-length", type=float, metavar="SECONDS",
-                   help="longest single attack tried (default: the whole run)")
-    p.add_argument("--beam", type=int, default=16, help="beam width of the search for --attacks >= 2 (default 16)")
+                   help="most lost samples tried, as the duration of one attack losing them (default: the "
+                        "whole run)")
+    p.add_argument("--beam", type=int, default=16,
+                   help="beam width of the search beyond the enumeration, for --attacks >= 2 (default 16)")
+    p.add_argument("--exhaustive-limit", type=int, default=100_000, metavar="K",
+                   help="schedules enumerated per number of attacks >= 2 before the beam search takes over "
+                        "(default 100000; more proves more)")
 
 
 def _search_args(args, sc) -> dict:
@@ -655,12 +660,15 @@ def _search_args(args, sc) -> dict:
         raise BadInput(f"--attacks must be >= 1, got {args.attacks}")
     if args.beam < 1:
         raise BadInput(f"--beam must be >= 1, got {args.beam}")
+    if args.exhaustive_limit < 0:
+        raise BadInput(f"--exhaustive-limit must be >= 0, got {args.exhaustive_limit}")
     max_len = None
     if args.max_length is not None:
         if not (math.isfinite(args.max_length) and args.max_length >= 0):
             raise BadInput(f"--max-length must be >= 0 seconds, got {args.max_length}")
         max_len = int(round(args.max_length / sc.T)) + 1
-    return {"attacks": args.attacks, "max_len": max_len, "beam": args.beam}
+    return {"attacks": args.attacks, "max_len": max_len, "beam": args.beam,
+            "exhaustive_limit": args.exhaustive_limit}
 
 
 def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
@@ -670,7 +678,13 @@ def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
                    help="initial state (default: the scenario's); E0 = max(scenario E0, ||x0||_inf)")
     p.add_argument("--no-greedy", action="store_true",
                    help="skip the greedy online attacker's least budget (reported for comparison)")
-    cliargs.add_json(p, "the result (intervals, total_duration, escaped, exact, greedy, ...)")
+    p.add_argument("--scenario-out", metavar="PATH.toml",
+                   help="write the answer as a scenario (x0, E0, the attack intervals, the simulated duration) "
+                        "that testbed simulate and testbed run accept; exit 1 and nothing written when no "
+                        "schedule escapes")
+    p.add_argument("--force", action="store_true", help="replace an existing --scenario-out file")
+    cliargs.add_json(p, "the result (intervals, total_duration, samples_lost, escaped, exact, front, proof, "
+                        "greedy, ...)")
     cliargs.add_no_progress(p)
     cliargs.add_workers(p)
     cliargs.add_scheduler(p)
@@ -687,25 +701,49 @@ def main_worst_attack(args) -> int:
     x0 = sc.x0 if args.x0 is None else np.asarray(args.x0, dtype=float)
     if x0.shape != (plant.n,) or not np.all(np.isfinite(x0)):
         raise BadInput(f"--x0 needs {plant.n} finite numbers, got {args.x0}")
+    sc_out = None
+    if args.scenario_out:
+        sc_out = Path(args.scenario_out)
+        if sc_out.exists() and not args.force:
+            raise BadInput(f"{sc_out} exists (--force replaces it)")
+        if not sc_out.parent.is_dir():
+            raise BadInput(f"--scenario-out: no folder {sc_out.parent}")
     with _executor(args) as ex:
         w = worst_attack(Loop.from_scenario(sc), x0, greedy=not args.no_greedy, executor=ex,
                          progress=Progress("worst attack", not args.no_progress), **kw)
         out = {"scenario": sc.name, **plant_and_model(sc), **w.to_dict(), "parallel": ex.describe()}
+    code = 0
+    if sc_out is not None:
+        if out["escaped"]:
+            out["scenario_out"] = _write_scenario_out(sc, out, sc_out)
+        else:
+            out["scenario_out"] = None
+            code = 1
+            print(f"testbed worst-attack: no schedule escapes: {sc_out} not written", file=sys.stderr)
     if args.json:
         _write_json(out)
-        return 0
+        return code
     print(f"scenario {sc.name}: x0 = {out['x0']}, E0 = {out['E0']:g}, {out['n_steps']} samples of "
           f"T = {out['T']:g} s, at most {out['attacks']} attack(s)")
     if _mismatch_line(out):
         print(_mismatch_line(out) + ": the runs integrate the true plant, the quantizer predicts with the model")
     if out["unattacked_escapes"]:
         print("  the quantized loop escapes without any attack")
-    elif out["escaped"]:
-        print(f"  shortest attack that escapes: intervals {out['intervals']} (start, length in s), total "
-              f"duration {out['total_duration']:g} s, {out['samples_lost']} packets lost "
-              f"({'exact' if out['exact'] else 'not proven minimal'}: {out['method']})")
     else:
-        print(f"  no schedule escapes (attacks up to {out['max_length_samples']} samples; {out['method']})")
+        for f in out["front"]:
+            if f["escaped"]:
+                print(f"  at most {f['attacks']} attack(s): {f['samples_lost']} lost samples, least duration "
+                      f"{f['total_duration']:g} s, intervals {f['intervals']} (start, length in s; "
+                      f"{'exact' if f['exact'] else 'not proven minimal'})")
+            else:
+                print(f"  at most {f['attacks']} attack(s): no schedule escapes (up to "
+                      f"{out['max_length_samples']} lost samples; "
+                      f"{'every schedule simulated' if f['exact'] else 'not every schedule simulated'})")
+        for p in out["proof"]:
+            print(f"  proven for at most {p['attacks']} attack(s): no schedule losing fewer than "
+                  f"{p['samples_lost_below']} samples in {p['horizon_samples']} escapes")
+    c = out["escape_criterion"]
+    print(f"  escape: {c['kind']} for {c['horizon_s']:g} s (x_tol {c['x_tol']:g}, E_tol {c['E_tol']:g})")
     g = out.get("greedy")
     if g:
         if g["escaped"]:
@@ -715,7 +753,35 @@ def main_worst_attack(args) -> int:
             print("  greedy attacker: no escape with any duration budget")
     print(f"  {out['candidates']} schedules, {out['traj_steps']} trajectory-steps in {out['wall_s']:.2f} s "
           f"({out['parallel']['kind']}, {out['parallel']['workers']} workers)")
-    return 0
+    if out.get("scenario_out"):
+        print(f"  wrote {out['scenario_out']} (testbed simulate / testbed run it)")
+    return code
+
+
+def _write_scenario_out(sc, out: dict, path: Path) -> str:
+    """The answer of ``worst-attack`` as a scenario file (``scenario.with_attack``), checked by loading it."""
+    import os
+    import tempfile
+
+    from .. import scenario
+
+    iv = out["intervals"]
+    desc = (f"testbed worst-attack {sc.name}: at most {out['attacks']} attack(s) from x0 = {out['x0']}, "
+            f"{out['samples_lost']} lost samples, total duration {out['total_duration']:g} s")
+    budget = {"kappa_F": len(iv), "rho_F": 0.0, "kappa_D": out["total_duration"], "rho_D": 0.0} if iv else None
+    text = scenario.with_attack(sc, x0=out["x0"], E0=out["E0"], intervals=iv, duration=out["horizon"],
+                                name=f"{sc.name}-worst-attack", description=desc, out_dir=path.parent,
+                                budget=budget)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".worst-", suffix=".toml")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        scenario.load(tmp)  # what testbed simulate will read: it must load
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return str(path)
 
 
 # ============================================================================ vulnerability
@@ -726,7 +792,10 @@ def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
                    help="half-widths of the window (default per plant, as testbed roa)")
     p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
     _add_search(p)
-    cliargs.add_plot(p, "draw the heat map (least duration per state, the region's outline, Theorem 2's "
+    p.add_argument("--show", choices=["samples", "duration"], default="duration",
+                   help="what the map shows: the fewest lost samples S* with which at most --attacks attacks "
+                        "escape, or their least total duration (S* - min(N, S*)) T (default)")
+    cliargs.add_plot(p, "draw the heat map (--show per state, the region's outline, Theorem 2's "
                         "delta-ball)")
     cliargs.add_json(p, "the map (least duration per grid state, counts, delta)")
     cliargs.add_no_progress(p)
@@ -756,13 +825,15 @@ def main_vulnerability(args) -> int:
                           progress=Progress("region of attraction", not args.no_progress), executor=ex)
         vm = vulnerability_map(Loop.from_scenario(sc), roa, delta=delta, executor=ex,
                                progress=Progress("least attack per state", not args.no_progress), **kw)
-        out = {"scenario": sc.name, **plant_and_model(sc), **vm.to_dict(), "roa_inside_digest": roa.digest,
-               "parallel": ex.describe()}
+        out = {"scenario": sc.name, **plant_and_model(sc), **vm.to_dict(), "show": args.show,
+               "roa_inside_digest": roa.digest, "parallel": ex.describe()}
     if args.plot:
         from . import figures
 
-        figures.plot_vulnerability(vm, roa, args.plot, x0=sc.x0, size=args.figsize,
-                                   title=f"{sc.name}: least DoS duration that drives the loop out")
+        what = "fewest lost samples" if args.show == "samples" else "least DoS duration"
+        figures.plot_vulnerability(vm, roa, args.plot, x0=sc.x0, show=args.show, size=args.figsize,
+                                   title=f"{sc.name}: {what} that drives the loop out "
+                                         f"(at most {vm.attacks} attack{'s' if vm.attacks > 1 else ''})")
         out["figure"] = str(args.plot)
     if args.json:
         from .summary import to_json
@@ -775,9 +846,13 @@ def main_vulnerability(args) -> int:
         print(_mismatch_line(out) + ": the region is the model's, the attacks run on the true plant")
     print(f"  {out['escape_unattacked']} escape without any attack; {out['no_escape_found']} resist every "
           "schedule tried")
-    print(f"  least duration over the region: {_fmt(out['least_duration'])} s, median "
-          f"{_fmt(out['median_duration'])} s, largest {_fmt(out['largest_duration'])} s "
-          f"({'exact' if out['all_exact'] else 'not all proven minimal'})")
+    ex_note = 'exact' if out['all_exact'] else f"{out['states_exact']} of {out['states_in_region']} proven minimal"
+    if args.show == "samples":
+        print(f"  fewest lost samples over the region: {_fmt(out['least_samples'])}, median "
+              f"{_fmt(out['median_samples'])}, largest {_fmt(out['largest_samples'])} ({ex_note})")
+    else:
+        print(f"  least duration over the region: {_fmt(out['least_duration'])} s, median "
+              f"{_fmt(out['median_duration'])} s, largest {_fmt(out['largest_duration'])} s ({ex_note})")
     print(f"  Theorem 2's delta = {_fmt(delta)}")
     print(f"  {out['candidates']} schedules, {out['traj_steps']} trajectory-steps in {out['wall_s']:.2f} s "
           f"({out['parallel']['kind']}, {out['parallel']['workers']} workers)")

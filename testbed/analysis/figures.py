@@ -311,7 +311,8 @@ def plot_delta(rows, path, *, gamma_mark=None, E0_mark=None, delta_paper=None, t
         return figstyle.save(fig, path)
 
 
-def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2$"), x0=None, size: str = "page"):
+def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2$"), x0=None,
+                       show: str = "duration", size: str = "page"):
     """Heat map of the least DoS duration that defeats the loop, over the nominal region of attraction.
 
     Parameters
@@ -319,6 +320,8 @@ def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2
     vm : a :class:`testbed.analysis.worst.VulnerabilityMap`.
     roa : the :class:`testbed.analysis.roa.RoaResult` it was computed on (its outline is drawn).
     x0 : optional initial state to mark.
+    show : "duration" (the least total duration of at most ``vm.attacks`` attacks) or "samples"
+        (the fewest lost samples S*).
     Theorem 2's delta-ball ||x||_inf <= delta (``vm.delta``) is drawn around the origin, with an
     inset when it is too small to see.
     """
@@ -332,11 +335,12 @@ def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2
         dx = (vm.xs[-1] - vm.xs[0]) / max(len(vm.xs) - 1, 1) / 2
         dy = (vm.ys[-1] - vm.ys[0]) / max(len(vm.ys) - 1, 1) / 2
         ext = [vm.xs[0] - dx, vm.xs[-1] + dx, vm.ys[0] - dy, vm.ys[-1] + dy]
-        heat = np.where(vm.samples > 0, vm.duration, np.nan)
+        heat = np.where(vm.samples > 0, vm.samples if show == "samples" else vm.duration, np.nan)
         im = ax.imshow(np.ma.masked_invalid(heat), origin="lower", extent=ext, aspect="auto", cmap=figstyle.CMAP,
                        interpolation="nearest")
         cb = fig.colorbar(im, ax=ax)
-        cb.set_label("least total DoS duration to escape [s]")
+        cb.set_label("fewest lost samples that make the loop escape" if show == "samples" else
+                     "least total DoS duration to escape [s]")
         lost = np.where(vm.samples == 0, 1.0, np.nan)
         ax.imshow(np.ma.masked_invalid(lost), origin="lower", extent=ext, aspect="auto",
                   cmap=ListedColormap(["black"]), vmin=0, vmax=1, interpolation="nearest")
@@ -380,7 +384,8 @@ def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2
         ax.set_ylabel(labels[1])
         ax.grid(False)
         kind = "one attack" if vm.attacks == 1 else f"at most {vm.attacks} attacks"
-        ax.set_title(title or f"least DoS duration ({kind}) that defeats the loop")
+        what = "fewest lost samples" if show == "samples" else "least DoS duration"
+        ax.set_title(title or f"{what} ({kind}) that defeats the loop")
         figstyle.legend_below(fig, handles, ncol=1 if size == "column" else 2)
         return figstyle.save(fig, path)
 

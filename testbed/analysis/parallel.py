@@ -44,7 +44,7 @@ WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_TH
               "MKL_NUM_THREADS": "1"}
 
 #: per-trajectory outputs of :func:`run_batch`
-FIELDS = ("x_final", "E_final", "status", "stop_k", "saturations", "mismatch", "max_norm", "attacked")
+FIELDS = ("x_final", "E_final", "status", "stop_k", "saturations", "mismatch", "max_norm", "attacked", "state_final")
 
 #: trajectory-steps per chunk: at least this much work, so that a chunk costs far more than its
 #: shipping (local pools: ~0.2 s of work; Dask: ~2 s, which keeps the scheduler light)
@@ -273,6 +273,8 @@ class BatchChunk:
     fields: tuple
     specialize: bool = True
     model: object = None     # the predictions' model (rule (xi)); None: the plant itself
+    init_state: np.ndarray | None = None  # (B, W) both ends' state to continue from (``simulate_batch``)
+    stop: tuple | None = None             # (x_tol, E_tol, x_out) early stop (``simulate_batch``)
 
     @property
     def warm_key(self):
@@ -295,8 +297,11 @@ def run_chunk(c: BatchChunk) -> dict:
             kw["sched_idx"] = c.sched_idx[sel]
         if c.greedy_params is not None:
             kw["greedy_params"] = c.greedy_params[sel]
+        if c.init_state is not None:
+            kw["init_state"] = c.init_state[sel]
         res = simulate_batch(c.plant, c.K, replace(c.qp, E0=float(e)), c.X0[sel], c.n_steps, score=c.score,
-                             mode=c.mode, flow=c.flow, specialize=c.specialize, model=c.model, **kw)
+                             mode=c.mode, flow=c.flow, specialize=c.specialize, model=c.model,
+                             stop=c.stop, **kw)
         for k in c.fields:
             v = getattr(res, k)
             if k not in out:
@@ -308,7 +313,7 @@ def run_chunk(c: BatchChunk) -> dict:
 def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=None, greedy_params=None,
               score: str = "state", mode: str | None = None, flow: FlowOptions = DEFAULT_FLOW,
               fields=FIELDS, executor: Executor | None = None, progress=None, chunk: int | None = None,
-              specialize: bool = True, model=None) -> dict:
+              specialize: bool = True, model=None, init_state=None, stop=None) -> dict:
     """Run B closed loops in chunks on ``executor``; per-trajectory ``fields`` in input order.
 
     Parameters
@@ -323,6 +328,7 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
     fields : the ``BatchResult`` fields to return (see ``FIELDS``).
     executor : where the chunks run (None: this process).
     chunk : trajectories per chunk (default: from the executor, see ``MIN_CHUNK_STEPS``).
+    init_state, stop : (B, W) states to continue from and the early stop, as for ``simulate_batch``.
 
     Returns
     -------
@@ -344,10 +350,11 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
         if gp.shape != (B, 5):
             raise ValueError(f"greedy_params must have shape (5,) or ({B}, 5), got {gp.shape}")
     fields = tuple(fields)
+    ist = None if init_state is None else np.ascontiguousarray(np.asarray(init_state, dtype=np.float64))
     Kc = np.ascontiguousarray(np.asarray(K, dtype=np.float64))
     if B == 0:
         n = plant.n
-        shapes = {"x_final": (0, n)}
+        shapes = {"x_final": (0, n), "state_final": (0, 2 * (n + 1 + plant.m))}
         return {k: np.zeros(shapes.get(k, (0,))) for k in fields}
     chunk = chunk_size(B, n_steps, executor) if chunk is None else max(1, int(chunk))
 
@@ -358,7 +365,8 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
             t, s = np.ascontiguousarray(tab[rows]), inv.astype(np.int64).ravel()
         return BatchChunk(plant, Kc, qp, X0[sl], np.array(E0[sl]), int(n_steps), t, s,
                           None if gp is None else np.ascontiguousarray(gp[sl]), score, mode, flow, fields,
-                          specialize, None if model is plant else model)
+                          specialize, None if model is plant else model,
+                          None if ist is None else np.ascontiguousarray(ist[sl]), None if stop is None else tuple(stop))
 
     # strided chunks (chunk j holds trajectories j, j + C, j + 2 C, ...): neighbouring trajectories
     # often cost alike (an escaping one stiffens the flow), so this balances the workers
@@ -367,7 +375,7 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
     items = [make(ix) for ix in sets]
     warm = None
     if executor is not None and len(items) > 1:
-        warm = replace(make(np.arange(1)), n_steps=2)
+        warm = replace(make(np.arange(1)), n_steps=2, stop=None)
     parts = (executor.map(run_chunk, items, warm=warm, progress=progress) if executor is not None
              else [_serial(run_chunk, it, i, len(items), progress) for i, it in enumerate(items)])
     out = {}
@@ -431,16 +439,3 @@ def _serial(fn, it, i, total, progress):
     if progress is not None:
         progress(i + 1, total)
     return r
-
-
-def nominal_converged(plant, K, T: float, X, *, horizon: float, tol: float, flow: FlowOptions = DEFAULT_FLOW,
-                      executor: Executor | None = None, progress=None) -> np.ndarray:
-    """``testbed.simulate.in_nominal_roa`` on an executor: (B,) bool, identical results."""
-    from ..quantizer import QuantizerParams
-
-    qp = QuantizerParams(T=T, M=2, L=0.0, E0=1.0, mode="none")
-    out = run_batch(plant, K, qp, X, int(round(horizon / T)), mode="none", flow=flow,
-                    fields=("x_final", "status"), executor=executor, progress=progress)
-    from ..flow import FLOW_OK
-
-    return (out["status"] == FLOW_OK) & (np.max(np.abs(out["x_final"]), axis=1) < tol)

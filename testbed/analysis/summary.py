@@ -12,7 +12,7 @@ import numpy as np
 
 from attackers.budget import check as budget_check
 
-from ..simulate import in_nominal_roa, plant_and_model, simulate_batch
+from ..simulate import EscapeCriterion, in_nominal_roa, plant_and_model, simulate_batch
 from .sweep import classify, run_grouped
 from .theorem1 import RULES, Loop, analyze_theorem1
 from .theorem2 import RemainderRadius, delta_for_gamma, gamma_for_delta, theorem2, theorem2_auto
@@ -70,8 +70,8 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
 
     E_0 = max(scenario E_0, ||s x_0||_inf) (Assumption 5).  Returns (s, x0) or None.
     The loop runs the true plant (``[plant]``) with the model's predictions; "nominal
-    region" and "escaped" are the model's nominal loop.  Needs an equation (1) true plant
-    (the batch simulator cannot run an FMU).
+    region" is the model's nominal loop; "escaped" is ``testbed.simulate.judge_escape``.
+    Needs an equation (1) true plant (the batch simulator cannot run an FMU).
     """
     plant, model = sc.make_plant(), sc.make_model()
     x0 = sc.x0
@@ -87,8 +87,8 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
     E0s = np.maximum(sc.quantizer.E0, np.max(np.abs(X), axis=1))
     out = run_grouped(plant, sc.K, sc.quantizer, X, E0s, sc.n_steps,
                       score=sc.attack.score if sc.attack.online else "state", flow=sc.flow, model=model, **kw)
-    _, esc = classify(model, sc.K, sc.T, out["x_final"], out["status"], sc.run.converge_tol,
-                      escape_horizon=roa_horizon, flow=sc.flow)
+    crit = EscapeCriterion.for_loop(model, sc.quantizer, sc.run.converge_tol)
+    _, esc = classify(plant, sc.K, sc.quantizer, out, crit, model=model, flow=sc.flow)
     hit = np.flatnonzero(inside & esc)
     if hit.size == 0:
         return None

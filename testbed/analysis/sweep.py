@@ -13,11 +13,11 @@ decoder, plant) from one or more initial states under three attackers:
   threshold, when ||x_k|| is near its running maximum).
 
 Attacks persist over the whole horizon (Theorem 1 is about persistent attacks).
-A run ``converged`` when ||x_N||_inf < tol; it ``escaped`` when it did not and
-either the flow diverged or x_N is outside the nominal region of attraction
-(checked by the nominal loop from x_N, ``testbed.simulate.in_nominal_roa``): the
-attacker has pushed the state where even perfect, unattacked feedback no longer
-brings it back.  The remaining runs are ``bounded`` (not yet converged).
+A run ``escaped`` when the quantized loop, continued without attack from where it
+ended, does not recover (``testbed.simulate.EscapeCriterion``, ``judge_escape``: the
+same verdict as ``testbed simulate``'s): the attacker has pushed the loop where even
+unattacked operation no longer brings it back.  It ``converged`` when
+||x_N||_inf < tol and it did not escape; the remaining runs are ``bounded``.
 
 Impulsive attacks (length 0) only drop a packet when they fall on a sampling
 instant; the random and periodic generators place attacks in continuous time,
@@ -39,8 +39,8 @@ per call, so states are grouped by that value).
 
 With model mismatch (a scenario's ``[model]``), ``plant`` is the true plant the
 state follows and ``model`` the plant model of the encoder's and decoder's
-predictions (rule (xi)); the escape test is the model's nominal loop, as in
-``testbed.simulate.summarize``.
+predictions (rule (xi)); the escape test continues that loop (true plant, model's
+predictions), as ``testbed.simulate.summarize`` does.
 """
 
 from __future__ import annotations
@@ -54,7 +54,8 @@ import numpy as np
 from attackers.generators import make_schedule
 
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from .parallel import Stages, n_chunks, nominal_converged, run_batch
+from ..simulate import ESCAPE_HORIZON, EscapeCriterion, judge_escape
+from .parallel import Stages, n_chunks, run_batch
 from .roa import RoaResult
 
 KINDS = ("random", "periodic", "greedy")
@@ -96,24 +97,30 @@ def run_grouped(plant, K, qp, X0, E0s, n_steps, *, theta=None, sched_idx=None, g
     ``plant`` is the true plant, ``model`` the predictions' model (default ``plant``)."""
     return run_batch(plant, K, qp, X0, n_steps, E0=E0s, theta=theta, sched_idx=sched_idx,
                      greedy_params=greedy_params, score=score, flow=flow,
-                     fields=("x_final", "status", "attacked", "saturations", "max_norm", "stop_k"),
+                     fields=("x_final", "status", "attacked", "saturations", "max_norm", "stop_k", "state_final"),
                      executor=executor, progress=progress, model=model)
 
 
-def classify(plant, K, T, x_final, status, tol, *, escape_horizon: float = 30.0,
+def classify(plant, K, qp, out: dict, criterion: EscapeCriterion, *, model=None,
              flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
-    """(converged, escaped) per run: ||x_N|| < tol; not converged and (diverged or x_N outside the nominal region).
+    """(converged, escaped) per run of a batch ``out`` (``run_batch`` fields x_final, status,
+    state_final): escaped by ``testbed.simulate.judge_escape`` (the quantized loop continued
+    without attack, ``criterion``), its continuation on ``executor``; converged: ||x_N|| < x_tol
+    and not escaped.
 
-    ``plant`` is the one whose nominal loop decides the escape: the model (``[model]``)."""
-    conv = (status == FLOW_OK) & (np.max(np.abs(x_final), axis=1) < tol)
-    esc = status != FLOW_OK
-    check = np.flatnonzero(~conv & ~esc)
-    if check.size:
-        inside = nominal_converged(plant, K, T, x_final[check], horizon=escape_horizon, tol=tol, flow=flow,
-                                   executor=executor, progress=progress)
-        esc[check] = ~inside
-    elif progress is not None:
+    ``plant`` is the true plant, ``model`` (default ``plant``) the predictions' model."""
+    called = []
+
+    def run(X, S, n_steps, stop):
+        called.append(1)
+        return run_batch(plant, K, qp, X, n_steps, init_state=S, stop=stop, model=model, flow=flow,
+                         fields=("x_final", "status", "state_final"), executor=executor, progress=progress)
+
+    esc = judge_escape(plant, K, qp, out["x_final"], out["state_final"], out["status"], criterion, model=model,
+                       flow=flow, run=run)
+    if not called and progress is not None:
         progress(1, 1)
+    conv = (out["status"] == FLOW_OK) & (np.max(np.abs(out["x_final"]), axis=1) < criterion.x_tol) & ~esc
     return conv, esc
 
 
@@ -139,6 +146,7 @@ class SweepResult:
     runs: int = 0
     traj_steps: int = 0
     wall: float = 0.0
+    escape_criterion: dict = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -177,7 +185,7 @@ class SweepResult:
                 "worst_converged": clean(self.worst()),
                 "empirical_boundary": [None if not np.isfinite(v) else float(v) for v in self.empirical_boundary()],
                 "runs": self.runs, "traj_steps": self.traj_steps, "wall_s": self.wall,
-                "traj_steps_per_s": self.rate}
+                "traj_steps_per_s": self.rate, "escape_criterion": self.escape_criterion}
 
 
 def _capped(flow: FlowOptions, x_max: float | None) -> FlowOptions:
@@ -186,7 +194,7 @@ def _capped(flow: FlowOptions, x_max: float | None) -> FlowOptions:
 
 def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: float = 0.5, seeds: int = 4,
           horizon: float = 60.0, kinds=KINDS, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
-          escape_horizon: float = 30.0, seed: int = 0, flow: FlowOptions = DEFAULT_FLOW,
+          escape_horizon: float = ESCAPE_HORIZON, seed: int = 0, flow: FlowOptions = DEFAULT_FLOW,
           x_max: float | None = 1e3, progress=None, executor=None, model=None) -> SweepResult:
     """Run the loop over a grid of budgets (rho_F x rho_D) and attacker kinds.
 
@@ -194,7 +202,7 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
     ----------
     plant, K, qp : the loop (QuantizerParams; E_0 per initial state as in the module docstring);
         ``plant`` is the true plant.
-    model : the predictions' model and the escape test's nominal loop (default ``plant``).
+    model : the predictions' model (default ``plant``).
     X0 : (B0, n) initial states (or (n,)).
     rho_F, rho_D : 1-D grids (rho_D < 1).
     kappa_F, kappa_D : the fixed constants of Assumptions 3 and 4.
@@ -220,10 +228,11 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         raise ValueError(f"unknown kinds {sorted(bad)}; known: {KINDS}")
     T = qp.T
     N = int(round(horizon / T))
+    crit = EscapeCriterion.for_loop(model, qp, tol, escape_horizon)
     nF, nD, B0 = len(rho_F), len(rho_D), X0.shape[0]
     E0x = e0_levels(X0, qp.E0)
     res = SweepResult(rho_F, rho_D, float(kappa_F), float(kappa_D), T, float(horizon), float(tol), int(seeds),
-                      float(threshold), X0, tuple(kinds))
+                      float(threshold), X0, tuple(kinds), escape_criterion=crit.to_dict())
     for k in kinds:
         res.converged[k] = np.full((nF, nD), np.nan)
         res.escaped[k] = np.full((nF, nD), np.nan)
@@ -261,8 +270,8 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
         stages.next()
     if parts:
         out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        conv, esc = classify(model, K, T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
-                             flow=flow, executor=executor, progress=stages.next())
+        conv, esc = classify(plant, K, qp, out, crit, model=model, flow=flow, executor=executor,
+                             progress=stages.next())
         lost = out["attacked"] / np.maximum(out["stop_k"], 1)
         _accumulate(res, run_tags, conv, esc, lost)
         res.runs = len(run_tags)
@@ -321,6 +330,7 @@ class VulnerableResult:
     horizon: float
     wall: float = 0.0
     traj_steps: int = 0
+    escape_criterion: dict = field(default_factory=dict)
 
     @property
     def fraction_vulnerable(self) -> float:
@@ -335,12 +345,12 @@ class VulnerableResult:
                 "states_in_region": int(inside.sum()), "converged": int(np.sum(self.outcome == 0)),
                 "bounded": int(np.sum(self.outcome == 1)), "escaped": int(np.sum(self.outcome == 2)),
                 "fraction_vulnerable": self.fraction_vulnerable, "wall_s": self.wall,
-                "traj_steps": self.traj_steps}
+                "traj_steps": self.traj_steps, "escape_criterion": self.escape_criterion}
 
 
 def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, kind: str = "greedy",
                       horizon: float = 30.0, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
-                      seed: int = 0, escape_horizon: float = 30.0, flow: FlowOptions = DEFAULT_FLOW,
+                      seed: int = 0, escape_horizon: float = ESCAPE_HORIZON, flow: FlowOptions = DEFAULT_FLOW,
                       x_max: float | None = 1e3, kappa_D_shares=(0.0, 0.5, 1.0),
                       progress=None, executor=None, model=None) -> VulnerableResult:
     """Which states of the nominal region fail under a budget-limited attacker.
@@ -348,7 +358,7 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
     Parameters
     ----------
     plant, K, qp : the loop; ``plant`` is the true plant, ``model`` (default ``plant``) the
-        predictions' model and the escape test's nominal loop.
+        predictions' model.
     budget : (kappa_F, rho_F, kappa_D, rho_D).
     roa : a :class:`RoaResult` (its grid, subsampled by ``stride``, gives the states).
     kind : "greedy" (online), "random" (one schedule, ``seed``) or "periodic".
@@ -369,6 +379,7 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
     flow = _capped(flow, x_max)
     model = plant if model is None else model
     kF, rF, kD, rD = budget
+    crit = EscapeCriterion.for_loop(model, qp, tol, escape_horizon)
     xs, ys = roa.xs[::stride], roa.ys[::stride]
     inside = roa.inside[::stride, ::stride]
     GX, GY = np.meshgrid(xs, ys, indexing="xy")
@@ -385,8 +396,8 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
         out = run_grouped(plant, K, qp, np.tile(X, (len(shares), 1)), np.tile(E0s, len(shares)), N,
                           greedy_params=gp, score=score, flow=flow, executor=executor, progress=stages.next(),
                           model=model)
-        c, e = classify(model, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
-                        flow=flow, executor=executor, progress=stages.next())
+        c, e = classify(plant, K, qp, out, crit, model=model, flow=flow, executor=executor,
+                        progress=stages.next())
         conv = np.all(c.reshape(len(shares), len(X)), axis=0)
         esc = np.any(e.reshape(len(shares), len(X)), axis=0)
     else:
@@ -402,11 +413,11 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
         stages = Stages(progress, [n_chunks(len(X), N, executor), n_chunks(len(X), N, executor)])
         out = run_grouped(plant, K, qp, X, E0s, N, theta=tab, sched_idx=np.zeros(len(X), dtype=int), flow=flow,
                           executor=executor, progress=stages.next(), model=model)
-        conv, esc = classify(model, K, qp.T, out["x_final"], out["status"], tol, escape_horizon=escape_horizon,
-                             flow=flow, executor=executor, progress=stages.next())
+        conv, esc = classify(plant, K, qp, out, crit, model=model, flow=flow, executor=executor,
+                             progress=stages.next())
         shares = (None,)
     wall = time.perf_counter() - t0
     outcome = np.full(inside.shape, -1, dtype=np.int8)
     outcome[inside] = np.where(conv, 0, np.where(esc, 2, 1))
     return VulnerableResult(xs, ys, roa.dims, outcome, tuple(budget), kind, threshold, horizon, wall,
-                            len(X) * N * len(shares))
+                            len(X) * N * len(shares), crit.to_dict())

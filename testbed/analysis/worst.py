@@ -1,38 +1,53 @@
-"""The strongest attacker: the least DoS duration that drives the loop out of the region of attraction.
+"""The strongest attacker: the fewest lost samples, and the least DoS duration, that drive the loop out.
 
 The paper ends on an open question: "there are vulnerable positions in the
 state space from which it is easy for the attacker to make the state leave the
-region of attraction".  This module answers it on the batch simulator.
+region of attraction".  This module answers it on the batch simulator, under the
+paper's model of the attacker (Section II.C, Assumptions 3 and 4).
 
-A schedule of at most A *sample-aligned* attacks is a set of runs of lost
-packets: theta_k = 1 exactly for k0_i <= k <= k0_i + L_i - 1 (L_i >= 1 samples),
-the runs separated by at least one sample (touching runs would be one attack).
-Run i is the attack interval [k0_i T, (k0_i + L_i - 1) T] of the paper
-(Section II.C), of duration (L_i - 1) T: a single lost packet is an impulsive
-attack of duration 0.  The *total duration* |A| = sum_i (L_i - 1) T is what
-Assumption 4 budgets.
+**What an attack costs.**  Sample k (at t_k = k T) is lost iff t_k lies in an
+attack interval [a_i, a_i + tau_i]; only the set of lost samples (theta_k) acts on
+the loop.  Assumption 3 counts the attacks, N(t); Assumption 4 sums their
+durations, |A(t)|.  A run of L consecutive lost samples k0..k0+L-1 is covered by
+one attack [k0 T, (k0 + L - 1) T] of duration (L - 1) T, or by j <= L attacks
+*back to back* (the gap between two of them strictly between two sampling
+instants) of total duration (L - j) T: one attack [0.3, +0.5] and the two attacks
+[0.3, +0.2], [0.6, +0.2] lose the same samples 3..8 with |A| = 0.5 and 0.4.  Runs
+separated by a delivered sample need an attack each.  Hence a set of S lost
+samples in R runs can be lost with at most N >= R attacks, and then costs at
+least (S - min(N, S)) T, which :func:`realize` attains.  The least duration
+alone is degenerate (S impulsive attacks cost 0); the real answer is the
+trade-off between the number of attacks and the lost samples, for each N:
 
-The loop from x_0 has *escaped* when, after the scenario's N samples, the flow
-diverged or x_N is outside the nominal region of attraction (the nominal loop
-from x_N does not reach ||x|| < tol within 60 s): the definition of
-``testbed simulate`` (``testbed.simulate.summarize``).  A run that converged,
-||x_N|| < tol, has not escaped (the nominal loop from there converges); only
-the others are checked by the nominal loop (``sweep.classify``).
+    S*(N) = the fewest lost samples with which some schedule of at most N
+            attacks makes the loop escape,
 
-Search (:func:`least_single`, :func:`worst_attack`):
+priced (S*(N) - min(N, S*(N))) T: the *front* N = 1, 2, ... (S*(N) does not
+increase with N).  Runs are (k0, L) pairs, separated by at least one delivered
+sample; a schedule of exactly m runs with S lost samples is one of
+``count_schedules(m, S - m, n_steps)``.
 
-* A = 1, exact: every start k0 and length L, by increasing L.  First a bound:
-  the attack at k0 = 0 of every length; then all starts for every shorter
-  length, ascending, until one escapes.  The smallest escaping L (and, among
-  its starts, the earliest) is the answer; every shorter single attack was
-  simulated and did not escape.
-* A >= 2: a beam search over sets of runs (beam width ``beam``): the
-  non-escaping single attacks shorter than the best one, ranked by the peak
-  ||x_k||_inf they cause, are extended by one more run anywhere (disjoint, not
-  touching) with a total duration below the best found so far, A - 1 times.
-  The answer is exact when it has duration 0, or when every schedule of 2..A
-  runs with a smaller total duration could be enumerated (at most
-  ``exhaustive_limit`` of them) and none escapes.
+**Escape** is judged by the quantized loop itself (``testbed.simulate.EscapeCriterion``,
+``judge_escape``): from its state after the horizon (the plant's x_N and both ends'
+xi_N, E_N), the loop continued without attack must recover (||x|| and E below their
+tolerances) within the criterion's horizon; the same function decides ``escaped``
+for ``testbed simulate``, ``run``, ``report``, ``sweep`` and ``vulnerability``.
+
+**Search** (:func:`least_single`, :func:`worst_attack`):
+
+* N = 1, exact: every start k0 and length L, by increasing L (first a bound from the
+  attack at k0 = 0 of every length; then all starts for every shorter length).
+  The smallest escaping L is S*(1); every shorter single attack was simulated.
+* N >= 2, below U = S*(N - 1): first *exhaustively*, every schedule of exactly N
+  runs with S = N, N + 1, ... lost samples, as long as the schedules enumerated for
+  this N stay within ``exhaustive_limit``; the first S at which one escapes is the
+  least for exactly N runs.  If the limit stops the enumeration first, a beam search
+  (width ``beam``: the non-escaping schedules of N - 1 runs that drove ||x_k|| highest,
+  each extended by one more run) and a local descent (drop one lost sample of the
+  best schedule, or move a run by one sample, while one still escapes) look further.
+* ``exact`` for N holds only when it is proven: every schedule of at most N attacks
+  losing fewer than S*(N) samples was simulated and none escapes (``proof`` says,
+  per N, below how many lost samples this was shown, within the N samples).
 
 Every candidate schedule is one row of a theta table; a batch of them is one
 ``parallel.run_batch`` call, so the search runs on all cores or a Dask cluster.
@@ -47,14 +62,15 @@ from math import comb
 import numpy as np
 
 from ..flow import DEFAULT_FLOW, FlowOptions
+from ..simulate import EscapeCriterion
 from .parallel import Stages, n_chunks, run_batch
 from .sweep import classify
 
-#: horizon of the nominal check from x_N (as ``testbed.simulate.in_nominal_roa`` in ``summarize``)
-ESCAPE_HORIZON = 60.0
 #: thresholds and scores tried for the greedy attacker's comparison
 GREEDY_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 0.9)
 GREEDY_SCORES = ("state", "E")
+#: the batch fields an evaluation needs
+_EVAL_FIELDS = ("x_final", "status", "max_norm", "state_final")
 
 
 # ============================================================================ the loop and its candidates
@@ -63,8 +79,8 @@ class Loop:
     """The closed loop whose attacks are searched: plant, gain, quantizer, N samples, escape test.
 
     ``plant`` is the true plant the state follows; ``model`` (default ``plant``) the plant
-    model of the encoder's and decoder's predictions (a scenario's ``[model]``) and of the
-    escape test's nominal loop.
+    model of the encoder's and decoder's predictions (a scenario's ``[model]``).  ``criterion``
+    decides escape (default ``EscapeCriterion.for_loop(model, qp, tol)``).
     """
 
     plant: object
@@ -74,6 +90,7 @@ class Loop:
     tol: float = 1e-4
     flow: FlowOptions = DEFAULT_FLOW
     model: object = None
+    criterion: EscapeCriterion | None = None
 
     @property
     def T(self) -> float:
@@ -81,8 +98,13 @@ class Loop:
 
     @property
     def nominal(self):
-        """The plant model of the predictions and of the escape test."""
+        """The plant model of the predictions."""
         return self.plant if self.model is None else self.model
+
+    @property
+    def escape(self) -> EscapeCriterion:
+        """The escape criterion (``testbed.simulate.EscapeCriterion``)."""
+        return self.criterion or EscapeCriterion.for_loop(self.nominal, self.qp, self.tol)
 
     @classmethod
     def from_scenario(cls, sc) -> "Loop":
@@ -102,8 +124,57 @@ def runs_to_intervals(runs, T: float) -> list[list[float]]:
 
 
 def duration_samples(runs) -> int:
-    """Total duration of the runs in sampling periods: sum (L_i - 1)."""
+    """Total duration of the runs, each one attack, in sampling periods: sum (L_i - 1)."""
     return int(sum(L - 1 for _k0, L in runs))
+
+
+def samples_lost(runs) -> int:
+    """S: the lost samples of the runs."""
+    return int(sum(L for _k0, L in runs))
+
+
+def least_duration_samples(S: int, attacks: int) -> int:
+    """The least total duration, in sampling periods, of at most ``attacks`` attacks that lose a given
+    set of S samples (in at most ``attacks`` runs): S - min(attacks, S) (module docstring)."""
+    return int(S - min(int(attacks), int(S)))
+
+
+def realize(runs, attacks: int) -> tuple:
+    """Attacks (k0, L) that lose exactly the samples of ``runs`` with the least total duration.
+
+    ``len(runs) <= attacks``.  min(attacks, S) attacks in all: runs are split into pieces
+    that sit back to back (piece i ends at sample k, piece i + 1 starts at k + 1: the gap
+    between their intervals, ((k T, (k + 1) T), holds no sampling instant), longest runs
+    first, pieces as equal as possible.  Total duration (S - min(attacks, S)) T.
+    """
+    runs = sorted(runs)
+    if len(runs) > attacks:
+        raise ValueError(f"{len(runs)} runs need at least {len(runs)} attacks, got {attacks}")
+    extra = min(int(attacks), samples_lost(runs)) - len(runs)
+    pieces = {r: 1 for r in runs}
+    for r in sorted(runs, key=lambda r: (-r[1], r[0])):
+        add = min(extra, r[1] - 1)
+        pieces[r] += add
+        extra -= add
+    out = []
+    for k0, L in runs:
+        j = pieces[(k0, L)]
+        base, rem = divmod(L, j)
+        k = k0
+        for i in range(j):
+            ell = base + (1 if i < rem else 0)
+            out.append((k, ell))
+            k += ell
+    return tuple(out)
+
+
+def runs_of(theta) -> tuple:
+    """The runs (k0, L) of lost samples of a 0/1 sequence."""
+    th = np.asarray(theta, dtype=np.int8)
+    d = np.diff(np.concatenate(([0], th, [0])))
+    starts = np.flatnonzero(d == 1)
+    ends = np.flatnonzero(d == -1)
+    return tuple((int(a), int(b - a)) for a, b in zip(starts, ends))
 
 
 def theta_table(runs_list, n_steps: int) -> np.ndarray:
@@ -124,13 +195,12 @@ def single_table(k0, L, n_steps: int) -> np.ndarray:
 
 def evaluate(loop: Loop, X0, E0, tab, sched_idx, *, executor=None, progress=None, stages=None):
     """(escaped, peak ||x_k||_inf) of each candidate row: trajectory b starts at X0[b] with E0[b]
-    under row sched_idx[b] of ``tab``."""
+    under row sched_idx[b] of ``tab``; escape by ``loop.escape`` (``sweep.classify``)."""
     st = stages or Stages(progress, [n_chunks(len(sched_idx), loop.n_steps, executor), 1])
     out = run_batch(loop.plant, loop.K, loop.qp, X0, loop.n_steps, E0=E0, theta=tab, sched_idx=sched_idx,
-                    flow=loop.flow, fields=("x_final", "status", "max_norm"), executor=executor,
-                    progress=st.next(), model=loop.nominal)
-    _, esc = classify(loop.nominal, loop.K, loop.T, out["x_final"], out["status"], loop.tol,
-                      escape_horizon=ESCAPE_HORIZON, flow=loop.flow, executor=executor, progress=st.next())
+                    flow=loop.flow, fields=_EVAL_FIELDS, executor=executor, progress=st.next(), model=loop.nominal)
+    _, esc = classify(loop.plant, loop.K, loop.qp, out, loop.escape, model=loop.nominal, flow=loop.flow,
+                      executor=executor, progress=st.next())
     return esc, out["max_norm"]
 
 
@@ -306,20 +376,26 @@ def all_schedules(m: int, extra: int, n_steps: int):
             yield tuple(zip(ks, lengths))
 
 
-def _splits(runs, n_steps: int):
-    """Schedules with one more run: a run split by one delivered sample, each piece also shifted
-    by one sample (within the horizon, keeping runs apart)."""
+def _neighbours(runs, n_steps: int, attacks: int) -> set:
+    """Schedules near ``runs`` for the local descent: one lost sample fewer (a run shortened at
+    either end, or split by a delivered sample inside it), and each of those with one run moved
+    by one sample; at most ``attacks`` runs, inside the horizon."""
+    theta = np.zeros(n_steps, dtype=np.int8)
+    for k0, L in runs:
+        theta[k0:k0 + L] = 1
     out = set()
-    for i, (k, L) in enumerate(runs):
-        others = runs[:i] + runs[i + 1:]
-        for j in range(1, L - 1):  # sample k + j is delivered: pieces (k, j), (k + j + 1, L - j - 1)
-            for da in (-1, 0, 1):
-                for db in (-1, 0, 1):
-                    a, b = (k + da, j), (k + j + 1 + db, L - j - 1)
-                    if a[0] < 0 or b[0] + b[1] > n_steps or b[0] <= a[0] + a[1]:
-                        continue
-                    if _valid_add(others, *a) and _valid_add(others + (a,), *b):
-                        out.add(tuple(sorted(others + (a, b))))
+    for k in np.flatnonzero(theta):
+        th = theta.copy()
+        th[k] = 0
+        r = runs_of(th)
+        if 0 < len(r) <= attacks:
+            out.add(r)
+            for i, (a, L) in enumerate(r):
+                for d in (-1, 1):
+                    if 0 <= a + d and a + d + L <= n_steps:
+                        moved = r[:i] + r[i + 1:]
+                        if _valid_add(moved, a + d, L):
+                            out.add(tuple(sorted(moved + ((a + d, L),))))
     return out
 
 
@@ -333,170 +409,202 @@ def _valid_add(runs, k0: int, L: int) -> bool:
 
 @dataclass
 class WorstAttack:
-    """Result of :func:`worst_attack` (``to_dict`` is the JSON of ``testbed worst-attack``)."""
+    """Result of :func:`worst_attack` (``to_dict`` is the JSON of ``testbed worst-attack``).
+
+    ``front[n - 1]`` is the answer for at most n attacks (n = 1..``attacks``): S*(n), the
+    least duration, the attacks that realize it, whether it is proven; ``proof[n - 1]`` what
+    was shown exhaustively for n.
+    """
 
     x0: np.ndarray
     E0: float
     T: float
     n_steps: int
     attacks: int
-    runs: tuple            # ((k0, L), ...) of the answer; () if none (or none needed)
-    escaped: bool          # the answer's schedule makes the loop escape
-    exact: bool
-    method: str
-    unattacked_escapes: bool = False
+    front: list            # per n: {"attacks", "samples_lost", "total_duration", "intervals", "exact", "escaped"}
+    proof: list            # per n: {"attacks", "samples_lost_below", "horizon_samples", "schedules"}
+    search: str
+    unattacked_escapes: bool
+    criterion: dict
     single: dict | None = None
     greedy: dict | None = None
     evaluated: int = 0
     traj_steps: int = 0
     wall: float = 0.0
     max_len: int = 0
+    runs: tuple = ()       # the answer's runs of lost samples (k0, L) for ``attacks``
+
+    @property
+    def answer(self) -> dict:
+        return self.front[-1]
+
+    @property
+    def escaped(self) -> bool:
+        return bool(self.answer["escaped"])
+
+    @property
+    def exact(self) -> bool:
+        return bool(self.answer["exact"])
 
     @property
     def total_duration(self) -> float:
-        return duration_samples(self.runs) * self.T
+        return float(self.answer["total_duration"] or 0.0)
+
+    @property
+    def intervals(self) -> list:
+        return self.answer["intervals"]
 
     def to_dict(self) -> dict:
+        a = self.answer
         return {"x0": self.x0.tolist(), "E0": self.E0, "T": self.T, "n_steps": self.n_steps,
-                "horizon": self.n_steps * self.T, "attacks": self.attacks,
-                "intervals": runs_to_intervals(self.runs, self.T),
-                "total_duration": round(self.total_duration, 12), "samples_lost": int(sum(L for _, L in self.runs)),
-                "escaped": self.escaped, "exact": self.exact, "method": self.method,
+                "horizon": round(self.n_steps * self.T, 12), "attacks": self.attacks,
+                "intervals": a["intervals"], "total_duration": a["total_duration"],
+                "samples_lost": a["samples_lost"], "escaped": a["escaped"], "exact": a["exact"],
+                "search": self.search, "front": self.front, "proof": self.proof,
+                "escape_criterion": self.criterion,
                 "unattacked_escapes": self.unattacked_escapes, "max_length_samples": self.max_len,
                 "single_attack": self.single, "greedy": self.greedy, "candidates": self.evaluated,
                 "traj_steps": self.traj_steps, "wall_s": self.wall}
 
 
+def _entry(n: int, runs, escaped: bool, exact: bool, T: float) -> dict:
+    if not escaped:
+        return {"attacks": n, "samples_lost": None, "total_duration": None, "intervals": [], "exact": exact,
+                "escaped": False}
+    S = samples_lost(runs)
+    return {"attacks": n, "samples_lost": S, "total_duration": round(least_duration_samples(S, n) * T, 12),
+            "intervals": runs_to_intervals(realize(runs, n), T), "exact": exact, "escaped": True}
+
+
 def worst_attack(loop: Loop, x0, *, attacks: int = 1, E0: float | None = None, max_len: int | None = None,
                  beam: int = 16, exhaustive_limit: int = 100_000, greedy: bool = True, executor=None,
                  progress=None) -> WorstAttack:
-    """The shortest total DoS duration, in at most ``attacks`` sample-aligned attacks, that makes
-    the loop from ``x0`` escape (see the module docstring for the search and its exactness).
+    """The fewest lost samples S*(n), and the least duration, with which at most n = 1..``attacks``
+    attacks make the loop from ``x0`` escape (the module docstring: pricing, search, exactness).
 
     Parameters
     ----------
     loop : the closed loop; x0 : (n,) initial state; E0 : default :func:`e0_for`.
-    attacks : A >= 1, the most attack intervals.
-    max_len : longest single attack tried, in samples (default N).
-    beam : beam width of the search for A >= 2.
-    exhaustive_limit : enumerate every schedule of 2..A runs below the beam's answer when there
-        are at most this many (then the answer is exact).
+    attacks : the most attack intervals (the front is computed for 1..attacks).
+    max_len : most lost samples tried (default N, the whole horizon).
+    beam : beam width of the search where the enumeration stops.
+    exhaustive_limit : schedules enumerated per number of attacks (n >= 2) before the beam
+        search takes over.
     greedy : also search the greedy online attacker's least duration budget (for comparison).
     """
     t0 = time.perf_counter()
     if int(attacks) < 1:
         raise ValueError(f"attacks must be >= 1, got {attacks}")
-    attacks = int(attacks)
+    A = int(attacks)
     x0 = np.asarray(x0, dtype=float).ravel()
     X0 = x0[None, :]
     e0 = float(e0_for(loop, X0)[0] if E0 is None else E0)
     N = int(loop.n_steps)
+    T = loop.T
     Lmax = N if max_len is None else max(1, min(int(max_len), N))
-    sr = least_single(loop, X0, E0=[e0], max_len=Lmax, executor=executor, progress=progress,
-                      keep_pool=attacks >= 2)
+    crit = loop.escape.to_dict()
+    sr = least_single(loop, X0, E0=[e0], max_len=Lmax, executor=executor, progress=progress, keep_pool=A >= 2)
     ev, steps = sr.evaluated, sr.traj_steps
     L1, k1 = int(sr.L[0]), int(sr.k0[0])
+    gr = _greedy(loop, x0, e0, A, executor) if greedy else None
     if L1 == 0:
-        return WorstAttack(x0, e0, loop.T, N, attacks, (), True, True, "no attack needed", True,
-                           evaluated=ev, traj_steps=steps, wall=time.perf_counter() - t0, max_len=Lmax,
-                           greedy=_greedy(loop, x0, e0, attacks, executor) if greedy else None)
-    runs = ((k1, L1),) if L1 > 0 else ()
-    single = {"intervals": runs_to_intervals(runs, loop.T), "total_duration": duration_samples(runs) * loop.T,
-              "escaped": L1 > 0, "exact": True}
-    method = "exhaustive over start and length"
-    exact = True
-    escaped = L1 > 0
-    if attacks >= 2:
-        best_d = L1 - 1 if L1 > 0 else Lmax  # strictly below this (in samples) is an improvement
-        best_runs = runs
-        # ---- beam search
-        pool = sorted(((p, (k, ell)) for _s, k, ell, p in sr.pool if ell - 1 < best_d), reverse=True)
-        level = []
-        seen = set()
-        for _p, r in pool:
-            if len(level) >= beam:
+        front = [{"attacks": n, "samples_lost": 0, "total_duration": 0.0, "intervals": [], "exact": True,
+                  "escaped": True} for n in range(1, A + 1)]
+        proof = [{"attacks": n, "samples_lost_below": 0, "horizon_samples": N, "schedules": 0}
+                 for n in range(1, A + 1)]
+        return WorstAttack(x0, e0, T, N, A, front, proof, "no attack needed: the quantized loop escapes alone",
+                           True, crit, None, gr, ev, steps, time.perf_counter() - t0, Lmax, ())
+
+    def run(cands):
+        nonlocal ev, steps
+        esc, peak = evaluate(loop, np.repeat(X0, len(cands), 0), np.full(len(cands), e0), theta_table(cands, N),
+                             np.arange(len(cands)), executor=executor, progress=progress)
+        ev += len(cands)
+        steps += len(cands) * N
+        return esc, peak
+
+    best = ((k1, L1),) if L1 > 0 else None          # the answer for n attacks so far (runs)
+    proven = L1 if L1 > 0 else Lmax + 1              # every schedule of <= n attacks below this fails
+    enumerated = 0
+    single = _entry(1, best, best is not None, L1 > 0 or Lmax == N, T)
+    front = [single]
+    proof = [{"attacks": 1, "samples_lost_below": proven, "horizon_samples": N, "schedules": sr.evaluated}]
+    notes = ["n = 1: every start and length"]
+    # beam level: non-escaping schedules of n - 1 runs, highest peak first
+    level = [((k, ell),) for _p, k, ell in sorted(((p, k, ell) for _s, k, ell, p in sr.pool), reverse=True)]
+    seen = set()
+    for n in range(2, A + 1):
+        U = samples_lost(best) if best is not None else Lmax + 1   # look strictly below U
+        # ---- exhaustive: exactly n runs, S = n, n + 1, ... < U
+        s, spent, hit = n, 0, None
+        while s < U:
+            cnt = count_schedules(n, s - n, N)
+            if spent + cnt > exhaustive_limit:
                 break
-            level.append(((r,), r[1] - 1))
-            seen.add((r,))
-        # ... and the shorter attacks near the best single one: a delivered packet in the middle of
-        # an attack costs the attacker little and saves one T of duration (two runs of L_a + L_b
-        # lost packets last L_a + L_b - 2 samples, one run L_a + L_b - 1)
-        if L1 > 0:
-            for _p, (k, ell) in pool:
-                if abs(k - k1) <= 2 and L1 - 4 <= ell < L1 and ((k, ell),) not in seen:
-                    level.append((((k, ell),), ell - 1))
-                    seen.add(((k, ell),))
-        for _m in range(2, attacks + 1):
-            cands = []
-            for prefix, d_used in level:
-                room = best_d - 1 - d_used  # the new run may add at most this much duration
-                for ell in range(1, room + 2):
+            cands = list(all_schedules(n, s - n, N))
+            spent += cnt
+            if cands:
+                seen.update(cands)
+                esc, _ = run(cands)
+                if esc.any():
+                    hit = cands[int(np.flatnonzero(esc)[0])]
+                    break
+            s += 1
+        enumerated += spent
+        if hit is not None:
+            best, U = hit, s
+        proven_n = s if s < U or hit is not None else U   # exactly n runs: none below this escapes
+        note = f"n = {n}: every schedule of {n} runs with fewer than {proven_n} lost samples ({spent})"
+        # ---- beyond the enumeration: beam search and local descent
+        if hit is None and s < U:
+            used = []
+            nxt = []
+            for prefix in level[:beam]:
+                S0 = samples_lost(prefix)
+                for ell in range(1, U - S0):
+                    if S0 + ell < s:
+                        continue
                     for k in range(0, N - ell + 1):
                         if _valid_add(prefix, k, ell):
                             c = tuple(sorted(prefix + ((k, ell),)))
                             if c not in seen:
                                 seen.add(c)
-                                cands.append(c)
-            if not cands:
-                break
-            esc, peak = evaluate(loop, np.repeat(X0, len(cands), 0), np.full(len(cands), e0),
-                                 theta_table(cands, N), np.arange(len(cands)), executor=executor,
-                                 progress=progress)
-            ev += len(cands)
-            steps += len(cands) * N
-            ds = np.array([duration_samples(c) for c in cands])
-            if esc.any():
-                i = min(np.flatnonzero(esc), key=lambda j: (ds[j], cands[j]))
-                if ds[i] < best_d:
-                    best_d, best_runs = int(ds[i]), cands[i]
-                    escaped = True
-            keep = [j for j in np.argsort(-peak, kind="stable") if not esc[j] and ds[j] < best_d]
-            level = [(cands[j], int(ds[j])) for j in keep[:beam]]
-        # ---- local search: split a run of the best schedule (one delivered packet inside it) and
-        #      shift the pieces by a sample, while it improves
-        while escaped and len(best_runs) < attacks:
-            cands = sorted(c for c in _splits(best_runs, N) if c not in seen and duration_samples(c) < best_d)
-            if not cands:
-                break
-            seen.update(cands)
-            esc, _ = evaluate(loop, np.repeat(X0, len(cands), 0), np.full(len(cands), e0), theta_table(cands, N),
-                              np.arange(len(cands)), executor=executor, progress=progress)
-            ev += len(cands)
-            steps += len(cands) * N
-            hits = [c for c, e in zip(cands, esc) if e]
-            if not hits:
-                break
-            best_runs = min(hits, key=lambda c: (duration_samples(c), c))
-            best_d = duration_samples(best_runs)
-        method = f"beam search (width {beam}) and local search over 2..{attacks} attacks"
-        exact = best_d == 0 and escaped
-        # ---- certify: enumerate every schedule of 2..A runs below the answer, if few enough
-        if not exact and escaped:
-            total = sum(count_schedules(m, e, N) for m in range(2, attacks + 1) for e in range(best_d))
-            if total <= exhaustive_limit:
-                cands = [c for m in range(2, attacks + 1) for e in range(best_d) for c in all_schedules(m, e, N)]
-                if cands:
-                    esc, _ = evaluate(loop, np.repeat(X0, len(cands), 0), np.full(len(cands), e0),
-                                      theta_table(cands, N), np.arange(len(cands)), executor=executor,
-                                      progress=progress)
-                    ev += len(cands)
-                    steps += len(cands) * N
-                    if esc.any():
-                        ds = np.array([duration_samples(c) for c in cands])
-                        i = min(np.flatnonzero(esc), key=lambda j: (ds[j], cands[j]))
-                        best_d, best_runs = int(ds[i]), cands[i]
-                exact = True
-                method += f", then every schedule below it enumerated ({total} of them)"
+                                nxt.append(c)
+            if nxt:
+                esc, peak = run(nxt)
+                used.append(len(nxt))
+                Ss = np.array([samples_lost(c) for c in nxt])
+                if esc.any():
+                    i = min(np.flatnonzero(esc), key=lambda j: (Ss[j], nxt[j]))
+                    if Ss[i] < U:
+                        best, U = nxt[i], int(Ss[i])
+                order = [j for j in np.argsort(-peak, kind="stable") if not esc[j]]
+                level = [nxt[j] for j in order[:beam]]
             else:
-                method += f" (not exact: {total} schedules below the answer, more than {exhaustive_limit})"
-        runs = best_runs
-    else:
-        exact = L1 > 0  # with no escape up to max_len, "none" is exact only for max_len = N
-        if L1 < 0:
-            exact = Lmax == N
-    return WorstAttack(x0, e0, loop.T, N, attacks, tuple(runs), escaped, exact, method, False, single,
-                       _greedy(loop, x0, e0, attacks, executor) if greedy else None, ev, steps,
-                       time.perf_counter() - t0, Lmax)
+                level = []
+            while best is not None:
+                cands = sorted(c for c in _neighbours(best, N, n) if c not in seen)
+                if not cands:
+                    break
+                seen.update(cands)
+                esc, _ = run(cands)
+                used.append(len(cands))
+                hits = [c for c, e in zip(cands, esc) if e and samples_lost(c) < U]
+                if not hits:
+                    break
+                best = min(hits, key=lambda c: (samples_lost(c), c))
+                U = samples_lost(best)
+            note += f", then beam search (width {beam}) and local descent ({sum(used)})"
+        proven = min(proven, proven_n)
+        found = best is not None
+        exact = proven >= samples_lost(best) if found else (proven > Lmax and Lmax == N)
+        front.append(_entry(n, best, found, exact, T))
+        proof.append({"attacks": n, "samples_lost_below": proven, "horizon_samples": N,
+                      "schedules": sr.evaluated + enumerated})
+        notes.append(note)
+    search = ("least lost samples per number of attacks, priced (S - min(n, S)) T: " + "; ".join(notes))
+    return WorstAttack(x0, e0, T, N, A, front, proof, search, False, crit, single, gr, ev, steps,
+                       time.perf_counter() - t0, Lmax, tuple(best) if best is not None else ())
 
 
 # ============================================================================ the greedy attacker, for comparison
@@ -518,9 +626,9 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
             idx = [j for j, c in enumerate(sel) if c[2] == sc]
             out = run_batch(loop.plant, loop.K, loop.qp, np.repeat(x0[None, :], len(idx), 0), N,
                             E0=np.full(len(idx), e0), greedy_params=gp[idx], score=sc, flow=loop.flow,
-                            fields=("x_final", "status"), executor=executor, model=loop.nominal)
-            _, esc = classify(loop.nominal, loop.K, T, out["x_final"], out["status"], loop.tol,
-                              escape_horizon=ESCAPE_HORIZON, flow=loop.flow, executor=executor)
+                            fields=_EVAL_FIELDS, executor=executor, model=loop.nominal)
+            _, esc = classify(loop.plant, loop.K, loop.qp, out, loop.escape, model=loop.nominal, flow=loop.flow,
+                              executor=executor)
             for j in np.flatnonzero(esc):
                 d, th, _ = sel[idx[j]]
                 if best is None or (d, th) < (best[0], best[1]):
@@ -544,11 +652,12 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
 # ============================================================================ the vulnerability map
 @dataclass
 class VulnerabilityMap:
-    """Least DoS duration per grid state of the nominal region of attraction.
+    """Least lost samples and least DoS duration per grid state of the nominal region of attraction.
 
-    ``duration[iy, ix]`` in seconds for the state (xs[ix], ys[iy]): nan outside the region;
-    ``samples[iy, ix]`` lost samples of the answer (0: the quantized loop escapes without any
-    attack, -1: no schedule up to ``max_len`` samples escapes, -2: outside the region).
+    ``samples[iy, ix]``: S*(attacks), the fewest lost samples with which at most ``attacks``
+    attacks make the loop from (xs[ix], ys[iy]) escape (0: the quantized loop escapes without
+    any attack, -1: no schedule up to ``max_len`` samples escapes, -2: outside the region);
+    ``duration[iy, ix]``: its price (S - min(attacks, S)) T in seconds (nan: none or outside).
     """
 
     xs: np.ndarray
@@ -565,10 +674,13 @@ class VulnerabilityMap:
     wall: float = 0.0
     traj_steps: int = 0
     evaluated: int = 0
+    criterion: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         inside = self.samples > -2
-        d = self.duration[inside & (self.samples > 0)]
+        hit = inside & (self.samples > 0)
+        d = self.duration[hit]
+        S = self.samples[hit]
 
         def clean(a):
             return [[None if not np.isfinite(v) else float(v) for v in row] for row in a]
@@ -580,21 +692,28 @@ class VulnerabilityMap:
                 "escape_unattacked": int(np.sum(self.samples == 0)),
                 "no_escape_found": int(np.sum(self.samples == -1)),
                 "all_exact": bool(np.all(self.exact[inside])),
+                "states_exact": int(np.sum(self.exact[inside])),
                 "least_duration": None if d.size == 0 else round(float(d.min()), 12),
                 "median_duration": None if d.size == 0 else round(float(np.median(d)), 12),
                 "largest_duration": None if d.size == 0 else round(float(d.max()), 12),
+                "least_samples": None if S.size == 0 else int(S.min()),
+                "median_samples": None if S.size == 0 else float(np.median(S)),
+                "largest_samples": None if S.size == 0 else int(S.max()),
                 "delta": self.delta, "xs": self.xs.tolist(), "ys": self.ys.tolist(),
                 "duration": clean(self.duration), "samples": self.samples.tolist(),
+                "exact": self.exact.tolist(), "escape_criterion": self.criterion,
                 "wall_s": self.wall, "traj_steps": self.traj_steps, "candidates": self.evaluated}
 
 
 def vulnerability_map(loop: Loop, roa, *, attacks: int = 1, max_len: int | None = None, beam: int = 16,
-                      executor=None, progress=None, delta: float | None = None) -> VulnerabilityMap:
-    """Least DoS duration (at most ``attacks`` sample-aligned attacks) over the states of a
-    nominal region of attraction grid (``roa``: a ``RoaResult``); see :func:`worst_attack`.
+                      exhaustive_limit: int = 100_000, executor=None, progress=None,
+                      delta: float | None = None) -> VulnerabilityMap:
+    """S*(attacks) and its least duration over the states of a nominal region of attraction grid
+    (``roa``: a ``RoaResult``); the search and pricing of :func:`worst_attack`.
 
-    A = 1 is exact and batched over every state at once; A >= 2 runs :func:`worst_attack`'s
-    beam search state by state (much slower).  E_0 = max(quantizer E_0, ||x_0||_inf) per state.
+    attacks = 1 is exact and batched over every state at once; attacks >= 2 runs
+    :func:`worst_attack` state by state (much slower).  E_0 = max(quantizer E_0, ||x_0||_inf)
+    per state.
     """
     t0 = time.perf_counter()
     GX, GY = np.meshgrid(roa.xs, roa.ys, indexing="xy")
@@ -613,26 +732,23 @@ def vulnerability_map(loop: Loop, roa, *, attacks: int = 1, max_len: int | None 
         Ls = sr.L
         ex = np.ones(len(X), dtype=bool) if Lmax == N else Ls >= 0
         ev, steps = sr.evaluated, sr.traj_steps
-        dur = np.where(Ls > 0, np.round((Ls - 1) * loop.T, 12), np.where(Ls == 0, 0.0, np.nan))
     else:
         Ls = np.zeros(len(X), dtype=np.int64)
-        dur = np.zeros(len(X))
         ex = np.zeros(len(X), dtype=bool)
         for i, x in enumerate(X):
-            w = worst_attack(loop, x, attacks=attacks, max_len=Lmax, beam=beam, greedy=False, executor=executor)
+            w = worst_attack(loop, x, attacks=attacks, max_len=Lmax, beam=beam, exhaustive_limit=exhaustive_limit,
+                             greedy=False, executor=executor)
             ev += w.evaluated
             steps += w.traj_steps
-            if w.unattacked_escapes:
-                Ls[i], dur[i] = 0, 0.0
-            elif w.escaped:
-                Ls[i], dur[i] = int(sum(L for _, L in w.runs)), w.total_duration
-            else:
-                Ls[i], dur[i] = -1, np.nan
-            ex[i] = w.exact
+            a = w.answer
+            Ls[i] = 0 if w.unattacked_escapes else (a["samples_lost"] if a["escaped"] else -1)
+            ex[i] = a["exact"]
             if progress is not None:
                 progress(i + 1, len(X))
+    dur = np.array([least_duration_samples(S, attacks) * loop.T if S > 0 else (0.0 if S == 0 else np.nan)
+                    for S in Ls], dtype=float)
     samples[inside] = Ls
-    duration[inside] = dur
+    duration[inside] = np.round(dur, 12)
     exact[inside] = ex
     return VulnerabilityMap(roa.xs, roa.ys, tuple(roa.dims), duration, samples, int(attacks), exact, loop.T, N,
-                            Lmax, delta, time.perf_counter() - t0, steps, ev)
+                            Lmax, delta, time.perf_counter() - t0, steps, ev, loop.escape.to_dict())

@@ -1,0 +1,45 @@
+"""Process tier: the scenario ``testbed worst-attack --scenario-out`` writes escapes in a live ``testbed run``."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from testbed import scenario
+
+pytestmark = pytest.mark.process
+
+
+def test_the_worst_attack_scenario_escapes_live(tmp_path):
+    from test_live_process import live_exact, reap
+
+    # the paper's loop over a 3 s horizon (a live run of 3 s); two attacks at most
+    base = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()
+    short = tmp_path / "paper3.toml"
+    short.write_text(re.sub(r"^duration = .*$", "duration = 3.0", base, flags=re.M))
+    out = tmp_path / "worst.toml"
+    p = subprocess.run([sys.executable, "-m", "testbed.cli", "worst-attack", str(short), "--attacks", "2", "--json",
+                        "--no-progress", "--no-greedy", "--scenario-out", str(out)],
+                       capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr
+    d = json.loads(p.stdout)
+    assert d["escaped"] and d["n_steps"] == 30 and out.exists()
+    p = subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", str(out), "--json"], capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    sim = json.loads(p.stdout)
+    assert sim["escaped"] is True
+    rid = f"t{os.getpid()}xworst"
+    try:
+        rc, s, err = live_exact(rid, str(out))
+    finally:
+        assert not reap(rid)
+    assert s["escaped"] is True, (rc, s.get("faults"), err[-2000:])
+    assert s["escape_criterion"] == sim["escape_criterion"]
+    assert s["theta"] == sim["theta"] and s["x_final"] == sim["x_final"]
