@@ -30,6 +30,7 @@ from plants.base import PlantFault
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
                        Send, corrupt_payload)
+from .methods.base import symbol_code
 from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
@@ -68,6 +69,10 @@ class SimResult:
     plant_fault: str | None = None  # the true plant failed (``plants.PlantFault``): its one line
     plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
     loop_state: np.ndarray | None = None  # both ends' xi, E, u_{k-1} after the last sample (``loop_state_of``)
+    method_fault: str | None = None  # the method's end raised (its one line) ...
+    method_fault_at: int = -1        # ... at this sample
+    lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
+    ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
 
     @property
     def saturations(self) -> int:
@@ -80,6 +85,8 @@ class SimResult:
     @property
     def agree(self) -> bool:
         """Encoder and decoder xi_k, E_k identical at every sample the encoder sent (bit for bit)."""
+        if self.lockstep_breaks:
+            return False
         known = np.isfinite(self.E_enc)
         if self.withheld is None and not known.all():
             return False
@@ -148,7 +155,7 @@ class Replay:
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
                   flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
                   u_max: float = math.inf, network: Network | None = None,
-                  replay: Replay | None = None) -> SimResult:
+                  replay: Replay | None = None, method=None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
 
     The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
@@ -170,6 +177,10 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     the run at that sample: the result holds samples 0..k, x_final is the process's state
     at the fault, and ``plant_fault`` / ``plant_fault_at`` say what and where (a failed
     ``reset`` gives a run of no samples).  Nothing is raised.
+
+    ``method``: the coding-and-control method (``testbed.methods.Method``; default the paper's).
+    A method whose ends raise ends the run at that sample (``method_fault``, ``method_fault_at``);
+    one whose ends' shared state differs is counted in ``lockstep_breaks`` (``agree`` is then False).
     """
     model = plant if model is None else model
     n, m = model.n, model.m
@@ -197,8 +208,15 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                        deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max)
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     delays = np.zeros(N, dtype=np.int64) if physical else None
-    encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
-    ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
+    if method is None:
+        encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
+        ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
+    else:
+        encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
+        ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
+    enc_state: dict = {}
+    breaks = []
+    mfault, mfault_at = None, -1
     cb = ctlp.codebook
     rec = {k: np.full((N, n), np.nan) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
     u_rec = np.zeros((N, m))
@@ -216,6 +234,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     last = N
 
     def record(d) -> None:
+        if d.state is not None and d.k in enc_state and not np.array_equal(enc_state.pop(d.k), d.state):
+            breaks.append(d.k)
         theta[d.k] = d.theta
         rec["q"][d.k] = d.q
         rec["xi_dec"][d.k] = d.xi
@@ -226,37 +246,24 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     for k in range(N):
         x = process.x
         rec["x"][k] = x
-        if replay is None or not replay.withheld[k]:
-            for a in acks:
-                encp.ack(*a)
-            acks.clear()
-        # --- encoder
-        send = None
-        if replay is None or replay.sensed[k]:
-            send = encp.sensor(k, x)
+        try:
+            send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb)
+        except Exception as e:  # noqa: BLE001 - a method's end raised: the run ends at this sample
+            if method is None:
+                raise
+            mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \
+                                      f"{type(e).__name__}: {e}", k, k
+            break
         if isinstance(send, Send):
-            symbols[k], sat[k] = send.symbol, send.saturated
+            if send.state is not None:
+                enc_state[k] = send.state
+            symbols[k], sat[k] = symbol_code(send.symbol), send.saturated
             rec["xi_enc"][k] = send.xi
             E_enc[k] = send.E
             rec["q_enc"][k] = send.q
         else:
             withheld[k] = True
-        # --- attacker and controller
-        payload = cb.pack(send.symbol) if isinstance(send, Send) else None
-        if replay is None:
-            drop = attacker.decide(k, x, encp.enc.E) if attacker is not None else 0
-            if drop:
-                payload = None
-            elif payload is not None and k in corrupt:
-                payload = corrupt_payload(cb, payload, corrupt[k])
-        else:
-            drop = 0
-            r = int(replay.reason[k])
-            if r == INVALID and payload is not None:
-                payload = corrupt_payload(cb, payload, "length")
-            elif r != RECEIVED:
-                payload = None
-        decs = ctlp.symbol(k, payload) if payload is not None else [ctlp.deadline(k)]
+        drop = decs.pop()
         for d in decs:
             record(d)
             if not (net.ack_via_attacker and drop):
@@ -288,8 +295,9 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
-    for a in acks:
-        encp.ack(*a)
+    if mfault is None:
+        for a in acks:
+            encp.ack(*a)
     sl = slice(0, last)
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=rec["x"][sl], u=u_rec[sl], q=rec["q"][sl],
                      q_enc=rec["q_enc"][sl], xi_enc=rec["xi_enc"][sl], E_enc=E_enc[sl],
@@ -299,7 +307,38 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      delays=None if delays is None else delays[:last].copy(),
                      counters={"encoder": encp.counters(), "controller": ctlp.counters(),
                                "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
-                     plant_fault=fault, plant_fault_at=fault_at, loop_state=loop_state_of(encp.enc, ctlp.dec))
+                     plant_fault=fault, plant_fault_at=fault_at,
+                     loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
+                     method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
+                     ends=(encp.enc, ctlp.dec))
+
+
+def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb):
+    """One sample of the method's ends through the protocol: the encoder (acks first), the
+    attacker and the controller.  Returns (send, decisions + [drop])."""
+    if replay is None or not replay.withheld[k]:
+        for a in acks:
+            encp.ack(*a)
+        acks.clear()
+    send = None
+    if replay is None or replay.sensed[k]:
+        send = encp.sensor(k, x)
+    payload = cb.pack(send.symbol) if isinstance(send, Send) else None
+    if replay is None:
+        drop = attacker.decide(k, x, encp.enc.E) if attacker is not None else 0
+        if drop:
+            payload = None
+        elif payload is not None and k in corrupt:
+            payload = corrupt_payload(cb, payload, corrupt[k])
+    else:
+        drop = 0
+        r = int(replay.reason[k])
+        if r == INVALID and payload is not None:
+            payload = corrupt_payload(cb, payload, "length")
+        elif r != RECEIVED:
+            payload = None
+    decs = ctlp.symbol(k, payload) if payload is not None else [ctlp.deadline(k)]
+    return send, decs + [drop]
 
 
 # ============================================================================ batch kernel
