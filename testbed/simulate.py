@@ -31,6 +31,7 @@ from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
                        Send, corrupt_payload)
 from .methods.base import symbol_code
+from .methods.bundled import unaware_update
 from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
@@ -400,6 +401,9 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
             u_held[r] = 0.0
         E_e = E0
         E_d = E0
+        if mode == 3 or mode == 5 or mode == 6:  # static (E0 is its range), unquantized: no zoom state
+            E_e = 0.0
+            E_d = 0.0
         if from_state:
             for i in range(n):
                 xi_e[i] = init_state[b, i]
@@ -445,6 +449,34 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                 th_rec[b, k] = th
             if mode == 2:  # no quantization: u_k = (1 - theta_k) K x_k
                 control_input(Kgain, x, th, False, u)
+            elif mode == 5:  # method unquantized: u_k = (1 - theta_k) K x_k, both ends keep u_k
+                control_input(Kgain, x, th, False, u)
+                for r in range(m):
+                    up_e[r] = u[r]
+                    up_d[r] = u[r]
+            elif mode == 6:  # method unquantized-hold: u_k = K x_k, or u_{k-1} through a loss
+                if th == 0:
+                    control_input(Kgain, x, 0, False, u)
+                    for r in range(m):
+                        up_e[r] = u[r]
+                        up_d[r] = u[r]
+                else:
+                    for r in range(m):
+                        u[r] = up_d[r]
+            elif mode == 3:  # method static: Q(0, R) with R = E0, M levels, no zoom
+                for i in range(n):
+                    xi_e_n[i] = 0.0
+                idx, sat = quantize_index(x, xi_e_n, E0, M)
+                if sat:
+                    nsat += 1
+                if th == 0:
+                    box_center(idx, xi_e_n, E0, M, q_d)
+                else:
+                    for i in range(n):
+                        q_d[i] = 0.0
+                control_input(Kgain, q_d, th, False, u)
+                for r in range(m):
+                    up_d[r] = u[r]
             else:
                 # --- encoder (Algorithm 1)
                 idx, sat = quantize_index(x, xi_e, E_e, M)
@@ -452,7 +484,7 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                 sym = idx
                 if sat:
                     nsat += 1
-                    if mode == 1:
+                    if mode == 1 or mode == 4:
                         sym = n_codes_box
                 overflow = sym == n_codes_box
                 # --- decoder / controller (Algorithm 2, law (2))
@@ -463,10 +495,16 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                         q_d[i] = 0.0
                 control_input(Kgain, q_d, th, overflow, u)
                 # --- both ends: rules (xi), (E) on the model; each computes its own prediction
-                E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
-                                         M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
-                E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
-                                         M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
+                if mode == 4:  # method zoom: the zoom-in whatever theta_k (``methods.bundled.unaware_update``)
+                    E_e_n, _s1 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e,
+                                                Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
+                    E_d_n, _s2 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d,
+                                                Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
+                else:
+                    E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
+                                             M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
+                    E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
+                                             M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
                 same = E_e_n == E_d_n
                 for i in range(n):
                     xi_e[i] = xi_e_n[i]
@@ -570,7 +608,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
                    timing=None, latency=None, latency_idx=None, u_max: float = math.inf, greedy_params=None,
                    score: str = "state", mode: str | None = None, record: bool = False,
                    flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False, init_state=None,
-                   stop=None) -> BatchResult:
+                   stop=None, method=None) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
 
     Parameters
@@ -605,6 +643,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         instead of xi_0 = 0, E_0 = ``qp.E0``, u_{-1} = 0 (the continuation of a loop).
     stop : (x_tol, E_tol, x_out): a trajectory stops at the first sample with ||x_k||_inf <
         x_tol and E_k < E_tol at both ends, or with ||x_k||_inf > x_out (``stop_k`` is that sample).
+    method : a bundled method (``testbed.methods``) to run instead of the paper's (``mode`` is then
+        the method's); a method without a kernel (a user's) raises ``ValueError``.
     """
     X0 = np.ascontiguousarray(np.atleast_2d(np.asarray(X0, dtype=np.float64)))
     B, n = X0.shape
@@ -650,6 +690,16 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         raise ValueError(f"model {model.name} (n={model.n}, m={model.m}) does not match plant {plant.name} "
                          f"(n={plant.n}, m={plant.m})")
     mode_code = MODES[mode or qp.mode]
+    dpar = qp.dpar
+    E0 = float(qp.E0)
+    if method is not None and mode is None:
+        mode_code = method.kernel_code(qp)
+        if mode_code is None:
+            raise ValueError(f"method {method.display_name()!r} has no batch kernel (a user's method runs in "
+                             "the per-sample simulator and live only)")
+        E0 = float(method.kernel_E0(qp))
+        if mode_code == 4:
+            dpar = np.zeros(4)
     shp = (B, N) if record else (0, 0)
     X_rec = np.zeros(shp + (n,)) if record else np.zeros((0, 0, n))
     E_rec = np.zeros(shp)
@@ -670,8 +720,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
 
         kernel = specialized(_batch_kernel, {"rhs": type(plant).rhs, "rhs_m": type(model).rhs})
     rhs, rhs_m = type(plant).rhs.cfunc, type(model).rhs.cfunc
-    kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
-           float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, float(u_max), tab, sched_idx,
+    kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, E0, int(qp.M),
+           float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), dpar, float(u_max), tab, sched_idx,
            tpar, ltab, latency_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
