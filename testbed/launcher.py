@@ -777,7 +777,6 @@ class Launcher:
         import zenoh
 
         from .nodes.collect import Collector
-        from .loopspec import Codebook
 
         def on_signal(signum, _frame):
             self.signal = signum
@@ -844,7 +843,7 @@ class Launcher:
                 from .runsummary import build_summary  # loaded meanwhile by ``_warm_summary``
 
                 plant = self.sc.make_model()
-                cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
+                cb = self.sc.make_method().codebook(plant.n, self.sc.quantizer)
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in self.processes}
                 for r in self.colocated:  # a role inside another process: that process's exit, unless it died alone
                     host = self.opts.process_of(r)

@@ -31,7 +31,7 @@ from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
                        Send, corrupt_payload)
 from .methods.base import symbol_code
-from .methods.bundled import unaware_update
+from .methods.ends import unaware_update
 from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
@@ -788,15 +788,15 @@ class EscapeCriterion:
         return int(round(self.horizon_s / T))
 
 
-def _batch_runner(plant, K, qp, model, flow):
+def _batch_runner(plant, K, qp, model, flow, method=None):
     def run(X, S, n_steps, stop):
-        r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop)
+        r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop, method=method)
         return {"x_final": r.x_final, "status": r.status, "state_final": r.state_final}
     return run
 
 
 def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, criterion: EscapeCriterion, *,
-                 model=None, flow: FlowOptions = DEFAULT_FLOW, run=None) -> np.ndarray:
+                 model=None, flow: FlowOptions = DEFAULT_FLOW, run=None, method=None) -> np.ndarray:
     """Whether each run escaped (:class:`EscapeCriterion`): (B,) bool.
 
     Parameters
@@ -816,7 +816,7 @@ def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, cr
     esc = np.asarray(status).reshape(B) != FLOW_OK
     go = np.flatnonzero(~esc)
     if go.size:
-        run = run or _batch_runner(plant, K, qp, model, flow)
+        run = run or _batch_runner(plant, K, qp, model, flow, method)
         S = np.atleast_2d(np.asarray(state_final, dtype=np.float64))[go]
         c = criterion
         out = run(x_final[go], S, c.steps(qp.T), (c.x_tol, c.E_tol, c.x_out))
@@ -881,7 +881,7 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
     try:
         return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
                              process=process, timing=sc.timing_params, latency=latency,
-                             u_max=sc.controller.u_max, network=network)
+                             u_max=sc.controller.u_max, network=network, method=sc.make_method())
     finally:
         process.close()
 
@@ -926,10 +926,19 @@ def plant_and_model(sc) -> dict:
 def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
     """:func:`judge_escape` of one per-sample run of scenario ``sc`` (its own end state, else the one
     :func:`loop_state_from_samples` rebuilds from its record)."""
-    if res.flow_status != FLOW_OK:
+    if res.flow_status != FLOW_OK or res.method_fault is not None:
         return True
     model = sc.make_model()
     plant = model if sc.plant.fmu is not None else sc.make_plant()
+    method = sc.make_method()
+    if method.kernel_code(sc.quantizer) is None:  # a user's method: its own ends, continued per sample
+        return _continue_ends(plant, res, criterion, sc.T, sc.flow, sc.controller.u_max)
+    if sc.method.name != "paper":
+        st = res.loop_state if res.loop_state is not None else None
+        if st is None:
+            return not (res.final_norm < criterion.x_tol)
+        return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
+                                 model=model, flow=sc.flow, method=method)[0])
     st = res.loop_state
     if st is None:
         st = loop_state_from_samples(res, model, sc.quantizer, sc.flow)
@@ -938,6 +947,35 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
         st = loop_state_of(dec, dec)
     return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
                              model=model, flow=sc.flow)[0])
+
+
+def _continue_ends(plant, res: SimResult, c: EscapeCriterion, T: float, flow, u_max: float) -> bool:
+    """:class:`EscapeCriterion` for a method without a batch kernel: its own two ends (``res.ends``),
+    continued from where the run ended with theta_k = 0 and the true plant under ideal timing.
+    Escaped unless ||x|| < x_tol with both ends' E below E_tol within the horizon."""
+    if res.ends is None:
+        return not (res.final_norm < c.x_tol)
+    enc, dec = res.ends
+    proc = OdeProcess(plant, flow)
+    proc.reset(res.x_final)
+    for _ in range(c.steps(T)):
+        x = proc.x
+        nrm = float(np.max(np.abs(x)))
+        if nrm < c.x_tol and float(getattr(enc, "E", 0.0)) < c.E_tol and float(getattr(dec, "E", 0.0)) < c.E_tol:
+            return False
+        if nrm > c.x_out:
+            return True
+        try:
+            sym, _sat = enc.encode(x)
+            u, _q, _th = dec.decide(sym)
+            dec.commit()
+            enc.ack(0)
+        except Exception:  # noqa: BLE001 - the method failed: the loop did not recover
+            return True
+        u = np.clip(np.asarray(u, dtype=np.float64), -u_max, u_max)
+        if not np.all(np.isfinite(u)) or proc.advance(u, T) != FLOW_OK:
+            return True
+    return True
 
 
 def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
@@ -954,15 +992,17 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     model = sc.make_model()
     tol = sc.run.converge_tol
     flow_diverged = res.flow_status != FLOW_OK
-    diverged = flow_diverged or res.plant_fault is not None
+    diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
     converged = (not diverged) and res.final_norm < tol
     crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
     escaped = escaped_run(sc, res, crit)
     sch = res.intervals()
-    cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    cb = sc.make_method().codebook(model.n, sc.quantizer)
     return json_clean({
         "scenario": sc.name,
         **plant_and_model(sc),
+        "method": sc.method.name,
+        "method_params": dict(sc.method.params),
         "n": model.n,
         "m": model.m,
         "T": sc.T,
@@ -994,6 +1034,11 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
         "plant_fault": res.plant_fault,
         "plant_fault_at": res.plant_fault_at,
+        "method_fault": res.method_fault,
+        "method_fault_at": res.method_fault_at,
+        "lockstep_breaks": list(res.lockstep_breaks),
+        "max_norm": float(max(np.max(np.abs(res.x)) if len(res.x) else 0.0, res.final_norm)),
+        "samples_lost": int(res.theta.sum()),
         "timing_mode": sc.run.timing,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),

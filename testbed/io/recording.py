@@ -139,7 +139,7 @@ def software_versions() -> dict[str, str]:
 
 
 def _module_keys(prefix: str, ref: str, info: dict) -> dict[str, str]:
-    bundled = info.get("module", "").startswith("plants.")  # ships with the testbed (testbed.software)
+    bundled = info.get("module", "").startswith(("plants.", "testbed."))  # ships with the testbed (testbed.software)
     return {f"{prefix}_ref": ref, f"{prefix}_module": info.get("module", ""), f"{prefix}_class": info.get("class", ""),
             f"{prefix}_file": info.get("file", ""), f"{prefix}_source": "" if bundled else info.get("source", ""),
             f"{prefix}_sha256": info.get("sha256", "")}
@@ -165,6 +165,12 @@ def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
         except ValueError:
             minfo = {}
         out.update(_module_keys("model", model.name, minfo))
+    try:
+        meth = sc.method.source_info()
+    except (ValueError, AttributeError):
+        meth = {}
+    out.update(_module_keys("method", sc.method.name, meth))
+    out["method_params"] = json.dumps(dict(sc.method.params)) if sc.method.params else ""
     return out
 
 
@@ -656,14 +662,13 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     import numpy as np
 
     from ..api import attack_on_samples
-    from ..quantizer import Codebook
     from .foxglove_topics import FoxgloveTopics, telemetry_extra
 
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)
     Tn = int(round(sc.T * 1e9))
     N = len(res.t)
     plant = sc.make_model()
-    cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    cb = sc.make_method().codebook(plant.n, sc.quantizer)
     run_id = f"sim-{sc.name}-{t0}"
     w = RecordingWriter(path, flush_interval=flush_interval, exclusive=exclusive)
     fox = FoxgloveTopics(sc, roa=roa)
