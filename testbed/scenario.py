@@ -687,6 +687,8 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         if thr > 1:
             raise ctx.err("attack.threshold", f"must be in [0, 1], got {thr}")
         _str(ctx, "attack.score", aparams.get("score", "state"), ("state", "E"))
+    if kind == "trace":
+        aparams = _trace_params(ctx, aparams, base_dir)
     _check_attack_params(ctx, kind, aparams)
     attack = AttackSpec(kind=str(kind), params=_freeze(aparams), budget=budget)
 
@@ -738,6 +740,60 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) ->
                    params=_freeze(params), checked=check)
 
 
+def read_trace(path: str | Path) -> dict:
+    """The trace of a recording (the samples its *attacker* dropped: not theta, which also counts
+    withheld, late and invalid samples) or of a plain file of dropped sample indices (one per line or
+    separated by spaces or commas; ``# T = 0.1`` and ``# samples = 300`` header lines give the period
+    and the length).  Returns the ``[attack]`` parameters of kind ``trace``."""
+    p = Path(path)
+    if p.suffix == ".mcap":
+        # reading a recording is a shell's job; this is the one place the scenario reads one
+        from .io.columns import read_columns, read_metadata
+        from .io.recording import recorded_scenario
+
+        meta, _ = read_metadata(str(p))
+        rsc, _ps, _ms = recorded_scenario(meta, str(p))
+        cols = read_columns(str(p), fields={"attacker.dropped"}, sc=rsc)
+        has = cols.has("attacker")
+        n = int(len(has))
+        dropped = has & (cols.get("attacker", "dropped")[:n] != 0)
+        return {"samples": np.flatnonzero(dropped).tolist(), "T": float(rsc.T), "n_samples": n, "source": str(p)}
+    text = p.read_text(encoding="utf-8")
+    T = None
+    n = None
+    samples = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("#"):
+            key, _, val = line[1:].partition("=")
+            if key.strip() == "T":
+                T = float(val)
+            elif key.strip() == "samples":
+                n = int(val)
+            continue
+        for tok in line.replace(",", " ").split():
+            samples.append(int(tok))
+    if T is None:
+        raise ValueError(f"{p}: no '# T = SECONDS' line (the period the trace was taken at)")
+    return {"samples": samples, "T": T, "n_samples": n if n is not None else (max(samples) + 1 if samples else 0),
+            "source": str(p)}
+
+
+def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
+    """``[attack] kind = "trace"``: ``source = PATH`` (a recording or a file, relative to the scenario's
+    folder) read now, or the embedded form ``samples``, ``T``, ``n_samples`` (what a recording stores)."""
+    if "samples" in aparams:
+        return dict(aparams)
+    src = aparams.get("source")
+    if not isinstance(src, str) or not src:
+        raise ctx.err("attack.source", "missing: a recording (.mcap) or a file of dropped sample indices")
+    path = Path(src) if Path(src).is_absolute() else Path(base_dir or ".") / src
+    try:
+        return read_trace(path)
+    except (OSError, ValueError, BadInput) as e:
+        raise ctx.err("attack.source", f"{src}: {e}") from None
+
+
 def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
     """Types of the attack's parameters: numbers are numbers (a string "1.0" is an error)."""
     for k, v in aparams.items():
@@ -752,6 +808,12 @@ def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
             continue
         if k == "seed":
             _num(ctx, "attack.seed", v, integer=True)
+            continue
+        if k == "source":
+            continue
+        if k == "samples":
+            if not isinstance(v, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in v):
+                raise ctx.err("attack.samples", "must be a list of sample indices")
             continue
         _num(ctx, f"attack.{k}", v)
 

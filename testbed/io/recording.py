@@ -171,6 +171,8 @@ def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
         meth = {}
     out.update(_module_keys("method", sc.method.name, meth))
     out["method_params"] = json.dumps(dict(sc.method.params)) if sc.method.params else ""
+    if sc.attack.kind == "trace":  # the trace itself, so that the recording needs no other file
+        out["attack_trace"] = json.dumps({"kind": "trace", **sc.attack.params_dict})
     return out
 
 
@@ -354,6 +356,14 @@ def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, _ca
         ms = _resolve_plant(meta, base_dir, "model", path)
         if _cache is not None:
             _cache._resolved = True
+    if meta.get("attack_trace"):  # an embedded trace replaces the file the run read it from
+        import tomllib
+
+        from ..scenario import to_toml
+
+        data = tomllib.loads(toml)
+        data["attack"] = json.loads(meta["attack_trace"])
+        toml = to_toml(data)
     sc = loads(toml, name=str(meta.get("name", "recorded"))[:200], where=f"{path} (recorded scenario)",
                base_dir=base_dir, check_fmu=False)
     over = metadata.get("testbed.run", {}).get("scenario_overrides")
