@@ -692,6 +692,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     mode_code = MODES[mode or qp.mode]
     dpar = qp.dpar
     E0 = float(qp.E0)
+    if method is None:
+        method = getattr(qp, "method", None)   # ``methods.base.MethodQuantizerParams``
     if method is not None and mode is None:
         mode_code = method.kernel_code(qp)
         if mode_code is None:

@@ -31,7 +31,9 @@ import math
 
 import numpy as np
 
-from ..loopspec import Codebook, InvalidSymbol
+from dataclasses import dataclass, field
+
+from ..loopspec import Codebook, InvalidSymbol, QuantizerParams
 
 
 class MethodError(ValueError):
@@ -277,6 +279,14 @@ class Method:
     def kernel_E0(self, qp) -> float:
         """The E0 the batch kernel starts from (the method's own range where it has one)."""
         return float(qp.E0)
+
+
+@dataclass(frozen=True)
+class MethodQuantizerParams(QuantizerParams):
+    """A loop's ``QuantizerParams`` carrying its method, for the batch kernel (``simulate_batch``) of the
+    analyses (sweep, roa --vulnerable, worst-attack, vulnerability), which pass the quantizer around."""
+
+    method: object = field(default=None, compare=False, repr=False)
 
 
 def finite_params(method: Method, *names: str) -> None:
