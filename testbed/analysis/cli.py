@@ -551,7 +551,7 @@ def _roa(sc, plant, args, ex) -> int:
     if args.json:
         from .summary import to_json
 
-        _write_json(to_json(out))
+        _write_json({**to_json(out), "method": sc.method.name})
     else:
         r = out["roa"]
         print(f"scenario {sc.name}: nominal region of attraction on a {r['grid'][0]} x {r['grid'][1]} grid, "
@@ -648,7 +648,7 @@ def main_sweep(args) -> int:
                                             f"($\\kappa_F$ = {kF:g}, $\\kappa_D$ = {kD:g})")
         d["figure"] = args.plot
     if args.json:
-        _write_json(to_json(d))
+        _write_json({**to_json(d), "method": sc.method.name})
     else:
         print(f"scenario {sc.name}: {len(rF)} x {len(rD)} budgets (rho_F <= {args.rho_F_max:g}, rho_D <= "
               f"{args.rho_D_max:g}), kappa_F={kF:g}, kappa_D={kD:g}, {len(X0)} initial state(s), "
@@ -755,7 +755,7 @@ def main_worst_attack(args) -> int:
             code = 1
             print(f"testbed worst-attack: no schedule escapes: {sc_out} not written", file=sys.stderr)
     if args.json:
-        _write_json(out)
+        _write_json({**out, "method": sc.method.name})
         return code
     print(f"scenario {sc.name}: x0 = {out['x0']}, E0 = {out['E0']:g}, {out['n_steps']} samples of "
           f"T = {out['T']:g} s, at most {out['attacks']} attack(s)")
@@ -873,7 +873,7 @@ def main_vulnerability(args) -> int:
     if args.json:
         from .summary import to_json
 
-        _write_json(to_json(out))
+        _write_json({**to_json(out), "method": sc.method.name})
         return 0
     print(f"scenario {sc.name}: {out['states_in_region']} states of the nominal region of attraction on a "
           f"{args.grid} x {args.grid} grid, at most {out['attacks']} attack(s), {out['n_steps']} samples")
