@@ -82,8 +82,9 @@ def main_simulate(args) -> int:
         verdict = "converged" if out["converged"] else ("ESCAPED" if out["escaped"] else "not converged")
         if out["plant_fault"] is not None:
             verdict = f"PLANT FAULT at sample {out['plant_fault_at']}: the run ended there"
-        print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, M={out['M']}, "
-              f"Lambda={out['Lambda']:.4f}, {out['bits']} bits/symbol, method {out['method']}"
+        print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, "
+              + (f"M={out['M']}, Lambda={out['Lambda']:.4f}, " if out["method"] == "paper" else "")
+              + f"{out['bits']} bits/symbol, method {out['method']}"
               + (f" (quantizer {out['mode']})" if out["method"] == "paper" else ""))
         print(f"  K = {out['K']}")
         if sc.model is not None and sc.model.explicit:
