@@ -279,7 +279,8 @@ def simulate(scenario, **overrides) -> Run:
 
     Overrides (validated as if written in the scenario file; ``testbed.scenario.OVERRIDES``):
     ``duration``, ``T``, ``timing``, ``deadline``, ``mode``, ``loss_fraction``, ``actuation``,
-    ``rule``, ``seed`` (these are also command-line flags), ``x0``, ``E0``, ``M`` and ``attack``
+    ``rule``, ``seed``, ``method`` (these are also command-line flags; ``method`` swaps the
+    coding-and-control method, docs/methods.md), ``x0``, ``E0``, ``M`` and ``attack``
     (a table merged into ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new
     ``kind`` replaces the table).  A bad override raises ``testbed.BadInput`` with what to change.
     """
