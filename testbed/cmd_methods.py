@@ -157,11 +157,26 @@ def _live(args, sc, points):
         if r.returncode not in (0, 1) or not rec.exists():
             raise RuntimeError(f"live run of {p.method} failed (exit {r.returncode}): "
                                f"{(r.stderr.strip().splitlines() or [''])[-1]}")
-        rows.append(_row_from_recording(rec, p))
+        row, d = _row_from_recording(rec, p)
+        rows.append(row)
+        if args.plot:
+            series.append((row, _Series(d, sc.T)))
     return rows, series
 
 
-def _row_from_recording(rec, p) -> dict:
+class _Series:
+    """The per-sample arrays ``_plot`` draws, from a recording's report."""
+
+    def __init__(self, d: dict, T: float):
+        import numpy as np
+
+        self.x = np.asarray(d.get("x") or [], dtype=float)
+        self.t = np.arange(len(self.x)) * T
+        self.E_enc = np.asarray([np.nan if v is None else v for v in (d.get("E") or [])], dtype=float)
+        self.theta = np.asarray(d.get("theta") or [], dtype=int)
+
+
+def _row_from_recording(rec, p):
     from . import engine
     from .report import report
 
@@ -171,11 +186,12 @@ def _row_from_recording(rec, p) -> dict:
 
     xf = np.asarray(d.get("x_final") or (x[-1] if x else [0.0]), dtype=float)
     tol = (d.get("escape_criterion") or {}).get("x_tol", 1e-4)
-    return {"method": d.get("method", p.method), "seed": p.seed, "converged": bool(d.get("converged")),
+    row = {"method": d.get("method", p.method), "seed": p.seed, "converged": bool(d.get("converged")),
             "escaped": bool(d.get("escaped")), "final_norm": d.get("final_norm"), "max_norm": d.get("max_norm"),
             "saturations": d.get("saturations"), "samples_lost": d.get("samples_lost", d.get("packets_dropped")),
             "bits": d.get("bits"), "settle_samples": engine.settle_samples(np.asarray(x, dtype=float), xf, tol),
             "recording": str(rec)}
+    return row, d
 
 
 def _plot(path, sc, series, size) -> None:

@@ -864,8 +864,8 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
              "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
              "actuation": ("run", "actuation"), "rule": ("quantizer", "rule"), "seed": ("attack", "seed"),
-             "x0": ("plant", "x0"), "E0": ("quantizer", "E0"), "M": ("quantizer", "M"), "attack": ("attack", None),
-             "method": ("method", None)}
+             "x0": ("plant", "x0"), "E0": ("quantizer", "E0"), "M": ("quantizer", "M"), "method": ("method", None),
+             "attack": ("attack", None)}
 
 
 _INT_OVERRIDES = {"seed", "M"}

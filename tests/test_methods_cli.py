@@ -296,3 +296,24 @@ def test_live_method_that_raises_ends_the_run_recording_intact(tmp_path):
     rc, out, err = tb("report", tmp_path / "r.mcap", "--json", cwd=tmp_path)
     assert rc == 0, err
     assert json.loads(out)["method"] == "badmeth:Disagree"
+
+
+@pytest.mark.process
+def test_versus_live(tmp_path):
+    """--live: each method live, one after the other, each recorded; the rows come from the recordings,
+    the same attack for both (the same lost samples where none was withheld), equal to the simulation
+    where the live run was bit exact."""
+    rc, out, err = tb("versus", "paper", "--methods", "paper,unquantized", "--live", "--out", tmp_path / "recs",
+                      "--json", "--plot", tmp_path / "v.png", cwd=tmp_path, timeout=2 * TIMEOUT)
+    assert rc == 0, err
+    d = json.loads(out)
+    assert [r["method"] for r in d["rows"]] == ["paper", "unquantized"]
+    for r in d["rows"]:
+        rec = Path(r["recording"]) if Path(r["recording"]).is_absolute() else tmp_path / r["recording"]
+        assert r["converged"] and r["samples_lost"] >= 22   # late or withheld samples count too, live
+        rc, out, err = tb("report", rec, "--json", cwd=tmp_path)
+        assert rc == 0, err
+        assert json.loads(out)["dropped_by_attacker"] == 22  # the attacker dropped the same samples
+    assert (tmp_path / "v.png").stat().st_size > 1000
+    rc, out, err = tb("versus", "paper", "--methods", "paper", "--live", "--out", tmp_path / "recs", cwd=tmp_path)
+    assert rc == 2 and "never overwritten" in err
