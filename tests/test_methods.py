@@ -109,3 +109,26 @@ def test_zoom_saturates_under_the_papers_attack_paper_does_not():
     p = _loop(_paper("paper"))
     assert p.saturations == 0 and z.saturations > 0
     assert np.array_equal(z.theta, p.theta)
+
+
+def test_worst_attack_with_a_method_agrees_with_the_per_sample_simulator(tmp_path):
+    """worst-attack --method (batch kernel, escape by the method's own loop) against testbed.simulate
+    (per-sample simulator): the schedule it returns escapes, the same one shortened by one sample does not."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import testbed
+
+    r = subprocess.run([sys.executable, "-m", "testbed.cli", "worst-attack", "paper", "--method", "unquantized",
+                        "--json", "--no-progress"], capture_output=True, text=True, cwd=tmp_path, env=dict(os.environ))
+    assert r.returncode == 0, r.stderr
+    w = json.loads(r.stdout)
+    assert w["method"] == "unquantized" and w["escaped"]
+    (a, tau), = w["intervals"]
+    run = testbed.simulate("paper", method="unquantized", attack={"kind": "intervals", "intervals": [[a, tau]]})
+    assert run.summary["escaped"] and run.summary["samples_lost"] == w["samples_lost"] and run.summary["method"] == "unquantized"
+    short = testbed.simulate("paper", method="unquantized",
+                             attack={"kind": "intervals", "intervals": [[a, max(tau - 0.1, 0.0)]]})
+    assert not short.summary["escaped"]

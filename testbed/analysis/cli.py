@@ -84,8 +84,8 @@ def _with_method(sc, args, prog: str):
         if sc.method_note:
             print(f"{prog}: {sc.method_note}", file=sys.stderr)
     m = sc.make_method()
-    if sc.method.name == "paper":
-        return sc
+    if sc.method.name == "paper" or (prog == "testbed roa" and not getattr(args, "vulnerable", False)):
+        return sc   # the nominal region of attraction has no method
     if m.kernel_code(sc.quantizer) is None:
         raise BadInput(f"method {sc.method.name!r} has no batch kernel: {prog.split()[-1]} runs the bundled methods "
                        "only (a user's method runs in testbed simulate, run and versus)")
