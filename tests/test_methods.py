@@ -132,3 +132,24 @@ def test_worst_attack_with_a_method_agrees_with_the_per_sample_simulator(tmp_pat
     short = testbed.simulate("paper", method="unquantized",
                              attack={"kind": "intervals", "intervals": [[a, max(tau - 0.1, 0.0)]]})
     assert not short.summary["escaped"]
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_contract_every_bundled_method(name):
+    """Contract over the registry: the ends are deterministic (two runs, the same numbers), stay in
+    lockstep under random losses, every symbol sent fits the declared bits, and the method declares
+    where it runs, its description and its source."""
+    sc = _paper(name, duration=4.0)
+    m = sc.make_method()
+    assert m.description and m.source and m.kernel_code(sc.quantizer) is not None
+    th = (np.random.default_rng(11).random(sc.n_steps) < 0.4).astype(np.uint8)
+    a, b = _loop(sc, th), _loop(sc, th)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.u, b.u)
+    assert a.agree and not a.lockstep_breaks
+    cb = m.codebook(2, sc.quantizer)
+    enc = m.make_encoder(sc.make_model(), sc.K, sc.quantizer, sc.flow)
+    for x in np.random.default_rng(2).normal(scale=0.3, size=(20, 2)):
+        s, _sat = enc.encode(x)
+        assert len(cb.pack(s)) * 8 >= cb.bits >= 1
+        assert cb.unpack(cb.pack(s)) == s
+        enc.ack(0)
