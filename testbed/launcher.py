@@ -204,6 +204,8 @@ class Launcher:
         self.phase("up")
         self.opts = RunOptions.from_args(args)
         self.sc = load_scenario(args.scenario, self.opts)
+        if self.sc.method_note:
+            print(f"testbed run: {self.sc.method_note}", file=sys.stderr)
         self.phase("scenario")
         self.sc, over = scenario.with_seed(self.sc, self.opts.overrides())
         if over.get("seed") != self.opts.seed:
