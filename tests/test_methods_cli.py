@@ -126,6 +126,12 @@ def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     m = meta["testbed.scenario"]
     assert m["method_ref"] == "mymethod:CenteredZoom" and m["method_class"] == "CenteredZoom"
     assert "class CenteredZoom" in m["method_source"] and len(m["method_sha256"]) == 64
+    # the method's folder gone: the report loads the source stored in the recording (and says so)
+    shutil.move(method_dir, method_dir.parent / "moved")
+    rc, out, err = tb("report", method_dir.parent / "run.mcap", "--json", cwd="/")
+    assert rc == 0, err
+    assert json.loads(out)["x"] == sim["x"] and "loaded the source stored in" in err
+    shutil.move(method_dir.parent / "moved", method_dir)
     # batch commands say clearly that a user's method has no kernel
     rc, out, err = tb("sweep", "../methoddir/mymethod.toml", cwd=work)
     assert rc == 2 and "no batch kernel" in err and len(err.strip().splitlines()) == 1

@@ -354,6 +354,7 @@ def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, _ca
     else:
         ps = _resolve_plant(meta, base_dir, "plant", path)
         ms = _resolve_plant(meta, base_dir, "model", path)
+        _resolve_method(meta, base_dir, path)
         if _cache is not None:
             _cache._resolved = True
     if meta.get("attack_trace"):  # an embedded trace replaces the file the run read it from
@@ -400,6 +401,28 @@ def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> 
               f"in {path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
               file=sys.stderr)
     return status
+
+
+def _resolve_method(meta: dict, base_dir: str | None, path: str) -> None:
+    """Resolve the recorded method reference, loading its stored source when it is not importable."""
+    from ..methods import MethodError
+    from ..methods.registry import resolve_recorded
+
+    ref = meta.get("method_ref")
+    if not ref:
+        return  # a recording from before methods: the paper's
+    try:
+        st = resolve_recorded(ref, base_dir, module=meta.get("method_module", ""),
+                              class_name=meta.get("method_class", ""), source=meta.get("method_source", ""),
+                              sha256=meta.get("method_sha256", ""))
+    except MethodError as e:
+        from ..scenario import ScenarioError
+
+        raise ScenarioError(f"{path}: {e}") from None
+    if st["loaded_from"] == "recording":
+        print(f"note: method module {meta.get('method_module')!r} is not importable ({st['reason']}); loaded the "
+              f"source stored in {path} (sha256 {meta.get('method_sha256', '')[:12]}): this runs code from the "
+              "recording", file=sys.stderr)
 
 
 def _with_resolved(sc, meta: dict | None):
