@@ -258,6 +258,29 @@ def gen_greedy(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     )
 
 
+def gen_trace(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+    """The samples another run's attacker dropped: ``samples`` (sample indices), ``T`` (the trace's
+    period) and ``n_samples`` (its length); ``source`` names where it came from.  The trace must
+    have the run's T and cover the run (``n_samples * T >= horizon``)."""
+    kind = "trace"
+    _check_keys(kind, params, ("samples", "T", "n_samples"), ("source",))
+    Tt = _num(kind, "T", params["T"])
+    n = int(_nonneg(kind, "n_samples", params["n_samples"]))
+    src = params.get("source") or "the trace"
+    if abs(Tt - T) > 1e-9 * max(abs(T), 1.0):
+        raise ValueError(f"attack kind 'trace': {src} was taken at T = {Tt:g} s, the run's T is {T:g} s")
+    N = int(round(horizon / T))
+    if n < N:
+        raise ValueError(f"attack kind 'trace': {src} has {n} samples, shorter than the run ({N} samples)")
+    theta = np.zeros(max(n, N), dtype=np.uint8)
+    for k in params["samples"]:
+        k = int(k)
+        if not 0 <= k < n:
+            raise ValueError(f"attack kind 'trace': sample index {k} outside 0..{n - 1} in {src}")
+        theta[k] = 1
+    return Schedule.from_theta(theta[:N], T)
+
+
 #: Generator functions by name: ``fn(params, *, T, horizon, rng) -> Schedule``.
 GENERATORS: dict[str, Callable[..., Schedule]] = {
     "none": gen_none,
@@ -265,6 +288,7 @@ GENERATORS: dict[str, Callable[..., Schedule]] = {
     "periodic": gen_periodic,
     "random": gen_random,
     "greedy": gen_greedy,
+    "trace": gen_trace,
 }
 
 #: Kinds that depend on the closed-loop state and must run inside the simulator.

@@ -274,7 +274,29 @@ def compute() -> tuple[dict[str, str], dict[str, str]]:
     n["vuln_one_packet"] = str(sum(1 for row in vu["samples"] for L in row if L == 1))
     n["vuln_median"] = f"{g(vu['median_duration'])} s"
     n["vuln_max"] = f"{g(vu['largest_duration'])} s"
+    b.update(methods_numbers())
     return n, b
+
+
+METHODS = ["paper", "zoom", "static", "unquantized", "unquantized-hold"]
+
+
+def methods_numbers() -> dict[str, str]:
+    """docs/methods.md: every bundled method on the paper's example and attack (``testbed versus``), and
+    the least single attack that defeats each from x0 (``testbed worst-attack --method``)."""
+    v = testbed("versus", "paper", "--methods", ",".join(METHODS))
+    rows = ["| method | bits/sample | lost | saturations | max \\|\\|x\\|\\|_inf | final \\|\\|x\\|\\|_inf | settles at sample "
+            "| outcome | least single attack that escapes |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in v["rows"]:
+        w = testbed("worst-attack", "paper", "--method", r["method"], "--no-progress")
+        iv = w.get("intervals") or []
+        least = (f"{w['samples_lost']} samples ({g(w['total_duration'])} s)" if iv and w.get("escaped")
+                 else ("none needed: escapes unattacked" if w.get("escaped") else "none found"))
+        outcome = "converged" if r["converged"] else ("escaped" if r["escaped"] else "not converged")
+        rows.append(f"| `{r['method']}` | {r['bits']} | {r['samples_lost']} | {r['saturations']} | {g(r['max_norm'], 3)} | "
+                    f"{g(r['final_norm'], 3)} | {r['settle_samples'] if r['settle_samples'] is not None else '-'} | "
+                    f"{outcome} | {least} |")
+    return {"methods_versus": "\n".join(rows)}
 
 
 def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
@@ -307,7 +329,9 @@ def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
               "mismatch": "Model mismatch (`testbed simulate paper-mismatch`)",
               "physical_timing": "Physical timing on the paper's example (`testbed simulate ... --timing physical`)",
               "theorem1": "Theorem 1 (`testbed analyze paper`)", "theorem2": "Theorem 2 (`testbed analyze paper`)",
-              "worst_attack": "The strongest attacker (`testbed worst-attack paper`)"}
+              "worst_attack": "The strongest attacker (`testbed worst-attack paper`)",
+              "methods_versus": "Methods on the paper's example (`testbed versus paper --methods ...`, "
+                                "`testbed worst-attack paper --method ...`)"}
     for key, table in b.items():
         lines += [f"## {titles.get(key, key)}", "", f"<!--numbers:{key}-->", table, "<!--/numbers-->", ""]
     lines += ["## Values", "", "| name | value |", "|---|---|"]

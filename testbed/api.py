@@ -45,7 +45,7 @@ TIMING = ("t_sample", "jitter", "delay", "sensor_to_actuator", "stage_encoder", 
 SUMMARY_KEYS = ("scenario", "plant", "model", "plant_params", "model_params", "n", "m", "T", "M", "Lambda", "mode",
                 "bits", "K", "timing_mode", "rule", "packets_dropped", "dos_intervals", "saturations", "withheld_at",
                 "encoder_decoder_agree", "x_final", "final_norm", "converged", "escaped", "diverged", "diverged_at",
-                "plant_fault", "plant_fault_at")
+                "plant_fault", "plant_fault_at", "method", "max_norm", "samples_lost")
 #: ``Run.summary`` of a recording (``testbed.open``), live or simulated, besides ``SUMMARY_KEYS``
 RECORDING_KEYS = ("source", "run_id", "t0_ns", "samples", "complete", "outcome", "dos", "loss_reasons",
                   "dropped_by_attacker", "agreement")
@@ -279,7 +279,8 @@ def simulate(scenario, **overrides) -> Run:
 
     Overrides (validated as if written in the scenario file; ``testbed.scenario.OVERRIDES``):
     ``duration``, ``T``, ``timing``, ``deadline``, ``mode``, ``loss_fraction``, ``actuation``,
-    ``rule``, ``seed`` (these are also command-line flags), ``x0``, ``E0``, ``M`` and ``attack``
+    ``rule``, ``seed``, ``method`` (these are also command-line flags; ``method`` swaps the
+    coding-and-control method, docs/methods.md), ``x0``, ``E0``, ``M`` and ``attack``
     (a table merged into ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new
     ``kind`` replaces the table).  A bad override raises ``testbed.BadInput`` with what to change.
     """

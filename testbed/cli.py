@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "secret": ("testbed.cmd_secret", "write a new credentials file for nodes started by hand"),
     "plants": ("testbed.cmd_plants", "list the built-in and installed plants"),
     "check-plant": ("testbed.cmd_plants", "check a plant: shapes, f(0, 0), A, B, L, Assumption 2"),
+    "methods": ("testbed.cmd_methods", "list the coding-and-control methods (bundled and installed)"),
+    "versus": ("testbed.cmd_methods", "methods head to head on the same attack realizations"),
 }
 
 
@@ -95,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: commands that compile nothing (or must start fast): no numba listener (``testbed.compilenotice``)
-QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run"}
+QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run", "methods"}
 
 
 #: commands that end their process straight after the result is out, without the interpreter's

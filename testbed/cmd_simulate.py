@@ -56,6 +56,8 @@ def main_simulate(args) -> int:
         if sc.run.timing != "physical":
             raise BadInput("--latency-from applies to physical timing: add --timing physical")
         latency = recorded_latency(args.latency_from, sc)
+    if sc.method_note:
+        print(f"testbed simulate: {sc.method_note}", file=sys.stderr)
     res = simulate_scenario(sc, network=net, latency=latency)
     out = summarize(sc, res)
     if args.out:
@@ -80,8 +82,10 @@ def main_simulate(args) -> int:
         verdict = "converged" if out["converged"] else ("ESCAPED" if out["escaped"] else "not converged")
         if out["plant_fault"] is not None:
             verdict = f"PLANT FAULT at sample {out['plant_fault_at']}: the run ended there"
-        print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, M={out['M']}, "
-              f"Lambda={out['Lambda']:.4f}, {out['bits']} bits/symbol, quantizer {out['mode']}")
+        print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, "
+              + (f"M={out['M']}, Lambda={out['Lambda']:.4f}, " if out["method"] == "paper" else "")
+              + f"{out['bits']} bits/symbol, method {out['method']}"
+              + (f" (quantizer {out['mode']})" if out["method"] == "paper" else ""))
         print(f"  K = {out['K']}")
         if sc.model is not None and sc.model.explicit:
             print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
@@ -101,6 +105,13 @@ def main_simulate(args) -> int:
     if res.plant_fault is not None:  # the true plant failed (an FMU step): the run is data, the job failed
         print(f"testbed simulate: plant fault at sample {res.plant_fault_at} (t = {res.plant_fault_at * sc.T:g} s): "
               f"{res.plant_fault}", file=sys.stderr)
+        return 1
+    if res.method_fault is not None:  # the method's end raised: the run ended there
+        print(f"testbed simulate: {res.method_fault}", file=sys.stderr)
+        return 1
+    if res.lockstep_breaks:
+        print(f"testbed simulate: method {sc.method.name!r} broke lockstep: its encoder and decoder disagree "
+              f"from sample {res.lockstep_breaks[0]} ({len(res.lockstep_breaks)} samples)", file=sys.stderr)
         return 1
     return 0
 

@@ -204,6 +204,8 @@ class Launcher:
         self.phase("up")
         self.opts = RunOptions.from_args(args)
         self.sc = load_scenario(args.scenario, self.opts)
+        if self.sc.method_note:
+            print(f"testbed run: {self.sc.method_note}", file=sys.stderr)
         self.phase("scenario")
         self.sc, over = scenario.with_seed(self.sc, self.opts.overrides())
         if over.get("seed") != self.opts.seed:
@@ -777,7 +779,6 @@ class Launcher:
         import zenoh
 
         from .nodes.collect import Collector
-        from .loopspec import Codebook
 
         def on_signal(signum, _frame):
             self.signal = signum
@@ -844,7 +845,7 @@ class Launcher:
                 from .runsummary import build_summary  # loaded meanwhile by ``_warm_summary``
 
                 plant = self.sc.make_model()
-                cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
+                cb = self.sc.make_method().codebook(plant.n, self.sc.quantizer)
                 nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in self.processes}
                 for r in self.colocated:  # a role inside another process: that process's exit, unless it died alone
                     host = self.opts.process_of(r)

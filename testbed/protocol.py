@@ -37,7 +37,14 @@ import numpy as np
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
 from .loopspec import corrupt_payload
+from .methods.base import symbol_code
 from .quantizer import Codebook, Decoder, Encoder, InvalidSymbol
+
+def _state(end):
+    """A method end's shared state (``methods.EncoderEnd.state``), or None (the paper's ends: xi, E)."""
+    f = getattr(end, "state", None)
+    return None if f is None else np.array(f(), dtype=np.float64)
+
 
 # controller decision reasons (the telemetry's ``reason`` field)
 RECEIVED = 0
@@ -58,6 +65,7 @@ class Send:
     xi: np.ndarray
     E: float
     q: np.ndarray
+    state: np.ndarray | None = None   # a method's shared state (``EncoderEnd.state``), for the lockstep check
 
 
 @dataclass(frozen=True)
@@ -133,11 +141,12 @@ class EncoderProtocol:
             return Withhold(k, first, self.pending)
         enc = self.enc
         xi, E = enc.xi, enc.E
+        state = _state(enc)
         i, sat = enc.encode(np.asarray(x, dtype=np.float64))
         self.pending = k
         self.next_k = k + 1
         self.n_sent += 1
-        return Send(k, int(i), bool(sat), xi, E, enc.q)
+        return Send(k, i if isinstance(i, (bytes, bytearray)) else int(i), bool(sat), xi, E, enc.q, state)
 
     def ack(self, k: int, theta: int, last_rx: int) -> str:
         """The controller's ack of sample k.  Returns what it did:
@@ -191,6 +200,7 @@ class Decision:
     symbol: int        # the code received (-1: none)
     reason: int        # RECEIVED, DEADLINE, INVALID or SUPERSEDED
     last_rx: int
+    state: np.ndarray | None = None   # a method's shared state (``DecoderEnd.state``) before the decision
 
 
 class ControllerProtocol:
@@ -226,6 +236,7 @@ class ControllerProtocol:
         self.settle()
         dec = self.dec
         xi, E = dec.xi, dec.E
+        state = _state(dec)
         u, q, theta = dec.decide(symbol)
         if self.defer_update:
             self._unsettled = True
@@ -234,7 +245,7 @@ class ControllerProtocol:
         if theta == 0:
             self.last_rx = k
         self.next_k = k + 1
-        return Decision(k, int(theta), u, q, xi, E, -1 if symbol is None else int(symbol), reason, self.last_rx)
+        return Decision(k, int(theta), u, q, xi, E, symbol_code(symbol), reason, self.last_rx, state)
 
     def symbol(self, k: int, payload: bytes, newest_k: int | None = None) -> list[Decision]:
         """The symbol of sample k arrived; the decisions it makes, in order (maybe none).

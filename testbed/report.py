@@ -192,13 +192,11 @@ def report(path, *, arrays: bool = False, resimulate: int | None | str = "defaul
 
 
 def _report(cols, sc, *, arrays: bool, resimulate: int | None) -> dict:
-    from .quantizer import Codebook
-
     path = cols.path
     runmeta = cols.metadata.get("testbed.run", {})
     launcher = cols.summaries.get("launcher", {})
     plant = sc.make_model()
-    cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    cb = sc.make_method().codebook(plant.n, sc.quantizer)
     start = cols.start
     run_id = start.run_id if start else runmeta.get("run_id", "?")
     ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(start and start.ack_via_attacker)

@@ -65,6 +65,27 @@ class PlantSpec:
 
 
 @dataclass(frozen=True)
+class MethodSpec:
+    """``[method] name = "...", params = {...}``: the coding-and-control method (default the paper's)."""
+
+    name: str = "paper"            # a bundled or registered name, an entry point or "module.path:ClassName"
+    params: tuple[tuple[str, Any], ...] = ()
+    base_dir: str = ""             # the scenario file's folder ("module:Class" methods are imported from it)
+
+    def make(self):
+        """The method object (``testbed.methods.Method``)."""
+        from . import methods
+
+        return methods.make(self.name, self.base_dir or None, _thaw(self.params))
+
+    def source_info(self) -> dict[str, str]:
+        """The method module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (as for plants)."""
+        from . import methods
+
+        return methods.source_info(methods.resolve(self.name, self.base_dir or None))
+
+
+@dataclass(frozen=True)
 class FMUSpec:
     """``[plant] fmu = "plant.fmu"``, ``inputs = [...]``, ``states = [...]``, ``params = {...}``."""
     path: str                                  # absolute (resolved against the scenario's folder)
@@ -203,6 +224,12 @@ class Scenario:
     model: ModelSpec | None = None   # [model] (defaults to [plant]'s)
     L_u: float = 0.0       # input gain of the model (delay-aware rule)
     base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
+    method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
+    method_note: str = ""  # a swapped method (``--method``): the [quantizer] keys it ignores, one line
+
+    def make_method(self):
+        """The coding-and-control method ([method]; ``testbed.methods.Method``)."""
+        return self.method.make()
 
     @property
     def T(self) -> float:
@@ -267,7 +294,7 @@ class Scenario:
 
 
 # ----------------------------------------------------------------------------- validation
-_SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description"}
+_SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description", "method"}
 _KEYS = {
     "plant": {"name", "params", "x0", "fmu", "inputs", "states"},
     "model": {"name", "params"},
@@ -360,8 +387,36 @@ def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
         raise ctx.err(key, str(e)) from None
 
 
+def _method_section(ctx, data: dict, base_dir: str, swapped: bool):
+    """[method] and the [quantizer] keys it uses: (MethodSpec, method, note).  A key the scenario's own
+    method does not use is an error naming it; a swapped method (``--method``) ignores them (the note)."""
+    from . import methods
+
+    mt = _table(ctx, "method", data.get("method", {}))
+    _unknown(ctx, "method", mt, {"name", "params"})
+    name = mt.get("name", methods.DEFAULT)
+    if not isinstance(name, str) or not name:
+        raise ctx.err("method.name", f"must be a non-empty string, got {name!r}")
+    params = _table(ctx, "method.params", mt.get("params", {}))
+    try:
+        obj = methods.make(name, base_dir or None, params)
+    except methods.MethodError as e:
+        raise ctx.err("method", str(e)) from None
+    qt = data.get("quantizer", {})
+    used = set(obj.uses) | {"T"}
+    unused = [k for k in qt if k not in used] if isinstance(qt, dict) else []
+    note = ""
+    if unused and not swapped:
+        raise ctx.err(f"quantizer.{unused[0]}", f"is not used by the method {name!r} (it uses "
+                      f"{', '.join(['T', *obj.uses])}); remove it")
+    if unused:
+        note = f"note: method {name!r} ignores [quantizer] {', '.join(unused)} of this scenario"
+    return MethodSpec(name, _freeze(params), base_dir), obj, note, [k for k in unused]
+
+
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
-              base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True) -> Scenario:
+              base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
+              method_swapped: bool = False) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
@@ -443,12 +498,17 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     if deadline >= 1:
         raise ctx.err("run.deadline", f"is a fraction of T and must be < 1, got {deadline}")
 
-    # [quantizer]
+    # [method] and [quantizer]
     qt = data["quantizer"]
     _unknown(ctx, "quantizer", qt, _KEYS["quantizer"])
+    mspec, mobj, mnote, ignored = _method_section(ctx, data, base_dir, method_swapped)
+    muses = set(mobj.uses)
+    qt = {k: v for k, v in qt.items() if k not in ignored}
     for k in ("T", "M", "L", "E0"):
         if k not in qt:
-            raise ctx.err(f"quantizer.{k}", "missing")
+            if k == "T" or k in muses:
+                raise ctx.err(f"quantizer.{k}", "missing" + ("" if k == "T" else f" (used by the method {mspec.name!r})"))
+            qt[k] = {"M": 2, "L": 1.0, "E0": max(1.0, *(abs(float(v)) for v in x0))}[k]
     T = _num(ctx, "quantizer.T", qt["T"], positive=True)
     M = _num(ctx, "quantizer.M", qt["M"], integer=True)
     if M < 2:
@@ -470,10 +530,10 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         if not isinstance(qt.get(k, False), bool):
             raise ctx.err(f"quantizer.{k}", f"must be true or false, got {qt[k]!r}")
     Lam = math.exp(L * T)
-    if M <= Lam and not qt.get("allow_M_le_Lambda", False):
+    if M <= Lam and {"M", "L"} <= muses and not qt.get("allow_M_le_Lambda", False):
         raise ctx.err("quantizer.M", f"M = {M} <= Lambda = e^(L T) = {Lam:.4g} breaks Assumption 2 "
                       "(set allow_M_le_Lambda = true to run it anyway)")
-    if max(abs(v) for v in x0) > E0 and not qt.get("allow_x0_outside", False):
+    if max(abs(v) for v in x0) > E0 and "E0" in muses and not qt.get("allow_x0_outside", False):
         raise ctx.err("quantizer.E0", f"||x0||_inf = {max(abs(v) for v in x0):g} > E0 = {E0:g} breaks "
                       "Assumption 5 (set allow_x0_outside = true to run it anyway)")
     rule = _str(ctx, "quantizer.rule", qt.get("rule", "delay-aware" if timing == "physical" else "paper"),
@@ -627,6 +687,8 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         if thr > 1:
             raise ctx.err("attack.threshold", f"must be in [0, 1], got {thr}")
         _str(ctx, "attack.score", aparams.get("score", "state"), ("state", "E"))
+    if kind == "trace":
+        aparams = _trace_params(ctx, aparams, base_dir)
     _check_attack_params(ctx, kind, aparams)
     attack = AttackSpec(kind=str(kind), params=_freeze(aparams), budget=budget)
 
@@ -639,7 +701,8 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu)
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
-                  description=description, model=model, L_u=L_u, base_dir=base_dir)
+                  description=description, model=model, L_u=L_u, base_dir=base_dir, method=mspec,
+                  method_note=mnote)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
@@ -677,6 +740,60 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) ->
                    params=_freeze(params), checked=check)
 
 
+def read_trace(path: str | Path) -> dict:
+    """The trace of a recording (the samples its *attacker* dropped: not theta, which also counts
+    withheld, late and invalid samples) or of a plain file of dropped sample indices (one per line or
+    separated by spaces or commas; ``# T = 0.1`` and ``# samples = 300`` header lines give the period
+    and the length).  Returns the ``[attack]`` parameters of kind ``trace``."""
+    p = Path(path)
+    if p.suffix == ".mcap":
+        # reading a recording is a shell's job; this is the one place the scenario reads one
+        from .io.columns import read_columns, read_metadata
+        from .io.recording import recorded_scenario
+
+        meta, _ = read_metadata(str(p))
+        rsc, _ps, _ms = recorded_scenario(meta, str(p))
+        cols = read_columns(str(p), fields={"attacker.dropped"}, sc=rsc)
+        has = cols.has("attacker")
+        n = int(len(has))
+        dropped = has & (cols.get("attacker", "dropped")[:n] != 0)
+        return {"samples": np.flatnonzero(dropped).tolist(), "T": float(rsc.T), "n_samples": n, "source": str(p)}
+    text = p.read_text(encoding="utf-8")
+    T = None
+    n = None
+    samples = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("#"):
+            key, _, val = line[1:].partition("=")
+            if key.strip() == "T":
+                T = float(val)
+            elif key.strip() == "samples":
+                n = int(val)
+            continue
+        for tok in line.replace(",", " ").split():
+            samples.append(int(tok))
+    if T is None:
+        raise ValueError(f"{p}: no '# T = SECONDS' line (the period the trace was taken at)")
+    return {"samples": samples, "T": T, "n_samples": n if n is not None else (max(samples) + 1 if samples else 0),
+            "source": str(p)}
+
+
+def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
+    """``[attack] kind = "trace"``: ``source = PATH`` (a recording or a file, relative to the scenario's
+    folder) read now, or the embedded form ``samples``, ``T``, ``n_samples`` (what a recording stores)."""
+    if "samples" in aparams:
+        return dict(aparams)
+    src = aparams.get("source")
+    if not isinstance(src, str) or not src:
+        raise ctx.err("attack.source", "missing: a recording (.mcap) or a file of dropped sample indices")
+    path = Path(src) if Path(src).is_absolute() else Path(base_dir or ".") / src
+    try:
+        return read_trace(path)
+    except (OSError, ValueError, BadInput) as e:
+        raise ctx.err("attack.source", f"{src}: {e}") from None
+
+
 def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
     """Types of the attack's parameters: numbers are numbers (a string "1.0" is an error)."""
     for k, v in aparams.items():
@@ -691,6 +808,12 @@ def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
             continue
         if k == "seed":
             _num(ctx, "attack.seed", v, integer=True)
+            continue
+        if k == "source":
+            continue
+        if k == "samples":
+            if not isinstance(v, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in v):
+                raise ctx.err("attack.samples", "must be a list of sample indices")
             continue
         _num(ctx, f"attack.{k}", v)
 
@@ -741,7 +864,8 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
              "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
              "actuation": ("run", "actuation"), "rule": ("quantizer", "rule"), "seed": ("attack", "seed"),
-             "x0": ("plant", "x0"), "E0": ("quantizer", "E0"), "M": ("quantizer", "M"), "attack": ("attack", None)}
+             "x0": ("plant", "x0"), "E0": ("quantizer", "E0"), "M": ("quantizer", "M"), "method": ("method", None),
+             "attack": ("attack", None)}
 
 
 _INT_OVERRIDES = {"seed", "M"}
@@ -781,6 +905,12 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
     data = tomllib.loads(sc.source)
     for k, v in over.items():
         table, key = OVERRIDES[k]
+        if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swaps the method
+            v = {"name": v} if isinstance(v, str) else v
+            if not isinstance(v, dict):
+                raise BadInput(f"override method must be a method name, got {v!r}")
+            data["method"] = {**v}
+            continue
         if key is None:  # attack: a table merged into [attack] (a new kind replaces it)
             if not isinstance(v, dict):
                 raise BadInput(f"override {k} must be a dict of [{table}] keys (e.g. attack={{\"intervals\": "
@@ -794,7 +924,7 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
     try:
         sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                        check_design=check_design)
+                        check_design=check_design, method_swapped="method" in over)
     except ScenarioError as e:
         raise BadInput(_override_hint(str(e), sc, over)) from None
     return dataclasses.replace(sc2, path=sc.path)

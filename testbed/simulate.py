@@ -30,6 +30,8 @@ from plants.base import PlantFault
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
                        Send, corrupt_payload)
+from .methods.base import symbol_code
+from .methods.ends import unaware_update
 from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
                         box_center, control_input, quantize_index, zoom_update)
 
@@ -68,6 +70,10 @@ class SimResult:
     plant_fault: str | None = None  # the true plant failed (``plants.PlantFault``): its one line
     plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
     loop_state: np.ndarray | None = None  # both ends' xi, E, u_{k-1} after the last sample (``loop_state_of``)
+    method_fault: str | None = None  # the method's end raised (its one line) ...
+    method_fault_at: int = -1        # ... at this sample
+    lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
+    ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
 
     @property
     def saturations(self) -> int:
@@ -80,6 +86,8 @@ class SimResult:
     @property
     def agree(self) -> bool:
         """Encoder and decoder xi_k, E_k identical at every sample the encoder sent (bit for bit)."""
+        if self.lockstep_breaks:
+            return False
         known = np.isfinite(self.E_enc)
         if self.withheld is None and not known.all():
             return False
@@ -148,7 +156,7 @@ class Replay:
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
                   flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
                   u_max: float = math.inf, network: Network | None = None,
-                  replay: Replay | None = None) -> SimResult:
+                  replay: Replay | None = None, method=None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
 
     The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
@@ -170,6 +178,10 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     the run at that sample: the result holds samples 0..k, x_final is the process's state
     at the fault, and ``plant_fault`` / ``plant_fault_at`` say what and where (a failed
     ``reset`` gives a run of no samples).  Nothing is raised.
+
+    ``method``: the coding-and-control method (``testbed.methods.Method``; default the paper's).
+    A method whose ends raise ends the run at that sample (``method_fault``, ``method_fault_at``);
+    one whose ends' shared state differs is counted in ``lockstep_breaks`` (``agree`` is then False).
     """
     model = plant if model is None else model
     n, m = model.n, model.m
@@ -197,8 +209,15 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                        deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max)
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     delays = np.zeros(N, dtype=np.int64) if physical else None
-    encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
-    ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
+    if method is None:
+        encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
+        ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
+    else:
+        encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
+        ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
+    enc_state: dict = {}
+    breaks = []
+    mfault, mfault_at = None, -1
     cb = ctlp.codebook
     rec = {k: np.full((N, n), np.nan) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
     u_rec = np.zeros((N, m))
@@ -216,6 +235,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     last = N
 
     def record(d) -> None:
+        if d.state is not None and d.k in enc_state and not np.array_equal(enc_state.pop(d.k), d.state):
+            breaks.append(d.k)
         theta[d.k] = d.theta
         rec["q"][d.k] = d.q
         rec["xi_dec"][d.k] = d.xi
@@ -226,37 +247,24 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     for k in range(N):
         x = process.x
         rec["x"][k] = x
-        if replay is None or not replay.withheld[k]:
-            for a in acks:
-                encp.ack(*a)
-            acks.clear()
-        # --- encoder
-        send = None
-        if replay is None or replay.sensed[k]:
-            send = encp.sensor(k, x)
+        try:
+            send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb)
+        except Exception as e:  # noqa: BLE001 - a method's end raised: the run ends at this sample
+            if method is None:
+                raise
+            mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \
+                                      f"{type(e).__name__}: {e}", k, k
+            break
         if isinstance(send, Send):
-            symbols[k], sat[k] = send.symbol, send.saturated
+            if send.state is not None:
+                enc_state[k] = send.state
+            symbols[k], sat[k] = symbol_code(send.symbol), send.saturated
             rec["xi_enc"][k] = send.xi
             E_enc[k] = send.E
             rec["q_enc"][k] = send.q
         else:
             withheld[k] = True
-        # --- attacker and controller
-        payload = cb.pack(send.symbol) if isinstance(send, Send) else None
-        if replay is None:
-            drop = attacker.decide(k, x, encp.enc.E) if attacker is not None else 0
-            if drop:
-                payload = None
-            elif payload is not None and k in corrupt:
-                payload = corrupt_payload(cb, payload, corrupt[k])
-        else:
-            drop = 0
-            r = int(replay.reason[k])
-            if r == INVALID and payload is not None:
-                payload = corrupt_payload(cb, payload, "length")
-            elif r != RECEIVED:
-                payload = None
-        decs = ctlp.symbol(k, payload) if payload is not None else [ctlp.deadline(k)]
+        drop = decs.pop()
         for d in decs:
             record(d)
             if not (net.ack_via_attacker and drop):
@@ -288,8 +296,9 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
-    for a in acks:
-        encp.ack(*a)
+    if mfault is None:
+        for a in acks:
+            encp.ack(*a)
     sl = slice(0, last)
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=rec["x"][sl], u=u_rec[sl], q=rec["q"][sl],
                      q_enc=rec["q_enc"][sl], xi_enc=rec["xi_enc"][sl], E_enc=E_enc[sl],
@@ -299,7 +308,38 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      delays=None if delays is None else delays[:last].copy(),
                      counters={"encoder": encp.counters(), "controller": ctlp.counters(),
                                "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
-                     plant_fault=fault, plant_fault_at=fault_at, loop_state=loop_state_of(encp.enc, ctlp.dec))
+                     plant_fault=fault, plant_fault_at=fault_at,
+                     loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
+                     method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
+                     ends=(encp.enc, ctlp.dec))
+
+
+def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb):
+    """One sample of the method's ends through the protocol: the encoder (acks first), the
+    attacker and the controller.  Returns (send, decisions + [drop])."""
+    if replay is None or not replay.withheld[k]:
+        for a in acks:
+            encp.ack(*a)
+        acks.clear()
+    send = None
+    if replay is None or replay.sensed[k]:
+        send = encp.sensor(k, x)
+    payload = cb.pack(send.symbol) if isinstance(send, Send) else None
+    if replay is None:
+        drop = attacker.decide(k, x, encp.enc.E) if attacker is not None else 0
+        if drop:
+            payload = None
+        elif payload is not None and k in corrupt:
+            payload = corrupt_payload(cb, payload, corrupt[k])
+    else:
+        drop = 0
+        r = int(replay.reason[k])
+        if r == INVALID and payload is not None:
+            payload = corrupt_payload(cb, payload, "length")
+        elif r != RECEIVED:
+            payload = None
+    decs = ctlp.symbol(k, payload) if payload is not None else [ctlp.deadline(k)]
+    return send, decs + [drop]
 
 
 # ============================================================================ batch kernel
@@ -361,6 +401,9 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
             u_held[r] = 0.0
         E_e = E0
         E_d = E0
+        if mode == 3 or mode == 5 or mode == 6:  # static (E0 is its range), unquantized: no zoom state
+            E_e = 0.0
+            E_d = 0.0
         if from_state:
             for i in range(n):
                 xi_e[i] = init_state[b, i]
@@ -406,6 +449,34 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                 th_rec[b, k] = th
             if mode == 2:  # no quantization: u_k = (1 - theta_k) K x_k
                 control_input(Kgain, x, th, False, u)
+            elif mode == 5:  # method unquantized: u_k = (1 - theta_k) K x_k, both ends keep u_k
+                control_input(Kgain, x, th, False, u)
+                for r in range(m):
+                    up_e[r] = u[r]
+                    up_d[r] = u[r]
+            elif mode == 6:  # method unquantized-hold: u_k = K x_k, or u_{k-1} through a loss
+                if th == 0:
+                    control_input(Kgain, x, 0, False, u)
+                    for r in range(m):
+                        up_e[r] = u[r]
+                        up_d[r] = u[r]
+                else:
+                    for r in range(m):
+                        u[r] = up_d[r]
+            elif mode == 3:  # method static: Q(0, R) with R = E0, M levels, no zoom
+                for i in range(n):
+                    xi_e_n[i] = 0.0
+                idx, sat = quantize_index(x, xi_e_n, E0, M)
+                if sat:
+                    nsat += 1
+                if th == 0:
+                    box_center(idx, xi_e_n, E0, M, q_d)
+                else:
+                    for i in range(n):
+                        q_d[i] = 0.0
+                control_input(Kgain, q_d, th, False, u)
+                for r in range(m):
+                    up_d[r] = u[r]
             else:
                 # --- encoder (Algorithm 1)
                 idx, sat = quantize_index(x, xi_e, E_e, M)
@@ -413,7 +484,7 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                 sym = idx
                 if sat:
                     nsat += 1
-                    if mode == 1:
+                    if mode == 1 or mode == 4:
                         sym = n_codes_box
                 overflow = sym == n_codes_box
                 # --- decoder / controller (Algorithm 2, law (2))
@@ -424,10 +495,16 @@ def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, s
                         q_d[i] = 0.0
                 control_input(Kgain, q_d, th, overflow, u)
                 # --- both ends: rules (xi), (E) on the model; each computes its own prediction
-                E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
-                                         M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
-                E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
-                                         M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
+                if mode == 4:  # method zoom: the zoom-in whatever theta_k (``methods.bundled.unaware_update``)
+                    E_e_n, _s1 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e,
+                                                Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
+                    E_d_n, _s2 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d,
+                                                Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
+                else:
+                    E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
+                                             M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
+                    E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
+                                             M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
                 same = E_e_n == E_d_n
                 for i in range(n):
                     xi_e[i] = xi_e_n[i]
@@ -531,7 +608,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
                    timing=None, latency=None, latency_idx=None, u_max: float = math.inf, greedy_params=None,
                    score: str = "state", mode: str | None = None, record: bool = False,
                    flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False, init_state=None,
-                   stop=None) -> BatchResult:
+                   stop=None, method=None) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
 
     Parameters
@@ -566,6 +643,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         instead of xi_0 = 0, E_0 = ``qp.E0``, u_{-1} = 0 (the continuation of a loop).
     stop : (x_tol, E_tol, x_out): a trajectory stops at the first sample with ||x_k||_inf <
         x_tol and E_k < E_tol at both ends, or with ||x_k||_inf > x_out (``stop_k`` is that sample).
+    method : a bundled method (``testbed.methods``) to run instead of the paper's (``mode`` is then
+        the method's); a method without a kernel (a user's) raises ``ValueError``.
     """
     X0 = np.ascontiguousarray(np.atleast_2d(np.asarray(X0, dtype=np.float64)))
     B, n = X0.shape
@@ -611,6 +690,18 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
         raise ValueError(f"model {model.name} (n={model.n}, m={model.m}) does not match plant {plant.name} "
                          f"(n={plant.n}, m={plant.m})")
     mode_code = MODES[mode or qp.mode]
+    dpar = qp.dpar
+    E0 = float(qp.E0)
+    if method is None:
+        method = getattr(qp, "method", None)   # ``methods.base.MethodQuantizerParams``
+    if method is not None and mode is None:
+        mode_code = method.kernel_code(qp)
+        if mode_code is None:
+            raise ValueError(f"method {method.display_name()!r} has no batch kernel (a user's method runs in "
+                             "the per-sample simulator and live only)")
+        E0 = float(method.kernel_E0(qp))
+        if mode_code == 4:
+            dpar = np.zeros(4)
     shp = (B, N) if record else (0, 0)
     X_rec = np.zeros(shp + (n,)) if record else np.zeros((0, 0, n))
     E_rec = np.zeros(shp)
@@ -631,8 +722,8 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
 
         kernel = specialized(_batch_kernel, {"rhs": type(plant).rhs, "rhs_m": type(model).rhs})
     rhs, rhs_m = type(plant).rhs.cfunc, type(model).rhs.cfunc
-    kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, float(qp.E0), int(qp.M),
-           float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), qp.dpar, float(u_max), tab, sched_idx,
+    kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, E0, int(qp.M),
+           float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), dpar, float(u_max), tab, sched_idx,
            tpar, ltab, latency_idx, gp, greedy_init(),
                   SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
                   out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
@@ -699,15 +790,15 @@ class EscapeCriterion:
         return int(round(self.horizon_s / T))
 
 
-def _batch_runner(plant, K, qp, model, flow):
+def _batch_runner(plant, K, qp, model, flow, method=None):
     def run(X, S, n_steps, stop):
-        r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop)
+        r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop, method=method)
         return {"x_final": r.x_final, "status": r.status, "state_final": r.state_final}
     return run
 
 
 def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, criterion: EscapeCriterion, *,
-                 model=None, flow: FlowOptions = DEFAULT_FLOW, run=None) -> np.ndarray:
+                 model=None, flow: FlowOptions = DEFAULT_FLOW, run=None, method=None) -> np.ndarray:
     """Whether each run escaped (:class:`EscapeCriterion`): (B,) bool.
 
     Parameters
@@ -727,7 +818,7 @@ def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, cr
     esc = np.asarray(status).reshape(B) != FLOW_OK
     go = np.flatnonzero(~esc)
     if go.size:
-        run = run or _batch_runner(plant, K, qp, model, flow)
+        run = run or _batch_runner(plant, K, qp, model, flow, method)
         S = np.atleast_2d(np.asarray(state_final, dtype=np.float64))[go]
         c = criterion
         out = run(x_final[go], S, c.steps(qp.T), (c.x_tol, c.E_tol, c.x_out))
@@ -792,7 +883,7 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
     try:
         return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
                              process=process, timing=sc.timing_params, latency=latency,
-                             u_max=sc.controller.u_max, network=network)
+                             u_max=sc.controller.u_max, network=network, method=sc.make_method())
     finally:
         process.close()
 
@@ -837,10 +928,19 @@ def plant_and_model(sc) -> dict:
 def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
     """:func:`judge_escape` of one per-sample run of scenario ``sc`` (its own end state, else the one
     :func:`loop_state_from_samples` rebuilds from its record)."""
-    if res.flow_status != FLOW_OK:
+    if res.flow_status != FLOW_OK or res.method_fault is not None:
         return True
     model = sc.make_model()
     plant = model if sc.plant.fmu is not None else sc.make_plant()
+    method = sc.make_method()
+    if method.kernel_code(sc.quantizer) is None:  # a user's method: its own ends, continued per sample
+        return _continue_ends(plant, res, criterion, sc.T, sc.flow, sc.controller.u_max)
+    if sc.method.name != "paper":
+        st = res.loop_state if res.loop_state is not None else None
+        if st is None:
+            return not (res.final_norm < criterion.x_tol)
+        return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
+                                 model=model, flow=sc.flow, method=method)[0])
     st = res.loop_state
     if st is None:
         st = loop_state_from_samples(res, model, sc.quantizer, sc.flow)
@@ -849,6 +949,35 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
         st = loop_state_of(dec, dec)
     return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
                              model=model, flow=sc.flow)[0])
+
+
+def _continue_ends(plant, res: SimResult, c: EscapeCriterion, T: float, flow, u_max: float) -> bool:
+    """:class:`EscapeCriterion` for a method without a batch kernel: its own two ends (``res.ends``),
+    continued from where the run ended with theta_k = 0 and the true plant under ideal timing.
+    Escaped unless ||x|| < x_tol with both ends' E below E_tol within the horizon."""
+    if res.ends is None:
+        return not (res.final_norm < c.x_tol)
+    enc, dec = res.ends
+    proc = OdeProcess(plant, flow)
+    proc.reset(res.x_final)
+    for _ in range(c.steps(T)):
+        x = proc.x
+        nrm = float(np.max(np.abs(x)))
+        if nrm < c.x_tol and float(getattr(enc, "E", 0.0)) < c.E_tol and float(getattr(dec, "E", 0.0)) < c.E_tol:
+            return False
+        if nrm > c.x_out:
+            return True
+        try:
+            sym, _sat = enc.encode(x)
+            u, _q, _th = dec.decide(sym)
+            dec.commit()
+            enc.ack(0)
+        except Exception:  # noqa: BLE001 - the method failed: the loop did not recover
+            return True
+        u = np.clip(np.asarray(u, dtype=np.float64), -u_max, u_max)
+        if not np.all(np.isfinite(u)) or proc.advance(u, T) != FLOW_OK:
+            return True
+    return True
 
 
 def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
@@ -865,15 +994,17 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     model = sc.make_model()
     tol = sc.run.converge_tol
     flow_diverged = res.flow_status != FLOW_OK
-    diverged = flow_diverged or res.plant_fault is not None
+    diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
     converged = (not diverged) and res.final_norm < tol
     crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
     escaped = escaped_run(sc, res, crit)
     sch = res.intervals()
-    cb = Codebook(model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    cb = sc.make_method().codebook(model.n, sc.quantizer)
     return json_clean({
         "scenario": sc.name,
         **plant_and_model(sc),
+        "method": sc.method.name,
+        "method_params": dict(sc.method.params),
         "n": model.n,
         "m": model.m,
         "T": sc.T,
@@ -905,6 +1036,11 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
         "plant_fault": res.plant_fault,
         "plant_fault_at": res.plant_fault_at,
+        "method_fault": res.method_fault,
+        "method_fault_at": res.method_fault_at,
+        "lockstep_breaks": list(res.lockstep_breaks),
+        "max_norm": float(max(np.max(np.abs(res.x)) if len(res.x) else 0.0, res.final_norm)),
+        "samples_lost": int(res.theta.sum()),
         "timing_mode": sc.run.timing,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),

@@ -63,6 +63,37 @@ def _add_scenario(p):
     p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
 
 
+def _add_method(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", metavar="NAME",
+                   help="the coding-and-control method to analyse instead of the scenario's [method] (a bundled "
+                        "one: the batch kernel runs it; testbed methods lists them)")
+
+
+def _with_method(sc, args, prog: str):
+    """``sc`` with ``--method`` swapped in (a note on stderr for the keys it ignores), its quantizer carrying
+    the method for the batch kernel; a method without a kernel (a user's) is one clear line."""
+    import dataclasses
+
+    from .. import scenario
+    from ..errors import BadInput
+    from ..methods.base import MethodQuantizerParams
+
+    name = getattr(args, "method", None)
+    if name:
+        sc = scenario.with_overrides(sc, {"method": name})
+        if sc.method_note:
+            print(f"{prog}: {sc.method_note}", file=sys.stderr)
+    m = sc.make_method()
+    if sc.method.name == "paper" or (prog == "testbed roa" and not getattr(args, "vulnerable", False)):
+        return sc   # the nominal region of attraction has no method
+    if m.kernel_code(sc.quantizer) is None:
+        raise BadInput(f"method {sc.method.name!r} has no batch kernel: {prog.split()[-1]} runs the bundled methods "
+                       "only (a user's method runs in testbed simulate, run and versus)")
+    qp = MethodQuantizerParams(**{f.name: getattr(sc.quantizer, f.name) for f in dataclasses.fields(sc.quantizer)},
+                               method=m)
+    return dataclasses.replace(sc, quantizer=qp)
+
+
 def _add_budget(p, help_=None):
     p.add_argument("--budget", nargs=4, type=float, metavar=("KAPPA_F", "RHO_F", "KAPPA_D", "RHO_D"),
                    help=help_ or "DoS budget of Assumptions 3 and 4 (default: the scenario's, see README)")
@@ -453,6 +484,7 @@ def is_paper_example(sc) -> bool:
 # ============================================================================ roa
 def add_arguments_roa(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
+    _add_method(p)
     p.add_argument("--grid", type=int, default=201, help="points per axis (default 201)")
     p.add_argument("--horizon", type=float, default=30.0, help="seconds simulated per state (default 30)")
     p.add_argument("--window", nargs=2, type=float, metavar=("WX", "WY"),
@@ -476,7 +508,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
 def main_roa(args) -> int:
     from .. import scenario
 
-    sc = scenario.load(args.scenario)
+    sc = _with_method(scenario.load(args.scenario), args, "testbed roa")
     if args.vulnerable:
         true_plant(sc, "testbed roa --vulnerable")
     plant = sc.make_model()
@@ -519,7 +551,7 @@ def _roa(sc, plant, args, ex) -> int:
     if args.json:
         from .summary import to_json
 
-        _write_json(to_json(out))
+        _write_json({**to_json(out), "method": sc.method.name})
     else:
         r = out["roa"]
         print(f"scenario {sc.name}: nominal region of attraction on a {r['grid'][0]} x {r['grid'][1]} grid, "
@@ -542,6 +574,7 @@ def _roa(sc, plant, args, ex) -> int:
 # ============================================================================ sweep
 def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
+    _add_method(p)
     p.add_argument("--grid", nargs=2, type=int, default=[21, 21], metavar=("NF", "ND"),
                    help="budget points along rho_F and rho_D (default 21 21)")
     p.add_argument("--rho-F-max", type=float, default=2.0, help="largest rho_F [1/s] (default 2)")
@@ -572,7 +605,7 @@ def main_sweep(args) -> int:
     from .sweep import sweep
     from .theorem1 import Loop, allowable_region, plain_certificate
 
-    sc = scenario.load(args.scenario)
+    sc = _with_method(scenario.load(args.scenario), args, "testbed sweep")
     model, plant = sc.make_model(), true_plant(sc, "testbed sweep")
     kF0, kD0 = sweep_kappas(sc)
     kF = kF0 if args.kappa_F is None else args.kappa_F
@@ -615,7 +648,7 @@ def main_sweep(args) -> int:
                                             f"($\\kappa_F$ = {kF:g}, $\\kappa_D$ = {kD:g})")
         d["figure"] = args.plot
     if args.json:
-        _write_json(to_json(d))
+        _write_json({**to_json(d), "method": sc.method.name})
     else:
         print(f"scenario {sc.name}: {len(rF)} x {len(rD)} budgets (rho_F <= {args.rho_F_max:g}, rho_D <= "
               f"{args.rho_D_max:g}), kappa_F={kF:g}, kappa_D={kD:g}, {len(X0)} initial state(s), "
@@ -673,6 +706,7 @@ def _search_args(args, sc) -> dict:
 
 def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
+    _add_method(p)
     _add_search(p)
     p.add_argument("--x0", nargs="+", type=float, metavar="X",
                    help="initial state (default: the scenario's); E0 = max(scenario E0, ||x0||_inf)")
@@ -695,7 +729,7 @@ def main_worst_attack(args) -> int:
     from ..errors import BadInput
     from .worst import Loop, worst_attack
 
-    sc = scenario.load(args.scenario)
+    sc = _with_method(scenario.load(args.scenario), args, "testbed worst-attack")
     kw = _search_args(args, sc)
     plant = true_plant(sc, "testbed worst-attack")
     x0 = sc.x0 if args.x0 is None else np.asarray(args.x0, dtype=float)
@@ -721,7 +755,7 @@ def main_worst_attack(args) -> int:
             code = 1
             print(f"testbed worst-attack: no schedule escapes: {sc_out} not written", file=sys.stderr)
     if args.json:
-        _write_json(out)
+        _write_json({**out, "method": sc.method.name})
         return code
     print(f"scenario {sc.name}: x0 = {out['x0']}, E0 = {out['E0']:g}, {out['n_steps']} samples of "
           f"T = {out['T']:g} s, at most {out['attacks']} attack(s)")
@@ -787,6 +821,7 @@ def _write_scenario_out(sc, out: dict, path: Path) -> str:
 # ============================================================================ vulnerability
 def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
+    _add_method(p)
     p.add_argument("--grid", type=int, default=41, help="grid points per axis (default 41)")
     p.add_argument("--window", nargs=2, type=float, metavar=("WX", "WY"),
                    help="half-widths of the window (default per plant, as testbed roa)")
@@ -810,7 +845,7 @@ def main_vulnerability(args) -> int:
     from .summary import analyze
     from .worst import Loop, vulnerability_map
 
-    sc = scenario.load(args.scenario)
+    sc = _with_method(scenario.load(args.scenario), args, "testbed vulnerability")
     kw = _search_args(args, sc)
     if not 2 <= args.grid <= 1001:
         raise BadInput(f"--grid must be in 2..1001, got {args.grid}")
@@ -838,7 +873,7 @@ def main_vulnerability(args) -> int:
     if args.json:
         from .summary import to_json
 
-        _write_json(to_json(out))
+        _write_json({**to_json(out), "method": sc.method.name})
         return 0
     print(f"scenario {sc.name}: {out['states_in_region']} states of the nominal region of attraction on a "
           f"{args.grid} x {args.grid} grid, at most {out['attacks']} attack(s), {out['n_steps']} samples")

@@ -139,7 +139,7 @@ def software_versions() -> dict[str, str]:
 
 
 def _module_keys(prefix: str, ref: str, info: dict) -> dict[str, str]:
-    bundled = info.get("module", "").startswith("plants.")  # ships with the testbed (testbed.software)
+    bundled = info.get("module", "").startswith(("plants.", "testbed."))  # ships with the testbed (testbed.software)
     return {f"{prefix}_ref": ref, f"{prefix}_module": info.get("module", ""), f"{prefix}_class": info.get("class", ""),
             f"{prefix}_file": info.get("file", ""), f"{prefix}_source": "" if bundled else info.get("source", ""),
             f"{prefix}_sha256": info.get("sha256", "")}
@@ -165,6 +165,14 @@ def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
         except ValueError:
             minfo = {}
         out.update(_module_keys("model", model.name, minfo))
+    try:
+        meth = sc.method.source_info()
+    except (ValueError, AttributeError):
+        meth = {}
+    out.update(_module_keys("method", sc.method.name, meth))
+    out["method_params"] = json.dumps(dict(sc.method.params)) if sc.method.params else ""
+    if sc.attack.kind == "trace":  # the trace itself, so that the recording needs no other file
+        out["attack_trace"] = json.dumps({"kind": "trace", **sc.attack.params_dict})
     return out
 
 
@@ -346,8 +354,17 @@ def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, _ca
     else:
         ps = _resolve_plant(meta, base_dir, "plant", path)
         ms = _resolve_plant(meta, base_dir, "model", path)
+        _resolve_method(meta, base_dir, path)
         if _cache is not None:
             _cache._resolved = True
+    if meta.get("attack_trace"):  # an embedded trace replaces the file the run read it from
+        import tomllib
+
+        from ..scenario import to_toml
+
+        data = tomllib.loads(toml)
+        data["attack"] = json.loads(meta["attack_trace"])
+        toml = to_toml(data)
     sc = loads(toml, name=str(meta.get("name", "recorded"))[:200], where=f"{path} (recorded scenario)",
                base_dir=base_dir, check_fmu=False)
     over = metadata.get("testbed.run", {}).get("scenario_overrides")
@@ -384,6 +401,28 @@ def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> 
               f"in {path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
               file=sys.stderr)
     return status
+
+
+def _resolve_method(meta: dict, base_dir: str | None, path: str) -> None:
+    """Resolve the recorded method reference, loading its stored source when it is not importable."""
+    from ..methods import MethodError
+    from ..methods.registry import resolve_recorded
+
+    ref = meta.get("method_ref")
+    if not ref:
+        return  # a recording from before methods: the paper's
+    try:
+        st = resolve_recorded(ref, base_dir, module=meta.get("method_module", ""),
+                              class_name=meta.get("method_class", ""), source=meta.get("method_source", ""),
+                              sha256=meta.get("method_sha256", ""))
+    except MethodError as e:
+        from ..scenario import ScenarioError
+
+        raise ScenarioError(f"{path}: {e}") from None
+    if st["loaded_from"] == "recording":
+        print(f"note: method module {meta.get('method_module')!r} is not importable ({st['reason']}); loaded the "
+              f"source stored in {path} (sha256 {meta.get('method_sha256', '')[:12]}): this runs code from the "
+              "recording", file=sys.stderr)
 
 
 def _with_resolved(sc, meta: dict | None):
@@ -656,14 +695,13 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     import numpy as np
 
     from ..api import attack_on_samples
-    from ..quantizer import Codebook
     from .foxglove_topics import FoxgloveTopics, telemetry_extra
 
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)
     Tn = int(round(sc.T * 1e9))
     N = len(res.t)
     plant = sc.make_model()
-    cb = Codebook(plant.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+    cb = sc.make_method().codebook(plant.n, sc.quantizer)
     run_id = f"sim-{sc.name}-{t0}"
     w = RecordingWriter(path, flush_interval=flush_interval, exclusive=exclusive)
     fox = FoxgloveTopics(sc, roa=roa)

@@ -62,9 +62,7 @@ class AttackerNode(Node):
         else:
             self.gate = Gate(a.schedule(sc.T, attack_horizon(sc)), sc.T)
             self.score_kind = None
-        from ..loopspec import Codebook
-
-        self.codebook = Codebook(self.model.n, sc.quantizer.M, resilient=(sc.quantizer.mode == "resilient"))
+        self.codebook = sc.make_method().codebook(self.model.n, sc.quantizer)
         self.corrupt = parse_corrupt(getattr(self.args, "corrupt", None))
         self._lock = threading.Lock()
         self._score_cond = threading.Condition()
@@ -101,7 +99,7 @@ class AttackerNode(Node):
             GreedyAttacker(1.0, 0.0, 0.0, 0.0, self.sc.T).decide(0, 0.0)
 
     def warm_publishers(self) -> None:
-        warm_publisher(self.pub_fwd, self.codebook.pack(0))
+        warm_publisher(self.pub_fwd, b"\0" * self.codebook.nbytes)
         if self.ctx.opts.ack_via_attacker:
             warm_publisher(self.pub_ack, msg.Ack(0, 0, 0, -1).encode()[0])
 

@@ -55,13 +55,14 @@ class RunOptions:
     actuation: str | None = None
     rule: str | None = None
     seed: int | None = None
+    method: str | None = None
     ack_via_attacker: bool = False
     separate_ack: bool = False
     colocate: tuple[str, ...] = ()
 
     _OVERRIDES = (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"), ("deadline", "--deadline"),
                   ("mode", "--mode"), ("loss_fraction", "--loss-fraction"), ("actuation", "--actuation"),
-                  ("rule", "--rule"), ("seed", "--seed"))
+                  ("rule", "--rule"), ("seed", "--seed"), ("method", "--method"))
 
     @classmethod
     def from_args(cls, args) -> "RunOptions":
@@ -122,6 +123,9 @@ def add_run_option_arguments(p: argparse.ArgumentParser,
     g.add_argument("--rule", choices=["paper", "delay-aware"], help="override [quantizer] rule (the prediction rule)")
     g.add_argument("--seed", type=int, metavar="S",
                    help="override [attack] seed (a random attack without one draws one, prints it and records it)")
+    g.add_argument("--method", metavar="NAME",
+                   help="override [method] name: the coding-and-control method (testbed methods lists them; "
+                        "[quantizer] keys it does not use are ignored with a note)")
     g.add_argument("--ack-via-attacker", action="store_true",
                    help="route the controller's acks through the attacker proxy too")
     g.add_argument("--separate-ack", action="store_true",

@@ -18,7 +18,6 @@ import threading
 
 from ..io import messages as msg
 from ..protocol import ControllerProtocol, Decision
-from ..quantizer import Decoder
 from ..stats import percentiles
 from .common import Node, ab_off, warm_publisher
 
@@ -27,9 +26,9 @@ CT = msg.ControllerTelemetry
 
 def warm_kernels(sc, model) -> None:
     """Load the decoder's compiled kernels: the node's warm-up, and the launcher's before it forks."""
-    d = Decoder(model, sc.K, sc.quantizer, sc.flow)
-    d.step(0)
+    d = sc.make_method().make_decoder(model, sc.K, sc.quantizer, sc.flow)
     d.step(None)
+    d.step(0 if hasattr(d.codebook, "M") else None)
     if d.codebook.resilient:
         d.step(d.codebook.overflow)
 
@@ -39,7 +38,7 @@ class ControllerNode(Node):
 
     def setup(self) -> None:
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
-        self.dec = Decoder(self.model, sc.K, sc.quantizer, sc.flow)
+        self.dec = sc.make_method().make_decoder(self.model, sc.K, sc.quantizer, sc.flow)
         # u_k goes out before the decoder's prediction for k+1 is computed (the same numbers)
         self.proto = ControllerProtocol(self.dec, ctx.n_steps, defer_update=not ab_off("deferred-update"))
         self.codebook = self.dec.codebook

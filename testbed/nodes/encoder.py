@@ -28,7 +28,7 @@ import time
 
 from ..io import messages as msg
 from ..protocol import EncoderProtocol, Send, skip_sample
-from ..quantizer import Encoder
+from ..methods.base import symbol_code
 from ..stats import percentiles
 from .common import Node, warm_publisher
 
@@ -38,7 +38,7 @@ log = logging.getLogger("testbed.nodes")
 def warm_kernels(sc, model) -> None:
     """Load the encoder's compiled kernels (quantizer, flow map, the plant's right-hand side): the
     node's warm-up, and the launcher's before it forks its nodes."""
-    e = Encoder(model, sc.K, sc.quantizer, sc.flow)
+    e = sc.make_method().make_encoder(model, sc.K, sc.quantizer, sc.flow)
     e.encode(sc.x0)
     e.ack(0)
     skip_sample(e)
@@ -51,7 +51,7 @@ class EncoderNode(Node):
     def setup(self) -> None:
         ctx, keys = self.ctx, self.ctx.keys
         sc = self.sc
-        self.enc = Encoder(self.model, sc.K, sc.quantizer, sc.flow)
+        self.enc = sc.make_method().make_encoder(self.model, sc.K, sc.quantizer, sc.flow)
         self.proto = EncoderProtocol(self.enc, ctx.n_steps)
         self.codebook = self.enc.codebook
         self.pub_symbol = self.publisher(keys.symbol_tx)
@@ -79,10 +79,9 @@ class EncoderNode(Node):
 
     def warmup(self) -> None:
         warm_kernels(self.sc, self.model)
-        self.codebook.pack(0)
 
     def warm_publishers(self) -> None:
-        warm_publisher(self.pub_symbol, self.codebook.pack(0))
+        warm_publisher(self.pub_symbol, b"\0" * self.codebook.nbytes)
 
     # ---- x_k
     def _on_sensor(self, sample):
@@ -130,7 +129,7 @@ class EncoderNode(Node):
                 self.pub_symbol.put(data, attachment=msg.Header(k, tx).encode())
                 self.pending_tx = tx
                 self.encode_time.append(tx - rx)
-                tel = msg.EncoderTelemetry(k=k, sensor_tx_ns=stamp_ns, rx_ns=rx, tx_ns=tx, symbol=act.symbol,
+                tel = msg.EncoderTelemetry(k=k, sensor_tx_ns=stamp_ns, rx_ns=rx, tx_ns=tx, symbol=symbol_code(act.symbol),
                                            saturated=int(act.saturated), silent=0, E=act.E,
                                            xi=tuple(act.xi.tolist()), q=tuple(act.q.tolist()))
             else:

@@ -1,0 +1,133 @@
+"""The bundled methods: the paper's and the baselines it argues against (docs/methods.md).
+
+* ``paper``: the resilient zoom quantizer and control law (2) of the paper (Algorithms 1, 2,
+  rules (xi), (E); ``[quantizer] mode`` ideal or resilient with OVERFLOW) -- the very
+  ``quantizer.Encoder`` / ``quantizer.Decoder`` objects.
+* ``zoom``: the zoom quantizer without DoS resilience (Liberzon and Hespanha 2005): the
+  zoom-in E_{k+1} = (Lambda / M) E_k at *every* sample, whether or not the packet got
+  through; its zoom-out stage after a saturation (OVERFLOW, as the paper's resilient mode).
+* ``static``: a static uniform quantizer, range [-R, R]^n (``params.range``), M levels per
+  coordinate, no zoom: u_k = (1 - theta_k) K q_k (at best practical stability).
+* ``unquantized``: exact state feedback, u_k = (1 - theta_k) K x_k (infinite data rate).
+* ``unquantized-hold``: exact state feedback that holds the last received input through a
+  loss, u_k = K x_k if theta_k = 0, else u_{k-1} (De Persis and Tesi 2015).
+"""
+
+from __future__ import annotations
+
+
+from .base import FloatCodebook, Method, MethodError, finite_params
+from ..loopspec import Codebook
+
+#: batch kernel codes (``simulate._batch_kernel`` ``mode``); 0, 1 are the paper's ideal and resilient
+KERNEL_STATIC = 3
+KERNEL_ZOOM = 4
+KERNEL_UNQUANTIZED = 5
+KERNEL_HOLD = 6
+
+_PAPER_KEYS = ("M", "L", "E0", "mode", "zoom_out", "E_min", "rule", "L_u", "allow_M_le_Lambda", "allow_x0_outside")
+
+
+class PaperMethod(Method):
+    name = "paper"
+    description = "the paper's resilient zoom quantizer and control law (2) (both modes)"
+    source = "the paper (Algorithms 1 and 2, rules (xi), (E)); OVERFLOW: the testbed's resilient mode"
+    uses = _PAPER_KEYS
+
+    def codebook(self, n, qp):
+        return Codebook(n, qp.M, resilient=(qp.mode == "resilient"))
+
+    def make_encoder(self, model, K, qp, flow):
+        from ..quantizer import Encoder
+
+        return Encoder(model, K, qp, flow)
+
+    def make_decoder(self, model, K, qp, flow):
+        from ..quantizer import Decoder
+
+        return Decoder(model, K, qp, flow)
+
+    def kernel_code(self, qp) -> int:
+        return 1 if qp.mode == "resilient" else 0
+
+
+def _ends(name):
+    from . import ends
+
+    return getattr(ends, name)
+
+
+class ZoomMethod(Method):
+    name = "zoom"
+    description = "zoom quantizer without DoS resilience: zoom-in at every sample, zoom-out after a saturation"
+    source = "D. Liberzon and J. P. Hespanha, Stabilization of nonlinear systems with limited information " \
+             "feedback, IEEE TAC 50(6), 2005"
+    uses = ("M", "L", "E0", "zoom_out", "E_min", "allow_M_le_Lambda", "allow_x0_outside")
+    kernel_mode = KERNEL_ZOOM
+
+    def codebook(self, n, qp):
+        return Codebook(n, qp.M, resilient=True)
+
+    def make_encoder(self, model, K, qp, flow):
+        return _ends("ZoomEncoder")(model, K, qp, flow)
+
+    def make_decoder(self, model, K, qp, flow):
+        return _ends("ZoomDecoder")(model, K, qp, flow)
+
+
+class StaticMethod(Method):
+    name = "static"
+    description = "static uniform quantizer: fixed range [-range, range]^n, M levels per coordinate, no zoom"
+    source = "a uniform quantizer of fixed range (e.g. D. F. Delchamps, IEEE TAC 35(8), 1990; practical stability)"
+    uses = ("M",)
+    defaults = {"range": 1.0}
+    kernel_mode = KERNEL_STATIC
+
+    def check_params(self):
+        finite_params(self, "range")
+
+    def codebook(self, n, qp):
+        return Codebook(n, qp.M, resilient=False)
+
+    def make_encoder(self, model, K, qp, flow):
+        return _ends("StaticEncoder")(self, model, K, qp, flow)
+
+    def make_decoder(self, model, K, qp, flow):
+        return _ends("StaticDecoder")(self, model, K, qp, flow)
+
+    def kernel_E0(self, qp):
+        return float(self.params["range"])
+
+
+class UnquantizedMethod(Method):
+    name = "unquantized"
+    description = "exact state feedback, zero input through a loss (the infinite-data-rate control law (2))"
+    source = "control law (2) of the paper with q_k = x_k"
+    kernel_mode = KERNEL_UNQUANTIZED
+    _enc, _dec = "ExactEncoderZero", "ExactDecoder"
+
+    def codebook(self, n, qp):
+        return FloatCodebook(n)
+
+    def make_encoder(self, model, K, qp, flow):
+        return _ends(self._enc)(self, model, K, qp, flow)
+
+    def make_decoder(self, model, K, qp, flow):
+        return _ends(self._dec)(self, model, K, qp, flow)
+
+    def kernel_E0(self, qp):
+        return 0.0
+
+
+class UnquantizedHoldMethod(UnquantizedMethod):
+    name = "unquantized-hold"
+    description = "exact state feedback holding the last received input through a loss"
+    source = "C. De Persis and P. Tesi, Input-to-state stabilizing control under denial-of-service, IEEE TAC 60(11), 2015"
+    kernel_mode = KERNEL_HOLD
+    _enc, _dec = "ExactEncoder", "HoldDecoder"
+
+
+BUNDLED = {c.name: c for c in (PaperMethod, ZoomMethod, StaticMethod, UnquantizedMethod, UnquantizedHoldMethod)}
+
+__all__ = ["BUNDLED", "PaperMethod", "ZoomMethod", "StaticMethod", "UnquantizedMethod", "UnquantizedHoldMethod",
+           "MethodError"]

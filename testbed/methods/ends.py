@@ -1,0 +1,136 @@
+"""The bundled methods' encoder and decoder ends (compiled kernels: imported when a run starts)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numba as nb
+import numpy as np
+
+from ..flow import compiled_for
+from ..loopspec import ROUNDOFF
+from ..quantizer import Decoder, Encoder, box_center, control_input, quantize_index, zoom_update
+from .base import DecoderEnd, EncoderEnd, FloatCodebook
+
+@nb.njit(cache=True)
+def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
+                   E_min, dpar, K_s, ytmp, u_s, xi_out):
+    """The zoom quantizer's update without DoS resilience: rule (xi) as the paper's, but the
+    zoom-in E_{k+1} = (Lambda / M) E_k whatever theta_k (after an OVERFLOW received: the zoom-out
+    E_{k+1} = sigma Lambda max(E_k, E_r)); the same floors as ``zoom_update``."""
+    En, st = zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
+                         E_min, dpar, K_s, ytmp, u_s, xi_out)
+    if theta == 1:
+        En = Lambda / M * E
+        big = 0.0
+        for i in range(xi_out.shape[0]):
+            big = max(big, abs(xi_out[i]))
+        if En < ROUNDOFF * big:
+            En = ROUNDOFF * big
+        if En < E_min:
+            En = E_min
+    return En, st
+
+
+class _ZoomEnd:
+    def _update(self, theta, overflow, q):
+        xi_next = np.empty(self.plant.n)
+        u_k = np.empty(self.plant.m)
+        qp = self.qp
+        args = (self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow), self.xi, float(self.E), q,
+                self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min, self._dpar, self._Ks, self._ytmp, u_k, xi_next)
+        if self._zoom is None:
+            E_next, st = unaware_update(*args)
+            self._zoom = compiled_for(unaware_update, args)
+        else:
+            E_next, st = self._zoom(*args)
+        self.xi, self.E, self.u_prev, self.flow_status = xi_next, float(E_next), u_k, int(st)
+        self.k += 1
+
+
+class ZoomEncoder(_ZoomEnd, Encoder):
+    def __init__(self, model, K, qp, flow):
+        super().__init__(model, K, replace(qp, mode="resilient", rule="paper"), flow)
+        self._dpar = np.zeros(4)
+
+
+class ZoomDecoder(_ZoomEnd, Decoder):
+    def __init__(self, model, K, qp, flow):
+        super().__init__(model, K, replace(qp, mode="resilient", rule="paper"), flow)
+        self._dpar = np.zeros(4)
+
+
+class StaticEncoder(EncoderEnd):
+    def symbol(self, x):
+        R, M = float(self.method.params["range"]), int(self.qp.M)
+        zero = np.zeros(self.plant.n)
+        i, sat = quantize_index(x, zero, R, M)
+        q = np.empty(self.plant.n)
+        box_center(i, zero, R, M, q)
+        return int(i), bool(sat), q
+
+
+class StaticDecoder(DecoderEnd):
+    def control(self, symbol):
+        n, m = self.plant.n, self.plant.m
+        q = np.zeros(n)
+        u = np.empty(m)
+        if symbol is None:
+            control_input(self.K, q, 1, False, u)
+        else:
+            box_center(int(symbol), np.zeros(n), float(self.method.params["range"]), int(self.qp.M), q)
+            control_input(self.K, q, 0, False, u)
+        self._u = u
+        return u, q
+
+    def update(self, theta, symbol):
+        self.u_prev = self._u
+
+
+class ExactEncoder(EncoderEnd):
+    def symbol(self, x):
+        self._x = np.array(x, dtype=np.float64)
+        return FloatCodebook.encode_state(x), False, self._x
+
+    def update(self, theta, symbol):
+        if theta == 0:
+            u = np.empty(self.plant.m)
+            control_input(self.K, self._x, 0, False, u)
+            self.u_prev = u
+
+
+class ExactDecoder(DecoderEnd):
+    hold = False
+
+    def control(self, symbol):
+        n, m = self.plant.n, self.plant.m
+        u = np.empty(m)
+        if symbol is None:
+            q = np.zeros(n)
+            if self.hold:
+                u[:] = self.u_prev
+            else:
+                control_input(self.K, q, 1, False, u)
+        else:
+            q = FloatCodebook.decode_state(symbol)
+            control_input(self.K, q, 0, False, u)
+        self._u = u
+        return u, q
+
+    def update(self, theta, symbol):
+        if theta == 0 or self.hold:
+            self.u_prev = self._u
+        else:
+            self.u_prev = np.zeros(self.plant.m)
+
+
+class HoldDecoder(ExactDecoder):
+    hold = True
+
+
+class ExactEncoderZero(ExactEncoder):
+    def update(self, theta, symbol):
+        if theta == 0:
+            super().update(theta, symbol)
+        else:
+            self.u_prev = np.zeros(self.plant.m)

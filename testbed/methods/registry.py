@@ -1,0 +1,159 @@
+"""Method references, resolved like plant references (``plants.refs``), the same way in every process:
+
+1. ``"module.path:ClassName"``: imported from the scenario file's folder first, then ``sys.path``;
+2. a bundled name (``paper``, ``zoom``, ``static``, ``unquantized``, ``unquantized-hold``) or one
+   registered with :func:`register`;
+3. an entry point of the group ``dos_testbed.methods`` (``pip install`` of a method package).
+
+A recording stores the reference, the module's source text and its sha256 (:func:`source_info`).
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import re
+
+from plants.refs import _import, _module_file
+from plants.refs import source_info as _plant_source_info
+
+from .base import Method, MethodError
+from .bundled import BUNDLED
+
+ENTRY_POINT_GROUP = "dos_testbed.methods"
+DEFAULT = "paper"
+
+_REGISTRY: dict[str, type[Method]] = dict(BUNDLED)
+_RESOLVED: dict[tuple[str, str], type[Method]] = {}
+_IDENT = r"[A-Za-z_][A-Za-z0-9_]*"
+_MODULE_REF = re.compile(rf"^({_IDENT}(?:\.{_IDENT})*):({_IDENT})$")
+
+
+def register(cls: type[Method]) -> type[Method]:
+    """Register a method class under its ``name`` (usable as a decorator)."""
+    _REGISTRY[check_method_class(cls, cls.name)] = cls
+    return cls
+
+
+def names() -> list[str]:
+    return list(_REGISTRY)
+
+
+def check_method_class(obj, ref: str):
+    if not (isinstance(obj, type) and issubclass(obj, Method)) or obj is Method:
+        raise MethodError(f"method {ref!r}: {obj!r} is not a subclass of testbed.methods.Method")
+    return obj
+
+
+def entry_points() -> dict:
+    out = {}
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        out.setdefault(ep.name, ep)
+    return out
+
+
+def _from_module(ref: str, base_dir: str | None):
+    m = _MODULE_REF.match(ref)
+    if not m:
+        raise MethodError(f"method {ref!r}: a module reference is 'module.path:ClassName'")
+    modname, attr = m.groups()
+    where = f"{base_dir}, then sys.path" if base_dir else "sys.path"
+    try:
+        mod = _import(modname, base_dir)
+    except ModuleNotFoundError as e:
+        if e.name and (modname == e.name or modname.startswith(e.name + ".")):
+            raise MethodError(f"method {ref!r}: no module {modname!r} (looked in {where})") from None
+        raise MethodError(f"method {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
+    except Exception as e:  # noqa: BLE001 - anything a user's module raises: one line
+        raise MethodError(f"method {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
+    if not hasattr(mod, attr):
+        raise MethodError(f"method {ref!r}: module {modname!r} ({_module_file(mod)}) has no {attr!r}")
+    return check_method_class(getattr(mod, attr), ref)
+
+
+def resolve(ref: str, base_dir: str | None = None) -> type[Method]:
+    """The :class:`Method` subclass a reference names; :class:`MethodError` (one line) when it cannot."""
+    if not isinstance(ref, str) or not ref:
+        raise MethodError(f"method name must be a non-empty string, got {ref!r}")
+    bd = str(base_dir) if base_dir else ""
+    if ":" in ref:
+        key = (ref, bd)
+        if key not in _RESOLVED:
+            try:
+                _RESOLVED[key] = _from_module(ref, bd or None)
+            except ValueError as e:  # plants.refs.PlantRefError from the shared importer
+                raise MethodError(str(e).replace("plant", "method", 1)) from None
+        return _RESOLVED[key]
+    if ref in _REGISTRY:
+        return _REGISTRY[ref]
+    key = (ref, "")
+    if key in _RESOLVED:
+        return _RESOLVED[key]
+    ep = entry_points().get(ref)
+    if ep is None:
+        raise MethodError(f"unknown method {ref!r}; bundled methods: {', '.join(names())}; or an installed "
+                          f"method package ({ENTRY_POINT_GROUP} entry point), or 'module.path:ClassName'")
+    try:
+        obj = ep.load()
+    except Exception as e:  # noqa: BLE001
+        raise MethodError(f"method {ref!r}: entry point {ep.value!r} failed to load: {type(e).__name__}: {e}") from None
+    _RESOLVED[key] = check_method_class(obj, ref)
+    return _RESOLVED[key]
+
+
+def make(ref: str, base_dir: str | None = None, params: dict | None = None) -> Method:
+    """An instance of the method ``ref`` with ``params`` (its ``[method] params``)."""
+    cls = resolve(ref, base_dir)
+    try:
+        return cls(**dict(params or {}))
+    except MethodError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a user's constructor: one line
+        raise MethodError(f"method {ref!r}: {type(e).__name__}: {e}") from None
+
+
+def source_info(cls: type[Method]) -> dict[str, str]:
+    """``module``, ``class``, ``file``, ``source``, ``sha256`` of a method's module (as for plants)."""
+    return _plant_source_info(cls)
+
+
+def bundled(ref: str) -> bool:
+    return ref in BUNDLED
+
+
+def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "", source: str = "",
+                     sha256: str = "") -> dict:
+    """Resolve a recorded method reference as the run did; when it cannot be imported, load the module's
+    source stored in the recording (THIS RUNS THE STORED CODE; the sha256 must match) and pin it to
+    ``ref`` in this process.  Returns ``{"loaded_from": "import" | "recording", "reason"}``."""
+    import hashlib
+    import importlib.util
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    try:
+        resolve(ref, base_dir)
+        return {"loaded_from": "import", "reason": None}
+    except MethodError as e:
+        if not source or ":" not in ref:
+            raise
+        reason = str(e)
+    if hashlib.sha256(source.encode("utf-8")).hexdigest() != sha256:
+        raise MethodError(f"method {ref!r}: the stored source does not match its sha256 (corrupt recording)")
+    if not re.fullmatch(rf"{_IDENT}(?:\.{_IDENT})*", module or "") or not re.fullmatch(_IDENT, class_name or ""):
+        raise MethodError(f"method {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
+    d = tempfile.mkdtemp(prefix="testbed-recorded-method-")
+    path = Path(d) / f"{module.rsplit('.', 1)[-1]}.py"
+    path.write_text(source, encoding="utf-8")
+    spec = importlib.util.spec_from_file_location(module, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[module] = mod
+    try:
+        spec.loader.exec_module(mod)
+        cls = check_method_class(getattr(mod, class_name, None), ref)
+    except Exception as e:  # noqa: BLE001 - the stored code failed: one line
+        sys.modules.pop(module, None)
+        raise MethodError(f"method {ref!r}: the stored source of {module!r} failed to load: "
+                          f"{type(e).__name__}: {e}") from None
+    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
+    return {"loaded_from": "recording", "reason": reason}

@@ -1,0 +1,155 @@
+"""The method interface, the bundled methods, [method] in scenarios, batch kernel = per-sample simulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from testbed import methods, scenario
+from testbed.simulate import OnlineAttacker, simulate_batch, simulate_loop
+
+BUNDLED = ["paper", "zoom", "static", "unquantized", "unquantized-hold"]
+
+
+def _paper(method: str, **over):
+    sc = scenario.load("paper")
+    return scenario.with_overrides(sc, {"method": method, **over})
+
+
+def _loop(sc, theta=None, method=None):
+    N = sc.n_steps
+    th = sc.theta(N) if theta is None else theta
+    return simulate_loop(sc.make_plant(), sc.K, sc.quantizer, sc.x0, N, OnlineAttacker(theta=th, T=sc.T), sc.flow,
+                         model=sc.make_model(), method=method or sc.make_method(), u_max=sc.controller.u_max)
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+@pytest.mark.parametrize("specialize", [False, True])
+def test_batch_kernel_equals_per_sample(name, specialize):
+    """Every bundled method: the batch kernel equals the per-sample simulator bit for bit (x_k, E_k,
+    theta_k, saturations, the final loop state), under the paper's attack and a random one."""
+    sc = _paper(name, duration=6.0)
+    N = sc.n_steps
+    rng = np.random.default_rng(3)
+    thetas = [sc.theta(N), (rng.random(N) < 0.3).astype(np.uint8)]
+    X0 = np.array([sc.x0, [-0.05, 0.08]])
+    m = sc.make_method()
+    for th in thetas:
+        b = simulate_batch(sc.make_plant(), sc.K, sc.quantizer, X0, N, theta=th[None], sched_idx=[0, 0],
+                           record=True, method=m, specialize=specialize, u_max=sc.controller.u_max)
+        for j, x0 in enumerate(X0):
+            r = simulate_loop(sc.make_plant(), sc.K, sc.quantizer, x0, N, OnlineAttacker(theta=th, T=sc.T), sc.flow,
+                              model=sc.make_model(), method=m, u_max=sc.controller.u_max)
+            assert r.agree
+            assert np.array_equal(b.x[j], r.x), name
+            assert np.array_equal(b.x_final[j], r.x_final)
+            assert np.array_equal(b.theta[j], r.theta)
+            assert np.array_equal(b.E[j], r.E_enc), name
+            assert b.saturations[j] == r.saturations
+            assert np.array_equal(b.state_final[j], r.loop_state), name
+
+
+def test_paper_method_is_the_paper():
+    """[method] absent = "paper": the same numbers as the quantizer's own Encoder/Decoder."""
+    sc = scenario.load("paper")
+    assert sc.method.name == "paper"
+    a = _loop(sc, method=None)
+    b = simulate_loop(sc.make_plant(), sc.K, sc.quantizer, sc.x0, sc.n_steps,
+                      OnlineAttacker(theta=sc.theta(sc.n_steps), T=sc.T), sc.flow, model=sc.make_model())
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.E_enc, b.E_enc) and np.array_equal(a.symbols, b.symbols)
+
+
+def test_registry_and_bits():
+    sc = scenario.load("paper")
+    for n in BUNDLED:
+        assert methods.resolve(n).name == n
+    assert methods.make("paper").bits(2, sc.quantizer) == 6      # 6^2 + 1 = 37 codes
+    assert methods.make("static").bits(2, sc.quantizer) == 6     # 36 codes
+    assert methods.make("unquantized").bits(2, sc.quantizer) == 128
+    with pytest.raises(methods.MethodError, match="unknown method 'nope'"):
+        methods.resolve("nope")
+    with pytest.raises(methods.MethodError, match="no parameter 'width'"):
+        methods.make("static", params={"width": 1})
+    with pytest.raises(methods.MethodError, match="no module"):
+        methods.resolve("no_such_mod_xyz:M")
+
+
+def test_unused_key_is_an_error_for_the_own_method_and_a_note_when_swapped():
+    text = scenario.load("paper").source
+    with pytest.raises(scenario.ScenarioError, match=r"\[quantizer.L\] is not used by the method 'static'"):
+        scenario.loads(text + '\n[method]\nname = "static"\n')
+    sc = _paper("unquantized")
+    assert sc.method.name == "unquantized"
+    assert "ignores [quantizer] M, L, E0, mode" in sc.method_note
+
+
+def test_unquantized_scenario_without_M():
+    text = """
+[plant]
+name = "pendulum"
+x0 = [0.1, 0.1]
+[quantizer]
+T = 0.1
+[controller]
+lqr = { Q = [[1, 0], [0, 1]], R = [[1]] }
+[run]
+duration = 5
+[method]
+name = "unquantized-hold"
+"""
+    sc = scenario.loads(text)
+    r = _loop(sc)
+    assert r.final_norm < 1e-3
+    with pytest.raises(Exception, match="M"):
+        scenario.with_overrides(sc, {"method": "paper"})
+
+
+def test_zoom_saturates_under_the_papers_attack_paper_does_not():
+    z = _loop(_paper("zoom"))
+    p = _loop(_paper("paper"))
+    assert p.saturations == 0 and z.saturations > 0
+    assert np.array_equal(z.theta, p.theta)
+
+
+def test_worst_attack_with_a_method_agrees_with_the_per_sample_simulator(tmp_path):
+    """worst-attack --method (batch kernel, escape by the method's own loop) against testbed.simulate
+    (per-sample simulator): the schedule it returns escapes, the same one shortened by one sample does not."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import testbed
+
+    r = subprocess.run([sys.executable, "-m", "testbed.cli", "worst-attack", "paper", "--method", "unquantized",
+                        "--json", "--no-progress"], capture_output=True, text=True, cwd=tmp_path, env=dict(os.environ))
+    assert r.returncode == 0, r.stderr
+    w = json.loads(r.stdout)
+    assert w["method"] == "unquantized" and w["escaped"]
+    (a, tau), = w["intervals"]
+    run = testbed.simulate("paper", method="unquantized", attack={"kind": "intervals", "intervals": [[a, tau]]})
+    assert run.summary["escaped"] and run.summary["samples_lost"] == w["samples_lost"] and run.summary["method"] == "unquantized"
+    short = testbed.simulate("paper", method="unquantized",
+                             attack={"kind": "intervals", "intervals": [[a, max(tau - 0.1, 0.0)]]})
+    assert not short.summary["escaped"]
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_contract_every_bundled_method(name):
+    """Contract over the registry: the ends are deterministic (two runs, the same numbers), stay in
+    lockstep under random losses, every symbol sent fits the declared bits, and the method declares
+    where it runs, its description and its source."""
+    sc = _paper(name, duration=4.0)
+    m = sc.make_method()
+    assert m.description and m.source and m.kernel_code(sc.quantizer) is not None
+    th = (np.random.default_rng(11).random(sc.n_steps) < 0.4).astype(np.uint8)
+    a, b = _loop(sc, th), _loop(sc, th)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.u, b.u)
+    assert a.agree and not a.lockstep_breaks
+    cb = m.codebook(2, sc.quantizer)
+    enc = m.make_encoder(sc.make_model(), sc.K, sc.quantizer, sc.flow)
+    for x in np.random.default_rng(2).normal(scale=0.3, size=(20, 2)):
+        s, _sat = enc.encode(x)
+        assert len(cb.pack(s)) * 8 >= cb.bits >= 1
+        assert cb.unpack(cb.pack(s)) == s
+        enc.ack(0)
