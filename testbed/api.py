@@ -238,19 +238,9 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
 
 # ============================================================================ from the simulator
-def attack_on_samples(sc, res) -> np.ndarray:
-    """Per sample: the DoS schedule is active at t_k (an online attacker: when it dropped)."""
-    theta = np.asarray(res.theta, dtype=bool)
-    N = len(theta)
-    sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
-    if sched is None or not N:
-        return theta.copy()
-    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
-
-
 def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
     """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result."""
-    from .simulate import summarize
+    from .simulate import attack_on_samples, summarize
 
     N = len(res.t)
     arrays = {"k": np.arange(N), "t": np.asarray(res.t), "x": res.x, "u": res.u, "q": res.q, "xi": res.xi_enc,
@@ -291,5 +281,5 @@ def simulate(scenario, **overrides) -> Run:
     return run_of_simulation(sc, simulate_scenario(sc), {k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "attack_on_samples", "MissingExtra",
+__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "MissingExtra",
            "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]

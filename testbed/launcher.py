@@ -39,6 +39,7 @@ from .errors import BadInput
 from .io import messages as msg
 from .io import transport
 from .io.viewer import LiveRerun, add_rerun_run_arguments
+from .stats import fmt_percentiles
 from .nodes.common import RX_MODES, RunOptions, add_run_option_arguments, load_scenario, parse_cpus
 
 RECORDER = "recorder"
@@ -178,9 +179,9 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
             pass
         sys.stdout.reconfigure(line_buffering=True)
         logging.root.handlers.clear()
-        from .cli import main
+        from .entry import run_child
 
-        code = main(argv)
+        code = run_child(argv)
     except SystemExit as e:
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
         if not isinstance(e.code, int) and e.code is not None:
@@ -902,12 +903,6 @@ class Launcher:
         return code, summary
 
 
-def _fmt(p: dict | None) -> str:
-    if not p or p.get("p50") is None:
-        return "n/a"
-    return f"p50 {p['p50']:.0f} us, p99 {p['p99']:.0f} us, max {p['max']:.0f} us"
-
-
 def print_text(s: dict) -> None:
     if not s.get("samples"):  # nothing ran: no loop figures to show, only why
         print(f"run {s['run_id']}: scenario {s.get('scenario')}: the run NEVER STARTED (outcome: {s['outcome']})")
@@ -928,10 +923,10 @@ def print_text(s: dict) -> None:
                                                               " (on the samples both recorded)"))
     fn = s.get("final_norm")
     print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
-    print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
-    print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
+    print(f"  sampling jitter      {fmt_percentiles(tm['sampling_jitter_us'])}")
+    print(f"  sensor-to-actuator   {fmt_percentiles(tm['sensor_to_actuator_us'])}")
     for st, v in tm["stages_us"].items():
-        print(f"    {st:18s} {_fmt(v)}")
+        print(f"    {st:18s} {fmt_percentiles(v)}")
     print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}; symbol payload "
           f"{s['sizes']['symbol_payload_bytes']} B + header {s['sizes']['header_bytes']} B")
     if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:

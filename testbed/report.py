@@ -40,7 +40,8 @@ import numpy as np
 
 from . import cliargs
 from .io import messages as msg
-from .runsummary import SUMMARY_FIELDS, build_summary, to_lists, write_json
+from .runsummary import build_summary, load, to_lists, write_json
+from .stats import fmt_percentiles
 
 
 def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
@@ -142,34 +143,6 @@ def _agreement(cols, N: int) -> dict:
     return {"samples": N, "compared": compared, "disagree": int(differ.size), "disagree_at": differ[:50].tolist(),
             "not_compared": int(missing.size), "not_compared_at": missing[:50].tolist(),
             "all_agree": not differ.size and not missing.size}
-
-
-#: the per-stage times, read only for the timing section of live runs
-TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker.tx_ns"}
-
-
-#: what the resimulation and the actuation section read beyond the summary's fields
-REPLAY_FIELDS = {"plant.delay_ns"}
-
-
-def _fields(meta: dict) -> set[str]:
-    live = meta.get("testbed.run", {}).get("source") == "live"
-    return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
-
-
-def load(path: str | Path):
-    """The columns of a recording and its scenario (``BadInput`` for anything unusable).
-
-    The columns carry ``plant_source`` and ``model_source`` (``recording.recorded_scenario``).
-    """
-    from .io.columns import read_columns, read_metadata
-    from .io.recording import recorded_scenario
-
-    meta, _ = read_metadata(path)
-    sc, ps, ms = recorded_scenario(meta, str(path))
-    cols = read_columns(path, fields=_fields, sc=sc)
-    cols.plant_source, cols.model_source = ps, ms
-    return cols, sc
 
 
 #: how many samples ``testbed report`` resimulates by default (about 1.3 s; every sample of a
@@ -328,14 +301,12 @@ def print_text(s: dict) -> None:
     print(f"  saturations: {s.get('saturations', 0)}" + (f" at {[int(k) for k in sat_at]}" if sat_at else ""))
     act = s.get("actuation")
     if act:
-        from .launcher import _fmt
-
         print(f"  physical timing, {act['actuation']} actuation"
               + (f" at t_k + {act['scheduled_delay_s'] * 1e3:g} ms" if act["actuation"] == "scheduled" else "")
               + f", {act['rule']} rule (nominal delay {act['delay_hat'] * 1e3:g} ms, margin "
                 f"{act['margin_gain']:.3g} ||u_k - u_k-1||; lost samples {act['delay_hat_lost'] * 1e3:g} ms, "
                 f"margin {act['margin_gain_lost']:.3g})")
-        print(f"  u_k of a received sample arrived after t_k: {_fmt(act['arrival_us'])}"
+        print(f"  u_k of a received sample arrived after t_k: {fmt_percentiles(act['arrival_us'])}"
               + (f"; {act['late_for_schedule']} later than scheduled" if act["actuation"] == "scheduled" else ""))
     rs = s.get("resimulation")
     if rs:
@@ -343,10 +314,8 @@ def print_text(s: dict) -> None:
               + (f" (max state error {rs['max_state_error']:.3g})" if rs.get("max_state_error") else ""))
     tm = s.get("timing")
     if tm:
-        from .launcher import _fmt
-
-        print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
-        print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
+        print(f"  sampling jitter      {fmt_percentiles(tm['sampling_jitter_us'])}")
+        print(f"  sensor-to-actuator   {fmt_percentiles(tm['sensor_to_actuator_us'])}")
         print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
     for f in s.get("faults") or []:
         print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")

@@ -134,7 +134,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
 
 def resimulate(path) -> dict:
     """``testbed resimulate PATH --json`` as a dict."""
-    from .report import load
+    from .runsummary import load
 
     cols, sc = load(path)
     return compare(recorded_run(cols, sc))

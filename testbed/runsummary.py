@@ -12,6 +12,7 @@ added beside them.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from collections import Counter
 
 import numpy as np
@@ -344,3 +345,31 @@ def to_lists(obj):
     if isinstance(obj, (np.ndarray, RowsOrNone)):
         return _clean(obj.tolist())
     return obj
+
+
+#: the per-stage times, read only for the timing section of live runs
+TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker.tx_ns"}
+
+
+#: what the resimulation and the actuation section read beyond the summary's fields
+REPLAY_FIELDS = {"plant.delay_ns"}
+
+
+def _fields(meta: dict) -> set[str]:
+    live = meta.get("testbed.run", {}).get("source") == "live"
+    return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
+
+
+def load(path: str | Path):
+    """The columns of a recording and its scenario (``BadInput`` for anything unusable).
+
+    The columns carry ``plant_source`` and ``model_source`` (``recording.recorded_scenario``).
+    """
+    from .io.columns import read_columns, read_metadata
+    from .io.recording import recorded_scenario
+
+    meta, _ = read_metadata(path)
+    sc, ps, ms = recorded_scenario(meta, str(path))
+    cols = read_columns(path, fields=_fields, sc=sc)
+    cols.plant_source, cols.model_source = ps, ms
+    return cols, sc

@@ -851,6 +851,16 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
                              model=model, flow=sc.flow)[0])
 
 
+def attack_on_samples(sc, res) -> np.ndarray:
+    """Per sample: the DoS schedule is active at t_k (an online attacker: when it dropped)."""
+    theta = np.asarray(res.theta, dtype=bool)
+    N = len(theta)
+    sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
+    if sched is None or not N:
+        return theta.copy()
+    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
+
+
 def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 

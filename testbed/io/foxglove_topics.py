@@ -41,6 +41,7 @@ import struct
 from functools import lru_cache
 from importlib import resources
 
+from ..view.phase import PHASE_DIMS, phase_bounds, roa_outline
 from . import messages as msg
 
 TOPIC_LOG = "/log"
@@ -50,7 +51,6 @@ LOG = "foxglove.Log"
 SCENE = "foxglove.SceneUpdate"
 TOPICS = {TOPIC_LOG: LOG, TOPIC_PHASE: SCENE, TOPIC_ROA: SCENE}
 FRAME = "phase"
-PHASE_DIMS = (0, 1)
 MAX_POINTS = 512
 TAIL = 16
 ROA_MIN_T = 0.01   # the nominal region's outline is drawn at T >= 10 ms (its grid costs ~1/T)
@@ -264,8 +264,6 @@ def roa_update(outline, t_ns: int) -> bytes | None:
 
 def window_of(sc, roa=None) -> float:
     """The phase plane's width (``viewer.phase_bounds`` of the live view)."""
-    from .viewer import phase_bounds
-
     (x0, x1), _ = phase_bounds(sc, None, roa)
     return x1 - x0
 
@@ -326,8 +324,6 @@ class FoxgloveTopics:
         return (TOPIC_LOG, LOG, log_message(t, level, text, name), log_time)
 
     def _compute_roa(self):
-        from .viewer import roa_outline
-
         try:
             self.roa = roa_outline(self.sc)
         except Exception:  # noqa: BLE001 - a picture only: never lose the recording over it

@@ -655,8 +655,8 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     """
     import numpy as np
 
-    from ..api import attack_on_samples
     from ..quantizer import Codebook
+    from ..simulate import attack_on_samples
     from .foxglove_topics import FoxgloveTopics, telemetry_extra
 
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)

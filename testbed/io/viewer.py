@@ -53,10 +53,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..view.phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
+
 APP_ID = "testbed"
 TIMELINE_K = "k"
 TIMELINE_T = "t"
-PHASE_DIMS = (0, 1)
 
 COLOR_X = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40)]
 COLOR_ENC = (31, 119, 180)
@@ -191,54 +192,6 @@ def flip_y(rec) -> None:
     rr.log("phase", rr.Transform3D(mat3x3=[[1, 0, 0], [0, -1, 0], [0, 0, 1]]), static=True, recording=rec)
 
 
-# ============================================================================ region of attraction
-@dataclass(frozen=True)
-class RoaOutline:
-    """Outline of the nominal region of attraction in the phase plane (``lines``: list of (P, 2))."""
-
-    lines: tuple
-    window: tuple          # ((x_lo, x_hi), (y_lo, y_hi)) of the grid
-    fraction: float        # of the grid inside
-    note: str
-
-
-def roa_outline(sc, grid: int = 61) -> RoaOutline | None:
-    """The nominal region's outline (level 1/2 of the grid's membership), None for n != 2.
-
-    A coarse grid (61 x 61: under a second for the paper's plant) is enough for a picture.
-    """
-    plant = sc.make_model()
-    if plant.n != 2:
-        return None
-    key = (sc.source or sc.name, tuple(np.asarray(sc.K).ravel()), float(sc.T), int(grid))
-    return _roa_for(key, sc, grid)
-
-
-_ROA_CACHE: dict = {}
-
-
-def _roa_for(key, sc, grid) -> RoaOutline:
-    if key in _ROA_CACHE:
-        return _ROA_CACHE[key]
-    import contourpy
-
-    from ..analysis.roa import nominal_roa
-
-    r = nominal_roa(sc.make_model(), sc.K, sc.T, grid=grid, flow=sc.flow)
-    window = ((float(r.xs[0]), float(r.xs[-1])), (float(r.ys[0]), float(r.ys[-1])))
-    if r.inside.all():
-        (x0, x1), (y0, y1) = window
-        lines = (np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]),)
-        note = "the whole gridded window is inside the nominal region"
-    else:
-        gen = contourpy.contour_generator(r.xs, r.ys, r.inside.astype(float))
-        lines = tuple(np.asarray(ln) for ln in gen.lines(0.5) if len(ln) >= 2)
-        note = f"nominal region of attraction, {len(r.xs)}x{len(r.ys)} grid"
-    out = RoaOutline(lines, window, r.fraction, note)
-    _ROA_CACHE[key] = out
-    return out
-
-
 # ============================================================================ static parts and blueprint
 def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline | None:
     """Static: the scenario text and the nominal region's outline (when ``roa`` and n = 2)."""
@@ -253,22 +206,6 @@ def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline
                                             labels=["nominal ROA"] + [""] * (len(out.lines) - 1)),
                static=True, recording=rec)
     return out
-
-
-def phase_bounds(sc, x=None, roa: RoaOutline | None = None):
-    """Visual bounds of the phase plane: around the trajectory when known (offline), else around the origin and x0."""
-    a, b = PHASE_DIMS
-    if x is None:  # live: a window around the origin that holds x0 and reaches the nearest part of the ROA outline
-        r = 3.5 * float(np.max(np.abs(np.asarray(sc.x0, dtype=float)[[a, b]]))) or 1.0
-        if roa is not None and roa.lines:
-            r = max(r, 1.2 * min(float(np.min(np.max(np.abs(ln), axis=1))) for ln in roa.lines))
-        return ((-r, r), (-r, r))
-    pts = np.asarray(sc.x0, dtype=float)[[a, b]][None, :]
-    if len(x):
-        pts = np.vstack([pts, np.asarray(x, dtype=float)[:, [a, b]]])
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    pad = np.maximum(0.5 * (hi - lo), 0.5 * np.max(np.abs(pts)) + 1e-3)
-    return ((float(lo[0] - pad[0]), float(hi[0] + pad[0])), (float(lo[1] - pad[1]), float(hi[1] + pad[1])))
 
 
 def blueprint(sc, bounds=None):
@@ -420,35 +357,6 @@ def trace_to_rrd(path, sc, tr: Trace, *, recording_id: str | None = None, roa: b
 def simulation_to_rrd(path, sc, res, *, roa: bool = True) -> None:
     """``testbed simulate --rrd PATH``: the simulated run as a Rerun recording."""
     trace_to_rrd(path, sc, Trace.from_simulation(sc, res), recording_id=f"sim-{sc.name}", roa=roa)
-
-
-# ============================================================================ testbed replay
-def add_arguments_replay(p: argparse.ArgumentParser) -> None:
-    from .. import cliargs
-
-    p.add_argument("recording", help="an MCAP recording (testbed run --out, testbed simulate --out)")
-    cliargs.add_rrd(p, "write the view to this file")
-    p.add_argument("--spawn", action="store_true", help="open it in a Rerun viewer (the default without --rrd)")
-    cliargs.add_no_roa(p)
-    cliargs.add_json(p, "what was written (the .rrd path, the run id, the number of samples)")
-
-
-def main_replay(args) -> int:
-    from ..report import load, report
-
-    cols, sc = load(args.recording)
-    s = report((cols, sc), arrays=True)
-    spawn = args.spawn or not args.rrd
-    trace_to_rrd(args.rrd, sc, Trace.from_report(s), recording_id=str(s.get("run_id") or sc.name),
-                 roa=not args.no_roa, spawn=spawn)
-    if args.json:
-        import json
-
-        print(json.dumps({"rrd": args.rrd, "spawned": spawn, "run_id": s.get("run_id"), "samples": s.get("samples"),
-                          "scenario": sc.name}))
-    elif args.rrd:
-        print(f"rerun recording: {args.rrd} (open with: rerun {args.rrd})")
-    return 0
 
 
 # ============================================================================ live: testbed run --rerun
