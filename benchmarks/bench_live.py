@@ -71,7 +71,7 @@ deadline = {deadline!r}
 
 # ------------------------------------------------------------------ ping-pong floor
 def _config(listen=(), connect=()):
-    from testbed.io import transport
+    from testbed.wire import transport
 
     return transport.make_config(listen=list(listen), connect=list(connect))
 
@@ -79,7 +79,7 @@ def _config(listen=(), connect=()):
 def echo_main(port: int, seconds: float, realtime: bool) -> None:
     import zenoh
 
-    from testbed.io import transport
+    from testbed.wire import transport
     from testbed.nodes.common import set_realtime, tune_process
 
     tune_process()
@@ -121,8 +121,8 @@ def ping_pong(T: float, seconds: float, realtime: bool, budget: float | None = N
 def _ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
     import zenoh
 
-    from testbed.io import messages as msg
-    from testbed.io import transport
+    from testbed.wire import messages as msg
+    from testbed.wire import transport
     from testbed.nodes.common import RunClock, set_realtime, tune_process
 
     port = transport.free_port()

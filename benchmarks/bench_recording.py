@@ -14,7 +14,7 @@
 3. Report: runs of 10 and 60 minutes at T = 1 ms (600,000 and 3.6 M samples) recorded by
    ``testbed simulate --out`` (the same topics and schemas as a live recording), then
    ``testbed report RUN.mcap --json``: its wall time and peak RSS, and beside it the
-   reference reader (``testbed.io.recording.read``, protobuf classes and one dataclass a
+   reference reader (``testbed.record.recording.read``, protobuf classes and one dataclass a
    message: the reader ``testbed report`` was built on before) on the same file.  Making the
    hour's recording takes about half an hour (``--recording`` reuses one).
 
@@ -36,8 +36,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from testbed.io import messages as msg  # noqa: E402
-from testbed.io import recording, transport  # noqa: E402
+from testbed.wire import messages as msg  # noqa: E402
+from testbed.record import recording
+from testbed.wire import transport  # noqa: E402
 
 
 def _record(k: int) -> msg.AttackerTelemetry:
@@ -173,7 +174,7 @@ def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, refere
                report_json_mb=len(text) / 1e6)
     del s, text
     if reference:
-        code = f"from testbed.io import recording; recording.read({str(path)!r})"
+        code = f"from testbed.record import recording; recording.read({str(path)!r})"
         wall, rss, _ = _measure([sys.executable, "-P", "-c", code])
         out.update(reference_read_s=wall, reference_read_peak_rss_mb=rss)
     return out

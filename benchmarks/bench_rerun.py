@@ -34,7 +34,7 @@ def run_once(scenario: str, T: float, duration: float, rrd: str | None, sink: st
     env = dict(os.environ, RERUN_ANALYTICS="0")
     with contextlib.ExitStack() as stack:
         if rrd and sink == "connect":
-            from testbed.io.viewer import saving_server
+            from testbed.view.rerun import saving_server
 
             cmd += ["--rerun", "connect", stack.enter_context(saving_server(rrd))]
         elif rrd:

@@ -95,7 +95,7 @@ class Run:
         if path.exists() and not overwrite:
             raise BadInput(f"{path} exists: pass overwrite=True to replace it")
         if self._result is not None:
-            from .io.recording import record_simulation
+            from .record.recording import record_simulation
 
             path.parent.mkdir(parents=True, exist_ok=True)
             record_simulation(path, self.scenario, self._result, overrides=dict(self.overrides),
@@ -160,7 +160,7 @@ def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 # ============================================================================ from a recording
 def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    from .io import messages as msg
+    from .wire import messages as msg
 
     ok = ok & (a != msg.NO_TIME)
     out = np.full(a.shape, np.nan)
@@ -169,7 +169,7 @@ def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
-    from .io import messages as msg
+    from .wire import messages as msg
 
     g = cols.get
     P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
@@ -204,7 +204,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
     """
     from . import compilenotice
-    from .io.columns import read_columns, scenario_of
+    from .record.columns import read_columns, scenario_of
     from .report import report
 
     compilenotice.install()
@@ -226,7 +226,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     if live:
         arrays.update(_timing_arrays(cols, N, sc.T))
     t0 = cols.start.t0_ns if cols.start else None
-    from .io import messages as msg
+    from .wire import messages as msg
 
     events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
                "detail": e.detail} for e in cols.events]

@@ -24,11 +24,11 @@ DESCRIPTION = ("Real-time testbed for quantized control of nonlinear plants unde
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "simulate": ("testbed.cmd_simulate", "run a scenario in the in-process simulator"),
-    "scenarios": ("testbed.cmd_simulate", "list the bundled scenarios"),
-    "secret": ("testbed.cmd_secret", "write a new credentials file for nodes started by hand"),
-    "plants": ("testbed.cmd_plants", "list the built-in and installed plants"),
-    "check-plant": ("testbed.cmd_plants", "check a plant: shapes, f(0, 0), A, B, L, Assumption 2"),
+    "simulate": ("testbed.commands.simulate", "run a scenario in the in-process simulator"),
+    "scenarios": ("testbed.commands.simulate", "list the bundled scenarios"),
+    "secret": ("testbed.commands.secret", "write a new credentials file for nodes started by hand"),
+    "plants": ("testbed.commands.plants", "list the built-in and installed plants"),
+    "check-plant": ("testbed.commands.plants", "check a plant: shapes, f(0, 0), A, B, L, Assumption 2"),
 }
 
 
@@ -57,7 +57,7 @@ for _name, _mod, _help in [
     ("sweep", "testbed.analysis.cli", "empirical DoS tolerance over (rho_F, rho_D)"),
     ("worst-attack", "testbed.analysis.cli", "the shortest DoS that drives the loop out of the region of attraction"),
     ("vulnerability", "testbed.analysis.cli", "that least DoS duration over the region of attraction (heat map)"),
-    ("run", "testbed.launcher", "run a scenario live: four processes over Zenoh"),
+    ("run", "testbed.live.launcher", "run a scenario live: four processes over Zenoh"),
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
     ("report", "testbed.report", "post-mortem of a recording"),
     ("resimulate", "testbed.resimulate", "re-run a recording in the simulator and compare, sample by sample"),

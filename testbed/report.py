@@ -3,7 +3,7 @@
 Everything comes from the recording alone: the scenario is rebuilt from the
 TOML stored in its metadata (with the run's overrides), the per-sample arrays
 from the telemetry topics.  They go through the same
-``testbed.runsummary.build_summary`` as ``testbed run`` (and, inside it,
+``testbed.record.summary.build_summary`` as ``testbed run`` (and, inside it,
 ``testbed.simulate.summarize``), so every key of ``testbed simulate --json`` means
 the same thing here.  Added beside them:
 
@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from . import cliargs
-from .io import messages as msg
-from .runsummary import build_summary, load, to_lists, write_json
+from .wire import messages as msg
+from .record.summary import build_summary, load, to_lists, write_json
 from .stats import fmt_percentiles
 
 
@@ -79,7 +79,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
-    from .runsummary import late_for_schedule, percentiles
+    from .record.summary import late_for_schedule, percentiles
 
     have = cols.has("plant")[:N]
     theta = cols.get("plant", "theta")[:N]
@@ -153,7 +153,7 @@ RESIMULATE_SAMPLES = 10_000
 def report(path, *, arrays: bool = False, resimulate: int | None | str = "default") -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
-    ``arrays``: the per-sample values stay numpy arrays (``runsummary.write_json`` streams them).
+    ``arrays``: the per-sample values stay numpy arrays (``record.summary.write_json`` streams them).
     ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none;
     "default": ``RESIMULATE_SAMPLES``, read when the report is made).
     """

@@ -38,8 +38,8 @@ PHYSICAL_TOLERANCE = 1e-9
 
 
 def recorded_run(cols, sc) -> dict:
-    """The per-sample record a resimulation needs, from ``testbed.io.columns.Columns`` and its scenario."""
-    from .io import messages as msg
+    """The per-sample record a resimulation needs, from ``testbed.record.columns.Columns`` and its scenario."""
+    from .wire import messages as msg
     from .simulate import Replay
 
     final = cols.final
@@ -134,7 +134,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
 
 def resimulate(path) -> dict:
     """``testbed resimulate PATH --json`` as a dict."""
-    from .runsummary import load
+    from .record.summary import load
 
     cols, sc = load(path)
     return compare(recorded_run(cols, sc))

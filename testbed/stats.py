@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .io.messages import NO_TIME
+from .wire.messages import NO_TIME
 
 
 def percentiles(values, unit: float = 1e3) -> dict:

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from testbed import scenario
-from testbed.io import messages as msg
-from testbed.io import recording, transport
+from testbed.wire import messages as msg
+from testbed.record import recording
+from testbed.wire import transport
 from testbed.quantizer import MAX_CODES
 from testbed.simulate import simulate_batch, simulate_scenario, summarize
 

@@ -15,8 +15,8 @@ from failclosed import require
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from testbed.io import messages as msg
-from testbed.io import transport
+from testbed.wire import messages as msg
+from testbed.wire import transport
 
 i64 = st.integers(min_value=-(2**63), max_value=2**63 - 1)
 u32 = st.integers(min_value=0, max_value=2**32 - 1)
@@ -349,7 +349,7 @@ def test_parse_corrupt():
 
 
 def test_percentiles():
-    from testbed.runsummary import percentiles
+    from testbed.record.summary import percentiles
 
     p = percentiles([1000, 2000, 3000, msg.NO_TIME])
     assert p["n"] == 3 and p["p50"] == 2.0 and p["max"] == 3.0

@@ -116,7 +116,7 @@ def test_paper_across_network_namespaces(netns, topology):
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)
     # the recorder, beside the launcher, got every node's telemetry across the bridge
-    from testbed.io import recording
+    from testbed.record import recording
 
     rec = recording.read(s["recording"]["path"])
     assert s["recording"]["complete"] and not rec.truncated

@@ -307,7 +307,7 @@ def test_controller_killed_plant_runs_on_with_zero_input(run_id, topology):
 def assert_recording_kept_the_run(s: dict, killed: str, k_kill: int) -> None:
     """Crash safety: the run's MCAP (the default one) holds the whole run, the killed node's
     samples up to its death, and the launcher's fault event."""
-    from testbed.io import recording
+    from testbed.record import recording
 
     rec = recording.read(s["recording"]["path"])
     assert not rec.truncated and s["recording"]["complete"], rec.read_error
@@ -482,8 +482,8 @@ def test_standalone_nodes(run_id, tmp_path, topology):
 
     import zenoh
 
-    from testbed.io import messages as msg
-    from testbed.io import transport
+    from testbed.wire import messages as msg
+    from testbed.wire import transport
 
     peer = topology == "peer"
     secret = str(tmp_path / ("tls" if peer else "run.secret"))
@@ -557,7 +557,7 @@ def test_standalone_nodes(run_id, tmp_path, topology):
 
 def test_mismatched_run_options_are_refused(run_id):
     """A node started with other run options than the plant's does not join the run."""
-    from testbed.io import transport
+    from testbed.wire import transport
 
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     procs = {}

@@ -1,7 +1,7 @@
 """Recordings as data (fast tier): the columnar reader, testbed.open / simulate, export, compare, bad input.
 
-The columnar reader (``testbed.io.columns``) is checked against the reference
-reader (``testbed.io.recording.read``, protobuf classes and dataclasses) on
+The columnar reader (``testbed.record.columns``) is checked against the reference
+reader (``testbed.record.recording.read``, protobuf classes and dataclasses) on
 complete and cut files; the streamed ``report --json`` against the in-memory
 report; export round-trips through pyarrow; compare on identical and different
 runs; and every command that reads a recording turns cut, bit-flipped, foreign
@@ -25,10 +25,10 @@ import pytest
 import testbed
 from testbed import scenario
 from testbed.errors import BadInput
-from testbed.io import columns, recording, schema
-from testbed.io import messages as msg
+from testbed.record import columns, recording, schema
+from testbed.wire import messages as msg
 from testbed.report import report
-from testbed.runsummary import write_json
+from testbed.record.summary import write_json
 from testbed.simulate import simulate_scenario
 
 PY = sys.executable
@@ -361,7 +361,7 @@ def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
     from collections import Counter
 
     from testbed.quantizer import Codebook
-    from testbed.runsummary import build_summary
+    from testbed.record.summary import build_summary
 
     sc, res, path = _sim(tmp_path, "paper", duration=5.0)
     rec = recording.read(path)

@@ -15,8 +15,8 @@ import pytest
 from failclosed import require
 
 from testbed import scenario
-from testbed.io import messages as msg
-from testbed.io import recording, schema
+from testbed.wire import messages as msg
+from testbed.record import recording, schema
 from testbed.report import report
 from testbed.simulate import simulate_scenario, summarize
 
@@ -238,7 +238,8 @@ def test_a_file_cut_anywhere_reads_up_to_the_cut(tmp_path, frac):
 
 _WRITER = textwrap.dedent("""
     import sys, time
-    from testbed.io import recording, messages as msg
+    from testbed.record import recording
+    from testbed.wire import messages as msg
     w = recording.RecordingWriter(sys.argv[1], flush_interval=0.5)
     k = 0
     print("ready", flush=True)
@@ -276,7 +277,7 @@ def test_the_format_document_is_current():
     from pathlib import Path
 
     doc = Path(__file__).resolve().parents[1] / "docs" / "recording-format.md"
-    assert doc.read_text() == recording.markdown(), "regenerate: python -m testbed.io.recording > docs/recording-format.md"
+    assert doc.read_text() == recording.markdown(), "regenerate: python -m testbed.record.recording > docs/recording-format.md"
 
 
 def test_rerun_decodes_the_protobuf_channels(tmp_path):

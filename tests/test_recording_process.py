@@ -20,7 +20,7 @@ from test_postmortem import assert_columns_equal_reference
 
 import testbed
 from testbed.compare import compare
-from testbed.io import columns, recording
+from testbed.record import columns, recording
 from testbed.report import report
 
 pytestmark = pytest.mark.process

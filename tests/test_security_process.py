@@ -29,8 +29,8 @@ from failclosed import rerun_while_stalled
 from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, live, procs_with, reap,  # noqa: F401 - fixture
                                run_id, simulate, tb_cmd)
 
-from testbed.io import messages as msg
-from testbed.io import transport
+from testbed.wire import messages as msg
+from testbed.wire import transport
 
 pytestmark = pytest.mark.process
 
@@ -307,7 +307,7 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
     assert s["malformed"]["controller"] >= 1
     assert ev.get("stop_rejected", 0) >= 1
     # the recording counts the sample outside the run, it does not record it
-    from testbed.io import recording
+    from testbed.record import recording
 
     rec = recording.read(s["recording"]["path"])
     assert max(rec.telemetry["plant"]) == 59

@@ -9,7 +9,7 @@ import stat
 import pytest
 
 from testbed.errors import BadInput
-from testbed.io import transport
+from testbed.wire import transport
 
 
 def test_a_tls_folder_has_an_authority_without_its_key_and_one_certificate_per_process(tmp_path):

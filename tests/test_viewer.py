@@ -1,4 +1,4 @@
-"""The Rerun view (``testbed.io.viewer``): simulate --rrd, replay of an MCAP, and a live run with --rerun save.
+"""The Rerun view (``testbed.view.rerun``): simulate --rrd, replay of an MCAP, and a live run with --rerun save.
 
 Every test writes a ``.rrd`` and reads it back with ``rerun.chunk.RrdReader``:
 the entities are there and the logged E_k is the recording's (bit for bit);
@@ -23,7 +23,7 @@ from rerun.chunk import RrdReader
 
 from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
 
-from testbed.io import viewer  # noqa: E402
+from testbed.view import rerun as viewer  # noqa: E402
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 PY = sys.executable
@@ -140,7 +140,7 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
 def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
     from test_live_process import run_cli, tb_cmd
 
-    from testbed.io import recording
+    from testbed.record import recording
 
     rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
     rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",

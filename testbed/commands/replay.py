@@ -6,9 +6,9 @@ import argparse
 import json
 
 from .. import cliargs
-from ..io.viewer import Trace, trace_to_rrd
+from ..view.rerun import Trace, trace_to_rrd
 from ..report import report
-from ..runsummary import load
+from ..record.summary import load
 
 
 def add_arguments_replay(p: argparse.ArgumentParser) -> None:

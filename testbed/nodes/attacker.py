@@ -23,7 +23,7 @@ import numpy as np
 
 from attackers.gate import Gate
 
-from ..io import messages as msg
+from ..wire import messages as msg
 from ..loopspec import corrupt_payload
 from .common import Node, attack_horizon, warm_publisher
 

@@ -28,8 +28,8 @@ import time
 from dataclasses import dataclass
 
 
-from ..io import messages as msg
-from ..io import transport
+from ..wire import messages as msg
+from ..wire import transport
 
 log = logging.getLogger("testbed.nodes")
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import threading
 
-from ..io import messages as msg
+from ..wire import messages as msg
 from ..protocol import ControllerProtocol, Decision
 from ..quantizer import Decoder
 from ..stats import percentiles

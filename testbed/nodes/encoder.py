@@ -26,7 +26,7 @@ import logging
 import threading
 import time
 
-from ..io import messages as msg
+from ..wire import messages as msg
 from ..protocol import EncoderProtocol, Send, skip_sample
 from ..quantizer import Encoder
 from ..stats import percentiles

@@ -25,7 +25,7 @@ import signal
 import sys
 import time
 
-from ..io import transport
+from ..wire import transport
 from . import rerun_tap
 from .common import (RX_MODES, NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
                      on_stop_signals, parse_cpus, phase, set_realtime, setup_logging, tune_process, zenoh_config)

@@ -44,8 +44,8 @@ import numpy as np
 from plants.base import PlantFault
 
 from ..flow import FLOW_OK, STATUS_NAMES
-from ..io import messages as msg
-from ..io import transport
+from ..wire import messages as msg
+from ..wire import transport
 from ..protocol import PlantProtocol
 from ..stats import percentiles
 from .common import Node, RoleView

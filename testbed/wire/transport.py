@@ -3,7 +3,7 @@
 All key expressions live here, under one prefix per run, ``testbed/<run_id>/``:
 
 ==============================  =====================  ======================================
-key (after the prefix)          publisher -> reader    message (``testbed.io.messages``)
+key (after the prefix)          publisher -> reader    message (``testbed.wire.messages``)
 ==============================  =====================  ======================================
 ``loop/sensor``                 plant -> encoder       ``Sensor``     x_k (control path)
 ``loop/symbol/tx``              encoder -> attacker    ``Symbol``     packed symbol bits

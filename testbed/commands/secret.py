@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from . import cliargs
+from .. import cliargs
 
 
 def add_arguments_secret(p: argparse.ArgumentParser) -> None:
@@ -22,8 +22,8 @@ def add_arguments_secret(p: argparse.ArgumentParser) -> None:
 
 
 def main_secret(args) -> int:
-    from .errors import BadInput
-    from .io import transport
+    from ..errors import BadInput
+    from ..wire import transport
 
     if args.tls:
         try:

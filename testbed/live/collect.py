@@ -2,7 +2,7 @@
 
 Everything arrives over Zenoh as it happens, so a node killed mid-run leaves
 its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
-``testbed.runsummary.build_summary`` (shared with ``testbed report``).
+``testbed.record.summary.build_summary`` (shared with ``testbed report``).
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from __future__ import annotations
 import threading
 import time
 
-from ..io import messages as msg
-from ..io import transport
+from ..wire import messages as msg
+from ..wire import transport
 
 PT = msg.PlantTelemetry
 
@@ -198,8 +198,8 @@ class Collector:
         return out
 
     def snapshot(self, sc):
-        """What has arrived so far as columns (``testbed.io.columns.Columns``, for ``runsummary.build_summary``)."""
-        from ..io.columns import from_records
+        """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``)."""
+        from ..record.columns import from_records
 
         with self.lock:
             tele = {r: dict(d) for r, d in self.tele.items()}

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..view.phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
+from .phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
 
 APP_ID = "testbed"
 TIMELINE_K = "k"

@@ -1,6 +1,6 @@
 """numba parser of MCAP chunk records and the protobuf wire format of the four telemetry schemas.
 
-Used by ``testbed.io.columns`` (which documents the layout of the tables); kept
+Used by ``testbed.record.columns`` (which documents the layout of the tables); kept
 apart so that importing the reader stays cheap until a file is read.  Every
 read is bounds-checked: a crafted buffer makes a message malformed (counted,
 never half-written) or the chunk corrupt (status 2), never an out-of-bounds access.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# keep in step with testbed/io/columns.py
+# keep in step with testbed/record/columns.py
 G_SKIP, G_I64, G_I32, G_U8, G_F64, G_VEC, G_K, G_U32 = range(8)
 CH_UNKNOWN, CH_COUNT, CH_PYTHON, CH_TELEMETRY = 0, 1, 2, 3
 OP_MESSAGE = 5

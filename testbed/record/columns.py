@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BadInput
-from . import messages as msg
+from ..wire import messages as msg
 from . import schema
 
 ROLES = ("plant", "encoder", "controller", "attacker")
@@ -183,7 +183,7 @@ def _kernels():
     global _walk
     if _walk is not None:
         return _walk
-    from ._wire import walk
+    from ._protobuf import walk
 
     _walk = walk
     return _walk

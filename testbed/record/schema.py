@@ -3,7 +3,7 @@
 Every MCAP channel of a recording carries one of the messages below, encoded
 as protobuf (schema encoding ``protobuf``: a serialized ``FileDescriptorSet``,
 what Foxglove and Rerun read).  The fields mirror the dataclasses of
-``testbed.io.messages`` one for one, with the same names, so converting is a
+``testbed.wire.messages`` one for one, with the same names, so converting is a
 loop over field names (``to_pb`` / ``from_pb``).  Time stamps ``*_ns`` are
 integer nanoseconds since the run's t0 (``RunStart.t0_ns``, CLOCK_REALTIME);
 a time that never happened (``messages.NO_TIME``) is an *absent* field (proto3
@@ -22,7 +22,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from . import messages as msg
+from ..protobuf import classes_from
+from ..wire import messages as msg
 
 PACKAGE = "testbed"
 FILE_NAME = "testbed/recording.proto"
@@ -164,22 +165,6 @@ def file_descriptor_set() -> bytes:
     timestamp_pb2.DESCRIPTOR.CopyToProto(ts)   # the well-known type, so the set is self-contained
     fds.file.append(_file_descriptor())
     return fds.SerializeToString()
-
-
-def classes_from(fds_bytes: bytes) -> dict[str, type]:
-    """Message classes (full name -> class) built from a serialized ``FileDescriptorSet``."""
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-
-    fds = descriptor_pb2.FileDescriptorSet.FromString(fds_bytes)
-    pool = descriptor_pool.DescriptorPool()
-    for f in fds.file:
-        pool.Add(f)
-    out = {}
-    for f in fds.file:
-        for m in f.message_type:
-            full = f"{f.package}.{m.name}" if f.package else m.name
-            out[full] = message_factory.GetMessageClass(pool.FindMessageTypeByName(full))
-    return out
 
 
 @lru_cache(maxsize=1)

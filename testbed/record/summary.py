@@ -1,6 +1,6 @@
 """Assemble a run's summary from its per-sample telemetry: shared by ``testbed run`` and ``testbed report``.
 
-Both feed it columns (``testbed.io.columns.Columns``): the live launcher what
+Both feed it columns (``testbed.record.columns.Columns``): the live launcher what
 its collector received over Zenoh, ``testbed report`` what a recording holds,
 so both print the same keys.  The
 per-sample arrays become a ``SimResult`` and go through
@@ -17,9 +17,9 @@ from collections import Counter
 
 import numpy as np
 
-from .io import messages as msg
-from .simulate import json_clean as _clean
-from .stats import percentiles
+from ..wire import messages as msg
+from ..simulate import json_clean as _clean
+from ..stats import percentiles
 
 ROLES = ("plant", "encoder", "attacker", "controller")
 PT = msg.PlantTelemetry
@@ -46,7 +46,7 @@ class RowsOrNone:
         return [row if ok else None for row, ok in zip(self.values.tolist(), self.mask.tolist())]
 
 
-#: the telemetry fields ``build_summary`` prints (``testbed.io.columns.read_columns(fields=...)``); q_k at the
+#: the telemetry fields ``build_summary`` prints (``testbed.record.columns.read_columns(fields=...)``); q_k at the
 #: encoder is not printed and stays NaN unless decoded (``testbed.open`` decodes every field)
 SUMMARY_FIELDS = {
     "plant.x", "plant.u", "plant.t_ns", "plant.u_rx_ns", "plant.theta", "plant.flags", "plant.flow_status",
@@ -74,12 +74,12 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
                   arrays: bool = False) -> dict:
     """One JSON-able dict: ``testbed simulate --json`` keys plus timing, faults and node reports.
 
-    ``cols``: a ``testbed.io.columns.Columns`` (a recording, or the live collector's
+    ``cols``: a ``testbed.record.columns.Columns`` (a recording, or the live collector's
     snapshot).  ``arrays``: per-sample values stay numpy arrays (``write_json``
     streams them); otherwise plain lists.
     """
-    from .flow import FLOW_OK
-    from .simulate import SimResult, summarize
+    from ..flow import FLOW_OK
+    from ..simulate import SimResult, summarize
 
     plant = sc.make_model()
     n, m = plant.n, plant.m
@@ -365,8 +365,8 @@ def load(path: str | Path):
 
     The columns carry ``plant_source`` and ``model_source`` (``recording.recorded_scenario``).
     """
-    from .io.columns import read_columns, read_metadata
-    from .io.recording import recorded_scenario
+    from .columns import read_columns, read_metadata
+    from .recording import recorded_scenario
 
     meta, _ = read_metadata(path)
     sc, ps, ms = recorded_scenario(meta, str(path))

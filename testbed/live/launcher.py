@@ -3,7 +3,7 @@
 The launcher listens on one Zenoh endpoint (``tcp/127.0.0.1:<free port>`` by
 default, a fresh port per run), starts plant, encoder, attacker and controller as
 ``testbed node ...`` processes, each in its own session and process group, and
-collects their telemetry (``testbed.nodes.collect``).  It stops them all on
+collects their telemetry (``testbed.live.collect``).  It stops them all on
 SIGINT, SIGTERM, Ctrl-C, the end of the run or a timeout: ``Stop`` message, then
 SIGINT to each group, then SIGKILL.  Nodes also die with the launcher
 (PR_SET_PDEATHSIG) and stop when its liveliness token goes away, so no node is
@@ -34,19 +34,19 @@ import threading
 import time
 from pathlib import Path
 
-from . import cliargs, scenario
-from .errors import BadInput
-from .io import messages as msg
-from .io import transport
-from .io.viewer import LiveRerun, add_rerun_run_arguments
-from .stats import fmt_percentiles
-from .nodes.common import RX_MODES, RunOptions, add_run_option_arguments, load_scenario, parse_cpus
+from .. import cliargs, scenario
+from ..errors import BadInput
+from ..wire import messages as msg
+from ..wire import transport
+from ..view.rerun import LiveRerun, add_rerun_run_arguments
+from ..stats import fmt_percentiles
+from ..nodes.common import RX_MODES, RunOptions, add_run_option_arguments, load_scenario, parse_cpus
 
 RECORDER = "recorder"
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
-    from .io.recording import default_path
+    from ..record.recording import default_path
 
     return default_path(name, run_id=run_id)
 
@@ -89,7 +89,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
     add_rerun_run_arguments(p)
-    from .nodes.foxglove_tap import add_foxglove_run_arguments
+    from .foxglove_tap import add_foxglove_run_arguments
 
     add_foxglove_run_arguments(p)
     g = p.add_argument_group("run control")
@@ -179,7 +179,7 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
             pass
         sys.stdout.reconfigure(line_buffering=True)
         logging.root.handlers.clear()
-        from .entry import run_child
+        from ..entry import run_child
 
         code = run_child(argv)
     except SystemExit as e:
@@ -265,7 +265,7 @@ class Launcher:
         self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
         self.foxglove = None                                           # testbed run --foxglove PORT
         if getattr(args, "foxglove", None) is not None:
-            from .nodes.foxglove_tap import FoxgloveLive
+            from .foxglove_tap import FoxgloveLive
 
             self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
         # the run folder last: a run refused above (bad input) leaves nothing behind
@@ -276,7 +276,7 @@ class Launcher:
     def phase(self, name: str) -> None:
         """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
         if self.args.verbose:
-            from .nodes.common import process_age
+            from ..nodes.common import process_age
 
             print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}",
                   file=sys.stderr, flush=True)
@@ -413,7 +413,7 @@ class Launcher:
                                      acl=transport.acl_config(self.keys, self.colocated), low_latency=a.low_latency)
 
     def security(self) -> dict:
-        from .nodes.common import access_control, transport_security
+        from ..nodes.common import access_control, transport_security
 
         given = self.args.secret_file or getattr(self.args, "tls_dir", None)
         return {"authenticated": self.secure, "topology": self.topology, "low_latency": bool(self.args.low_latency),
@@ -459,8 +459,8 @@ class Launcher:
         try:
             import numpy as np
 
-            from . import runsummary  # noqa: F401
-            from .simulate import in_nominal_roa
+            from ..record import summary  # noqa: F401
+            from ..simulate import in_nominal_roa
 
             model = self.sc.make_model()
             in_nominal_roa(model, self.sc.K, self.sc.T, np.zeros((1, model.n)), horizon=2 * self.sc.T,
@@ -566,7 +566,7 @@ class Launcher:
         self.phase("prewarmed")
 
     def _prewarm(self) -> None:
-        from .nodes import controller, encoder, plant  # imported once, for every forked node
+        from ..nodes import controller, encoder, plant  # imported once, for every forked node
 
         sc = self.sc
         model = sc.make_model()
@@ -683,7 +683,7 @@ class Launcher:
         """With ``--realtime``, the launcher's threads (the run's router) run under SCHED_FIFO during the
         loop as the nodes' do: a router thread at normal priority waits behind every other process for
         each message it forwards."""
-        from .nodes.common import ab_off, set_realtime
+        from ..nodes.common import ab_off, set_realtime
 
         if not self.args.realtime or ab_off("router-realtime") or on == self._router_rt:
             return
@@ -777,8 +777,8 @@ class Launcher:
     def run(self) -> tuple[int, dict]:
         import zenoh
 
-        from .nodes.collect import Collector
-        from .loopspec import Codebook
+        from .collect import Collector
+        from ..loopspec import Codebook
 
         def on_signal(signum, _frame):
             self.signal = signum
@@ -842,7 +842,7 @@ class Launcher:
                 if self.signal is None:  # every node's own account of its telemetry against what arrived
                     self.faults.extend(col.telemetry_check())
                     self.publish_faults(session)
-                from .runsummary import build_summary  # loaded meanwhile by ``_warm_summary``
+                from ..record.summary import build_summary  # loaded meanwhile by ``_warm_summary``
 
                 plant = self.sc.make_model()
                 cb = Codebook(plant.n, self.sc.quantizer.M, resilient=(self.sc.quantizer.mode == "resilient"))
@@ -944,7 +944,7 @@ def print_text(s: dict) -> None:
 
 
 def main_run(args) -> int:
-    from .errors import BadInput
+    from ..errors import BadInput
 
     launcher = Launcher(args)
     try:

@@ -18,8 +18,8 @@ import math
 import sys
 from pathlib import Path
 
-from . import cliargs
-from .errors import BadInput
+from .. import cliargs
+from ..errors import BadInput
 
 
 def add_arguments_plants(p: argparse.ArgumentParser) -> None:
@@ -79,7 +79,7 @@ def _param(text: str) -> tuple[str, float]:
 def main_check_plant(args) -> int:
     import plants
 
-    from . import plantcheck
+    from .. import plantcheck
 
     for name in ("L", "T", "region", "u_bound"):
         v = getattr(args, name)
@@ -91,7 +91,7 @@ def main_check_plant(args) -> int:
     base_dir = str(Path.cwd())
     params: dict = {}
     if args.scenario:
-        from . import scenario
+        from .. import scenario
 
         sc = scenario.load(args.scenario)
         base_dir = sc.base_dir or base_dir

@@ -21,10 +21,10 @@ import threading
 import time
 
 from ..errors import BadInput
-from ..io import messages as msg
-from ..io import recording, schema
-from ..io.foxglove_topics import TOPICS as FOXGLOVE_TOPICS
-from ..io.foxglove_topics import FoxgloveTopics, descriptor_set, telemetry_extra
+from ..wire import messages as msg
+from ..record import recording, schema
+from ..view.foxglove import TOPICS as FOXGLOVE_TOPICS
+from ..view.foxglove import FoxgloveTopics, descriptor_set, telemetry_extra
 
 log = logging.getLogger("testbed.launcher")
 NICE = 10

@@ -7,11 +7,11 @@ import json
 import sys
 
 
-from . import cliargs
+from .. import cliargs
 
 
 def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
-    from .nodes.common import add_run_option_arguments
+    from ..nodes.common import add_run_option_arguments
 
     cliargs.add_scenario(p)
     cliargs.add_json(p, "the run (every sample, counts and outcome)")
@@ -30,13 +30,13 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 
 
 def main_simulate(args) -> int:
-    from . import scenario
-    from .errors import BadInput
-    from .simulate import simulate_scenario, summarize
+    from .. import scenario
+    from ..errors import BadInput
+    from ..simulate import simulate_scenario, summarize
 
-    from .nodes.attacker import parse_corrupt
-    from .nodes.common import RunOptions
-    from .simulate import Network
+    from ..nodes.attacker import parse_corrupt
+    from ..nodes.common import RunOptions
+    from ..simulate import Network
 
     opts = RunOptions.from_args(args)
     overrides = opts.overrides()
@@ -59,16 +59,16 @@ def main_simulate(args) -> int:
     res = simulate_scenario(sc, network=net, latency=latency)
     out = summarize(sc, res)
     if args.out:
-        from .io.recording import record_simulation
+        from ..record.recording import record_simulation
 
         record_simulation(args.out, sc, res, overrides={k: v for k, v in overrides.items() if v is not None},
                           ref=args.scenario, exclusive=not args.force)
     if args.rrd:
-        from .io.viewer import simulation_to_rrd
+        from ..view.rerun import simulation_to_rrd
 
         simulation_to_rrd(args.rrd, sc, res, roa=not args.no_roa)
     if args.plot:
-        from .analysis.figures import figure_title, plot_time_series
+        from ..analysis.figures import figure_title, plot_time_series
 
         ivs = None if sc.attack.online else [list(iv) for iv in res.intervals().intervals]
         plot_time_series(res, args.plot, intervals=ivs, title=figure_title(sc), size=args.figsize)
@@ -110,9 +110,9 @@ def recorded_latency(path, sc):
     sample's counted from the controller's loss deadline); a sample without a record: the latest one."""
     import numpy as np
 
-    from .errors import BadInput
-    from .io import messages as msg
-    from .io import recording
+    from ..errors import BadInput
+    from ..wire import messages as msg
+    from ..record import recording
 
     try:
         rec = recording.read(path)
@@ -139,8 +139,8 @@ def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
 
 
 def main_scenarios(args) -> int:
-    from . import scenario
-    from .errors import BadInput
+    from .. import scenario
+    from ..errors import BadInput
 
     if args.show:
         if args.show not in scenario.bundled_names():

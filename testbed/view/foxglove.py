@@ -13,7 +13,7 @@ topic              schema                    content
 
 The schemas are Foxglove's own, as published by ``foxglove-sdk``
 (``foxglove.messages.Log.get_schema()``) and shipped in
-``testbed/io/foxglove_schemas/`` (``tools/gen_foxglove_schemas.py``), so a
+``testbed/view/foxglove_schemas/`` (``tools/gen_foxglove_schemas.py``), so a
 recording needs no foxglove-sdk to carry them.  Log messages are built with the
 protobuf classes of that descriptor set; the per-sample SceneUpdate is encoded
 directly in the protobuf wire format with the field numbers read from the same
@@ -41,8 +41,8 @@ import struct
 from functools import lru_cache
 from importlib import resources
 
-from ..view.phase import PHASE_DIMS, phase_bounds, roa_outline
-from . import messages as msg
+from .phase import PHASE_DIMS, phase_bounds, roa_outline
+from ..wire import messages as msg
 
 TOPIC_LOG = "/log"
 TOPIC_PHASE = "/phase"
@@ -84,7 +84,7 @@ def _numbers() -> dict[str, dict[str, int]]:
 
 @lru_cache(maxsize=None)
 def _log_class():
-    from .schema import classes_from
+    from ..protobuf import classes_from
 
     return classes_from(descriptor_set(LOG))[LOG]
 
@@ -430,7 +430,7 @@ def telemetry_extra(name: str, t, t0_ns: int | None, T_ns: int) -> dict | None:
 
 # ============================================================================ the layout file
 def layout_json() -> str:
-    """docs/foxglove-layout.json (``python -m testbed.io.foxglove_topics``; needs foxglove-sdk).
+    """docs/foxglove-layout.json (``python -m testbed.view.foxglove``; needs foxglove-sdk).
 
     Plots of x, u, log10 E_k at encoder and decoder, theta_k with the attack on
     the x axis of the samples' header stamps; the 3D panel on the phase plane; the Log panel.
