@@ -79,8 +79,8 @@ def _config(listen=(), connect=()):
 def echo_main(port: int, seconds: float, realtime: bool) -> None:
     import zenoh
 
+    from testbed.nodes.process import set_realtime, tune_process
     from testbed.wire import transport
-    from testbed.nodes.common import set_realtime, tune_process
 
     tune_process()
     with zenoh.open(_config(listen=[f"tcp/127.0.0.1:{port}"])) as s:
@@ -121,9 +121,10 @@ def ping_pong(T: float, seconds: float, realtime: bool, budget: float | None = N
 def _ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
     import zenoh
 
+    from testbed.nodes.clock import RunClock
+    from testbed.nodes.process import set_realtime, tune_process
     from testbed.wire import messages as msg
     from testbed.wire import transport
-    from testbed.nodes.common import RunClock, set_realtime, tune_process
 
     port = transport.free_port()
     n = int(max(50, min(seconds / T, 20000)))

@@ -52,12 +52,12 @@ def _optional(name: str, module: str, help_: str) -> None:
 
 # commands provided by the other parts of the product (present once they exist)
 for _name, _mod, _help in [
-    ("analyze", "testbed.analysis.cli", "Theorem 1 and 2 bounds for a scenario"),
-    ("roa", "testbed.analysis.cli", "nominal region of attraction on a grid"),
-    ("sweep", "testbed.analysis.cli", "empirical DoS tolerance over (rho_F, rho_D)"),
-    ("worst-attack", "testbed.analysis.cli", "the shortest DoS that drives the loop out of the region of attraction"),
-    ("vulnerability", "testbed.analysis.cli", "that least DoS duration over the region of attraction (heat map)"),
-    ("run", "testbed.live.launcher", "run a scenario live: four processes over Zenoh"),
+    ("analyze", "testbed.commands.analyze", "Theorem 1 and 2 bounds for a scenario"),
+    ("roa", "testbed.commands.analyze", "nominal region of attraction on a grid"),
+    ("sweep", "testbed.commands.search", "empirical DoS tolerance over (rho_F, rho_D)"),
+    ("worst-attack", "testbed.commands.search", "the shortest DoS that drives the loop out of the region of attraction"),
+    ("vulnerability", "testbed.commands.search", "that least DoS duration over the region of attraction (heat map)"),
+    ("run", "testbed.commands.run", "run a scenario live: four processes over Zenoh"),
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
     ("report", "testbed.report", "post-mortem of a recording"),
     ("resimulate", "testbed.resimulate", "re-run a recording in the simulator and compare, sample by sample"),

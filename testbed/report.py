@@ -39,9 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from . import cliargs
-from .wire import messages as msg
 from .record.summary import build_summary, load, to_lists, write_json
 from .stats import fmt_percentiles
+from .wire import messages as msg
+from .wire import transport
 
 
 def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
@@ -109,7 +110,7 @@ def telemetry_check(cols, N: int) -> list[dict]:
     records the recording holds: a difference means records were lost, forged or altered on the way
     (the launcher compares digests too; a recording keeps the decoded fields, not the bytes)."""
     out = []
-    for role in ("plant", "encoder", "attacker", "controller"):
+    for role in transport.ROLES:
         s = cols.summaries.get(role) or {}
         if "telemetry_records" not in s:
             continue

@@ -353,7 +353,7 @@ def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, 
 def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp_path):
     """doStep fails from t = 1.1 s: exit 1, a fault entry naming it, the recording readable up to the fault
     (testbed report: the samples testbed simulate has up to its fault); a failing reset: a startup failure."""
-    from test_live_process import BIT_EXACT_KEYS, mismatch, reap
+    from test_live_process import BIT_EXACT_KEYS, reap
 
     f = fmu_scenario(tmp_path, lienard_fmu, "fail_at = 1.0")
     rec = tmp_path / "fault.mcap"

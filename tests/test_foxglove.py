@@ -27,9 +27,9 @@ import pytest
 from failclosed import import_or_require, require
 
 from testbed import scenario
-from testbed.view import foxglove as fx
 from testbed.record import recording, schema
 from testbed.simulate import simulate_scenario
+from testbed.view import foxglove as fx
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]

@@ -169,3 +169,13 @@ def test_plants_and_attackers_never_import_testbed():
     bad = [f"{a} -> {b}" for a, t in EDGES.items() if a.split(".")[0] in ("plants", "attackers")
            for b in t if b.split(".")[0] == "testbed"]
     assert not bad, bad
+
+
+def test_no_module_over_700_lines():
+    long = []
+    for path, _ in MODULES.values():
+        rel = path.relative_to(ROOT).as_posix()
+        n = len(path.read_text().splitlines())
+        if n > MAX_LINES and rel not in GENERATED:
+            long.append(f"{rel}: {n} lines")
+    assert not long, f"modules over {MAX_LINES} lines (split them by responsibility): {long}"

@@ -21,9 +21,7 @@ import sys
 
 import pytest
 from failclosed import require, rerun_while_stalled
-
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, TOPOLOGIES, _node_logs, reap,  # noqa: F401
-                               run_cli, simulate)
+from test_live_process import _LOGS, BIT_EXACT_KEYS, TIMEOUT, TOPOLOGIES, _node_logs, mismatch, reap, run_cli, simulate  # noqa: F401
 
 pytestmark = pytest.mark.process
 
@@ -116,9 +114,9 @@ def test_paper_across_network_namespaces(netns, topology):
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)
     # the recorder, beside the launcher, got every node's telemetry across the bridge
-    from testbed.record import recording
+    from testbed.record import reader
 
-    rec = recording.read(s["recording"]["path"])
+    rec = reader.read(s["recording"]["path"])
     assert s["recording"]["complete"] and not rec.truncated
     for r in ROLES:
         assert sorted(rec.telemetry[r]) == list(range(s["samples"])), r

@@ -307,9 +307,9 @@ def test_controller_killed_plant_runs_on_with_zero_input(run_id, topology):
 def assert_recording_kept_the_run(s: dict, killed: str, k_kill: int) -> None:
     """Crash safety: the run's MCAP (the default one) holds the whole run, the killed node's
     samples up to its death, and the launcher's fault event."""
-    from testbed.record import recording
+    from testbed.record import reader
 
-    rec = recording.read(s["recording"]["path"])
+    rec = reader.read(s["recording"]["path"])
     assert not rec.truncated and s["recording"]["complete"], rec.read_error
     assert sorted(rec.telemetry["plant"]) == list(range(s["samples"]))
     ks = sorted(rec.telemetry[killed])

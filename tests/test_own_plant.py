@@ -320,7 +320,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
 
 def test_launcher_says_when_a_run_never_started(capsys):
     """A run whose nodes could not load the plant prints why, not a summary of a loop that never ran."""
-    from testbed.live.launcher import print_text
+    from testbed.commands.run import print_text
 
     why = "testbed node: vdp.toml: [plant] unknown plant 'vanderpol'"
     print_text({"samples": 0, "run_id": "r1", "scenario": "vdp", "outcome": "plant exited before the start",

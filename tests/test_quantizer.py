@@ -9,9 +9,8 @@ from hypothesis import strategies as st
 
 import plants
 from testbed.flow import phi_T
-from testbed.quantizer import (Codebook, Decoder, Encoder, InvalidSymbol, QuantizerParams, box_center,
-                               quantize_index)
-from testbed.simulate import OnlineAttacker, simulate_loop
+from testbed.quantizer import Codebook, Decoder, Encoder, InvalidSymbol, QuantizerParams, box_center, quantize_index
+from testbed.simloop import OnlineAttacker, simulate_loop
 
 LIENARD = plants.make("lienard")
 K_PAPER = np.array([[-1.81, -1.90]])

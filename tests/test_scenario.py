@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from testbed import scenario
-from testbed.scenario import ScenarioError
+from testbed.scenariospec import ScenarioError
 
 GOOD = """
 [plant]

@@ -19,15 +19,13 @@ import json
 import math
 import os
 import signal
-import struct
 import subprocess
 import threading
 import time
 
 import pytest
 from failclosed import rerun_while_stalled
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, live, procs_with, reap,  # noqa: F401 - fixture
-                               run_id, simulate, tb_cmd)
+from test_live_process import _LOGS, BIT_EXACT_KEYS, TIMEOUT, live, mismatch, procs_with, reap, run_id, simulate, tb_cmd  # noqa: F401 - fixture
 
 from testbed.wire import messages as msg
 from testbed.wire import transport
@@ -307,8 +305,8 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
     assert s["malformed"]["controller"] >= 1
     assert ev.get("stop_rejected", 0) >= 1
     # the recording counts the sample outside the run, it does not record it
-    from testbed.record import recording
+    from testbed.record import reader
 
-    rec = recording.read(s["recording"]["path"])
+    rec = reader.read(s["recording"]["path"])
     assert max(rec.telemetry["plant"]) == 59
     assert json.loads(rec.metadata["testbed.recorder"]["rejected_k"]) >= 1

@@ -16,11 +16,9 @@ import sys
 
 import numpy as np
 import pytest
-
 import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
 from failclosed import require
 from rerun.chunk import RrdReader
-
 from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
 
 from testbed.view import rerun as viewer  # noqa: E402
@@ -140,7 +138,7 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
 def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
     from test_live_process import run_cli, tb_cmd
 
-    from testbed.record import recording
+    from testbed.record import reader
 
     rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
     rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
@@ -157,7 +155,7 @@ def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
     assert len(recs) == 1 and recs[0].recording_id == run_id  # the launcher and four nodes: one recording
     assert len(r.blueprints()) == 1
     assert ENTITIES | {"/phase/roa", "/scenario"} <= entity_paths(rrd)
-    rec = recording.read(mcap)
+    rec = reader.read(mcap)
     enc = rec.telemetry["encoder"]
     want = {k: t.E for k, t in enc.items() if not t.silent}
     E = scalars(rrd, "/encoder/E")

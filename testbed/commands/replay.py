@@ -6,9 +6,9 @@ import argparse
 import json
 
 from .. import cliargs
-from ..view.rerun import Trace, trace_to_rrd
-from ..report import report
 from ..record.summary import load
+from ..report import report
+from ..view.rerun import Trace, trace_to_rrd
 
 
 def add_arguments_replay(p: argparse.ArgumentParser) -> None:

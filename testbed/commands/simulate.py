@@ -6,12 +6,11 @@ import argparse
 import json
 import sys
 
-
 from .. import cliargs
 
 
 def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
-    from ..nodes.common import add_run_option_arguments
+    from ..nodes.options import add_run_option_arguments
 
     cliargs.add_scenario(p)
     cliargs.add_json(p, "the run (every sample, counts and outcome)")
@@ -32,11 +31,10 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 def main_simulate(args) -> int:
     from .. import scenario
     from ..errors import BadInput
-    from ..simulate import simulate_scenario, summarize
-
     from ..nodes.attacker import parse_corrupt
-    from ..nodes.common import RunOptions
-    from ..simulate import Network
+    from ..nodes.options import RunOptions
+    from ..simloop import Network
+    from ..simulate import simulate_scenario, summarize
 
     opts = RunOptions.from_args(args)
     overrides = opts.overrides()
@@ -111,11 +109,11 @@ def recorded_latency(path, sc):
     import numpy as np
 
     from ..errors import BadInput
+    from ..record import reader
     from ..wire import messages as msg
-    from ..record import recording
 
     try:
-        rec = recording.read(path)
+        rec = reader.read(path)
     except (OSError, ValueError) as e:
         raise BadInput(f"{path}: {e}") from None
     P = rec.telemetry.get("plant", {})

@@ -21,10 +21,10 @@ import threading
 import time
 
 from ..errors import BadInput
-from ..wire import messages as msg
-from ..record import recording, schema
+from ..record import schema, topics
 from ..view.foxglove import TOPICS as FOXGLOVE_TOPICS
 from ..view.foxglove import FoxgloveTopics, descriptor_set, telemetry_extra
+from ..wire import messages as msg
 
 log = logging.getLogger("testbed.launcher")
 NICE = 10
@@ -64,9 +64,9 @@ class FoxgloveLive:
         except Exception as e:  # noqa: BLE001 - a port in use, mostly
             raise BadInput(f"--foxglove {self.port}: cannot serve on {self.host}:{self.port} ({e})") from None
         self.port = self.server.port
-        topics = {**{t: n for t, n in ((recording.TELEMETRY_TOPICS[r], recording.TELEMETRY_SCHEMA[r])
-                                       for r in recording.TELEMETRY_TOPICS)}, **FOXGLOVE_TOPICS}
-        for topic, name in topics.items():
+        table = {**{t: n for t, n in ((topics.TELEMETRY_TOPICS[r], topics.TELEMETRY_SCHEMA[r])
+                                      for r in topics.TELEMETRY_TOPICS)}, **FOXGLOVE_TOPICS}
+        for topic, name in table.items():
             self.channels[topic] = self._fg.Channel(topic, message_encoding="protobuf", schema=self._schema(name))
         p = keys.prefix
         self._plen = len(p) + 1
@@ -109,8 +109,8 @@ class FoxgloveLive:
             typ = msg.TELEMETRY_TYPES.get(role)
             if typ is None:
                 return
-            name = recording.TELEMETRY_SCHEMA[role]
-            ch = self.channels[recording.TELEMETRY_TOPICS[role]]
+            name = topics.TELEMETRY_SCHEMA[role]
+            ch = self.channels[topics.TELEMETRY_TOPICS[role]]
             for r in msg.unpack_batch(payload):
                 m = typ.decode(r)
                 if not 0 <= m.k <= tap.N:

@@ -19,7 +19,6 @@ Exit codes: 0 clean run, 1 a node died or the run did not complete,
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -34,88 +33,21 @@ import threading
 import time
 from pathlib import Path
 
-from .. import cliargs, scenario
+from .. import scenario
 from ..errors import BadInput
+from ..nodes.options import RunOptions, load_scenario
+from ..nodes.process import parse_cpus
+from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
-from ..view.rerun import LiveRerun, add_rerun_run_arguments
-from ..stats import fmt_percentiles
-from ..nodes.common import RX_MODES, RunOptions, add_run_option_arguments, load_scenario, parse_cpus
-
-RECORDER = "recorder"
+from .credentials import RunCredentials
+from .spawn import Forked, _forked_node
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
     from ..record.recording import default_path
 
     return default_path(name, run_id=run_id)
-
-
-def add_arguments_run(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", help="scenario file (.toml) or bundled name")
-    cliargs.add_json(p, "the run's summary (the keys of testbed simulate --json, plus timing and faults)")
-    add_run_option_arguments(p)
-    g = p.add_argument_group("network")
-    g.add_argument("--run-id", help="key prefix testbed/RUN_ID/... (default: unique per run)")
-    g.add_argument("--listen", metavar="ENDPOINT",
-                   help="the launcher's endpoint (default tcp/127.0.0.1:<free port>); nodes connect to it")
-    g.add_argument("--node-connect", metavar="ENDPOINT",
-                   help="endpoint the nodes connect to (default: --listen)")
-    g.add_argument("--node-listen", action="append", default=[], metavar="ROLE=ENDPOINT",
-                   help="a node's own listener (default tcp/127.0.0.1:0), e.g. plant=tcp/10.0.0.2:0")
-    g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
-                   help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
-    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
-    g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
-                   help="router: the launcher routes and checks every message (default); peer: direct links "
-                        "between the processes, each mutual TLS, and every process checks what it receives")
-    g.add_argument("--secret-file", metavar="PATH",
-                   help="use these credentials (testbed secret PATH) instead of making new ones for the run: "
-                        "for nodes on other hosts, which need the file at the same path")
-    g.add_argument("--tls-dir", metavar="DIR",
-                   help="--topology peer: use this TLS folder (testbed secret --tls DIR) instead of making "
-                        "certificates for the run")
-    g.add_argument("--insecure", action="store_true",
-                   help="no authentication and no access control: any local process can join, stop or steer "
-                        "the run (recorded as such)")
-    g.add_argument("--low-latency", action="store_true",
-                   help="Zenoh's low-latency transport for every session of the run (no batching, no priority "
-                        "queues)")
-    g = p.add_argument_group("recording")
-    cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
-                       "never overwritten", aliases=("--record",))
-    g.add_argument("--force", action="store_true", help="replace an existing --out file")
-    g.add_argument("--no-record", action="store_true", help="do not record the run")
-    g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
-                   help="also record the control-path messages (auto: when T >= 10 ms)")
-    add_rerun_run_arguments(p)
-    from .foxglove_tap import add_foxglove_run_arguments
-
-    add_foxglove_run_arguments(p)
-    g = p.add_argument_group("run control")
-    g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
-                   help="give up if the nodes are not running after S seconds (default %(default)s)")
-    g.add_argument("--run-dir", help="directory for node logs (default: a temporary one, kept on faults)")
-    g.add_argument("--spawn", choices=["fork", "exec"], default="fork",
-                   help="how local nodes start: fork (default) from the launcher, which has loaded Python, numba "
-                        "and the loop's compiled kernels once, or exec (a fresh 'python -m testbed.cli node' per "
-                        "node, as with --node-prefix, which always execs)")
-    g.add_argument("--realtime", action="store_true", help="nodes try SCHED_FIFO")
-    g.add_argument("--cpu", action="append", default=[], metavar="WHO=CPUS",
-                   help="pin a node (plant, encoder, attacker, controller), the recorder or the launcher (the "
-                        "run's router) to CPUs, e.g. plant=2 or launcher=0,1 (repeatable)")
-    g.add_argument("--rx", choices=RX_MODES, help="how the nodes receive control messages (testbed node --rx)")
-    g.add_argument("--rx-spin-us", type=float, help="--rx spin: spin budget per sample (us)")
-    g.add_argument("--spin-us", type=float, help="plant busy-wait before each sample instant (us)")
-    g.add_argument("--ack-grace", type=float, help="encoder grace for a late ack, fraction of T")
-    g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
-    g = p.add_argument_group("fault injection")
-    g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
-                   help="SIGKILL a node (or the recorder) SECONDS after t0 (repeatable)")
-    g.add_argument("--crash", action="append", default=[], metavar="ROLE@K",
-                   help="make a node raise at sample K (repeatable)")
-    g.add_argument("--corrupt", metavar="K[:range|:length],...",
-                   help="the attacker corrupts the payload of these samples")
 
 
 def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
@@ -129,77 +61,7 @@ def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
     return out
 
 
-class Forked:
-    """A node forked from the launcher (``--spawn fork``): the part of ``subprocess.Popen`` the launcher uses."""
-
-    def __init__(self, pid: int):
-        self.pid = pid
-        self.returncode: int | None = None
-
-    def poll(self) -> int | None:
-        if self.returncode is None:
-            try:
-                pid, status = os.waitpid(self.pid, os.WNOHANG)
-            except ChildProcessError:  # reaped elsewhere: its status is gone
-                self.returncode = 1
-                return self.returncode
-            if pid:
-                self.returncode = os.waitstatus_to_exitcode(status)
-        return self.returncode
-
-    def wait(self, timeout: float | None = None) -> int:
-        end = None if timeout is None else time.monotonic() + timeout
-        while self.poll() is None:
-            if end is not None and time.monotonic() > end:
-                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
-            time.sleep(0.005)
-        return self.returncode
-
-
-def _forked_node(argv: list[str], log_fd: int) -> None:
-    """In the forked child: become ``testbed node ...`` (``argv``) with its output in the log; never returns."""
-    import logging
-
-    code = 1
-    try:
-        os.setsid()  # its own session and process group, as with Popen(start_new_session=True)
-        null = os.open(os.devnull, os.O_RDONLY)
-        os.dup2(null, 0)
-        os.dup2(log_fd, 1)
-        os.dup2(log_fd, 2)
-        for fd in {null, log_fd} - {0, 1, 2}:
-            os.close(fd)
-        for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
-            signal.signal(s, signal.SIG_DFL)
-        try:  # its name in ps -o comm / top (its command line stays the launcher's): tb-plant, ...
-            import ctypes
-
-            ctypes.CDLL(None).prctl(15, ctypes.c_char_p(f"tb-{argv[1]}"[:15].encode()), 0, 0, 0)  # PR_SET_NAME
-        except (OSError, AttributeError, IndexError):
-            pass
-        sys.stdout.reconfigure(line_buffering=True)
-        logging.root.handlers.clear()
-        from ..entry import run_child
-
-        code = run_child(argv)
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-        if not isinstance(e.code, int) and e.code is not None:
-            print(e.code, file=sys.stderr)
-    except BaseException:  # noqa: BLE001 - a child of the launcher never returns into the launcher's code
-        import traceback
-
-        traceback.print_exc()
-    finally:
-        try:
-            logging.shutdown()
-            sys.stdout.flush()
-            sys.stderr.flush()
-        finally:
-            os._exit(code if isinstance(code, int) else 1)
-
-
-class Launcher:
+class Launcher(RunCredentials):
     def __init__(self, args):
         self.args = args
         self.phase("up")
@@ -222,13 +84,13 @@ class Launcher:
         self.node_connect = args.node_connect or self.listen
         self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
         self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
-        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, RECORDER)).items()}
+        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, transport.RECORDER)).items()}
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
         self.colocated = self.opts.colocate           # roles run inside another node's process
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
         self.fork_ok = getattr(args, "spawn", "exec") == "fork"  # --spawn fork (``forks``)
         self.processes = self.opts.processes          # the node processes
-        self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, RECORDER, transport.LAUNCHER))
+        self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, transport.RECORDER, transport.LAUNCHER))
         for who, spec in self.cpus.items():
             parse_cpus(spec)  # one clear line now if unusable
             if who in self.colocated:
@@ -276,7 +138,7 @@ class Launcher:
     def phase(self, name: str) -> None:
         """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
         if self.args.verbose:
-            from ..nodes.common import process_age
+            from ..nodes.process import process_age
 
             print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}",
                   file=sys.stderr, flush=True)
@@ -325,101 +187,12 @@ class Launcher:
                "--parent-pid", str(os.getpid()), "--scenario-ref", a.scenario]
         if a.force:
             cmd.append("--force")
-        cmd += self.session_flags(RECORDER)
-        if RECORDER in self.cpus:
-            cmd += ["--cpus", self.cpus[RECORDER]]
+        cmd += self.session_flags(transport.RECORDER)
+        if transport.RECORDER in self.cpus:
+            cmd += ["--cpus", self.cpus[transport.RECORDER]]
         if a.verbose:
             cmd.append("--verbose")
         return cmd
-
-    # ---- sessions: topology and credentials
-    def make_secrets(self) -> None:
-        """The run's credentials: one password per process, in 0600 files under a 0700 folder.
-
-        The launcher (the router) keeps the whole dictionary; every process gets a file
-        with its own line only.
-        """
-        if not self.secure:
-            return
-        if self.tls:
-            if getattr(self.args, "tls_dir", None):
-                self.tls_dir = Path(self.args.tls_dir).resolve()
-            else:
-                self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
-                self.tls_dir = transport.TlsCredentials.new(self.secret_dir / "tls").folder
-            transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
-            return
-        if self.args.secret_file:
-            self.secret_path = Path(self.args.secret_file).resolve()
-            transport.Credentials.read(self.secret_path)  # checked now: one clear line if unusable
-            return
-        self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
-        cred = transport.Credentials.new()
-        self.secret_path = cred.write(self.secret_dir / "run.secret")
-        for u in (*transport.ROLES, RECORDER):
-            cred.only(u).write(self.secret_dir / f"{u}.secret")
-
-    def remove_secrets(self) -> None:
-        if self.secret_dir is not None:
-            shutil.rmtree(self.secret_dir, ignore_errors=True)
-
-    def secret_for(self, who: str) -> Path:
-        if self.secret_dir is not None:
-            return self.secret_dir / f"{who}.secret"
-        return self.secret_path
-
-    def session_flags(self, who: str) -> list[str]:
-        """``--topology``, credentials (a file path, never the secret itself) and listeners of a process."""
-        a = self.args
-        out = ["--topology", self.topology]
-        if self.tls:
-            out += ["--tls-dir", str(self.tls_dir)]
-        else:
-            out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
-        if a.low_latency:
-            out.append("--low-latency")
-        if self.topology == "peer":  # every process's own listener: the peers link to each other directly
-            out += ["--listen", self.node_listen.get(who) or self.own_listener(who)]
-        if a.zenoh_config:
-            out += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
-        return out
-
-    def own_listener(self, who: str) -> str:
-        """A peer's listener when ``--node-listen`` names none: loopback for a node, and for the recorder
-        (which runs beside the launcher) the launcher's own address, where nodes on other hosts or in
-        other network namespaces reach it too."""
-        if who == RECORDER:
-            scheme = "tls" if self.tls else "tcp"
-            host = transport.endpoint_host(self.listen)
-            return f"{scheme}/[{host}]:0" if ":" in host else f"{scheme}/{host}:0"
-        return transport.TLS_LOOPBACK_ANY if self.tls else transport.LOOPBACK_ANY
-
-    def session_config(self):
-        """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""
-        a = self.args
-        mode = "router" if self.topology == "router" else "peer"
-        if not self.secure:
-            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
-                                         low_latency=a.low_latency)
-        if self.tls:
-            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
-                                         acl=transport.acl_config(self.keys, self.colocated, by="cert_common_names"),
-                                         low_latency=a.low_latency,
-                                         tls=transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER))
-        cred = transport.Credentials.read(self.secret_path)
-        return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
-                                     user=transport.LAUNCHER, password=cred.users.get(transport.LAUNCHER),
-                                     dictionary_file=self.secret_path,
-                                     acl=transport.acl_config(self.keys, self.colocated), low_latency=a.low_latency)
-
-    def security(self) -> dict:
-        from ..nodes.common import access_control, transport_security
-
-        given = self.args.secret_file or getattr(self.args, "tls_dir", None)
-        return {"authenticated": self.secure, "topology": self.topology, "low_latency": bool(self.args.low_latency),
-                "access_control": access_control(self.topology) if self.secure else "none",
-                "transport": transport_security(self.topology, not self.secure),
-                "credentials": None if not self.secure else ("given" if given else "made for the run")}
 
     def declare_collector_ready(self, session) -> None:
         """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
@@ -431,14 +204,14 @@ class Launcher:
         """During start-up: declare the collector ready once the recorder is (False: it died first)."""
         if self._collector_ready or self.recorder is None:
             return True
-        if RECORDER in col.ready_nodes():
+        if transport.RECORDER in col.ready_nodes():
             self.declare_collector_ready(session)
             return True
         rc = self.recorder.poll()
         if rc is None:
             return True
-        self.faults.append({"node": RECORDER, "kind": "startup_failed", "why": f"exit code {rc}",
-                            "last_log_line": (self.log_tail(RECORDER).splitlines() or [""])[-1]})
+        self.faults.append({"node": transport.RECORDER, "kind": "startup_failed", "why": f"exit code {rc}",
+                            "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
         return False
 
     def wait_summaries(self, col, timeout: float = 0.3) -> None:
@@ -479,9 +252,9 @@ class Launcher:
                               "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
         if not self.stopping:
             why = f"killed by {self.recorder_exit['signal']}" if rc < 0 else f"exit code {rc}"
-            self.faults.append({"node": RECORDER, "kind": "killed" if rc < 0 else "crashed", "why": why,
-                                "t_s": self.recorder_exit["t_s"], "injected": RECORDER in self.kill_sent,
-                                "last_log_line": (self.log_tail(RECORDER).splitlines() or [""])[-1]})
+            self.faults.append({"node": transport.RECORDER, "kind": "killed" if rc < 0 else "crashed", "why": why,
+                                "t_s": self.recorder_exit["t_s"], "injected": transport.RECORDER in self.kill_sent,
+                                "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
             print(f"testbed run: the recorder died ({why}); the run goes on unrecorded, the file keeps "
                   f"what was flushed: {self.record_path}", file=sys.stderr)
 
@@ -490,7 +263,7 @@ class Launcher:
             return None
         ok = self.recorder_exit is not None and self.recorder_exit["exit_code"] == 0
         return {"path": str(self.record_path), "complete": ok, "recorder_exit": self.recorder_exit,
-                "log": str(self.run_dir / f"{RECORDER}.log")}
+                "log": str(self.run_dir / f"{transport.RECORDER}.log")}
 
     def publish_faults(self, session) -> None:
         """Each new fault as an ``Event`` of node ``launcher`` (so the recording has it)."""
@@ -683,7 +456,8 @@ class Launcher:
         """With ``--realtime``, the launcher's threads (the run's router) run under SCHED_FIFO during the
         loop as the nodes' do: a router thread at normal priority waits behind every other process for
         each message it forwards."""
-        from ..nodes.common import ab_off, set_realtime
+        from ..nodes.inlet import ab_off
+        from ..nodes.process import set_realtime
 
         if not self.args.realtime or ab_off("router-realtime") or on == self._router_rt:
             return
@@ -753,7 +527,7 @@ class Launcher:
                 for role, sec in self.kills.items():
                     if role not in self.kill_sent and now >= t0_mono + int(sec * 1e9):
                         self.kill_sent[role] = time.monotonic_ns()
-                        if role == RECORDER:
+                        if role == transport.RECORDER:
                             if self.recorder is not None and self.recorder.poll() is None:
                                 os.killpg(self.recorder.pid, signal.SIGKILL)
                         elif role in self.colocated:  # its host process kills it alone (SIGUSR2)
@@ -777,8 +551,8 @@ class Launcher:
     def run(self) -> tuple[int, dict]:
         import zenoh
 
-        from .collect import Collector
         from ..loopspec import Codebook
+        from .collect import Collector
 
         def on_signal(signum, _frame):
             self.signal = signum
@@ -814,7 +588,7 @@ class Launcher:
                     # the recorder and the nodes start together; the plant starts the run once the
                     # collector is ready, which it declares once the recorder is (``watch``)
                     if self.record_path is not None:
-                        self.recorder = self._popen(self.recorder_command(), RECORDER)
+                        self.recorder = self._popen(self.recorder_command(), transport.RECORDER)
                     if self.rerun is not None:
                         self.rerun.start()
                     if self.foxglove is not None:
@@ -901,64 +675,3 @@ class Launcher:
             shutil.rmtree(self.run_dir, ignore_errors=True)
             summary["run_dir"] = None
         return code, summary
-
-
-def print_text(s: dict) -> None:
-    if not s.get("samples"):  # nothing ran: no loop figures to show, only why
-        print(f"run {s['run_id']}: scenario {s.get('scenario')}: the run NEVER STARTED (outcome: {s['outcome']})")
-        for f in s["faults"]:
-            print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
-                  + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
-        if s.get("run_dir"):
-            print(f"  node logs: {s['run_dir']}")
-        return
-    tm = s["timing"]
-    verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
-    print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "
-          f"T = {tm['T_us'] / 1e6:g} s, timing {s['timing_mode']}, outcome: {s['outcome']}")
-    print(f"  {s.get('packets_dropped', 0)} samples lost (attacker dropped {s['attacker']['dropped']}, "
-          f"invalid {s.get('invalid_payloads')}, withheld {len(s['withheld_at'])}), "
-          f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "
-          f"{s.get('encoder_decoder_agree_where_known')}" + ("" if s.get("encoder_decoder_agree") else
-                                                              " (on the samples both recorded)"))
-    fn = s.get("final_norm")
-    print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
-    print(f"  sampling jitter      {fmt_percentiles(tm['sampling_jitter_us'])}")
-    print(f"  sensor-to-actuator   {fmt_percentiles(tm['sensor_to_actuator_us'])}")
-    for st, v in tm["stages_us"].items():
-        print(f"    {st:18s} {fmt_percentiles(v)}")
-    print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}; symbol payload "
-          f"{s['sizes']['symbol_payload_bytes']} B + header {s['sizes']['header_bytes']} B")
-    if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
-        print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
-    for f in s["faults"]:
-        print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
-              + (f" at sample {f['at_sample']}" if f.get("at_sample") is not None else "")
-              + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
-    rec = s.get("recording")
-    if rec:
-        print(f"  recording: {rec['path']}" + ("" if rec["complete"] else " (INCOMPLETE: the recorder did not "
-                                                                          "finish; readable up to its last flush)"))
-    if s.get("run_dir"):
-        print(f"  node logs: {s['run_dir']}")
-
-
-def main_run(args) -> int:
-    from ..errors import BadInput
-
-    launcher = Launcher(args)
-    try:
-        code, summary = launcher.run()
-    except BadInput:  # refused before any node ran (certificates, ...): no run folder left behind
-        if launcher.own_dir and not any(launcher.run_dir.glob("*.log")):
-            shutil.rmtree(launcher.run_dir, ignore_errors=True)
-        raise
-    launcher.phase("closed")
-    if args.json:
-        json.dump(summary, sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print_text(summary)
-    sys.stdout.flush()
-    launcher.phase("printed")
-    return code

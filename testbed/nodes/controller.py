@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import threading
 
-from ..wire import messages as msg
 from ..protocol import ControllerProtocol, Decision
 from ..quantizer import Decoder
 from ..stats import percentiles
-from .common import Node, ab_off, warm_publisher
+from ..wire import messages as msg
+from .base import Node
+from .context import warm_publisher
+from .inlet import ab_off
 
 CT = msg.ControllerTelemetry
 

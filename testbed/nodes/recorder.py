@@ -31,11 +31,12 @@ import threading
 import time
 from pathlib import Path
 
+from ..record import recording, topics
 from ..wire import messages as msg
-from ..record import recording
 from ..wire import transport
-from .common import (RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, on_stop_signals,
-                     parse_cpus, security_info, tune_process, zenoh_config)
+from ..wire.session import add_zenoh_arguments, security_info, zenoh_config
+from .options import RunOptions, T_ns, add_run_option_arguments, load_scenario
+from .process import on_stop_signals, parse_cpus, tune_process
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
@@ -183,7 +184,7 @@ class Recorder:
                 if typ is None:
                     raise msg.MessageError(f"no telemetry type for node {role!r}")
                 recs = [typ.decode(r) for r in msg.unpack_batch(payload)]
-                name = recording.TELEMETRY_SCHEMA[role]
+                name = topics.TELEMETRY_SCHEMA[role]
                 N = self.n_steps
                 for t in recs:
                     final = role == "plant" and t.flags & msg.PlantTelemetry.FLAG_FINAL

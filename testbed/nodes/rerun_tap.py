@@ -18,8 +18,8 @@ import threading
 
 import numpy as np
 
-from ..wire import messages as msg
 from ..view import rerun as viewer
+from ..wire import messages as msg
 
 log = logging.getLogger("testbed.nodes")
 

@@ -27,8 +27,7 @@ Trust (``testbed.errors.BadInput``, one line, exit 2):
   marked ``truncated``;
 * a telemetry message that is not well-formed protobuf of its schema (a varint
   that runs on, a vector whose length is not the scenario's n or m, a flag out of
-  range) is rejected and counted (``Columns.malformed``), never half-written.
-"""
+  range) is rejected and counted (``Columns.malformed``), never half-written."""
 
 from __future__ import annotations
 
@@ -44,40 +43,63 @@ import numpy as np
 from ..errors import BadInput
 from ..wire import messages as msg
 from . import schema
+from .mcapfile import (
+    MSG_HEAD,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_MESSAGE,
+    OP_SCHEMA,
+    REC,
+    CorruptRecording,
+    _channel_record,
+    _decompress,
+    _File,
+    _records,
+    _schema_record,
+    read_metadata,
+)
+from .topics import TELEMETRY_ROLES, TELEMETRY_SCHEMA
 
-ROLES = ("plant", "encoder", "controller", "attacker")
-ROLE_SCHEMA = {"plant": "PlantSample", "encoder": "EncoderSample", "controller": "ControllerSample",
-               "attacker": "AttackerSample"}
+ROLES = TELEMETRY_ROLES
 
-MAX_CHUNK_BYTES = 256 << 20   # largest decompressed chunk accepted (the recorder writes 1 MiB chunks)
-MAX_RATIO = 200               # largest decompressed / compressed size of a chunk (ours: 4 to 15)
+
+ROLE_SCHEMA = TELEMETRY_SCHEMA
+
+
 ROW_BYTES_MIN = 8             # a recorded sample takes more file than this: rows <= file size / 8
+
+
 MIN_ROWS = 1 << 16            # ... but room for this many samples whatever the file's size
+
+
 MAX_FIELD = 64                # protobuf field numbers the parser maps (larger: skipped as unknown)
+
+
 MAX_KEPT = 1_000_000          # events, attacker status, liveliness kept as objects (beyond: counted only)
 
-_MAGIC = b"\x89MCAP0\r\n"
-_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-_OP_CHUNK, _OP_METADATA, _OP_DATA_END = 0x06, 0x0C, 0x0F
-_REC = struct.Struct("<BQ")
-_MSG_HEAD = struct.Struct("<HIQQ")
-_CHUNK_HEAD = struct.Struct("<QQQI")
 
 # column groups of the parser (numba sees integer codes)
 G_SKIP, G_I64, G_I32, G_U8, G_F64, G_VEC, G_K, G_U32 = range(8)
+
+
 _U8_FIELDS = {"theta", "flags", "reason"}          # u32 fields whose values fit a byte (checked)
+
+
 _VEC_WIDTH = {"x": "n", "xi": "n", "q": "n", "u": "m"}
+
+
 #: the value of a field in the rows of samples a role did not record (by default NaN for floats,
 #: ``NO_TIME`` for optional times, 0 otherwise): what ``testbed report`` has always shown there
 ABSENT = {("plant", "u"): 0.0, ("encoder", "symbol"): -1}
 
+
 # channel modes
 CH_UNKNOWN, CH_COUNT, CH_PYTHON, CH_TELEMETRY = 0, 1, 2, 3
+
+
 _PY_SCHEMAS = {"Event", "AttackerStatus", "RunStart", "RunStop", "NodeSummary", "Liveliness", "Malformed"}
-
-
-class CorruptRecording(BadInput):
-    """A recording whose bytes fail a check (CRC, layout): its results cannot be trusted."""
 
 
 # ============================================================================ column layout
@@ -274,196 +296,10 @@ def normalize(c: "Columns") -> None:
 
 
 def scenario_of(metadata: dict[str, dict], path: str = "recording"):
-    """The scenario a run used, rebuilt from its metadata (``recording.recorded_scenario``)."""
-    from .recording import recorded_scenario
+    """The scenario a run used, rebuilt from its metadata (``recorded.recorded_scenario``)."""
+    from .recorded import recorded_scenario
 
     return recorded_scenario(metadata, path)[0]
-
-
-# ============================================================================ the MCAP walk
-class _File:
-    """Records of an MCAP file read sequentially: (offset, opcode, body length); bodies on request."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.f = open(path, "rb")
-        self.size = self.f.seek(0, 2)
-        self.f.seek(0)
-        head = self.f.read(len(_MAGIC))
-        if head != _MAGIC:
-            self.f.close()
-            raise BadInput(f"{path}: not an MCAP file")
-        self.f.seek(max(self.size - len(_MAGIC), 0))
-        self.closed_file = self.size >= 2 * len(_MAGIC) and self.f.read(len(_MAGIC)) == _MAGIC
-        self.f.seek(len(_MAGIC))
-
-    def close(self):
-        self.f.close()
-
-
-def _cut(fh: _File, what: str):
-    """A record that does not fit: a cut file (truncated) or, in a file that was closed, corruption."""
-    if fh.closed_file:
-        raise CorruptRecording(f"{fh.path}: corrupt recording: {what}, in a file that ends as a finished "
-                               "recording does; its results cannot be trusted")
-    return f"cut short: {what}"
-
-
-def _records(fh: _File, *, bodies: set[int], crc: list | None = None):
-    """``(offset, op, body or None)`` in file order up to the footer; ``("cut", reason)`` at a cut.
-
-    ``bodies``: the opcodes whose body is read (the others are skipped with a seek).
-    ``crc``: a one-element list accumulating the CRC-32 of the data section (None: not computed).
-    """
-    f, size = fh.f, fh.size
-    off = len(_MAGIC)
-    if crc is not None:
-        crc[0] = zlib.crc32(_MAGIC)
-    in_data = True
-    while True:
-        if off + 9 > size:
-            yield off, None, _cut(fh, "no footer" if off == size else f"record header cut at byte {off}")
-            return
-        f.seek(off)
-        head = f.read(9)
-        op, length = _REC.unpack(head)
-        end = off + 9 + length
-        if end > size:
-            yield off, None, _cut(fh, f"record (opcode {op:#x}) of {length} bytes at byte {off} runs past the "
-                                      f"end of the file ({size} bytes)")
-            return
-        if op == 0 or 0x10 <= op < 0x80:
-            raise CorruptRecording(f"{fh.path}: corrupt recording: invalid record opcode {op:#x} at byte {off}")
-        if op == _OP_DATA_END:
-            in_data = False
-        need = op in bodies or (crc is not None and in_data)
-        body = f.read(length) if need else None
-        if crc is not None and in_data:
-            crc[0] = zlib.crc32(body, zlib.crc32(head, crc[0]))
-        yield off, op, body if op in bodies else None
-        if op == _OP_FOOTER:
-            return
-        off = end
-
-
-def _metadata_record(body: bytes) -> tuple[str, dict[str, str]]:
-    """A Metadata record's body: name, then a map of string pairs (the MCAP spec's layout)."""
-    p = 0
-
-    def string():
-        nonlocal p
-        (ln,) = struct.unpack_from("<I", body, p)
-        if p + 4 + ln > len(body):
-            raise ValueError("string runs past the record")
-        s = body[p + 4:p + 4 + ln].decode()
-        p += 4 + ln
-        return s
-
-    name = string()
-    (maplen,) = struct.unpack_from("<I", body, p)
-    p += 4
-    end = p + maplen
-    if end > len(body):
-        raise ValueError("map runs past the record")
-    out = {}
-    while p < end:
-        k = string()
-        out[k] = string()
-    return name, out
-
-
-def _schema_record(body: bytes) -> tuple[int, str, str, bytes]:
-    sid, nlen = struct.unpack_from("<HI", body, 0)
-    p = 6
-    name = body[p:p + nlen].decode()
-    p += nlen
-    (elen,) = struct.unpack_from("<I", body, p)
-    enc = body[p + 4:p + 4 + elen].decode()
-    p += 4 + elen
-    (dlen,) = struct.unpack_from("<I", body, p)
-    if p + 4 + dlen > len(body):
-        raise ValueError("schema data runs past the record")
-    return sid, name, enc, body[p + 4:p + 4 + dlen]
-
-
-def _channel_record(body: bytes) -> tuple[int, int, str, str]:
-    cid, sid, tlen = struct.unpack_from("<HHI", body, 0)
-    p = 8
-    topic = body[p:p + tlen].decode()
-    p += tlen
-    (elen,) = struct.unpack_from("<I", body, p)
-    enc = body[p + 4:p + 4 + elen].decode()
-    if p + 4 + elen > len(body):
-        raise ValueError("channel record cut")
-    return cid, sid, topic, enc
-
-
-def read_metadata(path: str | Path) -> tuple[dict[str, dict], bool]:
-    """Every Metadata record of a file (a fast pass that seeks over chunks), and whether it has a footer."""
-    fh = _File(Path(path))
-    out: dict[str, dict] = {}
-    footer = False
-    try:
-        for _off, op, body in _records(fh, bodies={_OP_METADATA}):
-            if op == _OP_METADATA:
-                try:
-                    name, d = _metadata_record(body)
-                except (ValueError, struct.error, UnicodeDecodeError):
-                    continue  # an unreadable metadata record: as if absent
-                out[name] = d
-            elif op == _OP_FOOTER:
-                footer = True
-    finally:
-        fh.close()
-    return out, footer
-
-
-def _decompress(fh: _File, off: int, body: bytes) -> tuple[bytes, bool]:
-    """A chunk's records, checked: (records, whether a CRC was checked)."""
-    try:
-        _s, _e, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
-        p = _CHUNK_HEAD.size
-        (clen,) = struct.unpack_from("<I", body, p)
-        compression = body[p + 4:p + 4 + clen].decode()
-        p += 4 + clen
-        (rlen,) = struct.unpack_from("<Q", body, p)
-        p += 8
-    except (struct.error, UnicodeDecodeError):
-        raise CorruptRecording(f"{fh.path}: corrupt recording: unreadable chunk header at byte {off}") from None
-    if p + rlen > len(body):
-        raise CorruptRecording(f"{fh.path}: corrupt recording: the chunk at byte {off} holds fewer bytes than "
-                               "it declares")
-    data = body[p:p + rlen]
-    if size > MAX_CHUNK_BYTES or size > max(MAX_RATIO * rlen, 1 << 20):
-        raise CorruptRecording(f"{fh.path}: the chunk at byte {off} declares {size} bytes of records from "
-                               f"{rlen} compressed bytes: more than this reader accepts")
-    try:
-        if compression == "zstd":
-            import zstandard
-
-            inner = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-        elif compression == "lz4":
-            import lz4.frame
-
-            d = lz4.frame.LZ4FrameDecompressor()
-            inner = d.decompress(data, max_length=size + 1)
-        elif compression == "":
-            inner = data
-        else:
-            raise CorruptRecording(f"{fh.path}: the chunk at byte {off} uses compression {compression!r}, "
-                                   "which this reader does not read")
-    except CorruptRecording:
-        raise
-    except Exception as e:  # noqa: BLE001 - zstd / lz4 errors have no common base
-        raise CorruptRecording(f"{fh.path}: corrupt recording: the chunk at byte {off} does not decompress "
-                               f"({type(e).__name__}: {str(e)[:120]})") from None
-    if len(inner) != size:
-        raise CorruptRecording(f"{fh.path}: corrupt recording: the chunk at byte {off} decompresses to "
-                               f"{len(inner)} bytes, not the {size} it declares")
-    if crc and zlib.crc32(inner) != crc:
-        raise CorruptRecording(f"{fh.path}: corrupt recording: the chunk at byte {off} fails its CRC (changed "
-                               "after it was written); its results cannot be trusted")
-    return inner, bool(crc)
 
 
 def rows_for(N: int, file_size: int) -> int:
@@ -518,9 +354,9 @@ class _Reader:
 
     # ---- messages decoded in Python (rare)
     def py_message(self, buf, off: int, end: int):
-        cid, _seq, log_time, _pt = _MSG_HEAD.unpack_from(buf, off)
+        cid, _seq, log_time, _pt = MSG_HEAD.unpack_from(buf, off)
         topic, name = self.channels[cid]
-        data = bytes(buf[off + _MSG_HEAD.size:end])
+        data = bytes(buf[off + MSG_HEAD.size:end])
         c = self.cols
         try:
             m = self.classes[name].FromString(data)
@@ -568,19 +404,19 @@ class _Reader:
                                      self.final_tabs[3], self.final_k, self.stats, self.role_stats, self.py_pos)
             for i in range(n_py):
                 p = int(self.py_pos[i])
-                (_op, ln) = _REC.unpack_from(buf, p)
+                (_op, ln) = REC.unpack_from(buf, p)
                 self.py_message(buf, p + 9, p + 9 + ln)
             if status == 0:
                 return
             if status == 2:
                 raise CorruptRecording(f"{self.path}: corrupt recording: a record inside the chunk at byte "
                                        f"{where} runs past the chunk's end")
-            op, ln = _REC.unpack_from(buf, pos)
+            op, ln = REC.unpack_from(buf, pos)
             body = buf[pos + 9:pos + 9 + ln]
             try:
-                if op == _OP_SCHEMA:
+                if op == OP_SCHEMA:
                     self.schema_rec(body)
-                elif op == _OP_CHANNEL:
+                elif op == OP_CHANNEL:
                     self.channel_rec(body)
             except (ValueError, struct.error, UnicodeDecodeError):
                 raise CorruptRecording(f"{self.path}: corrupt recording: unreadable schema or channel record "
@@ -593,24 +429,24 @@ class _Reader:
         crc = [0]
         data_crc = None
         try:
-            for off, op, body in _records(fh, bodies={_OP_CHUNK, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE,
-                                                      _OP_DATA_END, _OP_FOOTER}, crc=crc):
+            for off, op, body in _records(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE,
+                                                      OP_DATA_END, OP_FOOTER}, crc=crc):
                 if op is None:
                     if body is not None:
                         c.truncated, c.read_error = True, body
                     break
-                if op == _OP_CHUNK:
+                if op == OP_CHUNK:
                     inner, _ = _decompress(fh, off, body)
                     self.records(inner, off)
-                elif op in (_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
-                    self.records(_REC.pack(op, len(body)) + body, off)
-                elif op == _OP_DATA_END:
+                elif op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
+                    self.records(REC.pack(op, len(body)) + body, off)
+                elif op == OP_DATA_END:
                     data_crc = struct.unpack_from("<I", body, 0)[0] if len(body) >= 4 else 0
                     if data_crc and data_crc != crc[0]:
                         raise CorruptRecording(f"{self.path}: corrupt recording: the data section fails its CRC "
                                                "(the file was changed after it was written); its results "
                                                "cannot be trusted")
-                elif op == _OP_FOOTER:
+                elif op == OP_FOOTER:
                     self.check_summary(fh, off, body)
                     break
         finally:

@@ -156,9 +156,7 @@ def _file_descriptor():
 @lru_cache(maxsize=1)
 def file_descriptor_set() -> bytes:
     """The schema data stored in the MCAP file (one ``FileDescriptorSet`` for every message)."""
-    from google.protobuf import descriptor_pb2
-
-    from google.protobuf import timestamp_pb2
+    from google.protobuf import descriptor_pb2, timestamp_pb2
 
     fds = descriptor_pb2.FileDescriptorSet()
     ts = fds.file.add()

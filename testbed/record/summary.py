@@ -11,17 +11,17 @@ added beside them.
 
 from __future__ import annotations
 
-import math
-from pathlib import Path
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
-from ..wire import messages as msg
 from ..simulate import json_clean as _clean
 from ..stats import percentiles
+from ..wire import messages as msg
+from ..wire import transport
 
-ROLES = ("plant", "encoder", "attacker", "controller")
+ROLES = transport.ROLES
 PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
 
@@ -79,7 +79,8 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     streams them); otherwise plain lists.
     """
     from ..flow import FLOW_OK
-    from ..simulate import SimResult, summarize
+    from ..simloop import SimResult
+    from ..simulate import summarize
 
     plant = sc.make_model()
     n, m = plant.n, plant.m
@@ -363,10 +364,11 @@ def _fields(meta: dict) -> set[str]:
 def load(path: str | Path):
     """The columns of a recording and its scenario (``BadInput`` for anything unusable).
 
-    The columns carry ``plant_source`` and ``model_source`` (``recording.recorded_scenario``).
+    The columns carry ``plant_source`` and ``model_source`` (``recorded.recorded_scenario``).
     """
-    from .columns import read_columns, read_metadata
-    from .recording import recorded_scenario
+    from .columns import read_columns
+    from .mcapfile import read_metadata
+    from .recorded import recorded_scenario
 
     meta, _ = read_metadata(path)
     sc, ps, ms = recorded_scenario(meta, str(path))

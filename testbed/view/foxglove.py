@@ -41,8 +41,8 @@ import struct
 from functools import lru_cache
 from importlib import resources
 
-from .phase import PHASE_DIMS, phase_bounds, roa_outline
 from ..wire import messages as msg
+from .phase import PHASE_DIMS, phase_bounds, roa_outline
 
 TOPIC_LOG = "/log"
 TOPIC_PHASE = "/phase"

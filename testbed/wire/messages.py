@@ -1,7 +1,7 @@
 """Messages of a live run: small dataclasses with symmetric ``encode`` / ``decode``.
 
 All times are integer nanoseconds since the run's start instant t0 (``Start.t0_ns``,
-shared by every node; see ``testbed.nodes.common.RunClock``), so t_k = k T_ns.
+shared by every node; see ``testbed.nodes.clock.RunClock``), so t_k = k T_ns.
 
 Control path (``loop/*`` keys).  The payload carries exactly the data of the paper;
 the sample index and a time stamp travel beside it as a Zenoh attachment

@@ -252,7 +252,6 @@ class Credentials:
     @classmethod
     def read(cls, path: str | Path) -> "Credentials":
         """Read and check a secret file: it must be a regular file that only its owner can read."""
-        import os
         import stat
 
         from ..errors import BadInput
@@ -421,6 +420,11 @@ def _write_new(path: Path, data: bytes, mode: int) -> None:
 
 #: roles that may run inside another node's process (``--colocate encoder``: in the plant's)
 COLOCATABLE = {"encoder": "plant"}
+
+
+def colocated_roles(value) -> tuple[str, ...]:
+    """``--colocate``'s value (one role, several, or None) as a sorted tuple of roles."""
+    return tuple(sorted({value} if isinstance(value, str) else set(value or ())))
 
 
 def host_of(role: str, colocate: tuple[str, ...] = ()) -> str:
