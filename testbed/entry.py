@@ -30,13 +30,13 @@ def ident(name: str) -> str:
 
 def add_command_arguments(parser: argparse.ArgumentParser, mod, name: str) -> None:
     """The arguments of command ``name`` of module ``mod`` (``add_arguments_NAME`` or ``add_arguments``)."""
-    adder = getattr(mod, f"add_arguments_{ident(name)}", None) or getattr(mod, "add_arguments")
+    adder = getattr(mod, f"add_arguments_{ident(name)}", None) or mod.add_arguments
     adder(parser)
 
 
 def runner_of(mod, name: str):
     """The function that runs command ``name`` of module ``mod`` (``main_NAME`` or ``main``)."""
-    return getattr(mod, f"main_{ident(name)}", None) or getattr(mod, "main")
+    return getattr(mod, f"main_{ident(name)}", None) or mod.main
 
 
 def run_command(module: str, name: str, argv: list[str], help_: str = "") -> int:

@@ -228,7 +228,7 @@ class WsClient:
 @pytest.mark.process
 def test_run_foxglove_serves_the_run_live(tmp_path):
     import_or_require("foxglove", "foxglove")
-    from test_live_process import tb_cmd
+    from helpers import tb_cmd
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -81,7 +81,7 @@ def test_the_largest_codebook_works_end_to_end(tmp_path):
 
 @pytest.mark.process
 def test_the_largest_codebook_runs_live(tmp_path):
-    from test_live_process import live_exact, reap
+    from helpers import live_exact, reap
 
     f = tmp_path / "big.toml"
     f.write_text(_linear(2, BIG_M))
@@ -156,7 +156,7 @@ def test_the_recorder_survives_1e5_random_messages_in_bounded_memory(tmp_path):
 # ============================================================================ two runs in one second
 @pytest.mark.process
 def test_two_runs_started_in_the_same_second_never_share_a_recording(tmp_path):
-    from test_live_process import reap, tb_cmd
+    from helpers import reap, tb_cmd
 
     env = dict(os.environ, TESTBED_RECORDINGS_DIR=str(tmp_path))
     rids = [f"t{os.getpid()}xtwin{i}" for i in range(2)]

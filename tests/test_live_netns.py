@@ -21,7 +21,7 @@ import sys
 
 import pytest
 from failclosed import require, rerun_while_stalled
-from test_live_process import _LOGS, BIT_EXACT_KEYS, TIMEOUT, TOPOLOGIES, _node_logs, mismatch, reap, run_cli, simulate  # noqa: F401
+from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, TOPOLOGIES, mismatch, reap, run_cli, simulate
 
 pytestmark = pytest.mark.process
 
@@ -82,7 +82,7 @@ def _run_in_namespaces(names, addr, run_id, topology=()):
     scheme = "tls" if "peer" in topology else "tcp"
     cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
            "--duration", "5", "--json", "--run-id", run_id, "--listen", f"{scheme}/{addr['hub']}:{port}",
-           "--run-dir", os.path.join(_LOGS, run_id), *topology]
+           "--run-dir", os.path.join(LOGS, run_id), *topology]
     for r in ROLES:
         cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}={scheme}/{addr[r]}:0"]
     try:

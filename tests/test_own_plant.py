@@ -281,7 +281,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     """testbed run from another folder: every node and the recorder import the module from the scenario's
     folder; the run equals testbed simulate bit for bit, and testbed report reads its recording."""
     from failclosed import rerun_while_stalled
-    from test_live_process import BIT_EXACT_KEYS, mismatch, reap
+    from helpers import BIT_EXACT_KEYS, mismatch, reap
 
     work = plant_dir.parent / "elsewhere"
     rec = plant_dir.parent / "live.mcap"

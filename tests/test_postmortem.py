@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_columns_equal_reference
 
 import testbed
 from testbed import scenario
@@ -47,30 +48,7 @@ def _cli(*args, timeout=120):
     return subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout)
 
 
-def assert_columns_equal_reference(cols, rec):
-    """Every field of every telemetry dataclass the reference reader decoded equals the column's value."""
-    names = {"plant": msg.PlantTelemetry, "encoder": msg.EncoderTelemetry, "controller": msg.ControllerTelemetry,
-             "attacker": msg.AttackerTelemetry}
-    for role, cls in names.items():
-        ref = rec.telemetry[role]
-        has = cols.has(role)
-        assert sorted(ref) == np.flatnonzero(has).tolist(), role
-        for f in dataclasses.fields(cls):
-            if f.name == "k":
-                continue
-            col = cols.get(role, f.name)
-            for k, t in ref.items():
-                want = getattr(t, f.name)
-                if role == "encoder" and t.silent and f.name in ("xi", "q", "E", "symbol"):
-                    continue  # not sent; the columns hold NaN / -1 there
-                if isinstance(want, tuple):
-                    assert np.array_equal(col[k], np.array(want)), (role, f.name, k)
-                else:
-                    assert col[k] == want, (role, f.name, k)
-    if rec.plant_final is not None:
-        assert cols.final["k"] == rec.plant_final.k and np.array_equal(cols.final["x"], rec.plant_final.x)
-    assert len(cols.events) == len(rec.events) and len(cols.status) == len(rec.status)
-    assert dict(cols.counts) == dict(rec.counts)
+
 
 
 # ---------------------------------------------------------------------------- the reader

@@ -13,19 +13,18 @@ import time
 
 import numpy as np
 import pytest
-from test_live_process import (  # noqa: F401 - run_id
+from helpers import (
     BIT_EXACT_KEYS,
     TIMEOUT,
     TOPOLOGIES,
+    assert_columns_equal_reference,
     cmdlines,
     live,
     live_exact,
     procs_with,
-    run_id,
     simulate,
     tb_cmd,
 )
-from test_postmortem import assert_columns_equal_reference
 
 import testbed
 from testbed.compare import compare

@@ -25,7 +25,7 @@ import time
 
 import pytest
 from failclosed import rerun_while_stalled
-from test_live_process import _LOGS, BIT_EXACT_KEYS, TIMEOUT, live, mismatch, procs_with, reap, run_id, simulate, tb_cmd  # noqa: F401 - fixture
+from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, mismatch, procs_with, simulate, tb_cmd
 
 from testbed.wire import messages as msg
 from testbed.wire import transport
@@ -62,7 +62,7 @@ def listening_ports(token: str) -> list[int]:
 
 def start_run(run_id: str, *args) -> subprocess.Popen:
     return subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id,
-                                   "--run-dir", os.path.join(_LOGS, run_id), *args),
+                                   "--run-dir", os.path.join(LOGS, run_id), *args),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
@@ -122,7 +122,7 @@ def _outsider_configs(run_id, pt, peer, foreign):
                 for user, pw in ((None, None), ("plant", "guess"))]
     import glob
 
-    (ca,) = glob.glob(os.path.join(_LOGS, run_id, "secrets-*", "tls", "ca.pem"))
+    (ca,) = glob.glob(os.path.join(LOGS, run_id, "secrets-*", "tls", "ca.pem"))
     tls = dict(transport.TlsCredentials(foreign).zenoh("plant"), root_ca_certificate=ca)
     return [transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer"),
             transport.make_config(connect=[f"tls/127.0.0.1:{pt}"], mode="peer", tls=tls)]
@@ -252,7 +252,7 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     p = subprocess.Popen(tb_cmd("run", str(sc_file), "--json", "--run-id", run_id, "--run-dir",
-                                os.path.join(_LOGS, run_id), "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}",
+                                os.path.join(LOGS, run_id), "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}",
                                 "--secret-file", secret),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     forged = []

@@ -19,7 +19,6 @@ import pytest
 import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
 from failclosed import require
 from rerun.chunk import RrdReader
-from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
 
 from testbed.view import rerun as viewer  # noqa: E402
 
@@ -136,7 +135,7 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
 # ---------------------------------------------------------------- live: testbed run --rerun save
 @pytest.mark.process
 def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     from testbed.record import reader
 
@@ -182,7 +181,7 @@ def _stream_entities(path) -> tuple[set[str], list]:
 @pytest.mark.process
 def test_live_run_rerun_connect_streams_to_a_grpc_server(tmp_path, run_id):
     """A real Rerun gRPC server (``rerun --port P --save F``, no viewer window) receives the run."""
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     got = tmp_path / "server.rrd"
     with viewer.saving_server(got) as url:
@@ -203,7 +202,7 @@ def test_live_run_rerun_connect_streams_to_a_grpc_server(tmp_path, run_id):
 @pytest.mark.process
 def test_live_rerun_save_merges_when_a_node_was_killed(tmp_path, run_id):
     """The killed node's part file has no footer; the merge keeps the others' data and the file verifies."""
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     rrd = tmp_path / "killed.rrd"
     rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
@@ -232,7 +231,7 @@ def _port_busy(port: int) -> bool:
 
 
 def _rerun_pids() -> set[int]:
-    from test_live_process import procs_with
+    from helpers import procs_with
 
     return set(procs_with(viewer.rerun_binary()))
 
@@ -244,7 +243,7 @@ def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
     A headless saving server stands in for the viewer (there is no display here);
     what is not tested is the window a spawn opens when nothing listens there.
     """
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     if _port_busy(9876):
         require("port9876", "port 9876 is taken on this machine")

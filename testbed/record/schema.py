@@ -20,7 +20,7 @@ field; the README's recording section points here.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache, lru_cache
 
 from ..protobuf import classes_from
 from ..wire import messages as msg
@@ -176,7 +176,7 @@ def full_name(name: str) -> str:
     return f"{PACKAGE}.{name}"
 
 
-@lru_cache(maxsize=None)
+@cache
 def _layout(name: str):
     fields = SPEC[name]
     plain = tuple(f for f, t, _ in fields if not t.endswith(("?", "*")) and t not in _MESSAGE_TYPES)
@@ -226,7 +226,7 @@ def to_pb(obj, name: str | None = None, extra: dict | None = None):
     return m
 
 
-@lru_cache(maxsize=None)
+@cache
 def _converter(name: str):
     """protobuf message -> dataclass, fields read in the dataclass's order (the hot path of reading)."""
     import dataclasses

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 import struct
-from functools import lru_cache
+from functools import cache
 from importlib import resources
 
 from ..wire import messages as msg
@@ -62,13 +62,13 @@ _LEVEL_OF_KIND = {"saturation": WARNING, "peer_lost": ERROR, "killed": ERROR, "m
                   "crashed": ERROR}
 
 
-@lru_cache(maxsize=None)
+@cache
 def descriptor_set(name: str) -> bytes:
     """The serialized ``FileDescriptorSet`` of a Foxglove schema (``foxglove.Log``, ``foxglove.SceneUpdate``)."""
     return resources.files(__package__).joinpath("foxglove_schemas", f"{name}.fds").read_bytes()
 
 
-@lru_cache(maxsize=None)
+@cache
 def _numbers() -> dict[str, dict[str, int]]:
     """message full name -> field name -> field number, from the shipped descriptor sets."""
     from google.protobuf import descriptor_pb2
@@ -82,7 +82,7 @@ def _numbers() -> dict[str, dict[str, int]]:
     return out
 
 
-@lru_cache(maxsize=None)
+@cache
 def _log_class():
     from ..protobuf import classes_from
 

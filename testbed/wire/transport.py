@@ -342,7 +342,7 @@ class TlsCredentials:
                            "package: pip install 'dos-testbed[tls]' (or run the router topology)") from None
         d = Path(folder)
         d.mkdir(mode=0o700)
-        now = datetime.datetime.now(datetime.timezone.utc)
+        now = datetime.datetime.now(datetime.UTC)
         start, end = now - datetime.timedelta(hours=1), now + datetime.timedelta(days=cls.VALID_DAYS)
         ca_key = ec.generate_private_key(ec.SECP256R1())
         ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"testbed run authority {os.urandom(6).hex()}")])
