@@ -359,7 +359,7 @@ def main() -> int:
             Path(args.json).write_text(json.dumps(out, indent=1))
         if len(variants) > 1:
             def med(name):
-                v = sorted(r["timing"]["sensor_to_actuator_us"]["p50"] for r in rows
+                v = sorted(r["timing"]["sensor_to_actuator_us"]["p50"] for r in rows  # noqa: B023 - called in this iteration
                            if r["variant"] == name and r["timing"]["sensor_to_actuator_us"]["p50"])
                 return v[len(v) // 2] if v else None
 

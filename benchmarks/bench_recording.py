@@ -36,7 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from testbed.record import reader, recording
+from testbed.record import reader, recording  # noqa: E402
 from testbed.wire import messages as msg  # noqa: E402
 from testbed.wire import transport  # noqa: E402
 

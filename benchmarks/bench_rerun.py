@@ -40,7 +40,7 @@ def run_once(scenario: str, T: float, duration: float, rrd: str | None, sink: st
         elif rrd:
             cmd += ["--rerun", "save", rrd]
         t0 = time.monotonic()
-        p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=duration + 180, env=env)
+        p = subprocess.run(cmd, capture_output=True, timeout=duration + 180, env=env)
     wall = time.monotonic() - t0
     if not p.stdout.strip():
         raise SystemExit(f"testbed run failed ({p.returncode}): {p.stderr.decode()[-2000:]}")

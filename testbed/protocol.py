@@ -15,7 +15,8 @@ decides can be reproduced in-process (``testbed resimulate``).
   costs samples, never lockstep.
 * ``ControllerProtocol``: Algorithm 2 and control law (2).  Samples are decided
   strictly in order (with ``defer_update`` the decoder's update (xi), (E) of the last
-  decision waits for ``settle``, so that the shell sends u_k first; nothing else changes): when the symbol arrives (theta_k = 0; an invalid payload
+  decision waits for ``settle``, so that the shell sends u_k first; nothing else changes): when the
+  symbol arrives (theta_k = 0; an invalid payload
   is a loss, theta_k = 1), when the loss deadline passes with nothing (theta_k = 1),
   or when a later sample's symbol arrives first (the earlier ones are lost).  A
   symbol for a sample already decided is late and ignored; a symbol whose header

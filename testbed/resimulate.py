@@ -16,7 +16,8 @@ with the recording.  Ideal timing reproduces a run bit for bit; physical timing
 reproduces it to round-off at most (the plant integrates the same flow map with
 the same delays).
 
-JSON keys: ``samples``, ``checked`` (how many were resimulated: all, here), ``max_state_error`` (max over k of ||x_k(live) - x_k(resimulated)||_inf),
+JSON keys: ``samples``, ``checked`` (how many were resimulated: all, here), ``max_state_error`` (max over k
+of ||x_k(live) - x_k(resimulated)||_inf),
 ``symbols_identical``, ``E_identical``, ``theta_identical``, ``first_divergence`` (k, or null),
 ``verdict`` and ``tolerance``.
 

@@ -551,7 +551,8 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
             continue
         if isinstance(v, np.ndarray):
             v = v.tolist()
-        data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES else v
+        as_float = isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES
+        data.setdefault(table, {})[key] = float(v) if as_float else v
     try:
         sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,

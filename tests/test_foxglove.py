@@ -48,7 +48,7 @@ def _messages(path, topic):
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        for sch, ch, m in make_reader(f).iter_messages(topics=[topic]):
+        for sch, _ch, m in make_reader(f).iter_messages(topics=[topic]):
             yield sch, m
 
 

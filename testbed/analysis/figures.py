@@ -428,7 +428,7 @@ def plot_compare(a_run, b_run, path, *, names=("A", "B"), title: str = "", size:
                 axs[1].text(0.5, 0.5, "$x_A = x_B$ at every sample", transform=axs[1].transAxes, ha="center",
                             va="center")
         axs[1].set_ylabel("$\\|x_A - x_B\\|_\\infty$")
-        for row, (run, t, name) in enumerate(((a_run, ta, names[0]), (b_run, tb, names[1]))):
+        for row, (run, t, _name) in enumerate(((a_run, ta, names[0]), (b_run, tb, names[1]))):
             lost = np.asarray(run.arrays["theta"]).astype(bool)
             axs[2].plot(t[lost], np.full(int(lost.sum()), 1 - row), "|", color=figstyle.VERMILLION, ms=6, mew=1.0)
         axs[2].set_yticks([1, 0], [names[0], names[1]])

@@ -258,7 +258,8 @@ class Recorder:
     # ---- end
     def stats(self) -> dict:
         return {"received": self.received, "written": self.written, "warmup_skipped": self.warmup,
-                "malformed": self.malformed, "rejected_k": self.rejected, "queue_overflow": self.overflow, "max_queue": self.max_queue, "write_errors": self.write_errors,
+                "malformed": self.malformed, "rejected_k": self.rejected, "queue_overflow": self.overflow,
+                "max_queue": self.max_queue, "write_errors": self.write_errors,
                 "loop_recorded": self.loop}
 
     def close(self, timeout: float = 30.0) -> dict:

@@ -108,7 +108,7 @@ def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits):
                 return -1
             if fcount[f] + cnt > w:
                 return -1
-            for i in range(cnt):
+            for _ in range(cnt):
                 fbits[0] = _u64(buf, p)
                 s3[col + fcount[f]] = fbits.view(np.float64)[0]
                 fcount[f] += 1
