@@ -16,8 +16,7 @@ the floor of the sensor-to-actuator latency is taken as 2 x the ping-pong RTT.
 
 With ``--variants`` it runs the live loop once per variant at each period, in
 the same invocation, so that a change is measured as an A/B against ``default``
-(``VARIANTS``: the flags of ``testbed run``, or a change of the loop switched off
-for the benchmark with ``TESTBED_AB_OFF``).  Variants combine with ``+``, e.g.
+(``VARIANTS``: the flags of ``testbed run``).  Variants combine with ``+``, e.g.
 ``colocated+low-latency``.  ``--auth`` is ``--variants default,insecure``: the
 latency cost of authentication.  ``--ab`` runs the A/B of every change of the
 faster loop (``AB_SET``).  ``--table FILE.json`` prints the Markdown table of
@@ -207,7 +206,6 @@ def _p(d: dict | None, key: str) -> str:
 
 
 #: the live loop's variants for A/B runs: name -> (extra flags of testbed run, environment).
-#: ``TESTBED_AB_OFF`` switches a change of the loop off, for these A/B runs only.
 VARIANTS = {
     "default": ([], {}),
     "insecure": (["--insecure"], {}),                                 # no authentication, no access control
@@ -217,15 +215,11 @@ VARIANTS = {
     "rx-direct": (["--rx", "direct"], {}),                            # handlers on Zenoh's receive thread
     "rx-spin": (["--rx", "spin"], {}),                                # ... and a spin before the input is due
     "realtime": (["--realtime"], {}),                                 # SCHED_FIFO (the nodes and the router)
-    "router-other": ([], {"TESTBED_AB_OFF": "router-realtime"}),      # OFF: with realtime, the router not FIFO
     "exec": (["--spawn", "exec"], {}),                                # OFF: nodes forked from the launcher
     "separate-ack": (["--separate-ack"], {}),                         # OFF: the ack on the actuation message
-    "update-first": ([], {"TESTBED_AB_OFF": "deferred-update"}),      # OFF: u_k before the decoder's update
-    "telemetry-inline": ([], {"TESTBED_AB_OFF": "telemetry-thread"}),  # OFF: telemetry off the control thread
 }
 #: ``--ab``: every change of the faster loop against the default, at each period
-AB_SET = ("default", "exec", "separate-ack+update-first+telemetry-inline", "separate-ack", "update-first", "telemetry-inline",
-          "low-latency", "rx-direct", "rx-spin",
+AB_SET = ("default", "exec", "separate-ack", "low-latency", "rx-direct", "rx-spin",
           "colocated", "insecure", "peer", "peer+insecure", "peer+colocated")
 
 

@@ -32,14 +32,6 @@ import numpy as np
 
 from .errors import BadInput
 
-#: per-sample arrays of every run (vectors expand to x1..xn in tables)
-CORE = ("k", "t", "x", "u", "q", "xi", "E", "E_dec", "xi_dec", "q_enc", "theta", "symbols", "saturated",
-        "attack_on", "dropped")
-#: per-sample arrays of live runs only (seconds; NaN where unknown)
-TIMING = ("t_sample", "jitter", "delay", "sensor_to_actuator", "stage_encoder", "stage_proxy", "stage_controller",
-          "stage_plant", "deadline_miss", "u_missing")
-
-
 #: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
 #: docs/api.md explains each)
 SUMMARY_KEYS = ("scenario", "plant", "model", "plant_params", "model_params", "n", "m", "T", "M", "Lambda", "mode",

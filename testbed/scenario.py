@@ -1,7 +1,7 @@
 """Scenario files: one TOML file describes a run; loaded into frozen dataclasses.
 
 Every bad value gets a ``ScenarioError`` naming the file, the key and what is
-wrong.  The full schema is documented in the README ("Scenario files")."""
+wrong.  The full schema is documented in docs/scenarios.md."""
 
 from __future__ import annotations
 

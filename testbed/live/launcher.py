@@ -456,10 +456,9 @@ class Launcher(RunCredentials):
         """With ``--realtime``, the launcher's threads (the run's router) run under SCHED_FIFO during the
         loop as the nodes' do: a router thread at normal priority waits behind every other process for
         each message it forwards."""
-        from ..nodes.inlet import ab_off
         from ..nodes.process import set_realtime
 
-        if not self.args.realtime or ab_off("router-realtime") or on == self._router_rt:
+        if not self.args.realtime or on == self._router_rt:
             return
         if on:
             self._router_rt = set_realtime(True)

@@ -79,7 +79,7 @@ class Node:
         waits for another message there would wait for ever.  ``spin``: as ``direct``, and the
         node's primary input (``primary``, the one on the loop's path) is an ``Inlet``: its
         own thread handles it and spins just before it is due (``thread=False``: the node's
-        loop calls ``Inlet.step`` itself).  ``fn`` returns the sample index of a control
+        loop calls ``Inlet.spin`` itself).  ``fn`` returns the sample index of a control
         message (the inlet learns when it is due) or None.
         """
         import zenoh

@@ -10,7 +10,6 @@ import time
 from ..wire import messages as msg
 from ..wire import transport
 from .clock import CLOCK_TOLERANCE_NS, RunClock
-from .inlet import ab_off
 from .options import RunOptions, T_ns, run_digest
 
 log = logging.getLogger("testbed.nodes")
@@ -49,7 +48,7 @@ class NodeContext:
         self._ev_lock = threading.Lock()
         self._ev_pub = session.declare_publisher(keys.events(role), **transport.telemetry_qos())
         self.telemetry = TelemetryOut(session.declare_publisher(keys.telemetry(role), **transport.telemetry_qos()),
-                                      self.T_ns, background=not ab_off("telemetry-thread"))
+                                      self.T_ns, background=True)
         self._subs = [
             session.declare_subscriber(keys.start, self._on_start),
             session.declare_subscriber(keys.stop, self._on_stop),
@@ -345,7 +344,7 @@ class RoleView:
         self._ev_pub = ctx.session.declare_publisher(ctx.keys.events(role), **transport.telemetry_qos())
         self.telemetry = TelemetryOut(ctx.session.declare_publisher(ctx.keys.telemetry(role),
                                                                     **transport.telemetry_qos()), ctx.T_ns,
-                                      background=not ab_off("telemetry-thread"))
+                                      background=True)
         self._tokens: list = []
 
     def __getattr__(self, name):

@@ -22,7 +22,6 @@ from ..stats import percentiles
 from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher
-from .inlet import ab_off
 
 CT = msg.ControllerTelemetry
 
@@ -43,7 +42,7 @@ class ControllerNode(Node):
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
         self.dec = Decoder(self.model, sc.K, sc.quantizer, sc.flow)
         # u_k goes out before the decoder's prediction for k+1 is computed (the same numbers)
-        self.proto = ControllerProtocol(self.dec, ctx.n_steps, defer_update=not ab_off("deferred-update"))
+        self.proto = ControllerProtocol(self.dec, ctx.n_steps, defer_update=True)
         self.codebook = self.dec.codebook
         self.pub_act = self.publisher(keys.actuation)
         # the ideal ack rides on the actuation message; a message of its own only on request or via the attacker

@@ -167,6 +167,3 @@ class Inlet:
         return {"spun": self.spun, "woken": self.woken, "spin_ms": round(self.spin_ns / 1e6, 3)}
 
 
-def ab_off(change: str) -> bool:
-    """Whether the benchmark switched a change of the loop off (``TESTBED_AB_OFF=name,...``, for A/B runs only)."""
-    return change in {c.strip() for c in os.environ.get("TESTBED_AB_OFF", "").split(",")}

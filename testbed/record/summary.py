@@ -26,10 +26,6 @@ PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
 
 
-def _nan(n: int) -> np.ndarray:
-    return np.full(n, np.nan)
-
-
 def _agree_where_known(xi_e, E_e, xi_d, E_d) -> bool:
     """xi_k, E_k identical at both ends on every sample where both were recorded."""
     known = np.isfinite(E_e) & np.isfinite(E_d)

@@ -27,7 +27,6 @@ Every ``decode`` raises ``MessageError`` (a ``ValueError``) on a malformed input
 from __future__ import annotations
 
 import json
-import math
 import struct
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
@@ -475,6 +474,3 @@ class NodeSummary(_Json):
     node: str
     data: dict[str, Any] = field(default_factory=dict)
 
-
-def finite_or_none(v: float) -> float | None:
-    return v if math.isfinite(v) else None

@@ -151,7 +151,7 @@ class Keys:
         return f"{self.prefix}/**"
 
     def table(self) -> list[tuple[str, str]]:
-        """(name, key expression) for the README and ``testbed run --keys``."""
+        """(name, key expression) of every key of a run."""
         rows = [("sensor", self.sensor), ("symbol_tx", self.symbol_tx), ("symbol_rx", self.symbol_rx),
                 ("actuation", self.actuation), ("ack_tx", self.ack_tx), ("ack_rx", self.ack_rx)]
         rows += [(f"telemetry_{r}", self.telemetry(r)) for r in ROLES]
