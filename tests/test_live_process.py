@@ -218,6 +218,24 @@ def test_exec_spawn_equals_simulator(run_id):
     assert len({s["node_summaries"][r]["pid"] for r in ("plant", "encoder", "attacker", "controller")}) == 4
 
 
+@pytest.mark.parametrize("rx", ["direct", "spin"])
+def test_receive_modes_equal_simulator(run_id, rx):
+    """``--rx direct`` (handlers on Zenoh's receive thread) and ``--rx spin`` (the primary input through an
+    ``Inlet``, its own thread spinning before the input is due): the same run, bit for bit."""
+    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--rx", rx, "--no-record")
+    assert rc == 0, (s["faults"], err[-2000:])
+    sim = simulate("paper", 3)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], mismatch(s, sim, key)
+    for role in ("plant", "encoder", "attacker", "controller"):
+        assert s["node_summaries"][role]["rx"] == rx, (role, s["node_summaries"][role])
+    inlets = {r: v["rx_inlet"] for r, v in s["node_summaries"].items() if "rx_inlet" in v}
+    if rx == "spin":  # every node's primary input went through its Inlet, which saw the messages
+        assert inlets and all(v["spun"] + v["woken"] > 0 for v in inlets.values()), inlets
+    else:
+        assert not inlets, inlets
+
+
 def test_colocated_encoder_killed_just_before_the_end_is_reported(run_id):
     """Its host closes a colocated encoder at the end too: the launcher tells that apart from a
     death near the end (no summary from the encoder, though the plant's came), and a clean run's
