@@ -20,7 +20,8 @@ import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
 from failclosed import require
 from rerun.chunk import RrdReader
 
-from testbed.view import rerun as viewer  # noqa: E402
+from testbed.view import phase
+from testbed.view import rerun as viewer
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 PY = sys.executable
@@ -70,10 +71,10 @@ def test_attack_intervals_to_samples():
 def test_roa_outline_paper_and_none_for_cartpole(paper):
     from testbed import scenario
 
-    out = viewer.roa_outline(paper, grid=31)
+    out = phase.roa_outline(paper, grid=31)
     assert out is not None and out.lines and 0.0 < out.fraction < 1.0
     assert all(ln.shape[1] == 2 for ln in out.lines)
-    assert viewer.roa_outline(scenario.load("cartpole")) is None
+    assert phase.roa_outline(scenario.load("cartpole")) is None
 
 
 # ---------------------------------------------------------------- simulate --rrd

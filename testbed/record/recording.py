@@ -139,7 +139,7 @@ class RecordingWriter:
               name: str | None = None, extra: dict | None = None) -> None:
         """``obj``: a ``testbed.wire.messages`` dataclass, a dict with the schema's fields, or a protobuf message.
 
-        ``extra``: fields beside the dataclass's (``foxglove_topics.telemetry_extra``).
+        ``extra``: fields beside the dataclass's (``view.foxglove.telemetry_extra``).
         """
         if name is None:
             name = schema_for_topic(topic)
@@ -215,7 +215,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
 
     Times are nominal and latencies zero (t_k = k T, every message at its sample
     instant); t0 is the wall-clock time of the call.  The Foxglove topics
-    (``foxglove_topics``) come from the same tap as a live recorder's; ``roa``:
+    (``view.foxglove``) come from the same tap as a live recorder's; ``roa``:
     draw the nominal region of attraction there.  Returns the writer's counts.
     """
     import numpy as np

@@ -253,7 +253,7 @@ class PhaseScene:
 
 
 def roa_update(outline, t_ns: int) -> bytes | None:
-    """The SceneUpdate of the nominal region of attraction's outline (``viewer.roa_outline``), or None."""
+    """The SceneUpdate of the nominal region of attraction's outline (``view.phase.roa_outline``), or None."""
     if outline is None or not outline.lines:
         return None
     enc = _Enc()
@@ -263,7 +263,7 @@ def roa_update(outline, t_ns: int) -> bytes | None:
 
 
 def window_of(sc, roa=None) -> float:
-    """The phase plane's width (``viewer.phase_bounds`` of the live view)."""
+    """The phase plane's width (``view.phase.phase_bounds`` of the live view)."""
     (x0, x1), _ = phase_bounds(sc, None, roa)
     return x1 - x0
 
