@@ -326,7 +326,7 @@ def print_text(s: dict) -> None:
 
 def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
-    p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
+    cliargs.add_json(p, "the report (the keys of testbed simulate --json and more)")
     cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
     p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "

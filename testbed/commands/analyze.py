@@ -115,7 +115,7 @@ def _fmt(v, spec=".4g"):
 # ============================================================================ analyze
 def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     _add_scenario(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    cliargs.add_json(p, "the analysis (Theorems 1 and 2)")
     p.add_argument("--plot", metavar="PATH.png",
                    help="draw the allowable DoS region (Theorem 1, with the empirical map under --full) into PATH.png "
                         "and the other figures beside it as PATH-time-series.png, PATH-phase-portrait.png, "
@@ -459,7 +459,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
                    help="half-widths of the window (default per plant)")
     p.add_argument("--dims", nargs=2, type=int, metavar=("I", "J"), help="gridded coordinates (default 0 1)")
     cliargs.add_plot(p, "write the phase portrait with the scenario's trajectory")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    cliargs.add_json(p, "the region of attraction")
     p.add_argument("--vulnerable", action="store_true",
                    help="also map the states of the region from which the attacker defeats the loop")
     _add_budget(p, "budget of --vulnerable (default: the scenario's explicit budget, else "

@@ -34,7 +34,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
     p.add_argument("--state-radius", type=float, default=None,
                    help="radius of the extra initial states (default 3 ||x0||_inf)")
     cliargs.add_plot(p, "write the allowable-region figure over the empirical map")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    cliargs.add_json(p, "the sweep")
     cliargs.add_no_progress(p)
     cliargs.add_workers(p)
     cliargs.add_scheduler(p)
