@@ -10,7 +10,6 @@ forwarded (``theta_k = 0``).  It is driven either by an offline
 from __future__ import annotations
 
 import math
-
 from typing import TYPE_CHECKING
 
 from .schedule import Schedule, sample_eps

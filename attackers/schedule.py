@@ -16,9 +16,9 @@ With periodic sampling ``t_k = k T`` the packet sent at ``t_k`` is lost iff
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Iterable, Sequence
 
 import numpy as np
 

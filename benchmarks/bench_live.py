@@ -16,8 +16,7 @@ the floor of the sensor-to-actuator latency is taken as 2 x the ping-pong RTT.
 
 With ``--variants`` it runs the live loop once per variant at each period, in
 the same invocation, so that a change is measured as an A/B against ``default``
-(``VARIANTS``: the flags of ``testbed run``, or a change of the loop switched off
-for the benchmark with ``TESTBED_AB_OFF``).  Variants combine with ``+``, e.g.
+(``VARIANTS``: the flags of ``testbed run``).  Variants combine with ``+``, e.g.
 ``colocated+low-latency``.  ``--auth`` is ``--variants default,insecure``: the
 latency cost of authentication.  ``--ab`` runs the A/B of every change of the
 faster loop (``AB_SET``).  ``--table FILE.json`` prints the Markdown table of
@@ -71,7 +70,7 @@ deadline = {deadline!r}
 
 # ------------------------------------------------------------------ ping-pong floor
 def _config(listen=(), connect=()):
-    from testbed.io import transport
+    from testbed.wire import transport
 
     return transport.make_config(listen=list(listen), connect=list(connect))
 
@@ -79,8 +78,8 @@ def _config(listen=(), connect=()):
 def echo_main(port: int, seconds: float, realtime: bool) -> None:
     import zenoh
 
-    from testbed.io import transport
-    from testbed.nodes.common import set_realtime, tune_process
+    from testbed.nodes.process import set_realtime, tune_process
+    from testbed.wire import transport
 
     tune_process()
     with zenoh.open(_config(listen=[f"tcp/127.0.0.1:{port}"])) as s:
@@ -121,9 +120,10 @@ def ping_pong(T: float, seconds: float, realtime: bool, budget: float | None = N
 def _ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
     import zenoh
 
-    from testbed.io import messages as msg
-    from testbed.io import transport
-    from testbed.nodes.common import RunClock, set_realtime, tune_process
+    from testbed.nodes.clock import RunClock
+    from testbed.nodes.process import set_realtime, tune_process
+    from testbed.wire import messages as msg
+    from testbed.wire import transport
 
     port = transport.free_port()
     n = int(max(50, min(seconds / T, 20000)))
@@ -206,7 +206,6 @@ def _p(d: dict | None, key: str) -> str:
 
 
 #: the live loop's variants for A/B runs: name -> (extra flags of testbed run, environment).
-#: ``TESTBED_AB_OFF`` switches a change of the loop off, for these A/B runs only.
 VARIANTS = {
     "default": ([], {}),
     "insecure": (["--insecure"], {}),                                 # no authentication, no access control
@@ -216,15 +215,11 @@ VARIANTS = {
     "rx-direct": (["--rx", "direct"], {}),                            # handlers on Zenoh's receive thread
     "rx-spin": (["--rx", "spin"], {}),                                # ... and a spin before the input is due
     "realtime": (["--realtime"], {}),                                 # SCHED_FIFO (the nodes and the router)
-    "router-other": ([], {"TESTBED_AB_OFF": "router-realtime"}),      # OFF: with realtime, the router not FIFO
     "exec": (["--spawn", "exec"], {}),                                # OFF: nodes forked from the launcher
     "separate-ack": (["--separate-ack"], {}),                         # OFF: the ack on the actuation message
-    "update-first": ([], {"TESTBED_AB_OFF": "deferred-update"}),      # OFF: u_k before the decoder's update
-    "telemetry-inline": ([], {"TESTBED_AB_OFF": "telemetry-thread"}),  # OFF: telemetry off the control thread
 }
 #: ``--ab``: every change of the faster loop against the default, at each period
-AB_SET = ("default", "exec", "separate-ack+update-first+telemetry-inline", "separate-ack", "update-first", "telemetry-inline",
-          "low-latency", "rx-direct", "rx-spin",
+AB_SET = ("default", "exec", "separate-ack", "low-latency", "rx-direct", "rx-spin",
           "colocated", "insecure", "peer", "peer+insecure", "peer+colocated")
 
 
@@ -358,7 +353,7 @@ def main() -> int:
             Path(args.json).write_text(json.dumps(out, indent=1))
         if len(variants) > 1:
             def med(name):
-                v = sorted(r["timing"]["sensor_to_actuator_us"]["p50"] for r in rows
+                v = sorted(r["timing"]["sensor_to_actuator_us"]["p50"] for r in rows  # noqa: B023 - called in this iteration
                            if r["variant"] == name and r["timing"]["sensor_to_actuator_us"]["p50"])
                 return v[len(v) // 2] if v else None
 

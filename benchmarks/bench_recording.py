@@ -14,7 +14,7 @@
 3. Report: runs of 10 and 60 minutes at T = 1 ms (600,000 and 3.6 M samples) recorded by
    ``testbed simulate --out`` (the same topics and schemas as a live recording), then
    ``testbed report RUN.mcap --json``: its wall time and peak RSS, and beside it the
-   reference reader (``testbed.io.recording.read``, protobuf classes and one dataclass a
+   reference reader (``testbed.record.reader.read``, protobuf classes and one dataclass a
    message: the reader ``testbed report`` was built on before) on the same file.  Making the
    hour's recording takes about half an hour (``--recording`` reuses one).
 
@@ -36,8 +36,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from testbed.io import messages as msg  # noqa: E402
-from testbed.io import recording, transport  # noqa: E402
+from testbed.record import reader, recording  # noqa: E402
+from testbed.wire import messages as msg  # noqa: E402
+from testbed.wire import transport  # noqa: E402
 
 
 def _record(k: int) -> msg.AttackerTelemetry:
@@ -129,7 +130,7 @@ def recorder_phase(tmp: Path, rate: float, seconds: float, batch: int) -> dict:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
-    rec = recording.read(out)
+    rec = reader.read(out)
     topic = "/telemetry/attacker" if batch > 1 else "/loop/symbol/tx"
     got = rec.counts.get(topic, 0)
     stats = rec.metadata.get("testbed.recorder", {})
@@ -155,7 +156,7 @@ def _measure(cmd: list[str]) -> tuple[float, float, str]:
 
 def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, reference: bool = True) -> dict:
     """``testbed report --json`` on a 1 kHz recording of ``minutes`` (made by ``testbed simulate --out`` unless
-    ``path`` is given), and the reference reader (``recording.read``, the reader ``report`` used before) on it."""
+    ``path`` is given), and the reference reader (``reader.read``, the reader ``report`` used before) on it."""
     out: dict = {"minutes": minutes}
     if path is None:
         path = tmp / f"run-{minutes:g}min.mcap"
@@ -173,7 +174,7 @@ def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, refere
                report_json_mb=len(text) / 1e6)
     del s, text
     if reference:
-        code = f"from testbed.io import recording; recording.read({str(path)!r})"
+        code = f"from testbed.record import reader; reader.read({str(path)!r})"
         wall, rss, _ = _measure([sys.executable, "-P", "-c", code])
         out.update(reference_read_s=wall, reference_read_peak_rss_mb=rss)
     return out
@@ -185,7 +186,7 @@ def _print_report(rr: dict) -> None:
             + f"\n    testbed report --json: {rr['report_cli_s']:.1f} s, peak RSS {rr['report_peak_rss_mb']:,.0f} MB "
             f"({rr['report_json_mb']:.0f} MB of JSON)")
     if "reference_read_s" in rr:
-        line += (f"\n    reference reader (recording.read, today's report reads with it): "
+        line += (f"\n    reference reader (reader.read, today's report reads with it): "
                  f"{rr['reference_read_s']:.1f} s, peak RSS {rr['reference_read_peak_rss_mb']:,.0f} MB "
                  f"-> report is {rr['reference_read_s'] / rr['report_cli_s']:.1f}x faster, "
                  f"{rr['reference_read_peak_rss_mb'] / rr['report_peak_rss_mb']:.1f}x less memory")

@@ -34,13 +34,13 @@ def run_once(scenario: str, T: float, duration: float, rrd: str | None, sink: st
     env = dict(os.environ, RERUN_ANALYTICS="0")
     with contextlib.ExitStack() as stack:
         if rrd and sink == "connect":
-            from testbed.io.viewer import saving_server
+            from testbed.view.rerun import saving_server
 
             cmd += ["--rerun", "connect", stack.enter_context(saving_server(rrd))]
         elif rrd:
             cmd += ["--rerun", "save", rrd]
         t0 = time.monotonic()
-        p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=duration + 180, env=env)
+        p = subprocess.run(cmd, capture_output=True, timeout=duration + 180, env=env)
     wall = time.monotonic() - t0
     if not p.stdout.strip():
         raise SystemExit(f"testbed run failed ({p.returncode}): {p.stderr.decode()[-2000:]}")

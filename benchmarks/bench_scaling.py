@@ -26,7 +26,8 @@ from testbed import scenario
 from testbed.analysis import parallel
 from testbed.analysis.roa import nominal_roa
 from testbed.analysis.sweep import sweep
-from testbed.analysis.worst import Loop, vulnerability_map
+from testbed.analysis.vulnerability import vulnerability_map
+from testbed.analysis.worst import Loop
 
 
 def jobs(sc, quick: bool):

@@ -136,7 +136,7 @@ def main(argv=None):
     Y, _ = phi_T(plant, Xf, U, sc.T)
     err = 0.0
     for i in range(len(Xf)):
-        ref = solve_ivp(lambda t, y: plant.f(y, U[i]), (0, sc.T), Xf[i], method="DOP853",
+        ref = solve_ivp(lambda t, y, i=i: plant.f(y, U[i]), (0, sc.T), Xf[i], method="DOP853",
                         rtol=1e-14, atol=1e-16).y[:, -1]
         err = max(err, float(np.max(np.abs(ref - Y[i]))))
 

@@ -1,6 +1,6 @@
 """The deterministic numbers of the docs, produced in one place.
 
-    python docs/make_numbers.py            # compute them, write docs/numbers.md, fill every marker, 
+    python docs/make_numbers.py            # compute them, write docs/numbers.md, fill every marker,
     python docs/make_numbers.py --check    # compute them and compare: exit 1 and a diff when a page is stale
 
 Every number on these pages that does not depend on the machine (the analysis of the paper's
@@ -308,13 +308,13 @@ def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
             continue
         text = page.read_text()
 
-        def inline(m):
+        def inline(m, page=page):
             if m.group(1) not in n:
                 raise SystemExit(f"{page.name}: unknown number {m.group(1)!r}")
             used_n.add(m.group(1))
             return f"<!--n:{m.group(1)}-->{n[m.group(1)]}<!--/n-->"
 
-        def block(m):
+        def block(m, page=page):
             if m.group(2) not in b:
                 raise SystemExit(f"{page.name}: unknown table {m.group(2)!r}")
             used_b.add(m.group(2))

@@ -19,27 +19,13 @@ from .cartpole import CartPole
 from .lienard import Lienard
 from .linear import Linear
 from .pendulum import Pendulum
-from .refs import ENTRY_POINT_GROUP, PlantRefError, entry_points, resolve
+from .refs import _REGISTRY, ENTRY_POINT_GROUP, PlantRefError, entry_points, names, register, resolve
 
-_REGISTRY: dict[str, type[Plant]] = {}
 BUILT_IN: tuple[type[Plant], ...] = (Lienard, Pendulum, CartPole, Linear)
-
-
-def register(cls: type[Plant]) -> type[Plant]:
-    """Add a plant class to the registry under ``cls.name`` (this process only: see ``plants.refs``)."""
-    if not cls.name:
-        raise ValueError(f"{cls.__name__} has no name")
-    _REGISTRY[cls.name] = cls
-    return cls
 
 
 for _c in BUILT_IN:
     register(_c)
-
-
-def names() -> list[str]:
-    """The registered names (built-in and registered in this process; not the entry points)."""
-    return sorted(_REGISTRY)
 
 
 def get(name: str, base_dir=None) -> type[Plant]:

@@ -281,7 +281,7 @@ class FMUPlant:
             else:
                 f.reset()
             f.setupExperiment(startTime=0.0)
-            for name, vr, typ, value in self.info.params:
+            for _name, vr, typ, value in self.info.params:
                 {"Real": f.setReal, "Integer": f.setInteger, "Boolean": f.setBoolean,
                  "String": f.setString}[typ]([vr], [value])
             approx = [(vr, v) for (_, vr, init), v in zip(self.info.states, x0) if init == "approx"]

@@ -150,14 +150,29 @@ def load_entry_point(ep) -> type[Plant]:
     return check_plant_class(obj, ep.name)
 
 
+# ----------------------------------------------------------------------------- the registry
+_REGISTRY: dict[str, type[Plant]] = {}
+
+
+def register(cls: type[Plant]) -> type[Plant]:
+    """Add a plant class to the registry under ``cls.name`` (this process only)."""
+    if not cls.name:
+        raise ValueError(f"{cls.__name__} has no name")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def names() -> list[str]:
+    """The registered names (built-in and registered in this process; not the entry points)."""
+    return sorted(_REGISTRY)
+
+
 # ----------------------------------------------------------------------------- resolving
 def resolve(ref: str, base_dir: str | os.PathLike | None = None, *, registry: dict | None = None) -> type[Plant]:
     """The ``Plant`` subclass a reference names (see the module docstring for the order).
 
     Raises ``PlantRefError`` (a ``ValueError``) with one line when it cannot.
     """
-    from . import _REGISTRY, names
-
     reg = _REGISTRY if registry is None else registry
     if not isinstance(ref, str) or not ref:
         raise PlantRefError(f"plant name must be a non-empty string, got {ref!r}")

@@ -20,6 +20,7 @@ import types
 from .errors import BadInput
 
 __version__ = "0.1.0"
+__all__ = ["BadInput", "__version__"]  # and, on first use: open, simulate, compare, Run
 
 
 class _Entry:

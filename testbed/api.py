@@ -30,15 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
+from . import traces
 from .errors import BadInput
 
-#: per-sample arrays of every run (vectors expand to x1..xn in tables)
-CORE = ("k", "t", "x", "u", "q", "xi", "E", "E_dec", "xi_dec", "q_enc", "theta", "symbols", "saturated",
-        "attack_on", "dropped")
-#: per-sample arrays of live runs only (seconds; NaN where unknown)
-TIMING = ("t_sample", "jitter", "delay", "sensor_to_actuator", "stage_encoder", "stage_proxy", "stage_controller",
-          "stage_plant", "deadline_miss", "u_missing")
 
+def recording_trace(path) -> dict:
+    """A recording read as an attack trace (``testbed.traces``); the readers load on first use."""
+    from .record.trace import read_recording_trace
+
+    return read_recording_trace(path)
+
+
+traces.recording_trace_reader = recording_trace
 
 #: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
 #: docs/api.md explains each)
@@ -95,7 +98,7 @@ class Run:
         if path.exists() and not overwrite:
             raise BadInput(f"{path} exists: pass overwrite=True to replace it")
         if self._result is not None:
-            from .io.recording import record_simulation
+            from .record.recording import record_simulation
 
             path.parent.mkdir(parents=True, exist_ok=True)
             record_simulation(path, self.scenario, self._result, overrides=dict(self.overrides),
@@ -160,7 +163,7 @@ def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 # ============================================================================ from a recording
 def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    from .io import messages as msg
+    from .wire import messages as msg
 
     ok = ok & (a != msg.NO_TIME)
     out = np.full(a.shape, np.nan)
@@ -169,7 +172,7 @@ def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
-    from .io import messages as msg
+    from .wire import messages as msg
 
     g = cols.get
     P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
@@ -204,7 +207,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
     """
     from . import compilenotice
-    from .io.columns import read_columns, scenario_of
+    from .record.columns import read_columns, scenario_of
     from .report import report
 
     compilenotice.install()
@@ -226,7 +229,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     if live:
         arrays.update(_timing_arrays(cols, N, sc.T))
     t0 = cols.start.t0_ns if cols.start else None
-    from .io import messages as msg
+    from .wire import messages as msg
 
     events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
                "detail": e.detail} for e in cols.events]
@@ -238,19 +241,9 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
 
 # ============================================================================ from the simulator
-def attack_on_samples(sc, res) -> np.ndarray:
-    """Per sample: the DoS schedule is active at t_k (an online attacker: when it dropped)."""
-    theta = np.asarray(res.theta, dtype=bool)
-    N = len(theta)
-    sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
-    if sched is None or not N:
-        return theta.copy()
-    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
-
-
 def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
     """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result."""
-    from .simulate import summarize
+    from .simulate import attack_on_samples, summarize
 
     N = len(res.t)
     arrays = {"k": np.arange(N), "t": np.asarray(res.t), "x": res.x, "u": res.u, "q": res.q, "xi": res.xi_enc,
@@ -292,5 +285,5 @@ def simulate(scenario, **overrides) -> Run:
     return run_of_simulation(sc, simulate_scenario(sc), {k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "attack_on_samples", "MissingExtra",
+__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "MissingExtra",
            "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]

@@ -42,7 +42,8 @@ def _is_recording(ref: str) -> bool:
 
 def load_side(ref, other_overrides: dict | None = None):
     """A ``testbed.api.Run`` from a recording path, a scenario, or a ``Run`` as it is."""
-    from .api import Run, open as open_run, resolve_scenario, run_of_simulation
+    from .api import Run, resolve_scenario, run_of_simulation
+    from .api import open as open_run
     from .simulate import simulate_scenario
 
     if isinstance(ref, Run):

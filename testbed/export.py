@@ -38,7 +38,7 @@ def table(run):
 
 def _scalars(d: dict) -> dict:
     """The JSON-able, non-per-sample part of a summary."""
-    from .runsummary import to_lists
+    from .record.summary import to_lists
 
     return {k: v for k, v in to_lists(d).items() if not (isinstance(v, list) and len(v) > 64)}
 

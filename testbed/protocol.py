@@ -2,7 +2,7 @@
 
 Pure: no clock, no network, no threads, no locks.  The live nodes
 (``testbed.nodes``) call them from thin shells that own the clock, the waits and
-the publishing; the per-sample simulator (``testbed.simulate.simulate_loop``)
+the publishing; the per-sample simulator (``testbed.simloop.simulate_loop``)
 calls the very same objects with a simulated network, so whatever a live node
 decides can be reproduced in-process (``testbed resimulate``).
 
@@ -15,7 +15,8 @@ decides can be reproduced in-process (``testbed resimulate``).
   costs samples, never lockstep.
 * ``ControllerProtocol``: Algorithm 2 and control law (2).  Samples are decided
   strictly in order (with ``defer_update`` the decoder's update (xi), (E) of the last
-  decision waits for ``settle``, so that the shell sends u_k first; nothing else changes): when the symbol arrives (theta_k = 0; an invalid payload
+  decision waits for ``settle``, so that the shell sends u_k first; nothing else changes): when the
+  symbol arrives (theta_k = 0; an invalid payload
   is a loss, theta_k = 1), when the loss deadline passes with nothing (theta_k = 1),
   or when a later sample's symbol arrives first (the earlier ones are lost).  A
   symbol for a sample already decided is late and ignored; a symbol whose header
@@ -39,6 +40,7 @@ from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
 from .loopspec import corrupt_payload
 from .methods.base import symbol_code
 from .quantizer import Codebook, Decoder, Encoder, InvalidSymbol
+
 
 def _state(end):
     """A method end's shared state (``methods.EncoderEnd.state``), or None (the paper's ends: xi, E)."""

@@ -39,14 +39,24 @@ Unpacking rejects a wrong length or a code outside the codebook.
 from __future__ import annotations
 
 import math
+
 import numba as nb
 import numpy as np
 
 from .flow import DEFAULT_FLOW, FlowOptions, compiled_for, flow_into
-
 from .loopspec import (  # noqa: F401 - the quantizer's public names
-    MAX_CODES, MODE_IDEAL, MODE_NONE, MODE_RESILIENT, MODES, ROUNDOFF, RULES, Codebook, CodebookTooLarge,
-    InvalidSymbol, QuantizerParams, delay_margin_gain,
+    MAX_CODES,
+    MODE_IDEAL,
+    MODE_NONE,
+    MODE_RESILIENT,
+    MODES,
+    ROUNDOFF,
+    RULES,
+    Codebook,
+    CodebookTooLarge,
+    InvalidSymbol,
+    QuantizerParams,
+    delay_margin_gain,
 )
 
 

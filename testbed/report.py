@@ -3,7 +3,7 @@
 Everything comes from the recording alone: the scenario is rebuilt from the
 TOML stored in its metadata (with the run's overrides), the per-sample arrays
 from the telemetry topics.  They go through the same
-``testbed.runsummary.build_summary`` as ``testbed run`` (and, inside it,
+``testbed.record.summary.build_summary`` as ``testbed run`` (and, inside it,
 ``testbed.simulate.summarize``), so every key of ``testbed simulate --json`` means
 the same thing here.  Added beside them:
 
@@ -39,8 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from . import cliargs
-from .io import messages as msg
-from .runsummary import SUMMARY_FIELDS, build_summary, to_lists, write_json
+from .record.summary import build_summary, load, to_lists, write_json
+from .stats import fmt_percentiles
+from .wire import messages as msg
+from .wire import transport
 
 
 def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
@@ -78,7 +80,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
-    from .runsummary import late_for_schedule, percentiles
+    from .record.summary import late_for_schedule, percentiles
 
     have = cols.has("plant")[:N]
     theta = cols.get("plant", "theta")[:N]
@@ -108,7 +110,7 @@ def telemetry_check(cols, N: int) -> list[dict]:
     records the recording holds: a difference means records were lost, forged or altered on the way
     (the launcher compares digests too; a recording keeps the decoded fields, not the bytes)."""
     out = []
-    for role in ("plant", "encoder", "attacker", "controller"):
+    for role in transport.ROLES:
         s = cols.summaries.get(role) or {}
         if "telemetry_records" not in s:
             continue
@@ -144,34 +146,6 @@ def _agreement(cols, N: int) -> dict:
             "all_agree": not differ.size and not missing.size}
 
 
-#: the per-stage times, read only for the timing section of live runs
-TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker.tx_ns"}
-
-
-#: what the resimulation and the actuation section read beyond the summary's fields
-REPLAY_FIELDS = {"plant.delay_ns"}
-
-
-def _fields(meta: dict) -> set[str]:
-    live = meta.get("testbed.run", {}).get("source") == "live"
-    return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
-
-
-def load(path: str | Path):
-    """The columns of a recording and its scenario (``BadInput`` for anything unusable).
-
-    The columns carry ``plant_source`` and ``model_source`` (``recording.recorded_scenario``).
-    """
-    from .io.columns import read_columns, read_metadata
-    from .io.recording import recorded_scenario
-
-    meta, _ = read_metadata(path)
-    sc, ps, ms = recorded_scenario(meta, str(path))
-    cols = read_columns(path, fields=_fields, sc=sc)
-    cols.plant_source, cols.model_source = ps, ms
-    return cols, sc
-
-
 #: how many samples ``testbed report`` resimulates by default (about 1.3 s; every sample of a
 #: run up to 1,000 s at T = 0.1 s or 10 s at 1 kHz): ``--resimulate all`` or ``testbed resimulate`` for more
 RESIMULATE_SAMPLES = 10_000
@@ -180,7 +154,7 @@ RESIMULATE_SAMPLES = 10_000
 def report(path, *, arrays: bool = False, resimulate: int | None | str = "default") -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
-    ``arrays``: the per-sample values stay numpy arrays (``runsummary.write_json`` streams them).
+    ``arrays``: the per-sample values stay numpy arrays (``record.summary.write_json`` streams them).
     ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none;
     "default": ``RESIMULATE_SAMPLES``, read when the report is made).
     """
@@ -326,14 +300,12 @@ def print_text(s: dict) -> None:
     print(f"  saturations: {s.get('saturations', 0)}" + (f" at {[int(k) for k in sat_at]}" if sat_at else ""))
     act = s.get("actuation")
     if act:
-        from .launcher import _fmt
-
         print(f"  physical timing, {act['actuation']} actuation"
               + (f" at t_k + {act['scheduled_delay_s'] * 1e3:g} ms" if act["actuation"] == "scheduled" else "")
               + f", {act['rule']} rule (nominal delay {act['delay_hat'] * 1e3:g} ms, margin "
                 f"{act['margin_gain']:.3g} ||u_k - u_k-1||; lost samples {act['delay_hat_lost'] * 1e3:g} ms, "
                 f"margin {act['margin_gain_lost']:.3g})")
-        print(f"  u_k of a received sample arrived after t_k: {_fmt(act['arrival_us'])}"
+        print(f"  u_k of a received sample arrived after t_k: {fmt_percentiles(act['arrival_us'])}"
               + (f"; {act['late_for_schedule']} later than scheduled" if act["actuation"] == "scheduled" else ""))
     rs = s.get("resimulation")
     if rs:
@@ -341,10 +313,8 @@ def print_text(s: dict) -> None:
               + (f" (max state error {rs['max_state_error']:.3g})" if rs.get("max_state_error") else ""))
     tm = s.get("timing")
     if tm:
-        from .launcher import _fmt
-
-        print(f"  sampling jitter      {_fmt(tm['sampling_jitter_us'])}")
-        print(f"  sensor-to-actuator   {_fmt(tm['sensor_to_actuator_us'])}")
+        print(f"  sampling jitter      {fmt_percentiles(tm['sampling_jitter_us'])}")
+        print(f"  sensor-to-actuator   {fmt_percentiles(tm['sensor_to_actuator_us'])}")
         print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
     for f in s.get("faults") or []:
         print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
@@ -354,7 +324,7 @@ def print_text(s: dict) -> None:
 
 def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
-    p.add_argument("--json", action="store_true", help="print one JSON object (keys as testbed simulate --json)")
+    cliargs.add_json(p, "the report (the keys of testbed simulate --json and more)")
     cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
     p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "

@@ -1,6 +1,6 @@
 """``testbed resimulate RUN.mcap [--json]``: re-run a recorded run in the simulator and compare.
 
-The simulator (``testbed.simulate.simulate_loop``) runs the very protocol objects
+The simulator (``testbed.simloop.simulate_loop``) runs the very protocol objects
 the live nodes ran, fed with what the recording says happened and nothing else:
 
 * theta_k as the controller decided it (received, lost at the deadline, an invalid
@@ -16,7 +16,8 @@ with the recording.  Ideal timing reproduces a run bit for bit; physical timing
 reproduces it to round-off at most (the plant integrates the same flow map with
 the same delays).
 
-JSON keys: ``samples``, ``checked`` (how many were resimulated: all, here), ``max_state_error`` (max over k of ||x_k(live) - x_k(resimulated)||_inf),
+JSON keys: ``samples``, ``checked`` (how many were resimulated: all, here), ``max_state_error`` (max over k
+of ||x_k(live) - x_k(resimulated)||_inf),
 ``symbols_identical``, ``E_identical``, ``theta_identical``, ``first_divergence`` (k, or null),
 ``verdict`` and ``tolerance``.
 
@@ -38,9 +39,9 @@ PHYSICAL_TOLERANCE = 1e-9
 
 
 def recorded_run(cols, sc) -> dict:
-    """The per-sample record a resimulation needs, from ``testbed.io.columns.Columns`` and its scenario."""
-    from .io import messages as msg
-    from .simulate import Replay
+    """The per-sample record a resimulation needs, from ``testbed.record.columns.Columns`` and its scenario."""
+    from .simloop import Replay
+    from .wire import messages as msg
 
     final = cols.final
     N = final["k"] if final is not None else cols.last_k("plant") + 1
@@ -72,7 +73,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
     ``limit``: resimulate only samples 0 .. limit - 1 (``testbed report`` bounds its check so;
     ``checked`` in the result says how many were, and the verdict says so when not all).
     """
-    from .simulate import simulate_loop
+    from .simloop import simulate_loop
 
     sc, N, live = run["scenario"], run["N"], run["live"]
     n = N if limit is None else max(0, min(N, int(limit)))
@@ -134,7 +135,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
 
 def resimulate(path) -> dict:
     """``testbed resimulate PATH --json`` as a dict."""
-    from .report import load
+    from .record.summary import load
 
     cols, sc = load(path)
     return compare(recorded_run(cols, sc))

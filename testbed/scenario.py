@@ -1,300 +1,50 @@
 """Scenario files: one TOML file describes a run; loaded into frozen dataclasses.
 
 Every bad value gets a ``ScenarioError`` naming the file, the key and what is
-wrong.  The full schema is documented in the README ("Scenario files").
-"""
+wrong.  The full schema is documented in docs/scenarios.md."""
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 import tomllib
-from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 import plants
 from attackers import generators as attack_generators
 
+from . import traces
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
 from .loopspec import RULES, Codebook, CodebookTooLarge, FlowOptions, QuantizerParams, delay_margin_gain
+from .scenariospec import (
+    AttackSpec,
+    ControllerSpec,
+    DelaySpec,
+    FMUSpec,
+    MethodSpec,
+    ModelSpec,
+    PlantSpec,
+    RunSpec,
+    Scenario,
+    ScenarioError,
+    SimDelaySpec,
+    _freeze,
+)
 
 BUNDLED_DIR = "scenarios"
+
+
 MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML
-
-
-class ScenarioError(BadInput):
-    """A scenario file that cannot be used, with the reason."""
-
-
-# ----------------------------------------------------------------------------- dataclasses
-@dataclass(frozen=True)
-class PlantSpec:
-    name: str                      # the plant's display name (its class's ``name``; "fmu:FILE" for an FMU)
-    params: tuple[tuple[str, Any], ...]
-    x0: tuple[float, ...]
-    ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
-    base_dir: str = ""             # the scenario file's folder ("" for bundled scenarios and strings)
-    fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
-
-    def make(self) -> plants.Plant:
-        if self.fmu is not None:
-            raise ScenarioError(f"the plant is the FMU {self.fmu.path}: it has no equation (1) object "
-                                "(the [model] section gives one)")
-        return plants.make(self.ref or self.name, self.base_dir or None, **dict(self.params))
-
-    def source_info(self) -> dict[str, str]:
-        """The plant module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (``plants.refs.source_info``).
-
-        For an FMU: its ``file`` and the sha256 of the file (no source)."""
-        if self.fmu is not None:
-            import hashlib
-
-            try:
-                sha = hashlib.sha256(Path(self.fmu.path).read_bytes()).hexdigest()
-            except OSError:
-                sha = ""
-            return {"module": "", "class": "", "file": self.fmu.path, "source": "", "sha256": sha}
-        from plants.refs import source_info
-
-        return source_info(plants.resolve(self.ref or self.name, self.base_dir or None))
-
-
-@dataclass(frozen=True)
-class MethodSpec:
-    """``[method] name = "...", params = {...}``: the coding-and-control method (default the paper's)."""
-
-    name: str = "paper"            # a bundled or registered name, an entry point or "module.path:ClassName"
-    params: tuple[tuple[str, Any], ...] = ()
-    base_dir: str = ""             # the scenario file's folder ("module:Class" methods are imported from it)
-
-    def make(self):
-        """The method object (``testbed.methods.Method``)."""
-        from . import methods
-
-        return methods.make(self.name, self.base_dir or None, _thaw(self.params))
-
-    def source_info(self) -> dict[str, str]:
-        """The method module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (as for plants)."""
-        from . import methods
-
-        return methods.source_info(methods.resolve(self.name, self.base_dir or None))
-
-
-@dataclass(frozen=True)
-class FMUSpec:
-    """``[plant] fmu = "plant.fmu"``, ``inputs = [...]``, ``states = [...]``, ``params = {...}``."""
-    path: str                                  # absolute (resolved against the scenario's folder)
-    inputs: tuple[str, ...]
-    states: tuple[str, ...]
-    params: tuple[tuple[str, Any], ...] = ()
-    checked: bool = True                       # False: read from a recording, the file not looked at
-
-    def open(self):
-        """The FMU as a ``plants.PlantProcess`` (``plants.fmu.FMUPlant``)."""
-        from plants.fmu import FMUPlant
-
-        return FMUPlant(self.path, inputs=self.inputs, states=self.states, params=dict(self.params))
-
-
-@dataclass(frozen=True)
-class ModelSpec:
-    """``[model]``: the plant model of the predictions (rule (xi)), the LQR design and the analysis."""
-
-    name: str                  # a plant reference, resolved as [plant] name is
-    params: tuple[tuple[str, Any], ...]
-    explicit: bool = False     # the scenario has a [model] section
-    base_dir: str = ""         # the scenario file's folder
-
-    def make(self) -> plants.Plant:
-        return plants.make(self.name, self.base_dir or None, **dict(self.params))
-
-
-@dataclass(frozen=True)
-class ControllerSpec:
-    K: tuple[tuple[float, ...], ...]           # resolved gain, m x n
-    source: str                                # "K" or "lqr"
-    Q: tuple[tuple[float, ...], ...] | None = None
-    R: tuple[tuple[float, ...], ...] | None = None
-    u_max: float = 1e6                         # actuator limit: the plant clamps |u_k| to it
-
-    @property
-    def K_array(self) -> np.ndarray:
-        return np.array(self.K, dtype=float)
-
-
-@dataclass(frozen=True)
-class AttackSpec:
-    kind: str
-    params: tuple[tuple[str, Any], ...]
-    budget: tuple[float, float, float, float] | None  # (kappa_F, rho_F, kappa_D, rho_D) if known
-
-    @property
-    def params_dict(self) -> dict[str, Any]:
-        return dict(self.params)
-
-    @property
-    def online(self) -> bool:
-        return self.kind == "greedy"
-
-    def greedy_params(self) -> np.ndarray:
-        d = self.params_dict
-        return np.array([d["kappa_F"], d["rho_F"], d["kappa_D"], d["rho_D"], d.get("threshold", 0.0)])
-
-    @property
-    def score(self) -> str:
-        return self.params_dict.get("score", "state")
-
-    def schedule(self, T: float, horizon: float):
-        """The offline schedule (None for the online greedy attacker)."""
-        if self.online:
-            return None
-        d = {k: _thaw(v) for k, v in self.params}
-        seed = d.pop("seed", None)
-        return attack_generators.make_schedule(self.kind, d, T=T, horizon=horizon, seed=seed)
-
-
-@dataclass(frozen=True)
-class DelaySpec:
-    """An actuation-delay bound [s] the delay-aware quantizer rule covers (``[run] delay``, ``delay_lost``)."""
-
-    nominal: float
-    min: float
-    max: float
-    declared: bool = False     # written in the scenario (else the default)
-
-
-@dataclass(frozen=True)
-class SimDelaySpec:
-    """``[run] sim_delay``: how long u_k takes to reach the plant in a simulated physical-timing run.
-
-    The latency after t_k of a received sample's u_k (a lost sample's u_k = 0 leaves the
-    controller at its loss deadline and takes the same latency after it).
-    """
-
-    kind: str = "constant"     # "constant" | "uniform" | "trace"
-    value: float = 0.0         # constant
-    min: float = 0.0           # uniform
-    max: float = 0.0
-    seed: int | None = None
-    values: tuple[float, ...] = ()  # trace
-
-    def draw(self, n_steps: int) -> np.ndarray:
-        """The latency of sample k = 0..N-1 in integer ns (a trace shorter than N holds its last value)."""
-        if self.kind == "constant":
-            v = np.full(n_steps, self.value)
-        elif self.kind == "uniform":
-            v = np.random.default_rng(self.seed).uniform(self.min, self.max, n_steps)
-        else:
-            t = np.asarray(self.values, dtype=float)
-            v = np.full(n_steps, t[-1] if t.size else 0.0)
-            v[:min(n_steps, t.size)] = t[:n_steps]
-        return np.round(v * 1e9).astype(np.int64)
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    duration: float
-    converge_tol: float = 1e-4
-    timing: str = "ideal"          # live plant: "ideal" | "physical"
-    deadline: float = 0.5          # live plant: fraction of T to wait for u_k
-    loss_fraction: float = 0.8     # the controller decides a sample lost at t_k + loss_fraction d T
-    actuation: str = "scheduled"   # physical timing: u_k acts at its scheduled instant | on arrival
-    delay: DelaySpec | None = None       # physical timing: a received sample's actuation delay (bound)
-    delay_lost: DelaySpec | None = None  # ... and a lost sample's (u_k = 0 from the loss deadline)
-    sim_delay: SimDelaySpec | None = None   # physical timing: the simulator's latency of u_k
-
-
-@dataclass(frozen=True)
-class Scenario:
-    name: str
-    plant: PlantSpec
-    quantizer: QuantizerParams
-    controller: ControllerSpec
-    attack: AttackSpec
-    run: RunSpec
-    flow: FlowOptions
-    source: str = ""       # the TOML text it was read from (stored in recordings)
-    path: str = ""
-    description: str = ""  # one line (``testbed scenarios``)
-    model: ModelSpec | None = None   # [model] (defaults to [plant]'s)
-    L_u: float = 0.0       # input gain of the model (delay-aware rule)
-    base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
-    method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
-    method_note: str = ""  # a swapped method (``--method``): the [quantizer] keys it ignores, one line
-
-    def make_method(self):
-        """The coding-and-control method ([method]; ``testbed.methods.Method``)."""
-        return self.method.make()
-
-    @property
-    def T(self) -> float:
-        return self.quantizer.T
-
-    @property
-    def n_steps(self) -> int:
-        return int(round(self.run.duration / self.quantizer.T))
-
-    @property
-    def K(self) -> np.ndarray:
-        return self.controller.K_array
-
-    @property
-    def x0(self) -> np.ndarray:
-        return np.array(self.plant.x0, dtype=float)
-
-    def make_plant(self) -> plants.Plant:
-        """The true plant ([plant]): what the simulator and the live plant node integrate."""
-        return self.plant.make()
-
-    def make_model(self) -> plants.Plant:
-        """The plant model ([model], default [plant]): the predictions, the LQR design, the analysis."""
-        return (self.model or ModelSpec(self.plant.ref or self.plant.name, self.plant.params,
-                                        base_dir=self.plant.base_dir)).make()
-
-    def make_process(self):
-        """The true plant as it advances in time (``plants.base.PlantProcess``): an ODE plant or an FMU."""
-        if self.plant.fmu is not None:
-            return self.plant.fmu.open()
-        from .protocol import OdeProcess
-
-        return OdeProcess(self.make_plant(), self.flow)
-
-    def sim_latency(self, n_steps: int | None = None) -> np.ndarray | None:
-        """The latency [ns] of u_k in a simulated run (``[run] sim_delay``; None under ideal timing).
-
-        Default: a constant latency at the received sample's nominal actuation delay under
-        arrival actuation, and 0 under scheduled actuation (every u_k then acts on schedule).
-        """
-        if self.run.timing != "physical":
-            return None
-        N = self.n_steps if n_steps is None else n_steps
-        spec = self.run.sim_delay or SimDelaySpec(
-            "constant", value=self.run.delay.nominal if self.run.actuation == "arrival" else 0.0)
-        return spec.draw(N)
-
-    @property
-    def timing_params(self) -> np.ndarray:
-        """[physical, scheduled, delta_s, d T, loss deadline] in integer ns (``PlantProtocol``, the kernel)."""
-        r = self.run
-        Tn = int(round(self.T * 1e9))
-        sched = int(round(r.delay.nominal * 1e9)) if (r.timing == "physical" and r.delay) else 0
-        return np.array([int(r.timing == "physical"), int(r.actuation == "scheduled"), sched,
-                         int(r.deadline * Tn), int(r.loss_fraction * r.deadline * Tn)], dtype=np.int64)
-
-    def theta(self, n_steps: int | None = None) -> np.ndarray | None:
-        """theta_k of the offline schedule for k = 0..N-1 (None for an online attacker)."""
-        N = self.n_steps if n_steps is None else n_steps
-        sch = self.attack.schedule(self.T, N * self.T)
-        return None if sch is None else sch.theta_samples(self.T, N)
 
 
 # ----------------------------------------------------------------------------- validation
 _SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description", "method"}
+
+
 _KEYS = {
     "plant": {"name", "params", "x0", "fmu", "inputs", "states"},
     "model": {"name", "params"},
@@ -347,20 +97,6 @@ def _unknown(ctx, section, table, allowed):
     bad = sorted(set(table) - allowed)
     if bad:
         raise ctx.err(section, f"unknown key(s) {bad}; allowed: {sorted(allowed)}")
-
-
-def _freeze(v):
-    if isinstance(v, list):
-        return tuple(_freeze(x) for x in v)
-    if isinstance(v, dict):
-        return tuple(sorted((k, _freeze(x)) for k, x in v.items()))
-    return v
-
-
-def _thaw(v):
-    if isinstance(v, tuple):
-        return [_thaw(x) for x in v]
-    return v
 
 
 def _str(ctx, key, v, choices=None) -> str:
@@ -740,45 +476,6 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) ->
                    params=_freeze(params), checked=check)
 
 
-def read_trace(path: str | Path) -> dict:
-    """The trace of a recording (the samples its *attacker* dropped: not theta, which also counts
-    withheld, late and invalid samples) or of a plain file of dropped sample indices (one per line or
-    separated by spaces or commas; ``# T = 0.1`` and ``# samples = 300`` header lines give the period
-    and the length).  Returns the ``[attack]`` parameters of kind ``trace``."""
-    p = Path(path)
-    if p.suffix == ".mcap":
-        # reading a recording is a shell's job; this is the one place the scenario reads one
-        from .io.columns import read_columns, read_metadata
-        from .io.recording import recorded_scenario
-
-        meta, _ = read_metadata(str(p))
-        rsc, _ps, _ms = recorded_scenario(meta, str(p))
-        cols = read_columns(str(p), fields={"attacker.dropped"}, sc=rsc)
-        has = cols.has("attacker")
-        n = int(len(has))
-        dropped = has & (cols.get("attacker", "dropped")[:n] != 0)
-        return {"samples": np.flatnonzero(dropped).tolist(), "T": float(rsc.T), "n_samples": n, "source": str(p)}
-    text = p.read_text(encoding="utf-8")
-    T = None
-    n = None
-    samples = []
-    for line in text.splitlines():
-        line = line.strip()
-        if line.startswith("#"):
-            key, _, val = line[1:].partition("=")
-            if key.strip() == "T":
-                T = float(val)
-            elif key.strip() == "samples":
-                n = int(val)
-            continue
-        for tok in line.replace(",", " ").split():
-            samples.append(int(tok))
-    if T is None:
-        raise ValueError(f"{p}: no '# T = SECONDS' line (the period the trace was taken at)")
-    return {"samples": samples, "T": T, "n_samples": n if n is not None else (max(samples) + 1 if samples else 0),
-            "source": str(p)}
-
-
 def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
     """``[attack] kind = "trace"``: ``source = PATH`` (a recording or a file, relative to the scenario's
     folder) read now, or the embedded form ``samples``, ``T``, ``n_samples`` (what a recording stores)."""
@@ -789,7 +486,7 @@ def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
         raise ctx.err("attack.source", "missing: a recording (.mcap) or a file of dropped sample indices")
     path = Path(src) if Path(src).is_absolute() else Path(base_dir or ".") / src
     try:
-        return read_trace(path)
+        return traces.read_trace(path)
     except (OSError, ValueError, BadInput) as e:
         raise ctx.err("attack.source", f"{src}: {e}") from None
 
@@ -920,7 +617,8 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
             continue
         if isinstance(v, np.ndarray):
             v = v.tolist()
-        data.setdefault(table, {})[key] = float(v) if isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES else v
+        as_float = isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES
+        data.setdefault(table, {})[key] = float(v) if as_float else v
     try:
         sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
@@ -947,81 +645,3 @@ def _override_hint(msg: str, sc: Scenario, over: dict) -> str:
                           "(pass a larger M or a smaller T; or, to run it anyway, set allow_M_le_Lambda = true in "
                           f"[quantizer] of a copy of the scenario: testbed scenarios --show {sc.name})")
     return f"override(s) {names}: {msg}"
-
-
-# ----------------------------------------------------------------------------- writing scenarios
-def _toml_key(k) -> str:
-    import json
-    import re
-
-    k = str(k)
-    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
-
-
-def _toml_value(v) -> str:
-    import json
-
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def to_toml(data: dict) -> str:
-    """TOML text of a scenario dict (what ``tomllib.loads`` reads back): top-level keys, then one
-    ``[table]`` per section (tables inside a section inline)."""
-    lines = [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
-    for k, v in data.items():
-        if isinstance(v, dict):
-            lines += ["", f"[{_toml_key(k)}]"]
-            lines += [f"{_toml_key(a)} = {_toml_value(b)}" for a, b in v.items()]
-    return "\n".join(lines) + "\n"
-
-
-def with_attack(sc: Scenario, *, x0, E0: float, intervals, duration: float, name: str, description: str,
-                out_dir: str | Path, budget: dict | None = None) -> str:
-    """TOML text of ``sc`` from ``x0`` with E0, under the attack ``intervals`` ([[start, length], ...];
-    none: kind "none") with the declared ``budget`` ([attack] budget keys), for ``duration``
-    seconds, to be saved in ``out_dir``.
-
-    Plant, model and FMU references become absolute (a file path) or stay names that resolve
-    anywhere; a ``module:Class`` plant module found only in the scenario's folder cannot be
-    named from elsewhere: ``ScenarioError`` unless ``out_dir`` is that folder.
-    """
-    data = tomllib.loads(sc.source)
-    data["name"] = name
-    data["description"] = description
-    base = Path(sc.base_dir or ".").resolve()
-    same_dir = Path(out_dir).resolve() == base
-    for sec in ("plant", "model"):
-        t = data.get(sec)
-        if not isinstance(t, dict):
-            continue
-        if "fmu" in t:
-            p = Path(str(t["fmu"])).expanduser()
-            t["fmu"] = str((p if p.is_absolute() else base / p).resolve())
-        ref = t.get("name")
-        if isinstance(ref, str) and plants.refs.is_module_ref(ref) and not same_dir:
-            mod = ref.split(":", 1)[0].split(".", 1)[0]
-            if (base / f"{mod}.py").exists() or (base / mod).is_dir():
-                raise ScenarioError(f"[{sec}] name = {ref!r} is a module in {base}: write the scenario there "
-                                    "(a module reference cannot name a folder)")
-    data["plant"]["x0"] = [float(v) for v in x0]
-    data["quantizer"]["E0"] = float(E0)
-    if intervals:
-        data["attack"] = {"kind": "intervals", "intervals": [[float(a), float(t)] for a, t in intervals]}
-        if budget:
-            data["attack"]["budget"] = {k: float(v) for k, v in budget.items()}
-    else:
-        data["attack"] = {"kind": "none"}
-    data.setdefault("run", {})["duration"] = float(duration)
-    return to_toml(data)

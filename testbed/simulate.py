@@ -13,333 +13,39 @@ Two entry points share one semantics (sample k = 0, ..., N-1 at t_k = k T):
 
 At every sample:  x_k -> encoder symbol (Algorithm 1) -> attacker (theta_k) ->
 decoder q_k, u_k = (1 - theta_k) K q_k (Algorithm 2, law (2)) -> ack theta_k ->
-both ends apply (xi), (E) -> plant x_{k+1} = phi_T(x_k, u_k).
-"""
+both ends apply (xi), (E) -> plant x_{k+1} = phi_T(x_k, u_k)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 
 from attackers.greedy import greedy_init, greedy_step
-from plants.base import PlantFault
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
-from .protocol import (INVALID, RECEIVED, ControllerProtocol, EncoderProtocol, OdeProcess, PlantProtocol,
-                       Send, corrupt_payload)
-from .methods.base import symbol_code
 from .methods.ends import unaware_update
-from .quantizer import (MODES, Codebook, Decoder, Encoder, QuantizerParams,
-                        box_center, control_input, quantize_index, zoom_update)
-
-SCORE_STATE = 0  # greedy attacker hurts where ||x_k||_inf is largest
-SCORE_E = 1      # ... or where E_k is largest
-SCORES = {"state": SCORE_STATE, "E": SCORE_E}
-
-
-# ============================================================================ per-sample loop
-@dataclass
-class SimResult:
-    """Per-sample record of one closed-loop run (arrays indexed by k = 0..N-1)."""
-
-    T: float
-    t: np.ndarray
-    x: np.ndarray          # x_k, (N, n)
-    u: np.ndarray          # u_k as the controller sent it, (N, m)
-    q: np.ndarray          # q_k at the decoder (0 when lost), (N, n)
-    q_enc: np.ndarray      # q_k at the encoder (centre of the box of x_k), (N, n)
-    xi_enc: np.ndarray     # xi_k at the encoder, (N, n) (NaN where the symbol was withheld)
-    E_enc: np.ndarray      # E_k at the encoder, (N,) (NaN where withheld)
-    xi_dec: np.ndarray
-    E_dec: np.ndarray
-    theta: np.ndarray      # theta_k (1: packet lost), (N,) uint8
-    symbols: np.ndarray    # symbol sent by the encoder, (N,) int64 (-1: withheld)
-    saturated: np.ndarray  # x_k outside Q(xi_k, E_k) at the encoder, (N,) bool
-    x_final: np.ndarray    # x_N
-    flow_status: int = FLOW_OK   # first non-ok flow status of the plant, if any
-    diverged_at: int = -1        # sample at which the plant flow diverged, or -1
-    K: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
-    reason: np.ndarray | None = None     # the controller's reason per sample (protocol.REASONS)
-    withheld: np.ndarray | None = None   # the encoder withheld the symbol (a lost ack), (N,) bool
-    delays: np.ndarray | None = None     # physical timing: delta_k [ns] (None: ideal timing)
-    u_missing: np.ndarray | None = None  # u_k never reached the plant (u = 0 after the deadline)
-    counters: dict = field(default_factory=dict)
-    plant_fault: str | None = None  # the true plant failed (``plants.PlantFault``): its one line
-    plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
-    loop_state: np.ndarray | None = None  # both ends' xi, E, u_{k-1} after the last sample (``loop_state_of``)
-    method_fault: str | None = None  # the method's end raised (its one line) ...
-    method_fault_at: int = -1        # ... at this sample
-    lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
-    ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
-
-    @property
-    def saturations(self) -> int:
-        return int(self.saturated.sum())
-
-    @property
-    def final_norm(self) -> float:
-        return float(np.max(np.abs(self.x_final)))
-
-    @property
-    def agree(self) -> bool:
-        """Encoder and decoder xi_k, E_k identical at every sample the encoder sent (bit for bit)."""
-        if self.lockstep_breaks:
-            return False
-        known = np.isfinite(self.E_enc)
-        if self.withheld is None and not known.all():
-            return False
-        return bool(np.array_equal(self.xi_enc[known], self.xi_dec[known])
-                    and np.array_equal(self.E_enc[known], self.E_dec[known]))
-
-    def intervals(self):
-        """The realized DoS schedule (runs of lost samples) as (start, length) pairs."""
-        from attackers.schedule import Schedule
-
-        return Schedule.from_theta(self.theta, self.T)
-
-
-class OnlineAttacker:
-    """theta_k from a precomputed 0/1 sequence or from the greedy policy (online)."""
-
-    def __init__(self, theta=None, greedy_params=None, score: str = "state", T: float = 0.1):
-        self.theta = None if theta is None else np.asarray(theta, dtype=np.uint8)
-        self.greedy_params = None if greedy_params is None else np.asarray(greedy_params, dtype=np.float64)
-        self.score = SCORES[score]
-        self.T = T
-        self._gstate = greedy_init()
-
-    def decide(self, k: int, x_k, E_k) -> int:
-        if self.greedy_params is not None:
-            s = float(np.max(np.abs(x_k))) if self.score == SCORE_STATE else float(E_k)
-            return int(greedy_step(self._gstate, k, self.T, s, self.greedy_params))
-        if self.theta is None or k >= len(self.theta):
-            return 0
-        return int(self.theta[k])
-
-
-@dataclass(frozen=True)
-class Network:
-    """What happens between the nodes of a simulated run, beyond the attacker's drops.
-
-    ack_via_attacker : the ack of sample k crosses the attacker too, and is dropped iff
-        the attacker dropped sample k (``testbed run --ack-via-attacker``).
-    corrupt : {k: "range" | "length"}: the attacker replaces the payload of sample k by an
-        out-of-range code or a payload of the wrong length (``testbed run --corrupt``).
-    """
-
-    ack_via_attacker: bool = False
-    corrupt: tuple[tuple[int, str], ...] = ()
-
-
-@dataclass(frozen=True)
-class Replay:
-    """What a recording says happened (``testbed resimulate``), one entry per sample.
-
-    reason : the controller's decision reason (protocol.RECEIVED, DEADLINE, INVALID,
-        SUPERSEDED; -1 where no controller record exists: treated as a loss)
-    sensed : the encoder received x_k (False: the sensor message never reached it)
-    withheld : the encoder withheld sample k (its ack for an earlier sample was late)
-    u_missing : u_k never reached the plant: u_{k-1} held until the deadline, then 0
-    delays : physical timing: delta_k [ns] as the plant measured it (None: ideal timing)
-    """
-
-    reason: np.ndarray
-    sensed: np.ndarray
-    withheld: np.ndarray
-    u_missing: np.ndarray
-    delays: np.ndarray | None = None
-
-
-def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
-                  flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
-                  u_max: float = math.inf, network: Network | None = None,
-                  replay: Replay | None = None, method=None) -> SimResult:
-    """One trajectory, sample by sample, through the protocol state machines of the live nodes.
-
-    The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
-    and the plant (``PlantProtocol``) are the objects the live nodes run; here a
-    simulated network connects them.  Per sample k: the plant samples x_k; the
-    encoder sends a symbol or withholds it (a lost ack); the attacker drops or
-    forwards it (or corrupts it); the controller decides u_k, theta_k and acks; the
-    plant holds u_{k-1} for delta_k (physical timing) and then applies u_k.
-
-    ``plant`` is the true plant (an ODE plant; or give ``process``, any true-plant
-    process such as an FMU), ``model`` the plant model of the encoder's and decoder's
-    predictions (default: ``plant``).  ``timing``: ``Scenario.timing_params`` ([physical,
-    scheduled, delta_s, d T, loss deadline] in ns; None: ideal timing) and ``latency``
-    (ns, a scalar or (N,)): when u_k reaches the plant after t_k (a lost sample's after the
-    loss deadline).  ``replay``: re-run what a recording says happened (the attacker is
-    then ignored: theta_k follows the recorded decisions; delta_k is the recorded one).
-
-    A true-plant process that raises ``plants.PlantFault`` (an FMU step that failed) ends
-    the run at that sample: the result holds samples 0..k, x_final is the process's state
-    at the fault, and ``plant_fault`` / ``plant_fault_at`` say what and where (a failed
-    ``reset`` gives a run of no samples).  Nothing is raised.
-
-    ``method``: the coding-and-control method (``testbed.methods.Method``; default the paper's).
-    A method whose ends raise ends the run at that sample (``method_fault``, ``method_fault_at``);
-    one whose ends' shared state differs is counted in ``lockstep_breaks`` (``agree`` is then False).
-    """
-    model = plant if model is None else model
-    n, m = model.n, model.m
-    K = np.asarray(K, dtype=np.float64).reshape(m, n)
-    N = int(n_steps)
-    net = network or Network()
-    corrupt = dict(net.corrupt)
-    if process is None:
-        process = OdeProcess(plant, flow)
-    try:
-        process.reset(np.asarray(x0, dtype=np.float64))
-    except PlantFault as e:  # the true plant cannot start: a run of no samples, reported as data
-        z = np.zeros((0, n))
-        return SimResult(T=qp.T, t=np.zeros(0), x=z, u=np.zeros((0, m)), q=z, q_enc=z, xi_enc=z,
-                         E_enc=np.zeros(0), xi_dec=z, E_dec=np.zeros(0), theta=np.zeros(0, dtype=np.uint8),
-                         symbols=np.zeros(0, dtype=np.int64), saturated=np.zeros(0, dtype=bool),
-                         x_final=np.asarray(x0, dtype=np.float64).copy(), K=K, plant_fault=str(e),
-                         plant_fault_at=0)
-    tpar = np.zeros(5, dtype=np.int64) if timing is None else np.asarray(timing, dtype=np.int64)
-    physical = bool(tpar[0])
-    if replay is not None and replay.delays is not None:
-        physical = True
-    pp = PlantProtocol(process, qp.T, timing="physical" if physical else "ideal",
-                       actuation="scheduled" if tpar[1] else "arrival", sched_ns=int(tpar[2]),
-                       deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max)
-    lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
-    delays = np.zeros(N, dtype=np.int64) if physical else None
-    if method is None:
-        encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
-        ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
-    else:
-        encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
-        ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
-    enc_state: dict = {}
-    breaks = []
-    mfault, mfault_at = None, -1
-    cb = ctlp.codebook
-    rec = {k: np.full((N, n), np.nan) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
-    u_rec = np.zeros((N, m))
-    E_enc = np.full(N, np.nan)
-    E_dec = np.full(N, np.nan)
-    theta = np.ones(N, dtype=np.uint8)
-    symbols = np.full(N, -1, dtype=np.int64)
-    sat = np.zeros(N, dtype=bool)
-    reason = np.full(N, -1, dtype=np.int64)
-    withheld = np.zeros(N, dtype=bool)
-    u_missing = np.zeros(N, dtype=bool)
-    acks: list = []          # acks on their way to the encoder (delivered before the next sensor sample)
-    status, diverged_at = FLOW_OK, -1
-    fault, fault_at = None, -1
-    last = N
-
-    def record(d) -> None:
-        if d.state is not None and d.k in enc_state and not np.array_equal(enc_state.pop(d.k), d.state):
-            breaks.append(d.k)
-        theta[d.k] = d.theta
-        rec["q"][d.k] = d.q
-        rec["xi_dec"][d.k] = d.xi
-        E_dec[d.k] = d.E
-        u_rec[d.k] = d.u
-        reason[d.k] = d.reason
-
-    for k in range(N):
-        x = process.x
-        rec["x"][k] = x
-        try:
-            send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb)
-        except Exception as e:  # noqa: BLE001 - a method's end raised: the run ends at this sample
-            if method is None:
-                raise
-            mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \
-                                      f"{type(e).__name__}: {e}", k, k
-            break
-        if isinstance(send, Send):
-            if send.state is not None:
-                enc_state[k] = send.state
-            symbols[k], sat[k] = symbol_code(send.symbol), send.saturated
-            rec["xi_enc"][k] = send.xi
-            E_enc[k] = send.E
-            rec["q_enc"][k] = send.q
-        else:
-            withheld[k] = True
-        drop = decs.pop()
-        for d in decs:
-            record(d)
-            if not (net.ack_via_attacker and drop):
-                acks.append((d.k, d.theta, d.last_rx))
-        d = decs[-1]
-        # --- plant
-        u_k, _fault = pp.check_input(d.u)
-        dns = 0
-        if replay is not None:
-            if replay.u_missing[k]:
-                u_k = None
-            if physical:
-                dns = int(replay.delays[k])
-        elif physical:
-            arr = int(lat[k]) + (pp.loss_ns if d.theta == 1 else 0)
-            if u_k is None or arr > pp.deadline_ns:  # u_{k-1} held until the deadline, then 0
-                u_k, dns = None, pp.deadline_ns
-            else:
-                dns = pp.delay_ns(arr, d.theta)
-        if u_k is None:
-            u_missing[k] = True
-        if physical:
-            delays[k] = dns
-        try:
-            st = pp.step(u_k, dns)
-        except PlantFault as e:  # the run stops at this sample (x_final = x_k): reported, not raised
-            fault, fault_at, last = str(e), k, k + 1
-            break
-        if st != FLOW_OK:
-            status, diverged_at, last = int(st), k, k + 1
-            break
-    if mfault is None:
-        for a in acks:
-            encp.ack(*a)
-    sl = slice(0, last)
-    return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=rec["x"][sl], u=u_rec[sl], q=rec["q"][sl],
-                     q_enc=rec["q_enc"][sl], xi_enc=rec["xi_enc"][sl], E_enc=E_enc[sl],
-                     xi_dec=rec["xi_dec"][sl], E_dec=E_dec[sl], theta=theta[sl], symbols=symbols[sl],
-                     saturated=sat[sl], x_final=process.x, flow_status=status, diverged_at=diverged_at, K=K,
-                     reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl],
-                     delays=None if delays is None else delays[:last].copy(),
-                     counters={"encoder": encp.counters(), "controller": ctlp.counters(),
-                               "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
-                     plant_fault=fault, plant_fault_at=fault_at,
-                     loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
-                     method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
-                     ends=(encp.enc, ctlp.dec))
-
-
-def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb):
-    """One sample of the method's ends through the protocol: the encoder (acks first), the
-    attacker and the controller.  Returns (send, decisions + [drop])."""
-    if replay is None or not replay.withheld[k]:
-        for a in acks:
-            encp.ack(*a)
-        acks.clear()
-    send = None
-    if replay is None or replay.sensed[k]:
-        send = encp.sensor(k, x)
-    payload = cb.pack(send.symbol) if isinstance(send, Send) else None
-    if replay is None:
-        drop = attacker.decide(k, x, encp.enc.E) if attacker is not None else 0
-        if drop:
-            payload = None
-        elif payload is not None and k in corrupt:
-            payload = corrupt_payload(cb, payload, corrupt[k])
-    else:
-        drop = 0
-        r = int(replay.reason[k])
-        if r == INVALID and payload is not None:
-            payload = corrupt_payload(cb, payload, "length")
-        elif r != RECEIVED:
-            payload = None
-    decs = ctlp.symbol(k, payload) if payload is not None else [ctlp.deadline(k)]
-    return send, decs + [drop]
+from .quantizer import (
+    MODES,
+    Decoder,
+    QuantizerParams,
+    box_center,
+    control_input,
+    quantize_index,
+    zoom_update,
+)
+from .simloop import (
+    SCORES,
+    Network,
+    OnlineAttacker,
+    SimResult,
+    continue_ends,
+    loop_state_from_samples,
+    loop_state_of,
+    simulate_loop,
+)
 
 
 # ============================================================================ batch kernel
@@ -830,40 +536,6 @@ def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, cr
     return esc
 
 
-def loop_state_of(enc, dec) -> np.ndarray:
-    """The packed loop state (``loop_state_width``) of an encoder and a decoder (``quantizer._End``)."""
-    return np.concatenate([enc.xi, [enc.E], enc.u_prev, dec.xi, [dec.E], dec.u_prev]).astype(np.float64)
-
-
-def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW):
-    """Both ends' state after the last sample of a run whose per-sample record is all there is
-    (a recording): the controller's xi, E of its last sample (the encoder's if the controller's
-    is missing), updated once by rules (xi), (E) with that sample's symbol and theta (u_{k-1}
-    from the sample before), used for both ends.  None when neither end's state is known."""
-    N = len(res.theta)
-    if N == 0:
-        return None
-    if np.isfinite(res.E_dec[-1]):
-        xi, E = res.xi_dec[-1], res.E_dec[-1]
-    elif np.isfinite(res.E_enc[-1]):  # no controller record of the last sample: the encoder's (the same
-        xi, E = res.xi_enc[-1], res.E_enc[-1]  # in lockstep)
-    else:
-        return None
-    dec = Decoder(model, res.K, qp, flow)
-    cb = dec.codebook
-    dec.xi = np.array(xi, dtype=np.float64)
-    dec.E = float(E)
-    if (N >= 2 and int(res.theta[-2]) == 0 and int(res.symbols[-2]) != cb.overflow
-            and np.all(np.isfinite(res.q[-2]))):
-        up = np.empty(model.m)
-        control_input(dec.K, np.asarray(res.q[-2], dtype=np.float64), 0, False, up)
-        dec.u_prev = up
-    th = int(res.theta[-1])
-    sym = int(res.symbols[-1])
-    dec.step(None if th == 1 or sym < 0 else sym)
-    return loop_state_of(dec, dec)
-
-
 def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
                       latency=None) -> SimResult:
     """Run a scenario (see ``testbed.scenario``) with the per-sample loop.
@@ -934,7 +606,7 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
     plant = model if sc.plant.fmu is not None else sc.make_plant()
     method = sc.make_method()
     if method.kernel_code(sc.quantizer) is None:  # a user's method: its own ends, continued per sample
-        return _continue_ends(plant, res, criterion, sc.T, sc.flow, sc.controller.u_max)
+        return continue_ends(plant, res, criterion, sc.T, sc.flow, sc.controller.u_max)
     if sc.method.name != "paper":
         st = res.loop_state if res.loop_state is not None else None
         if st is None:
@@ -951,33 +623,14 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
                              model=model, flow=sc.flow)[0])
 
 
-def _continue_ends(plant, res: SimResult, c: EscapeCriterion, T: float, flow, u_max: float) -> bool:
-    """:class:`EscapeCriterion` for a method without a batch kernel: its own two ends (``res.ends``),
-    continued from where the run ended with theta_k = 0 and the true plant under ideal timing.
-    Escaped unless ||x|| < x_tol with both ends' E below E_tol within the horizon."""
-    if res.ends is None:
-        return not (res.final_norm < c.x_tol)
-    enc, dec = res.ends
-    proc = OdeProcess(plant, flow)
-    proc.reset(res.x_final)
-    for _ in range(c.steps(T)):
-        x = proc.x
-        nrm = float(np.max(np.abs(x)))
-        if nrm < c.x_tol and float(getattr(enc, "E", 0.0)) < c.E_tol and float(getattr(dec, "E", 0.0)) < c.E_tol:
-            return False
-        if nrm > c.x_out:
-            return True
-        try:
-            sym, _sat = enc.encode(x)
-            u, _q, _th = dec.decide(sym)
-            dec.commit()
-            enc.ack(0)
-        except Exception:  # noqa: BLE001 - the method failed: the loop did not recover
-            return True
-        u = np.clip(np.asarray(u, dtype=np.float64), -u_max, u_max)
-        if not np.all(np.isfinite(u)) or proc.advance(u, T) != FLOW_OK:
-            return True
-    return True
+def attack_on_samples(sc, res) -> np.ndarray:
+    """Per sample: the DoS schedule is active at t_k (an online attacker: when it dropped)."""
+    theta = np.asarray(res.theta, dtype=bool)
+    N = len(theta)
+    sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
+    if sched is None or not N:
+        return theta.copy()
+    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
 
 
 def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:

@@ -1,9 +1,12 @@
 import atexit
 import os
+import secrets
 import shutil
+import sys
 import tempfile
 
 import pytest
+from helpers import LOGS, cmdlines, procs_with, reap
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 # live runs record by default: the tests' recordings go to a scratch directory, not recordings/
@@ -43,3 +46,23 @@ def pytest_report_header(config):
 
     req = required()
     return f"{REQUIRE_ENV}: {', '.join(sorted(req)) if req else 'none (a missing capability skips with its reason)'}"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _node_logs(request):
+    """Node logs of runs with faults go to one directory, removed after the session (kept if a test failed)."""
+    yield
+    if request.session.testsfailed and os.listdir(LOGS):
+        print(f"\nnode logs of the live runs kept in {LOGS}", file=sys.stderr)
+    else:
+        shutil.rmtree(LOGS, ignore_errors=True)
+
+
+@pytest.fixture
+def run_id():
+    rid = f"t{os.getpid()}x{secrets.token_hex(4)}"
+    yield rid
+    left = procs_with(rid)
+    names = cmdlines(left)
+    left = reap(rid)
+    assert not left, f"orphan processes of run {rid}: {names}"

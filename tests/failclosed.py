@@ -124,6 +124,6 @@ def rerun_while_stalled(run, what: str, *, attacker: bool = False, reruns: int =
         stall = stalled(res[1], attacker=attacker)
         if not stall:
             break
-        warnings.warn(f"{what}: the run reports {stall} (machine stalled); rerun {attempt} of {reruns}")
+        warnings.warn(f"{what}: the run reports {stall} (machine stalled); rerun {attempt} of {reruns}", stacklevel=2)
         res = run(attempt)
     return res

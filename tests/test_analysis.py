@@ -16,11 +16,28 @@ from numpy.testing import assert_allclose
 
 import plants
 from testbed.analysis import lmi
-from testbed.analysis.theorem1 import (Loop, allowable_region, common_P, lyapunov_margin, make_certificate,
-                                       min_condition_P, min_relative_condition, mu_pair, plain_certificate,
-                                       stability_lhs)
-from testbed.analysis.theorem2 import (RemainderRadius, evaluate, gamma_for_delta, inf_norm, lemma_constants,
-                                       theorem2, theorem2_auto, _PData)
+from testbed.analysis.region import allowable_region
+from testbed.analysis.theorem1 import (
+    Loop,
+    common_P,
+    lyapunov_margin,
+    make_certificate,
+    min_condition_P,
+    min_relative_condition,
+    mu_pair,
+    plain_certificate,
+    stability_lhs,
+)
+from testbed.analysis.theorem2 import (
+    RemainderRadius,
+    _PData,
+    evaluate,
+    gamma_for_delta,
+    inf_norm,
+    lemma_constants,
+    theorem2,
+    theorem2_auto,
+)
 from testbed.control import c2d
 
 

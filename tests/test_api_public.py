@@ -116,7 +116,7 @@ def test_every_bad_override_raises_badinput_with_what_to_change(over, hint):
 
 
 def test_the_overrides_of_the_api_and_the_command_line_are_the_documented_sets():
-    from testbed.nodes.common import RunOptions
+    from testbed.nodes.options import RunOptions
 
     section = API_MD[API_MD.index("## `testbed.simulate` overrides"):]
     section = section[:section.index("\n## ", 5)]

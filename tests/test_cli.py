@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import pytest
+from helpers import SHARED
 
 from testbed import cli
 
@@ -25,18 +26,7 @@ def _options(p: argparse.ArgumentParser) -> dict[str, argparse.Action]:
     return {s: a for a in p._actions for s in a.option_strings}
 
 
-#: the shared options and the commands that must have them (docs/cli.md)
-SHARED = {
-    "--json": ["scenarios", "simulate", "run", "report", "replay", "analyze", "roa", "sweep", "resimulate",
-               "plants", "check-plant", "worst-attack", "vulnerability", "secret", "compare"],
-    "--out": ["run", "simulate", "record"],
-    "--rrd": ["run", "simulate", "replay"],
-    "--plot": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
-    "--figsize": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
-    "--no-roa": ["run", "simulate", "replay"],
-    "--no-progress": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
-    "--workers": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
-}
+
 
 
 @pytest.mark.parametrize("flag", sorted(SHARED))

@@ -22,5 +22,5 @@ def test_c2d_is_exact_zoh():
     T = 0.3
     Ad, Bd = c2d(A, B, T)
     for x0, u in [([1.0, 0.0], 0.0), ([0.0, 1.0], 0.0), ([0.0, 0.0], 1.0)]:
-        sol = solve_ivp(lambda t, x: A @ x + B[:, 0] * u, (0, T), x0, rtol=1e-12, atol=1e-14)
+        sol = solve_ivp(lambda t, x, u=u: A @ x + B[:, 0] * u, (0, T), x0, rtol=1e-12, atol=1e-14)
         assert_allclose(sol.y[:, -1], Ad @ np.array(x0) + Bd[:, 0] * u, atol=1e-10)

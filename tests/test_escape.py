@@ -13,8 +13,15 @@ import numpy as np
 from testbed import scenario
 from testbed.analysis.sweep import classify
 from testbed.analysis.worst import Loop, evaluate, single_table
-from testbed.simulate import (EscapeCriterion, in_nominal_roa, judge_escape, loop_state_from_samples,
-                              simulate_batch, simulate_scenario, summarize)
+from testbed.simulate import (
+    EscapeCriterion,
+    in_nominal_roa,
+    judge_escape,
+    loop_state_from_samples,
+    simulate_batch,
+    simulate_scenario,
+    summarize,
+)
 
 SHORT = """
 name = "short"

@@ -144,7 +144,7 @@ def test_machine_stalls_count_for_every_test():
 
 # ---------------------------------------------------------------------------------------------- broken builds
 def _simulated(*args) -> dict:
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     rc, out, err = run_cli(tb_cmd("simulate", "paper", *args, "--json"))
     assert rc == 0, err
@@ -180,6 +180,7 @@ def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing
     """Broken build: under physical timing u_k acts a little after its instant in every run (late for its
     schedule), so the loop leaves the simulator's path though it still converges and re-simulates.  The
     old test compared nothing when the last run was late; now the last run is compared."""
+    import helpers
     import test_live_process as lp
 
     sim = _simulated("--timing", "physical")
@@ -189,8 +190,9 @@ def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing
     broken["x"] = [list(x) for x in sim["x"]]
     broken["x"][100][0] += 1e-12
     calls = []
-    monkeypatch.setattr(lp, "live", lambda rid, *a, **k: calls.append(rid) or (0, broken, ""))
-    monkeypatch.setattr(lp, "reap", lambda token, wait=5.0: [])
+    monkeypatch.setattr(helpers, "live", lambda rid, *a, **k: calls.append(rid) or (0, broken, ""))
+    for mod in (helpers, lp):  # live_exact (helpers) reaps a stalled run; the test reaps its own
+        monkeypatch.setattr(mod, "reap", lambda token, wait=5.0: [])
     monkeypatch.setattr(lp, "resimulated", lambda s: {"reproduced": True, "max_state_error": 0.0,
                                                      "symbols_identical": True})
     with pytest.warns(UserWarning, match="late_for_schedule"), \

@@ -100,7 +100,7 @@ def test_the_gallery_is_the_page_the_script_writes_and_shows_every_figure():
         for c in job.commands:
             if "--plot" in c:
                 drawn.add(c[0])
-    from test_cli import SHARED
+    from helpers import SHARED
 
     assert drawn == set(SHARED["--plot"]), set(SHARED["--plot"]) - drawn
     # every figure a page of the docs shows is in the gallery

@@ -316,7 +316,7 @@ def _live_exact(tmp_path, scenario_file, rid: str, *args):
     """``_live`` for the bit-exact tests, under the one rerun policy (``failclosed.rerun_while_stalled``):
     a stalled run is run again (run id ``rid`` + "r" per rerun), the last run is returned to be compared."""
     from failclosed import rerun_while_stalled
-    from test_live_process import reap
+    from helpers import reap
 
     def run(attempt):
         if attempt:
@@ -333,7 +333,7 @@ def _live_exact(tmp_path, scenario_file, rid: str, *args):
 @pytest.mark.process
 def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, tmp_path):
     """testbed run with the FMU in the plant node, ideal timing: testbed simulate of it, bit for bit."""
-    from test_live_process import BIT_EXACT_KEYS, mismatch
+    from helpers import BIT_EXACT_KEYS, mismatch
 
     f = fmu_scenario(tmp_path, lienard_fmu)
     rid = f"t{os.getpid()}xfmu{secrets.token_hex(3)}"
@@ -353,7 +353,7 @@ def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, 
 def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp_path):
     """doStep fails from t = 1.1 s: exit 1, a fault entry naming it, the recording readable up to the fault
     (testbed report: the samples testbed simulate has up to its fault); a failing reset: a startup failure."""
-    from test_live_process import BIT_EXACT_KEYS, mismatch, reap
+    from helpers import BIT_EXACT_KEYS, reap
 
     f = fmu_scenario(tmp_path, lienard_fmu, "fail_at = 1.0")
     rec = tmp_path / "fault.mcap"

@@ -27,9 +27,9 @@ import pytest
 from failclosed import import_or_require, require
 
 from testbed import scenario
-from testbed.io import foxglove_topics as fx
-from testbed.io import recording, schema
+from testbed.record import recording, schema
 from testbed.simulate import simulate_scenario
+from testbed.view import foxglove as fx
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +48,7 @@ def _messages(path, topic):
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        for sch, ch, m in make_reader(f).iter_messages(topics=[topic]):
+        for sch, _ch, m in make_reader(f).iter_messages(topics=[topic]):
             yield sch, m
 
 
@@ -62,7 +62,7 @@ def test_shipped_schemas_are_foxglove_sdks():
 def test_the_layout_file_is_current():
     import_or_require("foxglove.layouts", "foxglove")
     doc = ROOT / "docs" / "foxglove-layout.json"
-    assert doc.read_text() == fx.layout_json(), "regenerate: python -m testbed.io.foxglove_topics > " \
+    assert doc.read_text() == fx.layout_json(), "regenerate: python -m testbed.view.foxglove > " \
                                                 "docs/foxglove-layout.json"
 
 
@@ -228,7 +228,7 @@ class WsClient:
 @pytest.mark.process
 def test_run_foxglove_serves_the_run_live(tmp_path):
     import_or_require("foxglove", "foxglove")
-    from test_live_process import tb_cmd
+    from helpers import tb_cmd
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -291,7 +291,7 @@ def test_run_foxglove_serves_the_run_live(tmp_path):
 
 def test_the_outline_is_computed_off_the_writers_thread_and_not_at_fast_rates():
     """A recorder's writer thread must never wait for the outline's grid (a minute at T = 1 ms)."""
-    from testbed.io import messages as msg
+    from testbed.wire import messages as msg
 
     fast = scenario.with_overrides(scenario.load("paper"), {"T": 0.001})
     assert not fx.FoxgloveTopics(fast, background=True).roa_wanted

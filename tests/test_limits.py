@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from testbed import scenario
-from testbed.io import messages as msg
-from testbed.io import recording, transport
 from testbed.quantizer import MAX_CODES
+from testbed.record import reader, recording
 from testbed.simulate import simulate_batch, simulate_scenario, summarize
+from testbed.wire import messages as msg
+from testbed.wire import transport
 
 PY = sys.executable
 
@@ -80,7 +81,7 @@ def test_the_largest_codebook_works_end_to_end(tmp_path):
 
 @pytest.mark.process
 def test_the_largest_codebook_runs_live(tmp_path):
-    from test_live_process import live_exact, reap
+    from helpers import live_exact, reap
 
     f = tmp_path / "big.toml"
     f.write_text(_linear(2, BIG_M))
@@ -147,7 +148,7 @@ def test_the_recorder_survives_1e5_random_messages_in_bounded_memory(tmp_path):
     assert st["write_errors"] == 0, st
     assert st["malformed"] + st["written"] + st["rejected_k"] + st["warmup_skipped"] >= n * 0.9
     assert path.stat().st_size < 30e6  # malformed messages are recorded up to a bound, then only counted
-    r = recording.read(path)
+    r = reader.read(path)
     assert not r.truncated and max(r.telemetry["plant"], default=0) < sc.n_steps
     assert len(r.malformed) <= Recorder.MAX_MALFORMED
 
@@ -155,7 +156,7 @@ def test_the_recorder_survives_1e5_random_messages_in_bounded_memory(tmp_path):
 # ============================================================================ two runs in one second
 @pytest.mark.process
 def test_two_runs_started_in_the_same_second_never_share_a_recording(tmp_path):
-    from test_live_process import reap, tb_cmd
+    from helpers import reap, tb_cmd
 
     env = dict(os.environ, TESTBED_RECORDINGS_DIR=str(tmp_path))
     rids = [f"t{os.getpid()}xtwin{i}" for i in range(2)]
@@ -175,7 +176,7 @@ def test_two_runs_started_in_the_same_second_never_share_a_recording(tmp_path):
         paths.append(s["recording"]["path"])
     assert len(set(paths)) == 2 and all(rid in p for rid, p in zip(rids, paths))
     for rid, pth in zip(rids, paths):
-        r = recording.read(pth)
+        r = reader.read(pth)
         assert r.start.run_id == rid and not r.truncated and len(r.telemetry["plant"]) == 20
     # an explicit --out that exists is refused, never overwritten
     r = subprocess.run(tb_cmd("run", "paper", "--duration", "1", "--out", paths[0]), capture_output=True, text=True,

@@ -15,8 +15,8 @@ from failclosed import require
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from testbed.io import messages as msg
-from testbed.io import transport
+from testbed.wire import messages as msg
+from testbed.wire import transport
 
 i64 = st.integers(min_value=-(2**63), max_value=2**63 - 1)
 u32 = st.integers(min_value=0, max_value=2**32 - 1)
@@ -226,7 +226,7 @@ def test_free_port_and_endpoint_host():
 
 # ---------------------------------------------------------------- run options and scenario overrides
 def test_run_options_cli_roundtrip():
-    from testbed.nodes.common import RunOptions, add_run_option_arguments
+    from testbed.nodes.options import RunOptions, add_run_option_arguments
 
     o = RunOptions(duration=5.0, T=0.05, timing="physical", deadline=0.4, mode="ideal", ack_via_attacker=True,
                    separate_ack=True, colocate=("encoder",))
@@ -272,7 +272,7 @@ def test_low_latency_config_and_router_without_scouting_delay():
 
 def test_parse_cpus():
     from testbed.errors import BadInput
-    from testbed.nodes.common import parse_cpus
+    from testbed.nodes.process import parse_cpus
 
     cpu = min(os.sched_getaffinity(0))
     assert parse_cpus(str(cpu)) == {cpu}
@@ -285,7 +285,7 @@ def test_parse_cpus():
 def test_telemetry_is_published_off_the_callers_thread_in_order():
     import threading
 
-    from testbed.nodes.common import TelemetryOut
+    from testbed.nodes.context import TelemetryOut
 
     got, threads = [], []
 
@@ -314,7 +314,7 @@ def test_telemetry_is_published_off_the_callers_thread_in_order():
 
 
 def test_load_scenario_overrides_and_digest(paper):
-    from testbed.nodes.common import RunOptions, T_ns, load_scenario, run_digest
+    from testbed.nodes.options import RunOptions, T_ns, load_scenario, run_digest
 
     sc = load_scenario("paper", RunOptions(duration=5.0))
     assert sc.n_steps == 50 and sc.T == paper.T and np.array_equal(sc.K, paper.K)
@@ -329,7 +329,7 @@ def test_load_scenario_overrides_and_digest(paper):
 
 def test_load_scenario_T_override_is_validated():
     from testbed.errors import BadInput
-    from testbed.nodes.common import RunOptions, load_scenario
+    from testbed.nodes.options import RunOptions, load_scenario
 
     sc = load_scenario("pendulum", RunOptions(T=0.01, duration=1.0))  # LQR gain: recomputed for T
     assert sc.T == 0.01 and sc.n_steps == 100
@@ -349,7 +349,7 @@ def test_parse_corrupt():
 
 
 def test_percentiles():
-    from testbed.runsummary import percentiles
+    from testbed.record.summary import percentiles
 
     p = percentiles([1000, 2000, 3000, msg.NO_TIME])
     assert p["n"] == 3 and p["p50"] == 2.0 and p["max"] == 3.0
@@ -361,7 +361,7 @@ def test_run_clock_converts_realtime_to_monotonic():
     loaded machine may stall any line here); sleep_until never returns early."""
     import time
 
-    from testbed.nodes.common import RunClock
+    from testbed.nodes.clock import RunClock
 
     t0 = time.time_ns() + 50_000_000
     c = RunClock(t0)
@@ -408,7 +408,7 @@ def test_realtime_leaves_niced_background_threads_alone():
     """--realtime: SCHED_FIFO for the loop's threads, not for a niced logging thread (the Rerun tap)."""
     import os
 
-    from testbed.nodes.common import set_realtime
+    from testbed.nodes.process import set_realtime
 
     ready, done = threading.Event(), threading.Event()
     tid = {}

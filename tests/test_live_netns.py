@@ -21,9 +21,7 @@ import sys
 
 import pytest
 from failclosed import require, rerun_while_stalled
-
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, TOPOLOGIES, _node_logs, reap,  # noqa: F401
-                               run_cli, simulate)
+from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, TOPOLOGIES, mismatch, reap, run_cli, simulate
 
 pytestmark = pytest.mark.process
 
@@ -84,7 +82,7 @@ def _run_in_namespaces(names, addr, run_id, topology=()):
     scheme = "tls" if "peer" in topology else "tcp"
     cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
            "--duration", "5", "--json", "--run-id", run_id, "--listen", f"{scheme}/{addr['hub']}:{port}",
-           "--run-dir", os.path.join(_LOGS, run_id), *topology]
+           "--run-dir", os.path.join(LOGS, run_id), *topology]
     for r in ROLES:
         cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}={scheme}/{addr[r]}:0"]
     try:
@@ -116,9 +114,9 @@ def test_paper_across_network_namespaces(netns, topology):
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)
     # the recorder, beside the launcher, got every node's telemetry across the bridge
-    from testbed.io import recording
+    from testbed.record import reader
 
-    rec = recording.read(s["recording"]["path"])
+    rec = reader.read(s["recording"]["path"])
     assert s["recording"]["complete"] and not rec.truncated
     for r in ROLES:
         assert sorted(rec.telemetry[r]) == list(range(s["samples"])), r

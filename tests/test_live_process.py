@@ -10,161 +10,29 @@ import json
 import math
 import os
 import secrets
-import shutil
 import signal
 import subprocess
-import sys
-import tempfile
 import time
 
 import pytest
-from failclosed import require, rerun_while_stalled
+from failclosed import require
+from helpers import (
+    BIT_EXACT_KEYS,
+    LOGS,
+    TIMEOUT,
+    TOPOLOGIES,
+    WITH_PEER,
+    live,
+    live_exact,
+    mismatch,
+    procs_with,
+    reap,
+    run_cli,
+    simulate,
+    tb_cmd,
+)
 
 pytestmark = pytest.mark.process
-
-PY = sys.executable
-TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))  # JIT warm-up of 4 nodes on 2 cores
-
-
-def tb_cmd(*args) -> list[str]:
-    return [PY, "-m", "testbed.cli", *args]
-
-
-def procs_with(token: str) -> list[int]:
-    """Pids whose command line contains ``token`` (this process excluded)."""
-    out = []
-    for d in os.listdir("/proc"):
-        if not d.isdigit() or int(d) == os.getpid():
-            continue
-        try:
-            with open(f"/proc/{d}/cmdline", "rb") as f:
-                cmd = f.read().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        if token in cmd:
-            out.append(int(d))
-    return out
-
-
-def cmdlines(pids: list[int]) -> list[str]:
-    """``pid: command line`` of each pid, for assertion messages."""
-    out = []
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                cmd = f.read().replace(b"\0", b" ").decode(errors="replace")
-            out.append(f"{pid}: {cmd[:200]}")
-        except OSError:
-            out.append(f"{pid}: (gone)")
-    return out
-
-
-def reap(token: str, wait: float = 5.0) -> list[int]:
-    """Wait for processes of a run to go, SIGKILL whatever is left; returns the leftovers."""
-    end = time.monotonic() + wait
-    left = procs_with(token)
-    while left and time.monotonic() < end:
-        time.sleep(0.1)
-        left = procs_with(token)
-    for pid in left:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    return left
-
-
-def run_cli(cmd: list[str], timeout: float = TIMEOUT):
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        out, err = p.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        out, err = p.communicate()
-        pytest.fail(f"{' '.join(cmd)} did not finish in {timeout} s\n{err[-3000:]}")
-    return p.returncode, out, err
-
-
-_LOGS = tempfile.mkdtemp(prefix="testbed-live-tests-")
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _node_logs(request):
-    """Node logs of runs with faults go to one directory, removed after the session (kept if a test failed)."""
-    yield
-    if request.session.testsfailed:
-        print(f"\nnode logs of the live runs kept in {_LOGS}", file=sys.stderr)
-    else:
-        shutil.rmtree(_LOGS, ignore_errors=True)
-
-
-def mismatch(s: dict, sim: dict, key: str) -> str:
-    """Why a live run differs from the simulator: the first sample where ``key`` differs and the run's
-    own account around it (for a failure that reports no stall: what happened there)."""
-    a, b = s.get(key), sim.get(key)
-    if not isinstance(a, list) or not isinstance(b, list):
-        return f"{key}: {a!r} != {b!r}"
-    k = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
-    lo, hi = max(0, k - 2), k + 2
-    near = {c: (s.get(c) or [])[lo:hi] for c in ("theta", "symbols", "E", "u", "x") if isinstance(s.get(c), list)}
-    simnear = {c: (sim.get(c) or [])[lo:hi] for c in ("theta", "symbols", "E", "u", "x") if isinstance(sim.get(c), list)}
-    tm = s.get("timing", {})
-    return (f"{key} first differs at sample {k} (live {a[k] if k < len(a) else None!r}, simulator "
-            f"{b[k] if k < len(b) else None!r}); live {lo}..{hi - 1}: {near}; simulator: {simnear}; "
-            f"events {s.get('events')}; loss_reasons {s.get('loss_reasons')}; withheld_at {s.get('withheld_at')}; "
-            f"stages {tm.get('stages_us')}; jitter {tm.get('sampling_jitter_us')}; "
-            f"encoder {s.get('node_summaries', {}).get('encoder')}")
-
-
-def live(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
-    """``testbed run SCENARIO --json`` -> (exit code, summary, stderr)."""
-    rc, out, err = run_cli(tb_cmd("run", scenario, "--json", "--run-id", run_id,
-                                  "--run-dir", os.path.join(_LOGS, run_id), *args), timeout)
-    try:
-        summary = json.loads(out)
-    except json.JSONDecodeError:
-        pytest.fail(f"no JSON summary (exit {rc})\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
-    return rc, summary, err
-
-
-def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
-    """``live`` for the bit-exact tests, under the one rerun policy (``failclosed.rerun_while_stalled``):
-    a run that reports a timing fault of its own is run again (a new run id), up to twice; the last run
-    is returned, for the test to compare whatever it reports."""
-    def run(attempt):
-        if attempt:
-            reap(run_id + "r" * (attempt - 1))
-        again = (*args, "--force") if attempt and "--out" in args else args  # a stalled run's recording is replaced
-        return live(run_id + "r" * attempt, scenario, *again, timeout=timeout)
-
-    return rerun_while_stalled(run, scenario)
-
-
-@pytest.fixture
-def run_id():
-    rid = f"t{os.getpid()}x{secrets.token_hex(4)}"
-    yield rid
-    left = procs_with(rid)
-    names = cmdlines(left)
-    left = reap(rid)
-    assert not left, f"orphan processes of run {rid}: {names}"
-
-
-def simulate(scenario: str, duration: float) -> dict:
-    rc, out, err = run_cli(tb_cmd("simulate", scenario, "--duration", str(duration), "--json"))
-    assert rc == 0, err
-    return json.loads(out)
-
-
-BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "saturated_at", "x_final")
-
-#: the two topologies every key live test runs in: four node processes, and the encoder inside the
-#: plant's process (``--colocate encoder``, three network hops per sample)
-TOPOLOGIES = [pytest.param((), id="4proc"), pytest.param(("--colocate", "encoder"), id="colocated")]
-#: ... and the peer topology (direct links, mutual TLS, every receiver checks), for a few of them
-WITH_PEER = TOPOLOGIES + [pytest.param(("--topology", "peer"), id="peer"),
-                          pytest.param(("--topology", "peer", "--colocate", "encoder"), id="peer-colocated")]
-
 
 # ====================================================================== ideal timing: bit for bit
 @pytest.fixture(scope="module", params=TOPOLOGIES)
@@ -307,9 +175,9 @@ def test_controller_killed_plant_runs_on_with_zero_input(run_id, topology):
 def assert_recording_kept_the_run(s: dict, killed: str, k_kill: int) -> None:
     """Crash safety: the run's MCAP (the default one) holds the whole run, the killed node's
     samples up to its death, and the launcher's fault event."""
-    from testbed.io import recording
+    from testbed.record import reader
 
-    rec = recording.read(s["recording"]["path"])
+    rec = reader.read(s["recording"]["path"])
     assert not rec.truncated and s["recording"]["complete"], rec.read_error
     assert sorted(rec.telemetry["plant"]) == list(range(s["samples"]))
     ks = sorted(rec.telemetry[killed])
@@ -350,6 +218,24 @@ def test_exec_spawn_equals_simulator(run_id):
     assert len({s["node_summaries"][r]["pid"] for r in ("plant", "encoder", "attacker", "controller")}) == 4
 
 
+@pytest.mark.parametrize("rx", ["direct", "spin"])
+def test_receive_modes_equal_simulator(run_id, rx):
+    """``--rx direct`` (handlers on Zenoh's receive thread) and ``--rx spin`` (the primary input through an
+    ``Inlet``, its own thread spinning before the input is due): the same run, bit for bit."""
+    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--rx", rx, "--no-record")
+    assert rc == 0, (s["faults"], err[-2000:])
+    sim = simulate("paper", 3)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], mismatch(s, sim, key)
+    for role in ("plant", "encoder", "attacker", "controller"):
+        assert s["node_summaries"][role]["rx"] == rx, (role, s["node_summaries"][role])
+    inlets = {r: v["rx_inlet"] for r, v in s["node_summaries"].items() if "rx_inlet" in v}
+    if rx == "spin":  # every node's primary input went through its Inlet, which saw the messages
+        assert inlets and all(v["spun"] + v["woken"] > 0 for v in inlets.values()), inlets
+    else:
+        assert not inlets, inlets
+
+
 def test_colocated_encoder_killed_just_before_the_end_is_reported(run_id):
     """Its host closes a colocated encoder at the end too: the launcher tells that apart from a
     death near the end (no summary from the encoder, though the plant's came), and a clean run's
@@ -376,7 +262,7 @@ def test_node_crash_is_reported_with_its_reason(run_id):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_launcher_signal_stops_everything(run_id, sig):
     p = subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id, "--duration", "30",
-                                "--run-dir", os.path.join(_LOGS, run_id)),
+                                "--run-dir", os.path.join(LOGS, run_id)),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         end = time.monotonic() + TIMEOUT
@@ -482,8 +368,8 @@ def test_standalone_nodes(run_id, tmp_path, topology):
 
     import zenoh
 
-    from testbed.io import messages as msg
-    from testbed.io import transport
+    from testbed.wire import messages as msg
+    from testbed.wire import transport
 
     peer = topology == "peer"
     secret = str(tmp_path / ("tls" if peer else "run.secret"))
@@ -557,7 +443,7 @@ def test_standalone_nodes(run_id, tmp_path, topology):
 
 def test_mismatched_run_options_are_refused(run_id):
     """A node started with other run options than the plant's does not join the run."""
-    from testbed.io import transport
+    from testbed.wire import transport
 
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     procs = {}

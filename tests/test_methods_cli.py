@@ -120,7 +120,7 @@ def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     assert rc == 0, err
     rep = json.loads(out)
     assert rep["x"] == sim["x"] and rep["method"] == "mymethod:CenteredZoom"
-    from testbed.io.columns import read_metadata
+    from testbed.record.columns import read_metadata
 
     meta, _ = read_metadata(method_dir.parent / "run.mcap")
     m = meta["testbed.scenario"]

@@ -123,7 +123,7 @@ def test_sweep_and_roa_json_name_plant_and_model(capsys):
 @pytest.mark.process
 def test_paper_mismatch_live_equals_its_simulation():
     """testbed run paper-mismatch (ideal timing) past the first OVERFLOW (sample 63): the simulator's run."""
-    from test_live_process import BIT_EXACT_KEYS, mismatch, live_exact, reap, simulate
+    from helpers import BIT_EXACT_KEYS, live_exact, mismatch, reap, simulate
 
     rid = f"t{os.getpid()}xmm{secrets.token_hex(3)}"
     try:

@@ -281,7 +281,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     """testbed run from another folder: every node and the recorder import the module from the scenario's
     folder; the run equals testbed simulate bit for bit, and testbed report reads its recording."""
     from failclosed import rerun_while_stalled
-    from test_live_process import BIT_EXACT_KEYS, mismatch, reap
+    from helpers import BIT_EXACT_KEYS, mismatch, reap
 
     work = plant_dir.parent / "elsewhere"
     rec = plant_dir.parent / "live.mcap"
@@ -320,7 +320,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
 
 def test_launcher_says_when_a_run_never_started(capsys):
     """A run whose nodes could not load the plant prints why, not a summary of a loop that never ran."""
-    from testbed.launcher import print_text
+    from testbed.commands.run import print_text
 
     why = "testbed node: vdp.toml: [plant] unknown plant 'vanderpol'"
     print_text({"samples": 0, "run_id": "r1", "scenario": "vdp", "outcome": "plant exited before the start",
@@ -345,7 +345,7 @@ def test_a_plant_file_may_not_shadow_an_imported_module(tmp_path):
 def test_recorded_model_module_is_stored_too(tmp_path):
     """A [model] of a class of your own (model mismatch): its source is in the recording as well."""
     from testbed import scenario
-    from testbed.io.recording import record_simulation
+    from testbed.record.recording import record_simulation
     from testbed.simulate import simulate_scenario
 
     (tmp_path / "mymodels.py").write_text(VDP)

@@ -1,7 +1,7 @@
 """Recordings as data (fast tier): the columnar reader, testbed.open / simulate, export, compare, bad input.
 
-The columnar reader (``testbed.io.columns``) is checked against the reference
-reader (``testbed.io.recording.read``, protobuf classes and dataclasses) on
+The columnar reader (``testbed.record.columns``) is checked against the reference
+reader (``testbed.record.reader.read``, protobuf classes and dataclasses) on
 complete and cut files; the streamed ``report --json`` against the in-memory
 report; export round-trips through pyarrow; compare on identical and different
 runs; and every command that reads a recording turns cut, bit-flipped, foreign
@@ -21,15 +21,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_columns_equal_reference
 
 import testbed
 from testbed import scenario
 from testbed.errors import BadInput
-from testbed.io import columns, recording, schema
-from testbed.io import messages as msg
+from testbed.record import columns, reader, recording, schema, topics
+from testbed.record.summary import write_json
 from testbed.report import report
-from testbed.runsummary import write_json
 from testbed.simulate import simulate_scenario
+from testbed.wire import messages as msg
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,30 +48,7 @@ def _cli(*args, timeout=120):
     return subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout)
 
 
-def assert_columns_equal_reference(cols, rec):
-    """Every field of every telemetry dataclass the reference reader decoded equals the column's value."""
-    names = {"plant": msg.PlantTelemetry, "encoder": msg.EncoderTelemetry, "controller": msg.ControllerTelemetry,
-             "attacker": msg.AttackerTelemetry}
-    for role, cls in names.items():
-        ref = rec.telemetry[role]
-        has = cols.has(role)
-        assert sorted(ref) == np.flatnonzero(has).tolist(), role
-        for f in dataclasses.fields(cls):
-            if f.name == "k":
-                continue
-            col = cols.get(role, f.name)
-            for k, t in ref.items():
-                want = getattr(t, f.name)
-                if role == "encoder" and t.silent and f.name in ("xi", "q", "E", "symbol"):
-                    continue  # not sent; the columns hold NaN / -1 there
-                if isinstance(want, tuple):
-                    assert np.array_equal(col[k], np.array(want)), (role, f.name, k)
-                else:
-                    assert col[k] == want, (role, f.name, k)
-    if rec.plant_final is not None:
-        assert cols.final["k"] == rec.plant_final.k and np.array_equal(cols.final["x"], rec.plant_final.x)
-    assert len(cols.events) == len(rec.events) and len(cols.status) == len(rec.status)
-    assert dict(cols.counts) == dict(rec.counts)
+
 
 
 # ---------------------------------------------------------------------------- the reader
@@ -79,7 +57,7 @@ def test_columns_equal_the_reference_reader(tmp_path, name):
     sc, res, path = _sim(tmp_path, name, duration=6.0)
     cols = columns.read_columns(path)
     assert not cols.truncated and cols.rows == sc.n_steps and not cols.rejected and cols.malformed == 0
-    assert_columns_equal_reference(cols, recording.read(path))
+    assert_columns_equal_reference(cols, reader.read(path))
     assert np.array_equal(cols.get("encoder", "E"), res.E_enc) and np.array_equal(cols.get("plant", "x"), res.x)
 
 
@@ -97,7 +75,7 @@ def test_a_file_cut_mid_chunk_reads_like_the_reference(tmp_path):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[:c.chunk_start_offset + c.chunk_length // 2])   # in the middle of a chunk
     cols = columns.read_columns(cut)
-    rec = recording.read(cut)
+    rec = reader.read(cut)
     assert cols.truncated and rec.truncated and 0 < cols.last_k("plant") < len(res.t) - 1
     assert_columns_equal_reference(cols, rec)
     r = _cli("report", cut)
@@ -228,7 +206,7 @@ def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
     recording.write_text_metadata(w, sc, source="live", run_id="fuzz",
                                   extra={"scenario_overrides": {"duration": 100.0}})
     cls = schema.classes()
-    roles = list(recording.TELEMETRY_SCHEMA.items())
+    roles = list(topics.TELEMETRY_SCHEMA.items())
     n_msgs = 100_000
     for i in range(n_msgs):
         role, name = roles[i % 4]
@@ -245,11 +223,11 @@ def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
             data = m.SerializeToString()
             if i % 7 == 0:  # a varint cut or a length prefix gone wrong
                 data = data[:rng.randrange(len(data) + 1)] + bytes([0xFF] * rng.randrange(3))
-        w.write_bytes(recording.TELEMETRY_TOPICS[role], name, data, i)
+        w.write_bytes(topics.TELEMETRY_TOPICS[role], name, data, i)
     w.close()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     cols = columns.read_columns(path)
-    assert sum(cols.counts[recording.TELEMETRY_TOPICS[r]] for r in recording.TELEMETRY_TOPICS) == n_msgs
+    assert sum(cols.counts[topics.TELEMETRY_TOPICS[r]] for r in topics.TELEMETRY_TOPICS) == n_msgs
     accepted = int(cols.present.sum()) + cols.duplicates
     assert accepted + cols.malformed + sum(cols.rejected.values()) + cols.finals == n_msgs
     assert cols.rows == 1000 and cols.malformed > n_msgs / 3
@@ -361,10 +339,10 @@ def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
     from collections import Counter
 
     from testbed.quantizer import Codebook
-    from testbed.runsummary import build_summary
+    from testbed.record.summary import build_summary
 
     sc, res, path = _sim(tmp_path, "paper", duration=5.0)
-    rec = recording.read(path)
+    rec = reader.read(path)
     tele = {r: dict(d) for r, d in rec.telemetry.items()}
     for role in ("encoder", "attacker"):   # both die after sample 9
         tele[role] = {k: t for k, t in tele[role].items() if k < 10}

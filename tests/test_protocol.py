@@ -1,6 +1,5 @@
 """The protocol core (testbed/protocol.py), actuation delays in both simulators, the delay-aware rule."""
 
-import dataclasses
 import math
 import tomllib
 
@@ -12,10 +11,21 @@ from hypothesis import strategies as st
 import plants
 from testbed import scenario
 from testbed.flow import phi_T
-from testbed.protocol import (DEADLINE, INVALID, RECEIVED, SUPERSEDED, ControllerProtocol, EncoderProtocol,
-                              OdeProcess, PlantProtocol, Send, Withhold)
+from testbed.protocol import (
+    DEADLINE,
+    INVALID,
+    RECEIVED,
+    SUPERSEDED,
+    ControllerProtocol,
+    EncoderProtocol,
+    OdeProcess,
+    PlantProtocol,
+    Send,
+    Withhold,
+)
 from testbed.quantizer import Decoder, Encoder, delay_margin_gain
-from testbed.simulate import Network, OnlineAttacker, simulate_batch, simulate_loop, simulate_scenario
+from testbed.simloop import Network, OnlineAttacker, simulate_loop
+from testbed.simulate import simulate_batch, simulate_scenario
 
 
 def physical(name: str, **run) -> scenario.Scenario:

@@ -9,9 +9,8 @@ from hypothesis import strategies as st
 
 import plants
 from testbed.flow import phi_T
-from testbed.quantizer import (Codebook, Decoder, Encoder, InvalidSymbol, QuantizerParams, box_center,
-                               quantize_index)
-from testbed.simulate import OnlineAttacker, simulate_loop
+from testbed.quantizer import Codebook, Decoder, Encoder, InvalidSymbol, QuantizerParams, box_center, quantize_index
+from testbed.simloop import OnlineAttacker, simulate_loop
 
 LIENARD = plants.make("lienard")
 K_PAPER = np.array([[-1.81, -1.90]])
@@ -139,7 +138,7 @@ def test_invalid_symbol_is_a_counted_loss_and_keeps_lockstep():
     assert dec.invalid == 3
 
 
-def _run_with_kick(mode, kick_at=15, kick=np.array([0.2, -0.2]), N=300, **kw):
+def _run_with_kick(mode, kick_at=15, kick=np.array([0.2, -0.2]), N=300, **kw):  # noqa: B008 - never written
     """A loop whose plant is kicked once: model mismatch puts x_k outside Q(xi_k, E_k)."""
     qp = _qp(mode, **kw)
     enc = Encoder(LIENARD, K_PAPER, qp)
@@ -184,7 +183,7 @@ def test_overflow_recovers_even_after_E_underflowed_to_zero():
     dec = Decoder(LIENARD, K_PAPER, qp)
     enc.E = dec.E = 0.0
     x = np.array([0.01, -0.01])
-    for k in range(300):
+    for _k in range(300):
         sym, _ = enc.encode(x)
         u, q, th = dec.step(sym)
         enc.ack(th)

@@ -15,10 +15,10 @@ import pytest
 from failclosed import require
 
 from testbed import scenario
-from testbed.io import messages as msg
-from testbed.io import recording, schema
+from testbed.record import reader, recording, schema
 from testbed.report import report
 from testbed.simulate import simulate_scenario, summarize
+from testbed.wire import messages as msg
 
 PY = sys.executable
 
@@ -80,7 +80,7 @@ def test_report_of_a_simulation_equals_simulate_json(tmp_path, name):
 
 def test_overrides_are_stored_and_reapplied(tmp_path):
     sc, res, path = _sim_recording(tmp_path, "paper", duration=3.0, mode="ideal")
-    rec = recording.read(path)
+    rec = reader.read(path)
     back = rec.scenario()
     assert back.run.duration == 3.0 and back.quantizer.mode == "ideal" and back.n_steps == 30
     assert rec.metadata["testbed.scenario"]["toml"] == scenario.load("paper").source
@@ -116,7 +116,7 @@ def test_plain_mcap_reader_opens_and_decodes_it(tmp_path):
     with open(path, "rb") as f:
         r = make_reader(f)
         summ = r.get_summary()
-        assert summ.statistics.message_count == sum(recording.read(path).counts.values())
+        assert summ.statistics.message_count == sum(reader.read(path).counts.values())
         enc = []
         for sch, ch, m in r.iter_messages(topics=["/telemetry/encoder"]):
             assert sch.encoding == "protobuf" and ch.message_encoding == "protobuf"
@@ -172,7 +172,7 @@ def test_simulate_out_flag_writes_a_recording(tmp_path):
     r = subprocess.run([PY, "-m", "testbed.cli", "simulate", "paper", "--duration", "2", "--out", str(out)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert len(recording.read(out).telemetry["plant"]) == 20
+    assert len(reader.read(out).telemetry["plant"]) == 20
 
 
 # ---------------------------------------------------------------------------- bad input
@@ -180,7 +180,7 @@ def test_not_an_mcap_file_is_a_clear_error(tmp_path):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"hello, not a recording")
     with pytest.raises(ValueError, match="not an MCAP file"):
-        recording.read(bad)
+        reader.read(bad)
     r = subprocess.run([PY, "-m", "testbed.cli", "report", str(bad)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "not an MCAP file" in r.stderr
     r = subprocess.run([PY, "-m", "testbed.cli", "report", str(tmp_path / "missing.mcap")], capture_output=True,
@@ -195,7 +195,7 @@ def test_garbage_messages_are_counted_not_fatal(tmp_path):
                                                        silent=0, E=1.0, xi=(0.0,), q=(0.0,)), 10)
     w.write_bytes("/telemetry/encoder", "EncoderSample", b"\xff\xff\xff\xff", 20)  # not protobuf
     w.close()
-    rec = recording.read(path)
+    rec = reader.read(path)
     assert len(rec.telemetry["encoder"]) == 1 and len(rec.malformed) == 1
     with pytest.raises(ValueError, match="no scenario"):
         rec.scenario()
@@ -228,7 +228,7 @@ def test_a_file_cut_anywhere_reads_up_to_the_cut(tmp_path, frac):
                     if ci.chunk_start_offset + ci.chunk_length <= n_cut)
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[:n_cut])
-    rec = recording.read(cut)
+    rec = reader.read(cut)
     assert rec.truncated
     ks = sorted(rec.telemetry["encoder"])
     assert ks == list(range(len(ks)))           # a prefix, nothing invented
@@ -238,7 +238,8 @@ def test_a_file_cut_anywhere_reads_up_to_the_cut(tmp_path, frac):
 
 _WRITER = textwrap.dedent("""
     import sys, time
-    from testbed.io import recording, messages as msg
+    from testbed.record import recording
+    from testbed.wire import messages as msg
     w = recording.RecordingWriter(sys.argv[1], flush_interval=0.5)
     k = 0
     print("ready", flush=True)
@@ -264,7 +265,7 @@ def test_sigkill_of_a_writer_loses_at_most_the_last_second(tmp_path):
         if p.poll() is None:
             p.kill()
             p.wait()
-    rec = recording.read(path)
+    rec = reader.read(path)
     assert rec.truncated
     ks = sorted(rec.telemetry["attacker"])
     assert len(ks) > 500 and ks == list(range(len(ks)))
@@ -276,7 +277,7 @@ def test_the_format_document_is_current():
     from pathlib import Path
 
     doc = Path(__file__).resolve().parents[1] / "docs" / "recording-format.md"
-    assert doc.read_text() == recording.markdown(), "regenerate: python -m testbed.io.recording > docs/recording-format.md"
+    assert doc.read_text() == recording.markdown(), "regenerate: python -m testbed.record.recording > docs/recording-format.md"
 
 
 def test_rerun_decodes_the_protobuf_channels(tmp_path):

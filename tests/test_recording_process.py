@@ -11,16 +11,24 @@ import signal
 import subprocess
 import time
 
-import pytest
-from test_live_process import (BIT_EXACT_KEYS, TIMEOUT, TOPOLOGIES, cmdlines, live, live_exact,  # noqa: F401 - run_id
-                               procs_with, run_id, simulate, tb_cmd)
-
 import numpy as np
-from test_postmortem import assert_columns_equal_reference
+import pytest
+from helpers import (
+    BIT_EXACT_KEYS,
+    TIMEOUT,
+    TOPOLOGIES,
+    assert_columns_equal_reference,
+    cmdlines,
+    live,
+    live_exact,
+    procs_with,
+    simulate,
+    tb_cmd,
+)
 
 import testbed
 from testbed.compare import compare
-from testbed.io import columns, recording
+from testbed.record import columns, reader
 from testbed.report import report
 
 pytestmark = pytest.mark.process
@@ -43,7 +51,7 @@ def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path, to
     assert r["source"] == "live" and r["outcome"] == "done" and not r["recording"]["truncated"]
     assert r["timing"]["sampling_jitter_us"]["n"] == 50
     # what crossed the network is there too (T = 0.1 s: the control path is recorded)
-    msgs = recording.read(path).counts
+    msgs = reader.read(path).counts
     assert msgs["/loop/symbol/tx"] == 50 and msgs["/loop/actuation"] == 50
     # four messages a sample (the ack rides on the actuation), three when the encoder is colocated
     assert msgs.get("/loop/sensor", 0) == (0 if topology else 50) and "/loop/ack/tx" not in msgs
@@ -53,7 +61,7 @@ def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path, to
     # and the report's timing equals the launcher's
     assert r["timing"]["sensor_to_actuator_us"] == s["timing"]["sensor_to_actuator_us"]
     # the columnar reader equals the reference reader on a live recording, and the run is the simulation
-    assert_columns_equal_reference(columns.read_columns(path), recording.read(path))
+    assert_columns_equal_reference(columns.read_columns(path), reader.read(path))
     c = compare(path, "paper")
     assert c["identical"] and c["first_divergence"] is None and c["samples"]["a"] == 50, c
     run = testbed.open(path)
@@ -71,7 +79,7 @@ def test_recorder_killed_the_run_goes_on_and_the_file_reads(run_id, tmp_path):
     assert f["kind"] == "killed" and f["injected"]
     assert s["complete"] and not s["recording"]["complete"]
     assert "recorder died" in err
-    rec = recording.read(path)
+    rec = reader.read(path)
     assert rec.truncated
     ks = sorted(rec.telemetry["plant"])
     assert ks == list(range(len(ks)))
@@ -85,7 +93,7 @@ def test_plant_killed_the_recording_is_complete_and_says_so(run_id, tmp_path):
     path = tmp_path / "pk.mcap"
     rc, s, err = live(run_id, "paper", "--duration", "5", "--out", str(path), "--kill", "plant@1.5")
     assert rc == 1
-    rec = recording.read(path)
+    rec = reader.read(path)
     assert not rec.truncated and "testbed.recorder" in rec.metadata
     ks = sorted(rec.telemetry["plant"])
     assert 13 <= len(ks) <= 19 and ks == list(range(len(ks)))  # killed at 1.5 s (sample 15)
@@ -103,7 +111,7 @@ def test_launcher_sigkilled_the_recorder_still_finishes_the_file(run_id, tmp_pat
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         end = time.monotonic() + TIMEOUT
-        while time.monotonic() < end and not (path.exists() and len(recording.read(path).telemetry["plant"]) >= 10):
+        while time.monotonic() < end and not (path.exists() and len(reader.read(path).telemetry["plant"]) >= 10):
             time.sleep(0.5)
         os.kill(p.pid, signal.SIGKILL)
         p.wait(10)
@@ -115,7 +123,7 @@ def test_launcher_sigkilled_the_recorder_still_finishes_the_file(run_id, tmp_pat
     while procs_with(run_id) and time.monotonic() < end:   # nodes and recorder die with the launcher
         time.sleep(0.2)
     assert procs_with(run_id) == [], cmdlines(procs_with(run_id))
-    rec = recording.read(path)
+    rec = reader.read(path)
     assert not rec.truncated, rec.read_error          # PDEATHSIG: the recorder closed the file properly
     assert len(rec.telemetry["plant"]) >= 10
     assert json.loads(rec.metadata["testbed.recorder"]["received"]) > 0

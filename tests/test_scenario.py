@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from testbed import scenario
-from testbed.scenario import ScenarioError
+from testbed.scenariospec import ScenarioError
 
 GOOD = """
 [plant]
@@ -107,7 +107,7 @@ def test_reading_a_scenario_imports_no_numba():
     import subprocess
     import sys
 
-    code = ("import sys, testbed.cli, testbed.launcher, testbed.nodes.main, testbed.nodes.attacker\n"
+    code = ("import sys, testbed.cli, testbed.live.launcher, testbed.nodes.main, testbed.nodes.attacker\n"
             "from testbed import scenario\n"
             "for name in ('paper', 'pendulum', 'paper-greedy'):\n"
             "    sc = scenario.load(name)\n"

@@ -19,18 +19,16 @@ import json
 import math
 import os
 import signal
-import struct
 import subprocess
 import threading
 import time
 
 import pytest
 from failclosed import rerun_while_stalled
-from test_live_process import (_LOGS, BIT_EXACT_KEYS, mismatch, TIMEOUT, live, procs_with, reap,  # noqa: F401 - fixture
-                               run_id, simulate, tb_cmd)
+from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, mismatch, procs_with, simulate, tb_cmd
 
-from testbed.io import messages as msg
-from testbed.io import transport
+from testbed.wire import messages as msg
+from testbed.wire import transport
 
 pytestmark = pytest.mark.process
 
@@ -64,7 +62,7 @@ def listening_ports(token: str) -> list[int]:
 
 def start_run(run_id: str, *args) -> subprocess.Popen:
     return subprocess.Popen(tb_cmd("run", "paper", "--json", "--run-id", run_id,
-                                   "--run-dir", os.path.join(_LOGS, run_id), *args),
+                                   "--run-dir", os.path.join(LOGS, run_id), *args),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
@@ -124,7 +122,7 @@ def _outsider_configs(run_id, pt, peer, foreign):
                 for user, pw in ((None, None), ("plant", "guess"))]
     import glob
 
-    (ca,) = glob.glob(os.path.join(_LOGS, run_id, "secrets-*", "tls", "ca.pem"))
+    (ca,) = glob.glob(os.path.join(LOGS, run_id, "secrets-*", "tls", "ca.pem"))
     tls = dict(transport.TlsCredentials(foreign).zenoh("plant"), root_ca_certificate=ca)
     return [transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer"),
             transport.make_config(connect=[f"tls/127.0.0.1:{pt}"], mode="peer", tls=tls)]
@@ -254,7 +252,7 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     p = subprocess.Popen(tb_cmd("run", str(sc_file), "--json", "--run-id", run_id, "--run-dir",
-                                os.path.join(_LOGS, run_id), "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}",
+                                os.path.join(LOGS, run_id), "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}",
                                 "--secret-file", secret),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     forged = []
@@ -307,8 +305,8 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
     assert s["malformed"]["controller"] >= 1
     assert ev.get("stop_rejected", 0) >= 1
     # the recording counts the sample outside the run, it does not record it
-    from testbed.io import recording
+    from testbed.record import reader
 
-    rec = recording.read(s["recording"]["path"])
+    rec = reader.read(s["recording"]["path"])
     assert max(rec.telemetry["plant"]) == 59
     assert json.loads(rec.metadata["testbed.recorder"]["rejected_k"]) >= 1

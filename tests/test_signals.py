@@ -22,7 +22,7 @@ import pytest
 
 CHILD = textwrap.dedent("""
     import signal, sys, threading, time
-    from testbed.nodes.common import on_stop_signals
+    from testbed.nodes.process import on_stop_signals
     stop = threading.Event()
     mode = sys.argv[1]
     if mode == "new":

@@ -11,8 +11,8 @@ import pytest
 import plants
 from testbed import cli, scenario
 from testbed.flow import FLOW_OK, phi_T
-from testbed.simulate import (OnlineAttacker, in_nominal_roa, simulate_batch, simulate_loop,
-                              simulate_scenario, summarize)
+from testbed.simloop import OnlineAttacker, simulate_loop
+from testbed.simulate import in_nominal_roa, simulate_batch, simulate_scenario, summarize
 
 
 def _open_loop_limit_cycle(p):

@@ -9,7 +9,7 @@ import stat
 import pytest
 
 from testbed.errors import BadInput
-from testbed.io import transport
+from testbed.wire import transport
 
 
 def test_a_tls_folder_has_an_authority_without_its_key_and_one_certificate_per_process(tmp_path):
@@ -79,7 +79,7 @@ def test_a_tls_session_speaks_tls_only_and_checks_by_certificate_name(tmp_path):
 def test_a_node_of_the_peer_topology_needs_tls_endpoints(tmp_path):
     import argparse
 
-    from testbed.nodes.common import zenoh_config
+    from testbed.wire.session import zenoh_config
 
     d = transport.TlsCredentials.new(tmp_path / "tls").folder
     base = dict(listen=[], connect=[], zenoh_config=None, topology="peer", insecure=False, secret_file=None,

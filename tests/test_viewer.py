@@ -1,4 +1,4 @@
-"""The Rerun view (``testbed.io.viewer``): simulate --rrd, replay of an MCAP, and a live run with --rerun save.
+"""The Rerun view (``testbed.view.rerun``): simulate --rrd, replay of an MCAP, and a live run with --rerun save.
 
 Every test writes a ``.rrd`` and reads it back with ``rerun.chunk.RrdReader``:
 the entities are there and the logged E_k is the recording's (bit for bit);
@@ -16,14 +16,12 @@ import sys
 
 import numpy as np
 import pytest
-
 import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
 from failclosed import require
 from rerun.chunk import RrdReader
 
-from test_live_process import run_id  # noqa: E402,F401 - fixture (reaps the run's processes)
-
-from testbed.io import viewer  # noqa: E402
+from testbed.view import phase
+from testbed.view import rerun as viewer
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 PY = sys.executable
@@ -73,10 +71,10 @@ def test_attack_intervals_to_samples():
 def test_roa_outline_paper_and_none_for_cartpole(paper):
     from testbed import scenario
 
-    out = viewer.roa_outline(paper, grid=31)
+    out = phase.roa_outline(paper, grid=31)
     assert out is not None and out.lines and 0.0 < out.fraction < 1.0
     assert all(ln.shape[1] == 2 for ln in out.lines)
-    assert viewer.roa_outline(scenario.load("cartpole")) is None
+    assert phase.roa_outline(scenario.load("cartpole")) is None
 
 
 # ---------------------------------------------------------------- simulate --rrd
@@ -138,9 +136,9 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
 # ---------------------------------------------------------------- live: testbed run --rerun save
 @pytest.mark.process
 def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
-    from testbed.io import recording
+    from testbed.record import reader
 
     rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
     rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
@@ -157,7 +155,7 @@ def test_live_run_rerun_save_one_recording_from_every_node(tmp_path, run_id):
     assert len(recs) == 1 and recs[0].recording_id == run_id  # the launcher and four nodes: one recording
     assert len(r.blueprints()) == 1
     assert ENTITIES | {"/phase/roa", "/scenario"} <= entity_paths(rrd)
-    rec = recording.read(mcap)
+    rec = reader.read(mcap)
     enc = rec.telemetry["encoder"]
     want = {k: t.E for k, t in enc.items() if not t.silent}
     E = scalars(rrd, "/encoder/E")
@@ -184,7 +182,7 @@ def _stream_entities(path) -> tuple[set[str], list]:
 @pytest.mark.process
 def test_live_run_rerun_connect_streams_to_a_grpc_server(tmp_path, run_id):
     """A real Rerun gRPC server (``rerun --port P --save F``, no viewer window) receives the run."""
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     got = tmp_path / "server.rrd"
     with viewer.saving_server(got) as url:
@@ -205,7 +203,7 @@ def test_live_run_rerun_connect_streams_to_a_grpc_server(tmp_path, run_id):
 @pytest.mark.process
 def test_live_rerun_save_merges_when_a_node_was_killed(tmp_path, run_id):
     """The killed node's part file has no footer; the merge keeps the others' data and the file verifies."""
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     rrd = tmp_path / "killed.rrd"
     rc, out, err = run_cli(tb_cmd("run", "paper", "--duration", "3", "--run-id", run_id, "--json",
@@ -234,7 +232,7 @@ def _port_busy(port: int) -> bool:
 
 
 def _rerun_pids() -> set[int]:
-    from test_live_process import procs_with
+    from helpers import procs_with
 
     return set(procs_with(viewer.rerun_binary()))
 
@@ -246,7 +244,7 @@ def test_live_run_rerun_spawn_reuses_the_viewer_on_its_port(tmp_path, run_id):
     A headless saving server stands in for the viewer (there is no display here);
     what is not tested is the window a spawn opens when nothing listens there.
     """
-    from test_live_process import run_cli, tb_cmd
+    from helpers import run_cli, tb_cmd
 
     if _port_busy(9876):
         require("port9876", "port 9876 is taken on this machine")

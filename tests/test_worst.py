@@ -20,8 +20,17 @@ import pytest
 from attackers import budget
 from attackers.schedule import Schedule
 from testbed import scenario
-from testbed.analysis.worst import (Loop, all_schedules, count_schedules, evaluate, least_duration_samples, realize,
-                                    runs_to_intervals, theta_table, worst_attack)
+from testbed.analysis.worst import (
+    Loop,
+    all_schedules,
+    count_schedules,
+    evaluate,
+    least_duration_samples,
+    realize,
+    runs_to_intervals,
+    theta_table,
+    worst_attack,
+)
 
 
 @pytest.fixture(scope="module")

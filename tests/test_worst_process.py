@@ -17,7 +17,7 @@ pytestmark = pytest.mark.process
 
 
 def test_the_worst_attack_scenario_escapes_live(tmp_path):
-    from test_live_process import live_exact, reap
+    from helpers import live_exact, reap
 
     # the paper's loop over a 3 s horizon (a live run of 3 s); two attacks at most
     base = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-OUT = Path(__file__).resolve().parents[1] / "testbed" / "io" / "foxglove_schemas"
+OUT = Path(__file__).resolve().parents[1] / "testbed" / "view" / "foxglove_schemas"
 NAMES = ("Log", "SceneUpdate")
 
 

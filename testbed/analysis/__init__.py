@@ -14,8 +14,8 @@ Agg backend, imported only when drawing.
 * :mod:`.figures`: the PNG figures; :mod:`.cli`: ``testbed analyze | roa | sweep``.
 """
 
-from .theorem1 import (Certificate, Loop, Region, allowable_region, analyze_theorem1, plain_certificate,
-                       stability_lhs)
+from .region import Region, allowable_region, analyze_theorem1
+from .theorem1 import Certificate, Loop, plain_certificate, stability_lhs
 from .theorem2 import RemainderRadius, lemma_constants, theorem2, theorem2_auto
 
 __all__ = ["Loop", "Certificate", "Region", "allowable_region", "analyze_theorem1", "plain_certificate",

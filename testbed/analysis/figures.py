@@ -58,7 +58,7 @@ def plot_time_series(res, path, *, title: str = "", intervals=None, size: str = 
 
     Parameters
     ----------
-    res : a ``testbed.simulate.SimResult`` (or anything with ``T, t, x, u, E_enc, E_dec, theta``;
+    res : a ``testbed.simloop.SimResult`` (or anything with ``T, t, x, u, E_enc, E_dec, theta``;
         :func:`series_of_run` makes one of a ``Run``).
     intervals : attack intervals [(a_i, tau_i), ...] to shade (default: runs of lost samples).
     size : ``"column"`` or ``"page"`` (``testbed.figstyle``).
@@ -188,7 +188,7 @@ def plot_allowable_region(path, *, regions=None, plain=None, sweep=None, budget=
 
     Parameters
     ----------
-    regions : dict rule -> :class:`testbed.analysis.theorem1.Region`.
+    regions : dict rule -> :class:`testbed.analysis.region.Region`.
     plain : the plain :class:`Certificate` (its triangle is drawn dashed).
     sweep : :class:`testbed.analysis.sweep.SweepResult` (worst-case converged fraction
         as background, the empirical boundary per kind as lines).
@@ -196,7 +196,6 @@ def plot_allowable_region(path, *, regions=None, plain=None, sweep=None, budget=
     zoom : add a second panel zoomed on the theoretical region (with a sweep only).
     sweep_zoom : a finer sweep over the zoomed window, shown as its background.
     """
-    from matplotlib.lines import Line2D
 
     n_panels = 2 if (zoom and sweep is not None) else 1
     with figstyle.style(size):
@@ -317,7 +316,7 @@ def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2
 
     Parameters
     ----------
-    vm : a :class:`testbed.analysis.worst.VulnerabilityMap`.
+    vm : a :class:`testbed.analysis.vulnerability.VulnerabilityMap`.
     roa : the :class:`testbed.analysis.roa.RoaResult` it was computed on (its outline is drawn).
     x0 : optional initial state to mark.
     show : "duration" (the least total duration of at most ``vm.attacks`` attacks) or "samples"
@@ -429,7 +428,7 @@ def plot_compare(a_run, b_run, path, *, names=("A", "B"), title: str = "", size:
                 axs[1].text(0.5, 0.5, "$x_A = x_B$ at every sample", transform=axs[1].transAxes, ha="center",
                             va="center")
         axs[1].set_ylabel("$\\|x_A - x_B\\|_\\infty$")
-        for row, (run, t, name) in enumerate(((a_run, ta, names[0]), (b_run, tb, names[1]))):
+        for row, (run, t, _name) in enumerate(((a_run, ta, names[0]), (b_run, tb, names[1]))):
             lost = np.asarray(run.arrays["theta"]).astype(bool)
             axs[2].plot(t[lost], np.full(int(lost.sum()), 1 - row), "|", color=figstyle.VERMILLION, ms=6, mew=1.0)
         axs[2].set_yticks([1, 0], [names[0], names[1]])

@@ -13,8 +13,9 @@ import numpy as np
 from attackers.budget import check as budget_check
 
 from ..simulate import EscapeCriterion, in_nominal_roa, plant_and_model, simulate_batch
+from .region import analyze_theorem1
 from .sweep import classify, run_grouped
-from .theorem1 import RULES, Loop, analyze_theorem1
+from .theorem1 import RULES, Loop
 from .theorem2 import RemainderRadius, delta_for_gamma, gamma_for_delta, theorem2, theorem2_auto
 
 #: the value of delta the paper reports for its example (Section V)

@@ -50,8 +50,7 @@ for ``testbed simulate``, ``run``, ``report``, ``sweep`` and ``vulnerability``.
   per N, below how many lost samples this was shown, within the N samples).
 
 Every candidate schedule is one row of a theta table; a batch of them is one
-``parallel.run_batch`` call, so the search runs on all cores or a Dask cluster.
-"""
+``parallel.run_batch`` call, so the search runs on all cores or a Dask cluster."""
 
 from __future__ import annotations
 
@@ -68,7 +67,11 @@ from .sweep import classify
 
 #: thresholds and scores tried for the greedy attacker's comparison
 GREEDY_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 0.9)
+
+
 GREEDY_SCORES = ("state", "E")
+
+
 #: the batch fields an evaluation needs
 _EVAL_FIELDS = ("x_final", "status", "max_norm", "state_final")
 
@@ -647,108 +650,3 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
     return {"escaped": True, "kappa_F": attacks, "kappa_D": round(d * T, 12), "threshold": th, "score": sc,
             "intervals": [[round(a, 12), round(t, 12)] for a, t in sch.intervals],
             "total_duration": round(sch.total_duration, 12)}
-
-
-# ============================================================================ the vulnerability map
-@dataclass
-class VulnerabilityMap:
-    """Least lost samples and least DoS duration per grid state of the nominal region of attraction.
-
-    ``samples[iy, ix]``: S*(attacks), the fewest lost samples with which at most ``attacks``
-    attacks make the loop from (xs[ix], ys[iy]) escape (0: the quantized loop escapes without
-    any attack, -1: no schedule up to ``max_len`` samples escapes, -2: outside the region);
-    ``duration[iy, ix]``: its price (S - min(attacks, S)) T in seconds (nan: none or outside).
-    """
-
-    xs: np.ndarray
-    ys: np.ndarray
-    dims: tuple
-    duration: np.ndarray
-    samples: np.ndarray
-    attacks: int
-    exact: np.ndarray       # (ny, nx) bool: the state's answer is proven minimal
-    T: float
-    n_steps: int
-    max_len: int
-    delta: float | None = None
-    wall: float = 0.0
-    traj_steps: int = 0
-    evaluated: int = 0
-    criterion: dict = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        inside = self.samples > -2
-        hit = inside & (self.samples > 0)
-        d = self.duration[hit]
-        S = self.samples[hit]
-
-        def clean(a):
-            return [[None if not np.isfinite(v) else float(v) for v in row] for row in a]
-
-        return {"grid": [len(self.xs), len(self.ys)], "dims": list(self.dims),
-                "window": [[float(self.xs[0]), float(self.xs[-1])], [float(self.ys[0]), float(self.ys[-1])]],
-                "attacks": self.attacks, "T": self.T, "n_steps": self.n_steps, "max_length_samples": self.max_len,
-                "states_in_region": int(inside.sum()),
-                "escape_unattacked": int(np.sum(self.samples == 0)),
-                "no_escape_found": int(np.sum(self.samples == -1)),
-                "all_exact": bool(np.all(self.exact[inside])),
-                "states_exact": int(np.sum(self.exact[inside])),
-                "least_duration": None if d.size == 0 else round(float(d.min()), 12),
-                "median_duration": None if d.size == 0 else round(float(np.median(d)), 12),
-                "largest_duration": None if d.size == 0 else round(float(d.max()), 12),
-                "least_samples": None if S.size == 0 else int(S.min()),
-                "median_samples": None if S.size == 0 else float(np.median(S)),
-                "largest_samples": None if S.size == 0 else int(S.max()),
-                "delta": self.delta, "xs": self.xs.tolist(), "ys": self.ys.tolist(),
-                "duration": clean(self.duration), "samples": self.samples.tolist(),
-                "exact": self.exact.tolist(), "escape_criterion": self.criterion,
-                "wall_s": self.wall, "traj_steps": self.traj_steps, "candidates": self.evaluated}
-
-
-def vulnerability_map(loop: Loop, roa, *, attacks: int = 1, max_len: int | None = None, beam: int = 16,
-                      exhaustive_limit: int = 100_000, executor=None, progress=None,
-                      delta: float | None = None) -> VulnerabilityMap:
-    """S*(attacks) and its least duration over the states of a nominal region of attraction grid
-    (``roa``: a ``RoaResult``); the search and pricing of :func:`worst_attack`.
-
-    attacks = 1 is exact and batched over every state at once; attacks >= 2 runs
-    :func:`worst_attack` state by state (much slower).  E_0 = max(quantizer E_0, ||x_0||_inf)
-    per state.
-    """
-    t0 = time.perf_counter()
-    GX, GY = np.meshgrid(roa.xs, roa.ys, indexing="xy")
-    inside = roa.inside
-    X = np.tile(roa.center, (int(inside.sum()), 1))
-    X[:, roa.dims[0]] = GX[inside]
-    X[:, roa.dims[1]] = GY[inside]
-    N = int(loop.n_steps)
-    Lmax = N if max_len is None else max(1, min(int(max_len), N))
-    samples = np.full(inside.shape, -2, dtype=np.int64)
-    duration = np.full(inside.shape, np.nan)
-    exact = np.zeros(inside.shape, dtype=bool)
-    ev = steps = 0
-    if attacks <= 1:
-        sr = least_single(loop, X, max_len=Lmax, executor=executor, progress=progress)
-        Ls = sr.L
-        ex = np.ones(len(X), dtype=bool) if Lmax == N else Ls >= 0
-        ev, steps = sr.evaluated, sr.traj_steps
-    else:
-        Ls = np.zeros(len(X), dtype=np.int64)
-        ex = np.zeros(len(X), dtype=bool)
-        for i, x in enumerate(X):
-            w = worst_attack(loop, x, attacks=attacks, max_len=Lmax, beam=beam, exhaustive_limit=exhaustive_limit,
-                             greedy=False, executor=executor)
-            ev += w.evaluated
-            steps += w.traj_steps
-            a = w.answer
-            Ls[i] = 0 if w.unattacked_escapes else (a["samples_lost"] if a["escaped"] else -1)
-            ex[i] = a["exact"]
-            if progress is not None:
-                progress(i + 1, len(X))
-    dur = np.array([least_duration_samples(S, attacks) * loop.T if S > 0 else (0.0 if S == 0 else np.nan)
-                    for S in Ls], dtype=float)
-    samples[inside] = Ls
-    duration[inside] = np.round(dur, 12)
-    exact[inside] = ex
-    return VulnerabilityMap(roa.xs, roa.ys, tuple(roa.dims), duration, samples, int(attacks), exact, loop.T, N,
-                            Lmax, delta, time.perf_counter() - t0, steps, ev, loop.escape.to_dict())

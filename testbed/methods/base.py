@@ -28,10 +28,9 @@ scenario's ``[method] params``) with their defaults in ``defaults``.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
-
-from dataclasses import dataclass, field
 
 from ..loopspec import Codebook, InvalidSymbol, QuantizerParams
 

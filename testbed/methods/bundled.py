@@ -15,9 +15,8 @@
 
 from __future__ import annotations
 
-
-from .base import FloatCodebook, Method, MethodError, finite_params
 from ..loopspec import Codebook
+from .base import FloatCodebook, Method, MethodError, finite_params
 
 #: batch kernel codes (``simulate._batch_kernel`` ``mode``); 0, 1 are the paper's ideal and resilient
 KERNEL_STATIC = 3

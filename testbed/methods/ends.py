@@ -12,6 +12,7 @@ from ..loopspec import ROUNDOFF
 from ..quantizer import Decoder, Encoder, box_center, control_input, quantize_index, zoom_update
 from .base import DecoderEnd, EncoderEnd, FloatCodebook
 
+
 @nb.njit(cache=True)
 def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
                    E_min, dpar, K_s, ytmp, u_s, xi_out):

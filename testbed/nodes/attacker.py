@@ -23,9 +23,11 @@ import numpy as np
 
 from attackers.gate import Gate
 
-from ..io import messages as msg
 from ..loopspec import corrupt_payload
-from .common import Node, attack_horizon, warm_publisher
+from ..wire import messages as msg
+from .base import Node
+from .context import warm_publisher
+from .options import attack_horizon
 
 
 def parse_corrupt(spec: str | None) -> dict[int, str]:
@@ -54,7 +56,9 @@ class AttackerNode(Node):
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
         a = sc.attack
         if a.online:
-            from attackers.greedy import GreedyAttacker  # numba: only for the online attacker
+            from attackers.greedy import (
+                GreedyAttacker,  # numba: only for the online attacker
+            )
 
             gp = a.greedy_params()
             self.gate = Gate(GreedyAttacker(gp[0], gp[1], gp[2], gp[3], sc.T, threshold=gp[4]))

@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import threading
 
-from ..io import messages as msg
 from ..protocol import ControllerProtocol, Decision
 from ..stats import percentiles
-from .common import Node, ab_off, warm_publisher
+from ..wire import messages as msg
+from .base import Node
+from .context import warm_publisher
 
 CT = msg.ControllerTelemetry
 
@@ -40,7 +41,7 @@ class ControllerNode(Node):
         ctx, keys, sc = self.ctx, self.ctx.keys, self.sc
         self.dec = sc.make_method().make_decoder(self.model, sc.K, sc.quantizer, sc.flow)
         # u_k goes out before the decoder's prediction for k+1 is computed (the same numbers)
-        self.proto = ControllerProtocol(self.dec, ctx.n_steps, defer_update=not ab_off("deferred-update"))
+        self.proto = ControllerProtocol(self.dec, ctx.n_steps, defer_update=True)
         self.codebook = self.dec.codebook
         self.pub_act = self.publisher(keys.actuation)
         # the ideal ack rides on the actuation message; a message of its own only on request or via the attacker

@@ -26,11 +26,12 @@ import logging
 import threading
 import time
 
-from ..io import messages as msg
-from ..protocol import EncoderProtocol, Send, skip_sample
 from ..methods.base import symbol_code
+from ..protocol import EncoderProtocol, Send, skip_sample
 from ..stats import percentiles
-from .common import Node, warm_publisher
+from ..wire import messages as msg
+from .base import Node
+from .context import warm_publisher
 
 log = logging.getLogger("testbed.nodes")
 

@@ -25,10 +25,20 @@ import signal
 import sys
 import time
 
-from ..io import transport
+from ..wire import transport
+from ..wire.session import add_zenoh_arguments, zenoh_config
 from . import rerun_tap
-from .common import (RX_MODES, NodeContext, RunOptions, add_run_option_arguments, add_zenoh_arguments, load_scenario,
-                     on_stop_signals, parse_cpus, phase, set_realtime, setup_logging, tune_process, zenoh_config)
+from .context import NodeContext
+from .inlet import RX_MODES
+from .options import RunOptions, add_run_option_arguments, load_scenario
+from .process import (
+    on_stop_signals,
+    parse_cpus,
+    phase,
+    set_realtime,
+    setup_logging,
+    tune_process,
+)
 
 log = logging.getLogger("testbed.nodes")
 

@@ -44,11 +44,12 @@ import numpy as np
 from plants.base import PlantFault
 
 from ..flow import FLOW_OK, STATUS_NAMES
-from ..io import messages as msg
-from ..io import transport
 from ..protocol import PlantProtocol
 from ..stats import percentiles
-from .common import Node, RoleView
+from ..wire import messages as msg
+from ..wire import transport
+from .base import Node
+from .context import RoleView
 
 PT = msg.PlantTelemetry
 
@@ -142,7 +143,7 @@ class PlantNode(Node):
             raise SystemExit(f"testbed node plant: startup failed: plant fault: {e}") from None
 
     def warm_publishers(self) -> None:
-        from .common import warm_publisher
+        from .context import warm_publisher
 
         if self.pub_sensor is not None:
             warm_publisher(self.pub_sensor, msg.Sensor(0, 0, tuple(self.sc.x0)).encode()[0])

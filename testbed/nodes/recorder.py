@@ -2,7 +2,7 @@
 
 The recorder is a Zenoh peer like the four loop nodes: it subscribes to the
 run's keys and writes what crossed the network to one MCAP file
-(``testbed.io.recording``).  ``testbed run`` starts it before the loop nodes
+(``testbed.record.recording``).  ``testbed run`` starts it before the loop nodes
 and lets the plant start only once it is ready, so a recording holds a run
 from its first sample; a recorder started by hand records whatever it sees.
 
@@ -31,10 +31,12 @@ import threading
 import time
 from pathlib import Path
 
-from ..io import messages as msg
-from ..io import recording, transport
-from .common import (RunOptions, T_ns, add_run_option_arguments, add_zenoh_arguments, load_scenario, on_stop_signals,
-                     parse_cpus, security_info, tune_process, zenoh_config)
+from ..record import recording, topics
+from ..wire import messages as msg
+from ..wire import transport
+from ..wire.session import add_zenoh_arguments, security_info, zenoh_config
+from .options import RunOptions, T_ns, add_run_option_arguments, load_scenario
+from .process import on_stop_signals, parse_cpus, tune_process
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
@@ -85,7 +87,7 @@ class Recorder:
         self.malformed = 0
         self.max_queue = 0
         self.write_errors = 0
-        self.fox = foxglove   # testbed.io.foxglove_topics.FoxgloveTopics, or None
+        self.fox = foxglove   # testbed.view.foxglove.FoxgloveTopics, or None
         self.T_ns = 0 if foxglove is None else foxglove.T_ns
         self.stop_seen: msg.Stop | None = None
         self.stop_seen_mono = 0.0
@@ -182,7 +184,7 @@ class Recorder:
                 if typ is None:
                     raise msg.MessageError(f"no telemetry type for node {role!r}")
                 recs = [typ.decode(r) for r in msg.unpack_batch(payload)]
-                name = recording.TELEMETRY_SCHEMA[role]
+                name = topics.TELEMETRY_SCHEMA[role]
                 N = self.n_steps
                 for t in recs:
                     final = role == "plant" and t.flags & msg.PlantTelemetry.FLAG_FINAL
@@ -223,12 +225,12 @@ class Recorder:
             # not a message of a run, or one whose numbers no schema can hold: counted and kept as bytes
             self._malformed(key, payload, attachment, f"{type(e).__name__}: {e}", log_time)
 
-    # ---- Foxglove topics (testbed.io.foxglove_topics): derived from what was just written
+    # ---- Foxglove topics (testbed.view.foxglove): derived from what was just written
     def _foxglove_extra(self, name: str, t) -> dict | None:
         """The telemetry's derived fields (header stamp t0 + k T, log10 E_k) once t0 is known."""
         if self.fox is None:
             return None
-        from ..io.foxglove_topics import telemetry_extra
+        from ..view.foxglove import telemetry_extra
 
         return telemetry_extra(name, t, self.t0, self.T_ns)
 
@@ -256,7 +258,8 @@ class Recorder:
     # ---- end
     def stats(self) -> dict:
         return {"received": self.received, "written": self.written, "warmup_skipped": self.warmup,
-                "malformed": self.malformed, "rejected_k": self.rejected, "queue_overflow": self.overflow, "max_queue": self.max_queue, "write_errors": self.write_errors,
+                "malformed": self.malformed, "rejected_k": self.rejected, "queue_overflow": self.overflow,
+                "max_queue": self.max_queue, "write_errors": self.write_errors,
                 "loop_recorded": self.loop}
 
     def close(self, timeout: float = 30.0) -> dict:
@@ -347,7 +350,7 @@ def main_record(args) -> int:
               f"{str(e).split(' at /')[0]}", file=sys.stderr)
         return 3
     with session_cm as session:
-        from ..io.foxglove_topics import FoxgloveTopics
+        from ..view.foxglove import FoxgloveTopics
 
         rec = Recorder(session, keys, w, loop=loop, n_steps=sc.n_steps, foxglove=FoxgloveTopics(sc, background=True))
         tokens = [session.liveliness().declare_token(keys.alive(ROLE)),

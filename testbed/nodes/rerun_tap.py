@@ -3,7 +3,7 @@
 The loop only appends each telemetry record (the bytes it publishes anyway) to a
 deque (``TelemetryOut.tap``); a daemon thread wakes every ``period`` seconds,
 decodes what arrived and logs it in whole columns through
-``testbed.io.viewer.log_samples``, the function the replay and the simulator use.
+``testbed.view.rerun.log_samples``, the function the replay and the simulator use.
 The stream joins the run's recording (``--recording-id``, the launcher's) and goes
 to a gRPC URL (``--rerun-url``) or to a part file (``--rerun-save``) that the
 launcher merges.
@@ -18,8 +18,8 @@ import threading
 
 import numpy as np
 
-from ..io import messages as msg
-from ..io import viewer
+from ..view import rerun as viewer
+from ..wire import messages as msg
 
 log = logging.getLogger("testbed.nodes")
 

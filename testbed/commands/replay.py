@@ -1,0 +1,33 @@
+"""``testbed replay RUN.mcap [--rrd PATH] [--spawn]``: a recording opened in Rerun."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from .. import cliargs
+from ..record.summary import load
+from ..report import report
+from ..view.rerun import Trace, trace_to_rrd
+
+
+def add_arguments_replay(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", help="an MCAP recording (testbed run --out, testbed simulate --out)")
+    cliargs.add_rrd(p, "write the view to this file")
+    p.add_argument("--spawn", action="store_true", help="open it in a Rerun viewer (the default without --rrd)")
+    cliargs.add_no_roa(p)
+    cliargs.add_json(p, "what was written (the .rrd path, the run id, the number of samples)")
+
+
+def main_replay(args) -> int:
+    cols, sc = load(args.recording)
+    s = report((cols, sc), arrays=True)
+    spawn = args.spawn or not args.rrd
+    trace_to_rrd(args.rrd, sc, Trace.from_report(s), recording_id=str(s.get("run_id") or sc.name),
+                 roa=not args.no_roa, spawn=spawn)
+    if args.json:
+        print(json.dumps({"rrd": args.rrd, "spawned": spawn, "run_id": s.get("run_id"), "samples": s.get("samples"),
+                          "scenario": sc.name}))
+    elif args.rrd:
+        print(f"rerun recording: {args.rrd} (open with: rerun {args.rrd})")
+    return 0

@@ -1,1 +1,0 @@
-"""Edges of the testbed: messages (encode/decode) and transport (Zenoh config, key expressions)."""

@@ -1,0 +1,208 @@
+"""The launcher's collector: subscribes to a run's telemetry, events and liveliness.
+
+Everything arrives over Zenoh as it happens, so a node killed mid-run leaves
+its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
+``testbed.record.summary.build_summary`` (shared with ``testbed report``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from ..wire import messages as msg
+from ..wire import transport
+
+PT = msg.PlantTelemetry
+
+
+class Collector:
+    """Telemetry, events, node summaries, start/stop and liveliness of one run."""
+
+    #: events kept (the rest are counted): a flood cannot grow the launcher without bound
+    MAX_EVENTS = 10_000
+
+    def __init__(self, session, keys: transport.Keys, n_steps: int):
+        import zenoh
+
+        self._zenoh = zenoh
+        self.keys = keys
+        self.n_steps = int(n_steps)
+        self.rejected = 0        # telemetry records for a sample outside [0, N), or a second copy of one
+        self.events_dropped = 0
+        self.lock = threading.Lock()
+        self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}
+        self.plant_final: msg.PlantTelemetry | None = None
+        self.events: list[msg.Event] = []
+        self.summaries: dict[str, dict] = {}
+        self.status: list[msg.AttackerStatus] = []
+        self.start: msg.Start | None = None
+        self.start_rx_mono = 0
+        self.stops: list[msg.Stop] = []
+        self.liveliness: list[tuple[int, str, bool]] = []  # (monotonic ns, node, alive)
+        self.alive: set[str] = set()
+        self.ready: set[str] = set()
+        self.bad = 0
+        p = keys.prefix
+        self._subs = [
+            session.declare_subscriber(f"{p}/telemetry/*", self._on_telemetry),
+            session.declare_subscriber(f"{p}/events/*", self._on_event),
+            session.declare_subscriber(f"{p}/summary/*", self._on_summary),
+            session.declare_subscriber(keys.attacker_status, self._on_status),
+            session.declare_subscriber(keys.start, self._on_start),
+            session.declare_subscriber(keys.stop, self._on_stop),
+            session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive, history=True),
+            session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True),
+        ]
+
+    def _on_telemetry(self, sample) -> None:
+        role = transport.Keys.node_of(sample.key_expr)
+        typ = msg.TELEMETRY_TYPES.get(role)
+        if typ is None:
+            return
+        try:
+            recs = [typ.decode(r) for r in msg.unpack_batch(sample.payload)]
+        except msg.MessageError:
+            self.bad += 1
+            return
+        N = self.n_steps
+        with self.lock:
+            d = self.tele[role]
+            for t in recs:
+                if role == "plant" and t.flags & PT.FLAG_FINAL:
+                    if not 0 <= t.k <= N or self.plant_final is not None:
+                        self.rejected += 1
+                        continue
+                    self.plant_final = t
+                elif not 0 <= t.k < N or t.k in d:
+                    self.rejected += 1  # never stored: a k from the wire sizes nothing
+                else:
+                    d[t.k] = t
+
+    def _on_event(self, sample) -> None:
+        try:
+            e = msg.Event.decode(sample.payload)
+        except msg.MessageError:
+            self.bad += 1
+            return
+        with self.lock:
+            if len(self.events) < self.MAX_EVENTS:
+                self.events.append(e)
+            else:
+                self.events_dropped += 1
+
+    def _on_summary(self, sample) -> None:
+        try:
+            s = msg.NodeSummary.decode(sample.payload)
+        except msg.MessageError:
+            self.bad += 1
+            return
+        if s.node != transport.Keys.node_of(sample.key_expr) or s.node not in transport.ROLES:
+            self.bad += 1
+            return
+        with self.lock:
+            self.summaries[s.node] = s.data
+
+    def _on_status(self, sample) -> None:
+        try:
+            s = msg.AttackerStatus.decode(sample.payload)
+        except msg.MessageError:
+            return
+        with self.lock:
+            if len(self.status) < self.MAX_EVENTS:
+                self.status.append(s)
+
+    def _on_start(self, sample) -> None:
+        try:
+            s = msg.Start.decode(sample.payload)
+        except msg.MessageError:
+            return
+        with self.lock:
+            if self.start is None:
+                self.start = s
+                self.start_rx_mono = time.monotonic_ns()
+
+    def _on_stop(self, sample) -> None:
+        try:
+            s = msg.Stop.decode(sample.payload)
+        except msg.MessageError:
+            return
+        with self.lock:
+            if len(self.stops) < 100:
+                self.stops.append(s)
+
+    def _on_alive(self, sample) -> None:
+        node = transport.Keys.node_of(sample.key_expr)
+        alive = sample.kind != self._zenoh.SampleKind.DELETE
+        with self.lock:
+            self.liveliness.append((time.monotonic_ns(), node, alive))
+            (self.alive.add if alive else self.alive.discard)(node)
+
+    def _on_ready(self, sample) -> None:
+        node = transport.Keys.node_of(sample.key_expr)
+        with self.lock:
+            (self.ready.discard if sample.kind == self._zenoh.SampleKind.DELETE else self.ready.add)(node)
+
+    # ---- queries
+    def ready_nodes(self) -> set[str]:
+        with self.lock:
+            return set(self.ready)
+
+    def last_k(self, role: str) -> int:
+        with self.lock:
+            d = self.tele.get(role, {})
+            return max(d) if d else -1
+
+    def lost_at(self, node: str) -> int | None:
+        """monotonic ns at which ``node``'s liveliness token went away (last time), or None."""
+        with self.lock:
+            for t, n, alive in reversed(self.liveliness):
+                if n == node:
+                    return None if alive else t
+        return None
+
+    def snapshot_summaries(self) -> dict[str, dict]:
+        with self.lock:
+            return dict(self.summaries)
+
+    def event_of(self, node: str, kind: str):
+        """The first event ``kind`` of ``node``, or None."""
+        with self.lock:
+            return next((e for e in self.events if e.node == node and e.kind == kind), None)
+
+    def plant_done(self) -> bool:
+        with self.lock:
+            return any(s.origin == "plant" for s in self.stops)
+
+    def telemetry_check(self) -> list[dict]:
+        """Each node's own account of its telemetry (records and digest, in its summary) against what
+        arrived here: a difference means records were lost, forged or altered on the way."""
+        import hashlib
+
+        out = []
+        with self.lock:
+            for role in transport.ROLES:
+                s = self.summaries.get(role) or {}
+                if "telemetry_sha256" not in s:
+                    continue
+                recs = [self.tele[role][k] for k in sorted(self.tele[role])]
+                if role == "plant" and self.plant_final is not None:
+                    recs.append(self.plant_final)
+                h = hashlib.sha256()
+                for r in recs:
+                    h.update(r.encode())
+                if len(recs) != s.get("telemetry_records") or h.hexdigest() != s["telemetry_sha256"]:
+                    out.append({"node": role, "kind": "telemetry_mismatch",
+                                "why": f"{len(recs)} records collected, the node published {s.get('telemetry_records')}"
+                                       + ("" if len(recs) != s.get("telemetry_records") else "; digests differ")})
+        return out
+
+    def snapshot(self, sc):
+        """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``)."""
+        from ..record.columns import from_records
+
+        with self.lock:
+            tele = {r: dict(d) for r, d in self.tele.items()}
+            final, events, status, summaries = self.plant_final, list(self.events), list(self.status), \
+                dict(self.summaries)
+        return from_records(sc, tele, plant_final=final, events=events, status=status, summaries=summaries)

@@ -1,0 +1,102 @@
+"""A live run's sessions: its topology, the credentials or certificates made for the run, the
+flags that hand them to each process, and the launcher's own session (the run's router)."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+from ..wire import transport
+
+
+class RunCredentials:
+    """The launcher's part that makes and hands out the run's credentials (a base of ``Launcher``)."""
+
+    def make_secrets(self) -> None:
+        """The run's credentials: one password per process, in 0600 files under a 0700 folder.
+
+        The launcher (the router) keeps the whole dictionary; every process gets a file
+        with its own line only.
+        """
+        if not self.secure:
+            return
+        if self.tls:
+            if getattr(self.args, "tls_dir", None):
+                self.tls_dir = Path(self.args.tls_dir).resolve()
+            else:
+                self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
+                self.tls_dir = transport.TlsCredentials.new(self.secret_dir / "tls").folder
+            transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
+            return
+        if self.args.secret_file:
+            self.secret_path = Path(self.args.secret_file).resolve()
+            transport.Credentials.read(self.secret_path)  # checked now: one clear line if unusable
+            return
+        self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
+        cred = transport.Credentials.new()
+        self.secret_path = cred.write(self.secret_dir / "run.secret")
+        for u in (*transport.ROLES, transport.RECORDER):
+            cred.only(u).write(self.secret_dir / f"{u}.secret")
+
+    def remove_secrets(self) -> None:
+        if self.secret_dir is not None:
+            shutil.rmtree(self.secret_dir, ignore_errors=True)
+
+    def secret_for(self, who: str) -> Path:
+        if self.secret_dir is not None:
+            return self.secret_dir / f"{who}.secret"
+        return self.secret_path
+
+    def session_flags(self, who: str) -> list[str]:
+        """``--topology``, credentials (a file path, never the secret itself) and listeners of a process."""
+        a = self.args
+        out = ["--topology", self.topology]
+        if self.tls:
+            out += ["--tls-dir", str(self.tls_dir)]
+        else:
+            out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
+        if a.low_latency:
+            out.append("--low-latency")
+        if self.topology == "peer":  # every process's own listener: the peers link to each other directly
+            out += ["--listen", self.node_listen.get(who) or self.own_listener(who)]
+        if a.zenoh_config:
+            out += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
+        return out
+
+    def own_listener(self, who: str) -> str:
+        """A peer's listener when ``--node-listen`` names none: loopback for a node, and for the recorder
+        (which runs beside the launcher) the launcher's own address, where nodes on other hosts or in
+        other network namespaces reach it too."""
+        if who == transport.RECORDER:
+            scheme = "tls" if self.tls else "tcp"
+            host = transport.endpoint_host(self.listen)
+            return f"{scheme}/[{host}]:0" if ":" in host else f"{scheme}/{host}:0"
+        return transport.TLS_LOOPBACK_ANY if self.tls else transport.LOOPBACK_ANY
+
+    def session_config(self):
+        """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""
+        a = self.args
+        mode = "router" if self.topology == "router" else "peer"
+        if not self.secure:
+            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
+                                         low_latency=a.low_latency)
+        if self.tls:
+            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
+                                         acl=transport.acl_config(self.keys, self.colocated, by="cert_common_names"),
+                                         low_latency=a.low_latency,
+                                         tls=transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER))
+        cred = transport.Credentials.read(self.secret_path)
+        return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
+                                     user=transport.LAUNCHER, password=cred.users.get(transport.LAUNCHER),
+                                     dictionary_file=self.secret_path,
+                                     acl=transport.acl_config(self.keys, self.colocated), low_latency=a.low_latency)
+
+    def security(self) -> dict:
+        from ..wire.session import access_control, transport_security
+
+        given = self.args.secret_file or getattr(self.args, "tls_dir", None)
+        return {"authenticated": self.secure, "topology": self.topology, "low_latency": bool(self.args.low_latency),
+                "access_control": access_control(self.topology) if self.secure else "none",
+                "transport": transport_security(self.topology, not self.secure),
+                "credentials": None if not self.secure else ("given" if given else "made for the run")}

@@ -1,0 +1,677 @@
+"""``testbed run SCENARIO [--duration S]``: start the four nodes of a live run, watch them, stop them.
+
+The launcher listens on one Zenoh endpoint (``tcp/127.0.0.1:<free port>`` by
+default, a fresh port per run), starts plant, encoder, attacker and controller as
+``testbed node ...`` processes, each in its own session and process group, and
+collects their telemetry (``testbed.live.collect``).  It stops them all on
+SIGINT, SIGTERM, Ctrl-C, the end of the run or a timeout: ``Stop`` message, then
+SIGINT to each group, then SIGKILL.  Nodes also die with the launcher
+(PR_SET_PDEATHSIG) and stop when its liveliness token goes away, so no node is
+left behind.  A node that dies is reported with its exit status, the last lines
+of its log and when its liveliness token went away; the run goes on without it
+(unless it was the plant).  With ``--colocate encoder`` there are three node
+processes; the plant's runs the encoder, whose death alone (``--kill encoder@S``:
+SIGUSR2 to the plant) the launcher reports from its liveliness token.
+
+Exit codes: 0 clean run, 1 a node died or the run did not complete,
+2 bad scenario, 128 + signal when interrupted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import secrets
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from .. import scenario
+from ..errors import BadInput
+from ..nodes.options import RunOptions, load_scenario
+from ..nodes.process import parse_cpus
+from ..view.rerun import LiveRerun
+from ..wire import messages as msg
+from ..wire import transport
+from .credentials import RunCredentials
+from .spawn import Forked, _forked_node
+
+
+def recording_default_path(name: str, run_id: str) -> Path:
+    from ..record.recording import default_path
+
+    return default_path(name, run_id=run_id)
+
+
+def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
+    out = {}
+    for it in items:
+        role, s, val = it.partition(sep)
+        if not s or role not in roles:
+            raise SystemExit(f"testbed run: {what} must be ROLE{sep}VALUE with ROLE in "
+                             f"{', '.join(roles)}, got {it!r}")
+        out[role] = val
+    return out
+
+
+class Launcher(RunCredentials):
+    def __init__(self, args):
+        self.args = args
+        self.phase("up")
+        self.opts = RunOptions.from_args(args)
+        self.sc = load_scenario(args.scenario, self.opts)
+        if self.sc.method_note:
+            print(f"testbed run: {self.sc.method_note}", file=sys.stderr)
+        self.phase("scenario")
+        self.sc, over = scenario.with_seed(self.sc, self.opts.overrides())
+        if over.get("seed") != self.opts.seed:
+            self.opts = dataclasses.replace(self.opts, seed=over["seed"])
+            print(f"testbed run: the random attack has no seed; drew seed = {self.opts.seed} (recorded; "
+                  f"--seed {self.opts.seed} repeats it)", file=sys.stderr)
+        ref = args.scenario
+        self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
+        self.run_id = args.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
+        self.keys = transport.Keys.for_run(self.run_id)
+        self.topology = args.topology
+        self.secure = not args.insecure
+        self.tls = self.topology == "peer" and self.secure    # mutual TLS links (``TlsCredentials``)
+        self.listen = args.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
+        self.node_connect = args.node_connect or self.listen
+        self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
+        self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
+        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, transport.RECORDER)).items()}
+        self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
+        self.colocated = self.opts.colocate           # roles run inside another node's process
+        self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
+        self.fork_ok = getattr(args, "spawn", "exec") == "fork"  # --spawn fork (``forks``)
+        self.processes = self.opts.processes          # the node processes
+        self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, transport.RECORDER, transport.LAUNCHER))
+        for who, spec in self.cpus.items():
+            parse_cpus(spec)  # one clear line now if unusable
+            if who in self.colocated:
+                raise BadInput(f"--cpu {who}=...: the {who} runs in the {self.opts.process_of(who)}'s process "
+                               f"(--colocate {who}); pin that one")
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.exits: dict[str, dict] = {}
+        self.faults: list[dict] = []
+        self.kill_sent: dict[str, int] = {}
+        self.signal: int | None = None
+        self.stopping = False
+        self.record_path = None if args.no_record else Path(args.out or recording_default_path(self.sc.name,
+                                                                                                self.run_id))
+        if self.record_path is not None and self.record_path.exists() and not args.force:
+            raise BadInput(f"{self.record_path} exists: a recording is never overwritten (remove it, choose "
+                           "another --out, or pass --force)")
+        if self.tls:
+            if args.secret_file:
+                raise BadInput("--secret-file: the peer topology's credentials are TLS certificates (--tls-dir DIR, "
+                               "made with 'testbed secret --tls DIR'; by default made for the run)")
+            transport.require_tls((self.listen, self.node_connect, *self.node_listen.values()))
+        elif getattr(args, "tls_dir", None):
+            raise BadInput("--tls-dir: only for --topology peer (the router topology's credentials are --secret-file)")
+        self.secret_dir = None
+        self.secret_path: Path | None = None
+        self.tls_dir: Path | None = None              # the peer topology's TLS folder (``make_secrets``)
+        self.recorder: subprocess.Popen | None = None
+        self.recorder_exit: dict | None = None
+        self._faults_published = 0
+        self._collector_ready = False
+        self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
+        self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
+        self._tokens: list = []
+        self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
+        self.foxglove = None                                           # testbed run --foxglove PORT
+        if getattr(args, "foxglove", None) is not None:
+            from .foxglove_tap import FoxgloveLive
+
+            self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
+        # the run folder last: a run refused above (bad input) leaves nothing behind
+        self.own_dir = args.run_dir is None
+        self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+
+    def phase(self, name: str) -> None:
+        """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
+        if self.args.verbose:
+            from ..nodes.process import process_age
+
+            print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}",
+                  file=sys.stderr, flush=True)
+
+    # ---- processes
+    def command(self, role: str) -> list[str]:
+        a = self.args
+        cmd = shlex.split(self.node_prefix.get(role, ""))
+        cmd += [sys.executable, "-P", "-m", "testbed.cli", "node", role, self.scenario_ref, *self.opts.cli(),
+                "--run-id", self.run_id, "--connect", self.node_connect,
+                "--ready-timeout", str(a.startup_timeout), "--launched"]
+        cmd += self.session_flags(role)
+        if a.rx:
+            cmd += ["--rx", a.rx]
+        if a.rx_spin_us is not None:
+            cmd += ["--rx-spin-us", str(a.rx_spin_us)]
+        if role in self.cpus:
+            cmd += ["--cpus", self.cpus[role]]
+        if role not in self.node_prefix or self.node_prefix[role].startswith("ip netns exec"):
+            cmd += ["--parent-pid", str(os.getpid())]
+        if a.realtime:
+            cmd.append("--realtime")
+        if a.verbose:
+            cmd.append("--verbose")
+        if role in self.crashes:
+            cmd += ["--crash-at", str(self.crashes[role])]
+        for guest in self.colocated:
+            if self.opts.process_of(guest) == role and guest in self.crashes:
+                cmd += [f"--{guest}-crash-at", str(self.crashes[guest])]
+        if role == "plant":
+            if a.spin_us is not None:
+                cmd += ["--spin-us", str(a.spin_us)]
+        if (role == "encoder" or self.opts.process_of("encoder") == role) and a.ack_grace is not None:
+            cmd += ["--ack-grace", str(a.ack_grace)]
+        if role == "attacker" and a.corrupt:
+            cmd += ["--corrupt", a.corrupt]
+        if self.rerun is not None:
+            cmd += self.rerun.node_flags(role)
+        return cmd
+
+    def recorder_command(self) -> list[str]:
+        a = self.args
+        cmd = [sys.executable, "-P", "-m", "testbed.cli", "record", self.scenario_ref, *self.opts.cli(),
+               "--run-id", self.run_id, "--connect", self.node_connect,
+               "--out", str(self.record_path), "--loop", a.record_loop, "--launched",
+               "--parent-pid", str(os.getpid()), "--scenario-ref", a.scenario]
+        if a.force:
+            cmd.append("--force")
+        cmd += self.session_flags(transport.RECORDER)
+        if transport.RECORDER in self.cpus:
+            cmd += ["--cpus", self.cpus[transport.RECORDER]]
+        if a.verbose:
+            cmd.append("--verbose")
+        return cmd
+
+    def declare_collector_ready(self, session) -> None:
+        """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
+        if not self._collector_ready:
+            self._collector_ready = True
+            self._tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
+
+    def recorder_started(self, session, col) -> bool:
+        """During start-up: declare the collector ready once the recorder is (False: it died first)."""
+        if self._collector_ready or self.recorder is None:
+            return True
+        if transport.RECORDER in col.ready_nodes():
+            self.declare_collector_ready(session)
+            return True
+        rc = self.recorder.poll()
+        if rc is None:
+            return True
+        self.faults.append({"node": transport.RECORDER, "kind": "startup_failed", "why": f"exit code {rc}",
+                            "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
+        return False
+
+    def wait_summaries(self, col, timeout: float = 0.3) -> None:
+        """Until every node that exited cleanly has its summary in (they publish it before they exit)."""
+        want = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
+        want |= {g for g in self.colocated if self.opts.process_of(g) in want and g not in self.exits}
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not want <= set(col.snapshot_summaries()):
+            time.sleep(0.01)
+
+    def _warm_summary(self) -> None:
+        """Load the summary's kernels (the region-of-attraction check) while a slow loop runs, at low
+        priority, so that the summary is quick once the run is over (a fast loop is left alone)."""
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except (OSError, AttributeError):
+            pass
+        try:
+            import numpy as np
+
+            from ..record import summary  # noqa: F401
+            from ..simulate import in_nominal_roa
+
+            model = self.sc.make_model()
+            in_nominal_roa(model, self.sc.K, self.sc.T, np.zeros((1, model.n)), horizon=2 * self.sc.T,
+                           flow=self.sc.flow)
+        except Exception:  # noqa: BLE001 - only a warm-up: the summary computes it anyway
+            pass
+
+    def check_recorder(self, col, t0_mono: int | None) -> None:
+        if self.recorder is None or self.recorder_exit is not None:
+            return
+        rc = self.recorder.poll()
+        if rc is None:
+            return
+        now = time.monotonic_ns()
+        self.recorder_exit = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
+                              "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
+        if not self.stopping:
+            why = f"killed by {self.recorder_exit['signal']}" if rc < 0 else f"exit code {rc}"
+            self.faults.append({"node": transport.RECORDER, "kind": "killed" if rc < 0 else "crashed", "why": why,
+                                "t_s": self.recorder_exit["t_s"], "injected": transport.RECORDER in self.kill_sent,
+                                "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
+            print(f"testbed run: the recorder died ({why}); the run goes on unrecorded, the file keeps "
+                  f"what was flushed: {self.record_path}", file=sys.stderr)
+
+    def recording_info(self) -> dict | None:
+        if self.record_path is None:
+            return None
+        ok = self.recorder_exit is not None and self.recorder_exit["exit_code"] == 0
+        return {"path": str(self.record_path), "complete": ok, "recorder_exit": self.recorder_exit,
+                "log": str(self.run_dir / f"{transport.RECORDER}.log")}
+
+    def publish_faults(self, session) -> None:
+        """Each new fault as an ``Event`` of node ``launcher`` (so the recording has it)."""
+        while self._faults_published < len(self.faults):
+            f = self.faults[self._faults_published]
+            self._faults_published += 1
+            k = f.get("at_sample")
+            e = msg.Event(node="launcher", kind=f"{f.get('node') or 'run'}_{f['kind']}",
+                          k=-1 if k is None else int(k), detail=json.dumps(f, default=str))
+            try:
+                session.put(self.keys.events("launcher"), e.encode())
+            except Exception:  # noqa: BLE001 - the session may be closing
+                pass
+
+    def stop_recorder(self, grace: float = 15.0) -> None:
+        p = self.recorder
+        if p is None or p.poll() is not None:
+            return
+        try:
+            os.killpg(p.pid, signal.SIGINT)
+        except ProcessLookupError:
+            return
+        try:
+            p.wait(grace)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(5)
+
+    def _popen(self, cmd: list[str], name: str) -> subprocess.Popen:
+        """A child in its own session and process group, its output in ``<run dir>/<name>.log``."""
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        with open(self.run_dir / f"{name}.log", "wb") as log:
+            return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                    start_new_session=True, env=env)
+
+    def forks(self, role: str) -> bool:
+        """Whether ``role`` is forked from the launcher (``--spawn fork``, and no ``--node-prefix`` for it).
+
+        Only while the launcher has started no threads of a library (Zenoh's session, rerun's
+        streams: a fork copies none of them, and a lock one of them held stays held in the child);
+        ``run`` forks before it opens its session, and nothing imports rerun before that."""
+        return self.fork_ok and role not in self.node_prefix
+
+    def spawn(self, *, forked: bool) -> None:
+        """Start the node processes that are forked (before the launcher has any Zenoh thread) or exec'd."""
+        for role in self.processes:
+            if self.forks(role) == forked and role not in self.procs:
+                self.procs[role] = self._fork(role) if forked else self._popen(self.command(role), role)
+
+    def _fork(self, role: str) -> Forked:
+        import gc
+
+        cmd = self.command(role)
+        argv = cmd[cmd.index("testbed.cli") + 1:]
+        gc.freeze()  # the launcher's objects: the child's collector never walks them (nor copies their pages)
+        log_fd = os.open(self.run_dir / f"{role}.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            _forked_node(argv, log_fd)  # never returns
+        os.close(log_fd)
+        return Forked(pid)
+
+    def prewarm(self) -> None:
+        """Before forking the nodes: load numba and the loop's compiled kernels once, here, so that
+        no forked node loads them again (about 0.3 s of import and 0.6 s of kernel loading each)."""
+        try:
+            self._prewarm()
+        except Exception:  # noqa: BLE001 - only a warm-up: each node loads what it needs anyway, and says why not
+            pass
+        self.phase("prewarmed")
+
+    def _prewarm(self) -> None:
+        from ..nodes import controller, encoder, plant  # imported once, for every forked node
+
+        sc = self.sc
+        model = sc.make_model()
+        encoder.warm_kernels(sc, model)
+        controller.warm_kernels(sc, model)
+        if sc.plant.fmu is None:  # an FMU is opened by the plant node alone
+            plant.warm_process(sc)
+
+    def _signal_group(self, role: str, sig: int) -> None:
+        p = self.procs[role]
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def stop_all(self, session, reason: str, grace: float = 3.0) -> None:
+        self.stopping = True
+        alive = [r for r, p in self.procs.items() if p.poll() is None]
+        if not alive:
+            return
+        try:
+            session.put(self.keys.stop, msg.Stop(reason=reason, origin="launcher").encode())
+        except Exception:  # noqa: BLE001
+            pass
+        end = time.monotonic() + grace
+        while time.monotonic() < end and any(self.procs[r].poll() is None for r in alive):
+            time.sleep(0.02)
+        for r in alive:
+            self._signal_group(r, signal.SIGINT)
+        end = time.monotonic() + grace
+        while time.monotonic() < end and any(self.procs[r].poll() is None for r in alive):
+            time.sleep(0.02)
+        for r in alive:
+            self._signal_group(r, signal.SIGKILL)
+        for r in alive:
+            try:
+                self.procs[r].wait(5)
+            except subprocess.TimeoutExpired:
+                pass
+
+    def log_tail(self, role: str, lines: int = 6) -> str:
+        try:
+            text = (self.run_dir / f"{role}.log").read_text(errors="replace")
+        except OSError:
+            return ""
+        return "\n".join(text.rstrip().splitlines()[-lines:])
+
+    # ---- watching
+    def record_exit(self, role: str, rc: int, col, t0_mono: int | None) -> None:
+        now = time.monotonic_ns()
+        info = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
+                "at_sample": col.last_k(role),
+                "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
+        self.exits[role] = info
+        plant_done = col.plant_done()
+        injected = role in self.kill_sent
+        asked = self.signal is not None or self.stopping or plant_done
+        abnormal = rc != 0 and not (asked and rc in (130, 143, -2, -15))
+        if abnormal:
+            why = f"killed by {info['signal']}" if rc < 0 else f"exit code {rc}"
+            tail = self.log_tail(role)
+            last = tail.splitlines()[-1] if tail else ""
+            fault = {"node": role, "kind": "killed" if rc < 0 else "crashed", "why": why,
+                     "last_log_line": last, "exit_code": rc, "signal": info["signal"],
+                     "at_sample": info["at_sample"], "t_s": info["t_s"], "injected": injected}
+            self.faults.append(fault)
+            print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}"
+                  + (f": {last}" if last else ""), file=sys.stderr)
+
+    #: a colocated role's liveliness loss without a crash counts as its death only this long after:
+    #: its host also closes it at the run's end, and that loss can arrive before the plant's Stop
+    GUEST_GRACE_NS = 500_000_000
+
+    def check_guest(self, role: str, col, t0_mono: int | None, *, final: bool = False) -> None:
+        """A colocated role whose liveliness went while its host runs on: it died alone (killed or crashed).
+
+        At the run's end its host closes it as well, after its summary and the plant's Stop, which
+        may still be on their way when the liveliness loss arrives: a loss without a crash event
+        counts once ``GUEST_GRACE_NS`` has passed with neither in, or (``final``, after the
+        summaries were waited for) when the host exited cleanly and published its summary but the
+        role's, which the host publishes first, never came.
+        """
+        host = self.opts.process_of(role)
+        lost = col.lost_at(role)
+        if lost is None or t0_mono is None:
+            return
+        crash = col.event_of(role, "crash")
+        if final:
+            if self.exits.get(host, {}).get("exit_code") != 0:
+                return  # the host itself died or was stopped: its fault says it
+            got = col.snapshot_summaries()
+            if crash is None and (role in got or host not in got):
+                return  # closed by its host at the end (its account is published before the host's)
+        else:
+            if host in self.exits or col.plant_done():
+                return
+            if crash is None and (time.monotonic_ns() - lost < self.GUEST_GRACE_NS
+                                  or role in col.snapshot_summaries()):
+                return
+        injected = role in self.kill_sent
+        why = (f"exception: {crash.detail}" if crash is not None else
+               f"killed (colocated in the {host}: the {role} alone stopped)")
+        info = {"exit_code": None, "signal": None if crash is not None else "SIGKILL",
+                "at_sample": col.last_k(role), "t_s": round((lost - t0_mono) / 1e9, 4), "colocated_in": host}
+        self.exits[role] = info
+        self.faults.append({"node": role, "kind": "crashed" if crash is not None else "killed", "why": why,
+                            "last_log_line": (self.log_tail(host).splitlines() or [""])[-1],
+                            "exit_code": None, "signal": info["signal"], "at_sample": info["at_sample"],
+                            "t_s": info["t_s"], "injected": injected, "colocated_in": host})
+        print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}", file=sys.stderr)
+
+    def router_realtime(self, on: bool) -> None:
+        """With ``--realtime``, the launcher's threads (the run's router) run under SCHED_FIFO during the
+        loop as the nodes' do: a router thread at normal priority waits behind every other process for
+        each message it forwards."""
+        from ..nodes.process import set_realtime
+
+        if not self.args.realtime or on == self._router_rt:
+            return
+        if on:
+            self._router_rt = set_realtime(True)
+            self.router_fifo = self.router_fifo or self._router_rt
+        else:
+            set_realtime(False)
+            self._router_rt = False
+
+    def _plant_ok(self, col) -> bool:
+        return col.plant_done() or self.exits.get("plant", {}).get("exit_code") == 0
+
+    def add_liveliness(self, col) -> None:
+        """When each dead node's liveliness token went away (it may trail the process exit)."""
+        for f in self.faults:
+            role = f.get("node")
+            if role is None:
+                continue
+            lost = col.lost_at(role)
+            f["liveliness_lost"] = lost is not None
+            if lost is not None and role in self.kill_sent:
+                f["liveliness_detect_ms"] = round((lost - self.kill_sent[role]) / 1e6, 3)
+
+    def watch(self, session, col) -> str:
+        a = self.args
+        t_launch = time.monotonic()
+        t0_mono = None
+        end_mono = None
+        stopping_since = None
+        while True:
+            if self.signal is not None:
+                return f"interrupted by {signal.Signals(self.signal).name}"
+            if t0_mono is None and col.start is not None:
+                st = col.start
+                self.phase("start")
+                if st.T_ns >= 10_000_000:  # a slow loop leaves the CPU idle: load the summary's kernels now
+                    threading.Thread(target=self._warm_summary, daemon=True, name="warm-summary").start()
+                t0_mono = st.t0_ns - (time.time_ns() - time.monotonic_ns())
+                self.t0_mono = t0_mono
+                self.router_realtime(True)
+                end_mono = t0_mono + st.n_steps * st.T_ns + int(10e9)
+            for role, p in self.procs.items():
+                rc = p.poll()
+                if rc is not None and role not in self.exits:
+                    self.record_exit(role, rc, col, t0_mono)
+            if t0_mono is not None:
+                for guest in self.colocated:
+                    if guest not in self.exits:
+                        self.check_guest(guest, col, t0_mono)
+            if t0_mono is None and not self.recorder_started(session, col):
+                return "recorder did not start"
+            self.check_recorder(col, t0_mono)
+            self.publish_faults(session)
+            if all(r in self.exits for r in self.procs):
+                return "done" if self._plant_ok(col) else "all nodes exited"
+            now = time.monotonic_ns()
+            if t0_mono is None:
+                if time.monotonic() - t_launch > a.startup_timeout:
+                    self.faults.append({"node": None, "kind": "startup_timeout",
+                                        "why": f"no start after {a.startup_timeout:g} s",
+                                        "alive": sorted(col.alive)})
+                    return "startup timeout"
+                if "plant" in self.exits:
+                    return "plant exited before the start"
+            else:
+                for role, sec in self.kills.items():
+                    if role not in self.kill_sent and now >= t0_mono + int(sec * 1e9):
+                        self.kill_sent[role] = time.monotonic_ns()
+                        if role == transport.RECORDER:
+                            if self.recorder is not None and self.recorder.poll() is None:
+                                os.killpg(self.recorder.pid, signal.SIGKILL)
+                        elif role in self.colocated:  # its host process kills it alone (SIGUSR2)
+                            self._signal_group(self.opts.process_of(role), signal.SIGUSR2)
+                        else:
+                            self._signal_group(role, signal.SIGKILL)
+                if now > end_mono:
+                    self.faults.append({"node": None, "kind": "timeout",
+                                        "why": "nodes still running 10 s after the end of the run"})
+                    return "timeout"
+            if "plant" in self.exits or col.plant_done():
+                # the plant has finished or died: the others stop on its Stop or its liveliness
+                if stopping_since is None:
+                    stopping_since = time.monotonic()
+                    if "plant" in self.exits and not col.plant_done():
+                        session.put(self.keys.stop, msg.Stop(reason="plant died", origin="launcher").encode())
+                elif time.monotonic() - stopping_since > 5.0:
+                    return "done" if self._plant_ok(col) else "plant died"
+            time.sleep(0.01)
+
+    def run(self) -> tuple[int, dict]:
+        import zenoh
+
+        from .collect import Collector
+
+        def on_signal(signum, _frame):
+            self.signal = signum
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        if transport.LAUNCHER in self.cpus:  # before Zenoh starts its threads: the router's CPUs
+            os.sched_setaffinity(0, parse_cpus(self.cpus[transport.LAUNCHER]))
+        self.make_secrets()
+        conf = self.session_config()
+        if not self.secure:
+            print(f"testbed run: INSECURE: no authentication and no access control; any local process can join, "
+                  f"stop or steer run {self.run_id}", file=sys.stderr)
+        outcome = "?"
+        try:
+            self.fork_ok = self.fork_ok and "rerun" not in sys.modules  # its import starts threads
+            if any(self.forks(r) for r in self.processes):  # before Zenoh starts any thread here
+                if self.rerun is not None:
+                    self.rerun.prepare()  # the part files the nodes' flags name
+                self.prewarm()
+                self.spawn(forked=True)
+            try:
+                session_cm = zenoh.open(conf)
+            except BaseException:
+                for r in self.procs:
+                    self._signal_group(r, signal.SIGKILL)
+                raise
+            with session_cm as session:
+                self.phase("router")
+                col = Collector(session, self.keys, self.sc.n_steps)
+                tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
+                self._tokens = tokens
+                try:
+                    # the recorder and the nodes start together; the plant starts the run once the
+                    # collector is ready, which it declares once the recorder is (``watch``)
+                    if self.record_path is not None:
+                        self.recorder = self._popen(self.recorder_command(), transport.RECORDER)
+                    if self.rerun is not None:
+                        self.rerun.start()
+                    if self.foxglove is not None:
+                        self.foxglove.start(session, self.keys)
+                    if self.record_path is None:  # forked nodes are ready at once: the taps listen first
+                        self.declare_collector_ready(session)
+                    self.spawn(forked=False)
+                    self.phase("spawned")
+                    outcome = self.watch(session, col)
+                    self.phase("watched")
+                finally:
+                    self.router_realtime(False)
+                    self.stop_all(session, outcome)
+                    for r, p in self.procs.items():
+                        if r not in self.exits and p.poll() is not None:
+                            self.record_exit(r, p.returncode, col, None)
+                    self.phase("stopped")
+                    self.wait_summaries(col)  # late telemetry and summaries
+                    for guest in self.colocated:  # one that died alone just before the end
+                        if guest not in self.exits:
+                            self.check_guest(guest, col, self.t0_mono, final=True)
+                    self.add_liveliness(col)
+                    self.check_recorder(col, None)
+                    self.publish_faults(session)
+                if self.signal is None:  # every node's own account of its telemetry against what arrived
+                    self.faults.extend(col.telemetry_check())
+                    self.publish_faults(session)
+                from ..record.summary import build_summary  # loaded meanwhile by ``_warm_summary``
+
+                plant = self.sc.make_model()
+                cb = self.sc.make_method().codebook(plant.n, self.sc.quantizer)
+                nodes = {r: dict(self.exits.get(r, {}), log=str(self.run_dir / f"{r}.log")) for r in self.processes}
+                for r in self.colocated:  # a role inside another process: that process's exit, unless it died alone
+                    host = self.opts.process_of(r)
+                    nodes[r] = dict(self.exits.get(r) or self.exits.get(host, {}), colocated_in=host,
+                                    log=str(self.run_dir / f"{host}.log"))
+                nodes = {r: nodes[r] for r in transport.ROLES}
+                summary = build_summary(self.sc, col.snapshot(self.sc), run_id=self.run_id,
+                                        ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
+                                        faults=self.faults, codebook=cb)
+                if summary.get("plant_fault"):  # the true plant (an FMU) failed: say so, not "crashed"
+                    outcome = f"plant fault at sample {summary.get('plant_fault_at')}"
+                    for f in (*self.faults, *summary["faults"]):
+                        if f.get("node") == "plant" and f.get("kind") == "crashed":
+                            f.update(kind="plant_fault", why=summary["plant_fault"])
+                summary["outcome"] = outcome
+                summary["security"] = self.security()
+                summary["launcher"] = {"pid": os.getpid(), "sched_fifo": self.router_fifo,
+                                       "spawn": "fork" if any(self.forks(r) for r in self.processes) else "exec"}
+                try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
+                    launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
+                    session.put(self.keys.summary("launcher"),
+                                msg.NodeSummary(node="launcher", data=launcher_view).encode())
+                    if self.recorder is not None and self.recorder.poll() is None:
+                        time.sleep(0.1)
+                except Exception:  # noqa: BLE001
+                    pass
+                self.stop_recorder()
+                self.check_recorder(col, None)
+                for t in tokens:
+                    t.undeclare()
+                summary["recording"] = self.recording_info()
+                self.phase("summary")
+                if self.rerun is not None:
+                    self.rerun.finish()
+                    summary["rerun"] = self.rerun.info()
+                if self.foxglove is not None:
+                    self.foxglove.finish(getattr(self.args, "foxglove_linger", 0.0))
+                    summary["foxglove"] = self.foxglove.info()
+        finally:
+            if self.recorder is not None and self.recorder.poll() is None:  # an exception above
+                self.stop_recorder()
+            self.remove_secrets()
+            for s, h in old.items():
+                signal.signal(s, h)
+        summary["run_dir"] = str(self.run_dir)
+        if self.signal is not None:
+            code = 128 + self.signal
+        elif self.faults or not summary.get("complete"):
+            code = 1
+        else:
+            code = 0
+        if code == 0 and self.own_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+            summary["run_dir"] = None
+        return code, summary

@@ -1,0 +1,137 @@
+"""The node base class: ``setup`` (declare), ``warmup`` (JIT), ``run`` (after the start), ``summary``."""
+
+from __future__ import annotations
+
+import logging
+
+from ..wire import messages as msg
+from ..wire import transport
+from .context import NodeContext
+from .inlet import Inlet
+
+log = logging.getLogger("testbed.nodes")
+
+
+# ============================================================================ node base
+class Node:
+    """A node shell: ``setup`` (declare), ``warmup`` (JIT), ``run`` (after the start), ``summary``."""
+
+    role = ""
+
+    def __init__(self, ctx: NodeContext, args):
+        self.ctx = ctx
+        self.args = args
+        self.sc = ctx.sc
+        self.model = ctx.sc.make_model()  # the predictions' model (n, m); the plant node has the true plant
+        self.crash_at = getattr(args, "crash_at", None)
+        self.malformed = 0
+        self.error: BaseException | None = None
+        self._pubs: list = []
+        self.rx_mode = getattr(args, "rx", None) or "thread"
+        spin_us = getattr(args, "rx_spin_us", None)
+        self.rx_spin_ns = int(spin_us * 1e3) if spin_us is not None else min(1_000_000, ctx.T_ns // 20)
+        self.inlet: Inlet | None = None
+
+    # -- to override
+    def setup(self) -> None: ...
+
+    def declare_alive(self) -> None:
+        self.ctx.declare_alive()
+
+    def declare_ready(self) -> None:
+        self.ctx.declare_ready()
+
+    def warmup(self) -> None: ...
+
+    def warm_publishers(self) -> None: ...
+
+    def run(self) -> None:
+        self.wait_end()
+
+    def summary(self) -> dict:
+        return {}
+
+    # -- helpers
+    def publisher(self, key: str, control: bool = True):
+        qos = transport.control_qos() if control else transport.telemetry_qos()
+        return self.ctx.session.declare_publisher(key, **qos)
+
+    def guard(self, fn):
+        """Wrap a Zenoh callback: an exception stops the node (exit code 1) instead of vanishing."""
+
+        def wrapped(sample):
+            if self.error is not None:
+                return None
+            try:
+                return fn(sample)
+            except Exception as e:  # noqa: BLE001
+                self.fail(e)
+                return None
+
+        return wrapped
+
+    def subscribe(self, key: str, fn, *, blocking: bool = False, primary: bool = False, thread: bool = True):
+        """Subscribe ``fn(sample)`` (guarded) the way the node's ``--rx`` mode says.
+
+        ``thread``: zenoh-python's callback thread runs it (one thread per subscriber, woken
+        for each sample).  ``direct``: Zenoh's own receive thread runs it, one thread wake-up
+        less per message; only for a handler that never waits (``blocking=False``): one that
+        waits for another message there would wait for ever.  ``spin``: as ``direct``, and the
+        node's primary input (``primary``, the one on the loop's path) is an ``Inlet``: its
+        own thread handles it and spins just before it is due (``thread=False``: the node's
+        loop calls ``Inlet.spin`` itself).  ``fn`` returns the sample index of a control
+        message (the inlet learns when it is due) or None.
+        """
+        import zenoh
+
+        h = self.guard(fn)
+        if self.rx_mode == "spin" and primary:
+            self.inlet = Inlet(self, key, h, budget_ns=self.rx_spin_ns, thread=thread)
+            return self.inlet.sub
+        if self.rx_mode != "thread" and not blocking:
+            return self.ctx.session.declare_subscriber(key, zenoh.handlers.Callback(h, indirect=False))
+        return self.ctx.session.declare_subscriber(key, h)
+
+    def rx_summary(self) -> dict:
+        d = {"rx": self.rx_mode}
+        if self.inlet is not None:
+            d["rx_inlet"] = self.inlet.stats()
+        return d
+
+    def fail(self, e: BaseException) -> None:
+        if self.error is None:
+            self.error = e
+            import traceback
+
+            tb = "".join(traceback.format_exception(e)).rstrip()
+            log.error("%s crashed:\n%s", self.role, tb)
+            self.ctx.event("crash", detail=f"{type(e).__name__}: {e}", level=logging.ERROR)
+            self.ctx.request_stop(f"crash: {type(e).__name__}: {e}")
+
+    def maybe_crash(self, k: int) -> None:
+        """Fault injection (``--crash-at K``): raise at sample K."""
+        if self.crash_at is not None and k == self.crash_at:
+            raise RuntimeError(f"injected crash of the {self.role} at sample {k}")
+
+    def bad_message(self, what: str, e: Exception, k: int = -1) -> None:
+        self.malformed += 1
+        if self.malformed <= 20:
+            self.ctx.event("malformed", k=k, detail=f"{what}: {e}")
+
+    def rx_header(self, sample, what: str):
+        """The sample's header, or None for a warm-up put or a malformed header (counted)."""
+        try:
+            h = msg.Header.decode(sample.attachment)
+        except msg.MessageError as e:
+            self.bad_message(what, e)
+            return None
+        return None if h.warmup else h
+
+    def wait_end(self, grace_s: float = 5.0) -> None:
+        """Until a stop arrives, or the run's end plus ``grace_s`` (no plant to say so)."""
+        ctx = self.ctx
+        while not ctx.stop.is_set():
+            if ctx.clock is not None and ctx.now() > ctx.end_ns + int(grace_s * 1e9):
+                ctx.request_stop("run over (no stop message)")
+                break
+            ctx.stop.wait(0.05)

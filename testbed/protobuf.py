@@ -1,0 +1,20 @@
+"""Protobuf message classes from a serialized ``FileDescriptorSet``: the recording's schemas
+(``testbed.record.schema``) and the Foxglove schemas (``testbed.view.foxglove``) alike."""
+
+from __future__ import annotations
+
+
+def classes_from(fds_bytes: bytes) -> dict[str, type]:
+    """Message classes (full name -> class) built from a serialized ``FileDescriptorSet``."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    fds = descriptor_pb2.FileDescriptorSet.FromString(fds_bytes)
+    pool = descriptor_pool.DescriptorPool()
+    for f in fds.file:
+        pool.Add(f)
+    out = {}
+    for f in fds.file:
+        for m in f.message_type:
+            full = f"{f.package}.{m.name}" if f.package else m.name
+            out[full] = message_factory.GetMessageClass(pool.FindMessageTypeByName(full))
+    return out

@@ -1,0 +1,376 @@
+"""MCAP recordings of runs (live or simulated): the writer, the reference reader, one set of topics.
+
+``read`` decodes every message into a dataclass (simple, slow: the reference
+the tests hold the fast reader to); the commands and ``testbed.open`` use the
+streaming columnar reader, ``testbed.record.columns``.
+
+Topics are the run's Zenoh keys without the ``testbed/<run_id>`` prefix; every
+channel is protobuf (``testbed.record.schema``):
+
+=========================  ==========================  ===============================================
+topic                      schema                      content
+=========================  ==========================  ===============================================
+``/telemetry/plant``       ``testbed.PlantSample``     x_k, u_k, theta_k as received, timing, flags;
+                                                       the final state x_N has flag bit 3
+``/telemetry/encoder``     ``testbed.EncoderSample``   symbol, xi_k, E_k, q_k, saturation (Algorithm 1)
+``/telemetry/controller``  ``testbed.ControllerSample``  xi_k, E_k, theta_k, q_k, u_k (Algorithm 2)
+``/telemetry/attacker``    ``testbed.AttackerSample``  dropped / forwarded, attack on, totals
+``/loop/sensor``           ``testbed.Sensor``          control path as it crossed the network
+``/loop/symbol/tx|rx``     ``testbed.Symbol``          (live runs; at T >= 10 ms by default,
+``/loop/actuation``        ``testbed.Actuation``       see ``testbed run --record-loop``)
+``/loop/ack/tx|rx``        ``testbed.Ack``
+``/attacker/status``       ``testbed.AttackerStatus``  every switch of the attack
+``/events/<node>``         ``testbed.Event``           saturations, faults, peers lost, node deaths
+``/summary/<node>``        ``testbed.NodeSummary``     a node's counters and timing at exit
+``/control/start|stop``    ``testbed.RunStart|RunStop``  t0 and the run's identity; stops
+``/liveliness``            ``testbed.Liveliness``      nodes appearing and going away
+``/recorder/malformed``    ``testbed.Malformed``       anything that did not decode, as received
+``/log``                   ``foxglove.Log``            start, end, attacks on and off, saturations,
+                                                       faults, every node event (Foxglove's Log panel)
+``/phase``                 ``foxglove.SceneUpdate``    one a sample: the phase plane (trajectory so far,
+                                                       x_k, xi_k, the box Q(xi_k, E_k)), Foxglove's 3D panel
+``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2,
+                                                       T >= 10 ms)
+=========================  ==========================  ===============================================
+
+Metadata records: ``testbed.scenario`` (name, TOML text, reference, folder, plant module source),
+``testbed.software`` (versions), ``testbed.run`` (source live|simulate, run id,
+host, command line, options), and at a clean close ``testbed.recorder``
+(message counts).  ``log_time`` is when the recorder got a message
+(CLOCK_REALTIME ns; t0 + k T in a simulation), ``publish_time`` t0 plus the
+message's own time stamp when it has one.
+
+Crash safety: the writer closes its chunk and flushes the file at least every
+``flush_interval`` (0.5 s), so a recorder killed with SIGKILL leaves a file whose
+every complete chunk ``read`` recovers (``Recording.truncated`` is then True)."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+from ..wire import messages as msg
+from . import schema
+from .recorded import resolved_metadata, scenario_metadata, software_versions
+from .topics import _U64_MAX, FORMAT_VERSION, PROFILE, schema_for_topic
+
+
+def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None,
+                 run_id: str | None = None) -> Path:
+    """``recordings/<scenario>-<UTC start, YYYYmmdd-HHMMSS>-<run id>.mcap`` (a suffix avoids an existing file).
+
+    The directory is ``$TESTBED_RECORDINGS_DIR`` if set, else ``recordings/`` under the current directory.
+    The run id makes the name unique to the run; the writer also creates the file exclusively.
+    """
+    if directory is None:
+        directory = os.environ.get("TESTBED_RECORDINGS_DIR") or "recordings"
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(time.time() if when is None else when))
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in (run_id or ""))[:80]
+    base = Path(directory) / (f"{scenario_name}-{stamp}-{safe}" if safe else f"{scenario_name}-{stamp}")
+    p = base.with_suffix(".mcap")
+    i = 1
+    while p.exists():
+        p = Path(f"{base}-{i}.mcap")
+        i += 1
+    return p
+
+
+class RecordingWriter:
+    """Thread-safe MCAP writer of protobuf messages, flushed at least every ``flush_interval`` seconds."""
+
+    def __init__(self, path: str | Path, *, flush_interval: float = 0.5, chunk_size: int = 1 << 20,
+                 compression: str = "zstd", exclusive: bool = True):
+        from mcap.writer import CompressionType, Writer
+
+        from ..errors import BadInput
+
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # exclusive create: two runs can never write into one file
+            self._f = open(self.path, "xb" if exclusive else "wb")
+        except FileExistsError:
+            raise BadInput(f"{self.path} exists: a recording is never overwritten (remove it, choose another "
+                           "path, or pass --force)") from None
+        except OSError as e:
+            raise BadInput(f"cannot write the recording {self.path}: {e.strerror or e}") from None
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
+        self._w.start(profile=PROFILE, library=f"testbed-recorder/{FORMAT_VERSION}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self.flush_interval = float(flush_interval)
+        self._last_flush = time.monotonic()
+        self.counts: Counter = Counter()
+        self.closed = False
+
+    def _channel(self, topic: str, name: str) -> int:
+        ch = self._channels.get(topic)
+        if ch is None:
+            sid = self._schemas.get(name)
+            if sid is None:
+                if "." in name:  # a Foxglove schema, as foxglove-sdk publishes it
+                    from ..view.foxglove import descriptor_set
+
+                    full, data = name, descriptor_set(name)
+                else:
+                    full, data = schema.full_name(name), schema.file_descriptor_set()
+                sid = self._w.register_schema(name=full, encoding="protobuf", data=data)
+                self._schemas[name] = sid
+            ch = self._w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
+            self._channels[topic] = ch
+        return ch
+
+    def metadata(self, name: str, data: dict) -> None:
+        clean = {str(k): v if isinstance(v, str) else json.dumps(v, default=str) for k, v in data.items()}
+        with self._lock:
+            if not self.closed:
+                self._w.add_metadata(name, clean)
+                self._f.flush()
+
+    def write(self, topic: str, obj, log_time: int, publish_time: int | None = None,
+              name: str | None = None, extra: dict | None = None) -> None:
+        """``obj``: a ``testbed.wire.messages`` dataclass, a dict with the schema's fields, or a protobuf message.
+
+        ``extra``: fields beside the dataclass's (``view.foxglove.telemetry_extra``).
+        """
+        if name is None:
+            name = schema_for_topic(topic)
+            if name is None:
+                raise ValueError(f"{topic!r} is not a topic of a recording")
+        data = obj.SerializeToString() if hasattr(obj, "SerializeToString") else \
+            schema.to_pb(obj, name, extra).SerializeToString()
+        self.write_bytes(topic, name, data, log_time, publish_time)
+
+    def write_bytes(self, topic: str, name: str, data: bytes, log_time: int, publish_time: int | None = None) -> None:
+        log_time = int(log_time)
+        with self._lock:
+            if self.closed:
+                return
+            ch = self._channel(topic, name)
+            pub = int(log_time if publish_time is None else publish_time)
+            self._w.add_message(channel_id=ch, log_time=min(max(log_time, 0), _U64_MAX),
+                                data=data, publish_time=min(max(pub, 0), _U64_MAX))
+            self.counts[topic] += 1
+            if time.monotonic() - self._last_flush >= self.flush_interval:
+                self._flush_locked()
+
+    def maybe_flush(self) -> None:
+        with self._lock:
+            if not self.closed and time.monotonic() - self._last_flush >= self.flush_interval:
+                self._flush_locked()
+
+    def flush(self) -> None:
+        with self._lock:
+            if not self.closed:
+                self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        self._w.flush()   # closes the chunk in progress and flushes the stream (no fsync: a killed
+        self._last_flush = time.monotonic()  # process's written data survives in the page cache)
+
+    def close(self, recorder_stats: dict | None = None) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            stats = {"messages": sum(self.counts.values()), "per_topic": dict(self.counts)}
+            if recorder_stats:
+                stats.update(recorder_stats)
+            self._w.add_metadata("testbed.recorder", {k: json.dumps(v) for k, v in stats.items()})
+            self._w.finish()
+            self._f.close()
+            self.closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref: str | None = None,
+                        extra: dict | None = None) -> None:
+    """The metadata every recording starts with."""
+    w.metadata("testbed.scenario", scenario_metadata(sc, ref))
+    w.metadata("testbed.resolved", resolved_metadata(sc))
+    w.metadata("testbed.software", software_versions())
+    run = {"source": source, "run_id": run_id, "host": platform.node(), "pid": str(os.getpid()),
+           "command": " ".join(sys.argv), "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if extra:
+        run.update({k: v if isinstance(v, str) else json.dumps(v, default=str) for k, v in extra.items()})
+    w.metadata("testbed.run", run)
+
+
+def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
+                      t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True,
+                      roa: bool = True) -> dict:
+    """Write a simulated run (``testbed.simloop.SimResult``) with the topics and schemas of a live run.
+
+    Times are nominal and latencies zero (t_k = k T, every message at its sample
+    instant); t0 is the wall-clock time of the call.  The Foxglove topics
+    (``view.foxglove``) come from the same tap as a live recorder's; ``roa``:
+    draw the nominal region of attraction there.  Returns the writer's counts.
+    """
+    import numpy as np
+
+    from ..simulate import attack_on_samples
+    from ..view.foxglove import FoxgloveTopics, telemetry_extra
+
+    t0 = time.time_ns() if t0_ns is None else int(t0_ns)
+    Tn = int(round(sc.T * 1e9))
+    N = len(res.t)
+    plant = sc.make_model()
+    cb = sc.make_method().codebook(plant.n, sc.quantizer)
+    run_id = f"sim-{sc.name}-{t0}"
+    w = RecordingWriter(path, flush_interval=flush_interval, exclusive=exclusive)
+    fox = FoxgloveTopics(sc, roa=roa)
+
+    def tap(items):
+        for topic, name, data, lt in items:
+            w.write_bytes(topic, name, data, lt)
+
+    def tele(topic, name, t, lt):
+        w.write(topic, t, lt, name=name, extra=telemetry_extra(name, t, t0, Tn))
+
+    try:
+        write_text_metadata(w, sc, source="simulate", run_id=run_id, ref=ref,
+                            extra={"scenario_overrides": overrides or {}, "bits": cb.bits})
+        start = msg.Start(run_id=run_id, t0_ns=t0, T_ns=Tn, n_steps=sc.n_steps, digest="", timing="ideal",
+                          ack_via_attacker=False)
+        w.write("/control/start", start, t0)
+        tap(fox.start(start, t0))
+        theta = np.asarray(res.theta, dtype=np.int64)
+        attack_on = attack_on_samples(sc, res)  # an online attacker (greedy) is on when it drops
+        dropped_total = np.cumsum(theta)
+        prev_on = False
+        delays = res.delays
+        u_missing = res.u_missing if res.u_missing is not None else np.zeros(N, dtype=bool)
+        withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
+        reasons = res.reason
+        fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
+        for k in range(N):
+            tk = k * Tn
+            lt = t0 + tk
+            th = int(theta[k])
+            dk = 0 if delays is None else int(delays[k])
+            miss = bool(u_missing[k])
+            p = msg.PlantTelemetry(
+                k=k, t_ns=tk, sensor_tx_ns=tk, u_rx_ns=msg.NO_TIME if miss else tk + dk, delay_ns=dk,
+                theta=msg.THETA_NONE if miss else th,
+                flags=(msg.PlantTelemetry.FLAG_NO_U | msg.PlantTelemetry.FLAG_MISS) if miss else 0,
+                flow_status=int(res.flow_status) if k == res.diverged_at else 0,
+                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k]))
+            tele("/telemetry/plant", "PlantSample", p, lt)
+            tap(fox.plant(p, lt))
+            if fault is not None and k == res.plant_fault_at:  # the event a live plant node publishes
+                ev = msg.Event(node="plant", kind="plant_fault", k=k, t_ns=tk, detail=fault)
+                w.write("/events/plant", ev, lt)
+                tap(fox.event(ev, lt))
+            sym = int(res.symbols[k])
+            if withheld[k]:
+                e = msg.EncoderTelemetry(k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=msg.NO_TIME, symbol=-1, saturated=0,
+                                         silent=1, E=float("nan"), xi=(), q=())
+            else:
+                e = msg.EncoderTelemetry(k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym,
+                                         saturated=int(res.saturated[k]), silent=0, E=float(res.E_enc[k]),
+                                         xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k]))
+            tele("/telemetry/encoder", "EncoderSample", e, lt)
+            tap(fox.encoder(e, lt))
+            if res.saturated[k]:
+                ev = msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
+                               detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}")
+                w.write("/events/encoder", ev, lt)
+                tap(fox.event(ev, lt))
+            on = bool(attack_on[k])
+            tele("/telemetry/attacker", "AttackerSample", msg.AttackerTelemetry(
+                k=k, rx_ns=tk, tx_ns=msg.NO_TIME if th else tk, dropped=th, corrupted=0, attack_on=int(on),
+                dropped_total=int(dropped_total[k]), forwarded_total=int(k + 1 - dropped_total[k])), lt)
+            if on != prev_on:
+                st = msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
+                                        forwarded=int(k + 1 - dropped_total[k]))
+                w.write("/attacker/status", st, lt)
+                tap(fox.status(st, lt))
+                prev_on = on
+            reason = (msg.ControllerTelemetry.DEADLINE if th else msg.ControllerTelemetry.RECEIVED) \
+                if reasons is None else int(reasons[k])
+            received = reason == msg.ControllerTelemetry.RECEIVED
+            tele("/telemetry/controller", "ControllerSample", msg.ControllerTelemetry(
+                k=k, sym_stamp_ns=tk if received else msg.NO_TIME, rx_ns=tk if received else msg.NO_TIME, tx_ns=tk,
+                symbol=sym if received else -1, theta=th, reason=reason,
+                E=float(res.E_dec[k]), xi=tuple(res.xi_dec[k]), q=tuple(res.q[k]), u=tuple(res.u[k])), lt)
+        tN = N * Tn
+        tele("/telemetry/plant", "PlantSample", msg.PlantTelemetry(
+            k=N, t_ns=tN, sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0, theta=msg.THETA_NONE,
+            flags=msg.PlantTelemetry.FLAG_FINAL, flow_status=int(res.flow_status),
+            x=tuple(np.asarray(res.x_final, dtype=float)), u=()), t0 + tN)
+        if fault is not None and N == 0:  # the true plant failed to start
+            w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=0, t_ns=0, detail=fault), t0)
+        stop = msg.Stop(reason="end of run" if fault is None else f"plant fault at sample {res.plant_fault_at}: {fault}",
+                        origin="simulator")
+        w.write("/control/stop", stop, t0 + tN)
+        tap(fox.stop(stop, t0 + tN))
+    finally:
+        w.close()
+    return dict(w.counts)
+
+
+def markdown() -> str:
+    """docs/recording-format.md: every topic, metadata record and field (``python -m testbed.record.recording``)."""
+    doc = __doc__
+    table = doc[doc.index("========================="):doc.index("Metadata records")].strip()
+    return f"""# Recording format (MCAP + protobuf)
+
+Generated by `python -m testbed.record.recording > docs/recording-format.md` from `testbed/record/recording.py` and
+`testbed/record/schema.py`; a test checks that it is current.
+
+Every live run (`testbed run`) and every `testbed simulate --out` writes one MCAP file.
+Topics are the run's Zenoh keys without the `testbed/<run_id>` prefix. Every channel is
+protobuf (schema encoding `protobuf`, a `FileDescriptorSet` of package `testbed`), so
+Foxglove opens the file as it is and Rerun decodes it natively.
+
+## Topics
+
+```
+{table}
+```
+
+## Metadata records
+
+- `testbed.scenario`: `name`, `toml` (the scenario file's text), `ref` (as given on the command line),
+  `base_dir` (the scenario file's folder, empty for a bundled scenario), `plant_ref` (`[plant] name`),
+  `plant_module`, `plant_class`, `plant_file` (where the plant class came from), `plant_source` (that module's
+  text; empty for the bundled plants, which ship with the testbed) and `plant_sha256` (its sha256; for an FMU
+  plant `plant_ref` is empty, `plant_file` the FMU and `plant_sha256` the file's); the same `model_*` keys for a
+  `[model]` of another class than the plant's.
+  `testbed report` loads `plant_source` only when the module cannot be imported (see docs/own-plant.md).
+- `testbed.software`: versions of Python, the platform, dos-testbed (and its git commit when run from a
+  checkout), numpy, scipy, numba, eclipse-zenoh, mcap, protobuf, rerun-sdk; `format` (this format's version).
+- `testbed.run`: `source` (`live` or `simulate`), `run_id`, `host`, `pid`, `command`, `started_utc`,
+  `scenario_overrides` (JSON: `--duration`, `--T`, `--mode`, ... applied on top of the TOML), and for live
+  runs `T_ns`, `ack_via_attacker`.
+- `testbed.recorder` (written at a clean close only): message counts per topic and the recorder's counters.
+
+## Times
+
+`*_ns` fields are nanoseconds since the run's t0 (`/control/start`: `t0_ns`, CLOCK_REALTIME). A time that
+never happened is an absent field (proto3 `optional`). A message's MCAP `log_time` is when the recorder
+received it (CLOCK_REALTIME ns); its `publish_time` is t0 plus the message's own time stamp. In a
+simulation both are t0 + k T and every latency is zero.
+
+## Messages and fields
+
+{schema.describe()}"""
+
+
+__all__ = ["RecordingWriter", "default_path", "record_simulation", "write_text_metadata"]
+
+
+if __name__ == "__main__":
+    sys.stdout.write(markdown())

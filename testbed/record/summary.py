@@ -1,0 +1,373 @@
+"""Assemble a run's summary from its per-sample telemetry: shared by ``testbed run`` and ``testbed report``.
+
+Both feed it columns (``testbed.record.columns.Columns``): the live launcher what
+its collector received over Zenoh, ``testbed report`` what a recording holds,
+so both print the same keys.  The
+per-sample arrays become a ``SimResult`` and go through
+``testbed.simulate.summarize``, so every key of ``testbed simulate --json``
+means the same thing here; live-only keys (timing, faults, nodes, sizes) are
+added beside them.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from ..simulate import json_clean as _clean
+from ..stats import percentiles
+from ..wire import messages as msg
+from ..wire import transport
+
+ROLES = transport.ROLES
+PT = msg.PlantTelemetry
+CT = msg.ControllerTelemetry
+
+
+def _agree_where_known(xi_e, E_e, xi_d, E_d) -> bool:
+    """xi_k, E_k identical at both ends on every sample where both were recorded."""
+    known = np.isfinite(E_e) & np.isfinite(E_d)
+    return bool(np.array_equal(xi_e[known], xi_d[known]) and np.array_equal(E_e[known], E_d[known]))
+
+
+class RowsOrNone:
+    """Per-sample vectors where a missing sample is ``null`` as a whole (not a row of nulls) in JSON."""
+
+    def __init__(self, values: np.ndarray, mask: np.ndarray):
+        self.values, self.mask = values, mask
+
+    def tolist(self) -> list:
+        return [row if ok else None for row, ok in zip(self.values.tolist(), self.mask.tolist())]
+
+
+#: the telemetry fields ``build_summary`` prints (``testbed.record.columns.read_columns(fields=...)``); q_k at the
+#: encoder is not printed and stays NaN unless decoded (``testbed.open`` decodes every field)
+SUMMARY_FIELDS = {
+    "plant.x", "plant.u", "plant.t_ns", "plant.u_rx_ns", "plant.theta", "plant.flags", "plant.flow_status",
+    "encoder.symbol", "encoder.saturated", "encoder.silent", "encoder.E", "encoder.xi", "encoder.tx_ns",
+    "controller.theta", "controller.q", "controller.xi", "controller.E", "controller.reason", "controller.tx_ns",
+    "controller.u",
+    "attacker.tx_ns", "attacker.dropped", "attacker.attack_on",
+}
+
+
+def _diffs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """a - b (ns) where ``mask`` and both times happened."""
+    ok = mask & (a != msg.NO_TIME) & (b != msg.NO_TIME)
+    return a[ok] - b[ok]
+
+
+def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
+    """Physical timing, scheduled actuation: how many received u_k arrived (``arrival_ns`` after
+    t_k) later than their scheduled instant; 0 otherwise."""
+    tp = sc.timing_params
+    return int(np.count_nonzero(arrival_ns > int(tp[2]))) if (tp[0] and tp[1]) else 0
+
+
+def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict, faults: list, codebook,
+                  arrays: bool = False) -> dict:
+    """One JSON-able dict: ``testbed simulate --json`` keys plus timing, faults and node reports.
+
+    ``cols``: a ``testbed.record.columns.Columns`` (a recording, or the live collector's
+    snapshot).  ``arrays``: per-sample values stay numpy arrays (``write_json``
+    streams them); otherwise plain lists.
+    """
+    from ..flow import FLOW_OK
+    from ..simloop import SimResult
+    from ..simulate import summarize
+
+    plant = sc.make_model()
+    n, m = plant.n, plant.m
+    Tn = int(round(sc.T * 1e9))
+    final = cols.final
+    N = final["k"] if final is not None else cols.last_k("plant") + 1
+    N = max(0, min(N, cols.rows))
+    g = cols.get
+    P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
+    silent = g("encoder", "silent")[:N] != 0
+    E_ok = EN & ~silent
+    # the columns hold NaN (u: 0, symbol: -1) where a sample was not recorded or its symbol withheld
+    x, u = g("plant", "x")[:N], g("plant", "u")[:N]
+    q_enc, xi_enc, E_enc = g("encoder", "q")[:N], g("encoder", "xi")[:N], g("encoder", "E")[:N]
+    symbols = g("encoder", "symbol")[:N]
+    sat = E_ok & (g("encoder", "saturated")[:N] != 0)
+    q, xi_dec, E_dec = g("controller", "q")[:N], g("controller", "xi")[:N], g("controller", "E")[:N]
+    p_theta = g("plant", "theta")[:N]
+    theta = np.ones(N, dtype=np.uint8)
+    from_plant = ~C & P & (p_theta != msg.THETA_NONE)
+    theta[from_plant] = p_theta[from_plant]
+    theta[C] = g("controller", "theta")[:N][C]
+    t_ns = g("plant", "t_ns")[:N]
+    u_rx = g("plant", "u_rx_ns")[:N]
+    flags = g("plant", "flags")[:N]
+    e_tx = g("encoder", "tx_ns")[:N]
+    c_tx = g("controller", "tx_ns")[:N]
+    a_tx = g("attacker", "tx_ns")[:N]
+    reason = g("controller", "reason")[:N]
+    d_ns = int(sc.run.deadline * Tn)
+    has_t = P & (t_ns != msg.NO_TIME)
+    jitter = t_ns[has_t] - np.flatnonzero(has_t) * Tn
+    overruns = int(np.count_nonzero(jitter > d_ns))
+    s2a = _diffs(u_rx, t_ns, P & (p_theta == 0))
+    late_sched = late_for_schedule(sc, s2a)
+    misses = int(np.count_nonzero(P & (flags & PT.FLAG_MISS != 0)))
+    no_u = int(np.count_nonzero(P & (flags & PT.FLAG_NO_U != 0)))
+    st_enc = _diffs(e_tx, t_ns, E_ok & P)
+    st_plant = _diffs(u_rx, c_tx, C & P)
+    st_proxy = _diffs(a_tx, e_tx, A & EN)
+    st_ctl = _diffs(c_tx, a_tx, A & C & (reason == CT.RECEIVED))
+    n_reason = np.bincount(reason[C], minlength=4) if N else np.zeros(4, dtype=np.int64)
+    if final is not None:
+        x_final = np.array(final["x"], dtype=float)
+        flow_status = final["flow_status"]
+    else:
+        x_final = x[-1] if N else np.array(sc.x0, dtype=float)
+        flow_status = FLOW_OK
+    bad_flow = np.flatnonzero(P & (g("plant", "flow_status")[:N] != FLOW_OK))
+    diverged_at = int(bad_flow[0]) if bad_flow.size else -1
+    res = SimResult(T=sc.T, t=np.arange(N) * sc.T, x=x, u=u, q=q, q_enc=q_enc, xi_enc=xi_enc, E_enc=E_enc,
+                    xi_dec=xi_dec, E_dec=E_dec, theta=theta, symbols=symbols, saturated=sat, x_final=x_final,
+                    flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float))
+    events = cols.events
+    pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
+    if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample
+        res.plant_fault, res.plant_fault_at = pf.detail, int(pf.k)
+    if not np.all(np.isfinite(x_final)):
+        res.x_final = np.array(sc.x0, dtype=float)
+        out = summarize(sc, res, arrays=arrays)
+        out.update(x_final=None, final_norm=None, converged=False, escaped=None)
+    else:
+        out = summarize(sc, res, arrays=arrays)
+    out = _clean(out)
+    base_keys = set(out)
+    summaries = cols.summaries
+    ps = summaries.get("plant", {})
+    es = summaries.get("encoder", {})
+    cs = summaries.get("controller", {})
+    ats = summaries.get("attacker", {})
+    ev_count = Counter(e.kind for e in events)
+    L = (lambda a: a) if arrays else (lambda a: a.tolist())
+    t_sample = np.where(has_t, t_ns / 1e9, np.nan)
+    u_ctl = RowsOrNone(g("controller", "u")[:N], C)
+    out.update({
+        "live": True,
+        "run_id": run_id,
+        "timing_mode": sc.run.timing,
+        "deadline": sc.run.deadline,
+        "ack_via_attacker": bool(ack_via_attacker),
+        "samples": N,
+        "n_steps": sc.n_steps,
+        "complete": final is not None and N == sc.n_steps,
+        "t_sample": t_sample if arrays else _clean(t_sample.tolist()),
+        "u_controller": u_ctl if arrays else _clean(u_ctl.tolist()),
+        "xi_dec": xi_dec if arrays else _clean(xi_dec.tolist()),
+        "encoder_decoder_agree_where_known": _agree_where_known(xi_enc, E_enc, xi_dec, E_dec),
+        "deadline_missed_at": L(np.flatnonzero(P & (flags & PT.FLAG_MISS != 0))),
+        "withheld_at": L(np.flatnonzero(EN & silent)),
+        "attacker_dropped_at": L(np.flatnonzero(A & (g("attacker", "dropped")[:N] != 0))),
+        "loss_reasons": {"received": int(n_reason[CT.RECEIVED]), "deadline": int(n_reason[CT.DEADLINE]),
+                         "invalid": int(n_reason[CT.INVALID]), "superseded": int(n_reason[CT.SUPERSEDED])},
+        "invalid_payloads": cs.get("invalid", int(n_reason[CT.INVALID])),
+        "late_symbols": cs.get("late"),
+        "malformed": {r: summaries.get(r, {}).get("malformed") for r in ROLES},
+        "controller_lost_at": ps.get("controller_lost_at", -1),
+        "sizes": {"symbol_payload_bytes": codebook.nbytes, "symbol_bits": codebook.bits,
+                  "header_bytes": msg.HEADER_SIZE, "sensor_payload_bytes": 8 * n,
+                  "actuation_payload_bytes": 5 + 8 * m, "ack_payload_bytes": 5,
+                  "header_overhead_per_symbol": msg.HEADER_SIZE / codebook.nbytes},
+        "timing": {
+            "T_us": Tn / 1e3,
+            "sampling_jitter_us": percentiles(jitter),
+            "sensor_to_actuator_us": percentiles(s2a),
+            "stages_us": {"encoder": percentiles(st_enc), "proxy": percentiles(st_proxy),
+                          "controller": percentiles(st_ctl), "plant": percentiles(st_plant)},
+            "deadline_misses": misses,
+            "u_missing": no_u,
+            "overruns": overruns,
+            "late_for_schedule": late_sched,
+            "ack_rtt_us": es.get("ack_rtt_us"),
+        },
+        "events": dict(ev_count),
+        "event_log": [dict(node=e.node, kind=e.kind, k=e.k, detail=e.detail) for e in events[:50]],
+        "attacker_status": [dict(k=s.k, attack_on=s.attack_on, dropped=s.dropped) for s in cols.status],
+        "faults": faults,
+        "nodes": nodes,
+        "node_summaries": summaries,
+    })
+    out["attacker"] = {"dropped": ats.get("dropped"), "forwarded": ats.get("forwarded"),
+                       "corrupted": ats.get("corrupted"), "acks_dropped": ats.get("acks_dropped")}
+    return {k: v if k in base_keys else _clean(v) for k, v in out.items()}
+
+
+# ============================================================================ JSON out, streamed
+_BLOCK = 1 << 14
+
+
+_POOL = None
+_ARROW_TYPES = {"f8": "float64", "i8": "int64", "i4": "int32", "i2": "int16", "i1": "int8", "u8": "uint64",
+                "u4": "uint32", "u2": "uint16", "u1": "uint8"}
+
+
+def _arrow(col: np.ndarray):
+    """A 1-D numpy array as an Arrow array over its buffer (``pa.array`` costs 40 MB on first use)."""
+    import pyarrow as pa
+
+    global _POOL
+    if _POOL is None:  # the system allocator gives freed blocks back; the default pools keep them
+        _POOL = pa.system_memory_pool()
+        pa.set_memory_pool(_POOL)
+
+    col = np.ascontiguousarray(col)
+    if col.dtype == bool:
+        return pa.Array.from_buffers(pa.bool_(), len(col), [None, pa.py_buffer(np.packbits(col, bitorder="little"))])
+    key = f"{col.dtype.kind}{col.dtype.itemsize}"
+    if key not in _ARROW_TYPES:
+        col, key = col.astype(np.float64), "f8"
+    return pa.Array.from_buffers(getattr(pa, _ARROW_TYPES[key])(), len(col), [None, pa.py_buffer(col)])
+
+
+def _texts(col: np.ndarray):
+    """A 1-D array as JSON texts, one per value (Arrow's shortest round-trip formatting, vectorized).
+
+    Floats parse back to the same double as ``json.dumps`` writes (an integral
+    float keeps its ``.0``); NaN and infinities are ``null`` as ``_clean`` makes them.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    s = pc.cast(_arrow(col), pa.string())
+    if col.dtype.kind == "f":
+        fin = _arrow(np.isfinite(col))
+        plain = pc.invert(pc.or_(pc.match_substring(s, "."), pc.match_substring(s, "e")))
+        s = pc.if_else(pc.and_(plain, fin), pc.binary_join_element_wise(s, ".0", ""), s)
+        if not pc.all(fin).as_py():
+            s = pc.if_else(fin, s, "null")
+    return s
+
+
+def _joined(s) -> str:
+    """The texts of a string array joined by ", " (read straight from Arrow's value buffer)."""
+    import pyarrow.compute as pc
+
+    if len(s) == 0:
+        return ""
+    s = pc.binary_join_element_wise(s, ", ", "")
+    offsets = np.frombuffer(s.buffers()[1], dtype=np.int32)
+    lo, hi = int(offsets[s.offset]), int(offsets[s.offset + len(s)])
+    return memoryview(s.buffers()[2])[lo:hi - 2].tobytes().decode("ascii")
+
+
+def _row_texts(b: np.ndarray, mask: np.ndarray | None = None):
+    """Rows of a block as texts: scalars, ``[a, b]`` for vectors; ``null`` where ``mask`` is False."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if b.ndim == 1:
+        s = _texts(b)
+    elif b.shape[1] == 0:
+        s = pc.binary_join_element_wise(pc.cast(_arrow(np.zeros(len(b), np.int8)), pa.string()), "[]", "")
+        s = pc.utf8_slice_codeunits(s, 1)
+    else:
+        inner = pc.binary_join_element_wise(*[_texts(np.ascontiguousarray(b[:, j])) for j in range(b.shape[1])],
+                                            ", ")
+        s = pc.binary_join_element_wise("[", inner, "]", "")
+    if mask is not None:
+        s = pc.if_else(_arrow(np.asarray(mask, dtype=bool)), s, "null")
+    return s
+
+
+def _json_array(a: np.ndarray, w, mask: np.ndarray | None = None) -> None:
+    """A per-sample array as the JSON of ``_clean(a.tolist())``, a block of rows at a time.
+
+    Blocks are formatted on two threads (Arrow releases the GIL), at most two ahead of the writer.
+    """
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    def text(i):
+        return _joined(_row_texts(a[i:i + _BLOCK], None if mask is None else mask[i:i + _BLOCK]))
+
+    w("[")
+    starts = list(range(0, len(a), _BLOCK))
+    if len(starts) <= 1:
+        if starts:
+            w(text(0))
+    else:
+        with ThreadPoolExecutor(2) as ex:
+            todo, inflight = deque(starts), deque()
+            while todo or inflight:
+                while todo and len(inflight) < 2:
+                    inflight.append(ex.submit(text, todo.popleft()))
+                t = inflight.popleft().result()
+                w(t)
+                if inflight or todo:
+                    w(", ")
+    w("]")
+
+
+def write_json(obj, fp) -> None:
+    """``json.dump(obj, fp)`` for summaries holding numpy arrays, without building their lists at once."""
+    import json
+
+    w = fp.write
+    if isinstance(obj, dict):
+        w("{")
+        for i, (key, v) in enumerate(obj.items()):
+            w((", " if i else "") + json.dumps(str(key)) + ": ")
+            write_json(v, fp)
+        w("}")
+    elif isinstance(obj, (list, tuple)) and any(isinstance(v, (np.ndarray, RowsOrNone, dict)) for v in obj):
+        w("[")
+        for i, v in enumerate(obj):
+            if i:
+                w(", ")
+            write_json(v, fp)
+        w("]")
+    elif isinstance(obj, np.ndarray):
+        _json_array(obj, w)
+    elif isinstance(obj, RowsOrNone):
+        _json_array(obj.values, w, obj.mask)
+    else:
+        w(json.dumps(_clean(obj)))
+
+
+def to_lists(obj):
+    """A summary with numpy arrays -> the same with plain lists (what ``json.loads(write_json(...))`` gives)."""
+    if isinstance(obj, dict):
+        return {k: to_lists(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_lists(v) for v in obj]
+    if isinstance(obj, (np.ndarray, RowsOrNone)):
+        return _clean(obj.tolist())
+    return obj
+
+
+#: the per-stage times, read only for the timing section of live runs
+TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker.tx_ns"}
+
+
+#: what the resimulation and the actuation section read beyond the summary's fields
+REPLAY_FIELDS = {"plant.delay_ns"}
+
+
+def _fields(meta: dict) -> set[str]:
+    live = meta.get("testbed.run", {}).get("source") == "live"
+    return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
+
+
+def load(path: str | Path):
+    """The columns of a recording and its scenario (``BadInput`` for anything unusable).
+
+    The columns carry ``plant_source`` and ``model_source`` (``recorded.recorded_scenario``).
+    """
+    from .columns import read_columns
+    from .mcapfile import read_metadata
+    from .recorded import recorded_scenario
+
+    meta, _ = read_metadata(path)
+    sc, ps, ms = recorded_scenario(meta, str(path))
+    cols = read_columns(path, fields=_fields, sc=sc)
+    cols.plant_source, cols.model_source = ps, ms
+    return cols, sc

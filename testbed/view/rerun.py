@@ -1,0 +1,554 @@
+"""Rerun view of a run: live (``testbed run --rerun``), replayed (``testbed replay``) or simulated.
+
+One core, :func:`log_samples`, logs plain per-sample arrays; the simulator
+(``testbed simulate --rrd``), the replay of an MCAP recording and the live nodes
+all go through it, so they produce the same entities and the same blueprint.
+
+Timelines
+---------
+``k``  sequence, the sample index k;
+``t``  duration, the nominal sample instant t_k = k T (seconds since t0).
+
+Entities (one recording; in a live run each process logs its own subtree into the
+same recording id, the launcher logs the static parts and the blueprint)
+
+=========================  ==================  ==========================================
+entity                     archetype           what (logged by, live)
+=========================  ==================  ==========================================
+``plant/x``                Scalars (n)         state x_k (plant; the last row is x_N)
+``plant/u``                Scalars (m)         input u_k applied over [t_k, t_k+1) (plant)
+``encoder/E``              Scalars             E_k at the encoder, Algorithm 1 (encoder)
+``encoder/log10_E``        Scalars             log10 E_k, the plotted one (encoder)
+``encoder/xi``             Scalars (n)         xi_k at the encoder (encoder)
+``encoder/saturated``      Scalars             1 when x_k is outside Q(xi_k, E_k) (encoder)
+``controller/E``           Scalars             E_k at the decoder, Algorithm 2 (controller)
+``controller/log10_E``     Scalars             log10 E_k at the decoder (controller)
+``controller/xi``          Scalars (n)         xi_k at the decoder (controller)
+``controller/theta``       Scalars             theta_k, 1 = the symbol of sample k was lost (controller)
+``attacker/attack_on``     Scalars             1 while a DoS interval is on (attacker)
+``phase/trajectory``       LineStrips2D        segment x_{k-1} -> x_k; the view shows all of them (plant)
+``phase/x``                Points2D            x_k, current state (plant)
+``phase/xi``               Points2D            xi_k at the encoder (encoder)
+``phase/box``              Boxes2D             Q(xi_k, E_k): centre xi_k, half-width E_k (inf-norm box) (encoder)
+``phase/roa``              LineStrips2D        static: outline of the nominal region of attraction (launcher)
+``scenario``               TextDocument        static: the scenario file (launcher)
+=========================  ==================  ==========================================
+
+The phase plane shows components ``(0, 1)`` of the state; for n > 2 (the
+cart-pole) it is a projection and no region-of-attraction outline is drawn (the
+region is a 4-D set; its grid is a slice over other coordinates).
+
+E_k spans many decades (down to 1e-90 in the paper's example) and the 0.41
+time-series view has no logarithmic axis, so the plot shows ``log10_E``; the
+exact E_k is logged beside it (``encoder/E``, ``controller/E``).
+
+Rerun is imported only inside the functions: importing this module is cheap.
+"""
+
+from __future__ import annotations
+
+import argparse
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from .phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
+
+APP_ID = "testbed"
+TIMELINE_K = "k"
+TIMELINE_T = "t"
+
+COLOR_X = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40)]
+COLOR_ENC = (31, 119, 180)
+COLOR_DEC = (214, 39, 40)
+COLOR_BOX = (255, 165, 0)
+COLOR_ROA = (128, 128, 128)
+
+
+# ============================================================================ core: arrays -> entities
+def _times(k: np.ndarray, T: float) -> list:
+    import rerun as rr
+
+    k = np.asarray(k, dtype=np.int64)
+    return [rr.TimeColumn(TIMELINE_K, sequence=k), rr.TimeColumn(TIMELINE_T, duration=k * float(T))]
+
+
+def _scalars(rec, path: str, k: np.ndarray, T: float, values) -> None:
+    import rerun as rr
+
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape[0] == 0:
+        return
+    rr.send_columns(path, indexes=_times(k, T), columns=rr.Scalars.columns(scalars=values), recording=rec)
+
+
+def _log10(E: np.ndarray) -> np.ndarray:
+    E = np.asarray(E, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.log10(E)
+    return np.where(np.isfinite(out), out, np.nan)
+
+
+def log_samples(rec, k, T: float, *, x=None, u=None, E_enc=None, xi_enc=None, saturated=None,
+                E_dec=None, xi_dec=None, theta=None, attack_on=None, x_prev=None, dims=PHASE_DIMS) -> None:
+    """Log samples ``k`` (int array) of whatever arrays are given (rows aligned with ``k``).
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream.
+    k : sample indices (N,); T : sampling period (for the ``t`` timeline).
+    x (N, n), u (N, m) : plant state and input; E_enc (N,), xi_enc (N, n), saturated (N,) :
+        encoder (Algorithm 1); E_dec, xi_dec : decoder (Algorithm 2); theta (N,) : 1 = lost;
+        attack_on (N,) : 1 = DoS interval on.
+    x_prev : the state before ``k[0]`` (starts the first trajectory segment; batches of a live run).
+    dims : the two state components of the phase plane.
+    """
+    import rerun as rr
+
+    k = np.asarray(k, dtype=np.int64)
+    if k.size == 0:
+        return
+    a, b = dims
+    if x is not None:
+        x = np.asarray(x, dtype=np.float64)
+        _scalars(rec, "plant/x", k, T, x)
+        rr.send_columns("phase/x", indexes=_times(k, T), columns=rr.Points2D.columns(positions=x[:, [a, b]]),
+                        recording=rec)
+        pts = x[:, [a, b]]
+        if x_prev is not None:
+            pts = np.vstack([np.asarray(x_prev, dtype=np.float64)[[a, b]], pts])
+            ks = k
+        else:
+            ks = k[1:]
+        if len(pts) >= 2:
+            seg = np.stack([pts[:-1], pts[1:]], axis=1)
+            rr.send_columns("phase/trajectory", indexes=_times(ks, T),
+                            columns=rr.LineStrips2D.columns(strips=list(seg)), recording=rec)
+    if u is not None:
+        u = np.asarray(u, dtype=np.float64)
+        _scalars(rec, "plant/u", k[:len(u)], T, u)
+    if E_enc is not None:
+        _scalars(rec, "encoder/E", k, T, E_enc)
+        _scalars(rec, "encoder/log10_E", k, T, _log10(E_enc))
+    if xi_enc is not None:
+        xi_enc = np.asarray(xi_enc, dtype=np.float64)
+        _scalars(rec, "encoder/xi", k, T, xi_enc)
+        rr.send_columns("phase/xi", indexes=_times(k, T), columns=rr.Points2D.columns(positions=xi_enc[:, [a, b]]),
+                        recording=rec)
+        if E_enc is not None:
+            E = np.asarray(E_enc, dtype=np.float64)
+            rr.send_columns("phase/box", indexes=_times(k, T),
+                            columns=rr.Boxes2D.columns(centers=xi_enc[:, [a, b]], half_sizes=np.c_[E, E]),
+                            recording=rec)
+    if saturated is not None:
+        _scalars(rec, "encoder/saturated", k, T, np.asarray(saturated, dtype=np.float64))
+    if E_dec is not None:
+        _scalars(rec, "controller/E", k, T, E_dec)
+        _scalars(rec, "controller/log10_E", k, T, _log10(E_dec))
+    if xi_dec is not None:
+        _scalars(rec, "controller/xi", k, T, xi_dec)
+    if theta is not None:
+        _scalars(rec, "controller/theta", k, T, np.asarray(theta, dtype=np.float64))
+    if attack_on is not None:
+        _scalars(rec, "attacker/attack_on", k, T, np.asarray(attack_on, dtype=np.float64))
+
+
+def log_styles(rec, n: int, m: int, roles=("plant", "encoder", "controller", "attacker")) -> None:
+    """Static series names and colours of the entities of ``roles``."""
+    import rerun as rr
+
+    names_x = [f"x{i + 1}" for i in range(n)]
+    cols_x = [COLOR_X[i % len(COLOR_X)] for i in range(n)]
+    st = {
+        "plant": {"plant/x": rr.SeriesLines(names=names_x, colors=cols_x),
+                  "plant/u": rr.SeriesLines(names=[f"u{i + 1}" for i in range(m)]),
+                  "phase/trajectory": rr.LineStrips2D.from_fields(colors=[(60, 60, 60)], radii=[-1.5]),
+                  "phase/x": rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-4.0], labels=["x_k"])},
+        "encoder": {"encoder/log10_E": rr.SeriesLines(names=["log10 E_k encoder"], colors=[COLOR_ENC], widths=[3.0]),
+                    "encoder/E": rr.SeriesLines(names=["E_k encoder"], colors=[COLOR_ENC]),
+                    "encoder/xi": rr.SeriesLines(names=[f"xi{i + 1} encoder" for i in range(n)]),
+                    "encoder/saturated": rr.SeriesPoints(names=["saturated"], markers=["cross"]),
+                    "phase/xi": rr.Points2D.from_fields(colors=[COLOR_BOX], radii=[-4.0], labels=["xi_k"]),
+                    "phase/box": rr.Boxes2D.from_fields(colors=[COLOR_BOX], radii=[-1.5])},
+        "controller": {"controller/log10_E": rr.SeriesPoints(names=["log10 E_k decoder"], colors=[COLOR_DEC],
+                                                             markers=["circle"], marker_sizes=[1.5]),
+                       "controller/E": rr.SeriesLines(names=["E_k decoder"], colors=[COLOR_DEC]),
+                       "controller/xi": rr.SeriesLines(names=[f"xi{i + 1} decoder" for i in range(n)]),
+                       "controller/theta": rr.SeriesPoints(names=["theta_k (1 = lost)"], colors=[COLOR_DEC],
+                                                           markers=["circle"], marker_sizes=[3.0])},
+        "attacker": {"attacker/attack_on": rr.SeriesLines(names=["DoS on"], colors=[(120, 120, 120)],
+                                                          widths=[2.0])},
+    }
+    for role in roles:
+        for path, arch in st.get(role, {}).items():
+            rr.log(path, arch, static=True, recording=rec)
+
+
+def flip_y(rec) -> None:
+    """Rerun's 2D space has y pointing down: a static transform of ``phase`` makes x2 point up (values unchanged)."""
+    import rerun as rr
+
+    rr.log("phase", rr.Transform3D(mat3x3=[[1, 0, 0], [0, -1, 0], [0, 0, 1]]), static=True, recording=rec)
+
+
+# ============================================================================ static parts and blueprint
+def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline | None:
+    """Static: the scenario text and the nominal region's outline (when ``roa`` and n = 2)."""
+    import rerun as rr
+
+    flip_y(rec)
+    text = sc.source or f"scenario {sc.name}"
+    rr.log("scenario", rr.TextDocument(text, media_type="text/plain"), static=True, recording=rec)
+    out = roa_outline(sc, roa_grid) if roa else None
+    if out is not None and out.lines:
+        rr.log("phase/roa", rr.LineStrips2D(list(out.lines), colors=[COLOR_ROA], radii=[-1.0],
+                                            labels=["nominal ROA"] + [""] * (len(out.lines) - 1)),
+               static=True, recording=rec)
+    return out
+
+
+def blueprint(sc, bounds=None):
+    """States and input over time; log10 E_k at encoder and decoder; theta_k and DoS; the phase plane."""
+    import rerun.blueprint as rrb
+
+    all_history = [rrb.VisibleTimeRange(TIMELINE_K, start=rrb.TimeRangeBoundary.infinite(),
+                                        end=rrb.TimeRangeBoundary.cursor_relative(seq=0)),
+                   rrb.VisibleTimeRange(TIMELINE_T, start=rrb.TimeRangeBoundary.infinite(),
+                                        end=rrb.TimeRangeBoundary.cursor_relative(seconds=0.0))]
+    phase_kw = {}
+    if bounds is not None:
+        (x0, x1), (y0, y1) = bounds
+        phase_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[y0, y1])
+    phase = rrb.Spatial2DView(
+        name="phase plane: x_k, xi_k, Q(xi_k, E_k), nominal ROA", origin="/",
+        contents=["phase/**"],
+        overrides={"phase/trajectory": [rrb.VisibleTimeRanges(all_history)]},
+        **phase_kw)
+    plots = rrb.Vertical(
+        rrb.TimeSeriesView(name="state x_k", origin="/", contents=["plant/x"]),
+        rrb.TimeSeriesView(name="input u_k", origin="/", contents=["plant/u"]),
+        rrb.TimeSeriesView(name="log10 E_k: encoder and decoder", origin="/",
+                           contents=["encoder/log10_E", "controller/log10_E"]),
+        rrb.TimeSeriesView(name="theta_k and DoS intervals", origin="/",
+                           contents=["controller/theta", "attacker/attack_on"],
+                           axis_y=rrb.ScalarAxis(range=(-0.1, 1.1))),
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(plots, phase, column_shares=[1, 1]),
+        rrb.TimePanel(timeline=TIMELINE_T, expanded=False),
+        collapse_panels=True,
+    )
+
+
+# ============================================================================ offline: arrays of a whole run
+@dataclass
+class Trace:
+    """A whole run as plain arrays (rows k = 0..N-1), the input of :func:`log_trace`."""
+
+    T: float
+    x: np.ndarray              # (N, n)
+    u: np.ndarray              # (N, m)
+    E_enc: np.ndarray          # (N,)
+    xi_enc: np.ndarray         # (N, n)
+    E_dec: np.ndarray
+    xi_dec: np.ndarray
+    theta: np.ndarray          # (N,) 1 = lost
+    attack_on: np.ndarray      # (N,)
+    saturated: np.ndarray      # (N,)
+    x_final: np.ndarray | None = None  # x_N
+
+    @staticmethod
+    def attack_from_intervals(intervals, T: float, N: int) -> np.ndarray:
+        """attack_on[k] = 1 when t_k lies in one of the (start, length) intervals [s, s + l)."""
+        t = np.arange(N) * T
+        on = np.zeros(N, dtype=np.uint8)
+        for s, ln in intervals:
+            on[(t >= s - 1e-9 * T) & (t < s + ln - 1e-9 * T)] = 1
+        return on
+
+    @classmethod
+    def from_simulation(cls, sc, res) -> "Trace":
+        N = len(res.t)
+        return cls(T=float(res.T), x=res.x, u=res.u, E_enc=res.E_enc, xi_enc=res.xi_enc, E_dec=res.E_dec,
+                   xi_dec=res.xi_dec, theta=np.asarray(res.theta), saturated=np.asarray(res.saturated),
+                   attack_on=cls.attack_from_intervals(res.intervals().intervals, res.T, N),
+                   x_final=np.asarray(res.x_final))
+
+    @classmethod
+    def from_report(cls, s: dict) -> "Trace":
+        """From ``testbed.report.report(path)`` (the post-mortem of a recording)."""
+        T = float(s["T"])
+        x = np.asarray(s["x"], dtype=float)
+        N = len(x)
+        x = x.reshape(N, -1)
+
+        def arr(key, width=None):
+            v = s.get(key)
+            if isinstance(v, np.ndarray):  # report(..., arrays=True): NaN already marks what is missing
+                v = v.astype(float)
+                return v.reshape(len(v), -1) if width else v
+            v = v or []
+            rows = [r if r is not None and len(np.atleast_1d(r)) else [np.nan] * (width or 1) for r in v]
+            return np.asarray(rows, dtype=float).reshape(len(rows), -1) if width else \
+                np.asarray([np.nan if r is None else r for r in v], dtype=float)
+
+        n = x.shape[1] if x.ndim == 2 else 1
+        sat = np.zeros(N, dtype=np.uint8)
+        sat[[k for k in s.get("saturated_at", []) if k < N]] = 1
+        xf = s.get("x_final")
+        m = s["u"].shape[1] if isinstance(s.get("u"), np.ndarray) else (len(s["u"][0]) if s.get("u") else 1)
+        return cls(T=T, x=x, u=arr("u", m), E_enc=arr("E"),
+                   xi_enc=arr("xi", n), E_dec=arr("E_dec"), xi_dec=arr("xi_dec", n),
+                   theta=np.asarray(s["theta"] if s.get("theta") is not None else np.zeros(N), dtype=float),
+                   attack_on=cls.attack_from_intervals(s.get("dos", {}).get("intervals", []), T, N),
+                   saturated=sat, x_final=None if xf is None else np.asarray(xf, dtype=float))
+
+
+def log_trace(rec, tr: Trace) -> None:
+    """Every entity of a whole run (the same ones a live run streams)."""
+    N = len(tr.x)
+    k = np.arange(N)
+    ok_e = np.isfinite(tr.E_enc) & np.all(np.isfinite(tr.xi_enc), axis=1)
+    ok_d = np.isfinite(tr.E_dec) & np.all(np.isfinite(tr.xi_dec), axis=1)
+    x = tr.x if tr.x_final is None else np.vstack([tr.x, tr.x_final[None, :]])
+    log_samples(rec, np.arange(len(x)), tr.T, x=x)
+    log_samples(rec, k, tr.T, u=tr.u, theta=tr.theta, attack_on=tr.attack_on, saturated=tr.saturated)
+    log_samples(rec, k[ok_e], tr.T, E_enc=tr.E_enc[ok_e], xi_enc=tr.xi_enc[ok_e])
+    log_samples(rec, k[ok_d], tr.T, E_dec=tr.E_dec[ok_d], xi_dec=tr.xi_dec[ok_d])
+
+
+def new_stream(recording_id: str | None = None):
+    import rerun as rr
+
+    return rr.RecordingStream(APP_ID, recording_id=recording_id)
+
+
+def trace_to_rrd(path, sc, tr: Trace, *, recording_id: str | None = None, roa: bool = True,
+                 spawn: bool = False) -> None:
+    """Write (and/or show) a whole run: statics, blueprint and every sample."""
+    import rerun as rr
+
+    rec = new_stream(recording_id)
+    out = roa_outline(sc) if roa else None
+    bp = blueprint(sc, phase_bounds(sc, tr.x, out))
+    sinks = []
+    if path is not None:
+        sinks.append(rr.FileSink(str(path)))
+    if spawn:
+        try:
+            rr.spawn(connect=False, recording=rec)
+        except (RuntimeError, OSError) as e:
+            from ..errors import BadInput
+
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise BadInput(f"no Rerun viewer to open ({first}); write the view to a file with --rrd PATH.rrd") \
+                from None
+        sinks.append(rr.GrpcSink())
+    rec.set_sinks(*sinks)
+    rec.send_blueprint(bp)
+    log_styles(rec, tr.x.shape[1], tr.u.shape[1] if tr.u.ndim == 2 else 1)
+    log_scenario(rec, sc, roa=roa)
+    log_trace(rec, tr)
+    rec.flush()
+    rec.disconnect()
+
+
+def simulation_to_rrd(path, sc, res, *, roa: bool = True) -> None:
+    """``testbed simulate --rrd PATH``: the simulated run as a Rerun recording."""
+    trace_to_rrd(path, sc, Trace.from_simulation(sc, res), recording_id=f"sim-{sc.name}", roa=roa)
+
+
+# ============================================================================ live: testbed run --rerun
+def rerun_binary() -> str:
+    """The Rerun CLI shipped in the wheel (the binary itself: the Python wrapper does not forward signals)."""
+    import shutil
+    from pathlib import Path
+
+    try:
+        import rerun_cli
+
+        p = Path(rerun_cli.__file__).parent / "rerun"
+        if p.exists():
+            return str(p)
+    except ImportError:
+        pass
+    return shutil.which("rerun") or "rerun"
+
+
+@contextmanager
+def saving_server(path, *, port: int = 0, startup_s: float = 30.0):
+    """A headless Rerun gRPC server (``rerun --port P --save PATH``): it receives what a viewer's
+    server would, without a window, and saves it (no footer: read it with ``RrdReader.stream()``).
+    Yields the URL for ``--rerun connect``; stopped with SIGINT on exit (the test and the benchmark
+    of the live-view sink).  ``port`` 0: a free one; 9876 stands in for the viewer ``--rerun spawn``
+    would start (it reuses whatever listens there)."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import time
+
+    if not port:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+    srv = subprocess.Popen([rerun_binary(), "--port", str(port), "--save", str(path)], stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"),
+                           start_new_session=True)
+    try:
+        end = time.monotonic() + startup_s
+        while True:  # until it accepts connections (a loaded machine may take seconds)
+            with socket.socket() as sock:
+                if sock.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            if srv.poll() is not None or time.monotonic() > end:
+                raise RuntimeError(f"rerun --port {port} --save {path}: no server "
+                                   f"(exit code {srv.poll()}) after {startup_s:g} s")
+            time.sleep(0.05)
+        yield f"rerun+http://127.0.0.1:{port}/proxy"
+    finally:
+        srv.send_signal(signal.SIGINT)  # the server writes what it has and exits
+        try:
+            srv.wait(20)
+        except subprocess.TimeoutExpired:
+            srv.kill()
+            srv.wait()
+
+
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+
+
+def add_rerun_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``--rerun`` option group of ``testbed run``."""
+    from .. import cliargs
+
+    g = p.add_argument_group("rerun (live view)")
+    g.add_argument("--rerun", nargs="+", metavar="spawn | connect [URL] | save PATH.rrd",
+                   help=f"stream the run to Rerun: spawn a viewer, connect to one (default {DEFAULT_URL}) "
+                        "or save one .rrd; every node logs into one recording")
+    cliargs.add_rrd(g, "write the run's Rerun view into this file (the same as --rerun save PATH.rrd)")
+    cliargs.add_no_roa(g, aliases=("--rerun-no-roa",))
+
+
+class LiveRerun:
+    """The launcher's side of a live Rerun stream.
+
+    Every process of the run (the launcher and the four nodes) opens its own
+    ``RecordingStream`` with the same ``recording_id`` (the run id), so Rerun shows
+    one recording.  The launcher logs the statics (scenario, ROA outline, series
+    styles) and the blueprint; each node logs its own entities from a background
+    thread (``testbed.nodes.rerun_tap``).  Sinks:
+
+    * ``spawn``: a viewer is spawned (or reused) on port 9876; everybody connects to it over gRPC;
+    * ``connect URL``: everybody connects to ``URL`` over gRPC;
+    * ``save PATH``: every process writes its own part file (one .rrd cannot take
+      several writers), and the launcher merges the parts into ``PATH`` at the end
+      (``rerun rrd optimize``): one recording, one file.
+    """
+
+    def __init__(self, mode: str, target: str | None, sc, recording_id: str, roa: bool = True):
+        self.mode, self.target, self.sc, self.recording_id, self.roa = mode, target, sc, recording_id, roa
+        self.rec = None
+        self.parts_dir = None
+        self.merge_error: str | None = None
+
+    @classmethod
+    def from_args(cls, args, sc, recording_id: str) -> "LiveRerun | None":
+        from ..errors import BadInput
+
+        spec = getattr(args, "rerun", None)
+        rrd = getattr(args, "rrd", None)
+        roa = not getattr(args, "no_roa", False)
+        if rrd:
+            if spec and spec != ["save", rrd]:
+                raise BadInput(f"--rrd {rrd} and --rerun {' '.join(spec)}: give one of them")
+            spec = ["save", rrd]
+        if not spec:
+            return None
+        mode, rest = spec[0], spec[1:]
+        if mode == "spawn" and not rest:
+            return cls("spawn", None, sc, recording_id, roa)
+        if mode == "connect" and len(rest) <= 1:
+            return cls("connect", rest[0] if rest else DEFAULT_URL, sc, recording_id, roa)
+        if mode == "save" and len(rest) == 1:
+            return cls("save", rest[0], sc, recording_id, roa)
+        raise BadInput(f"--rerun takes 'spawn', 'connect [URL]' or 'save PATH.rrd', got {' '.join(spec)}")
+
+    @property
+    def url(self) -> str:
+        return self.target if self.mode == "connect" else DEFAULT_URL
+
+    def part(self, who: str) -> str:
+        from pathlib import Path
+
+        return str(Path(self.parts_dir) / f"{who}.rrd")
+
+    def node_flags(self, role: str) -> list[str]:
+        """The flags of ``testbed node`` that make it stream its telemetry."""
+        out = ["--recording-id", self.recording_id]
+        if self.mode == "save":
+            return out + ["--rerun-save", self.part(role)]
+        return out + ["--rerun-url", self.url]
+
+    def prepare(self) -> None:
+        """``save``: the folder of the part files, which the nodes' flags name (no rerun import here:
+        the launcher forks its nodes after this, and importing rerun starts threads)."""
+        import tempfile
+        from pathlib import Path
+
+        if self.mode == "save" and self.parts_dir is None:
+            out = Path(self.target).resolve()
+            out.parent.mkdir(parents=True, exist_ok=True)
+            self.parts_dir = tempfile.mkdtemp(prefix=f".{out.name}.parts-", dir=out.parent)
+
+    def start(self) -> None:
+        """Before the nodes start: open the launcher's stream, send the blueprint and the statics."""
+        import rerun as rr
+
+        self.prepare()
+        roa = roa_outline(self.sc) if self.roa else None
+        bp = blueprint(self.sc, phase_bounds(self.sc, None, roa))
+        self.rec = new_stream(self.recording_id)
+        if self.mode == "save":
+            self.rec.save(self.part("launcher"), default_blueprint=bp)
+        else:
+            if self.mode == "spawn":
+                rr.spawn(connect=False, recording=self.rec)
+            self.rec.connect_grpc(self.url, default_blueprint=bp)
+        self.rec.send_recording_name(f"{self.sc.name} (live)")
+        plant = self.sc.make_model()
+        log_styles(self.rec, plant.n, plant.m, roles=())
+        log_scenario(self.rec, self.sc, roa=self.roa)
+        self.rec.flush()
+
+    def finish(self) -> None:
+        """After the nodes have stopped: close the stream; ``save``: merge the parts into one file."""
+        import os
+        import shutil
+        import subprocess
+        from pathlib import Path
+
+        if self.rec is not None:
+            self.rec.flush()
+            self.rec.disconnect()
+            self.rec = None
+        if self.mode != "save" or self.parts_dir is None:
+            return
+        parts = sorted(str(p) for p in Path(self.parts_dir).glob("*.rrd"))
+        env = dict(os.environ, RERUN_ANALYTICS="0")
+        r = subprocess.run([rerun_binary(), "rrd", "optimize", "--continue-on-error", *parts, "-o", str(self.target)],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                           timeout=120)
+        if r.returncode == 0 and Path(self.target).exists():
+            shutil.rmtree(self.parts_dir, ignore_errors=True)
+        else:
+            self.merge_error = f"rerun rrd optimize exit {r.returncode}: {r.stderr.decode(errors='replace')[-300:]}"
+
+    def info(self) -> dict:
+        d = {"mode": self.mode, "recording_id": self.recording_id,
+             "target": self.target if self.mode != "spawn" else self.url}
+        if self.merge_error:
+            d["error"] = self.merge_error
+            d["parts"] = self.parts_dir
+        return d

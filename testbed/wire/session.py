@@ -1,0 +1,118 @@
+"""A process's Zenoh session: its flags, its security (credentials, TLS, access rules) and its config."""
+
+from __future__ import annotations
+
+import argparse
+
+from . import transport
+
+
+# ============================================================================ zenoh options
+def add_security_arguments(g) -> None:
+    """``--topology``, ``--secret-file``, ``--tls-dir``, ``--insecure``, ``--low-latency``: every process of a run
+    (``testbed run``, ``testbed node``, ``testbed record``) takes the same flags."""
+    g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
+                   help="router: one process (under testbed run, the launcher) routes and checks every message "
+                        "(default); peer: direct links between the processes, each mutual TLS (--tls-dir), and "
+                        "every process checks what it receives")
+    g.add_argument("--secret-file", metavar="PATH",
+                   help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed "
+                        "secret PATH'); testbed run makes new ones for each run unless given one, which nodes on "
+                        "other hosts need at the same path")
+    g.add_argument("--tls-dir", metavar="DIR",
+                   help="--topology peer: the run's TLS folder (ca.pem, NAME.pem, NAME.key; make one with "
+                        "'testbed secret --tls DIR'); testbed run makes certificates for each run unless given one")
+    g.add_argument("--insecure", action="store_true",
+                   help="no authentication and no access control: any local process can join, stop or steer "
+                        "the run (recorded as such)")
+    g.add_argument("--low-latency", action="store_true",
+                   help="Zenoh's low-latency transport (no batching, no priority queues); every process of a run "
+                        "must use it or none (testbed run: all of them)")
+
+
+def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--run-id", default=transport.DEFAULT_RUN_ID,
+                   help="key prefix testbed/RUN_ID/... (default %(default)s)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/10.0.0.2:7447 (repeatable)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
+    g.add_argument("--zenoh-config", metavar="FILE",
+                   help="Zenoh JSON5 config read first (e.g. TLS certificates); flags override it")
+    add_security_arguments(g)
+
+
+PEER_NEEDS_TLS = ("--topology peer: no --tls-dir: its links are mutual TLS; make the folder with "
+                  "'testbed secret --tls DIR' and give it to every process of the run (or run unauthenticated "
+                  "with --insecure)")
+
+
+def access_control(topology: str) -> str:
+    """Who checks the messages of a run (the ``access_control`` of its ``security``)."""
+    return "every message, by every receiver" if topology == "peer" else "every message"
+
+
+def transport_security(topology: str, insecure: bool) -> str:
+    """How the links of a run are authenticated (the ``transport`` of its ``security``)."""
+    return "tcp" if insecure else ("mutual tls" if topology == "peer" else "user/password")
+
+
+def security_info(args) -> dict:
+    """How a process's session is secured (it goes into the recording and the summary)."""
+    return {"authenticated": not args.insecure, "topology": args.topology,
+            "access_control": "none" if args.insecure else access_control(args.topology),
+            "transport": transport_security(args.topology, args.insecure),
+            "low_latency": bool(getattr(args, "low_latency", False))}
+
+
+def zenoh_config(args, role: str, keys: transport.Keys):
+    """The session of ``role`` (a node or the recorder).
+
+    Standalone defaults: the plant listens on tcp/127.0.0.1:7447, the others connect to
+    it.  Router topology: the hub (the launcher, or a standalone plant) is the run's
+    router and checks every message; the others are its clients.  Unless ``--insecure``,
+    the session authenticates with the secret file's line of ``role``; the router accepts
+    the file's other lines.  Peer topology: every process is a peer, every link mutual TLS
+    with ``role``'s certificate of the ``--tls-dir`` folder, and every process checks what
+    it receives.
+    """
+    from ..errors import BadInput
+
+    hub = role == "plant" and not getattr(args, "launched", False)
+    peer = args.topology == "peer"
+    hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if peer and not args.insecure else transport.DEFAULT_HUB
+    listen, connect = list(args.listen), list(args.connect)
+    if not listen and not connect and not args.zenoh_config:
+        if hub:
+            listen = [hub_ep]
+        else:
+            connect = [hub_ep]
+    mode = "peer" if peer else ("router" if hub else "client")
+    ll = bool(getattr(args, "low_latency", False))
+    colocate = transport.colocated_roles(getattr(args, "colocate", None))
+    if args.insecure:
+        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
+                                     low_latency=ll)
+    if peer:
+        if not getattr(args, "tls_dir", None):
+            raise BadInput(PEER_NEEDS_TLS)
+        tls = transport.TlsCredentials(args.tls_dir).zenoh(role)
+        transport.require_tls((*listen, *connect))
+        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
+                                     acl=transport.acl_config(keys, colocate, by="cert_common_names"), low_latency=ll,
+                                     tls=tls)
+    if not args.secret_file:
+        raise BadInput("no --secret-file: make one with 'testbed secret PATH' and give it to every process "
+                       "of the run (or run unauthenticated with --insecure)")
+    cred = transport.Credentials.read(args.secret_file)
+    accepts = hub
+    if accepts:
+        missing = [u for u in (*transport.ROLES, transport.RECORDER) if u not in cred.users]
+        if missing:
+            raise BadInput(f"secret file {args.secret_file}: no line for {', '.join(missing)} (a {mode} that "
+                           "accepts the others needs all of them)")
+    return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
+                                 user=role, password=cred.password(role),
+                                 dictionary_file=args.secret_file if accepts else None,
+                                 acl=transport.acl_config(keys, colocate) if accepts else None, low_latency=ll)
