@@ -740,6 +740,10 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) ->
                    params=_freeze(params), checked=check)
 
 
+#: the largest plain trace file read (a million sample indices fit in well under this)
+TRACE_FILE_MAX = 64 * 1024 * 1024
+
+
 def read_trace(path: str | Path) -> dict:
     """The trace of a recording (the samples its *attacker* dropped: not theta, which also counts
     withheld, late and invalid samples) or of a plain file of dropped sample indices (one per line or
@@ -758,6 +762,8 @@ def read_trace(path: str | Path) -> dict:
         n = int(len(has))
         dropped = has & (cols.get("attacker", "dropped")[:n] != 0)
         return {"samples": np.flatnonzero(dropped).tolist(), "T": float(rsc.T), "n_samples": n, "source": str(p)}
+    if p.stat().st_size > TRACE_FILE_MAX:
+        raise ValueError(f"{p}: {p.stat().st_size} bytes, more than a trace file may have ({TRACE_FILE_MAX} bytes)")
     text = p.read_text(encoding="utf-8")
     T = None
     n = None
