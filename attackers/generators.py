@@ -273,13 +273,14 @@ def gen_trace(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     N = int(round(horizon / T))
     if n < N:
         raise ValueError(f"attack kind 'trace': {src} has {n} samples, shorter than the run ({N} samples)")
-    theta = np.zeros(max(n, N), dtype=np.uint8)
+    theta = np.zeros(N, dtype=np.uint8)  # the run's length, never the trace's declared one
     for k in params["samples"]:
         k = int(k)
         if not 0 <= k < n:
             raise ValueError(f"attack kind 'trace': sample index {k} outside 0..{n - 1} in {src}")
-        theta[k] = 1
-    return Schedule.from_theta(theta[:N], T)
+        if k < N:
+            theta[k] = 1
+    return Schedule.from_theta(theta, T)
 
 
 #: Generator functions by name: ``fn(params, *, T, horizon, rng) -> Schedule``.

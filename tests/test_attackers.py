@@ -544,3 +544,12 @@ def test_dependencies_only_numpy_numba_stdlib():
                 continue
             for m in mods:
                 assert m.split(".")[0] in allowed, f"{f.name} imports {m}"
+
+
+def test_a_trace_that_declares_a_huge_length_allocates_only_the_run():
+    """``n_samples`` comes from a file: it bounds the indices, it never sizes memory."""
+    from attackers.generators import gen_trace
+
+    s = gen_trace({"samples": [1, 5, 10**11], "T": 0.1, "n_samples": 10**12}, T=0.1, horizon=3.0, rng=None)
+    th = s.theta_samples(0.1, 30)
+    assert th.shape == (30,) and np.flatnonzero(th).tolist() == [1, 5]
