@@ -11,7 +11,7 @@ from pathlib import Path
 
 import plants.refs
 
-from .scenariospec import Scenario, ScenarioError
+from .scenariospec import Scenario, ScenarioError, _thaw
 
 
 def _toml_key(k) -> str:
@@ -74,8 +74,20 @@ def with_attack(sc: Scenario, *, x0, E0: float, intervals, duration: float, name
             if (base / f"{mod}.py").exists() or (base / mod).is_dir():
                 raise ScenarioError(f"[{sec}] name = {ref!r} is a module in {base}: write the scenario there "
                                     "(a module reference cannot name a folder)")
+    mt = data.get("method") if isinstance(data.get("method"), dict) else {}
+    params = dict(_thaw(sc.method.params))
+    if sc.method.name != mt.get("name", "paper") or params != mt.get("params", {}):  # swapped (--method)
+        if plants.refs.is_module_ref(sc.method.name) and not same_dir:
+            mod = sc.method.name.split(":", 1)[0].split(".", 1)[0]
+            if (base / f"{mod}.py").exists() or (base / mod).is_dir():
+                raise ScenarioError(f"[method] name = {sc.method.name!r} is a module in {base}: write the scenario "
+                                    "there (a module reference cannot name a folder)")
+        data["method"] = {"name": sc.method.name, **({"params": params} if params else {})}
+    used = {"T", *sc.make_method().uses}  # the written scenario's own method: no key it does not use
+    data["quantizer"] = {k: v for k, v in data.get("quantizer", {}).items() if k in used}
     data["plant"]["x0"] = [float(v) for v in x0]
-    data["quantizer"]["E0"] = float(E0)
+    if "E0" in used:
+        data["quantizer"]["E0"] = float(E0)
     if intervals:
         data["attack"] = {"kind": "intervals", "intervals": [[float(a), float(t)] for a, t in intervals]}
         if budget:

@@ -349,3 +349,21 @@ def test_scenario_out_when_nothing_escapes_exits_1_and_writes_nothing(tmp_path):
              "--scenario-out", str(out), "--force")
     assert p.returncode == 1 and out.read_text() == "keep"
     assert not list(tmp_path.glob(".worst-*"))
+
+
+@pytest.mark.parametrize("method", ["zoom", "unquantized"])
+def test_scenario_out_of_a_swapped_method_names_the_method_and_escapes(tmp_path, method):
+    """``--method`` with ``--scenario-out``: the file's [method] is the one searched, its [quantizer]
+    keeps only the keys that method uses (so it loads), and testbed simulate confirms the escape."""
+    out = tmp_path / "worst.toml"
+    p = _cli("worst-attack", "paper", "--method", method, "--json", "--no-progress", "--no-greedy",
+             "--scenario-out", str(out))
+    assert p.returncode == 0, p.stderr
+    d = json.loads(p.stdout)
+    assert d["escaped"] and d["method"] == method
+    written = scenario.load(out)  # no unused-key error: only the method's own keys were written
+    assert written.method.name == method
+    p = _cli("simulate", str(out), "--json")
+    assert p.returncode == 0, p.stderr
+    sim = json.loads(p.stdout)
+    assert sim["method"] == method and sim["escaped"] is True and sim["packets_dropped"] == d["samples_lost"]
