@@ -13,18 +13,17 @@ from __future__ import annotations
 import os
 import re
 import subprocess
-import sys
 import threading
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import PY
 
 import testbed
 from testbed import errors, figstyle, scenario
 
-PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 API_MD = (ROOT / "docs" / "api.md").read_text()
 

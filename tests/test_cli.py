@@ -6,14 +6,11 @@ import argparse
 import json
 import re
 import subprocess
-import sys
 
 import pytest
-from helpers import SHARED
+from helpers import PY, SHARED
 
 from testbed import cli
-
-PY = sys.executable
 
 
 def _parsers() -> dict[str, argparse.ArgumentParser]:

@@ -6,13 +6,12 @@ import os
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import PY
 
 ROOT = Path(__file__).resolve().parents[1]
-PY = sys.executable
 
 
 def _pages() -> list[Path]:

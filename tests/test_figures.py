@@ -18,10 +18,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import PY
 
 from testbed import figstyle
 
-PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 

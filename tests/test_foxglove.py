@@ -17,7 +17,6 @@ import shutil
 import socket
 import struct
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -31,7 +30,6 @@ from testbed.record import recording, schema
 from testbed.simulate import simulate_scenario
 from testbed.view import foxglove as fx
 
-PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 
 

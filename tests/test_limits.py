@@ -6,11 +6,11 @@ import json
 import os
 import random
 import subprocess
-import sys
 import textwrap
 
 import numpy as np
 import pytest
+from helpers import PY
 
 from testbed import scenario
 from testbed.quantizer import MAX_CODES
@@ -18,8 +18,6 @@ from testbed.record import reader, recording
 from testbed.simulate import simulate_batch, simulate_scenario, summarize
 from testbed.wire import messages as msg
 from testbed.wire import transport
-
-PY = sys.executable
 
 BIG_M = 46340  # 46340^2 + 1 codes < 2^31 - 1: the largest M for n = 2
 

@@ -10,12 +10,11 @@ import os
 import secrets
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import PY
 
-PY = sys.executable
 TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 

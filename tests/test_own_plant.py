@@ -13,16 +13,15 @@ import json
 import os
 import secrets
 import subprocess
-import sys
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import PY
 
 import plants
 
-PY = sys.executable
 TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))
 
 VDP = '''"""Van der Pol oscillator, written like plants/pendulum.py."""

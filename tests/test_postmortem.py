@@ -16,12 +16,11 @@ import json
 import random
 import resource
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_columns_equal_reference
+from helpers import PY, assert_columns_equal_reference
 
 import testbed
 from testbed import scenario
@@ -32,7 +31,6 @@ from testbed.report import report
 from testbed.simulate import simulate_scenario
 from testbed.wire import messages as msg
 
-PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -6,21 +6,19 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import textwrap
 import time
 
 import numpy as np
 import pytest
 from failclosed import require
+from helpers import PY
 
 from testbed import scenario
 from testbed.record import reader, recording, schema
 from testbed.report import report
 from testbed.simulate import simulate_scenario, summarize
 from testbed.wire import messages as msg
-
-PY = sys.executable
 
 
 def _sim_recording(tmp_path, name="paper", **over):

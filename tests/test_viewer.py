@@ -12,19 +12,18 @@ import json
 import os
 import signal
 import subprocess
-import sys
 
 import numpy as np
 import pytest
 import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
 from failclosed import require
+from helpers import PY
 from rerun.chunk import RrdReader
 
 from testbed.view import phase
 from testbed.view import rerun as viewer
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
-PY = sys.executable
 TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))
 
 ENTITIES = {"/plant/x", "/plant/u", "/encoder/E", "/encoder/log10_E", "/encoder/xi", "/controller/E",
