@@ -182,3 +182,16 @@ def assert_columns_equal_reference(cols, rec):
         assert cols.final["k"] == rec.plant_final.k and np.array_equal(cols.final["x"], rec.plant_final.x)
     assert len(cols.events) == len(rec.events) and len(cols.status) == len(rec.status)
     assert dict(cols.counts) == dict(rec.counts)
+
+
+def sim_recording(tmp_path, name="paper", **over):
+    """A simulation of scenario ``name`` (with ``over``) recorded to ``tmp_path/NAME.mcap``: (sc, res, path)."""
+    from testbed import scenario
+    from testbed.record import recording
+    from testbed.simulate import simulate_scenario
+
+    sc = scenario.with_overrides(scenario.load(name), over)
+    res = simulate_scenario(sc)
+    path = tmp_path / f"{name}.mcap"
+    recording.record_simulation(path, sc, res, overrides=over)
+    return sc, res, path

@@ -13,15 +13,9 @@ import numpy as np
 import pytest
 
 import plants
-from testbed import scenario
 from testbed.analysis.roa import nominal_roa
 from testbed.analysis.sweep import KINDS, sweep, vulnerable_states
 from testbed.control import c2d, dlqr
-
-
-@pytest.fixture(scope="module")
-def paper_sc():
-    return scenario.load("paper")
 
 
 def test_roa_of_a_stable_linear_loop_is_everything():
@@ -35,9 +29,9 @@ def test_roa_of_a_stable_linear_loop_is_everything():
     assert roa.traj_steps == 81 * 300
 
 
-def test_roa_of_the_paper_loop(paper_sc):
-    p = paper_sc.make_plant()
-    roa = nominal_roa(p, paper_sc.K, paper_sc.T, grid=41, horizon=30.0)
+def test_roa_of_the_paper_loop(paper):
+    p = paper.make_plant()
+    roa = nominal_roa(p, paper.K, paper.T, grid=41, horizon=30.0)
     assert roa.contains(np.zeros(2))
     # the paper: both initial states of its Figs. 2 and 3 lie in the nominal region ...
     assert roa.contains(np.array([0.1, 0.1])) and roa.contains(np.array([0.3, 0.3]))
@@ -49,16 +43,16 @@ def test_roa_of_the_paper_loop(paper_sc):
 
     GX, GY = np.meshgrid(roa.xs[::8], roa.ys[::8], indexing="xy")
     X = np.stack([GX.ravel(), GY.ravel()], axis=1)
-    np.testing.assert_array_equal(in_nominal_roa(p, paper_sc.K, paper_sc.T, X, horizon=30.0),
+    np.testing.assert_array_equal(in_nominal_roa(p, paper.K, paper.T, X, horizon=30.0),
                                   roa.inside[::8, ::8].ravel())
 
 
-def test_sweep_small(paper_sc):
-    p = paper_sc.make_plant()
+def test_sweep_small(paper):
+    p = paper.make_plant()
     rF = np.array([0.0, 1.0])
     rD = np.array([0.0, 0.3])
     kF, kD, H = 1.0, 0.2, 20.0
-    sw = sweep(p, paper_sc.K, paper_sc.quantizer, paper_sc.x0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=2, horizon=H)
+    sw = sweep(p, paper.K, paper.quantizer, paper.x0, rF, rD, kappa_F=kF, kappa_D=kD, seeds=2, horizon=H)
     assert sw.kinds == KINDS
     for k in KINDS:
         assert sw.converged[k].shape == (2, 2)
@@ -67,10 +61,10 @@ def test_sweep_small(paper_sc):
     assert np.all(np.isnan(sw.converged["periodic"][0]))        # no periodic attack with rho_F = 0
     assert np.all(np.isfinite(sw.converged["periodic"][1]))
     assert sw.runs == 2 * 2 * 2 + 2 + 2 * 2                      # random + periodic + greedy
-    assert sw.traj_steps == sw.runs * int(round(H / paper_sc.T))
+    assert sw.traj_steps == sw.runs * int(round(H / paper.T))
     # the greedy attacker never loses more samples than the budget allows:
     # chi(t) <= (kappa_D* + rho_D* t) / T + 1 over the horizon
-    T = paper_sc.T
+    T = paper.T
     for i, f in enumerate(rF):
         for j, d in enumerate(rD):
             N = H / T
@@ -83,11 +77,11 @@ def test_sweep_small(paper_sc):
     assert len(sw.empirical_boundary()) == 2
 
 
-def test_vulnerable_states(paper_sc):
-    p = paper_sc.make_plant()
-    roa = nominal_roa(p, paper_sc.K, paper_sc.T, grid=21, window=(1.0, 1.5), horizon=30.0)
-    none = vulnerable_states(p, paper_sc.K, paper_sc.quantizer, (0.0, 0.0, 0.0, 0.0), roa, horizon=20.0)
-    hard = vulnerable_states(p, paper_sc.K, paper_sc.quantizer, (1.0, 0.5, 1.0, 0.3), roa, horizon=20.0)
+def test_vulnerable_states(paper):
+    p = paper.make_plant()
+    roa = nominal_roa(p, paper.K, paper.T, grid=21, window=(1.0, 1.5), horizon=30.0)
+    none = vulnerable_states(p, paper.K, paper.quantizer, (0.0, 0.0, 0.0, 0.0), roa, horizon=20.0)
+    hard = vulnerable_states(p, paper.K, paper.quantizer, (1.0, 0.5, 1.0, 0.3), roa, horizon=20.0)
     assert np.array_equal(none.outcome >= 0, roa.inside)
     assert none.fraction_vulnerable <= hard.fraction_vulnerable
     assert hard.fraction_vulnerable > 0.5

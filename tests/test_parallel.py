@@ -20,15 +20,9 @@ import numpy as np
 import pytest
 from failclosed import import_or_require
 
-from testbed import scenario
 from testbed.analysis.parallel import Executor, run_batch, shutdown
 from testbed.analysis.roa import nominal_roa
 from testbed.analysis.sweep import sweep
-
-
-@pytest.fixture(scope="module")
-def paper_sc():
-    return scenario.load("paper")
 
 
 def _sweep(sc, executor):
@@ -44,15 +38,15 @@ def _same_sweep(a, b):
 
 
 # ============================================================================ fast: the kernel cache
-def test_specialized_kernel_is_cached_and_identical(paper_sc):
+def test_specialized_kernel_is_cached_and_identical(paper):
     from testbed import kernelcache
     from testbed.simulate import _batch_kernel, simulate_batch
 
-    plant = paper_sc.make_plant()
+    plant = paper.make_plant()
     X0 = np.random.default_rng(1).uniform(-0.3, 0.3, (64, 2))
-    th = paper_sc.theta(120)[None]
-    a = simulate_batch(plant, paper_sc.K, paper_sc.quantizer, X0, 120, theta=th)
-    b = simulate_batch(plant, paper_sc.K, paper_sc.quantizer, X0, 120, theta=th, specialize=True)
+    th = paper.theta(120)[None]
+    a = simulate_batch(plant, paper.K, paper.quantizer, X0, 120, theta=th)
+    b = simulate_batch(plant, paper.K, paper.quantizer, X0, 120, theta=th, specialize=True)
     for f in ("x_final", "E_final", "status", "stop_k", "saturations", "mismatch", "max_norm", "attacked"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
     run = kernelcache.specialized(_batch_kernel, {"rhs": type(plant).rhs, "rhs_m": type(plant).rhs})
@@ -64,7 +58,7 @@ def test_specialized_kernel_is_cached_and_identical(paper_sc):
     assert "rhs = _rhs_object.jit" in src and "def flow_into__rhs(" in src and "def zoom_update__rhs_m(" in src
 
 
-def test_specialized_kernel_depends_on_every_source(paper_sc):
+def test_specialized_kernel_depends_on_every_source(paper):
     from testbed import kernelcache
     from testbed.simulate import _batch_kernel
 
@@ -128,7 +122,7 @@ def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
     assert set(os.listdir(tmp_path / "cache" / "kernels")) >= {os.path.basename(p) for p in paths}
 
 
-def test_plant_without_module_level_rhs_falls_back(paper_sc, caplog):
+def test_plant_without_module_level_rhs_falls_back(paper, caplog):
     from plants.base import rhs_function
     from testbed import kernelcache
     from testbed.simulate import _batch_kernel
@@ -145,15 +139,15 @@ def test_plant_without_module_level_rhs_falls_back(paper_sc, caplog):
     assert len(lines) == 1 and "local_rhs" in lines[0].getMessage() and "module-level" in lines[0].getMessage()
 
 
-def test_run_batch_chunks_do_not_change_results(paper_sc):
-    plant = paper_sc.make_plant()
+def test_run_batch_chunks_do_not_change_results(paper):
+    plant = paper.make_plant()
     rng = np.random.default_rng(2)
     X0 = rng.uniform(-0.5, 0.5, (40, 2))
     tab = rng.integers(0, 2, (5, 60)).astype(np.uint8)
     sidx = rng.integers(0, 5, 40)
     E0 = np.where(np.arange(40) % 3 == 0, 0.5, 0.1)
-    one = run_batch(plant, paper_sc.K, paper_sc.quantizer, X0, 60, E0=E0, theta=tab, sched_idx=sidx, chunk=40)
-    many = run_batch(plant, paper_sc.K, paper_sc.quantizer, X0, 60, E0=E0, theta=tab, sched_idx=sidx, chunk=7)
+    one = run_batch(plant, paper.K, paper.quantizer, X0, 60, E0=E0, theta=tab, sched_idx=sidx, chunk=40)
+    many = run_batch(plant, paper.K, paper.quantizer, X0, 60, E0=E0, theta=tab, sched_idx=sidx, chunk=7)
     for k in one:
         np.testing.assert_array_equal(one[k], many[k])
 
@@ -169,15 +163,15 @@ def test_workers_option_rejects_nonsense(capsys):
 
 # ============================================================================ process: local workers
 @pytest.mark.process
-def test_two_workers_match_one(paper_sc):
-    plant = paper_sc.make_plant()
+def test_two_workers_match_one(paper):
+    plant = paper.make_plant()
     try:
         ex = Executor(2)
-        a = nominal_roa(plant, paper_sc.K, paper_sc.T, grid=31, horizon=20.0)
-        b = nominal_roa(plant, paper_sc.K, paper_sc.T, grid=31, horizon=20.0, executor=ex, chunk=97)
+        a = nominal_roa(plant, paper.K, paper.T, grid=31, horizon=20.0)
+        b = nominal_roa(plant, paper.K, paper.T, grid=31, horizon=20.0, executor=ex, chunk=97)
         np.testing.assert_array_equal(a.inside, b.inside)
         assert a.digest == b.digest
-        _same_sweep(_sweep(paper_sc, None), _sweep(paper_sc, ex))
+        _same_sweep(_sweep(paper, None), _sweep(paper, ex))
     finally:
         shutdown()
 
@@ -223,18 +217,18 @@ def _assert_gone(pids, timeout=30.0):
 
 
 @pytest.mark.process
-def test_dask_cluster_matches_one_worker(paper_sc):
-    plant = paper_sc.make_plant()
-    a = nominal_roa(plant, paper_sc.K, paper_sc.T, grid=31, horizon=20.0)
-    sa = _sweep(paper_sc, None)
+def test_dask_cluster_matches_one_worker(paper):
+    plant = paper.make_plant()
+    a = nominal_roa(plant, paper.K, paper.T, grid=31, horizon=20.0)
+    sa = _sweep(paper, None)
     pids = {}
     with _local_cluster() as cluster:
         ex = Executor(scheduler=cluster.scheduler_address)
         try:
             assert ex.kind == "dask" and ex.workers == 2
             pids = _worker_pids(ex._client)
-            b = nominal_roa(plant, paper_sc.K, paper_sc.T, grid=31, horizon=20.0, executor=ex, chunk=97)
-            sb = _sweep(paper_sc, ex)
+            b = nominal_roa(plant, paper.K, paper.T, grid=31, horizon=20.0, executor=ex, chunk=97)
+            sb = _sweep(paper, ex)
         finally:
             ex.close()
     np.testing.assert_array_equal(a.inside, b.inside)
@@ -243,9 +237,9 @@ def test_dask_cluster_matches_one_worker(paper_sc):
 
 
 @pytest.mark.process
-def test_killed_dask_worker_chunks_are_retried(paper_sc):
-    plant = paper_sc.make_plant()
-    a = nominal_roa(plant, paper_sc.K, paper_sc.T, grid=41, horizon=30.0)
+def test_killed_dask_worker_chunks_are_retried(paper):
+    plant = paper.make_plant()
+    a = nominal_roa(plant, paper.K, paper.T, grid=41, horizon=30.0)
     killed = []
     pids = {}
     with _local_cluster() as cluster:
@@ -267,7 +261,7 @@ def test_killed_dask_worker_chunks_are_retried(paper_sc):
                             return
                     time.sleep(0.01)
 
-            b = nominal_roa(plant, paper_sc.K, paper_sc.T, grid=41, horizon=30.0, executor=ex, chunk=60,
+            b = nominal_roa(plant, paper.K, paper.T, grid=41, horizon=30.0, executor=ex, chunk=60,
                             progress=kill_one)
             pids = _worker_pids(ex._client) | pids  # the nanny's replacement too
         finally:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import PY, assert_columns_equal_reference
+from helpers import PY, assert_columns_equal_reference, sim_recording
 
 import testbed
 from testbed import scenario
@@ -34,14 +34,6 @@ from testbed.wire import messages as msg
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _sim(tmp_path, name="paper", **over):
-    sc = scenario.with_overrides(scenario.load(name), over)
-    res = simulate_scenario(sc)
-    path = tmp_path / f"{name}.mcap"
-    recording.record_simulation(path, sc, res, overrides=over)
-    return sc, res, path
-
-
 def _cli(*args, timeout=120):
     return subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout)
 
@@ -52,7 +44,7 @@ def _cli(*args, timeout=120):
 # ---------------------------------------------------------------------------- the reader
 @pytest.mark.parametrize("name", ["paper", "cartpole"])
 def test_columns_equal_the_reference_reader(tmp_path, name):
-    sc, res, path = _sim(tmp_path, name, duration=6.0)
+    sc, res, path = sim_recording(tmp_path, name, duration=6.0)
     cols = columns.read_columns(path)
     assert not cols.truncated and cols.rows == sc.n_steps and not cols.rejected and cols.malformed == 0
     assert_columns_equal_reference(cols, reader.read(path))
@@ -83,7 +75,7 @@ def test_a_file_cut_mid_chunk_reads_like_the_reference(tmp_path):
 
 
 def test_streamed_json_equals_the_report(tmp_path):
-    _, _, path = _sim(tmp_path, "paper-escape", duration=8.0)
+    _, _, path = sim_recording(tmp_path, "paper-escape", duration=8.0)
     buf = io.StringIO()
     write_json(report(path, arrays=True), buf)
     assert json.loads(buf.getvalue()) == json.loads(json.dumps(report(path)))
@@ -127,7 +119,7 @@ def _foreign_mcap(path):
 
 
 def _bad_files(tmp_path) -> dict[str, Path]:
-    _, _, good = _sim(tmp_path, "paper", duration=3.0)
+    _, _, good = sim_recording(tmp_path, "paper", duration=3.0)
     data = bytearray(good.read_bytes())
     out = {}
     (tmp_path / "text.mcap").write_bytes(b"hello, not a recording")
@@ -252,7 +244,7 @@ def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
 
 # ---------------------------------------------------------------------------- the API, export, compare
 def test_open_and_simulate_give_the_same_arrays(tmp_path):
-    sc, res, path = _sim(tmp_path, "paper", duration=5.0)
+    sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     run = testbed.open(path)
     sim = testbed.simulate("paper", duration=5.0)
     assert run.source == "simulate" and run.N == sim.N == 50
@@ -302,7 +294,7 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
     import pyarrow.csv as pcsv
     import pyarrow.parquet as pq
 
-    sc, res, path = _sim(tmp_path, "paper", duration=5.0)
+    sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     out = tmp_path / f"run.{fmt}"
     r = _cli("export", path, "--format", fmt, "-o", out, "--json")
     assert r.returncode == 0, r.stderr
@@ -319,7 +311,7 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
 
 
 def test_compare_identical_and_different_runs(tmp_path):
-    _, _, a = _sim(tmp_path, "paper", duration=5.0)
+    _, _, a = sim_recording(tmp_path, "paper", duration=5.0)
     r = _cli("compare", a, "paper", "--json", "--plot", tmp_path / "c.png")
     c = json.loads(r.stdout)
     assert r.returncode == 0 and c["identical"] and c["first_divergence"] is None and c["max_state_error"] == 0.0
@@ -339,7 +331,7 @@ def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
     from testbed.quantizer import Codebook
     from testbed.record.summary import build_summary
 
-    sc, res, path = _sim(tmp_path, "paper", duration=5.0)
+    sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     rec = reader.read(path)
     tele = {r: dict(d) for r, d in rec.telemetry.items()}
     for role in ("encoder", "attacker"):   # both die after sample 9

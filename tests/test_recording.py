@@ -12,21 +12,13 @@ import time
 import numpy as np
 import pytest
 from failclosed import require
-from helpers import PY
+from helpers import PY, sim_recording
 
 from testbed import scenario
 from testbed.record import reader, recording, schema
 from testbed.report import report
 from testbed.simulate import simulate_scenario, summarize
 from testbed.wire import messages as msg
-
-
-def _sim_recording(tmp_path, name="paper", **over):
-    sc = scenario.with_overrides(scenario.load(name), over)
-    res = simulate_scenario(sc)
-    path = tmp_path / f"{name}.mcap"
-    recording.record_simulation(path, sc, res, overrides=over)
-    return sc, res, path
 
 
 # ---------------------------------------------------------------------------- schemas
@@ -65,7 +57,7 @@ def test_the_stored_descriptor_set_is_self_contained():
 # ---------------------------------------------------------------------------- simulate --out and report
 @pytest.mark.parametrize("name", ["paper", "paper-escape", "cartpole"])
 def test_report_of_a_simulation_equals_simulate_json(tmp_path, name):
-    sc, res, path = _sim_recording(tmp_path, name, duration=8.0)
+    sc, res, path = sim_recording(tmp_path, name, duration=8.0)
     want = json.loads(json.dumps(summarize(sc, res)))
     got = report(path)
     assert got["source"] == "simulate" and not got["recording"]["truncated"] and got["recording"]["complete"]
@@ -77,7 +69,7 @@ def test_report_of_a_simulation_equals_simulate_json(tmp_path, name):
 
 
 def test_overrides_are_stored_and_reapplied(tmp_path):
-    sc, res, path = _sim_recording(tmp_path, "paper", duration=3.0, mode="ideal")
+    sc, res, path = sim_recording(tmp_path, "paper", duration=3.0, mode="ideal")
     rec = reader.read(path)
     back = rec.scenario()
     assert back.run.duration == 3.0 and back.quantizer.mode == "ideal" and back.n_steps == 30
@@ -86,7 +78,7 @@ def test_overrides_are_stored_and_reapplied(tmp_path):
 
 
 def test_budget_of_a_greedy_attack_is_checked(tmp_path):
-    sc, res, path = _sim_recording(tmp_path, "paper-greedy", duration=20.0)
+    sc, res, path = sim_recording(tmp_path, "paper-greedy", duration=20.0)
     b = report(path)["dos"]["budget"]
     assert b["declared"] == dict(zip(("kappa_F", "rho_F", "kappa_D", "rho_D"), sc.attack.budget))
     assert b["within"] and b["kappa_F_min"] <= b["declared"]["kappa_F"] + 1e-9
@@ -110,7 +102,7 @@ def test_budget_violation_is_reported(tmp_path):
 def test_plain_mcap_reader_opens_and_decodes_it(tmp_path):
     from mcap.reader import make_reader
 
-    sc, res, path = _sim_recording(tmp_path, "paper", duration=5.0)
+    sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     with open(path, "rb") as f:
         r = make_reader(f)
         summ = r.get_summary()
@@ -126,7 +118,7 @@ def test_plain_mcap_reader_opens_and_decodes_it(tmp_path):
 
 
 def test_report_cli_json_and_plot(tmp_path):
-    _, _, path = _sim_recording(tmp_path, "paper", duration=6.0)
+    _, _, path = sim_recording(tmp_path, "paper", duration=6.0)
     png = tmp_path / "fig.png"
     r = subprocess.run([PY, "-m", "testbed.cli", "report", str(path), "--json", "--plot", str(png)],
                        capture_output=True, text=True, timeout=120)
@@ -142,7 +134,7 @@ def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_
     import testbed.report as rep_mod
     from testbed import cli
 
-    _, res, path = _sim_recording(tmp_path, "paper")
+    _, res, path = sim_recording(tmp_path, "paper")
     N = len(res.t)
     assert rep_mod.RESIMULATE_SAMPLES == 10_000 > N
     assert rep_mod.report(path)["resimulation"]["checked"] == N  # the real default: all of a 30 s run
@@ -283,7 +275,7 @@ def test_rerun_decodes_the_protobuf_channels(tmp_path):
     rerun_cli = os.path.join(os.path.dirname(PY), "rerun")
     if not os.path.exists(rerun_cli):
         require("rerun", "rerun CLI not installed next to this Python")
-    _, _, path = _sim_recording(tmp_path, "paper", duration=2.0)
+    _, _, path = sim_recording(tmp_path, "paper", duration=2.0)
     rrd = tmp_path / "conv.rrd"
     r = subprocess.run([rerun_cli, "mcap", "convert", str(path), "-o", str(rrd)], capture_output=True, text=True,
                        timeout=120)

@@ -33,11 +33,6 @@ from testbed.analysis.worst import (
 )
 
 
-@pytest.fixture(scope="module")
-def paper_sc():
-    return scenario.load("paper")
-
-
 # ============================================================================ fast: schedules
 def test_runs_are_the_intervals_a_scenario_reads():
     T, N = 0.1, 60
@@ -194,9 +189,9 @@ def _check_against_brute_force(loop, x0, n_max, masks):
     return w
 
 
-def test_the_front_agrees_with_brute_force_on_a_short_horizon(paper_sc):
+def test_the_front_agrees_with_brute_force_on_a_short_horizon(paper):
     """Every sample-aligned schedule of at most 3 attacks within 12 samples, from x0 = (0.1, 0.1)."""
-    loop = replace(Loop.from_scenario(paper_sc), n_steps=12)
+    loop = replace(Loop.from_scenario(paper), n_steps=12)
     w = _check_against_brute_force(loop, np.array([0.1, 0.1]), 3, _interval_masks(12, 3))
     assert w.front[0]["escaped"]
     # more attacks never need more lost samples
@@ -206,12 +201,12 @@ def test_the_front_agrees_with_brute_force_on_a_short_horizon(paper_sc):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("n_max", [2, 3])
-def test_the_front_agrees_with_brute_force_on_a_grid_of_initial_states(paper_sc, n_max):
+def test_the_front_agrees_with_brute_force_on_a_grid_of_initial_states(paper, n_max):
     """The issue's check: N = 2 and 3 attacks, a 5 x 5 grid of initial states inside the nominal region, every
     sample-aligned schedule within a 20-sample horizon."""
     from testbed.simulate import in_nominal_roa
 
-    loop = replace(Loop.from_scenario(paper_sc), n_steps=20)
+    loop = replace(Loop.from_scenario(paper), n_steps=20)
     g = np.linspace(-0.3, 0.3, 5)
     X = np.array([[a, b] for b in g for a in g])
     assert in_nominal_roa(loop.nominal, loop.K, loop.T, X).all()
