@@ -3,7 +3,7 @@
 * ``require`` skips with the reason, or fails with it where ``TESTBED_REQUIRE`` names the capability;
 * the guard: no test calls ``pytest.skip``, ``importorskip``, ``skipif`` or ``xfail`` outside the helper,
   and no test has a stall criterion or rerun loop of its own;
-* the rerun policy: a stalled run is run again at most twice and the last run is returned (so a build
+* the rerun policy: a stalled run is run again at most STALL_RERUNS times and the last run is returned (so a build
   that stalls every run is still compared); what an attacker can cause is no stall where an attacker is
   the subject;
 * two deliberately broken builds, put in place of the live run by monkeypatching, that the suite's old
@@ -19,7 +19,16 @@ import json
 from pathlib import Path
 
 import pytest
-from failclosed import CAPABILITIES, REQUIRE_ENV, import_or_require, require, required, rerun_while_stalled, stalled
+from failclosed import (
+    CAPABILITIES,
+    REQUIRE_ENV,
+    STALL_RERUNS,
+    import_or_require,
+    require,
+    required,
+    rerun_while_stalled,
+    stalled,
+)
 
 HERE = Path(__file__).resolve().parent
 
@@ -113,12 +122,12 @@ def _runs(*summaries):
     return run, calls
 
 
-def test_a_stalled_run_is_run_again_at_most_twice_and_the_last_is_returned():
+def test_a_stalled_run_is_run_again_at_most_STALL_RERUNS_times_and_the_last_is_returned():
     stall = {"timing": {"deadline_misses": 1}}
-    run, calls = _runs(stall, stall, dict(stall, last=True))
+    run, calls = _runs(*[stall] * STALL_RERUNS, dict(stall, last=True))
     with pytest.warns(UserWarning, match="machine stalled"):
         _, s, _ = rerun_while_stalled(run, "x")
-    assert calls == [0, 1, 2] and s["last"]  # the caller compares it, stalled or not
+    assert calls == list(range(STALL_RERUNS + 1)) and s["last"]  # the caller compares it, stalled or not
     run, calls = _runs(stall, {"clean": True}, stall)
     with pytest.warns(UserWarning):
         assert rerun_while_stalled(run, "x")[1] == {"clean": True} and calls == [0, 1]
@@ -173,7 +182,7 @@ def test_a_broken_build_whose_outsider_gets_in_fails_the_security_test(monkeypat
     with pytest.warns(UserWarning, match="machine stalled"), \
             pytest.raises(AssertionError, match="symbols first differs at sample 30"):
         sec.test_an_outsider_without_credentials_changes_nothing("tbroken", "router", tmp_path)
-    assert calls == ["tbroken", "tbrokenr", "tbrokenrr"]
+    assert calls == ["tbroken" + "r" * i for i in range(STALL_RERUNS + 1)]
 
 
 def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing_test(monkeypatch):
@@ -198,4 +207,4 @@ def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing
     with pytest.warns(UserWarning, match="late_for_schedule"), \
             pytest.raises(AssertionError, match="x first differs at sample 100"):
         lp.test_physical_timing_converges_on_the_paper_and_resimulates("tbroken", ())
-    assert calls == ["tbroken", "tbrokenr", "tbrokenrr"]
+    assert calls == ["tbroken" + "r" * i for i in range(STALL_RERUNS + 1)]

@@ -235,7 +235,7 @@ def test_worst_attack_on_the_paper_is_minimal_in_testbed_simulate(tmp_path):
     for key in ("intervals", "total_duration", "samples_lost", "escaped", "exact", "greedy", "search", "front",
                 "proof", "escape_criterion"):
         assert key in d, key
-    assert "method" not in d
+    assert d["method"] == "paper"  # ``method`` names the coding-and-control method; the search is ``search``
     assert d["escaped"] and d["exact"] and len(d["intervals"]) == 1
     assert d["front"] == [{"attacks": 1, "samples_lost": d["samples_lost"], "total_duration": d["total_duration"],
                            "intervals": d["intervals"], "exact": True, "escaped": True}]
