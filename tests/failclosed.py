@@ -12,6 +12,11 @@ attacker can cause: late and superseded symbols, and messages from the future.  
 partial break-in (a forged symbol that reaches the controller after its sample was decided)
 would read as a stall and be run again until a run without it came along.
 
+A rerun runs the nodes under SCHED_FIFO (``rerun_flags``: ``--realtime``) where the machine
+permits it: the first run always tests the default, and a rerun no longer waits for a quiet minute
+of a machine whose other processes starve the nodes (a clean-clone CI run stalled five runs of one
+test in a row, each missing the plant's deadline for a dropped sample by a few milliseconds).
+
 **Capabilities.**  A test that needs something of the machine (SCHED_FIFO, network namespaces,
 npm, ...) calls ``require(capability, reason)`` when it is missing: the test is skipped with the
 reason, unless the capability is named in ``TESTBED_REQUIRE`` (comma-separated; ``all``: every
@@ -114,6 +119,24 @@ def stalled(summary: dict, *, attacker: bool = False) -> dict | None:
     stall["withheld_at"] = summary.get("withheld_at")
     stall["sampling_jitter_max_us"] = (tm.get("sampling_jitter_us") or {}).get("max")
     return stall
+
+
+def fifo_permitted() -> bool:
+    """Whether this process may run under SCHED_FIFO (root or CAP_SYS_NICE, and an RT budget)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (OSError, AttributeError):
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
+def rerun_flags(attempt: int, args=()) -> tuple[str, ...]:
+    """What attempt ``attempt`` of a live run adds to its ``testbed run`` command: nothing for the first
+    run; for a rerun, ``--realtime`` where SCHED_FIFO is permitted (and not asked for already)."""
+    if attempt and "--realtime" not in args and fifo_permitted():
+        return ("--realtime",)
+    return ()
 
 
 def rerun_while_stalled(run, what: str, *, attacker: bool = False, reruns: int = STALL_RERUNS):

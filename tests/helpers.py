@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 import pytest
-from failclosed import rerun_while_stalled
+from failclosed import rerun_flags, rerun_while_stalled, stalled
 
 from testbed.wire import messages as msg
 
@@ -97,7 +97,8 @@ def mismatch(s: dict, sim: dict, key: str) -> str:
     near = {c: (s.get(c) or [])[lo:hi] for c in ("theta", "symbols", "E", "u", "x") if isinstance(s.get(c), list)}
     simnear = {c: (sim.get(c) or [])[lo:hi] for c in ("theta", "symbols", "E", "u", "x") if isinstance(sim.get(c), list)}
     tm = s.get("timing", {})
-    return (f"{key} first differs at sample {k} (live {a[k] if k < len(a) else None!r}, simulator "
+    return (f"{key} first differs at sample {k}; the run's own stall report: {stalled(s)}"
+            f" (live {a[k] if k < len(a) else None!r}, simulator "
             f"{b[k] if k < len(b) else None!r}); live {lo}..{hi - 1}: {near}; simulator: {simnear}; "
             f"events {s.get('events')}; loss_reasons {s.get('loss_reasons')}; withheld_at {s.get('withheld_at')}; "
             f"stages {tm.get('stages_us')}; jitter {tm.get('sampling_jitter_us')}; "
@@ -117,13 +118,14 @@ def live(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
 
 def live_exact(run_id: str, scenario: str, *args, timeout: float = TIMEOUT):
     """``live`` for the bit-exact tests, under the one rerun policy (``failclosed.rerun_while_stalled``):
-    a run that reports a timing fault of its own is run again (a new run id), up to twice; the last run
-    is returned, for the test to compare whatever it reports."""
+    a run that reports a timing fault of its own is run again (a new run id; under SCHED_FIFO where
+    permitted), up to ``STALL_RERUNS`` times; the last run is returned, for the test to compare whatever
+    it reports."""
     def run(attempt):
         if attempt:
             reap(run_id + "r" * (attempt - 1))
         again = (*args, "--force") if attempt and "--out" in args else args  # a stalled run's recording is replaced
-        return live(run_id + "r" * attempt, scenario, *again, timeout=timeout)
+        return live(run_id + "r" * attempt, scenario, *again, *rerun_flags(attempt, args), timeout=timeout)
 
     return rerun_while_stalled(run, scenario)
 

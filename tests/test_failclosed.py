@@ -172,7 +172,7 @@ def test_a_broken_build_whose_outsider_gets_in_fails_the_security_test(monkeypat
     broken["symbols"] = list(sim["symbols"])
     broken["symbols"][30] = 7
     calls = []
-    monkeypatch.setattr(sec, "_outsider_run", lambda rid, peer, foreign: calls.append(rid) or (0, broken, ""))
+    monkeypatch.setattr(sec, "_outsider_run", lambda rid, peer, foreign, more=(): calls.append(rid) or (0, broken, ""))
     with pytest.raises(AssertionError, match="symbols first differs at sample 30"):
         sec.test_an_outsider_without_credentials_changes_nothing("tbroken", "router", tmp_path)
     assert calls == ["tbroken"]  # late symbols are the attacker's doing here: no rerun

@@ -315,14 +315,14 @@ def _live(tmp_path, scenario_file, rid, *args):
 def _live_exact(tmp_path, scenario_file, rid: str, *args):
     """``_live`` for the bit-exact tests, under the one rerun policy (``failclosed.rerun_while_stalled``):
     a stalled run is run again (run id ``rid`` + "r" per rerun), the last run is returned to be compared."""
-    from failclosed import rerun_while_stalled
+    from failclosed import rerun_flags, rerun_while_stalled
     from helpers import reap
 
     def run(attempt):
         if attempt:
             assert not reap(rid + "r" * (attempt - 1))
         again = (*args, "--force") if attempt and "--out" in args else args  # a stalled run's recording is replaced
-        return _live(tmp_path, scenario_file, rid + "r" * attempt, *again)
+        return _live(tmp_path, scenario_file, rid + "r" * attempt, *again, *rerun_flags(attempt, args))
 
     try:
         return rerun_while_stalled(run, f"FMU run {scenario_file}")

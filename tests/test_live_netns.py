@@ -20,7 +20,7 @@ import subprocess
 import sys
 
 import pytest
-from failclosed import require, rerun_while_stalled
+from failclosed import require, rerun_flags, rerun_while_stalled
 from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, TOPOLOGIES, mismatch, reap, run_cli, simulate
 
 pytestmark = pytest.mark.process
@@ -77,12 +77,12 @@ def netns():
         assert not left, f"namespaces left behind: {left}"
 
 
-def _run_in_namespaces(names, addr, run_id, topology=()):
+def _run_in_namespaces(names, addr, run_id, topology=(), more=()):
     port = 7447
     scheme = "tls" if "peer" in topology else "tcp"
     cmd = ["ip", "netns", "exec", names["hub"], sys.executable, "-m", "testbed.cli", "run", "paper",
            "--duration", "5", "--json", "--run-id", run_id, "--listen", f"{scheme}/{addr['hub']}:{port}",
-           "--run-dir", os.path.join(LOGS, run_id), *topology]
+           "--run-dir", os.path.join(LOGS, run_id), *topology, *more]
     for r in ROLES:
         cmd += ["--node-prefix", f"{r}=ip netns exec {names[r]}", "--node-listen", f"{r}={scheme}/{addr[r]}:0"]
     try:
@@ -100,7 +100,7 @@ def test_paper_across_network_namespaces(netns, topology):
     names, addr = netns
     run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
     # the one rerun policy: a stalled run is run again, the last run is compared whatever it reports
-    rc, s, err = rerun_while_stalled(lambda n: _run_in_namespaces(names, addr, run_id + "r" * n, topology),
+    rc, s, err = rerun_while_stalled(lambda n: _run_in_namespaces(names, addr, run_id + "r" * n, topology, rerun_flags(n)),
                                      "netns run")
     assert rc == 0, (s["faults"], err[-3000:])
     # every node process ran in its own network namespace (a colocated encoder in the plant's)

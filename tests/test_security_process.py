@@ -24,7 +24,7 @@ import threading
 import time
 
 import pytest
-from failclosed import rerun_while_stalled
+from failclosed import rerun_flags, rerun_while_stalled
 from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, mismatch, procs_with, simulate, tb_cmd
 
 from testbed.wire import messages as msg
@@ -128,14 +128,14 @@ def _outsider_configs(run_id, pt, peer, foreign):
             transport.make_config(connect=[f"tls/127.0.0.1:{pt}"], mode="peer", tls=tls)]
 
 
-def _outsider_run(run_id, peer=False, foreign=None):
+def _outsider_run(run_id, peer=False, foreign=None, more=()):
     """An 8 s run with an outsider forging everything on every port it listens on, until it ends."""
     import zenoh
 
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     p = start_run(run_id, "--duration", str(OUTSIDER_S), "--listen", f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}",
-                  *(("--topology", "peer") if peer else ()))
+                  *(("--topology", "peer") if peer else ()), *more)
     forged, refused, seen = [], [], set()
     try:
         wait_running(run_id, p)
@@ -168,7 +168,8 @@ def test_an_outsider_without_credentials_changes_nothing(run_id, topology, tmp_p
     foreign = transport.TlsCredentials.new(tmp_path / "foreign").folder if peer else None
     # a run the machine stalled is run again (a new run id); what the outsider could cause is no stall,
     # and the last run is compared whatever it reports
-    rc, s, err = rerun_while_stalled(lambda attempt: _outsider_run(run_id + "r" * attempt, peer, foreign),
+    rc, s, err = rerun_while_stalled(lambda attempt: _outsider_run(run_id + "r" * attempt, peer, foreign,
+                                                                   rerun_flags(attempt)),
                                      f"outsider ({topology})", attacker=True)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and s["outcome"] == "done" and not s["faults"]
@@ -197,13 +198,13 @@ def insider(secret: str, user: str, port: int, peer: bool = False):
     return zenoh.open(conf)
 
 
-def _insider_run(run_id, secret, colocated, peer=False):
+def _insider_run(run_id, secret, colocated, peer=False, more=()):
     """A 6 s run with the encoder's credentials used to forge everything."""
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     net = (("--listen", f"tls/127.0.0.1:{port}", "--topology", "peer", "--tls-dir", secret) if peer else
            ("--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret))
-    p = start_run(run_id, "--duration", "6", *net, *(("--colocate", "encoder") if colocated else ()))
+    p = start_run(run_id, "--duration", "6", *net, *(("--colocate", "encoder") if colocated else ()), *more)
     try:
         wait_running(run_id, p)
         with insider(secret, "encoder", port, peer) as session:
@@ -232,7 +233,8 @@ def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_pa
                           capture_output=True).returncode == 0
     # a run the machine stalled is run again (a new run id); what the insider could cause is no stall,
     # and the last run is compared whatever it reports
-    rc, s, err = rerun_while_stalled(lambda attempt: _insider_run(run_id + "r" * attempt, secret, colocated, peer),
+    rc, s, err = rerun_while_stalled(lambda attempt: _insider_run(run_id + "r" * attempt, secret, colocated, peer,
+                                                                  rerun_flags(attempt)),
                                      "insider outside its keys", attacker=True)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and not s["faults"]
