@@ -45,9 +45,9 @@ class FMUError(ValueError):
 
 def _fmpy():
     try:
-        import fmpy  # noqa: F401
-        import fmpy.fmi2  # noqa: F401
-        import fmpy.model_description  # noqa: F401
+        import fmpy
+        import fmpy.fmi2
+        import fmpy.model_description
     except ImportError as e:
         raise FMUError(f"FMU plants need fmpy, which is not installed ({e}): {INSTALL_HINT}") from None
     import fmpy
@@ -115,7 +115,7 @@ def describe(path: str | Path, *, inputs, states, params: dict | None = None) ->
                        "(export the FMU for Co-Simulation)")
     try:
         platforms = fmpy.supported_platforms(str(p))
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:  # noqa: BLE001 - fmpy's errors are not one type: one line names the file
         raise FMUError(f"{p}: cannot list its binaries: {e}") from None
     if fmpy.platform not in platforms:
         have = ", ".join(x for x in platforms) or "none"
@@ -352,7 +352,7 @@ class FMUPlant:
                     f.freeInstance()    # also unloads the library
                 else:
                     f.freeLibrary()
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - closing: the library may be gone already
                 pass
         if self._dir:
             shutil.rmtree(self._dir, ignore_errors=True)

@@ -262,7 +262,7 @@ def load_source(ref: str, base_dir: str | None, module: str, class_name: str, so
     try:
         spec.loader.exec_module(mod)
         cls = check_plant_class(getattr(mod, class_name, None), ref)
-    except Exception as e:  # noqa: BLE001 - the stored code failed: one line
+    except Exception as e:
         if old is not None:
             sys.modules[module] = old
         else:

@@ -79,7 +79,7 @@ def run_guarded(runner, args, prog: str) -> int:
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
-    except Exception as e:  # noqa: BLE001 - one line, not a traceback; the variable shows it
+    except Exception as e:  # one line, not a traceback; the variable shows it
         if os.environ.get("TESTBED_TRACEBACK"):
             raise
         print(f"{prog}: internal error: {type(e).__name__}: {e} (set TESTBED_TRACEBACK=1 for the traceback)",

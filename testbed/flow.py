@@ -23,7 +23,7 @@ import numba as nb
 import numpy as np
 
 from ._dop853 import dop853_step
-from .loopspec import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401
+from .loopspec import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401 - flow.py names them for its callers
 
 
 @nb.njit(cache=True)

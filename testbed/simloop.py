@@ -251,7 +251,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         rec["x"][k] = x
         try:
             send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb)
-        except Exception as e:  # noqa: BLE001 - a method's end raised: the run ends at this sample
+        except Exception as e:  # a method's end raised: the run ends at this sample
             if method is None:
                 raise
             mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \

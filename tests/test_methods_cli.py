@@ -229,7 +229,7 @@ def test_method_whose_ends_disagree_or_raise(tmp_path):
 
 # ============================================================================ live
 def _live(tmp_path, scenario, rid, *more, cwd):
-    from test_live_process import reap
+    from helpers import reap
 
     try:
         rc, out, err = tb("run", scenario, "--json", "--run-id", rid, "--run-dir", tmp_path / f"logs-{rid}", *more,
@@ -247,7 +247,7 @@ def test_live_user_method_equals_simulation(method_dir):
     """A live run of a user's method (module next to the scenario, run from another folder) equals its
     simulation bit for bit; testbed report reads the recording from a third folder."""
     from failclosed import rerun_flags, rerun_while_stalled
-    from test_live_process import BIT_EXACT_KEYS, mismatch
+    from helpers import BIT_EXACT_KEYS, mismatch
 
     work = method_dir.parent / "elsewhere"
     rec = method_dir.parent / "live.mcap"
@@ -273,7 +273,7 @@ def test_live_user_method_equals_simulation(method_dir):
 @pytest.mark.parametrize("method", ["zoom", "unquantized-hold"])
 def test_live_bundled_method_equals_simulation(tmp_path, method):
     from failclosed import rerun_flags, rerun_while_stalled
-    from test_live_process import BIT_EXACT_KEYS, mismatch
+    from helpers import BIT_EXACT_KEYS, mismatch
 
     rid = f"t{os.getpid()}xbm{secrets.token_hex(3)}"
 

@@ -234,7 +234,7 @@ class Launcher(RunCredentials):
         try:
             import numpy as np
 
-            from ..record import summary  # noqa: F401
+            from ..record import summary  # noqa: F401 - loaded early, in this idle thread, not at the end of the run
             from ..simulate import in_nominal_roa
 
             model = self.sc.make_model()
@@ -365,7 +365,7 @@ class Launcher(RunCredentials):
             return
         try:
             session.put(self.keys.stop, msg.Stop(reason=reason, origin="launcher").encode())
-        except Exception:  # noqa: BLE001
+        except Exception:  # noqa: BLE001 - the stop is best effort; the processes are stopped below
             pass
         end = time.monotonic() + grace
         while time.monotonic() < end and any(self.procs[r].poll() is None for r in alive):
@@ -644,7 +644,7 @@ class Launcher(RunCredentials):
                                 msg.NodeSummary(node="launcher", data=launcher_view).encode())
                     if self.recorder is not None and self.recorder.poll() is None:
                         time.sleep(0.1)
-                except Exception:  # noqa: BLE001
+                except Exception:  # noqa: BLE001 - best effort at the end; the recorder is stopped below
                     pass
                 self.stop_recorder()
                 self.check_recorder(col, None)

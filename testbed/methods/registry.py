@@ -94,7 +94,7 @@ def resolve(ref: str, base_dir: str | None = None) -> type[Method]:
                           f"method package ({ENTRY_POINT_GROUP} entry point), or 'module.path:ClassName'")
     try:
         obj = ep.load()
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:  # noqa: BLE001 - a user's package: whatever it raises becomes one line
         raise MethodError(f"method {ref!r}: entry point {ep.value!r} failed to load: {type(e).__name__}: {e}") from None
     _RESOLVED[key] = check_method_class(obj, ref)
     return _RESOLVED[key]

@@ -64,7 +64,7 @@ class Node:
                 return None
             try:
                 return fn(sample)
-            except Exception as e:  # noqa: BLE001
+            except Exception as e:  # noqa: BLE001 - a handler's failure fails its node, not the Zenoh callback thread
                 self.fail(e)
                 return None
 

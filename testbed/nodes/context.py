@@ -73,7 +73,7 @@ class NodeContext:
         for h in self._peer_handlers:
             try:
                 h(node, not gone)
-            except Exception:  # noqa: BLE001 - a handler bug must not kill the liveliness thread
+            except Exception:
                 log.exception("peer handler failed")
 
     def _on_ready(self, sample) -> None:
@@ -210,14 +210,14 @@ class NodeContext:
         try:
             self.session.put(self.keys.summary(self.role), s.encode(),
                              congestion_control=self._zenoh.CongestionControl.BLOCK)
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.exception("summary not published")
 
     def close(self) -> None:
         for t in self._tokens:
             try:
                 t.undeclare()
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - leaving: a token the session already dropped
                 pass
 
 

@@ -87,7 +87,7 @@ def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
                 if b in extra:
                     try:
                         extra[b]()
-                    except Exception:  # noqa: BLE001 - must not kill the pump
+                    except Exception:
                         logging.getLogger(__name__).exception("signal handler failed")
                     continue
                 if b not in wanted:
@@ -98,7 +98,7 @@ def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
                                      name="stop-deadline").start()
                 try:
                     callback(b)
-                except Exception:  # noqa: BLE001 - a stop request must not kill the pump
+                except Exception:
                     logging.getLogger(__name__).exception("stop callback failed")
 
     threading.Thread(target=pump, daemon=True, name="signals").start()

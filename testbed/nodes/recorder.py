@@ -153,7 +153,7 @@ class Recorder:
                 item = self.q.popleft()
                 try:
                     self._write(*item)
-                except Exception:  # noqa: BLE001 - never lose the recording over one message
+                except Exception:
                     self.write_errors += 1
                     log.exception("recorder: could not write a message")
             self.w.maybe_flush()
@@ -242,7 +242,7 @@ class Recorder:
             handler = getattr(self.fox, kind, None)
             for topic, name, data, lt in (handler(m, log_time) if handler is not None else ()):
                 self.w.write_bytes(topic, name, data, lt)
-        except Exception:  # noqa: BLE001
+        except Exception:
             self.write_errors += 1
             log.exception("recorder: could not write a Foxglove message")
 
@@ -252,7 +252,7 @@ class Recorder:
             try:
                 for topic, name, data, lt in self.fox.flush(time.time_ns()):
                     self.w.write_bytes(topic, name, data, lt)
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - counted: the recording goes on without the Foxglove scene
                 self.write_errors += 1
 
     # ---- end
@@ -368,7 +368,7 @@ def main_record(args) -> int:
             for t in tokens:
                 try:
                     t.undeclare()
-                except Exception:  # noqa: BLE001
+                except Exception:  # noqa: BLE001 - leaving: a token the session already dropped
                     pass
             st = rec.close()
     log.info("recorder stopped (%s): %s", why["reason"], st)

@@ -93,7 +93,7 @@ class RerunTap:
         try:
             self._log([_DECODE[self.role].decode(r) for r in recs])
             self.logged += len(recs)
-        except Exception:  # noqa: BLE001 - the view must never take the node down
+        except Exception:
             self.errors += 1
             if self.errors <= 3:
                 log.exception("%s: rerun logging failed", self.role)
@@ -135,7 +135,7 @@ class RerunTap:
             try:
                 self.rec.flush()
                 self.rec.disconnect()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("%s: rerun flush failed", self.role)
         return {"rerun_logged": self.logged, "rerun_errors": self.errors}
 
