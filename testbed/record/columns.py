@@ -62,7 +62,7 @@ from .mcapfile import (
 )
 from .topics import TELEMETRY_ROLES, TELEMETRY_SCHEMA
 
-ROLES = TELEMETRY_ROLES
+ROLES = TELEMETRY_ROLES  # the readers' role columns
 
 
 ROLE_SCHEMA = TELEMETRY_SCHEMA

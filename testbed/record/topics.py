@@ -3,6 +3,8 @@ and ``docs/recording-format.md`` use."""
 
 from __future__ import annotations
 
+from ..wire.transport import ROLES
+
 PROFILE = "testbed"           # MCAP header profile
 
 
@@ -12,8 +14,9 @@ _U64_MAX = 2**64 - 1          # MCAP times are uint64 ns
 FORMAT_VERSION = "1"          # bump when a topic or field changes meaning
 
 
-#: the roles that publish telemetry, in the order of their topics (and of the readers' columns)
-TELEMETRY_ROLES = ("plant", "encoder", "controller", "attacker")
+#: the roles that publish telemetry (every node role: ``wire.transport.ROLES``), in the order of their
+#: topics and of the readers' columns
+TELEMETRY_ROLES = ROLES
 TELEMETRY_TOPICS = {r: f"/telemetry/{r}" for r in TELEMETRY_ROLES}
 
 
