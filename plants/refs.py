@@ -39,8 +39,8 @@ ENTRY_POINT_GROUP = "dos_testbed.plants"
 #: a stored source larger than this is not written into recordings (a plant module is a few kB)
 MAX_SOURCE_BYTES = 1 << 20
 
-_IDENT = r"[A-Za-z_][A-Za-z0-9_]*"
-_MODULE_REF = re.compile(rf"^({_IDENT}(?:\.{_IDENT})*):({_IDENT})$")
+IDENT = r"[A-Za-z_][A-Za-z0-9_]*"
+_MODULE_REF = re.compile(rf"^({IDENT}(?:\.{IDENT})*):({IDENT})$")
 
 
 class PlantRefError(ValueError):
@@ -108,23 +108,29 @@ def _import(modname: str, base_dir: str | None):
     return importlib.import_module(modname)
 
 
-def _from_module(ref: str, base_dir: str | None) -> type[Plant]:
+def import_module_attr(ref: str, base_dir: str | None, what: str, error: type[Exception]):
+    """The object a ``"module.path:Name"`` reference names, imported from ``base_dir`` first, then
+    ``sys.path``; ``error`` (one line naming the ``what``: "plant", "method") when it cannot be."""
     m = _MODULE_REF.match(ref)
     if not m:
-        raise PlantRefError(f"plant {ref!r}: a module reference is 'module.path:ClassName'")
+        raise error(f"{what} {ref!r}: a module reference is 'module.path:ClassName'")
     modname, attr = m.groups()
     where = f"{base_dir}, then sys.path" if base_dir else "sys.path"
     try:
         mod = _import(modname, base_dir)
     except ModuleNotFoundError as e:
         if e.name and (modname == e.name or modname.startswith(e.name + ".")):
-            raise PlantRefError(f"plant {ref!r}: no module {modname!r} (looked in {where})") from None
-        raise PlantRefError(f"plant {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
+            raise error(f"{what} {ref!r}: no module {modname!r} (looked in {where})") from None
+        raise error(f"{what} {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
     except Exception as e:  # noqa: BLE001 - anything a user's module raises: one line
-        raise PlantRefError(f"plant {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
+        raise error(f"{what} {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
     if not hasattr(mod, attr):
-        raise PlantRefError(f"plant {ref!r}: module {modname!r} ({_module_file(mod)}) has no {attr!r}")
-    return check_plant_class(getattr(mod, attr), ref)
+        raise error(f"{what} {ref!r}: module {modname!r} ({_module_file(mod)}) has no {attr!r}")
+    return getattr(mod, attr)
+
+
+def _from_module(ref: str, base_dir: str | None) -> type[Plant]:
+    return check_plant_class(import_module_attr(ref, base_dir, "plant", PlantRefError), ref)
 
 
 # ----------------------------------------------------------------------------- entry points
@@ -249,7 +255,7 @@ def load_source(ref: str, base_dir: str | None, module: str, class_name: str, so
         raise PlantRefError(f"plant {ref!r}: no stored source")
     if _sha256(source) != sha256:
         raise PlantRefError(f"plant {ref!r}: the stored source does not match its sha256 (corrupt recording)")
-    if not re.fullmatch(rf"{_IDENT}(?:\.{_IDENT})*", module or "") or not re.fullmatch(_IDENT, class_name or ""):
+    if not re.fullmatch(rf"{IDENT}(?:\.{IDENT})*", module or "") or not re.fullmatch(IDENT, class_name or ""):
         raise PlantRefError(f"plant {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
     d = tempfile.mkdtemp(prefix="testbed-recorded-plant-")
     _TMP_DIRS.append(d)
@@ -303,4 +309,5 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
 
 
 __all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "resolve", "entry_points", "load_entry_point", "source_info",
-           "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class"]
+           "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class",
+           "import_module_attr", "IDENT"]

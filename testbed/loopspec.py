@@ -75,13 +75,35 @@ class InvalidSymbol(ValueError):
     """A payload that is not a code of the codebook (wrong length or out of range)."""
 
 
+class SymbolPacking:
+    """A symbol 0 .. n_codes - 1 on the wire: big-endian in ``nbytes`` bytes; anything else is an
+    :class:`InvalidSymbol` (the paper's codebook and a method's plain integer codes alike)."""
+
+    def pack(self, i: int) -> bytes:
+        i = int(i)
+        if not 0 <= i < self.n_codes:
+            raise InvalidSymbol(f"symbol {i} outside the codebook 0..{self.n_codes - 1}")
+        return i.to_bytes(self.nbytes, "big")
+
+    def unpack(self, data: bytes) -> int:
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise InvalidSymbol(f"payload must be bytes, got {type(data).__name__}")
+        data = bytes(data)
+        if len(data) != self.nbytes:
+            raise InvalidSymbol(f"payload of {len(data)} bytes, expected {self.nbytes}")
+        i = int.from_bytes(data, "big")
+        if i >= self.n_codes:
+            raise InvalidSymbol(f"code {i} outside the codebook 0..{self.n_codes - 1}")
+        return i
+
+
 class CodebookTooLarge(ValueError):
     """A codebook beyond ``MAX_CODES`` (the scenario loader turns it into a ScenarioError)."""
 
 
 # ----------------------------------------------------------------------------- codebook
 @dataclass(frozen=True)
-class Codebook:
+class Codebook(SymbolPacking):
     """Symbols, their bit width and byte packing for n coordinates and M levels."""
 
     n: int
@@ -116,23 +138,6 @@ class Codebook:
     @property
     def nbytes(self) -> int:
         return (self.bits + 7) // 8
-
-    def pack(self, i: int) -> bytes:
-        i = int(i)
-        if not 0 <= i < self.n_codes:
-            raise InvalidSymbol(f"symbol {i} outside the codebook 0..{self.n_codes - 1}")
-        return i.to_bytes(self.nbytes, "big")
-
-    def unpack(self, data: bytes) -> int:
-        if not isinstance(data, (bytes, bytearray, memoryview)):
-            raise InvalidSymbol(f"payload must be bytes, got {type(data).__name__}")
-        data = bytes(data)
-        if len(data) != self.nbytes:
-            raise InvalidSymbol(f"payload of {len(data)} bytes, expected {self.nbytes}")
-        i = int.from_bytes(data, "big")
-        if i >= self.n_codes:
-            raise InvalidSymbol(f"code {i} outside the codebook 0..{self.n_codes - 1}")
-        return i
 
 
 # ----------------------------------------------------------------------------- end points

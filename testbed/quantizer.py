@@ -122,6 +122,20 @@ def control_input(Kgain, q, theta, overflow, u):
 
 
 @nb.njit(cache=True)
+def floor_E(En, xi_next, E_min):
+    """E_{k+1} never below the round-off of the box arithmetic around xi_{k+1} (a few ulp: a range
+    narrower than that cannot hold x_{k+1} however exact the prediction), nor below ``E_min``."""
+    big = 0.0
+    for i in range(xi_next.shape[0]):
+        big = max(big, abs(xi_next[i]))
+    if En < ROUNDOFF * big:
+        En = ROUNDOFF * big
+    if En < E_min:
+        En = E_min
+    return En
+
+
+@nb.njit(cache=True)
 def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
                 E_min, dpar, K_s, ytmp, u_s, xi_out):
     """Update rules (xi) and (E) (and the OVERFLOW zoom-out). Returns (E_next, flow status).
@@ -171,16 +185,7 @@ def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambd
         for r in range(m):
             du = max(du, abs(u_s[r] - u_prev[r]))
         En += margin_gain * du
-    # never below the round-off of the box arithmetic around xi_{k+1} (a few ulp): a range
-    # narrower than that cannot hold x_{k+1} however exact the prediction
-    big = 0.0
-    for i in range(xi_out.shape[0]):
-        big = max(big, abs(xi_out[i]))
-    if En < ROUNDOFF * big:
-        En = ROUNDOFF * big
-    if En < E_min:
-        En = E_min
-    return En, st
+    return floor_E(En, xi_out, E_min), st
 
 
 class _End:

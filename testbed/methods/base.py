@@ -32,14 +32,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..loopspec import Codebook, InvalidSymbol, QuantizerParams
+from ..loopspec import Codebook, InvalidSymbol, QuantizerParams, SymbolPacking
 
 
 class MethodError(ValueError):
     """A method that cannot be used (a bad reference, parameter or key), with the reason (one line)."""
 
 
-class IntCodebook:
+class IntCodebook(SymbolPacking):
     """Symbols 0 .. 2^bits - 1 packed big-endian into ceil(bits / 8) bytes (a user method's default)."""
 
     resilient = False
@@ -51,23 +51,6 @@ class IntCodebook:
             raise MethodError(f"a method's symbol has 1..31 bits, got {bits}")
         self.n_codes = 1 << self.bits
         self.nbytes = (self.bits + 7) // 8
-
-    def pack(self, i) -> bytes:
-        i = int(i)
-        if not 0 <= i < self.n_codes:
-            raise InvalidSymbol(f"symbol {i} outside the codebook 0..{self.n_codes - 1}")
-        return i.to_bytes(self.nbytes, "big")
-
-    def unpack(self, data) -> int:
-        if not isinstance(data, (bytes, bytearray, memoryview)):
-            raise InvalidSymbol(f"payload must be bytes, got {type(data).__name__}")
-        data = bytes(data)
-        if len(data) != self.nbytes:
-            raise InvalidSymbol(f"payload of {len(data)} bytes, expected {self.nbytes}")
-        i = int.from_bytes(data, "big")
-        if i >= self.n_codes:
-            raise InvalidSymbol(f"code {i} outside the codebook 0..{self.n_codes - 1}")
-        return i
 
 
 class FloatCodebook:

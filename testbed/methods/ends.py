@@ -8,8 +8,7 @@ import numba as nb
 import numpy as np
 
 from ..flow import compiled_for
-from ..loopspec import ROUNDOFF
-from ..quantizer import Decoder, Encoder, box_center, control_input, quantize_index, zoom_update
+from ..quantizer import Decoder, Encoder, box_center, control_input, floor_E, quantize_index, zoom_update
 from .base import DecoderEnd, EncoderEnd, FloatCodebook
 
 
@@ -22,14 +21,7 @@ def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, La
     En, st = zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
                          E_min, dpar, K_s, ytmp, u_s, xi_out)
     if theta == 1:
-        En = Lambda / M * E
-        big = 0.0
-        for i in range(xi_out.shape[0]):
-            big = max(big, abs(xi_out[i]))
-        if En < ROUNDOFF * big:
-            En = ROUNDOFF * big
-        if En < E_min:
-            En = E_min
+        En = floor_E(Lambda / M * E, xi_out, E_min)
     return En, st
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib.metadata
 import re
 
-from plants.refs import _import, _module_file
+from plants.refs import IDENT, import_module_attr
 from plants.refs import source_info as _plant_source_info
 
 from .base import Method, MethodError
@@ -24,8 +24,6 @@ DEFAULT = "paper"
 
 _REGISTRY: dict[str, type[Method]] = dict(BUNDLED)
 _RESOLVED: dict[tuple[str, str], type[Method]] = {}
-_IDENT = r"[A-Za-z_][A-Za-z0-9_]*"
-_MODULE_REF = re.compile(rf"^({_IDENT}(?:\.{_IDENT})*):({_IDENT})$")
 
 
 def register(cls: type[Method]) -> type[Method]:
@@ -52,22 +50,7 @@ def entry_points() -> dict:
 
 
 def _from_module(ref: str, base_dir: str | None):
-    m = _MODULE_REF.match(ref)
-    if not m:
-        raise MethodError(f"method {ref!r}: a module reference is 'module.path:ClassName'")
-    modname, attr = m.groups()
-    where = f"{base_dir}, then sys.path" if base_dir else "sys.path"
-    try:
-        mod = _import(modname, base_dir)
-    except ModuleNotFoundError as e:
-        if e.name and (modname == e.name or modname.startswith(e.name + ".")):
-            raise MethodError(f"method {ref!r}: no module {modname!r} (looked in {where})") from None
-        raise MethodError(f"method {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
-    except Exception as e:  # noqa: BLE001 - anything a user's module raises: one line
-        raise MethodError(f"method {ref!r}: importing {modname!r} failed: {type(e).__name__}: {e}") from None
-    if not hasattr(mod, attr):
-        raise MethodError(f"method {ref!r}: module {modname!r} ({_module_file(mod)}) has no {attr!r}")
-    return check_method_class(getattr(mod, attr), ref)
+    return check_method_class(import_module_attr(ref, base_dir, "method", MethodError), ref)
 
 
 def resolve(ref: str, base_dir: str | None = None) -> type[Method]:
@@ -140,7 +123,7 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
         reason = str(e)
     if hashlib.sha256(source.encode("utf-8")).hexdigest() != sha256:
         raise MethodError(f"method {ref!r}: the stored source does not match its sha256 (corrupt recording)")
-    if not re.fullmatch(rf"{_IDENT}(?:\.{_IDENT})*", module or "") or not re.fullmatch(_IDENT, class_name or ""):
+    if not re.fullmatch(rf"{IDENT}(?:\.{IDENT})*", module or "") or not re.fullmatch(IDENT, class_name or ""):
         raise MethodError(f"method {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
     d = tempfile.mkdtemp(prefix="testbed-recorded-method-")
     path = Path(d) / f"{module.rsplit('.', 1)[-1]}.py"
