@@ -22,14 +22,18 @@ class Progress:
         self.t0 = time.perf_counter()
         self.tty = sys.stderr.isatty()
         self.last = 0.0
+        self.shown = None
 
     def __call__(self, done: int, failed: int, final: bool = False) -> None:
         if not self.enabled:
             return
         now = time.perf_counter()
-        if not final and now - self.last < (0.2 if self.tty else 5.0):
+        if (not final and now - self.last < (0.2 if self.tty else 5.0)) or (final and self.shown == (done, failed)):
+            if final and self.tty and self.shown == (done, failed):
+                sys.stderr.write("\n")
             return
         self.last = now
+        self.shown = (done, failed)
         new = done - self.done0
         left = self.total - done
         el = now - self.t0

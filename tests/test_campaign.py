@@ -298,3 +298,51 @@ def test_plot(c120, tmp_path):
     s = json.loads((d / "out" / "summary.json").read_text())
     png = campaignrun.plot(tmp_path / "rate.png", c, dict(s, folder=str(d / "out")))
     assert png.stat().st_size > 1000
+
+
+# ============================================================================ live
+LIVE_CAMPAIGN = """\
+scenario = "paper"
+runs = "live"
+[axes]
+"method.name" = ["paper", "zoom"]
+"plant.x0" = [[0.1, 0.1], [0.1, -0.1]]
+"run.duration" = [2.0]
+"""
+
+
+@pytest.mark.process
+def test_live_campaign_four_runs_recorded_and_resimulated(tmp_path):
+    """4 short live runs, one at a time, each recorded; --verify re-simulates each from its recording; each
+    run equals the simulator of its scenario bit for bit (the live tests' rerun policy: a campaign whose run
+    reports a stall of the machine is run again)."""
+    from failclosed import rerun_while_stalled, stalled
+    from helpers import BIT_EXACT_KEYS, mismatch
+
+    from testbed.report import report
+
+    c = tmp_path / "live.toml"
+    c.write_text(LIVE_CAMPAIGN)
+
+    def run(attempt):
+        p = _cli("campaign", c, "--out", f"out{attempt}", "--json", cwd=tmp_path, timeout=600)
+        assert p.returncode == 0, p.stderr
+        reps = [report(str(tmp_path / f"out{attempt}" / r["recording"]), resimulate=0)
+                for r in _table(tmp_path / f"out{attempt}")]
+        bad = [s for s in reps if stalled(s)]
+        return p.returncode, (bad or reps)[0], (attempt, reps)
+
+    _, _, (attempt, reps) = rerun_while_stalled(run, "live campaign")
+    out = tmp_path / f"out{attempt}"
+    rows = _table(out)
+    assert len(rows) == 4 and all(r["status"] == "ok" and (out / r["recording"]).is_file() for r in rows)
+    assert all(json.loads(r["timing"]) for r in rows)
+    for r, s in zip(rows, reps):
+        sim = json.loads(_cli("simulate", out / "scenarios" / f"{r['run']}.toml", "--json", cwd=tmp_path).stdout)
+        for k in BIT_EXACT_KEYS:
+            assert s[k] == sim[k], (r["run"], mismatch(s, sim, k))
+        assert r["converged"] == sim["converged"] and r["final_norm"] == sim["final_norm"]
+    p = _cli("campaign", "--verify", out, "--json", cwd=tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    v = json.loads(p.stdout)
+    assert v["checked_live"] == 4 and v["identical"]

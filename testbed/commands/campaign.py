@@ -51,6 +51,7 @@ def main(args) -> int:
         from ..analysis import parallel
 
         executor = parallel.from_args(args)
+    parallel_desc = executor.describe() if executor is not None else {"kind": "serial", "workers": 1}
     try:
         out = campaignrun.run(c, folder, executor=executor, progress=not args.no_progress,
                               live_timeout=args.live_timeout)
@@ -65,7 +66,7 @@ def main(args) -> int:
     failed = s["failed"]
     if args.json:
         print(json.dumps({"folder": str(folder), "ran": out["ran"], "skipped": out["skipped"],
-                          "parallel": executor.describe() if executor is not None else {"kind": "serial", "workers": 1},
+                          "parallel": parallel_desc,
                           **({"figure": str(args.plot)} if args.plot else {}), "summary": s}))
     else:
         t = s["total"]
