@@ -17,8 +17,9 @@ scenario (``scenarios/RUN.toml``), the journal (``journal.jsonl``: one JSON line
 flushed and fsynced as the run ends), the table written from the journal (``runs.parquet``), the
 summaries (``summary.json``, ``summary.md``) and ``manifest.json`` (versions, hashes, seeds).
 
-The simulated runs use the per-sample simulator, exactly as ``testbed simulate`` does, so a row's
-outcome columns equal ``testbed simulate --json`` of the run's scenario bit for bit.
+A row's outcome columns equal ``testbed simulate --json`` of the run's scenario bit for bit: the runs
+that share a loop go through the batch kernel together (``testbed.campaignbatch``, equal to the
+per-sample simulator bit for bit), the others through the per-sample simulator as ``testbed simulate``.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from . import engine
 from . import scenario as scenario_mod
 from .engine import wilson
 from .errors import BadInput
@@ -42,11 +44,9 @@ from .scenariospec import ScenarioError
 from .scenariowrite import to_toml
 
 #: the outcome columns of a row: keys of ``testbed simulate --json`` (and ``testbed report --json``)
-OUTCOME_KEYS = ("method", "bits", "converged", "escaped", "diverged", "final_norm", "max_norm", "x_final",
-                "saturations", "samples_lost", "packets_dropped", "encoder_decoder_agree", "plant_fault",
-                "method_fault")
+OUTCOME_KEYS = engine.OUTCOME_KEYS
 #: columns every row has besides its axes and outcome
-RUN_KEYS = ("run", "point", "repeat", "status", "error", "wall_s")
+RUN_KEYS = ("run", "point", "repeat", "status", "error", "simulator", "wall_s")
 #: the random choices a campaign seeds: column name -> dotted scenario key of the seed
 SEED_KEYS = {"seeds.attack": "attack.seed", "seeds.sim_delay": "run.sim_delay.seed"}
 #: keys of a campaign file
@@ -252,17 +252,6 @@ def plan(c: Campaign, base=None) -> tuple[list[Run], list[str]]:
     the reason for a bad one), and the notes (once per campaign)."""
     base = base_scenario(c) if base is None else base
     keys = list(c.axes)
-    # each value alone first, so that a bad one is named by its axis
-    for k in keys:
-        for v in c.axes[k]:
-            try:
-                data, _, _ = _resolve(base, {k: v}, lambda _choice: None)
-                scenario_mod.from_dict(data, name=base.name, where="scenario", source="",
-                                       base_dir=base.base_dir or None)
-            except BadInput as e:
-                raise BadInput(f"{c.path}: axis {k!r} value {json.dumps(v)}: {_reason(e)}") from None
-            except (TypeError, ValueError) as e:
-                raise BadInput(f"{c.path}: axis {k!r} value {json.dumps(v)}: {e}") from None
     runs, notes = [], []
     for p, values in enumerate(itertools.product(*(c.axes[k] for k in keys))):
         axes = dict(zip(keys, values))
@@ -278,12 +267,29 @@ def plan(c: Campaign, base=None) -> tuple[list[Run], list[str]]:
                 run = Run(f"p{p:05d}r{r}", p, r, axes, seeds, text, base.name, base.base_dir or "")
                 run.scenario()
             except (BadInput, TypeError, ValueError) as e:
-                what = ", ".join(f"{k} = {json.dumps(v)}" for k, v in axes.items())
-                raise BadInput(f"{c.path}: the point {what}: {_reason(e)}") from None
+                raise BadInput(f"{c.path}: {_culprit(base, axes)}: {_reason(e)}") from None
             if note and note not in notes:
                 notes.append(note)
             runs.append(run)
     return runs, notes
+
+
+def _valid(base, axes: dict) -> bool:
+    try:
+        data, _, _ = _resolve(base, axes, lambda _choice: None)
+        scenario_mod.from_dict(data, name=base.name, where="scenario", base_dir=base.base_dir or None)
+    except (BadInput, TypeError, ValueError):
+        return False
+    return True
+
+
+def _culprit(base, axes: dict) -> str:
+    """What a bad point's error names: the one axis whose value, left to the scenario's, makes the point
+    valid ("axis 'plant.x0' value [9, 0]"), else the whole point."""
+    for k, v in axes.items():
+        if _valid(base, {a: b for a, b in axes.items() if a != k}):
+            return f"axis {k!r} value {json.dumps(v)}"
+    return "the point " + ", ".join(f"{k} = {json.dumps(v)}" for k, v in axes.items())
 
 
 def _reason(e: Exception) -> str:
@@ -292,24 +298,59 @@ def _reason(e: Exception) -> str:
 
 
 # ============================================================================ running
-def simulate_runs(items: list) -> list[dict]:
-    """Run a chunk of simulated runs (``(id, text, name, base_dir)``, data only) with the per-sample
-    simulator; one row each (outcome keys of ``testbed simulate --json``, or ``status = "failed"``)."""
-    from .simulate import simulate_scenario, summarize
+def simulate_runs(items: list, batch: bool = True) -> list[dict]:
+    """Run a chunk of simulated runs (``(id, text, name, base_dir)``, data only); one row each (outcome keys
+    of ``testbed simulate --json``, or ``status = "failed"``), in order.  ``batch``: the runs that share a
+    loop go through the batch kernel in one call (``testbed.campaignbatch``), the others (and every run
+    without ``batch``) through the per-sample simulator, as ``testbed simulate`` runs them."""
+    from .campaignbatch import batch_key, run_group
 
-    out = []
+    rows: dict = {}
+    groups: dict = {}
+    single = []
     for rid, text, name, base_dir in items:
         t0 = time.perf_counter()
-        row = {"run": rid}
         try:
             sc = scenario_mod.loads(text, name=name, where=f"run {rid}", base_dir=base_dir or None)
-            s = summarize(sc, simulate_scenario(sc))
-            row.update({k: s[k] for k in OUTCOME_KEYS}, status="ok", error=None)
+            key = batch_key(sc, text, base_dir) if batch else None
         except Exception as e:  # noqa: BLE001 - a crashed run is a row of its own (exit 1), the campaign goes on
-            row.update({k: None for k in OUTCOME_KEYS}, status="failed", error=f"{type(e).__name__}: {e}")
-        row["wall_s"] = time.perf_counter() - t0
-        out.append(row)
-    return out
+            rows[rid] = _failed(rid, e, t0)
+            continue
+        if key is None:
+            single.append((rid, sc, t0))
+        else:
+            groups.setdefault(key, []).append((rid, sc, t0))
+    for g in groups.values():
+        t0 = time.perf_counter()
+        try:
+            outs = run_group([sc for _, sc, _ in g])
+        except Exception:  # noqa: BLE001 - each run of the group then shows its own error, per sample
+            outs = [None] * len(g)
+        wall = (time.perf_counter() - t0) / len(g)
+        for (rid, sc, _), o in zip(g, outs):
+            if o is None:
+                single.append((rid, sc, time.perf_counter()))
+            else:
+                rows[rid] = {"run": rid, **o, "status": "ok", "error": None, "simulator": "batch",
+                             "wall_s": wall}
+    for rid, sc, t0 in single:
+        try:
+            s, _ = engine.simulate_one(sc)  # the run engine's single run, as testbed versus runs it
+            rows[rid] = {"run": rid, **engine.outcome(s), "status": "ok", "error": None,
+                         "simulator": "per-sample", "wall_s": time.perf_counter() - t0}
+        except Exception as e:  # noqa: BLE001 - a crashed run is a row of its own (exit 1), the campaign goes on
+            rows[rid] = _failed(rid, e, t0)
+    return [rows[it[0]] for it in items]
+
+
+def simulate_runs_per_sample(items: list) -> list[dict]:
+    """:func:`simulate_runs` on the per-sample simulator only (what ``--verify`` re-runs)."""
+    return simulate_runs(items, batch=False)
+
+
+def _failed(rid, e, t0) -> dict:
+    return {"run": rid, **{k: None for k in OUTCOME_KEYS}, "status": "failed", "error": f"{type(e).__name__}: {e}",
+            "simulator": None, "wall_s": time.perf_counter() - t0}
 
 
 def live_run(run: Run, folder: Path, *, timeout: float | None = None) -> dict:
@@ -319,12 +360,15 @@ def live_run(run: Run, folder: Path, *, timeout: float | None = None) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     sc_path = folder.parent / "scenarios" / f"{run.id}.toml"
     rec = folder / f"{run.id}.mcap"
-    if rec.exists():  # a run killed mid-way: its partial recording is kept aside
-        aside = folder / f"{run.id}.partial-{int(time.time())}.mcap"
+    partial = sorted(str(p.relative_to(folder.parent)) for p in folder.glob(f"{run.id}.partial-*.mcap"))
+    if rec.exists():  # a run killed mid-way: its partial recording is kept aside (and named in the row)
+        aside = folder / f"{run.id}.partial-{time.time_ns()}.mcap"
         rec.rename(aside)
+        partial.append(str(aside.relative_to(folder.parent)))
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "testbed.cli", "run", str(sc_path), "--out", str(rec)]
-    row = {"run": run.id, "recording": str(rec.relative_to(folder.parent))}
+    row = {"run": run.id, "recording": str(rec.relative_to(folder.parent)),
+           "partial_recordings": json.dumps(partial) if partial else None}
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
         err = (p.stderr.strip().splitlines() or [""])[-1]
@@ -490,7 +534,7 @@ def ordered_rows(runs: list[Run], done: dict) -> list[dict]:
 
 
 def columns(rows: list[dict], axes: list[str]) -> list[str]:
-    cols = ["run", "point", "repeat", *axes, *SEED_KEYS, "status", "error", *OUTCOME_KEYS, "wall_s"]
+    cols = ["run", "point", "repeat", *axes, *SEED_KEYS, "status", "error", *OUTCOME_KEYS, "simulator", "wall_s"]
     for r in rows:
         for k in r:
             if k not in cols:
@@ -573,7 +617,9 @@ def summarize(c: Campaign, runs: list[Run], rows: list[dict]) -> dict:
     return {"campaign": c.path.name, "scenario": c.scenario, "runs_kind": c.runs, "planned": len(runs),
             "done": len(rows), "failed": sum(1 for r in rows if r.get("status") != "ok"),
             "success": "converged (final ||x||_inf < converge_tol)", "interval": "95 % Wilson score",
-            "total": _group(rows), "by_axis": by_axis, "points": points}
+            "total": _group(rows), "by_axis": by_axis, "points": points,
+            "partial_recordings": [p for r in rows if r.get("partial_recordings")
+                                   for p in json.loads(r["partial_recordings"])]}
 
 
 def _fmt(v, spec=".3g"):
@@ -597,6 +643,9 @@ def summary_md(s: dict) -> str:
         return out + [""]
 
     lines += table("All runs", "group", [("all", s["total"])])
+    if s.get("partial_recordings"):
+        lines += ["Partial recordings of interrupted live runs (kept aside; each run was run again): "
+                  + ", ".join(f"`{p}`" for p in s["partial_recordings"]), ""]
     for k, groups in s["by_axis"].items():
         lines += table(f"By {k}", k, [(json.dumps(g["value"]), g) for g in groups])
     lines += table("By point", "point", [(", ".join(f"{k} = {json.dumps(v)}" for k, v in p["axes"].items()) or "-", p)

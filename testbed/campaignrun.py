@@ -45,9 +45,9 @@ class Progress:
 
 
 def chunks(items: list, workers: int, dask: bool) -> list[list]:
-    """Chunks of runs: about 4 per worker, at most 8 runs each (a chunk is what a kill can lose)
-    (on Dask at most 32: fewer, larger tasks keep the scheduler light)."""
-    cap = 32 if dask else 8
+    """Chunks of runs: about 4 per worker, at most 16 runs each (a chunk is what a kill can lose)
+    (on Dask at most 64: fewer, larger tasks keep the scheduler light)."""
+    cap = 64 if dask else 16
     size = max(1, min(cap, math.ceil(len(items) / max(4 * workers, 1))))
     return [items[i:i + size] for i in range(0, len(items), size)]
 
@@ -192,7 +192,8 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
               str(folder / "scenarios")) for r in sim]
     parts = chunks(items, executor.workers if executor is not None else 1, False)
     got = {}
-    results = executor.map(cmp.simulate_runs, parts) if executor is not None else map(cmp.simulate_runs, parts)
+    fn = cmp.simulate_runs_per_sample  # the simulator testbed simulate runs, whatever ran the campaign
+    results = executor.map(fn, parts) if executor is not None else map(fn, parts)
     for rs in results:
         for x in rs:
             got[x["run"]] = x
