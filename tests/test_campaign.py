@@ -369,3 +369,40 @@ def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
         assert a["status"] == b["status"] == "ok", (a, b)
         for k in cmp.OUTCOME_KEYS:
             assert a[k] == b[k], (a["run"], a["method"], k, a[k], b[k])
+
+
+def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
+    """A user's method (docs/examples/mymethod.py) has no batch kernel: its runs go through the per-sample
+    simulator and equal testbed simulate --json; a run that raises (a method whose codebook fails for one
+    parameter value) is a failed row with its error, the others are results, and the exit code is 1."""
+    import shutil
+
+    shutil.copy(ROOT / "docs" / "examples" / "mymethod.py", tmp_path / "mymethod.py")
+    shutil.copy(ROOT / "docs" / "examples" / "mymethod.toml", tmp_path / "mymethod.toml")
+    (tmp_path / "crashy.py").write_text(
+        "from mymethod import CenteredZoom\n\n\n"
+        "class Crashy(CenteredZoom):\n"
+        "    defaults = {'a': 0.96}\n\n"
+        "    def codebook(self, n, qp):\n"
+        "        if self.params['a'] < 0.9:\n"
+        "            raise RuntimeError('no codebook below a = 0.9')\n"
+        "        return super().codebook(n, qp)\n")
+    (tmp_path / "c.toml").write_text('scenario = "mymethod.toml"\n[axes]\n"method.params.a" = [0.96, 0.92]\n'
+                                     '"run.duration" = [6.0]\n')
+    p = _cli("campaign", "c.toml", "--out", "o", "--workers", 1, "--json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    rows = _table(tmp_path / "o")
+    assert [r["simulator"] for r in rows] == ["per-sample", "per-sample"]
+    for r in rows:
+        s = json.loads(_cli("simulate", tmp_path / "o" / "scenarios" / f"{r['run']}.toml", "--json",
+                            cwd=tmp_path).stdout)
+        assert all(r[k] == s[k] for k in cmp.OUTCOME_KEYS)
+    assert rows[0]["final_norm"] != rows[1]["final_norm"]
+    (tmp_path / "c2.toml").write_text('scenario = "mymethod.toml"\n[axes]\n"method.name" = ["crashy:Crashy"]\n'
+                                      '"method.params.a" = [0.96, 0.8]\n"run.duration" = [6.0]\n')
+    p = _cli("campaign", "c2.toml", "--out", "o2", "--workers", 1, "--json", cwd=tmp_path)
+    assert p.returncode == 1, p.stderr
+    rows = _table(tmp_path / "o2")
+    assert [r["status"] for r in rows] == ["ok", "failed"]
+    assert "no codebook below a = 0.9" in rows[1]["error"] and rows[1]["converged"] is None
+    assert json.loads(p.stdout)["summary"]["failed"] == 1
