@@ -455,7 +455,8 @@ def prepare(c: Campaign, runs: list[Run], folder: Path, base) -> None:
             raise BadInput(f"{folder} holds another campaign: the scenario {c.scenario!r} changed since it "
                            "started: give another --out, or restore the scenario")
         return
-    if folder.exists() and any(folder.iterdir()):
+    ours = {"scenarios", "scenario.toml", "manifest.json", "scenario.toml.tmp", "manifest.json.tmp"}
+    if folder.exists() and any(p.name not in ours for p in folder.iterdir()):  # (ours: a start cut short)
         raise BadInput(f"{folder} exists and holds no campaign: give another --out")
     (folder / "scenarios").mkdir(parents=True, exist_ok=True)
     for r in runs:

@@ -4,6 +4,7 @@ folder, and its figure.  The campaign itself (file, runs, seeds, journal, table)
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
@@ -178,8 +179,6 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
         if p is None:
             continue
         text = (folder / p["scenario"]).read_text(encoding="utf-8")
-        import hashlib
-
         if hashlib.sha256(text.encode()).hexdigest() != p["scenario_sha256"]:
             problems.append(f"{p['scenario']}: differs from the manifest's hash")
     ok_rows = [r for r in rows if r.get("status") == "ok" and r.get("run") in planned]

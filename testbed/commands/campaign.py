@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verify", metavar="DIR", help="re-run the rows of a campaign's folder and compare them bit for "
                                                    "bit (live rows: re-simulated from their recordings)")
     p.add_argument("--sample", type=int, metavar="K", help="--verify: only K simulated rows, drawn with --seed")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="--verify --sample: the draw's seed (default 0)")
+    p.add_argument("--seed", type=int, metavar="S", help="--verify --sample: the draw's seed (default 0; a campaign's "
+                                                         "own seed is in its file)")
     p.add_argument("--live-timeout", type=float, metavar="S", help=argparse.SUPPRESS)
 
 
@@ -35,8 +36,8 @@ def main(args) -> int:
         return _verify(args)
     if not args.campaign:
         raise BadInput("give a campaign file (testbed campaign FILE.toml) or --verify DIR")
-    if args.sample is not None:
-        raise BadInput("--sample applies to --verify")
+    if args.sample is not None or args.seed is not None:
+        raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
     from .. import campaign as cmp
     from .. import campaignrun
 
@@ -97,7 +98,8 @@ def _verify(args) -> int:
 
         executor = parallel.from_args(args)
     try:
-        d = campaignrun.verify(Path(args.verify), sample=args.sample, seed=args.seed, executor=executor)
+        d = campaignrun.verify(Path(args.verify), sample=args.sample, seed=args.seed or 0,
+                                    executor=executor)
     finally:
         if executor is not None:
             executor.close()
