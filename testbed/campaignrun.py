@@ -71,13 +71,12 @@ def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, 
     try:
         n_done = len(runs) - len(todo)
         if c.runs == "live":
-            for r in todo:
-                if executor is not None and executor.kind == "dask":
-                    row = _live_on_dask(executor, r, folder, live_timeout)
-                else:
-                    row = cmp.live_run(r, folder / "recordings", timeout=live_timeout)
+            rows = (_live_on_dask(executor, todo, folder, live_timeout)
+                    if executor is not None and executor.kind == "dask"
+                    else (cmp.live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
+            for row in rows:
                 journal.write(row)
-                done[r.id] = row
+                done[row["run"]] = row
                 n_done += 1
                 failed += row["status"] != "ok"
                 prog(n_done, failed)
@@ -111,15 +110,43 @@ def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, 
             "notes": notes}
 
 
-def _live_on_dask(executor, r, folder: Path, timeout):
-    """A live run on a Dask worker's host (one at a time); its recording comes back into ``folder``."""
-    fut = executor._client.submit(_remote_live, r.id, r.text, timeout, pure=False, retries=1)
-    row, data = fut.result()
-    if data is not None:
-        rec = folder / row["recording"]
-        rec.parent.mkdir(parents=True, exist_ok=True)
-        rec.write_bytes(data)
-    return row
+def _live_on_dask(executor, todo: list, folder: Path, timeout):
+    """Live runs on a Dask cluster, one at a time per host (a live run needs the host's cores): each on a
+    worker of a free host, its recording brought back into ``folder``; the rows as the runs end.  A worker
+    lost mid-run has its run retried elsewhere by the scheduler (``retries=1``)."""
+    import distributed
+
+    client = executor._client
+    by_host: dict = {}
+    for addr, w in sorted(client.scheduler_info().get("workers", {}).items()):
+        by_host.setdefault(w.get("host", addr), addr)
+    queue = list(todo)
+    running: dict = {}
+
+    def submit(addr):
+        r = queue.pop(0)
+        f = client.submit(_remote_live, r.id, r.text, timeout, pure=False, retries=1, workers=[addr],
+                          allow_other_workers=True)
+        running[f.key] = (r, addr)
+        return f
+
+    if not queue:
+        return
+    ac = distributed.as_completed([submit(a) for a in list(by_host.values())[:len(queue)]], loop=client.loop)
+    for f in ac:
+        r, addr = running.pop(f.key)
+        try:
+            row, data = f.result()
+        except Exception as e:  # noqa: BLE001 - a run lost with its workers is a failed row (exit 1)
+            row, data = {"run": r.id, **{k: None for k in cmp.OUTCOME_KEYS}, "status": "failed",
+                         "error": f"{type(e).__name__}: {e}", "wall_s": None}, None
+        if data is not None:
+            rec = folder / row["recording"]
+            rec.parent.mkdir(parents=True, exist_ok=True)
+            rec.write_bytes(data)
+        if queue:
+            ac.add(submit(addr))
+        yield row
 
 
 def _remote_live(rid, text, timeout):

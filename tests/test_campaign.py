@@ -406,3 +406,26 @@ def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
     assert [r["status"] for r in rows] == ["ok", "failed"]
     assert "no codebook below a = 0.9" in rows[1]["error"] and rows[1]["converged"] is None
     assert json.loads(p.stdout)["summary"]["failed"] == 1
+
+
+@pytest.mark.process
+def test_live_campaign_on_dask_brings_the_recordings_back(tmp_path):
+    """runs = "live" with --scheduler: each run on a Dask worker (one at a time per host: a LocalCluster's
+    two workers share this host), its recording sent back into the folder; --verify re-simulates them."""
+    import logging
+
+    from failclosed import import_or_require
+
+    distributed = import_or_require("distributed", "dask")
+    (tmp_path / "c.toml").write_text('scenario = "paper"\nruns = "live"\n[axes]\n"method.name" = ["paper", "zoom"]\n'
+                                     '"run.duration" = [1.5]\n')
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  silence_logs=logging.ERROR) as cl:
+        p = _cli("campaign", "c.toml", "--out", "o", "--scheduler", cl.scheduler_address, "--json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    rows = _table(tmp_path / "o")
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert all((tmp_path / "o" / r["recording"]).stat().st_size > 1000 for r in rows)
+    p = _cli("campaign", "--verify", "o", "--json", cwd=tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert json.loads(p.stdout)["checked_live"] == 2
