@@ -89,6 +89,7 @@ def c120(tmp_path_factory):
     c = _campaign(d, CAMPAIGN_120.format(seeds=", ".join(str(s) for s in range(60))))
     p = _cli("campaign", c, "--out", d / "out", "--workers", 2, "--json", cwd=d)
     assert p.returncode == 0, p.stderr
+    assert "campaign: 120/120 runs done, 0 failed, 0 left" in p.stderr  # progress on stderr
     return d, json.loads(p.stdout)
 
 
@@ -153,11 +154,15 @@ def test_verify_and_a_tampered_row(c120, tmp_path):
     fn[17] = float(np.nextafter(fn[17], np.inf))
     t = t.set_column(t.schema.get_field_index("final_norm"), "final_norm", pa.array(fn))
     pq.write_table(t, cp / "runs.parquet")
+    man = json.loads((cp / "manifest.json").read_text())
+    man["packages"]["numpy"] = "0.0"
+    (cp / "manifest.json").write_text(json.dumps(man))
     p = _cli("campaign", "--verify", cp, cwd=tmp_path)  # every row: the tampered one among them
     assert p.returncode == 1, p.stdout + p.stderr
     run17 = t.column("run").to_pylist()[17]
     assert f"DIFFERS: run {run17} final_norm" in p.stdout
     assert p.stdout.count("DIFFERS") == 1
+    assert f"version: numpy 0.0 in the manifest, {np.__version__} here" in p.stdout
 
 
 def test_bad_value_is_one_line_naming_axis_value_reason(tmp_path):
