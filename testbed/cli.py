@@ -61,6 +61,7 @@ for _name, _mod, _help in [
     ("sweep", "testbed.commands.search", "empirical DoS tolerance over (rho_F, rho_D)"),
     ("worst-attack", "testbed.commands.search", "the shortest DoS that drives the loop out of the region of attraction"),
     ("vulnerability", "testbed.commands.search", "that least DoS duration over the region of attraction (heat map)"),
+    ("campaign", "testbed.commands.campaign", "many runs (the product of axes over a scenario) in one table, resumable"),
     ("run", "testbed.commands.run", "run a scenario live: four processes over Zenoh"),
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
     ("report", "testbed.report", "post-mortem of a recording"),

@@ -59,14 +59,31 @@ def settle_samples(x, x_final, tol: float) -> int | None:
     return int(bad[-1] + 1) if bad.size else 0
 
 
+#: the outcome of a run under the key names of ``testbed simulate --json`` (a campaign's row holds them)
+OUTCOME_KEYS = ("method", "bits", "converged", "escaped", "diverged", "final_norm", "max_norm", "x_final",
+                "saturations", "samples_lost", "packets_dropped", "encoder_decoder_agree", "plant_fault",
+                "method_fault")
+
+
+def simulate_one(sc):
+    """One scenario on the per-sample simulator, as ``testbed simulate`` runs it: (its ``testbed simulate
+    --json`` document, the ``SimResult``)."""
+    from .simulate import simulate_scenario, summarize
+
+    res = simulate_scenario(sc)
+    return summarize(sc, res), res
+
+
+def outcome(s: dict) -> dict:
+    """The ``OUTCOME_KEYS`` of a ``testbed simulate --json`` document."""
+    return {k: s[k] for k in OUTCOME_KEYS}
+
+
 def run_point(point: Point, *, keep=False):
     """Simulate one point; its row (``ROW_KEYS``, and ``lockstep_breaks``, ``method_fault``). ``keep``:
     also return the scenario and the ``SimResult``."""
-    from .simulate import simulate_scenario, summarize
-
     sc = point.scenario()
-    res = simulate_scenario(sc)
-    s = summarize(sc, res)
+    s, res = simulate_one(sc)
     row = {"method": sc.method.name, "seed": attack_seed(sc), "converged": s["converged"], "escaped": s["escaped"],
            "final_norm": s["final_norm"], "max_norm": s["max_norm"], "saturations": s["saturations"],
            "samples_lost": s["samples_lost"], "bits": s["bits"],

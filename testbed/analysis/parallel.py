@@ -122,6 +122,40 @@ class Executor:
             return _local_map(fn, items, self.workers, progress)
         return _dask_map(self._client, fn, items, warm, self._warm, progress)
 
+    def imap(self, fn, items: list, *, warm=None):
+        """(index, fn(item)) for every item, as each finishes (in order on one process): a caller that
+        stores every result as it arrives (a campaign's journal) loses only the items in flight."""
+        if not items:
+            return
+        if self.kind == "serial" or len(items) == 1:
+            for i, it in enumerate(items):
+                yield i, fn(it)
+            return
+        if self.kind == "local":
+            from concurrent.futures import as_completed
+
+            if warm is not None:
+                fn(warm)
+            pool = _pool(self.workers)
+            futs = {pool.submit(fn, it): i for i, it in enumerate(items)}
+            try:
+                for f in as_completed(futs):
+                    yield futs[f], f.result()
+            finally:
+                for f in futs:
+                    f.cancel()
+            return
+        distributed = _import_distributed()
+        if warm is not None:
+            _dask_warm(self._client, fn, warm, self._warm)
+        futs = [self._client.submit(fn, it, pure=False, retries=2) for it in items]
+        index = {f.key: i for i, f in enumerate(futs)}
+        try:
+            for f in distributed.as_completed(futs, loop=self._client.loop):
+                yield index[f.key], f.result()
+        finally:
+            self._client.cancel(futs)
+
     def close(self) -> None:
         if self._client is not None:
             self._client.close()

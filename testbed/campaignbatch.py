@@ -1,0 +1,75 @@
+"""A chunk of a campaign's simulated runs on the batch kernel: the runs that share a loop (everything
+but the initial state and the attack) in one ``simulate_batch`` call.
+
+The batch kernel equals the per-sample simulator bit for bit (x_k, E_k, theta_k, saturations, the
+final loop state of both ends: ``tests/test_simulate.py``, ``tests/test_methods.py``), and the escape
+is judged by the same ``judge_escape`` from the same final loop state, so a row from here equals
+``testbed simulate --json`` of its scenario (``tests/test_campaign.py`` checks every row of a campaign
+against the per-sample simulator).  A run the kernel cannot run -- an FMU plant, a user's method,
+physical timing, an online (greedy) attacker -- or whose flow diverged in the kernel (the per-sample
+simulator then says where and why) runs on the per-sample simulator.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+
+import numpy as np
+
+
+def batch_key(sc, text: str, base_dir: str):
+    """What a run shares with the runs it can share a kernel call with; None: the per-sample simulator."""
+    if sc.plant.fmu is not None or sc.run.timing != "ideal" or sc.attack.online:
+        return None
+    if sc.make_method().kernel_code(sc.quantizer) is None:
+        return None
+    data = tomllib.loads(text)
+    data.get("plant", {}).pop("x0", None)
+    data.pop("attack", None)
+    data.pop("name", None)
+    data.pop("description", None)
+    return json.dumps(data, sort_keys=True) + "\0" + base_dir
+
+
+def run_group(scs: list) -> list[dict | None]:
+    """The outcome of each scenario of one group (one ``batch_key``) from one kernel call; None for a run
+    whose flow diverged (the per-sample simulator runs it)."""
+    from .simulate import FLOW_OK, EscapeCriterion, json_clean, judge_escape, simulate_batch
+
+    sc0 = scs[0]
+    N = sc0.n_steps
+    model = sc0.make_model()
+    plant = sc0.make_plant()
+    method = sc0.make_method()
+    X0 = np.array([sc.x0 for sc in scs], dtype=np.float64)
+    tab = np.zeros((len(scs), N), dtype=np.uint8)
+    for j, sc in enumerate(scs):
+        th = sc.theta(N)
+        if th is not None:
+            tab[j, :len(th)] = np.asarray(th, dtype=np.uint8)[:N]
+    b = simulate_batch(plant, sc0.K, sc0.quantizer, X0, N, model=model, theta=tab, sched_idx=np.arange(len(scs)),
+                       u_max=sc0.controller.u_max, flow=sc0.flow, record=True, method=method, specialize=True)
+    tol = sc0.run.converge_tol
+    crit = EscapeCriterion.for_loop(model, sc0.quantizer, tol)
+    ok = np.flatnonzero(b.status == FLOW_OK)
+    esc = np.zeros(len(scs), dtype=bool)
+    if ok.size:
+        kw = {} if sc0.method.name == "paper" else {"method": method}
+        esc[ok] = judge_escape(plant, sc0.K, sc0.quantizer, b.x_final[ok], b.state_final[ok],
+                               np.full(ok.size, FLOW_OK), crit, model=model, flow=sc0.flow, **kw)
+    bits = method.codebook(model.n, sc0.quantizer).bits
+    out = []
+    for j, sc in enumerate(scs):
+        if b.status[j] != FLOW_OK or b.mismatch[j] != 0:
+            out.append(None)
+            continue
+        xf = b.x_final[j]
+        fn = float(np.max(np.abs(xf)))
+        lost = int(b.theta[j].sum())
+        out.append(json_clean({
+            "method": sc.method.name, "bits": bits, "converged": bool(fn < tol), "escaped": bool(esc[j]),
+            "diverged": False, "final_norm": fn, "max_norm": float(max(np.max(np.abs(b.x[j])) if N else 0.0, fn)),
+            "x_final": xf.tolist(), "saturations": int(b.saturations[j]), "samples_lost": lost,
+            "packets_dropped": lost, "encoder_decoder_agree": True, "plant_fault": None, "method_fault": None}))
+    return out

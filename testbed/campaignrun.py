@@ -1,0 +1,315 @@
+"""Running a campaign (resumable, over local workers or a Dask cluster), verifying a campaign's
+folder, and its figure.  The campaign itself (file, runs, seeds, journal, table): ``testbed.campaign``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from . import campaign as cmp
+from .errors import BadInput
+
+
+class Progress:
+    """Runs done, failed and left, and an estimate of the time left, on stderr."""
+
+    def __init__(self, total: int, done: int, enabled: bool = True):
+        self.total, self.done0, self.enabled = total, done, enabled
+        self.t0 = time.perf_counter()
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+        self.shown = None
+
+    def __call__(self, done: int, failed: int, final: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if (not final and now - self.last < (0.2 if self.tty else 5.0)) or (final and self.shown == (done, failed)):
+            if final and self.tty and self.shown == (done, failed):
+                sys.stderr.write("\n")
+            return
+        self.last = now
+        self.shown = (done, failed)
+        new = done - self.done0
+        left = self.total - done
+        el = now - self.t0
+        eta = el / new * left if new > 0 else math.nan
+        line = (f"campaign: {done}/{self.total} runs done, {failed} failed, {left} left, {el:.1f} s"
+                + (f", about {eta:.0f} s left" if left and new else ""))
+        sys.stderr.write(("\r" + line + ("\n" if final else "")) if self.tty else line + "\n")
+        sys.stderr.flush()
+
+
+def chunks(items: list, workers: int, dask: bool) -> list[list]:
+    """Chunks of runs: about 4 per worker, at most 16 runs each (a chunk is what a kill can lose)
+    (on Dask at most 64: fewer, larger tasks keep the scheduler light)."""
+    cap = 64 if dask else 16
+    size = max(1, min(cap, math.ceil(len(items) / max(4 * workers, 1))))
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
+def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, live_timeout: float | None = None,
+        notes=None) -> dict:
+    """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.
+
+    Returns ``{"rows", "summary", "folder", "ran", "skipped", "notes"}``.
+    """
+    base = cmp.base_scenario(c)
+    runs, notes = cmp.plan(c, base)
+    cmp.prepare(c, runs, folder, base)
+    done = cmp.read_journal(folder)
+    finished = {k for k, r in done.items() if r.get("status") == "ok"}
+    todo = [r for r in runs if r.id not in finished]
+    prog = Progress(len(runs), len(runs) - len(todo), progress)
+    failed = 0
+    journal = cmp.Journal(folder)
+    try:
+        n_done = len(runs) - len(todo)
+        if c.runs == "live":
+            rows = (_live_on_dask(executor, todo, folder, live_timeout)
+                    if executor is not None and executor.kind == "dask"
+                    else (cmp.live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
+            for row in rows:
+                journal.write(row)
+                done[row["run"]] = row
+                n_done += 1
+                failed += row["status"] != "ok"
+                prog(n_done, failed)
+        elif todo:
+            items = [(r.id, r.text, r.name, r.base_dir) for r in todo]
+            first, rest = items[:1], items[1:]
+            # the first run here: it loads (or compiles) the kernels before any worker does
+            for row in cmp.simulate_runs(first):
+                journal.write(row)
+                done[row["run"]] = row
+                n_done += 1
+                failed += row["status"] != "ok"
+            prog(n_done, failed)
+            dask = executor is not None and executor.kind == "dask"
+            parts = chunks(rest, executor.workers if executor is not None else 1, dask)
+            gen = (executor.imap(cmp.simulate_runs, parts, warm=first if dask else None) if executor is not None
+                   else ((i, cmp.simulate_runs(p)) for i, p in enumerate(parts)))
+            for _i, rows in gen:
+                for row in rows:
+                    journal.write(row)
+                    done[row["run"]] = row
+                    n_done += 1
+                    failed += row["status"] != "ok"
+                prog(n_done, failed)
+    finally:
+        journal.close()
+    prog(len([r for r in runs if r.id in done]), sum(1 for r in runs if r.id in done and done[r.id]["status"] != "ok"),
+         final=True)
+    rows, s = cmp.write_results(folder, c, runs, done)
+    return {"rows": rows, "summary": s, "folder": str(folder), "ran": len(todo), "skipped": len(runs) - len(todo),
+            "notes": notes}
+
+
+def _live_on_dask(executor, todo: list, folder: Path, timeout):
+    """Live runs on a Dask cluster, one at a time per host (a live run needs the host's cores): each on a
+    worker of a free host, its recording brought back into ``folder``; the rows as the runs end.  A worker
+    lost mid-run has its run retried elsewhere by the scheduler (``retries=1``)."""
+    import distributed
+
+    client = executor._client
+    by_host: dict = {}
+    for addr, w in sorted(client.scheduler_info().get("workers", {}).items()):
+        by_host.setdefault(w.get("host", addr), addr)
+    queue = list(todo)
+    running: dict = {}
+
+    def submit(addr):
+        r = queue.pop(0)
+        f = client.submit(_remote_live, r.id, r.text, timeout, pure=False, retries=1, workers=[addr],
+                          allow_other_workers=True)
+        running[f.key] = (r, addr)
+        return f
+
+    if not queue:
+        return
+    ac = distributed.as_completed([submit(a) for a in list(by_host.values())[:len(queue)]], loop=client.loop)
+    for f in ac:
+        r, addr = running.pop(f.key)
+        try:
+            row, data = f.result()
+        except Exception as e:  # noqa: BLE001 - a run lost with its workers is a failed row (exit 1)
+            row, data = {"run": r.id, **{k: None for k in cmp.OUTCOME_KEYS}, "status": "failed",
+                         "error": f"{type(e).__name__}: {e}", "wall_s": None}, None
+        if data is not None:
+            rec = folder / row["recording"]
+            rec.parent.mkdir(parents=True, exist_ok=True)
+            rec.write_bytes(data)
+        if queue:
+            ac.add(submit(addr))
+        yield row
+
+
+def _remote_live(rid, text, timeout):
+    """On a worker: write the scenario to a scratch folder, run it live, return the row and the recording."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="testbed-campaign-") as d:
+        d = Path(d)
+        (d / "scenarios").mkdir()
+        (d / "scenarios" / f"{rid}.toml").write_text(text)
+        run = cmp.Run(rid, 0, 0, {}, {}, text, "scenario", "")
+        row = cmp.live_run(run, d / "recordings", timeout=timeout)
+        rec = d / row["recording"]
+        return row, (rec.read_bytes() if rec.exists() else None)
+
+
+# ============================================================================ verify
+#: the columns --verify compares bit for bit
+COMPARED = tuple(k for k in cmp.OUTCOME_KEYS)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or (math.isnan(a) and math.isnan(b))
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=None) -> dict:
+    """Re-run the rows of a campaign's folder and compare: simulated rows bit for bit (every one, or
+    ``sample`` drawn with ``seed``), live rows re-simulated from their recordings; the versions that
+    differ from the manifest's."""
+    import numpy as np
+
+    folder = Path(folder)
+    for f in ("campaign.toml", "manifest.json", "runs.parquet"):
+        if not (folder / f).is_file():
+            raise BadInput(f"{folder}: no {f}: not a campaign's folder (testbed campaign FILE --out DIR makes one)")
+    try:
+        man = json.loads((folder / "manifest.json").read_text())
+        rows = cmp.read_parquet(folder / "runs.parquet")
+    except (OSError, ValueError) as e:
+        raise BadInput(f"{folder}: {e}") from None
+    differences, problems = [], []
+    planned = {p["run"]: p for p in man.get("runs", [])}
+    ids = [r.get("run") for r in rows]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        problems.append(f"duplicate rows: {', '.join(dup[:5])}")
+    unknown = sorted(set(ids) - set(planned))
+    if unknown:
+        problems.append(f"rows of no planned run: {', '.join(map(str, unknown[:5]))}")
+    missing = sorted(set(planned) - set(ids))
+    for r in rows:
+        p = planned.get(r.get("run"))
+        if p is None:
+            continue
+        text = (folder / p["scenario"]).read_text(encoding="utf-8")
+        if hashlib.sha256(text.encode()).hexdigest() != p["scenario_sha256"]:
+            problems.append(f"{p['scenario']}: differs from the manifest's hash")
+    ok_rows = [r for r in rows if r.get("status") == "ok" and r.get("run") in planned]
+    live = [r for r in ok_rows if r.get("recording")]
+    sim = [r for r in ok_rows if not r.get("recording")]
+    if sample is not None and sample < len(sim):
+        idx = np.sort(np.random.default_rng(seed).choice(len(sim), size=sample, replace=False))
+        sim = [sim[i] for i in idx]
+    items = [(r["run"], (folder / planned[r["run"]]["scenario"]).read_text(encoding="utf-8"), "scenario",
+              str(folder / "scenarios")) for r in sim]
+    parts = chunks(items, executor.workers if executor is not None else 1, False)
+    got = {}
+    fn = cmp.simulate_runs_per_sample  # the simulator testbed simulate runs, whatever ran the campaign
+    results = executor.map(fn, parts) if executor is not None else map(fn, parts)
+    for rs in results:
+        for x in rs:
+            got[x["run"]] = x
+    for r in sim:
+        x = got[r["run"]]
+        for k in COMPARED:
+            if not _same(_norm(r.get(k)), _norm(x.get(k))):
+                differences.append({"run": r["run"], "column": k, "table": r.get(k), "rerun": x.get(k)})
+    for r in live:
+        rec = folder / r["recording"]
+        try:
+            from .resimulate import resimulate
+
+            d = resimulate(str(rec))
+            if not d.get("reproduced"):
+                differences.append({"run": r["run"], "column": "recording", "table": str(rec),
+                                    "rerun": d.get("verdict")})
+            from .report import report
+
+            rep = report(str(rec), resimulate=0)
+            for k in COMPARED:
+                if not _same(_norm(r.get(k)), _norm(rep.get(k))):
+                    differences.append({"run": r["run"], "column": k, "table": r.get(k), "rerun": rep.get(k)})
+        except (OSError, ValueError) as e:
+            differences.append({"run": r["run"], "column": "recording", "table": str(rec), "rerun": str(e)})
+    here = cmp.versions()
+    vdiff = {k: {"manifest": v, "here": here.get(k)} for k, v in (man.get("packages") or {}).items()
+             if here.get(k) != v}
+    src = cmp.source_hash()
+    return {"folder": str(folder), "checked_simulated": len(sim), "checked_live": len(live), "rows": len(rows),
+            "planned": len(planned), "missing": missing, "differences": differences, "problems": problems,
+            "versions_differ": vdiff, "source_differs": src != man.get("source"),
+            "python_differs": man.get("python") != sys.version.split()[0],
+            "identical": not differences and not problems}
+
+
+def _norm(v):
+    """A value as the table and a rerun both give it (a tuple, a list; numpy scalars)."""
+    if isinstance(v, tuple):
+        return list(v)
+    if hasattr(v, "item") and not isinstance(v, (list, dict)):
+        return v.item()
+    return v
+
+
+# ============================================================================ figure
+def plot(path, c: cmp.Campaign, summary: dict, size: str = "page") -> Path:
+    """The success rate (95 % Wilson interval as error bars) over the first axis of more than one value
+    (not a seed, where there is another), one line per value of the second such axis; the others pooled."""
+    from .figstyle import pyplot, save, subplots
+
+    multi = [k for k, v in c.axes.items() if len(v) > 1]
+    pref = [k for k in multi if not k.endswith("seed")] or multi
+    if not pref:
+        pref = list(c.axes)[:1]
+    x_axis = pref[0] if pref else None
+    series_axis = pref[1] if len(pref) > 1 else None
+    rows = cmp.read_parquet(Path(summary["folder"]) / "runs.parquet") if "folder" in summary else []
+    plt = pyplot()
+    fig, axs = subplots(size, 1, 1)
+    ax = axs[0, 0] if hasattr(axs, "shape") else axs
+    xs = c.axes[x_axis] if x_axis else [None]
+    numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
+    pos = list(xs) if numeric else list(range(len(xs)))
+    for sv in (c.axes[series_axis] if series_axis else [None]):
+        ys, lo, hi = [], [], []
+        for xv in xs:
+            sel = [r for r in rows if (x_axis is None or _eq(r.get(x_axis), xv))
+                   and (series_axis is None or _eq(r.get(series_axis), sv))]
+            g = cmp._group(sel)
+            w = g["wilson95"] or [math.nan, math.nan]
+            rate = g["success_rate"] if g["success_rate"] is not None else math.nan
+            ys.append(rate)
+            lo.append(max(0.0, rate - w[0]))
+            hi.append(max(0.0, w[1] - rate))
+        lab = None if series_axis is None else f"{series_axis} = {json.dumps(sv)}"
+        ax.errorbar(pos, ys, yerr=[lo, hi], marker="o", capsize=3, label=lab)
+    if not numeric:
+        ax.set_xticks(pos)
+        ax.set_xticklabels([json.dumps(v) for v in xs], rotation=30, fontsize=7)
+    ax.set_xlabel(x_axis or "")
+    ax.set_ylabel("success rate (converged)")
+    ax.set_ylim(-0.05, 1.05)
+    ax.set_title(f"campaign {c.stem}: success rate, 95 % Wilson interval")
+    if series_axis:
+        ax.legend(fontsize=7)
+    out = save(fig, path)
+    plt.close(fig)
+    return out
+
+
+def _eq(a, b) -> bool:
+    return _same(_norm(a), _norm(b)) or (isinstance(a, str) and not isinstance(b, str) and a == json.dumps(b))

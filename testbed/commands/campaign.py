@@ -1,0 +1,124 @@
+"""``testbed campaign CAMPAIGN.toml`` and ``testbed campaign --verify DIR`` (docs/campaigns.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .. import cliargs
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("campaign", nargs="?", help="the campaign file (.toml; see docs/campaigns.md)")
+    p.add_argument("--out", metavar="DIR", help="the campaign's folder (default recordings/campaign-<file stem>; "
+                                                "the same command again resumes there)")
+    cliargs.add_workers(p)
+    cliargs.add_scheduler(p)
+    cliargs.add_json(p, "the summary (and with --verify the comparison)")
+    cliargs.add_plot(p, "the success rate over one or two axes, 95 % Wilson intervals as error bars")
+    cliargs.add_no_progress(p)
+    p.add_argument("--verify", metavar="DIR", help="re-run the rows of a campaign's folder and compare them bit for "
+                                                   "bit (live rows: re-simulated from their recordings)")
+    p.add_argument("--sample", type=int, metavar="K", help="--verify: only K simulated rows, drawn with --seed")
+    p.add_argument("--seed", type=int, metavar="S", help="--verify --sample: the draw's seed (default 0; a campaign's "
+                                                         "own seed is in its file)")
+    p.add_argument("--live-timeout", type=float, metavar="S", help=argparse.SUPPRESS)
+
+
+def main(args) -> int:
+    from ..errors import BadInput
+
+    if args.verify:
+        if args.campaign:
+            raise BadInput("give a campaign file or --verify DIR, not both")
+        return _verify(args)
+    if not args.campaign:
+        raise BadInput("give a campaign file (testbed campaign FILE.toml) or --verify DIR")
+    if args.sample is not None or args.seed is not None:
+        raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
+    from .. import campaign as cmp
+    from .. import campaignrun
+
+    c = cmp.parse(args.campaign)
+    base = cmp.base_scenario(c)
+    runs, notes = cmp.plan(c, base)  # every run validated before anything runs (or the folder is made)
+    for n in notes:
+        print(f"testbed campaign: note: {n}", file=sys.stderr)
+    folder = Path(args.out) if args.out else cmp.default_dir(c)
+    executor = None
+    if c.runs == "simulated" or args.scheduler:
+        from ..analysis import parallel
+
+        executor = parallel.from_args(args)
+    parallel_desc = executor.describe() if executor is not None else {"kind": "serial", "workers": 1}
+    try:
+        out = campaignrun.run(c, folder, executor=executor, progress=not args.no_progress,
+                              live_timeout=args.live_timeout)
+    finally:
+        if executor is not None:
+            executor.close()
+    s = out["summary"]
+    if args.plot:
+        s = dict(s, folder=str(folder))
+        campaignrun.plot(args.plot, c, s, args.figsize)
+        s.pop("folder")
+    failed = s["failed"]
+    if args.json:
+        print(json.dumps({"folder": str(folder), "ran": out["ran"], "skipped": out["skipped"],
+                          "parallel": parallel_desc,
+                          **({"figure": str(args.plot)} if args.plot else {}), "summary": s}))
+    else:
+        t = s["total"]
+        w = t["wilson95"]
+        print(f"campaign {c.stem}: {s['done']} of {s['planned']} runs ({out['ran']} run now, {out['skipped']} "
+              f"found done), {failed} failed")
+        if t["n"]:
+            print(f"  success {t['successes']}/{t['n']} = {t['success_rate']:.3f} (95 % Wilson [{w[0]:.3f}, "
+                  f"{w[1]:.3f}]), {t['escaped']} escaped")
+        for k, groups in s["by_axis"].items():
+            if len(groups) > 1 and len(groups) <= 12:
+                print(f"  by {k}: " + ", ".join(f"{json.dumps(g['value'])} {g['successes']}/{g['n']}" for g in groups))
+        print(f"  table: {folder / 'runs.parquet'}; summary: {folder / 'summary.md'}")
+        if args.plot:
+            print(f"  figure: {args.plot}")
+    return 1 if failed else 0
+
+
+def _verify(args) -> int:
+    from .. import campaignrun
+    from ..errors import BadInput
+
+    if args.sample is not None and args.sample < 1:
+        raise BadInput(f"--sample must be >= 1, got {args.sample}")
+    executor = None
+    if args.workers or args.scheduler:
+        from ..analysis import parallel
+
+        executor = parallel.from_args(args)
+    try:
+        d = campaignrun.verify(Path(args.verify), sample=args.sample, seed=args.seed or 0,
+                                    executor=executor)
+    finally:
+        if executor is not None:
+            executor.close()
+    if args.json:
+        print(json.dumps(d, default=str))
+    else:
+        print(f"{d['folder']}: {d['rows']} rows of {d['planned']} planned; re-ran {d['checked_simulated']} simulated, "
+              f"re-simulated {d['checked_live']} live")
+        for p in d["problems"]:
+            print(f"  PROBLEM: {p}")
+        if d["missing"]:
+            print(f"  not run yet: {len(d['missing'])} run(s) (the campaign command again finishes them)")
+        for x in d["differences"]:
+            print(f"  DIFFERS: run {x['run']} {x['column']}: table {x['table']!r}, re-run {x['rerun']!r}")
+        for k, v in d["versions_differ"].items():
+            print(f"  version: {k} {v['manifest']} in the manifest, {v['here']} here")
+        if d["source_differs"]:
+            print("  the testbed's source differs from the manifest's hash")
+        if d["python_differs"]:
+            print("  Python differs from the manifest's")
+        print("  identical" if d["identical"] else "  NOT identical")
+    return 0 if d["identical"] else 1
