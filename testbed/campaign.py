@@ -421,7 +421,7 @@ class Journal:
     """Append-only, one JSON line per finished run, flushed and fsynced as it is written."""
 
     def __init__(self, folder: Path):
-        self.f = open(folder / JOURNAL, "a", encoding="utf-8")  # noqa: SIM115 - closed by close()
+        self.f = open(folder / JOURNAL, "a", encoding="utf-8")  # closed by close()
 
     def write(self, row: dict) -> None:
         self.f.write(json.dumps(row, sort_keys=True, allow_nan=False) + "\n")
