@@ -135,7 +135,7 @@ def _outsider_run(run_id, peer=False, foreign=None, more=()):
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     p = start_run(run_id, "--duration", str(OUTSIDER_S), "--listen", f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}",
-                  *(("--topology", "peer") if peer else ()), *more)
+                  *(() if peer else ("--topology", "router")), *more)  # peer: the default on one host
     forged, refused, seen = [], [], set()
     try:
         wait_running(run_id, p)
@@ -181,6 +181,7 @@ def test_an_outsider_without_credentials_changes_nothing(run_id, topology, tmp_p
     assert s["recording"]["complete"]
     for ev in ("stop_rejected", "future_symbol", "future_actuation", "input_rejected", "input_clamped"):
         assert ev not in s["events"], s["events"]  # nothing even reached the nodes
+    assert s["security"]["topology_auto"] == peer  # the peer run is the default's (--topology auto)
 
 
 def insider(secret: str, user: str, port: int, peer: bool = False):
@@ -203,7 +204,7 @@ def _insider_run(run_id, secret, colocated, peer=False, more=()):
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     net = (("--listen", f"tls/127.0.0.1:{port}", "--topology", "peer", "--tls-dir", secret) if peer else
-           ("--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret))
+           ("--listen", f"tcp/127.0.0.1:{port}", "--topology", "router", "--secret-file", secret))
     p = start_run(run_id, "--duration", "6", *net, *(("--colocate", "encoder") if colocated else ()), *more)
     try:
         wait_running(run_id, p)
@@ -255,7 +256,7 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
     keys = transport.Keys.for_run(run_id)
     p = subprocess.Popen(tb_cmd("run", str(sc_file), "--json", "--run-id", run_id, "--run-dir",
                                 os.path.join(LOGS, run_id), "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}",
-                                "--secret-file", secret),
+                                "--topology", "router", "--secret-file", secret),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     forged = []
     try:

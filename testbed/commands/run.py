@@ -32,7 +32,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
-    add_security_arguments(g)
+    add_security_arguments(g, launcher=True)
     g = p.add_argument_group("recording")
     cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
                        "never overwritten", aliases=("--record",))
