@@ -81,6 +81,10 @@ def print_text(s: dict) -> None:
     verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
     print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "
           f"T = {tm['T_us'] / 1e6:g} s, timing {s['timing_mode']}, outcome: {s['outcome']}")
+    sec = s.get("security") or {}
+    if sec:
+        print(f"  {sec['topology']} topology" + (f" (auto: {sec['topology_why']})" if sec.get("topology_auto") else "")
+              + f", {sec['transport']}")
     print(f"  {s.get('packets_dropped', 0)} samples lost (attacker dropped {s['attacker']['dropped']}, "
           f"invalid {s.get('invalid_payloads')}, withheld {len(s['withheld_at'])}), "
           f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "
