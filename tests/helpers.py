@@ -138,12 +138,18 @@ def simulate(scenario: str, duration: float) -> dict:
 
 BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "saturated_at", "x_final")
 
-#: the two topologies every key live test runs in: four node processes, and the encoder inside the
-#: plant's process (``--colocate encoder``, three network hops per sample)
+#: the two topologies every key live test runs in, in the default network topology (``--topology auto``:
+#: on one host the peer topology, direct links with mutual TLS): four node processes, and the encoder
+#: inside the plant's process (``--colocate encoder``, three network hops per sample)
 TOPOLOGIES = [pytest.param((), id="4proc"), pytest.param(("--colocate", "encoder"), id="colocated")]
-#: ... and the peer topology (direct links, mutual TLS, every receiver checks), for a few of them
-WITH_PEER = TOPOLOGIES + [pytest.param(("--topology", "peer"), id="peer"),
-                          pytest.param(("--topology", "peer", "--colocate", "encoder"), id="peer-colocated")]
+#: ... and the router topology (every message through the launcher's router, user/password), for a few of them
+WITH_ROUTER = TOPOLOGIES + [pytest.param(("--topology", "router"), id="router"),
+                            pytest.param(("--topology", "router", "--colocate", "encoder"), id="router-colocated")]
+
+
+def transport_of(flags) -> str:
+    """The ``security.transport`` of an authenticated run on one host with these flags."""
+    return "user/password" if "router" in flags else "mutual tls"
 
 
 #: the shared options and the commands that must have them (docs/cli.md)

@@ -95,8 +95,9 @@ def _run_in_namespaces(names, addr, run_id, topology=(), more=()):
 
 @pytest.mark.parametrize("topology", TOPOLOGIES + [pytest.param(("--topology", "peer"), id="peer")])
 def test_paper_across_network_namespaces(netns, topology):
-    """Router: every node a client of the launcher's router.  Peer: every process links to every other
-    across the bridge, mutual TLS with the run's certificates (which name processes, not addresses)."""
+    """Router (the default across namespaces): every node a client of the launcher's router.  Peer: every
+    process links to every other across the bridge, mutual TLS with the run's certificates (which name
+    processes, not addresses)."""
     names, addr = netns
     run_id = f"t{os.getpid()}xnetns{secrets.token_hex(3)}"
     # the one rerun policy: a stalled run is run again, the last run is compared whatever it reports
@@ -109,6 +110,10 @@ def test_paper_across_network_namespaces(netns, topology):
     assert len(set(netns_ids.values())) == (3 if colocated else 4), netns_ids
     assert (netns_ids["encoder"] == netns_ids["plant"]) == colocated
     assert s["security"]["transport"] == ("mutual tls" if "peer" in topology else "user/password")
+    # the default (--topology auto) counts a node under --node-prefix as on another host: the router topology
+    assert s["security"]["topology_auto"] == ("--topology" not in topology)
+    if "--topology" not in topology:
+        assert s["security"]["topology"] == "router" and "--node-prefix" in s["security"]["topology_why"]
     assert os.readlink("/proc/self/ns/net") not in netns_ids.values()
     sim = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:

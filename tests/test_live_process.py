@@ -21,7 +21,7 @@ from helpers import (
     LOGS,
     TIMEOUT,
     TOPOLOGIES,
-    WITH_PEER,
+    WITH_ROUTER,
     live,
     live_exact,
     mismatch,
@@ -30,6 +30,7 @@ from helpers import (
     run_cli,
     simulate,
     tb_cmd,
+    transport_of,
 )
 
 pytestmark = pytest.mark.process
@@ -49,6 +50,10 @@ def test_paper_live_equals_simulator_bit_for_bit(paper_run):
     rc, s, err = paper_run
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["complete"] and s["samples"] == 50 and s["outcome"] == "done"
+    # the default on one host: the peer topology (direct links, mutual TLS), chosen by --topology auto
+    sec = s["security"]
+    assert (sec["topology"], sec["transport"], sec["topology_auto"]) == ("peer", "mutual tls", True), sec
+    assert sec["topology_why"] == "every node runs on the launcher's host" and sec["authenticated"]
     sim5 = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim5[key], mismatch(s, sim5, key)
@@ -90,12 +95,12 @@ def test_paper_live_reports_sizes_and_timing(paper_run):
     assert "peer_lost" not in s["events"] and "controller_lost" not in s["events"], s["events"]
 
 
-@pytest.mark.parametrize("topology", WITH_PEER)
+@pytest.mark.parametrize("topology", WITH_ROUTER)
 def test_greedy_attacker_live_equals_simulator(run_id, topology):
     rc, s, err = live_exact(run_id, "paper-greedy", "--duration", "4", *topology)
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["security"]["authenticated"]
-    assert s["security"]["transport"] == ("mutual tls" if "peer" in topology else "user/password")
+    assert s["security"]["transport"] == transport_of(topology)
     sim = simulate("paper-greedy", 4)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)
@@ -107,7 +112,7 @@ def test_realtime_runs_the_nodes_and_the_router_under_sched_fifo(run_id):
     simulator's bit for bit."""
     if not fifo_permitted():
         require("fifo", "SCHED_FIFO is not permitted here (needs root or CAP_SYS_NICE)")
-    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--realtime", "--no-record")
+    rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--realtime", "--no-record", "--topology", "router")
     assert rc == 0, (s["faults"], err[-2000:])
     assert s["launcher"]["sched_fifo"] is True and s["launcher"]["spawn"] == "fork"
     assert all(s["node_summaries"][r]["sched_fifo"] is True for r in ("plant", "encoder", "attacker", "controller"))
@@ -148,7 +153,7 @@ def _after(s, k0):
     return range(k0 + 2, s["samples"])
 
 
-@pytest.mark.parametrize("topology", WITH_PEER)
+@pytest.mark.parametrize("topology", WITH_ROUTER)
 def test_controller_killed_plant_runs_on_with_zero_input(run_id, topology):
     rc, s, err = live(run_id, "paper", "--duration", "3", "--kill", "controller@1.05", *topology)
     assert rc == 1

@@ -5,8 +5,9 @@ ports (in /proc) and connects to every one of them.  It must change nothing: the
 run completes, equals the simulator bit for bit, and its recording is complete.
 
 Insider: a process that holds the credentials of one node (the run is started with
-a given ``--secret-file``) and misbehaves.  Under the router topology the access
-control drops whatever it publishes outside its own keys; what it may publish is
+a given ``--secret-file``, or in the peer topology a given ``--tls-dir``) and misbehaves.
+The access control (the router's, or in the peer topology every receiver's) drops
+whatever it publishes outside its own keys; what it may publish is
 checked by the receivers (non-finite or huge u, a sample index from the future,
 telemetry of a sample outside the run, a stop from the wrong node, telemetry that
 differs from the node's own account): each is counted and logged, nothing crashes,
@@ -135,7 +136,7 @@ def _outsider_run(run_id, peer=False, foreign=None, more=()):
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     p = start_run(run_id, "--duration", str(OUTSIDER_S), "--listen", f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}",
-                  *(("--topology", "peer") if peer else ()), *more)
+                  *(() if peer else ("--topology", "router")), *more)  # peer: the default on one host
     forged, refused, seen = [], [], set()
     try:
         wait_running(run_id, p)
@@ -181,6 +182,7 @@ def test_an_outsider_without_credentials_changes_nothing(run_id, topology, tmp_p
     assert s["recording"]["complete"]
     for ev in ("stop_rejected", "future_symbol", "future_actuation", "input_rejected", "input_clamped"):
         assert ev not in s["events"], s["events"]  # nothing even reached the nodes
+    assert s["security"]["topology_auto"] == peer  # the peer run is the default's (--topology auto)
 
 
 def insider(secret: str, user: str, port: int, peer: bool = False):
@@ -203,7 +205,7 @@ def _insider_run(run_id, secret, colocated, peer=False, more=()):
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
     net = (("--listen", f"tls/127.0.0.1:{port}", "--topology", "peer", "--tls-dir", secret) if peer else
-           ("--listen", f"tcp/127.0.0.1:{port}", "--secret-file", secret))
+           ("--listen", f"tcp/127.0.0.1:{port}", "--topology", "router", "--secret-file", secret))
     p = start_run(run_id, "--duration", "6", *net, *(("--colocate", "encoder") if colocated else ()), *more)
     try:
         wait_running(run_id, p)
@@ -243,25 +245,30 @@ def test_an_insider_outside_its_keys_is_stopped_by_access_control(run_id, tmp_pa
         assert s[key] == sim[key], mismatch(s, sim, key)
 
 
-def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_path):
-    """Credentials of the controller, the attacker and the plant, misused within their keys."""
+@pytest.mark.parametrize("topology", ["router", "peer"])
+def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_path, topology):
+    """Credentials of the controller, the attacker and the plant, misused within their keys: a client of
+    the run's router each, or (peer) a peer of the mesh with that node's certificate."""
     from testbed import scenario
 
-    secret = str(tmp_path / "run.secret")
-    assert subprocess.run(tb_cmd("secret", secret), capture_output=True).returncode == 0
+    peer = topology == "peer"
+    secret = str(tmp_path / ("tls" if peer else "run.secret"))
+    assert subprocess.run(tb_cmd("secret", secret, *(("--tls",) if peer else ())),
+                          capture_output=True).returncode == 0
     sc_file = tmp_path / "paper-umax.toml"  # an actuator limit the forged u runs into without wrecking the run
     sc_file.write_text(scenario.load("paper").source.replace("[controller]\n", "[controller]\nu_max = 2.0\n"))
     port = transport.free_port()
     keys = transport.Keys.for_run(run_id)
+    net = (("--listen", f"tls/127.0.0.1:{port}", "--topology", "peer", "--tls-dir", secret) if peer else
+           ("--listen", f"tcp/127.0.0.1:{port}", "--topology", "router", "--secret-file", secret))
     p = subprocess.Popen(tb_cmd("run", str(sc_file), "--json", "--run-id", run_id, "--run-dir",
-                                os.path.join(LOGS, run_id), "--duration", "6", "--listen", f"tcp/127.0.0.1:{port}",
-                                "--secret-file", secret),
+                                os.path.join(LOGS, run_id), "--duration", "6", *net),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     forged = []
     try:
         wait_running(run_id, p)
-        with insider(secret, "controller", port) as ctl, insider(secret, "attacker", port) as att, \
-                insider(secret, "plant", port) as plant:
+        with insider(secret, "controller", port, peer) as ctl, insider(secret, "attacker", port, peer) as att, \
+                insider(secret, "plant", port, peer) as plant:
             bad_u = [50.0, math.nan, math.inf]
             started, done = threading.Event(), threading.Event()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import stat
@@ -77,8 +78,6 @@ def test_a_tls_session_speaks_tls_only_and_checks_by_certificate_name(tmp_path):
 
 
 def test_a_node_of_the_peer_topology_needs_tls_endpoints(tmp_path):
-    import argparse
-
     from testbed.wire.session import zenoh_config
 
     d = transport.TlsCredentials.new(tmp_path / "tls").folder
@@ -93,3 +92,37 @@ def test_a_node_of_the_peer_topology_needs_tls_endpoints(tmp_path):
         zenoh_config(argparse.Namespace(**dict(base, connect=["tcp/127.0.0.1:7447"])), "encoder", keys)
     with pytest.raises(BadInput, match="--tls-dir"):
         zenoh_config(argparse.Namespace(**dict(base, tls_dir=None)), "encoder", keys)
+
+
+def test_topology_auto_is_peer_on_one_host_and_router_when_a_node_may_be_elsewhere(tmp_path):
+    """``testbed run --topology auto`` (the default): peer exactly when every node runs on the launcher's host."""
+    from testbed.commands.run import add_arguments_run
+    from testbed.live.credentials import ONE_HOST, choose_topology
+
+    p = argparse.ArgumentParser()
+    add_arguments_run(p)
+
+    def choice(*flags):
+        return choose_topology(p.parse_args(["paper", *flags]))
+
+    assert p.parse_args(["paper"]).topology == "auto"
+    assert choice() == ("peer", ONE_HOST)
+    assert choice("--listen", "tls/127.0.0.1:7447", "--node-listen", "plant=tls/[::1]:0")[0] == "peer"
+    assert choice("--listen", "tls/localhost:7447")[0] == "peer"
+    assert choice("--insecure", "--listen", "tcp/127.0.0.1:7447")[0] == "peer"  # plain TCP is the insecure peer's
+    assert choice("--tls-dir", str(tmp_path), "--node-prefix", "plant=ssh hostB")[0] == "peer"  # its certificates
+    for flags, why in [
+        (("--node-prefix", "plant=ip netns exec tb-plant"), "--node-prefix plant"),
+        (("--node-prefix", "controller=ssh hostB", "--insecure"), "another host"),
+        (("--secret-file", str(tmp_path / "run.secret")), "password file"),
+        (("--zenoh-config", str(tmp_path / "z.json5")), "--zenoh-config"),
+        (("--listen", "tls/10.0.0.1:7447"), "not a loopback address"),
+        (("--listen", "tls/0.0.0.0:7447"), "not a loopback address"),
+        (("--node-connect", "tls/hostA:7447"), "not a loopback address"),
+        (("--node-listen", "plant=tls/10.0.0.2:0"), "--node-listen"),
+        (("--listen", "tcp/127.0.0.1:7447"), "plain TCP"),
+    ]:
+        topology, reason = choice(*flags)
+        assert topology == "router" and why in reason, (flags, reason)
+    assert choice("--topology", "router") == ("router", "--topology router")
+    assert choice("--topology", "peer", "--node-prefix", "plant=ssh hostB")[0] == "peer"

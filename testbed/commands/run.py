@@ -32,7 +32,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
-    add_security_arguments(g)
+    add_security_arguments(g, launcher=True)
     g = p.add_argument_group("recording")
     cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
                        "never overwritten", aliases=("--record",))
@@ -81,6 +81,10 @@ def print_text(s: dict) -> None:
     verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
     print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "
           f"T = {tm['T_us'] / 1e6:g} s, timing {s['timing_mode']}, outcome: {s['outcome']}")
+    sec = s.get("security") or {}
+    if sec:
+        print(f"  {sec['topology']} topology" + (f" (auto: {sec['topology_why']})" if sec.get("topology_auto") else "")
+              + f", {sec['transport']}")
     print(f"  {s.get('packets_dropped', 0)} samples lost (attacker dropped {s['attacker']['dropped']}, "
           f"invalid {s.get('invalid_payloads')}, withheld {len(s['withheld_at'])}), "
           f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "

@@ -3,11 +3,68 @@ flags that hand them to each process, and the launcher's own session (the run's 
 
 from __future__ import annotations
 
+import ipaddress
 import shutil
 import tempfile
 from pathlib import Path
 
 from ..wire import transport
+from ..wire.session import AUTO
+
+#: why ``--topology auto`` chose the peer topology
+ONE_HOST = "every node runs on the launcher's host"
+
+
+def _loopback(ep: str) -> bool:
+    """Whether endpoint ``ep`` (``tcp/127.0.0.1:7447``) names this host's loopback (127.0.0.0/8, ::1, localhost)."""
+    host = transport.endpoint_host(ep)
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may be another host
+        return False
+
+
+def choose_topology(args) -> tuple[str, str]:
+    """``--topology``'s topology for the run and why: (``router`` | ``peer``, reason).
+
+    ``auto`` is the peer topology (direct links, mutual TLS: one link per hop instead of two
+    through the launcher's router) when every node runs on the launcher's host, and the router
+    topology otherwise.  What counts as another host, in this order:
+
+    - ``--tls-dir`` given: the peer topology's certificates, so peer (on any hosts);
+    - ``--secret-file`` given: the router topology's password file, so router;
+    - ``--node-prefix`` for any node: a node started under a command (``ssh host``, ``ip netns
+      exec NS``) runs on another host or in another network namespace;
+    - ``--zenoh-config``: its endpoints are the file's, which the launcher does not read;
+    - ``--listen``, ``--node-connect`` or ``--node-listen`` naming an address other than loopback
+      (127.0.0.0/8, ::1, localhost): an endpoint for processes on other hosts;
+    - an authenticated run given a plain ``tcp/`` endpoint (the peer topology's links are TLS).
+
+    None of these: peer.  A given ``--topology router`` or ``peer`` is used as given.
+    """
+    if args.topology != AUTO:
+        return args.topology, f"--topology {args.topology}"
+    if getattr(args, "tls_dir", None):
+        return "peer", "--tls-dir: the peer topology's certificates"
+    if args.secret_file:
+        return "router", "--secret-file: the router topology's password file"
+    prefixed = [p.partition("=")[0] for p in args.node_prefix]
+    if prefixed:
+        return "router", (f"--node-prefix {', '.join(prefixed)}: a node started under a command runs on another host "
+                          "or in another network namespace")
+    if args.zenoh_config:
+        return "router", "--zenoh-config: the file's endpoints may name other hosts"
+    given = [("--listen", args.listen), ("--node-connect", args.node_connect),
+             *(("--node-listen", p.partition("=")[2]) for p in args.node_listen)]
+    for flag, ep in given:
+        if ep and not _loopback(ep):
+            return "router", f"{flag} {ep}: not a loopback address (for processes on other hosts)"
+    for flag, ep in given:
+        if ep and not args.insecure and not ep.startswith("tls/"):
+            return "router", f"{flag} {ep}: a plain TCP endpoint (the peer topology's links are TLS)"
+    return "peer", ONE_HOST
 
 
 class RunCredentials:
@@ -96,7 +153,9 @@ class RunCredentials:
         from ..wire.session import access_control, transport_security
 
         given = self.args.secret_file or getattr(self.args, "tls_dir", None)
-        return {"authenticated": self.secure, "topology": self.topology, "low_latency": bool(self.args.low_latency),
+        return {"authenticated": self.secure, "topology": self.topology,
+                "topology_auto": self.args.topology == AUTO, "topology_why": self.topology_why,
+                "low_latency": bool(self.args.low_latency),
                 "access_control": access_control(self.topology) if self.secure else "none",
                 "transport": transport_security(self.topology, not self.secure),
                 "credentials": None if not self.secure else ("given" if given else "made for the run")}

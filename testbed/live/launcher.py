@@ -40,7 +40,7 @@ from ..nodes.process import parse_cpus
 from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
-from .credentials import RunCredentials
+from .credentials import RunCredentials, choose_topology
 from .spawn import Forked, _forked_node
 
 
@@ -79,7 +79,7 @@ class Launcher(RunCredentials):
         self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
         self.run_id = args.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = transport.Keys.for_run(self.run_id)
-        self.topology = args.topology
+        self.topology, self.topology_why = choose_topology(args)  # --topology auto: peer on one host
         self.secure = not args.insecure
         self.tls = self.topology == "peer" and self.secure    # mutual TLS links (``TlsCredentials``)
         self.listen = args.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"

@@ -6,15 +6,27 @@ import argparse
 
 from . import transport
 
-
 # ============================================================================ zenoh options
-def add_security_arguments(g) -> None:
+#: ``testbed run --topology auto``: the launcher picks ``peer`` or ``router`` (``testbed.live.credentials``)
+AUTO = "auto"
+
+
+def add_security_arguments(g, launcher: bool = False) -> None:
     """``--topology``, ``--secret-file``, ``--tls-dir``, ``--insecure``, ``--low-latency``: every process of a run
-    (``testbed run``, ``testbed node``, ``testbed record``) takes the same flags."""
-    g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
-                   help="router: one process (under testbed run, the launcher) routes and checks every message "
-                        "(default); peer: direct links between the processes, each mutual TLS (--tls-dir), and "
-                        "every process checks what it receives")
+    (``testbed run``, ``testbed node``, ``testbed record``) takes the same flags.  The launcher (``testbed run``)
+    also takes ``--topology auto``, its default: it decides for the run and passes the topology on."""
+    if launcher:
+        g.add_argument("--topology", choices=(AUTO, *transport.TOPOLOGIES), default=AUTO,
+                       help="auto (default): peer when every node runs on this host, router otherwise (a "
+                            "--node-prefix, a --zenoh-config, a non-loopback or plain TCP endpoint, or a "
+                            "--secret-file; docs/live.md); router: the launcher routes and checks every message; "
+                            "peer: direct links between the processes, each mutual TLS (certificates made for the "
+                            "run, or --tls-dir), and every process checks what it receives")
+    else:
+        g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
+                       help="router: one process (under testbed run, the launcher) routes and checks every message "
+                            "(default); peer: direct links between the processes, each mutual TLS (--tls-dir), and "
+                            "every process checks what it receives")
     g.add_argument("--secret-file", metavar="PATH",
                    help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed "
                         "secret PATH'); testbed run makes new ones for each run unless given one, which nodes on "

@@ -339,7 +339,8 @@ class TlsCredentials:
             from ..errors import BadInput
 
             raise BadInput("the authenticated peer topology makes TLS certificates with the 'cryptography' "
-                           "package: pip install 'dos-testbed[tls]' (or run the router topology)") from None
+                           "package, a dependency of dos-testbed: pip install cryptography (or run "
+                           "--topology router)") from None
         d = Path(folder)
         d.mkdir(mode=0o700)
         now = datetime.datetime.now(datetime.UTC)
