@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
-import bench_live  # noqa: E402 - a script folder, not a package
+import bench_live  # a script folder, not a package
 
 
 def _run(p50, misses, samples=10_000, exit_code=0):
