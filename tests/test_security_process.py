@@ -114,16 +114,22 @@ def forge_everything(session, keys: transport.Keys, n_steps: int, k_now: int, sy
 OUTSIDER_S = 8
 
 
-def _outsider_configs(run_id, pt, peer, foreign):
+def _run_ca(run_id, into) -> str:
+    """A copy of the run's authority certificate (no secret; the run removes its folder as it ends)."""
+    import glob
+    import shutil
+
+    (ca,) = glob.glob(os.path.join(LOGS, run_id, "secrets-*", "tls", "ca.pem"))
+    return shutil.copyfile(ca, os.path.join(into, f"{run_id}-ca.pem"))
+
+
+def _outsider_configs(pt, peer, foreign, ca=None):
     """How an outsider tries port ``pt``: no credentials and a wrong password (router), or (peer, whose
     links are TLS) plain TCP, and TLS that trusts the run's authority (its certificate is no secret) with a
     certificate named "plant" of another authority (``foreign``)."""
     if not peer:
         return [transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer", user=user, password=pw)
                 for user, pw in ((None, None), ("plant", "guess"))]
-    import glob
-
-    (ca,) = glob.glob(os.path.join(LOGS, run_id, "secrets-*", "tls", "ca.pem"))
     tls = dict(transport.TlsCredentials(foreign).zenoh("plant"), root_ca_certificate=ca)
     return [transport.make_config(connect=[f"tcp/127.0.0.1:{pt}"], mode="peer"),
             transport.make_config(connect=[f"tls/127.0.0.1:{pt}"], mode="peer", tls=tls)]
@@ -140,11 +146,12 @@ def _outsider_run(run_id, peer=False, foreign=None, more=()):
     forged, refused, seen = [], [], set()
     try:
         wait_running(run_id, p)
+        ca = _run_ca(run_id, LOGS) if peer else None
         while p.poll() is None:  # again and again, on every port the run's processes listen on, until it ends
             ports = listening_ports(run_id)
             seen.update(ports)
             for pt in ports:
-                for conf in _outsider_configs(run_id, pt, peer, foreign):
+                for conf in _outsider_configs(pt, peer, foreign, ca):
                     try:
                         with zenoh.open(conf) as session:
                             forge_everything(session, keys, 10 * OUTSIDER_S, 30)

@@ -9,7 +9,7 @@ import tempfile
 from pathlib import Path
 
 from ..wire import transport
-from ..wire.session import AUTO
+from ..wire.session import AUTO, session_config
 
 #: why ``--topology auto`` chose the peer topology
 ONE_HOST = "every node runs on the launcher's host"
@@ -134,20 +134,10 @@ class RunCredentials:
     def session_config(self):
         """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""
         a = self.args
-        mode = "router" if self.topology == "router" else "peer"
-        if not self.secure:
-            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
-                                         low_latency=a.low_latency)
-        if self.tls:
-            return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
-                                         acl=transport.acl_config(self.keys, self.colocated, by="cert_common_names"),
-                                         low_latency=a.low_latency,
-                                         tls=transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER))
-        cred = transport.Credentials.read(self.secret_path)
-        return transport.make_config(listen=[self.listen], config_file=a.zenoh_config, mode=mode,
-                                     user=transport.LAUNCHER, password=cred.users.get(transport.LAUNCHER),
-                                     dictionary_file=self.secret_path,
-                                     acl=transport.acl_config(self.keys, self.colocated), low_latency=a.low_latency)
+        return session_config(transport.LAUNCHER, "router" if self.topology == "router" else "peer", self.keys,
+                              listen=[self.listen], config_file=a.zenoh_config, colocate=self.colocated,
+                              low_latency=a.low_latency, insecure=not self.secure, tls_dir=self.tls_dir,
+                              secret_file=self.secret_path, accepts=True)
 
     def security(self) -> dict:
         from ..wire.session import access_control, transport_security

@@ -101,30 +101,47 @@ def zenoh_config(args, role: str, keys: transport.Keys):
         else:
             connect = [hub_ep]
     mode = "peer" if peer else ("router" if hub else "client")
-    ll = bool(getattr(args, "low_latency", False))
-    colocate = transport.colocated_roles(getattr(args, "colocate", None))
-    if args.insecure:
-        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
-                                     low_latency=ll)
-    if peer:
-        if not getattr(args, "tls_dir", None):
-            raise BadInput(PEER_NEEDS_TLS)
-        tls = transport.TlsCredentials(args.tls_dir).zenoh(role)
-        transport.require_tls((*listen, *connect))
-        return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
-                                     acl=transport.acl_config(keys, colocate, by="cert_common_names"), low_latency=ll,
-                                     tls=tls)
-    if not args.secret_file:
+    if not args.insecure and not peer and not args.secret_file:
         raise BadInput("no --secret-file: make one with 'testbed secret PATH' and give it to every process "
                        "of the run (or run unauthenticated with --insecure)")
-    cred = transport.Credentials.read(args.secret_file)
-    accepts = hub
+    if not args.insecure and peer:
+        if not getattr(args, "tls_dir", None):
+            raise BadInput(PEER_NEEDS_TLS)
+        transport.require_tls((*listen, *connect))
+    return session_config(role, mode, keys, listen=listen, connect=connect, config_file=args.zenoh_config,
+                          colocate=transport.colocated_roles(getattr(args, "colocate", None)),
+                          low_latency=bool(getattr(args, "low_latency", False)), insecure=args.insecure,
+                          tls_dir=getattr(args, "tls_dir", None), secret_file=args.secret_file, accepts=hub)
+
+
+def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), connect=(), config_file=None,
+                   colocate=(), low_latency: bool = False, insecure: bool = False, tls_dir=None, secret_file=None,
+                   accepts: bool = False):
+    """The Zenoh config of one process of a run, the one place a session's security is put together.
+
+    ``mode`` "peer": mutual TLS with ``role``'s certificate of ``tls_dir``, and the access rules checked
+    by every receiver (by certificate common name).  Otherwise user/password: ``role``'s line of the
+    ``secret_file``; a process that ``accepts`` others (the run's router: the launcher, or a standalone
+    plant) also authenticates them against the file's lines and checks the access rules.  ``insecure``:
+    neither.  Used by the nodes and the recorder (``zenoh_config``) and the launcher's own session.
+    """
+    from ..errors import BadInput
+
+    common = {"listen": list(listen), "connect": list(connect), "config_file": config_file, "mode": mode,
+              "low_latency": low_latency}
+    if insecure:
+        return transport.make_config(**common)
+    if mode == "peer":
+        return transport.make_config(**common, acl=transport.acl_config(keys, colocate, by="cert_common_names"),
+                                     tls=transport.TlsCredentials(tls_dir).zenoh(role))
+    cred = transport.Credentials.read(secret_file)
     if accepts:
         missing = [u for u in (*transport.ROLES, transport.RECORDER) if u not in cred.users]
         if missing:
-            raise BadInput(f"secret file {args.secret_file}: no line for {', '.join(missing)} (a {mode} that "
+            raise BadInput(f"secret file {secret_file}: no line for {', '.join(missing)} (a {mode} that "
                            "accepts the others needs all of them)")
-    return transport.make_config(listen=listen, connect=connect, config_file=args.zenoh_config, mode=mode,
-                                 user=role, password=cred.password(role),
-                                 dictionary_file=args.secret_file if accepts else None,
-                                 acl=transport.acl_config(keys, colocate) if accepts else None, low_latency=ll)
+    # the launcher's own line may be missing from a secret file made for nodes started by hand
+    password = cred.users.get(role) if role == transport.LAUNCHER else cred.password(role)
+    return transport.make_config(**common, user=role, password=password,
+                                 dictionary_file=secret_file if accepts else None,
+                                 acl=transport.acl_config(keys, colocate) if accepts else None)
