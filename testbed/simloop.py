@@ -76,6 +76,7 @@ class SimResult:
     method_fault_at: int = -1        # ... at this sample
     lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
+    simulator: str = "per-sample"    # which simulator ran: "per-sample" (this loop) or "batch" (``testbed.simbatch``)
 
     @property
     def saturations(self) -> int:
