@@ -29,14 +29,16 @@ topic                      schema                      content
                                                        faults, every node event (Foxglove's Log panel)
 ``/phase``                 ``foxglove.SceneUpdate``    one a sample: the phase plane (trajectory so far,
                                                        x_k, xi_k, the box Q(xi_k, E_k)), Foxglove's 3D panel
+                                                       (a simulation at T < 10 ms: one every 10 ms of the
+                                                       run, ``phase_every`` samples)
 ``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2,
                                                        T >= 10 ms)
 =========================  ==========================  ===============================================
 
 Metadata records: ``testbed.scenario`` (name, TOML text, reference, folder, plant module source),
 ``testbed.software`` (versions), ``testbed.run`` (source live|simulate, run id,
-host, command line, options), and at a clean close ``testbed.recorder``
-(message counts).  ``log_time`` is when the recorder got a message
+host, command line, options; a simulation's ``simulator``, ``writer`` and ``phase_every``),
+and at a clean close ``testbed.recorder`` (message counts).  ``log_time`` is when the recorder got a message
 (CLOCK_REALTIME ns; t0 + k T in a simulation), ``publish_time`` t0 plus the
 message's own time stamp when it has one.
 
@@ -460,7 +462,10 @@ Foxglove opens the file as it is and Rerun decodes it natively.
   checkout), numpy, scipy, numba, eclipse-zenoh, mcap, protobuf, rerun-sdk; `format` (this format's version).
 - `testbed.run`: `source` (`live` or `simulate`), `run_id`, `host`, `pid`, `command`, `started_utc`,
   `scenario_overrides` (JSON: `--duration`, `--T`, `--mode`, ... applied on top of the TOML), and for live
-  runs `T_ns`, `ack_via_attacker`.
+  runs `T_ns`, `ack_via_attacker`; for a simulation `bits`, `simulator` (`batch` or `per-sample`: which
+  simulator ran), `writer` (`bulk`: the telemetry encoded from the arrays at once; `per-message`) and
+  `phase_every` (`/phase` holds the scene of every `phase_every`-th sample: 1 at T >= 10 ms, else one
+  every 10 ms of the run).
 - `testbed.recorder` (written at a clean close only): message counts per topic and the recorder's counters.
 
 ## Times
