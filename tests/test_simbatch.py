@@ -134,3 +134,12 @@ def test_cli_says_which_simulator_ran(capsys):
     assert json.loads(capsys.readouterr().out)["simulator"] == "per-sample"
     assert cli.main(["simulate", "paper", "--duration", "3", "--corrupt", "5", "--simulator", "batch"]) == 2
     assert "batch kernel cannot run" in capsys.readouterr().err
+
+
+def test_physical_timing_with_a_drawn_latency():
+    """u_k's latency drawn per sample (as --latency-from gives it), some past the deadline d T."""
+    sc = _sc("paper", timing="physical", actuation="arrival")
+    lat = np.random.default_rng(7).integers(0, 60_000_000, sc.n_steps)
+    per, bat = _both(sc, latency=lat)
+    assert per.u_missing.any() and len(np.unique(per.delays)) > 10
+    _assert_identical(sc, per, bat)
