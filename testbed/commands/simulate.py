@@ -67,7 +67,7 @@ def main_simulate(args) -> int:
         if args.simulator != "batch":
             raise
         raise BadInput(f"--simulator batch: {e}") from None
-    out = summarize(sc, res)
+    out = summarize(sc, res, arrays=not args.json)  # the text needs no per-sample lists
     if args.out:
         from ..record.recording import record_simulation
 
