@@ -136,10 +136,12 @@ class RecordingWriter:
             return self._channel(topic, name)
 
     def adder(self):
-        """mcap's ``add_message(channel_id, log_time, data, publish_time)`` itself, for one thread writing many
-        messages in a row (``record_simulation``): no lock, no counts (the caller adds them), no flush (the
-        caller calls :meth:`maybe_flush`)."""
-        return self._w.add_message
+        """``add(channel_id, log_time, data, publish_time)`` of mcap's writer (``simrecord.fast_adder``), for one
+        thread writing many messages in a row in order of log time (``record_simulation``): no lock, no counts
+        (the caller adds them), no flush (the caller calls :meth:`maybe_flush`)."""
+        from .simrecord import fast_adder
+
+        return fast_adder(self._w)
 
     def metadata(self, name: str, data: dict) -> None:
         clean = {str(k): v if isinstance(v, str) else json.dumps(v, default=str) for k, v in data.items()}
