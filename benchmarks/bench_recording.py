@@ -1,7 +1,16 @@
-"""Recording benchmarks: recorder throughput over Zenoh, and ``testbed report`` on 10-minute and 1-hour 1 kHz runs.
+"""Recording benchmarks: simulations recorded, recorder throughput over Zenoh, ``testbed report`` on long runs.
 
     python benchmarks/bench_recording.py [--report-only] [--minutes 10,60] [--recording RUN.mcap ...]
                                          [--reference short|all|none] [--rates 2000,10000,40000,0] [--seconds 3]
+                                         [--simulate-only] [--sim-duration 60] [--sim-T 0.001]
+
+0. Simulations (``testbed simulate paper --T 0.001 --duration 60``, ``--sim-duration``): in one run,
+   (a) mcap's own ``Writer`` alone writing 5 messages a sample (the run's own telemetry payloads, the
+   recording's chunk size and compression), (b) ``record_simulation`` writing the run (the bulk path:
+   telemetry encoded from the arrays, the phase plane decimated at T < 10 ms), (c) the whole command
+   ``testbed simulate ... --out X`` in a fresh process, each as a ratio to (a); then the per-sample loop
+   against the batch kernel (``simulate_scenario(simulator=...)`` in-process, and the command with
+   ``--simulator per-sample`` and ``auto``), as a ratio.  ``--simulate-only`` runs just this part.
 
 1. Writer baseline: ``RecordingWriter`` alone, in-process (protobuf + MCAP + zstd), messages/s.
 2. Recorder node: a real ``testbed record`` process subscribed over Zenoh on loopback; this
@@ -36,9 +45,93 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import numpy as np  # noqa: E402
+
 from testbed.record import reader, recording  # noqa: E402
 from testbed.wire import messages as msg  # noqa: E402
 from testbed.wire import transport  # noqa: E402
+
+
+def _sim_scenario(duration: float, T: float):
+    from testbed import scenario
+
+    return scenario.with_overrides(scenario.load("paper"), {"T": T, "duration": duration})
+
+
+def mcap_writer_alone(tmp: Path, res, sc) -> float:
+    """Seconds mcap's ``Writer`` needs for 5 messages a sample of ``res`` (its telemetry payloads: plant, encoder,
+    attacker, controller, and the controller's again as the fifth), chunked and compressed as a recording is."""
+    from mcap.writer import CompressionType, Writer
+
+    from testbed.record.simrecord import encode, telemetry_columns
+
+    N = len(res.t)
+    Tn = int(round(sc.T * 1e9))
+    t0 = time.time_ns()
+    th = np.asarray(res.theta, dtype=np.int64)
+    cols = telemetry_columns(res, 0, N, t0, Tn, th, np.cumsum(th), th)
+    names = ("PlantSample", "EncoderSample", "AttackerSample", "ControllerSample")
+    payloads = [encode(nm, N, cols[nm]) for nm in names]
+    payloads.append(payloads[-1])
+    with open(tmp / "writer-alone.mcap", "wb") as f:
+        t = time.perf_counter()
+        w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD, enable_data_crcs=True)
+        w.start(profile="", library="bench")
+        sid = w.register_schema(name="bench", encoding="protobuf", data=b"")
+        chs = [w.register_channel(topic=f"/t{i}", message_encoding="protobuf", schema_id=sid) for i in range(5)]
+        add = w.add_message
+        for k in range(N):
+            lt = t0 + k * Tn
+            for ch, pl in zip(chs, payloads, strict=True):
+                add(ch, lt, pl[k], lt)
+        w.finish()
+        return time.perf_counter() - t
+
+
+def simulate_timing(tmp: Path, duration: float, T: float) -> dict:
+    """The simulation part (see the module docstring): times in seconds and the ratios."""
+    from testbed.record.recording import record_simulation
+    from testbed.simbatch import simulate_scenario
+
+    sc = _sim_scenario(duration, T)
+    simulate_scenario(_sim_scenario(1.0, T))  # compiled once, as a user's second run finds it
+    t = time.perf_counter()
+    res = simulate_scenario(sc, simulator="batch")
+    batch_s = time.perf_counter() - t
+    t = time.perf_counter()
+    per = simulate_scenario(sc, simulator="per-sample")
+    per_s = time.perf_counter() - t
+    same = bool(np.array_equal(per.x, res.x) and np.array_equal(per.E_dec, res.E_dec))
+    del per
+    writer_s = mcap_writer_alone(tmp, res, sc)
+    t = time.perf_counter()
+    counts = record_simulation(tmp / "sim-bulk.mcap", sc, res)
+    record_s = time.perf_counter() - t
+    base = [sys.executable, "-P", "-m", "testbed.cli", "simulate", "paper", "--T", str(T), "--duration", str(duration)]
+    cmd_out_s, _, _ = _measure(base + ["--out", str(tmp / "sim-cli.mcap")])
+    cmd_auto_s, _, _ = _measure(base)
+    cmd_per_s, _, _ = _measure(base + ["--simulator", "per-sample"])
+    return {"duration_s": duration, "T": T, "samples": len(res.t), "messages": sum(counts.values()),
+            "mcap_writer_5_per_sample_s": writer_s, "record_simulation_s": record_s,
+            "record_vs_writer": record_s / writer_s, "simulate_out_command_s": cmd_out_s,
+            "command_vs_writer": cmd_out_s / writer_s, "kernel_s": batch_s, "per_sample_s": per_s,
+            "per_sample_vs_kernel": per_s / batch_s, "same_numbers": same, "command_auto_s": cmd_auto_s,
+            "command_per_sample_s": cmd_per_s, "command_per_sample_vs_auto": cmd_per_s / cmd_auto_s}
+
+
+def _print_simulate(r: dict) -> None:
+    print(f"testbed simulate paper --T {r['T']:g} --duration {r['duration_s']:g}: {r['samples']:,} samples, "
+          f"{r['messages']:,} messages recorded\n"
+          f"  mcap's Writer alone, 5 messages a sample:        {r['mcap_writer_5_per_sample_s']:7.2f} s\n"
+          f"  record_simulation (bulk):                        {r['record_simulation_s']:7.2f} s  "
+          f"= {r['record_vs_writer']:.2f}x the writer\n"
+          f"  the command with --out (fresh process, all in): {r['simulate_out_command_s']:7.2f} s  "
+          f"= {r['command_vs_writer']:.2f}x the writer\n"
+          f"  batch kernel (in-process):                       {r['kernel_s']:7.3f} s\n"
+          f"  per-sample loop (in-process):                    {r['per_sample_s']:7.2f} s  "
+          f"= {r['per_sample_vs_kernel']:.0f}x the kernel (same numbers: {r['same_numbers']})\n"
+          f"  the command, --simulator auto / per-sample:      {r['command_auto_s']:7.2f} s / "
+          f"{r['command_per_sample_s']:.2f} s = {r['command_per_sample_vs_auto']:.1f}x", flush=True)
 
 
 def _record(k: int) -> msg.AttackerTelemetry:
@@ -204,11 +297,21 @@ def main() -> int:
     ap.add_argument("--rates", default="2000,10000,40000,0", help="offered records/s (0: as fast as possible)")
     ap.add_argument("--seconds", type=float, default=3.0, help="publishing time per phase")
     ap.add_argument("--report-only", action="store_true", help="skip the recorder phases")
+    ap.add_argument("--simulate-only", action="store_true", help="only the simulation part (0.)")
+    ap.add_argument("--sim-duration", type=float, default=60.0, help="seconds simulated in part 0 (default 60)")
+    ap.add_argument("--sim-T", type=float, default=0.001, help="sampling period of part 0 (default 0.001)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     out: dict = {"cpus": os.cpu_count()}
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as d:
         tmp = Path(d)
+        if not a.report_only:
+            out["simulate"] = simulate_timing(tmp, a.sim_duration, a.sim_T)
+            _print_simulate(out["simulate"])
+        if a.simulate_only:
+            if a.json:
+                print(json.dumps(out))
+            return 0
         out["writer_baseline_per_s"] = writer_baseline(tmp)
         print(f"writer alone (in-process, protobuf + MCAP + zstd): {out['writer_baseline_per_s']:,.0f} messages/s",
               flush=True)

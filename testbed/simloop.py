@@ -76,6 +76,8 @@ class SimResult:
     method_fault_at: int = -1        # ... at this sample
     lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
+    simulator: str | None = "per-sample"  # which simulator ran: "per-sample" (this loop), "batch" (``testbed.simbatch``);
+    #                                       a recording's: as its metadata says (None: a live run)
 
     @property
     def saturations(self) -> int:

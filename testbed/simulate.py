@@ -36,7 +36,8 @@ from .quantizer import (
     quantize_index,
     zoom_update,
 )
-from .simloop import (
+from .simbatch import simulate_scenario  # noqa: F401 - re-exported: the scenario level's entry point
+from .simloop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: re-exported
     SCORES,
     Network,
     OnlineAttacker,
@@ -536,30 +537,6 @@ def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, cr
     return esc
 
 
-def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
-                      latency=None) -> SimResult:
-    """Run a scenario (see ``testbed.scenario``) with the per-sample loop.
-
-    The true plant is ``[plant]`` (``sc.make_process()``), the predictions use ``[model]``;
-    under physical timing the latency of u_k comes from ``[run] sim_delay`` unless
-    ``latency`` (ns) is given.
-    """
-    N = sc.n_steps if n_steps is None else int(n_steps)
-    if sc.attack.online:
-        att = OnlineAttacker(greedy_params=sc.attack.greedy_params(), score=sc.attack.score, T=sc.T)
-    else:
-        att = OnlineAttacker(theta=sc.theta(N), T=sc.T)
-    if latency is None:
-        latency = sc.sim_latency(N)
-    process = sc.make_process()
-    try:
-        return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
-                             process=process, timing=sc.timing_params, latency=latency,
-                             u_max=sc.controller.u_max, network=network, method=sc.make_method())
-    finally:
-        process.close()
-
-
 def _all_finite_numbers(o: list) -> bool:
     """A (nested) list of plain numbers without NaN or inf: nothing to clean (checked in C)."""
     try:
@@ -695,6 +672,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "max_norm": float(max(np.max(np.abs(res.x)) if len(res.x) else 0.0, res.final_norm)),
         "samples_lost": int(res.theta.sum()),
         "timing_mode": sc.run.timing,
+        "simulator": res.simulator,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),
     })

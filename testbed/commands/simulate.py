@@ -20,6 +20,10 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--latency-from", metavar="RUN.mcap",
                    help="physical timing: the latency of u_k sample by sample as a recorded live run measured it "
                         "(instead of [run] sim_delay)")
+    p.add_argument("--simulator", choices=["auto", "batch", "per-sample"], default="auto",
+                   help="auto (default): the batch kernel where the run allows it (bundled plant and method, no "
+                        "--corrupt or --ack-via-attacker), else the per-sample loop; per-sample: always the loop of "
+                        "the live nodes' protocol objects (the same numbers, slower); batch: the kernel or exit 2")
     cliargs.add_out(p, "also write the run as an MCAP recording (the topics of a live run; see testbed report); "
                        "never overwritten")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
@@ -33,8 +37,9 @@ def main_simulate(args) -> int:
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
     from ..nodes.options import RunOptions
+    from ..simbatch import simulate_scenario
     from ..simloop import Network
-    from ..simulate import simulate_scenario, summarize
+    from ..simulate import summarize
 
     opts = RunOptions.from_args(args)
     overrides = opts.overrides()
@@ -56,8 +61,13 @@ def main_simulate(args) -> int:
         latency = recorded_latency(args.latency_from, sc)
     if sc.method_note:
         print(f"testbed simulate: {sc.method_note}", file=sys.stderr)
-    res = simulate_scenario(sc, network=net, latency=latency)
-    out = summarize(sc, res)
+    try:
+        res = simulate_scenario(sc, network=net, latency=latency, simulator=args.simulator)
+    except ValueError as e:
+        if args.simulator != "batch":
+            raise
+        raise BadInput(f"--simulator batch: {e}") from None
+    out = summarize(sc, res, arrays=not args.json)  # the text needs no per-sample lists
     if args.out:
         from ..record.recording import record_simulation
 

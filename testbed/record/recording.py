@@ -29,14 +29,16 @@ topic                      schema                      content
                                                        faults, every node event (Foxglove's Log panel)
 ``/phase``                 ``foxglove.SceneUpdate``    one a sample: the phase plane (trajectory so far,
                                                        x_k, xi_k, the box Q(xi_k, E_k)), Foxglove's 3D panel
+                                                       (a simulation at T < 10 ms: one every 10 ms of the
+                                                       run, ``phase_every`` samples)
 ``/phase/roa``             ``foxglove.SceneUpdate``    once: the nominal region of attraction (n = 2,
                                                        T >= 10 ms)
 =========================  ==========================  ===============================================
 
 Metadata records: ``testbed.scenario`` (name, TOML text, reference, folder, plant module source),
 ``testbed.software`` (versions), ``testbed.run`` (source live|simulate, run id,
-host, command line, options), and at a clean close ``testbed.recorder``
-(message counts).  ``log_time`` is when the recorder got a message
+host, command line, options; a simulation's ``simulator``, ``writer`` and ``phase_every``),
+and at a clean close ``testbed.recorder`` (message counts).  ``log_time`` is when the recorder got a message
 (CLOCK_REALTIME ns; t0 + k T in a simulation), ``publish_time`` t0 plus the
 message's own time stamp when it has one.
 
@@ -128,6 +130,19 @@ class RecordingWriter:
             self._channels[topic] = ch
         return ch
 
+    def channel(self, topic: str, name: str) -> int:
+        """The channel id of ``topic`` (schema ``name``), registered on first use (for :meth:`adder`)."""
+        with self._lock:
+            return self._channel(topic, name)
+
+    def adder(self):
+        """``add(channel_id, log_time, data, publish_time)`` of mcap's writer (``simrecord.fast_adder``), for one
+        thread writing many messages in a row in order of log time (``record_simulation``): no lock, no counts
+        (the caller adds them), no flush (the caller calls :meth:`maybe_flush`)."""
+        from .simrecord import fast_adder
+
+        return fast_adder(self._w)
+
     def metadata(self, name: str, data: dict) -> None:
         clean = {str(k): v if isinstance(v, str) else json.dumps(v, default=str) for k, v in data.items()}
         with self._lock:
@@ -208,15 +223,32 @@ def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref
     w.metadata("testbed.run", run)
 
 
+#: ``record_simulation``: the phase plane's SceneUpdate every sample at T >= PHASE_PERIOD_S, else every
+#: round(PHASE_PERIOD_S / T) samples (one scene per 10 ms of the run: 60,000 a minute at 1 kHz cost more
+#: than the telemetry; Foxglove's 3D panel needs no more)
+PHASE_PERIOD_S = 0.01
+
+
+def phase_every(T: float) -> int:
+    """Samples between two phase-plane scenes of a simulation's recording (1: every sample)."""
+    return 1 if T >= PHASE_PERIOD_S else max(1, int(round(PHASE_PERIOD_S / T)))
+
+
 def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
                       t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True,
-                      roa: bool = True) -> dict:
+                      roa: bool = True, bulk: bool = True) -> dict:
     """Write a simulated run (``testbed.simloop.SimResult``) with the topics and schemas of a live run.
 
     Times are nominal and latencies zero (t_k = k T, every message at its sample
     instant); t0 is the wall-clock time of the call.  The Foxglove topics
     (``view.foxglove``) come from the same tap as a live recorder's; ``roa``:
     draw the nominal region of attraction there.  Returns the writer's counts.
+
+    ``bulk`` (default): the telemetry of every sample is encoded from the arrays at once
+    (``testbed.record.simrecord``; the same bytes) and ``/phase`` holds a scene every
+    :func:`phase_every` samples (every sample at T >= 10 ms; ``testbed.run`` metadata
+    ``phase_every``).  ``bulk=False``: one message object at a time, a scene every sample (the
+    reference the tests hold the bulk path to).
     """
     import numpy as np
 
@@ -239,9 +271,12 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     def tele(topic, name, t, lt):
         w.write(topic, t, lt, name=name, extra=telemetry_extra(name, t, t0, Tn))
 
+    every = phase_every(sc.T) if bulk else 1
     try:
         write_text_metadata(w, sc, source="simulate", run_id=run_id, ref=ref,
-                            extra={"scenario_overrides": overrides or {}, "bits": cb.bits})
+                            extra={"scenario_overrides": overrides or {}, "bits": cb.bits,
+                                   "simulator": getattr(res, "simulator", "per-sample"), "phase_every": every,
+                                   "writer": "bulk" if bulk else "per-message"})
         start = msg.Start(run_id=run_id, t0_ns=t0, T_ns=Tn, n_steps=sc.n_steps, digest="", timing="ideal",
                           ack_via_attacker=False)
         w.write("/control/start", start, t0)
@@ -255,7 +290,9 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
         reasons = res.reason
         fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
-        for k in range(N):
+        if bulk:
+            _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total)
+        for k in range(0 if bulk else N):  # the per-message path
             tk = k * Tn
             lt = t0 + tk
             th = int(theta[k])
@@ -321,6 +358,79 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     return dict(w.counts)
 
 
+def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int, theta, attack_on,
+                  dropped_total, block: int = 1 << 15) -> None:
+    """Every sample's messages, in the order of the per-message path: the telemetry encoded from the
+    arrays (``simrecord``), blocks of ``block`` samples at a time; events, attack switches and the
+    decimated phase plane between them as that path writes them."""
+    import numpy as np
+
+    from ..view.foxglove import REFRESH_S, TOPIC_PHASE, PhaseScene, window_of
+    from .simrecord import encode, telemetry_columns
+
+    N = len(res.t)
+    if every > 1:  # the trajectory of the scenes is the scenes' samples: refreshed every REFRESH_S of the run
+        fox.scene = PhaseScene(window_of(sc, None), refresh=max(1, round(REFRESH_S / (sc.T * every))))
+    scene = fox.scene
+    reason = theta if res.reason is None else np.asarray(res.reason, dtype=np.int64)
+    withheld = np.zeros(N, bool) if res.withheld is None else np.asarray(res.withheld, dtype=bool)
+    fault_at = res.plant_fault_at if getattr(res, "plant_fault", None) is not None else -1
+    on = np.asarray(attack_on, dtype=bool)
+    switch = np.flatnonzero(on != np.concatenate([[False], on[:-1]])) if N else np.zeros(0, np.int64)
+    sat = np.flatnonzero(res.saturated)
+    switch = set(switch.tolist())
+    special = set(range(0, N, every)) | switch | set(sat.tolist()) | ({fault_at} - {-1})
+    add = w.adder()
+    topics = ("/telemetry/plant", "/telemetry/encoder", "/telemetry/attacker", "/telemetry/controller")
+    names = ("PlantSample", "EncoderSample", "AttackerSample", "ControllerSample")
+    cp, ce, ca, cc = (w.channel(t, nm) for t, nm in zip(topics, names, strict=True))
+
+    def tap(items):
+        for topic, name, data, lt in items:
+            w.write_bytes(topic, name, data, lt)
+
+    for k0 in range(0, N, block):
+        k1 = min(N, k0 + block)
+        cols = telemetry_columns(res, k0, k1, t0, Tn, attack_on, dropped_total, reason)
+        P, E, A, C = (encode(nm, k1 - k0, cols[nm]) for nm in names)
+        for k in range(k0, k1):
+            i = k - k0
+            lt = t0 + k * Tn
+            if k not in special:
+                add(cp, lt, P[i], lt)
+                add(ce, lt, E[i], lt)
+                add(ca, lt, A[i], lt)
+                add(cc, lt, C[i], lt)
+                continue
+            tk = k * Tn
+            add(cp, lt, P[i], lt)
+            if k == fault_at:
+                ev = msg.Event(node="plant", kind="plant_fault", k=k, t_ns=tk, detail=res.plant_fault)
+                w.write("/events/plant", ev, lt)
+                tap(fox.event(ev, lt))
+            add(ce, lt, E[i], lt)
+            if k % every == 0:
+                held = bool(withheld[k])
+                w.write_bytes(TOPIC_PHASE, "foxglove.SceneUpdate",
+                              scene.sample(lt, res.x[k], None if held else res.xi_enc[k],
+                                           None if held else float(res.E_enc[k])), lt)
+            if res.saturated[k]:
+                ev = msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
+                               detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}")
+                w.write("/events/encoder", ev, lt)
+                tap(fox.event(ev, lt))
+            add(ca, lt, A[i], lt)
+            if k in switch:
+                d = int(dropped_total[k])
+                st = msg.AttackerStatus(k=k, attack_on=bool(on[k]), dropped=d, forwarded=int(k + 1 - d))
+                w.write("/attacker/status", st, lt)
+                tap(fox.status(st, lt))
+            add(cc, lt, C[i], lt)
+        for t in topics:
+            w.counts[t] += k1 - k0
+        w.maybe_flush()
+
+
 def markdown() -> str:
     """docs/recording-format.md: every topic, metadata record and field (``python -m testbed.record.recording``)."""
     doc = __doc__
@@ -354,7 +464,10 @@ Foxglove opens the file as it is and Rerun decodes it natively.
   checkout), numpy, scipy, numba, eclipse-zenoh, mcap, protobuf, rerun-sdk; `format` (this format's version).
 - `testbed.run`: `source` (`live` or `simulate`), `run_id`, `host`, `pid`, `command`, `started_utc`,
   `scenario_overrides` (JSON: `--duration`, `--T`, `--mode`, ... applied on top of the TOML), and for live
-  runs `T_ns`, `ack_via_attacker`.
+  runs `T_ns`, `ack_via_attacker`; for a simulation `bits`, `simulator` (`batch` or `per-sample`: which
+  simulator ran), `writer` (`bulk`: the telemetry encoded from the arrays at once; `per-message`) and
+  `phase_every` (`/phase` holds the scene of every `phase_every`-th sample: 1 at T >= 10 ms, else one
+  every 10 ms of the run).
 - `testbed.recorder` (written at a clean close only): message counts per topic and the recorder's counters.
 
 ## Times

@@ -129,7 +129,8 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     diverged_at = int(bad_flow[0]) if bad_flow.size else -1
     res = SimResult(T=sc.T, t=np.arange(N) * sc.T, x=x, u=u, q=q, q_enc=q_enc, xi_enc=xi_enc, E_enc=E_enc,
                     xi_dec=xi_dec, E_dec=E_dec, theta=theta, symbols=symbols, saturated=sat, x_final=x_final,
-                    flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float))
+                    flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float),
+                    simulator=cols.metadata.get("testbed.run", {}).get("simulator"))  # None: a live run
     events = cols.events
     pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
     if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample

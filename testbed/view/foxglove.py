@@ -110,9 +110,13 @@ class _Enc:
         N = _numbers()
         self.n = N
         self._d = struct.Struct("<d").pack
+        self._keys: dict[tuple[str, str, int], bytes] = {}
 
     def key(self, msgname: str, field: str, wt: int) -> bytes:
-        return _varint((self.n[msgname][field] << 3) | wt)
+        k = self._keys.get((msgname, field, wt))
+        if k is None:  # a few dozen distinct keys, each encoded once
+            k = self._keys[(msgname, field, wt)] = _varint((self.n[msgname][field] << 3) | wt)
+        return k
 
     def dbl(self, msgname: str, field: str, v: float) -> bytes:
         return self.key(msgname, field, 1) + self._d(float(v))
