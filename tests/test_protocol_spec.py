@@ -112,3 +112,60 @@ def test_start_carries_the_protocol_version_and_decode_checks_it_first():
         msg.Start.decode(json.dumps(d).encode())
     assert e.value.theirs == 0
     assert f"Protocol version: **{msg.PROTOCOL_VERSION}**" in DOC.read_text()
+
+
+def test_a_client_joins_the_router_topology_over_mutual_tls_and_the_router_checks_it(tmp_path):
+    """The authenticated way in for a device that has mutual TLS but no user/password (zenoh-pico):
+    nodes started by hand in the router topology with --tls-dir.  Real Zenoh sessions: the plant's (the
+    router, by ``zenoh_config``), the controller's (a client, likewise), and a bare Zenoh client with the
+    encoder's certificate and nothing else, as a device would present.  The device's symbol reaches the
+    controller; its forged actuation does not; a certificate of another authority gets no session."""
+    import argparse
+    import threading
+    import time
+
+    import zenoh
+
+    from testbed.wire.session import security_info, zenoh_config
+
+    tls = transport.TlsCredentials.new(tmp_path / "tls")
+    keys = transport.Keys.for_run("tlsrouter")
+    ep = f"tls/127.0.0.1:{transport.free_port()}"
+
+    def args(**kw):
+        base = dict(topology="router", tls_dir=str(tls.folder), secret_file=None, insecure=False, listen=[],
+                    connect=[], zenoh_config=None, low_latency=False, colocate=None, launched=False)
+        return argparse.Namespace(**{**base, **kw})
+
+    assert security_info(args())["transport"] == "mutual tls"
+    device_conf = transport.make_config(connect=[ep], mode="client", tls=tls.zenoh("encoder"))
+    got, lock = [], threading.Lock()
+
+    def on(sample):
+        with lock:
+            got.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    with zenoh.open(zenoh_config(args(listen=[ep]), "plant", keys)) as plant, \
+            zenoh.open(zenoh_config(args(connect=[ep]), "controller", keys)) as ctl, \
+            zenoh.open(device_conf) as device:
+        assert plant is not None
+        subs = [ctl.declare_subscriber(keys.symbol_tx, on), ctl.declare_subscriber(keys.actuation, on)]
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            device.put(keys.symbol_tx, b"\x23")   # the encoder's own key
+            device.put(keys.actuation, b"forged")  # the controller's key: the router refuses it
+            with lock:
+                if (keys.symbol_tx, b"\x23") in got:
+                    break
+            time.sleep(0.1)
+        time.sleep(0.5)
+        for s in subs:
+            s.undeclare()
+    assert (keys.symbol_tx, b"\x23") in got
+    assert not [g for g in got if g[0] == keys.actuation]
+    other = transport.TlsCredentials.new(tmp_path / "other")
+    with zenoh.open(zenoh_config(args(listen=[ep]), "plant", keys)):
+        stranger = transport.make_config(connect=[ep], mode="client", tls=other.zenoh("encoder"))
+        stranger.insert_json5("connect/timeout_ms", "2000")
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(stranger)
