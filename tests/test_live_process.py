@@ -354,14 +354,16 @@ def test_physical_timing_on_arrival_survives_latency(run_id, tmp_path):
     assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
 
 
-@pytest.mark.parametrize("topology", ["router", "peer"])
+@pytest.mark.parametrize("topology", ["router", "peer", "router-tls"])
 def test_standalone_nodes(run_id, tmp_path, topology):
     """Four ``testbed node`` processes started by hand (no launcher) run a scenario to the end.
 
     Router: the plant is the run's router; the others authenticate with a secret file made by
     ``testbed secret``.  Peer: every link mutual TLS with a folder made by ``testbed secret --tls``;
     the others find each other through the plant.  The test itself is the run's collector (the
-    launcher's credentials; the plant, started with ``--wait-collector``, waits for it): every node's
+    launcher's credentials; the plant, started with ``--wait-collector``, waits for it).  Router-tls: the
+    router topology over mutual TLS (``--topology router --tls-dir``, the way in for a device without
+    passwords, docs/protocol.md): the plant is the router and checks by certificate name.  Every node's
     summary says the run ended because the plant finished all 20 samples, and the plant's telemetry
     holds every sample and the final state.
     """
@@ -373,11 +375,12 @@ def test_standalone_nodes(run_id, tmp_path, topology):
     from testbed.wire import transport
 
     peer = topology == "peer"
-    secret = str(tmp_path / ("tls" if peer else "run.secret"))
-    assert subprocess.run(tb_cmd("secret", secret, *(["--tls"] if peer else [])), capture_output=True).returncode == 0
-    cred = ["--topology", "peer", "--tls-dir", secret] if peer else ["--secret-file", secret]
+    tls = topology != "router"
+    secret = str(tmp_path / ("tls" if tls else "run.secret"))
+    assert subprocess.run(tb_cmd("secret", secret, *(["--tls"] if tls else [])), capture_output=True).returncode == 0
+    cred = ["--topology", topology.split("-")[0], "--tls-dir", secret] if tls else ["--secret-file", secret]
     port = transport.free_port()
-    ep = f"{'tls' if peer else 'tcp'}/127.0.0.1:{port}"
+    ep = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
     keys = transport.Keys.for_run(run_id)
     summaries, rows, lock = {}, {}, threading.Lock()
 
@@ -401,8 +404,8 @@ def test_standalone_nodes(run_id, tmp_path, topology):
                                                    *cred, *net),
                                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                            text=True, start_new_session=True)
-        if peer:
-            conf = transport.make_config(connect=[ep], mode="peer",
+        if tls:
+            conf = transport.make_config(connect=[ep], mode="peer" if peer else "client",
                                          tls=transport.TlsCredentials(secret).zenoh(transport.LAUNCHER))
         else:
             cred_file = transport.Credentials.read(secret)

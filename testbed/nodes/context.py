@@ -35,6 +35,7 @@ class NodeContext:
         self.stop = threading.Event()
         self.stop_reason = ""
         self.start_msg: msg.Start | None = None
+        self.protocol_refused: str | None = None  # a Start of another protocol version: why this node refused
         self.clock: RunClock | None = None
         self._start_ev = threading.Event()
         self._lock = threading.Lock()
@@ -115,6 +116,14 @@ class NodeContext:
     def _on_start(self, sample) -> None:
         try:
             st = msg.Start.decode(sample.payload)
+        except msg.ProtocolMismatch as e:
+            with self._lock:
+                if self.start_msg is not None or self.protocol_refused is not None:
+                    return
+                self.protocol_refused = str(e)
+            self.event("protocol_mismatch", detail=str(e), level=logging.INFO)  # main prints the one line
+            self.request_stop("protocol mismatch")
+            return
         except msg.MessageError as e:
             self.event("bad_start", detail=str(e))
             return

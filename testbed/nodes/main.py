@@ -10,8 +10,9 @@ A plant with ``--colocate encoder`` runs the encoder too, under the encoder's
 name (SIGUSR2: the encoder alone dies, for ``testbed run --kill encoder@S``).  SIGINT / SIGTERM, a ``Stop`` message, the loss of
 the plant or the end of the run (+ grace) stop a node cleanly.
 
-Exit codes: 0 stopped cleanly, 1 crashed (traceback on stderr), 2 bad scenario or
-a different run configuration than the plant's, 3 peers missing at startup.
+Exit codes: 0 stopped cleanly, 1 crashed (traceback on stderr), 2 bad scenario, a
+different run configuration than the plant's or a Start of another protocol version
+(``messages.PROTOCOL_VERSION``), 3 peers missing at startup.
 """
 
 from __future__ import annotations
@@ -59,6 +60,12 @@ def _netns() -> str | None:
         return os.readlink("/proc/self/ns/net")
     except OSError:
         return None
+
+
+def _refuse_protocol(role: str, ctx) -> int:
+    """A Start of another protocol version came: one line naming both versions, exit 2."""
+    print(f"testbed node {role}: refused: {ctx.protocol_refused}", file=sys.stderr)
+    return 2
 
 
 def add_arguments_node(p: argparse.ArgumentParser) -> None:
@@ -181,6 +188,8 @@ def main_node(args) -> int:
             gc.disable()
             node.declare_alive()
             if not ctx.wait_for("alive", transport.ROLES, args.ready_timeout):
+                if ctx.protocol_refused is not None:
+                    return _refuse_protocol(role, ctx)
                 if ctx.stop.is_set():
                     return 0
                 print(f"testbed node {role}: peers not up after {args.ready_timeout:g} s: "
@@ -197,6 +206,8 @@ def main_node(args) -> int:
             else:
                 st = ctx.wait_start(args.ready_timeout)
             if st is None:
+                if ctx.protocol_refused is not None:
+                    return _refuse_protocol(role, ctx)
                 if ctx.stop_reason == "run mismatch":
                     print(f"testbed node {role}: the plant runs a different scenario or run options "
                           f"(digest mismatch)", file=sys.stderr)

@@ -35,12 +35,26 @@ __all__ = [
     "MessageError", "Header", "HEADER_SIZE", "WARMUP_K", "Sensor", "Symbol", "Actuation", "Ack",
     "PlantTelemetry", "EncoderTelemetry", "ControllerTelemetry", "AttackerTelemetry",
     "Start", "Stop", "Event", "AttackerStatus", "NodeSummary", "TELEMETRY_TYPES",
-    "NO_TIME", "THETA_NONE", "pack_batch", "unpack_batch",
+    "NO_TIME", "THETA_NONE", "pack_batch", "unpack_batch", "PROTOCOL_VERSION", "ProtocolMismatch",
 ]
 
 
 class MessageError(ValueError):
     """A payload or attachment that is not a well-formed message."""
+
+
+#: the wire protocol's version (docs/protocol.md, "Versioning"): carried by ``Start.protocol``, the one
+#: message every node reads before the first sample; bumped whenever a key, a byte layout, a field of a
+#: JSON message or a rule of the protocol changes in a way a node of the previous version would misread
+PROTOCOL_VERSION = 1
+
+
+class ProtocolMismatch(MessageError):
+    """A ``Start`` of another protocol version (``theirs``; 0: a Start that carries none)."""
+
+    def __init__(self, theirs):
+        self.theirs = theirs
+        super().__init__(f"the run speaks protocol version {repr(theirs)[:40]}, this node speaks {PROTOCOL_VERSION}")
 
 
 NO_TIME = -(2**63)     # "never happened" for an int64 time stamp
@@ -427,7 +441,9 @@ class Start(_Json):
     """The run's start: t0 on CLOCK_REALTIME (ns) and what every node must agree on.
 
     ``digest`` hashes the scenario text and the run options; a node whose own
-    digest differs refuses to run.
+    digest differs refuses to run.  ``protocol``: the wire protocol's version
+    (``PROTOCOL_VERSION``); ``decode`` checks it first, before any other field, and
+    raises ``ProtocolMismatch`` for another version (or for a Start without one).
     """
 
     run_id: str
@@ -437,6 +453,20 @@ class Start(_Json):
     digest: str
     timing: str
     ack_via_attacker: bool
+    protocol: int = PROTOCOL_VERSION
+
+    @classmethod
+    def decode(cls, payload) -> "Start":
+        try:
+            d = json.loads(_bytes(payload))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise MessageError(f"Start: not JSON: {e}") from None
+        if not isinstance(d, dict):
+            raise MessageError("Start: not a JSON object")
+        theirs = d.get("protocol", 0)
+        if theirs != PROTOCOL_VERSION or isinstance(theirs, bool):
+            raise ProtocolMismatch(theirs)
+        return super().decode(payload)
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,9 @@ def add_security_arguments(g, launcher: bool = False) -> None:
                         "other hosts need at the same path")
     g.add_argument("--tls-dir", metavar="DIR",
                    help="--topology peer: the run's TLS folder (ca.pem, NAME.pem, NAME.key; make one with "
-                        "'testbed secret --tls DIR'); testbed run makes certificates for each run unless given one")
+                        "'testbed secret --tls DIR'); testbed run makes certificates for each run unless given one. "
+                        "testbed node/record --topology router with --tls-dir and no --secret-file: the router "
+                        "topology over mutual TLS, the router checking by certificate name (docs/protocol.md)")
     g.add_argument("--insecure", action="store_true",
                    help="no authentication and no access control: any local process can join, stop or steer "
                         "the run (recorded as such)")
@@ -65,16 +67,25 @@ def access_control(topology: str) -> str:
     return "every message, by every receiver" if topology == "peer" else "every message"
 
 
-def transport_security(topology: str, insecure: bool) -> str:
-    """How the links of a run are authenticated (the ``transport`` of its ``security``)."""
-    return "tcp" if insecure else ("mutual tls" if topology == "peer" else "user/password")
+def transport_security(topology: str, insecure: bool, tls: bool = False) -> str:
+    """How the links of a run are authenticated (the ``transport`` of its ``security``); ``tls``: a router
+    topology of nodes started by hand with ``--tls-dir`` and no ``--secret-file`` (``router_tls``)."""
+    return "tcp" if insecure else ("mutual tls" if topology == "peer" or tls else "user/password")
+
+
+def router_tls(args) -> bool:
+    """``testbed node``/``testbed record`` in the router topology with ``--tls-dir`` and no ``--secret-file``:
+    the links are mutual TLS and the router checks every message by certificate name (a client that cannot
+    authenticate with a password, such as a zenoh-pico device, joins this way; docs/protocol.md)."""
+    return (getattr(args, "topology", "router") == "router" and bool(getattr(args, "tls_dir", None))
+            and not getattr(args, "secret_file", None) and not getattr(args, "insecure", False))
 
 
 def security_info(args) -> dict:
     """How a process's session is secured (it goes into the recording and the summary)."""
     return {"authenticated": not args.insecure, "topology": args.topology,
             "access_control": "none" if args.insecure else access_control(args.topology),
-            "transport": transport_security(args.topology, args.insecure),
+            "transport": transport_security(args.topology, args.insecure, router_tls(args)),
             "low_latency": bool(getattr(args, "low_latency", False))}
 
 
@@ -93,7 +104,9 @@ def zenoh_config(args, role: str, keys: transport.Keys):
 
     hub = role == "plant" and not getattr(args, "launched", False)
     peer = args.topology == "peer"
-    hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if peer and not args.insecure else transport.DEFAULT_HUB
+    tls_router = router_tls(args)
+    hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if (peer or tls_router) and not args.insecure \
+        else transport.DEFAULT_HUB
     listen, connect = list(args.listen), list(args.connect)
     if not listen and not connect and not args.zenoh_config:
         if hub:
@@ -101,6 +114,12 @@ def zenoh_config(args, role: str, keys: transport.Keys):
         else:
             connect = [hub_ep]
     mode = "peer" if peer else ("router" if hub else "client")
+    if tls_router:
+        transport.require_tls((*listen, *connect), "--topology router --tls-dir")
+        return session_config(role, mode, keys, listen=listen, connect=connect, config_file=args.zenoh_config,
+                              colocate=transport.colocated_roles(getattr(args, "colocate", None)),
+                              low_latency=bool(getattr(args, "low_latency", False)), tls_dir=args.tls_dir,
+                              accepts=hub)
     if not args.insecure and not peer and not args.secret_file:
         raise BadInput("no --secret-file: make one with 'testbed secret PATH' and give it to every process "
                        "of the run (or run unauthenticated with --insecure)")
@@ -120,7 +139,9 @@ def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), con
     """The Zenoh config of one process of a run, the one place a session's security is put together.
 
     ``mode`` "peer": mutual TLS with ``role``'s certificate of ``tls_dir``, and the access rules checked
-    by every receiver (by certificate common name).  Otherwise user/password: ``role``'s line of the
+    by every receiver (by certificate common name).  "router"/"client" with ``tls_dir`` and no
+    ``secret_file``: mutual TLS too, and the router (``accepts``) checks the access rules by certificate
+    common name.  Otherwise user/password: ``role``'s line of the
     ``secret_file``; a process that ``accepts`` others (the run's router: the launcher, or a standalone
     plant) also authenticates them against the file's lines and checks the access rules.  ``insecure``:
     neither.  Used by the nodes and the recorder (``zenoh_config``) and the launcher's own session.
@@ -134,6 +155,9 @@ def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), con
     if mode == "peer":
         return transport.make_config(**common, acl=transport.acl_config(keys, colocate, by="cert_common_names"),
                                      tls=transport.TlsCredentials(tls_dir).zenoh(role))
+    if tls_dir is not None and secret_file is None:  # router topology over mutual TLS: the router checks by name
+        acl = transport.acl_config(keys, colocate, by="cert_common_names") if accepts else None
+        return transport.make_config(**common, acl=acl, tls=transport.TlsCredentials(tls_dir).zenoh(role))
     cred = transport.Credentials.read(secret_file)
     if accepts:
         missing = [u for u in (*transport.ROLES, transport.RECORDER) if u not in cred.users]

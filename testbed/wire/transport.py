@@ -402,13 +402,13 @@ class TlsCredentials:
                 "verify_name_on_connect": False}
 
 
-def require_tls(endpoints) -> None:
+def require_tls(endpoints, what: str = "--topology peer") -> None:
     """The peer topology's links are mutual TLS: every endpoint ``tls/HOST:PORT`` (BadInput otherwise)."""
     from ..errors import BadInput
 
     for ep in endpoints:
         if not str(ep).startswith("tls/"):
-            raise BadInput(f"--topology peer: endpoint {ep}: the links are mutual TLS (tls/HOST:PORT)")
+            raise BadInput(f"{what}: endpoint {ep}: the links are mutual TLS (tls/HOST:PORT)")
 
 
 def _write_new(path: Path, data: bytes, mode: int) -> None:
