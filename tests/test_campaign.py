@@ -434,3 +434,29 @@ def test_live_campaign_on_dask_brings_the_recordings_back(tmp_path):
     p = _cli("campaign", "--verify", "o", "--json", cwd=tmp_path)
     assert p.returncode == 0, p.stdout + p.stderr
     assert json.loads(p.stdout)["checked_live"] == 2
+
+
+def test_the_slurm_example_renders_the_job_script_it_describes():
+    """docs/campaigns.md's SLURM cluster, made as written (its scheduler on a free port, nothing
+    submitted): the job script asks for what the page says."""
+    import ast
+    import re
+
+    from failclosed import import_or_require
+
+    jobqueue = import_or_require("dask_jobqueue", "dask")
+    page = (Path(__file__).resolve().parents[1] / "docs" / "campaigns.md").read_text()
+    m = re.search(r"cluster = SLURMCluster\((.*?)\n\)\n", page, re.S)
+    assert m, "docs/campaigns.md has no 'cluster = SLURMCluster(...)' example"
+    call = ast.parse(f"f({m.group(1)})", mode="eval").body
+    kwargs = {k.arg: ast.literal_eval(k.value) for k in call.keywords}
+    assert kwargs["scheduler_options"]["port"] == 8786
+    kwargs["scheduler_options"] = dict(kwargs["scheduler_options"], port=0)  # a free port here
+    cluster = jobqueue.SLURMCluster(**kwargs)
+    try:
+        script = cluster.job_script()
+    finally:
+        cluster.close()
+    assert "#SBATCH --cpus-per-task=8" in script and "#SBATCH -t 02:00:00" in script, script
+    assert "source ~/testbed/.venv/bin/activate" in script and "export NUMBA_NUM_THREADS=1" in script, script
+    assert "--nworkers 8" in script and "--nthreads 1" in script, script  # one thread per worker process
