@@ -192,7 +192,7 @@ def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing
     import helpers
     import test_live_process as lp
 
-    sim = _simulated("--timing", "physical")
+    sim = _simulated("--timing", "physical", "--deadline", "0.9")  # as the test runs it
     broken = dict(sim, complete=True, outcome="done", faults=[], events={}, samples=len(sim["t"]),
                   encoder_decoder_agree_where_known=True, recording={"path": "unused.mcap", "complete": True},
                   timing={"deadline_misses": 0, "overruns": 0, "late_for_schedule": 3})
