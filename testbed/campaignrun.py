@@ -66,41 +66,38 @@ def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, 
     finished = {k for k, r in done.items() if r.get("status") == "ok"}
     todo = [r for r in runs if r.id not in finished]
     prog = Progress(len(runs), len(runs) - len(todo), progress)
-    failed = 0
     journal = cmp.Journal(folder)
+    count = {"done": len(runs) - len(todo), "failed": 0}
+
+    def store(row: dict) -> None:  # durably, as the run ends
+        journal.write(row)
+        done[row["run"]] = row
+        count["done"] += 1
+        count["failed"] += row["status"] != "ok"
+
     try:
-        n_done = len(runs) - len(todo)
         if c.runs == "live":
             rows = (_live_on_dask(executor, todo, folder, live_timeout)
                     if executor is not None and executor.kind == "dask"
                     else (cmp.live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
             for row in rows:
-                journal.write(row)
-                done[row["run"]] = row
-                n_done += 1
-                failed += row["status"] != "ok"
-                prog(n_done, failed)
+                store(row)
+                prog(count["done"], count["failed"])
         elif todo:
             items = [(r.id, r.text, r.name, r.base_dir) for r in todo]
             first, rest = items[:1], items[1:]
             # the first run here: it loads (or compiles) the kernels before any worker does
             for row in cmp.simulate_runs(first):
-                journal.write(row)
-                done[row["run"]] = row
-                n_done += 1
-                failed += row["status"] != "ok"
-            prog(n_done, failed)
+                store(row)
+            prog(count["done"], count["failed"])
             dask = executor is not None and executor.kind == "dask"
             parts = chunks(rest, executor.workers if executor is not None else 1, dask)
             gen = (executor.imap(cmp.simulate_runs, parts, warm=first if dask else None) if executor is not None
                    else ((i, cmp.simulate_runs(p)) for i, p in enumerate(parts)))
             for _i, rows in gen:
                 for row in rows:
-                    journal.write(row)
-                    done[row["run"]] = row
-                    n_done += 1
-                    failed += row["status"] != "ok"
-                prog(n_done, failed)
+                    store(row)
+                prog(count["done"], count["failed"])
     finally:
         journal.close()
     prog(len([r for r in runs if r.id in done]), sum(1 for r in runs if r.id in done and done[r.id]["status"] != "ok"),
