@@ -229,6 +229,9 @@ def _resolve(base, axes: dict, seeds_from) -> tuple[dict, dict, str]:
             data["quantizer"] = {k: v for k, v in qt.items() if k in used}
     seeds = {}
     att = data.get("attack") if isinstance(data.get("attack"), dict) else {}
+    if "attack.seed" in axes and att.get("kind") != "random":
+        raise BadInput(f"varies nothing: the attack's kind {att.get('kind')!r} draws no random numbers "
+                       "(only kind = 'random' does)")
     if att.get("kind") == "random":
         s = seeds_from("attack.seed") if "attack.seed" not in axes else None
         if s is not None:

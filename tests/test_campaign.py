@@ -178,7 +178,9 @@ def test_bad_value_is_one_line_naming_axis_value_reason(tmp_path):
                                                                                                    '"nope"']),
                         ('scenario = "random.toml"\nrepeat = 0\n', ["repeat"]),
                         ('scenario = "random.toml"\n[axes]\n"x0" = [1]\n', ["'x0'"]),
-                        ('scenario = "nowhere.toml"\n', ["nowhere.toml"])]:
+                        ('scenario = "nowhere.toml"\n', ["nowhere.toml"]),
+                        ('scenario = "paper"\n[axes]\n"attack.seed" = [1, 2]\n', ["'attack.seed'", "varies nothing",
+                                                                                  "'intervals'"])]:
         c.write_text(text)
         p = _cli("campaign", c, "--out", tmp_path / "o", cwd=tmp_path)
         lines = p.stderr.strip().splitlines()
