@@ -5,7 +5,8 @@ It writes a random-attack version of the paper's example (``docs/examples/paper-
 ``--duration`` seconds) and a campaign of 2 methods x ``--seeds`` attack seeds, runs it with
 ``testbed campaign --workers 1`` and ``--workers 2`` (each in a fresh folder: nothing skipped),
 then ``--separate`` of its runs as one ``testbed simulate --method M --seed S --json`` process
-each (one after the other, as a shell loop would), and prints runs per second of each.  The
+each (one after the other, as a shell loop would), and prints runs per second of each, and the
+campaign's as a ratio to the separate processes' (the baseline, measured in the same run).  The
 campaign's times include its process start-up and its writing of the table; the separate runs'
 are per process.
 
@@ -61,7 +62,18 @@ def main() -> None:
                 raise SystemExit(f"simulate failed ({p.returncode}): {p.stderr[-2000:]}")
         el = time.perf_counter() - t0
         out["separate_processes"] = {"runs": k, "wall_s": round(el, 2), "runs_per_s": round(k / el, 2)}
+    base = k / el  # the baseline: a shell loop of `testbed simulate` processes, measured in the same run
+    for w in a.workers:
+        c = out[f"campaign_{w}_workers"]
+        c["vs_separate_processes"] = round(c["runs_per_s"] / base, 2)
+    if len(a.workers) > 1:
+        w0 = out[f"campaign_{a.workers[0]}_workers"]["runs_per_s"]
+        out["speedup_workers"] = {str(w): round(out[f"campaign_{w}_workers"]["runs_per_s"] / w0, 2) for w in a.workers}
     print(json.dumps(out, indent=1))
+    for w in a.workers:
+        c = out[f"campaign_{w}_workers"]
+        print(f"campaign, {w} worker(s): {c['runs_per_s']} runs/s = {c['vs_separate_processes']}x separate processes "
+              f"({out['separate_processes']['runs_per_s']} runs/s)", file=sys.stderr)
 
 
 if __name__ == "__main__":
