@@ -257,6 +257,24 @@ def loss_counts(cause: np.ndarray) -> dict:
             "withheld": int(c[WITHHELD])}
 
 
+def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None) -> dict:
+    """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
+    ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
+    invalid counts as the attacker's too: only the attacker corrupts), the controller's reason
+    (``superseded``: decided only after a later sample came: late), and the controller's count of
+    symbols that arrived after their sample was decided (``late_symbols``, its summary's ``late``).
+    Every other lost sample was sent (and forwarded) and did not arrive by the loss deadline: it is
+    the channel's, except the ``late_symbols`` that did arrive, later (late).  The four add up to
+    the samples lost."""
+    lost = np.asarray(theta) != 0
+    w = lost & np.asarray(withheld, dtype=bool)
+    a = lost & ~w & (np.asarray(attacker, dtype=bool) | np.asarray(invalid, dtype=bool))
+    sup = lost & ~w & ~a & np.asarray(superseded, dtype=bool)
+    rest = int(np.count_nonzero(lost & ~w & ~a & ~sup))
+    late = min(max(int(late_symbols or 0), 0), rest)
+    return {"attacker": int(a.sum()), "channel": rest - late, "late": late + int(sup.sum()), "withheld": int(w.sum())}
+
+
 # ----------------------------------------------------------------------------- parsing
 def _num(key: str, v, *, lo: float | None = None, lo_open: bool = False, hi: float | None = None,
          hi_open: bool = False, integer: bool = False, allow_inf: bool = False) -> float:
@@ -310,5 +328,5 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "loss_counts", "LOSS_KINDS", "RECEIVED", "ATTACKER", "CHANNEL", "LATE",
+           "payload_bits", "loss_cause", "loss_counts", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER", "CHANNEL", "LATE",
            "WITHHELD"]

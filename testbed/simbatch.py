@@ -30,7 +30,7 @@ import numpy as np
 
 from attackers.greedy import greedy_init, greedy_step
 
-from .channel import loss_cause
+from .channel import LATE, loss_cause
 from .flow import FLOW_OK, flow_into
 from .methods.ends import unaware_update
 from .quantizer import box_center, control_input, quantize_index, zoom_update
@@ -386,7 +386,8 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
         c = {"sensed": chan.sensed[sl], "symbol_lost": chan.symbol_lost[sl], "late": chan.late[sl]}
     cause = loss_cause(theta, withheld=withheld, attacker=ctab[3, sl] != 0, **c)
     counters = {"encoder": enc_counters,
-                "controller": {"received": last - lost, "lost_deadline": lost, "invalid": 0, "late": 0,
+                "controller": {"received": last - lost, "lost_deadline": lost, "invalid": 0,
+                               "late": int(np.count_nonzero(cause == LATE)),
                                "superseded": 0, "future": 0, "overflows": novf, "decided": last},
                 "plant": {"rejected_nonfinite": nrej, "clamped": nclamp}}
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=a["x"][sl], u=U[sl], q=a["q"][sl], q_enc=a["q_enc"][sl],

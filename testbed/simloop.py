@@ -18,7 +18,7 @@ import numpy as np
 from attackers.greedy import greedy_init, greedy_step
 from plants.base import PlantFault
 
-from .channel import NetworkModel, SampleChannel, loss_cause, sample_channel
+from .channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from .methods.base import symbol_code
 from .protocol import (
@@ -331,13 +331,16 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     if replay is None:
         c = {} if chan is None else {"sensed": chan.sensed[sl], "symbol_lost": chan.symbol_lost[sl], "late": chan.late[sl]}
         cause = loss_cause(theta[sl], withheld=withheld[sl], attacker=dropped[sl], **c)
+    ctl_counters = ctlp.counters()
+    if cause is not None:  # a late symbol arrives after its sample was decided (counted as the live controller does)
+        ctl_counters["late"] += int(np.count_nonzero(cause == LATE))
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=rec["x"][sl], u=u_rec[sl], q=rec["q"][sl],
                      q_enc=rec["q_enc"][sl], xi_enc=rec["xi_enc"][sl], E_enc=E_enc[sl],
                      xi_dec=rec["xi_dec"][sl], E_dec=E_dec[sl], theta=theta[sl], symbols=symbols[sl],
                      saturated=sat[sl], x_final=process.x, flow_status=status, diverged_at=diverged_at, K=K,
                      reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl], loss_cause=cause,
                      delays=None if delays is None else delays[:last].copy(),
-                     counters={"encoder": encp.counters(), "controller": ctlp.counters(),
+                     counters={"encoder": encp.counters(), "controller": ctl_counters,
                                "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
                      plant_fault=fault, plant_fault_at=fault_at,
                      loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
