@@ -328,5 +328,5 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "loss_counts", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER", "CHANNEL", "LATE",
-           "WITHHELD"]
+           "payload_bits", "loss_cause", "loss_counts", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER",
+           "CHANNEL", "LATE", "WITHHELD"]
