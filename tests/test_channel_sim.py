@@ -123,3 +123,67 @@ def test_simulate_json_says_losses(capsys, tmp_path):
     assert cli.main(["simulate", str(path), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["losses"]["channel"] > 0 and s["losses"]["attacker"] == int(sc.theta(sc.n_steps).sum())
+
+
+def test_recorded_losses_on_a_constructed_record():
+    """The rule a recording is read by (channel.recorded_losses), on ten samples whose fate is known:
+    0 received; 1 withheld; 2 dropped by the attacker; 3 corrupted (invalid); 4 superseded; 5, 6, 7 forwarded
+    and never received, of which the controller counted one as arriving late; 8, 9 received."""
+    theta = np.array([0, 1, 1, 1, 1, 1, 1, 1, 0, 0])
+    z = np.zeros(10, dtype=bool)
+
+    def at(*ks):
+        m = z.copy()
+        m[list(ks)] = True
+        return m
+
+    got = channel.recorded_losses(theta, withheld=at(1), attacker=at(2), invalid=at(3), superseded=at(4),
+                                  late_symbols=1)
+    assert got == {"attacker": 2, "channel": 2, "late": 2, "withheld": 1}
+    assert sum(got.values()) == theta.sum()
+    # a late count larger than the candidates cannot make the channel's negative
+    assert channel.recorded_losses(theta, withheld=z, attacker=z, invalid=z, superseded=z, late_symbols=99)["channel"] == 0
+
+
+def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
+    """A simulated run with a lossy, late symbol link and a lossy ack link, written as a recording: the
+    report reads back the simulator's losses (the attacker's from its log, the late ones from the
+    controller's count), the budget section says it prices the attacker's only, and all losses as DoS
+    are judged against Theorem 1's region (computed here on its own)."""
+    from testbed.analysis import Loop, allowable_region
+    from testbed.record.recording import record_simulation
+    from testbed.report import report
+
+    sc = _sc("paper", {"seed": 3, "symbol": {"loss": 0.05, "delay": 0.03, "jitter": 0.02}, "ack": {"loss": 0.05}},
+             timing="physical")
+    res = simulate_scenario(sc)
+    want = loss_counts(res.loss_cause)
+    assert all(want[k] > 0 for k in want)
+    path = tmp_path / "net.mcap"
+    record_simulation(str(path), sc, res)
+    s = report(path, resimulate=0)
+    assert s["losses"] == want
+    attack = sc.theta(sc.n_steps).astype(bool)   # the attack's samples the encoder did not withhold
+    assert s["dropped_by_attacker"] == want["attacker"] == int((attack & ~res.withheld).sum())
+    assert "attacker's losses only" in s["dos"]["counts"]
+    ld = s["losses_as_dos"]
+    H = sc.n_steps * sc.T
+    assert ld["frequency"] == pytest.approx(len(res.intervals()) / H)
+    assert ld["duration_fraction"] == pytest.approx(res.intervals().total_duration / H)   # a run of j + 1: j T
+    reg = allowable_region(Loop.from_scenario(sc), "paper")
+    assert ld["theorem1"]["in_allowable_region"] == bool(reg.holds(ld["frequency"], ld["duration_fraction"]))
+
+
+def test_losses_as_dos_inside_and_outside_theorem1_region():
+    from testbed.report import losses_as_dos
+
+    sc = scenario.load("paper")
+    theta = np.zeros(300, dtype=np.uint8)
+    theta[100:102] = 1                   # two lost samples in 30 s: one attack of T (Schedule.from_theta)
+    ld = losses_as_dos(sc, theta)
+    assert (ld["count"], ld["frequency"], ld["duration_fraction"]) == (1, pytest.approx(1 / 30), pytest.approx(0.1 / 30))
+    assert ld["theorem1"]["in_allowable_region"] is True
+    theta = np.zeros(300, dtype=np.uint8)
+    theta[::3] = 1                       # every third sample: 100 attacks of one sample (3.3 per s)
+    ld = losses_as_dos(sc, theta)
+    assert ld["count"] == 100 and ld["theorem1"]["in_allowable_region"] is False
