@@ -187,3 +187,27 @@ def test_losses_as_dos_inside_and_outside_theorem1_region():
     theta[::3] = 1                       # every third sample: 100 attacks of one sample (3.3 per s)
     ld = losses_as_dos(sc, theta)
     assert ld["count"] == 100 and ld["theorem1"]["in_allowable_region"] is False
+
+
+def test_a_campaign_sweeps_network_keys(tmp_path):
+    """``[axes]`` with dotted ``network.*`` keys: every row is its scenario's ``testbed simulate`` run (the
+    channel applied: more samples lost on the lossy link), and the batch-kernel grouping leaves the channel
+    runs to the simulator that applies it."""
+    from testbed import campaign as cmp
+    from testbed.engine import outcome
+
+    (tmp_path / "paper.toml").write_text(scenario.load("paper").source)
+    c = tmp_path / "c.toml"
+    c.write_text('scenario = "paper.toml"\nseed = 1\n[axes]\n"network.symbol.loss" = [0.0, 0.2]\n'
+                 '"network.symbol.loss_burst" = [1.0, 4.0]\n"network.seed" = [1, 2]\n')
+    runs, _ = cmp.plan(cmp.parse(c))
+    assert len(runs) == 8
+    rows = cmp.simulate_runs([(r.id, r.text, r.name, r.base_dir) for r in runs])
+    lost = {}
+    for r, row in zip(runs, rows, strict=True):
+        sc = scenario.loads(r.text, base_dir=r.base_dir)
+        assert sc.network.link("symbol").loss == r.axes["network.symbol.loss"]
+        want = outcome(summarize(sc, simulate_scenario(sc)))
+        assert {k: row[k] for k in want} == want
+        lost.setdefault(r.axes["network.symbol.loss"], []).append(row["samples_lost"])
+    assert min(lost[0.2]) > max(lost[0.0])
