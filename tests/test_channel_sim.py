@@ -217,3 +217,10 @@ def test_a_campaign_sweeps_network_keys(tmp_path):
         assert {k: row[k] for k in want} == want
         lost.setdefault(r.axes["network.symbol.loss"], []).append(row["samples_lost"])
     assert min(lost[0.2]) > max(lost[0.0])
+
+
+def test_the_kernel_refuses_only_greedy_scoring_E_with_a_lossy_ack_link():
+    sc = _sc("paper-greedy", ALL_LINKS, attack={"score": "E"})
+    assert "ack link" in kernel_refusal(sc)
+    assert simulate_scenario(sc).simulator == "per-sample"
+    assert kernel_refusal(_sc("paper-greedy", {**ALL_LINKS, "ack": {}}, attack={"score": "E"})) is None
