@@ -277,6 +277,8 @@ def kernel_refusal(sc, network: Network | None = None) -> str | None:
         return "acks via the attacker or corrupted payloads (only the protocol objects model them)"
     if sc.attack.online and sc.attack.kind != "greedy":
         return f"the online attacker {sc.attack.kind!r}"
+    if network is not None and network.channel is not None and network.channel != sc.network:
+        return "a channel other than the scenario's [network] (the kernel applies the scenario's)"
     if sc.network is not None and sc.attack.online and sc.attack.score == "E" and sc.network.link("ack").loss > 0:
         return "the greedy attacker scoring E with a lossy ack link (it reads the encoder's E while it withholds)"
     return None
