@@ -40,6 +40,7 @@ from ..nodes.process import parse_cpus
 from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
+from . import external
 from .credentials import RunCredentials, choose_topology
 from .spawn import Forked, _forked_node
 
@@ -132,6 +133,7 @@ class Launcher(RunCredentials):
             from .foxglove_tap import FoxgloveLive
 
             self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
+        self.external = external.check(self)           # --external ROLE: a node from outside (join file)
         # the run folder last: a run refused above (bad input) leaves nothing behind
         self.own_dir = args.run_dir is None
         self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
@@ -313,7 +315,7 @@ class Launcher(RunCredentials):
     def spawn(self, *, forked: bool) -> None:
         """Start the node processes that are forked (before the launcher has any Zenoh thread) or exec'd."""
         for role in self.processes:
-            if self.forks(role) == forked and role not in self.procs:
+            if self.forks(role) == forked and role not in self.procs and role != self.external:
                 self.procs[role] = self._fork(role) if forked else self._popen(self.command(role), role)
 
     def _fork(self, role: str) -> Forked:
@@ -561,6 +563,7 @@ class Launcher(RunCredentials):
         if transport.LAUNCHER in self.cpus:  # before Zenoh starts its threads: the router's CPUs
             os.sched_setaffinity(0, parse_cpus(self.cpus[transport.LAUNCHER]))
         self.make_secrets()
+        join_path = external.write_join(self)
         conf = self.session_config()
         if not self.secure:
             print(f"testbed run: INSECURE: no authentication and no access control; any local process can join, "
@@ -662,6 +665,7 @@ class Launcher(RunCredentials):
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above
                 self.stop_recorder()
             self.remove_secrets()
+            external.join.remove(join_path)
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)
