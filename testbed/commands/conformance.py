@@ -41,8 +41,11 @@ def main(args) -> int:
     from ..live.conformance import REQUIREMENTS, conformance
     from ..nodes.options import RunOptions
 
-    rest = list(args.command)  # the options after SCENARIO, then -- COMMAND [ARGS...]
-    cut = rest.index("--") if "--" in rest else len(rest)
+    # the options after SCENARIO, then -- COMMAND [ARGS...] (argparse drops a -- that directly follows SCENARIO)
+    rest = list(args.command)
+    if "--" not in rest and rest[:1] and rest[0].startswith("-"):
+        raise BadInput("put -- before COMMAND: testbed conformance ROLE SCENARIO [OPTIONS] -- COMMAND [ARGS...]")
+    cut = rest.index("--") if "--" in rest else -1
     own = argparse.ArgumentParser(prog="testbed conformance ROLE SCENARIO")
     _add_options(own)
     own.parse_args(rest[:cut], namespace=args)
