@@ -32,13 +32,15 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--run-id", help="the run's id (default: unique)")
     g.add_argument("--keep", metavar="DIR", help="keep the recordings and logs in DIR (default: a temporary folder, "
                                                 "kept when a requirement is not met)")
+    g.add_argument("--no-adverse", action="store_true",
+                   help="do not feed the node a late, a duplicated and an invalid message (the adverse cases)")
     g.add_argument("--timeout", type=float, default=300.0, metavar="S", help="give up on a run after S seconds "
                                                                               "(default %(default)s)")
 
 
 def main(args) -> int:
     from ..errors import BadInput
-    from ..live.conformance import REQUIREMENTS, conformance
+    from ..live.conformance import ADVERSE, REQUIREMENTS, conformance
     from ..nodes.options import RunOptions
 
     # the options after SCENARIO, then -- COMMAND [ARGS...] (argparse drops a -- that directly follows SCENARIO)
@@ -63,7 +65,7 @@ def main(args) -> int:
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="testbed-conformance-"))
     run_id = args.run_id or f"conformance-{args.role}-{os.getpid()}-{secrets.token_hex(3)}"
     res = conformance(args.role, args.scenario, command, folder=folder, run_id=run_id, flags=opts.cli(),
-                      timeout=args.timeout)
+                      timeout=args.timeout, feed=not args.no_adverse)
     if not args.keep and res["passed"]:
         shutil.rmtree(folder, ignore_errors=True)
     else:
@@ -72,7 +74,7 @@ def main(args) -> int:
         json.dump(res, sys.stdout)
         sys.stdout.write("\n")
     else:
-        width = max(len(n) for n in REQUIREMENTS)
+        width = max(len(n) for n in (*REQUIREMENTS, *ADVERSE))
         print(f"conformance of the {args.role} {' '.join(command)!r} on {args.scenario}: "
               + ("PASSED" if res["passed"] else "NOT PASSED"))
         for q in res["requirements"]:

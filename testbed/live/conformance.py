@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..wire import join, transport
+from . import adverse
 from .external import ANNOUNCE
 
 #: the per-sample keys of a run that must equal the simulator's bit for bit (as the bit-exact tests compare)
@@ -29,6 +30,12 @@ BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "satura
 #: the requirements, in the order they are reported
 REQUIREMENTS = ("joined_in_time", "messages_well_formed", "sample_indices", "telemetry_agrees_with_messages",
                 "equals_simulator", "acks_and_deadlines", "clean_stop")
+#: ... and, unless --no-adverse, the adverse cases (``testbed.live.adverse``)
+ADVERSE = tuple(f"adverse_{case}" for case, _ in adverse.CASES)
+#: per-sample keys: where the run first left the simulator
+PER_SAMPLE = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u")
+#: a node's counters (its NodeSummary) shown as the adverse cases' evidence
+COUNTERS = ("malformed", "late_u", "stale_sensor", "stale_acks", "late", "future")
 #: the requirements a stall of the testbed's own nodes can break (inconclusive after two stalled runs)
 TIMING = ("equals_simulator", "acks_and_deadlines")
 #: the control-path keys (after the prefix) each role publishes
@@ -55,6 +62,8 @@ class ExternalRun:
     command_log: str = ""
     recording: str | None = None
     notes: list = field(default_factory=list)
+    fed: dict | None = None                  # the adverse cases fed (None: not asked)
+    feed_error: str | None = None
 
 
 def _reader(stream, sink: list, found: dict, ev: threading.Event, prefix: str) -> None:
@@ -81,10 +90,17 @@ def _stop_group(p: subprocess.Popen) -> None:
 
 
 def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path, flags=(),
-                 timeout: float = 300.0, startup_timeout: float = 120.0) -> ExternalRun:
-    """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end."""
+                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False) -> ExternalRun:
+    """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end;
+    ``feed``: the adverse cases fed to it (the run's own TLS folder and endpoint, for the feeding peer)."""
     folder.mkdir(parents=True, exist_ok=True)
     out = ExternalRun(recording=str(folder / f"{run_id}.mcap"))
+    feeder = None
+    if feed:
+        tls = transport.TlsCredentials.new(folder / f"{run_id}-tls").folder
+        port = transport.free_port()
+        flags = (*flags, "--tls-dir", str(tls), "--listen", f"tls/127.0.0.1:{port}")
+        feeder = adverse.Feeder(role, run_id, str(tls), port)
     cmd = [sys.executable, "-m", "testbed.cli", "run", scenario, "--external", role, "--json", "--run-id", run_id,
            "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
            "--startup-timeout", str(startup_timeout), *flags]
@@ -104,6 +120,8 @@ def run_external(role: str, scenario: str, command: list[str], *, run_id: str, f
     try:
         announced.wait(timeout)
         out.join_path = found.get("path")
+        if out.join_path is not None and feeder is not None:
+            feeder.start()  # before the node: it must see the node's first inputs
         if out.join_path is not None:
             try:
                 out.join_mode = os.stat(out.join_path).st_mode & 0o777
@@ -142,6 +160,9 @@ def run_external(role: str, scenario: str, command: list[str], *, run_id: str, f
         _stop_group(p)
         if node is not None:
             _stop_group(node)
+        if feeder is not None:
+            feeder.close()
+            out.fed, out.feed_error = dict(feeder.fed), feeder.error
     t_out.join(10)
     t_err.join(10)
     out.rc = p.returncode
@@ -224,7 +245,7 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         out.append(_verdict("joined_in_time", PASS, f"the external {role} joined and the run started "
                                                    f"(join file mode {r.join_mode:o})"))
     if not started:
-        for name in REQUIREMENTS[1:]:
+        for name in (*REQUIREMENTS[1:], *(ADVERSE if r.fed is not None else ())):
             out.append(_verdict(name, FAIL, "the run never started"))
         return out
     N, T = rec.start.n_steps, rec.start.T_ns
@@ -232,7 +253,9 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
     # 2. well formed
     bad = [m for m in rec.malformed if m.get("key", "").split(f"{transport.ROOT}/{s['run_id']}/", 1)[-1]
            in {*PUBLISHES[role], f"telemetry/{role}", f"events/{role}", f"summary/{role}"}]
-    rejected = [e for e in rec.events if e.node != role and e.kind in ("malformed", "invalid_payload")]
+    ours = (r.fed or {}).get("invalid")  # the adverse case's 11-byte header, rejected by every reader of that key
+    rejected = [e for e in rec.events if e.node != role and e.kind in ("malformed", "invalid_payload")
+                and not (ours and e.kind == "malformed" and e.k == -1 and "header of 11 bytes" in e.detail)]
     if bad:
         out.append(_verdict("messages_well_formed", FAIL, f"{len(bad)} malformed; the first: {bad[0]['key']}: "
                                                           f"{bad[0]['error']}"))
@@ -266,6 +289,17 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
     out.append(_acks(role, rec, s, N, T, sc.run.deadline, stall_again))
     # 7. clean stop
     out.append(_stop(role, rec, r, s))
+    # 8. the adverse cases
+    if r.fed is not None:
+        first = None
+        if diff is not None:
+            ks = [next((i for i, (x, y) in enumerate(zip(s.get(c), sim.get(c))) if x != y), None)
+                  for c in PER_SAMPLE if isinstance(s.get(c), list) and isinstance(sim.get(c), list)]
+            ks = [k for k in ks if k is not None]
+            first = min(ks) if ks else N - 1
+        ns = (s.get("node_summaries") or {}).get(role) or {}
+        out += adverse.verdicts(r.fed, r.feed_error, first, stall_again,
+                                node_counts={c: ns.get(c) for c in COUNTERS if isinstance(ns.get(c), int)})
     return out
 
 
@@ -281,7 +315,7 @@ def _indices(role, rec, mine, N, T) -> dict:
         for i, m in enumerate(rec.loop.get(topic, [])):
             if not 0 <= m.k < N:
                 return _verdict("sample_indices", FAIL, f"{topic}: header k = {m.k} outside 0 .. {N - 1}")
-            if i and m.k <= ks[i - 1]:
+            if i and m.k <= ks[i - 1] and role != "attacker":  # an attacker forwards late and repeated symbols
                 return _verdict("sample_indices", FAIL, f"{topic}: header k = {m.k} after k = {ks[i - 1]} (not in "
                                                         "order, or twice)")
             if m.stamp_ns < m.k * T - tol:
@@ -299,8 +333,11 @@ def _indices(role, rec, mine, N, T) -> dict:
                                                 "have no record")
     if role == "plant" and (rec.plant_final is None or rec.plant_final.k != N):
         return _verdict("sample_indices", FAIL, f"telemetry/plant: no final record k = {N}")
-    if rec.duplicates:
+    if rec.duplicates and role != "attacker":  # one record per symbol received (the spec), repeats too
         return _verdict("sample_indices", FAIL, f"{rec.duplicates} telemetry records of a sample already recorded")
+    if role == "attacker":
+        return _verdict("sample_indices", PASS, f"headers k within 0 .. {N - 1}, stamps at or after t_k; telemetry "
+                                                f"k = 0 .. {N - 1} at most once each")
     return _verdict("sample_indices", PASS, f"headers k = 0 .. {N - 1} in order with stamps at or after t_k; "
                                             f"telemetry k = 0 .. {N - 1} once each")
 
@@ -341,7 +378,9 @@ def _agrees(role, rec) -> dict:
 def _acks(role, rec, s, N, T, d, stall_again) -> dict:
     name = "acks_and_deadlines"
     problems = []
-    act = {m.k: m for m in rec.loop.get("/loop/actuation", [])}
+    act: dict = {}
+    for m in rec.loop.get("/loop/actuation", []):
+        act.setdefault(m.k, m)  # the first copy counts (a later one: late, or an adverse case's)
     last = -1
     for k in range(N):
         m = act.get(k)
@@ -379,7 +418,8 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
         return _verdict(name, FAIL, f"the command exited with status {r.command_rc}: {_last(r.command_log)!r}")
     if role not in rec.summaries:
         return _verdict(name, FAIL, f"no NodeSummary on summary/{role}")
-    tm = [f for f in s.get("faults", []) if f.get("node") == role and f.get("kind") == "telemetry_mismatch"]
+    tm = [f for f in s.get("faults", []) if f.get("node") == role and f.get("kind") == "telemetry_mismatch"
+          and not (role == "attacker" and r.fed)]  # it records every symbol it got, the adverse copies too
     if tm:
         return _verdict(name, FAIL, f"its summary's telemetry count or digest differs from what arrived: {tm[0].get('why')}")
     if not r.join_removed:
@@ -389,13 +429,13 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
 
 
 def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
-                timeout: float = 300.0) -> dict:
+                timeout: float = 300.0, feed: bool = True) -> dict:
     """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``."""
     runs = []
     stall_again = None
     for attempt in range(2):
         r = run_external(role, scenario, command, run_id=run_id + "r" * attempt, folder=folder, flags=flags,
-                         timeout=timeout)
+                         timeout=timeout, feed=feed)
         runs.append(r)
         st = stalled(r.summary) if r.summary else None
         if not st:
@@ -407,4 +447,4 @@ def conformance(role: str, scenario: str, command: list[str], *, folder: Path, r
             "requirements": reqs,
             "runs": [{"run_id": run_id + "r" * i, "rc": r.rc, "outcome": (r.summary or {}).get("outcome"),
                       "stalled": stalled(r.summary) if r.summary else None, "command_rc": r.command_rc,
-                      "recording": r.recording, "notes": r.notes} for i, r in enumerate(runs)]}
+                      "recording": r.recording, "fed": r.fed, "notes": r.notes} for i, r in enumerate(runs)]}
