@@ -182,8 +182,12 @@ def test_conformance_passes_the_bundled_node(role):
     assert rc == 0 and res["passed"] is True, json.dumps(res, indent=1)
     assert [q["name"] for q in res["requirements"]] == ["joined_in_time", "messages_well_formed", "sample_indices",
                                                         "telemetry_agrees_with_messages", "equals_simulator",
-                                                        "acks_and_deadlines", "clean_stop"]
+                                                        "acks_and_deadlines", "clean_stop", "adverse_duplicate",
+                                                        "adverse_late", "adverse_invalid"]
     assert all(q["passed"] and q["status"] == "pass" and q["detail"] for q in res["requirements"])
+    fed = res["runs"][-1]["fed"]  # each case was fed once, after a genuine message of its sample or later
+    assert fed["duplicate"]["k"] >= 5 and fed["late"]["k"] == fed["late"]["after_genuine_k"] - 3 >= 6, fed
+    assert fed["invalid"]["k"] >= 13, fed
 
 
 @pytest.mark.process
@@ -196,6 +200,21 @@ def test_conformance_fails_a_plant_that_sends_its_state_big_endian():
     assert bad["status"] == "fail" and "sample 0: loop/sensor carries x" in bad["detail"], bad
     assert verdict["equals_simulator"]["status"] in ("fail", "inconclusive"), verdict["equals_simulator"]
     assert not verdict["equals_simulator"]["passed"]
+
+
+@pytest.mark.process
+def test_conformance_fails_a_plant_that_takes_a_past_samples_actuation():
+    """The broken plant keeps an actuation of a past sample for the next one: the duplicated copy, the first
+    adverse case fed, already makes it leave the simulator, and conformance names that case."""
+    rc, res, err = _conformance("plant", PY, BROKEN, "takes-late")
+    assert rc == 1 and res["passed"] is False
+    verdict = {q["name"]: q for q in res["requirements"]}
+    dup = verdict["adverse_duplicate"]
+    assert dup["status"] in ("fail", "inconclusive") and not dup["passed"], dup
+    if res["runs"][-1]["stalled"] is None:  # a run that did not stall names the case
+        assert dup["status"] == "fail" and "left the simulator at sample" in dup["detail"], dup
+    assert not verdict["equals_simulator"]["passed"]
+    assert verdict["sample_indices"]["passed"] and verdict["clean_stop"]["passed"], verdict
 
 
 @pytest.mark.process
