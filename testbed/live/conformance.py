@@ -101,7 +101,7 @@ def run_external(role: str, scenario: str, command: list[str], *, run_id: str, f
         port = transport.free_port()
         flags = (*flags, "--tls-dir", str(tls), "--listen", f"tls/127.0.0.1:{port}")
         feeder = adverse.Feeder(role, run_id, str(tls), port)
-    cmd = [sys.executable, "-m", "testbed.cli", "run", scenario, "--external", role, "--json", "--run-id", run_id,
+    cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json", "--run-id", run_id,
            "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
            "--startup-timeout", str(startup_timeout), *flags]
     p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
