@@ -98,6 +98,30 @@ def test_conformance_bad_input_is_one_line_and_exit_2(args, why):
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_adverse_verdicts_name_the_case_fed_last_before_the_run_left_the_simulator():
+    from testbed.live import adverse
+
+    fed = {c: {"k": k, "after_genuine_k": k, "key": "testbed/r/loop/actuation", "as": "controller"}
+           for c, k in (("duplicate", 5), ("late", 9), ("invalid", 13))}
+    status = lambda first, stall=None, f=fed: [v["status"] for v in adverse.verdicts(f, None, first, stall,  # noqa: E731
+                                                                                     node_counts={})]
+    assert status(None) == ["pass"] * 3
+    assert status(11) == ["pass", "fail", "inconclusive"]
+    assert status(13) == ["pass", "pass", "fail"]
+    assert status(2) == ["inconclusive"] * 3                       # it left before anything was fed
+    assert status(11, {"deadline_misses": 1}) == ["pass", "inconclusive", "inconclusive"]
+    assert status(None, f={"duplicate": fed["duplicate"]}) == ["pass", "inconclusive", "inconclusive"]  # not fed
+
+
+def test_a_stalled_run_is_what_the_testbeds_own_nodes_report():
+    from testbed.live.conformance import stalled
+
+    assert stalled({"timing": {"deadline_misses": 0, "overruns": 0}, "events": {}}) is None
+    assert stalled({"timing": {"deadline_misses": 2}, "events": {}}) == {"deadline_misses": 2}
+    assert stalled({"timing": {}, "events": {"ack_missing": 1}}) == {"ack_missing": 1}
+    assert stalled({"timing": {}, "events": {"ack_missing": 1}, "ack_via_attacker": True}) is None
+
+
 # ============================================================================ process tier
 def _external_run(run_id: str, role: str, *args):
     """``testbed run paper --external ROLE --json``, with ``testbed node ROLE`` started by this test with

@@ -32,6 +32,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--run-id", help="the run's id (default: unique)")
     g.add_argument("--keep", metavar="DIR", help="keep the recordings and logs in DIR (default: a temporary folder, "
                                                 "kept when a requirement is not met)")
+    g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
+                   help="the node must have joined and the run started within S seconds (default %(default)s)")
     g.add_argument("--no-adverse", action="store_true",
                    help="do not feed the node a late, a duplicated and an invalid message (the adverse cases)")
     g.add_argument("--timeout", type=float, default=300.0, metavar="S", help="give up on a run after S seconds "
@@ -65,7 +67,7 @@ def main(args) -> int:
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="testbed-conformance-"))
     run_id = args.run_id or f"conformance-{args.role}-{os.getpid()}-{secrets.token_hex(3)}"
     res = conformance(args.role, args.scenario, command, folder=folder, run_id=run_id, flags=opts.cli(),
-                      timeout=args.timeout, feed=not args.no_adverse)
+                      timeout=args.timeout, startup_timeout=args.startup_timeout, feed=not args.no_adverse)
     if not args.keep and res["passed"]:
         shutil.rmtree(folder, ignore_errors=True)
     else:

@@ -429,13 +429,13 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
 
 
 def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
-                timeout: float = 300.0, feed: bool = True) -> dict:
+                timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True) -> dict:
     """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``."""
     runs = []
     stall_again = None
     for attempt in range(2):
         r = run_external(role, scenario, command, run_id=run_id + "r" * attempt, folder=folder, flags=flags,
-                         timeout=timeout, feed=feed)
+                         timeout=timeout, startup_timeout=startup_timeout, feed=feed)
         runs.append(r)
         st = stalled(r.summary) if r.summary else None
         if not st:
