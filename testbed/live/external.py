@@ -78,3 +78,8 @@ def write_join(launcher) -> Path | None:
     path = join.write(launcher.run_dir / f"join-{launcher.external}.json", join_data(launcher))
     print(ANNOUNCE.format(role=launcher.external, path=path), file=sys.stderr, flush=True)
     return path
+
+
+def remove_join(path: Path | None) -> None:
+    """At the end of the run (with its other credentials): the join file goes."""
+    join.remove(path)

@@ -665,7 +665,7 @@ class Launcher(RunCredentials):
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above
                 self.stop_recorder()
             self.remove_secrets()
-            external.join.remove(join_path)
+            external.remove_join(join_path)
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)
