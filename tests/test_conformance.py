@@ -187,6 +187,7 @@ def test_run_external_plant_with_the_bundled_plant_equals_the_simulator(run_id):
     assert d["credentials"]["kind"] == "mutual_tls" and d["topology"] == "peer"  # the default on one host
     assert s["complete"] and s["samples"] == 50 and s["outcome"] == "done"
     assert "plant" in s["node_summaries"]
+    assert s["external"] == "plant" and s["nodes"]["plant"]["external"] is True
     sim = simulate("paper", 5)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)

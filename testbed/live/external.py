@@ -83,3 +83,10 @@ def write_join(launcher) -> Path | None:
 def remove_join(path: Path | None) -> None:
     """At the end of the run (with its other credentials): the join file goes."""
     join.remove(path)
+
+
+def annotate(summary: dict, role: str | None) -> None:
+    """The summary says which role came from outside (``external``); that node has no exit or log of ours."""
+    summary["external"] = role
+    if role is not None:
+        summary["nodes"][role] = {"external": True, "exit_code": None, "log": None}

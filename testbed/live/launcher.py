@@ -639,6 +639,7 @@ class Launcher(RunCredentials):
                             f.update(kind="plant_fault", why=summary["plant_fault"])
                 summary["outcome"] = outcome
                 summary["security"] = self.security()
+                external.annotate(summary, self.external)
                 summary["launcher"] = {"pid": os.getpid(), "sched_fifo": self.router_fifo,
                                        "spawn": "fork" if any(self.forks(r) for r in self.processes) else "exec"}
                 try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
