@@ -90,6 +90,17 @@ def test_run_external_refuses_what_it_cannot_do(tmp_path, flags, why):
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.process
+def test_run_external_without_the_node_gives_up_after_the_startup_timeout(run_id):
+    rc, out, err = run_cli(tb_cmd("run", "paper", "--external", "controller", "--json", "--no-record", "--run-id",
+                                  run_id, "--run-dir", os.path.join(LOGS, run_id), "--startup-timeout", "8"))
+    s = json.loads(out)
+    assert rc == 1 and s["outcome"] == "startup timeout" and s["external"] == "controller", s["faults"]
+    assert "the external controller never joined" in s["faults"][0]["why"], s["faults"]
+    path = next(ln for ln in err.splitlines() if ln.startswith(ANNOUNCE.format(role="controller", path="")))
+    assert not os.path.exists(path.split(": ")[-1])  # removed at the end of the run
+
+
 @pytest.mark.parametrize("args, why", [(("plant", "paper"), "no COMMAND"),
                                        (("plant", "nosuchscenario", "--", "true"), "nosuchscenario"),
                                        (("plant", "paper", "--", "/no/such/cmd"), "no such command")])

@@ -90,3 +90,6 @@ def annotate(summary: dict, role: str | None) -> None:
     summary["external"] = role
     if role is not None:
         summary["nodes"][role] = {"external": True, "exit_code": None, "log": None}
+        for f in summary.get("faults", []):
+            if f.get("kind") == "startup_timeout" and role not in (f.get("alive") or ()):
+                f["why"] += f"; the external {role} never joined (its join file: TESTBED_JOIN)"
