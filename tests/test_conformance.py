@@ -179,13 +179,21 @@ def _external_run(run_id: str, role: str, *args):
 
 
 @pytest.mark.process
-def test_run_external_plant_with_the_bundled_plant_equals_the_simulator(run_id):
+@pytest.mark.parametrize("topology", ["auto", "router-mtls"])
+def test_run_external_plant_with_the_bundled_plant_equals_the_simulator(run_id, tmp_path, topology):
+    """The default (the peer topology on one host), and the router topology over mutual TLS, the way a
+    zenoh-pico device joins (docs/protocol.md): the external plant a client of the launcher's router."""
     res = {}
+    flags = ()
+    if topology == "router-mtls":
+        tls = str(tmp_path / "tls")
+        assert subprocess.run(tb_cmd("secret", "--tls", tls), capture_output=True).returncode == 0
+        flags = ("--topology", "router", "--tls-dir", tls)
 
     def run(attempt):
         if attempt:
             reap(run_id + "r" * (attempt - 1))
-        rc, s, err, facts = _external_run(run_id + "r" * attempt, "plant", "--duration", "5")
+        rc, s, err, facts = _external_run(run_id + "r" * attempt, "plant", "--duration", "5", *flags)
         res["facts"] = facts
         return rc, s, err
 
@@ -195,7 +203,12 @@ def test_run_external_plant_with_the_bundled_plant_equals_the_simulator(run_id):
     assert facts["mode"] == 0o600 and facts["removed"], facts
     d = facts["data"]
     assert d["role"] == "plant" and d["run_id"] == s["run_id"] and d["protocol"] == 1 and d["T_ns"] == 100_000_000
-    assert d["credentials"]["kind"] == "mutual_tls" and d["topology"] == "peer"  # the default on one host
+    assert d["credentials"]["kind"] == "mutual_tls"
+    if topology == "auto":  # the default on one host
+        assert d["topology"] == "peer" and d["mode"] == "peer" and d["listen"], d
+    else:
+        assert d["topology"] == "router" and d["mode"] == "client" and d["listen"] == [], d
+        assert d["connect"][0].startswith("tls/") and s["security"]["transport"] == "mutual tls", s["security"]
     assert s["complete"] and s["samples"] == 50 and s["outcome"] == "done"
     assert "plant" in s["node_summaries"]
     assert s["external"] == "plant" and s["nodes"]["plant"]["external"] is True

@@ -82,7 +82,8 @@ class Launcher(RunCredentials):
         self.keys = transport.Keys.for_run(self.run_id)
         self.topology, self.topology_why = choose_topology(args)  # --topology auto: peer on one host
         self.secure = not args.insecure
-        self.tls = self.topology == "peer" and self.secure    # mutual TLS links (``TlsCredentials``)
+        # mutual TLS links (``TlsCredentials``): the peer topology, or the router topology given --tls-dir
+        self.tls = self.secure and (self.topology == "peer" or (bool(args.tls_dir) and not args.secret_file))
         self.listen = args.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
         self.node_connect = args.node_connect or self.listen
         self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
@@ -116,7 +117,7 @@ class Launcher(RunCredentials):
                                "made with 'testbed secret --tls DIR'; by default made for the run)")
             transport.require_tls((self.listen, self.node_connect, *self.node_listen.values()))
         elif getattr(args, "tls_dir", None):
-            raise BadInput("--tls-dir: only for --topology peer (the router topology's credentials are --secret-file)")
+            raise BadInput("--tls-dir with --secret-file: the router topology authenticates by one of them")
         self.secret_dir = None
         self.secret_path: Path | None = None
         self.tls_dir: Path | None = None              # the peer topology's TLS folder (``make_secrets``)
