@@ -206,6 +206,25 @@ def stalled(summary: dict, external: str | None = None) -> dict | None:
     return stall or None
 
 
+def own_report(summary: dict | None, external: str) -> dict | None:
+    """The timing account of the testbed's own nodes in a run's summary (the keys its stall criterion reads),
+    without what the ``external`` role reports of itself: each run's ``report`` in the JSON."""
+    if not summary:
+        return None
+    drop = {k for k, who in REPORTED_BY.items() if who == external}
+    tm = summary.get("timing") or {}
+    ns = summary.get("node_summaries") or {}
+    return {"timing": {k: tm.get(k) for k in ("deadline_misses", "overruns", "late_for_schedule", "sampling_jitter_us")
+                       if k not in drop},
+            "events": {k: v for k, v in (summary.get("events") or {}).items() if k not in drop},
+            "node_summaries": {r: {"stale_sensor": v.get("stale_sensor")} for r, v in ns.items()
+                               if r != external and isinstance(v, dict)},
+            "late_symbols": None if "late_symbols" in drop else summary.get("late_symbols"),
+            "loss_reasons": {} if "superseded" in drop else summary.get("loss_reasons") or {},
+            "ack_via_attacker": summary.get("ack_via_attacker"),
+            "deadline_missed_at": summary.get("deadline_missed_at"), "withheld_at": summary.get("withheld_at")}
+
+
 # ============================================================================ the checks
 def _verdict(name: str, status: str, detail: str) -> dict:
     return {"name": name, "passed": status == PASS, "status": status, "detail": detail}
@@ -455,4 +474,5 @@ def conformance(role: str, scenario: str, command: list[str], *, folder: Path, r
             "requirements": reqs,
             "runs": [{"run_id": run_id + "r" * i, "rc": r.rc, "outcome": (r.summary or {}).get("outcome"),
                       "stalled": stalled(r.summary, role) if r.summary else None, "command_rc": r.command_rc,
+                      "report": own_report(r.summary, role),
                       "recording": r.recording, "fed": r.fed, "notes": r.notes} for i, r in enumerate(runs)]}
