@@ -63,6 +63,7 @@ for _name, _mod, _help in [
     ("vulnerability", "testbed.commands.search", "that least DoS duration over the region of attraction (heat map)"),
     ("campaign", "testbed.commands.campaign", "many runs (the product of axes over a scenario) in one table, resumable"),
     ("run", "testbed.commands.run", "run a scenario live: four processes over Zenoh"),
+    ("conformance", "testbed.commands.conformance", "check a node from outside against the protocol and the simulator"),
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
     ("report", "testbed.report", "post-mortem of a recording"),
     ("resimulate", "testbed.resimulate", "re-run a recording in the simulator and compare, sample by sample"),

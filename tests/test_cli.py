@@ -116,7 +116,7 @@ def test_exit_codes_bad_input_is_2_with_one_line(tmp_path):
         ["resimulate", str(tmp_path / "missing.mcap")],
         ["run", "paper", "--topology", "peer", "--secret-file", str(tmp_path / "x.secret")],  # certificates
         ["run", "paper", "--topology", "peer", "--listen", "tcp/127.0.0.1:7999"],  # a plain TCP endpoint
-        ["run", "paper", "--topology", "router", "--tls-dir", str(tmp_path)],      # TLS is the peer topology's
+        ["run", "paper", "--topology", "router", "--tls-dir", str(tmp_path)],      # no certificate in it
         ["node", "plant", "paper", "--topology", "peer"],                          # no --tls-dir
         ["node", "plant", "paper", "--topology", "peer", "--tls-dir", str(tmp_path)],  # no certificate in it
         ["secret", "--tls", str(tmp_path)],                                        # never overwritten

@@ -8,6 +8,7 @@ import shutil
 import sys
 
 from .. import cliargs
+from ..live.external import add_external_arguments
 from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
 from ..nodes.inlet import RX_MODES
@@ -42,6 +43,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="also record the control-path messages (auto: when T >= 10 ms)")
     add_rerun_run_arguments(p)
     add_foxglove_run_arguments(p)
+    add_external_arguments(p)
     g = p.add_argument_group("run control")
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
                    help="give up if the nodes are not running after S seconds (default %(default)s)")

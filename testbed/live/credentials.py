@@ -147,5 +147,5 @@ class RunCredentials:
                 "topology_auto": self.args.topology == AUTO, "topology_why": self.topology_why,
                 "low_latency": bool(self.args.low_latency),
                 "access_control": access_control(self.topology) if self.secure else "none",
-                "transport": transport_security(self.topology, not self.secure),
+                "transport": transport_security(self.topology, not self.secure, self.tls),
                 "credentials": None if not self.secure else ("given" if given else "made for the run")}

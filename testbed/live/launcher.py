@@ -40,6 +40,7 @@ from ..nodes.process import parse_cpus
 from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
+from . import external
 from .credentials import RunCredentials, choose_topology
 from .spawn import Forked, _forked_node
 
@@ -81,7 +82,8 @@ class Launcher(RunCredentials):
         self.keys = transport.Keys.for_run(self.run_id)
         self.topology, self.topology_why = choose_topology(args)  # --topology auto: peer on one host
         self.secure = not args.insecure
-        self.tls = self.topology == "peer" and self.secure    # mutual TLS links (``TlsCredentials``)
+        # mutual TLS links (``TlsCredentials``): the peer topology, or the router topology given --tls-dir
+        self.tls = self.secure and (self.topology == "peer" or (bool(args.tls_dir) and not args.secret_file))
         self.listen = args.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
         self.node_connect = args.node_connect or self.listen
         self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
@@ -115,7 +117,7 @@ class Launcher(RunCredentials):
                                "made with 'testbed secret --tls DIR'; by default made for the run)")
             transport.require_tls((self.listen, self.node_connect, *self.node_listen.values()))
         elif getattr(args, "tls_dir", None):
-            raise BadInput("--tls-dir: only for --topology peer (the router topology's credentials are --secret-file)")
+            raise BadInput("--tls-dir with --secret-file: the router topology authenticates by one of them")
         self.secret_dir = None
         self.secret_path: Path | None = None
         self.tls_dir: Path | None = None              # the peer topology's TLS folder (``make_secrets``)
@@ -132,6 +134,7 @@ class Launcher(RunCredentials):
             from .foxglove_tap import FoxgloveLive
 
             self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
+        self.external = external.check(self)           # --external ROLE: a node from outside (join file)
         # the run folder last: a run refused above (bad input) leaves nothing behind
         self.own_dir = args.run_dir is None
         self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
@@ -313,7 +316,7 @@ class Launcher(RunCredentials):
     def spawn(self, *, forked: bool) -> None:
         """Start the node processes that are forked (before the launcher has any Zenoh thread) or exec'd."""
         for role in self.processes:
-            if self.forks(role) == forked and role not in self.procs:
+            if self.forks(role) == forked and role not in self.procs and role != self.external:
                 self.procs[role] = self._fork(role) if forked else self._popen(self.command(role), role)
 
     def _fork(self, role: str) -> Forked:
@@ -561,6 +564,7 @@ class Launcher(RunCredentials):
         if transport.LAUNCHER in self.cpus:  # before Zenoh starts its threads: the router's CPUs
             os.sched_setaffinity(0, parse_cpus(self.cpus[transport.LAUNCHER]))
         self.make_secrets()
+        join_path = external.write_join(self)
         conf = self.session_config()
         if not self.secure:
             print(f"testbed run: INSECURE: no authentication and no access control; any local process can join, "
@@ -636,6 +640,7 @@ class Launcher(RunCredentials):
                             f.update(kind="plant_fault", why=summary["plant_fault"])
                 summary["outcome"] = outcome
                 summary["security"] = self.security()
+                external.annotate(summary, self.external)
                 summary["launcher"] = {"pid": os.getpid(), "sched_fifo": self.router_fifo,
                                        "spawn": "fork" if any(self.forks(r) for r in self.processes) else "exec"}
                 try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
@@ -662,6 +667,7 @@ class Launcher(RunCredentials):
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above
                 self.stop_recorder()
             self.remove_secrets()
+            external.remove_join(join_path)
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)

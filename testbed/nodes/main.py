@@ -28,7 +28,7 @@ import time
 
 from ..wire import transport
 from ..wire.session import add_zenoh_arguments, zenoh_config
-from . import rerun_tap
+from . import joined, rerun_tap
 from .context import NodeContext
 from .inlet import RX_MODES
 from .options import RunOptions, add_run_option_arguments, load_scenario
@@ -70,7 +70,9 @@ def _refuse_protocol(role: str, ctx) -> int:
 
 def add_arguments_node(p: argparse.ArgumentParser) -> None:
     p.add_argument("role", choices=transport.ROLES, help="which node to run")
-    p.add_argument("scenario", help="scenario file (.toml) or bundled name")
+    p.add_argument("scenario", nargs="?",
+                   help="scenario file (.toml) or bundled name; without it, the run of the join file named by "
+                        "$TESTBED_JOIN (docs/protocol.md#joining-a-run-from-outside)")
     add_run_option_arguments(p)
     add_zenoh_arguments(p)
     g = p.add_argument_group("node")
@@ -117,13 +119,15 @@ def main_node(args) -> int:
     phase(role, "up")
     if args.cpus:
         os.sched_setaffinity(0, parse_cpus(args.cpus))
+    jf = joined.apply(args) if args.scenario is None else None  # TESTBED_JOIN: flags and scenario from the file
     opts = RunOptions.from_args(args)
     if role in opts.colocate:
         from ..errors import BadInput
 
         raise BadInput(f"--colocate {role}: the {role} runs inside the {opts.process_of(role)}'s process; "
                        f"start no {role} node")
-    sc = load_scenario(args.scenario, opts, check_design=not args.launched)  # ScenarioError -> exit 2 in the CLI
+    sc = load_scenario(args.scenario if jf is None else joined.scenario(jf), opts,
+                       check_design=not args.launched)  # ScenarioError -> exit 2 in the CLI
     phase(role, "scenario")
     tune_process(args.parent_pid)
     sys.setswitchinterval(1e-4)  # a callback thread waiting for the GIL waits 100 us, not 5 ms

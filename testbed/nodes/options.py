@@ -109,15 +109,17 @@ def add_run_option_arguments(p: argparse.ArgumentParser,
                         "(three network hops per sample instead of four)")
 
 
-def load_scenario(ref: str, opts: RunOptions, *, check_design: bool = True):
-    """Load a scenario and apply the run overrides (validated as if written in the file).
+def load_scenario(ref, opts: RunOptions, *, check_design: bool = True):
+    """Load a scenario (a file, a bundled name, or a loaded ``Scenario``) and apply the run overrides
+    (validated as if written in the file).
 
     ``check_design=False`` (a node started by the launcher, which checked the same text and
     overrides): skip the Schur check of a given K, so that the node needs no scipy.
     """
     from .. import scenario
 
-    return scenario.with_overrides(scenario.load(ref, check_design=check_design), opts.overrides(),
+    base = scenario.load(ref, check_design=check_design) if isinstance(ref, str) else ref
+    return scenario.with_overrides(base, opts.overrides(),
                                    check_design=check_design)
 
 

@@ -34,8 +34,8 @@ def add_security_arguments(g, launcher: bool = False) -> None:
     g.add_argument("--tls-dir", metavar="DIR",
                    help="--topology peer: the run's TLS folder (ca.pem, NAME.pem, NAME.key; make one with "
                         "'testbed secret --tls DIR'); testbed run makes certificates for each run unless given one. "
-                        "testbed node/record --topology router with --tls-dir and no --secret-file: the router "
-                        "topology over mutual TLS, the router checking by certificate name (docs/protocol.md)")
+                        "--topology router with --tls-dir and no --secret-file: the router topology over mutual TLS, "
+                        "the router checking by certificate name (docs/protocol.md)")
     g.add_argument("--insecure", action="store_true",
                    help="no authentication and no access control: any local process can join, stop or steer "
                         "the run (recorded as such)")

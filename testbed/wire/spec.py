@@ -330,9 +330,17 @@ def example() -> str:
     return "\n".join(lines)
 
 
+def join_fields() -> str:
+    """The join file's fields (``testbed.wire.join.FIELDS``)."""
+    from . import join
+
+    rows = [f"| `{name}` | {typ} | {meaning} |" for name, typ, meaning in join.FIELDS]
+    return "\n".join(["| field | JSON type | meaning |", "|---|---|---|", *rows])
+
+
 # ============================================================================ the document
 BLOCKS = {"constants": constants, "keys": keys_table, "layouts": layouts, "telemetry": telemetry_layouts,
-          "json": json_fields, "example": example}
+          "json": json_fields, "example": example, "join": join_fields}
 _BLOCK = re.compile(r"(<!-- BEGIN generated:(\w+) -->\n)(.*?)(<!-- END generated:\2 -->)", re.S)
 DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 

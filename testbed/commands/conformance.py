@@ -1,0 +1,86 @@
+"""``testbed conformance ROLE SCENARIO [--json] -- COMMAND [ARGS...]``: check a node from outside against the
+spec and the simulator, requirement by requirement (``testbed.live.conformance``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import secrets
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+from .. import cliargs
+from ..nodes.options import add_run_option_arguments
+from ..wire import transport
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("role", choices=transport.ROLES, help="the role COMMAND plays")
+    p.add_argument("scenario", help="scenario file (.toml) or bundled name")
+    p.add_argument("command", nargs=argparse.REMAINDER, metavar="[OPTIONS] -- COMMAND [ARGS...]",
+                   help="the node to check, started with TESTBED_JOIN set (e.g. -- testbed node plant)")
+    _add_options(p)
+
+
+def _add_options(p: argparse.ArgumentParser) -> None:
+    cliargs.add_json(p, "the verdict: passed, and requirements (name, passed, status, detail)")
+    add_run_option_arguments(p)
+    g = p.add_argument_group("conformance")
+    g.add_argument("--run-id", help="the run's id (default: unique)")
+    g.add_argument("--keep", metavar="DIR", help="keep the recordings and logs in DIR (default: a temporary folder, "
+                                                "kept when a requirement is not met)")
+    g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
+                   help="the node must have joined and the run started within S seconds (default %(default)s)")
+    g.add_argument("--no-adverse", action="store_true",
+                   help="do not feed the node a late, a duplicated and an invalid message (the adverse cases)")
+    g.add_argument("--timeout", type=float, default=300.0, metavar="S", help="give up on a run after S seconds "
+                                                                              "(default %(default)s)")
+
+
+def main(args) -> int:
+    from ..errors import BadInput
+    from ..live.conformance import ADVERSE, REQUIREMENTS, conformance
+    from ..nodes.options import RunOptions
+
+    # the options after SCENARIO, then -- COMMAND [ARGS...] (argparse drops a -- that directly follows SCENARIO)
+    rest = list(args.command)
+    if "--" not in rest and rest[:1] and rest[0].startswith("-"):
+        raise BadInput("put -- before COMMAND: testbed conformance ROLE SCENARIO [OPTIONS] -- COMMAND [ARGS...]")
+    cut = rest.index("--") if "--" in rest else -1
+    own = argparse.ArgumentParser(prog="testbed conformance ROLE SCENARIO")
+    _add_options(own)
+    own.parse_args(rest[:cut], namespace=args)
+    command = rest[cut + 1:]
+    if not command:
+        raise BadInput("no COMMAND: testbed conformance ROLE SCENARIO -- COMMAND [ARGS...]")
+    if shutil.which(command[0]) is None and not os.path.exists(command[0]):
+        raise BadInput(f"{command[0]}: no such command")
+    from .. import scenario
+
+    scenario.load(args.scenario)  # a bad scenario: one line, exit 2, before anything runs
+    opts = RunOptions.from_args(args)
+    if opts.colocate:
+        raise BadInput("--colocate: an external node runs alone in its process")
+    folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="testbed-conformance-"))
+    run_id = args.run_id or f"conformance-{args.role}-{os.getpid()}-{secrets.token_hex(3)}"
+    res = conformance(args.role, args.scenario, command, folder=folder, run_id=run_id, flags=opts.cli(),
+                      timeout=args.timeout, startup_timeout=args.startup_timeout, feed=not args.no_adverse)
+    if not args.keep and res["passed"]:
+        shutil.rmtree(folder, ignore_errors=True)
+    else:
+        res["folder"] = str(folder)
+    if args.json:
+        json.dump(res, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        width = max(len(n) for n in (*REQUIREMENTS, *ADVERSE))
+        print(f"conformance of the {args.role} {' '.join(command)!r} on {args.scenario}: "
+              + ("PASSED" if res["passed"] else "NOT PASSED"))
+        for q in res["requirements"]:
+            print(f"  {q['status'].upper():12s} {q['name']:{width}s}  {q['detail']}")
+        if res.get("folder"):
+            print(f"  recordings and logs: {res['folder']}")
+    return 0 if res["passed"] else 1

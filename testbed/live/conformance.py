@@ -1,0 +1,478 @@
+"""``testbed conformance``: run a scenario live with one role played by a command from outside, then check
+that node requirement by requirement against the spec (docs/protocol.md) and the simulator.
+
+The run is ``testbed run SCENARIO --external ROLE --record-loop on`` (a subprocess); the command is started
+with ``TESTBED_JOIN`` set once the run has written its join file.  What is judged comes from the run's
+recording (every message of the control path, decoded by the recorder, and every message it could not
+decode), its summary, and the command's exit.  The model: ideal timing on a machine that does not stall
+the testbed's own nodes; a run whose own nodes report a stall (``stalled``) is run once more, and if it
+stalls again the requirements that depend on timing are ``inconclusive``, not failed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..wire import join, transport
+from . import adverse
+from .external import ANNOUNCE
+
+#: the per-sample keys of a run that must equal the simulator's bit for bit (as the bit-exact tests compare)
+BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "saturated_at", "x_final")
+#: the requirements, in the order they are reported
+REQUIREMENTS = ("joined_in_time", "messages_well_formed", "sample_indices", "telemetry_agrees_with_messages",
+                "equals_simulator", "acks_and_deadlines", "clean_stop")
+#: ... and, unless --no-adverse, the adverse cases (``testbed.live.adverse``)
+ADVERSE = tuple(f"adverse_{case}" for case, _ in adverse.CASES)
+#: per-sample keys: where the run first left the simulator
+PER_SAMPLE = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u")
+#: a node's counters (its NodeSummary) shown as the adverse cases' evidence
+COUNTERS = ("malformed", "late_u", "stale_sensor", "stale_acks", "late", "future")
+#: the requirements a stall of the testbed's own nodes can break (inconclusive after two stalled runs)
+TIMING = ("equals_simulator", "acks_and_deadlines")
+#: the control-path keys (after the prefix) each role publishes
+PUBLISHES = {"plant": ("loop/sensor",), "encoder": ("loop/symbol/tx",), "attacker": ("loop/symbol/rx", "loop/ack/rx"),
+             "controller": ("loop/actuation", "loop/ack/tx")}
+PASS, FAIL, INCONCLUSIVE = "pass", "fail", "inconclusive"
+STOP_GRACE_S = 5.0  # the command must exit this long after the run's end at the latest
+NODE_DEAD_S = 10.0  # a command that failed: the run is interrupted this long after
+
+
+@dataclass
+class ExternalRun:
+    """One run with an external node: the launcher's summary and what the command did."""
+
+    rc: int | None = None
+    summary: dict | None = None
+    stderr: str = ""
+    join_path: str | None = None
+    join_mode: int | None = None
+    join_removed: bool | None = None
+    join_data: dict | None = None            # the join file as the command read it
+    command_rc: int | None = None
+    command_stopped_s: float | None = None   # after the run ended (None: it did not stop by itself)
+    command_log: str = ""
+    recording: str | None = None
+    notes: list = field(default_factory=list)
+    fed: dict | None = None                  # the adverse cases fed (None: not asked)
+    feed_error: str | None = None
+
+
+def _reader(stream, sink: list, found: dict, ev: threading.Event, prefix: str) -> None:
+    for line in stream:
+        sink.append(line)
+        if "path" not in found and line.startswith(prefix):
+            found["path"] = line.rstrip("\n")[len(prefix):]
+            ev.set()
+    ev.set()
+
+
+def _stop_group(p: subprocess.Popen) -> None:
+    for sig in (signal.SIGINT, signal.SIGKILL):
+        if p.poll() is not None:
+            return
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            p.wait(3.0)
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path, flags=(),
+                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False) -> ExternalRun:
+    """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end;
+    ``feed``: the adverse cases fed to it (the run's own TLS folder and endpoint, for the feeding peer)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = ExternalRun(recording=str(folder / f"{run_id}.mcap"))
+    feeder = None
+    if feed:
+        tls = transport.TlsCredentials.new(folder / f"{run_id}-tls").folder
+        port = transport.free_port()
+        flags = (*flags, "--tls-dir", str(tls), "--listen", f"tls/127.0.0.1:{port}")
+        feeder = adverse.Feeder(role, run_id, str(tls), port)
+    cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json", "--run-id", run_id,
+           "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
+           "--startup-timeout", str(startup_timeout), *flags]
+    p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    err: list[str] = []
+    found: dict = {}
+    announced = threading.Event()
+    prefix = ANNOUNCE.format(role=role, path="")
+    t_err = threading.Thread(target=_reader, args=(p.stderr, err, found, announced, prefix), daemon=True)
+    t_err.start()
+    stdout: list[str] = []
+    t_out = threading.Thread(target=lambda: stdout.append(p.stdout.read()), daemon=True)
+    t_out.start()
+    node = None
+    log_path = folder / f"{run_id}-{role}.log"
+    try:
+        announced.wait(timeout)
+        out.join_path = found.get("path")
+        if out.join_path is not None and feeder is not None:
+            feeder.start()  # before the node: it must see the node's first inputs
+        if out.join_path is not None:
+            try:
+                out.join_mode = os.stat(out.join_path).st_mode & 0o777
+                out.join_data = join.read(out.join_path).data
+            except (OSError, ValueError) as e:
+                out.notes.append(f"join file: {e}")
+            with open(log_path, "wb") as log:
+                try:
+                    node = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                            start_new_session=True, env={**os.environ, join.ENV: out.join_path})
+                except OSError as e:
+                    out.notes.append(f"the command did not start: {e}")
+        end, dead_since = time.monotonic() + timeout, None
+        while p.poll() is None:
+            if time.monotonic() > end:
+                out.notes.append(f"the run did not end in {timeout:g} s")
+                _stop_group(p)
+                break
+            if node is not None and node.poll() not in (None, 0):
+                dead_since = dead_since or time.monotonic()
+                if time.monotonic() - dead_since > NODE_DEAD_S:  # it failed: the run cannot go on without it
+                    out.notes.append(f"the command exited with status {node.returncode} while the run went on; "
+                                     "the run was interrupted")
+                    _stop_group(p)
+                    break
+            time.sleep(0.05)
+        t_end = time.monotonic()
+        if node is not None:
+            try:
+                out.command_rc = node.wait(max(0.0, STOP_GRACE_S - (time.monotonic() - t_end)))
+                out.command_stopped_s = round(time.monotonic() - t_end, 3)
+            except subprocess.TimeoutExpired:
+                _stop_group(node)
+                out.command_rc = node.returncode
+    finally:
+        _stop_group(p)
+        if node is not None:
+            _stop_group(node)
+        if feeder is not None:
+            feeder.close()
+            out.fed, out.feed_error = dict(feeder.fed), feeder.error
+    t_out.join(10)
+    t_err.join(10)
+    out.rc = p.returncode
+    out.stderr = "".join(err)
+    if out.join_path is not None:
+        out.join_removed = not os.path.exists(out.join_path)
+    try:
+        out.command_log = log_path.read_text(errors="replace")
+    except OSError:
+        pass
+    try:
+        out.summary = json.loads(stdout[0]) if stdout and stdout[0].strip() else None
+    except json.JSONDecodeError:
+        out.notes.append("the run printed no JSON summary")
+    return out
+
+
+#: who reports each stall criterion: what the external node itself reports is not the testbed's own stall
+#: (it may be the node's fault, or the adverse cases' doing: a late sensor is a ``stale_sensor``)
+REPORTED_BY = {"stale_sensor": "encoder", "ack_missing": "encoder", "future_sensor": "encoder",
+               "late_symbols": "controller", "superseded": "controller", "future_symbol": "controller",
+               "overruns": "plant", "late_for_schedule": "plant", "future_actuation": "plant"}
+
+
+def stalled(summary: dict, external: str | None = None) -> dict | None:
+    """The timing faults the testbed's own run reports (a machine that stalled a node), or None: deadline
+    misses, overruns, sensor samples out of order, an ack that missed the encoder's grace window, late or
+    superseded symbols, genuine messages taken for ones from the future (the tests' rerun policy); without
+    those the ``external`` role reports itself (``REPORTED_BY``)."""
+    tm = summary.get("timing") or {}
+    ev = summary.get("events") or {}
+    enc = (summary.get("node_summaries") or {}).get("encoder") or {}
+    stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
+             "stale_sensor": enc.get("stale_sensor"), "late_for_schedule": tm.get("late_for_schedule"),
+             "late_symbols": summary.get("late_symbols"),
+             "superseded": (summary.get("loss_reasons") or {}).get("superseded")}
+    if not summary.get("ack_via_attacker"):
+        stall["ack_missing"] = ev.get("ack_missing")
+    stall.update({k: ev.get(k) for k in ("future_sensor", "future_symbol", "future_actuation")})
+    stall = {k: v for k, v in stall.items() if v and (external is None or REPORTED_BY.get(k) != external)}
+    return stall or None
+
+
+def own_report(summary: dict | None, external: str) -> dict | None:
+    """The timing account of the testbed's own nodes in a run's summary (the keys its stall criterion reads),
+    without what the ``external`` role reports of itself: each run's ``report`` in the JSON."""
+    if not summary:
+        return None
+    drop = {k for k, who in REPORTED_BY.items() if who == external}
+    tm = summary.get("timing") or {}
+    ns = summary.get("node_summaries") or {}
+    return {"timing": {k: tm.get(k) for k in ("deadline_misses", "overruns", "late_for_schedule", "sampling_jitter_us")
+                       if k not in drop},
+            "events": {k: v for k, v in (summary.get("events") or {}).items() if k not in drop},
+            "node_summaries": {r: {"stale_sensor": v.get("stale_sensor")} for r, v in ns.items()
+                               if r != external and isinstance(v, dict)},
+            "late_symbols": None if "late_symbols" in drop else summary.get("late_symbols"),
+            "loss_reasons": {} if "superseded" in drop else summary.get("loss_reasons") or {},
+            "ack_via_attacker": summary.get("ack_via_attacker"),
+            "deadline_missed_at": summary.get("deadline_missed_at"), "withheld_at": summary.get("withheld_at")}
+
+
+# ============================================================================ the checks
+def _verdict(name: str, status: str, detail: str) -> dict:
+    return {"name": name, "passed": status == PASS, "status": status, "detail": detail}
+
+
+def run_scenario(jd: dict):
+    """The run's scenario with the run's options (the seed it drew included), from its join file."""
+    from .. import scenario as scn
+    from ..nodes.options import RunOptions
+
+    opts = RunOptions(**{**jd["run_options"], "colocate": tuple(jd["run_options"].get("colocate") or ())})
+    s = jd["scenario"]
+    return scn.with_overrides(scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"]), opts.overrides())
+
+
+def simulated(sc) -> dict:
+    """``testbed simulate --json`` of scenario ``sc`` (the same per-sample simulator)."""
+    from ..simbatch import simulate_scenario
+    from ..simulate import summarize
+
+    return json.loads(json.dumps(summarize(sc, simulate_scenario(sc))))
+
+
+def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | None = None) -> list[dict]:
+    """Every requirement of ``REQUIREMENTS`` judged on run ``r`` (``stall_again``: the run stalled twice)."""
+    out = []
+    s = r.summary or {}
+    rec = None
+    if r.recording and os.path.exists(r.recording):
+        from ..record.reader import read
+
+        try:
+            rec = read(r.recording)
+        except (OSError, ValueError) as e:
+            r.notes.append(f"recording unreadable: {e}")
+    started = bool(s.get("samples")) and rec is not None and rec.start is not None and r.join_data is not None
+    # 1. joined in time
+    if r.join_path is None:
+        out.append(_verdict("joined_in_time", FAIL, f"the run wrote no join file: {r.stderr.strip()[-300:]}"))
+    elif not started:
+        faults = "; ".join(f"{f.get('kind')}: {f.get('why')}" for f in s.get("faults", []))
+        out.append(_verdict("joined_in_time", FAIL, f"the run never started (outcome {s.get('outcome')!r}; {faults}; "
+                                                    f"the command's last line: {_last(r.command_log)!r})"))
+    else:
+        out.append(_verdict("joined_in_time", PASS, f"the external {role} joined and the run started "
+                                                   f"(join file mode {r.join_mode:o})"))
+    if not started:
+        for name in (*REQUIREMENTS[1:], *(ADVERSE if r.fed is not None else ())):
+            out.append(_verdict(name, FAIL, "the run never started"))
+        return out
+    N, T = rec.start.n_steps, rec.start.T_ns
+    mine = {"/" + k for k in PUBLISHES[role]}
+    # 2. well formed
+    bad = [m for m in rec.malformed if m.get("key", "").split(f"{transport.ROOT}/{s['run_id']}/", 1)[-1]
+           in {*PUBLISHES[role], f"telemetry/{role}", f"events/{role}", f"summary/{role}"}]
+    ours = (r.fed or {}).get("invalid")  # the adverse case's 11-byte header, rejected by every reader of that key
+    rejected = [e for e in rec.events if e.node != role and e.kind in ("malformed", "invalid_payload")
+                and not (ours and e.kind == "malformed" and e.k == -1 and "header of 11 bytes" in e.detail)]
+    if bad:
+        out.append(_verdict("messages_well_formed", FAIL, f"{len(bad)} malformed; the first: {bad[0]['key']}: "
+                                                          f"{bad[0]['error']}"))
+    elif rejected:
+        e = rejected[0]
+        out.append(_verdict("messages_well_formed", FAIL, f"the {e.node} rejected a message ({e.kind}) at sample "
+                                                          f"{e.k}: {e.detail}"))
+    else:
+        n = sum(len(rec.loop.get(t, [])) for t in mine)
+        out.append(_verdict("messages_well_formed", PASS, f"{n} control messages and {len(rec.telemetry.get(role, {}))} "
+                                                          "telemetry records decoded; no receiver rejected one"))
+    # 3. header and sample indices
+    out.append(_indices(role, rec, mine, N, T))
+    # 4. telemetry against the messages
+    out.append(_agrees(role, rec))
+    # 5. equal to the simulator
+    sc = run_scenario(r.join_data)
+    sim = simulated(sc)
+    diff = next((k for k in BIT_EXACT_KEYS if s.get(k) != sim.get(k)), None)
+    if diff is None:
+        out.append(_verdict("equals_simulator", PASS, f"{', '.join(BIT_EXACT_KEYS)} equal to testbed simulate "
+                                                      f"bit for bit ({s.get('samples')} samples)"))
+    else:
+        a, b = s.get(diff), sim.get(diff)
+        k = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), None) if isinstance(a, list) and \
+            isinstance(b, list) else None
+        where = f" at sample {k}: live {a[k]!r}, simulator {b[k]!r}" if k is not None else f": {a!r} != {b!r}"
+        out.append(_verdict("equals_simulator", INCONCLUSIVE if stall_again else FAIL,
+                            f"{diff} differs{where}" + (f" (the run stalled twice: {stall_again})" if stall_again else "")))
+    # 6. acks and deadlines
+    out.append(_acks(role, rec, s, N, T, sc.run.deadline, stall_again))
+    # 7. clean stop
+    out.append(_stop(role, rec, r, s))
+    # 8. the adverse cases
+    if r.fed is not None:
+        first = None
+        if diff is not None:
+            ks = [next((i for i, (x, y) in enumerate(zip(s.get(c), sim.get(c))) if x != y), None)
+                  for c in PER_SAMPLE if isinstance(s.get(c), list) and isinstance(sim.get(c), list)]
+            ks = [k for k in ks if k is not None]
+            first = min(ks) if ks else N - 1
+        ns = (s.get("node_summaries") or {}).get(role) or {}
+        out += adverse.verdicts(r.fed, r.feed_error, first, stall_again,
+                                node_counts={c: ns.get(c) for c in COUNTERS if isinstance(ns.get(c), int)})
+    return out
+
+
+def _last(text: str) -> str:
+    lines = text.strip().splitlines()
+    return lines[-1] if lines else ""
+
+
+def _indices(role, rec, mine, N, T) -> dict:
+    tol = 2_000_000  # CLOCK_TOLERANCE_NS
+    for topic in sorted(mine):
+        ks = [m.k for m in rec.loop.get(topic, [])]
+        for i, m in enumerate(rec.loop.get(topic, [])):
+            if not 0 <= m.k < N:
+                return _verdict("sample_indices", FAIL, f"{topic}: header k = {m.k} outside 0 .. {N - 1}")
+            if i and m.k <= ks[i - 1] and role != "attacker":  # an attacker forwards late and repeated symbols
+                return _verdict("sample_indices", FAIL, f"{topic}: header k = {m.k} after k = {ks[i - 1]} (not in "
+                                                        "order, or twice)")
+            if m.stamp_ns < m.k * T - tol:
+                return _verdict("sample_indices", FAIL, f"{topic}: sample {m.k}'s header stamp {m.stamp_ns} ns is "
+                                                        f"before t_k = {m.k * T} ns")
+        if topic == "/loop/sensor" and ks != list(range(N)):
+            miss = sorted(set(range(N)) - set(ks))
+            return _verdict("sample_indices", FAIL, f"/loop/sensor: samples {miss[:5]} never sent")
+        if topic == "/loop/actuation" and ks != list(range(N)):
+            miss = sorted(set(range(N)) - set(ks))
+            return _verdict("sample_indices", FAIL, f"/loop/actuation: no actuation for samples {miss[:5]}")
+    tk = sorted(rec.telemetry.get(role, {}))
+    if role in ("plant", "controller") and tk != list(range(N)):
+        return _verdict("sample_indices", FAIL, f"telemetry/{role}: samples {sorted(set(range(N)) - set(tk))[:5]} "
+                                                "have no record")
+    if role == "plant" and (rec.plant_final is None or rec.plant_final.k != N):
+        return _verdict("sample_indices", FAIL, f"telemetry/plant: no final record k = {N}")
+    if rec.duplicates and role != "attacker":  # one record per symbol received (the spec), repeats too
+        return _verdict("sample_indices", FAIL, f"{rec.duplicates} telemetry records of a sample already recorded")
+    if role == "attacker":
+        return _verdict("sample_indices", PASS, f"headers k within 0 .. {N - 1}, stamps at or after t_k; telemetry "
+                                                f"k = 0 .. {N - 1} at most once each")
+    return _verdict("sample_indices", PASS, f"headers k = 0 .. {N - 1} in order with stamps at or after t_k; "
+                                            f"telemetry k = 0 .. {N - 1} once each")
+
+
+def _agrees(role, rec) -> dict:
+    tel = rec.telemetry.get(role, {})
+    name = "telemetry_agrees_with_messages"
+    if role == "plant":
+        for m in rec.loop.get("/loop/sensor", []):
+            t = tel.get(m.k)
+            if t is not None and tuple(t.x) != tuple(m.x):
+                return _verdict(name, FAIL, f"sample {m.k}: loop/sensor carries x = {list(m.x)}, the plant's "
+                                            f"telemetry x_k = {list(t.x)}")
+        return _verdict(name, PASS, "every loop/sensor x equals the telemetry's x_k")
+    if role == "controller":
+        for m in rec.loop.get("/loop/actuation", []):
+            t = tel.get(m.k)
+            if t is not None and (tuple(t.u) != tuple(m.u) or t.theta != m.theta):
+                return _verdict(name, FAIL, f"sample {m.k}: loop/actuation carries theta {m.theta}, u = {list(m.u)}; "
+                                            f"the telemetry theta {t.theta}, u = {list(t.u)}")
+        return _verdict(name, PASS, "every loop/actuation theta_k, u_k equals the telemetry's")
+    if role == "encoder":
+        sent = {m.k: int.from_bytes(m.data, "big") for m in rec.loop.get("/loop/symbol/tx", [])}
+        for k, t in tel.items():
+            want = sent.get(k, -1)
+            if t.symbol != want:
+                return _verdict(name, FAIL, f"sample {k}: telemetry symbol {t.symbol}, loop/symbol/tx carried "
+                                            f"{'none' if want < 0 else want}")
+        return _verdict(name, PASS, "every symbol sent equals the telemetry's, and none was sent unrecorded")
+    fwd = {m.k for m in rec.loop.get("/loop/symbol/rx", [])}
+    for k, t in tel.items():
+        if bool(t.dropped) == (k in fwd):
+            return _verdict(name, FAIL, f"sample {k}: telemetry dropped = {t.dropped}, but the symbol was "
+                                        f"{'forwarded' if k in fwd else 'not forwarded'}")
+    return _verdict(name, PASS, "every symbol forwarded or dropped as the telemetry says")
+
+
+def _acks(role, rec, s, N, T, d, stall_again) -> dict:
+    name = "acks_and_deadlines"
+    problems = []
+    act: dict = {}
+    for m in rec.loop.get("/loop/actuation", []):
+        act.setdefault(m.k, m)  # the first copy counts (a later one: late, or an adverse case's)
+    last = -1
+    for k in range(N):
+        m = act.get(k)
+        if m is None:
+            continue
+        if m.theta == 0:
+            last = k
+        if m.last_rx != last:
+            problems.append(f"sample {k}: actuation last_rx {m.last_rx}, the latest accepted sample is {last}")
+            break
+        if role == "controller" and m.stamp_ns > k * T + d * T:
+            problems.append(f"sample {k}: u_k published at {m.stamp_ns} ns, after the plant's deadline "
+                            f"{int(k * T + d * T)} ns")
+            break
+    tm = s.get("timing") or {}
+    if tm.get("deadline_misses"):
+        problems.append(f"{tm['deadline_misses']} deadline misses at samples {s.get('deadline_missed_at')}")
+    ev = s.get("events") or {}
+    if ev.get("ack_missing") and not s.get("ack_via_attacker"):
+        problems.append(f"{ev['ack_missing']} acks missed the encoder's grace window")
+    if not problems:
+        return _verdict(name, PASS, "every actuation's ack (theta_k, last_rx) as Algorithm 2 says; no deadline missed")
+    return _verdict(name, INCONCLUSIVE if stall_again else FAIL,
+                    problems[0] + (f" (the run stalled twice: {stall_again})" if stall_again else ""))
+
+
+def _stop(role, rec, r: ExternalRun, s) -> dict:
+    name = "clean_stop"
+    if role == "plant" and not any(st.origin == "plant" for st in rec.stops):
+        return _verdict(name, FAIL, "the plant published no Stop (origin plant) at the end of the run")
+    if r.command_stopped_s is None:
+        return _verdict(name, FAIL, f"the command was still running {STOP_GRACE_S:g} s after the run ended "
+                                    "(stopped with SIGINT/SIGKILL)")
+    if r.command_rc != 0:
+        return _verdict(name, FAIL, f"the command exited with status {r.command_rc}: {_last(r.command_log)!r}")
+    if role not in rec.summaries:
+        return _verdict(name, FAIL, f"no NodeSummary on summary/{role}")
+    tm = [f for f in s.get("faults", []) if f.get("node") == role and f.get("kind") == "telemetry_mismatch"
+          and not (role == "attacker" and r.fed)]  # it records every symbol it got, the adverse copies too
+    if tm:
+        return _verdict(name, FAIL, f"its summary's telemetry count or digest differs from what arrived: {tm[0].get('why')}")
+    if not r.join_removed:
+        return _verdict(name, FAIL, f"the join file {r.join_path} was left behind")
+    return _verdict(name, PASS, f"the command exited 0, {r.command_stopped_s:g} s after the run ended, with its "
+                                "summary; the join file was removed")
+
+
+def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
+                timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True) -> dict:
+    """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``."""
+    runs = []
+    stall_again = None
+    for attempt in range(2):
+        r = run_external(role, scenario, command, run_id=run_id + "r" * attempt, folder=folder, flags=flags,
+                         timeout=timeout, startup_timeout=startup_timeout, feed=feed)
+        runs.append(r)
+        st = stalled(r.summary, role) if r.summary else None
+        if not st:
+            break
+        if attempt:
+            stall_again = st
+    reqs = check_run(role, scenario, runs[-1], stall_again=stall_again)
+    return {"passed": all(q["passed"] for q in reqs), "role": role, "scenario": scenario, "command": command,
+            "requirements": reqs,
+            "runs": [{"run_id": run_id + "r" * i, "rc": r.rc, "outcome": (r.summary or {}).get("outcome"),
+                      "stalled": stalled(r.summary, role) if r.summary else None, "command_rc": r.command_rc,
+                      "report": own_report(r.summary, role),
+                      "recording": r.recording, "fed": r.fed, "notes": r.notes} for i, r in enumerate(runs)]}
