@@ -13,6 +13,7 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
+from .device import DeviceSpec
 from .errors import BadInput
 from .loopspec import FlowOptions, QuantizerParams
 
@@ -44,6 +45,7 @@ class PlantSpec:
     ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
     base_dir: str = ""             # the scenario file's folder ("" for bundled scenarios and strings)
     fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
+    device: DeviceSpec | None = None  # [plant.sensor], [plant.actuator], [plant.disturbance] (``testbed.device``)
 
     def make(self) -> plants.Plant:
         if self.fmu is not None:

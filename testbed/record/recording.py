@@ -290,6 +290,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
         reasons = res.reason
         fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
+        x_meas = getattr(res, "x_meas", None)       # what the sensor read ([plant.sensor])
         if bulk:
             _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total)
         for k in range(0 if bulk else N):  # the per-message path
@@ -303,7 +304,8 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
                 theta=msg.THETA_NONE if miss else th,
                 flags=(msg.PlantTelemetry.FLAG_NO_U | msg.PlantTelemetry.FLAG_MISS) if miss else 0,
                 flow_status=int(res.flow_status) if k == res.diverged_at else 0,
-                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k]))
+                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k]),
+                x_meas=() if x_meas is None else tuple(x_meas[k]))
             tele("/telemetry/plant", "PlantSample", p, lt)
             tap(fox.plant(p, lt))
             if fault is not None and k == res.plant_fault_at:  # the event a live plant node publishes

@@ -43,6 +43,7 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
         ("x", "f64*", "plant state x_k"),
         ("u", "f64*", "input applied over [t_k, t_k+1) (empty for the final state)"),
         ("header", "hdr", "header.stamp = t_k = t0 + k T, the sample instant, absolute (a Plot panel's x axis)"),
+        ("x_meas", "f64*", "what the sensor read of x_k, sent to the encoder ([plant.sensor]; empty: x_k itself)"),
     ],
     "EncoderSample": [
         ("k", "u32", "sample index"),

@@ -199,6 +199,8 @@ def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, droppe
     plant = {"k": ks, "t_ns": (tk, yes), "sensor_tx_ns": (tk, yes), "u_rx_ns": (tk + dk, ~miss), "delay_ns": dk,
              "theta": np.where(miss, 255, th), "flags": np.where(miss, 3, 0), "flow_status": fs,
              "x": (res.x[sl], np.full(N, n)), "u": (u, np.full(N, m)), "header": hdr}
+    if getattr(res, "x_meas", None) is not None:  # what the sensor read ([plant.sensor])
+        plant["x_meas"] = (res.x_meas[sl], np.full(N, n))
     sym = np.asarray(res.symbols[sl], dtype=np.int64)
     E = np.where(held, np.nan, res.E_enc[sl])
     lg, has = _log10(E)

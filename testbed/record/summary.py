@@ -131,6 +131,10 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
                     xi_dec=xi_dec, E_dec=E_dec, theta=theta, symbols=symbols, saturated=sat, x_final=x_final,
                     flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float),
                     simulator=cols.metadata.get("testbed.run", {}).get("simulator"))  # None: a live run
+    if ("plant", "x_meas") in cols.lay.cols:  # what the sensor read ([plant.sensor]); NaN where not recorded
+        xm = g("plant", "x_meas")[:N]
+        if np.isfinite(xm).any():
+            res.x_meas = xm
     events = cols.events
     pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
     if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample
