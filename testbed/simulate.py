@@ -645,6 +645,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "K": res.K.tolist(),
         "t": L(res.t),
         "x": L(res.x),
+        **({} if res.x_meas is None else {"x_meas": L(res.x_meas)}),  # what the sensor read ([plant.sensor])
         "u": L(res.u),
         "q": L(res.q),
         "xi": L(res.xi_enc),

@@ -45,7 +45,7 @@ class RowsOrNone:
 #: the telemetry fields ``build_summary`` prints (``testbed.record.columns.read_columns(fields=...)``); q_k at the
 #: encoder is not printed and stays NaN unless decoded (``testbed.open`` decodes every field)
 SUMMARY_FIELDS = {
-    "plant.x", "plant.u", "plant.t_ns", "plant.u_rx_ns", "plant.theta", "plant.flags", "plant.flow_status",
+    "plant.x", "plant.x_meas", "plant.u", "plant.t_ns", "plant.u_rx_ns", "plant.theta", "plant.flags", "plant.flow_status",
     "encoder.symbol", "encoder.saturated", "encoder.silent", "encoder.E", "encoder.xi", "encoder.tx_ns",
     "controller.theta", "controller.q", "controller.xi", "controller.E", "controller.reason", "controller.tx_ns",
     "controller.u",

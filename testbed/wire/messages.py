@@ -269,6 +269,8 @@ class _Telemetry:
             vals[f], off = _unvec(data, off)
         if cls._optional_vector is not None and off < len(data):
             vals[cls._optional_vector], off = _unvec(data, off)
+            if not vals[cls._optional_vector]:  # never sent empty: an empty one is a trailing byte
+                raise MessageError(f"{cls.__name__}: {len(data) - off + 1} trailing bytes")
         if off != len(data):
             raise MessageError(f"{cls.__name__}: {len(data) - off} trailing bytes")
         return cls(**vals)
