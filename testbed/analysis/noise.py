@@ -78,28 +78,95 @@ def with_sensor(sc, sensor: SensorSpec, E_min: float):
     return dataclasses.replace(sc, plant=plant, quantizer=dataclasses.replace(sc.quantizer, E_min=float(E_min)))
 
 
-def sweep(sc, scales, E_mins, *, distribution: str = "uniform", seed: int = 1, settle: float | None = None) -> list[dict]:
-    """Simulate ``sc`` (per-sample loop) for every sensor noise ``scale`` and ``E_min``: one row each.
+def sweep(sc, scales, ratios, *, distribution: str = "uniform", seed: int = 1, settle: float | None = None,
+          progress=None) -> dict:
+    """Simulate ``sc`` (the per-sample loop) with sensor noise of every ``scale`` and E_min = ratio * b
+    for every ``ratio`` (b = the noise's bound, ``SensorSpec.bound``).
 
-    ``settle``: the time [s] after which saturations count as the steady regime (default: half
-    the run).  Row: scale, E_min, the sensor's bound b, saturations (all, after ``settle``),
-    ``tail_norm`` (max ||x||_inf after ``settle``), ``final_norm``, ``ball`` (the predicted radius).
+    ``settle``: the time [s] from which saturations and ||x|| count as the steady regime (default
+    three quarters of the run).  Per scale: b, the E_min guarantee and the linearized estimate;
+    per run: ``saturations`` (all, and ``saturations_after`` settle: OVERFLOW recaptures),
+    ``tail_norm`` (max ||x||_inf after settle), ``ball`` (the predicted radius at that E_min),
+    ``inside_ball``, ``final_norm`` and ``escaped`` (the state ends farther from the origin than
+    x0 started: a DoS burst's zoom-out the loop did not recover from; ``testbed simulate``'s escape
+    criterion asks for ||x|| below ``converge_tol``, which a noisy loop need not reach).
     """
     model = sc.make_model()
+    qp = sc.quantizer
     N = sc.n_steps
-    k0 = int(N // 2 if settle is None else round(settle / sc.T))
-    rows = []
+    settle = 0.75 * N * sc.T if settle is None else float(settle)
+    k0 = min(max(int(round(settle / sc.T)), 0), max(N - 1, 0))
+    x0 = float(np.max(np.abs(sc.x0)))
+    a = growth(model, sc.T)
+    out = {"scenario": sc.name, "distribution": distribution, "seed": int(seed), "M": qp.M, "Lambda": qp.Lambda,
+           "growth": a, "settle_s": k0 * sc.T, "samples": N, "scales": []}
+    done, total = 0, len(scales) * len(ratios)
     for s in scales:
-        sensor = SensorSpec(distribution=distribution, scale=float(s), seed=seed)
+        sensor = SensorSpec(distribution=distribution, scale=float(s), seed=int(seed))
         b = sensor.bound()
-        for e in E_mins:
-            res = simulate_scenario(with_sensor(sc, sensor, e))
-            tail = res.x[k0:] if len(res.x) > k0 else res.x[-1:]
-            rows.append({"scale": float(s), "E_min": float(e), "b": b, "saturations": int(res.saturations),
-                         "saturations_after": int(res.saturated[k0:].sum()),
-                         "tail_norm": float(np.max(np.abs(tail))), "final_norm": res.final_norm,
-                         "ball": ball_radius(model, sc.K, sc.T, sc.quantizer.M, b, e)})
-    return rows
+        entry = {"scale": float(s), "b": b, "E_min_guarantee": e_min_guarantee(b, qp.Lambda, qp.M),
+                 "E_min_estimate": e_min_guarantee(b, a, qp.M), "runs": []}
+        for r in ratios:
+            e = float(r) * b
+            scn = with_sensor(sc, sensor, e)
+            res = simulate_scenario(scn)
+            tail = float(np.max(np.abs(res.x[k0:]))) if len(res.x) > k0 else float("nan")
+            ball = ball_radius(model, sc.K, sc.T, qp.M, b, e)
+            entry["runs"].append({"ratio": float(r), "E_min": e, "saturations": int(res.saturations),
+                                  "saturations_after": int(res.saturated[k0:].sum()), "tail_norm": tail,
+                                  "ball": ball, "inside_ball": bool(tail <= ball), "final_norm": res.final_norm,
+                                  "escaped": bool(not res.final_norm <= x0)})
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        out["scales"].append(entry)
+    return out
 
 
-__all__ = ["e_min_guarantee", "e_min_estimate", "growth", "ball_radius", "with_sensor", "sweep"]
+def plot_sweep(data: dict, path, *, size: str = "page", title: str = ""):
+    """Two panels over E_min / b: the OVERFLOW recaptures after the transient, and the state's
+    steady size against the predicted ball; the estimate and the guarantee marked per scale."""
+    from .. import figstyle
+
+    plt = figstyle.pyplot()
+    with figstyle.style(size):
+        fig, axs = figstyle.subplots(size, 2, 1, aspect=0.4, sharex=True)
+        ax1, ax2 = axs[:, 0]
+        markers = ("o", "s", "^", "D", "v")
+        for i, entry in enumerate(data["scales"]):
+            col = figstyle.CYCLE[i % len(figstyle.CYCLE)]
+            mk = markers[i % len(markers)]
+            ms = 6.5 - 1.5 * (i % 3)  # overlapping curves (the relation scales with b) stay visible
+            runs = [r for r in entry["runs"] if r["ratio"] > 0]
+            x = np.array([r["ratio"] for r in runs])
+            lab = f"{data['distribution']} noise, scale {entry['scale']:g}"
+            ax1.plot(x, [r["saturations_after"] for r in runs], "-", marker=mk, ms=ms, color=col, label=lab)
+            ok = np.array([not r["escaped"] for r in runs], dtype=bool)
+            tail = np.array([r["tail_norm"] for r in runs])
+            ax2.plot(x[ok], tail[ok], "-", marker=mk, ms=ms, color=col)
+            ax2.plot(x[~ok], tail[~ok], "x", color=col, markersize=8)
+            ax2.plot(x, [r["ball"] for r in runs], ":", color=col)
+        g = data["scales"][0]  # the ratios do not depend on the scale (b cancels)
+        for ax in (ax1, ax2):
+            ax.axvline(g["E_min_estimate"] / g["b"], color="0.3", lw=0.8, ls="--")
+            ax.axvline(g["E_min_guarantee"] / g["b"], color="0.3", lw=0.8, ls="-.")
+        ax1.set_xscale("log")
+        ax1.set_ylabel(f"saturations after {data['settle_s']:g} s")
+        ax1.set_title(title or f"{data['scenario']}: E_min against the sensor noise", fontsize="medium")
+        ax2.set_yscale("log")
+        ax2.set_xlabel("E_min / b  (b: the noise's bound)")
+        ax2.set_ylabel(r"max $\|x\|_\infty$ after settling")
+        from matplotlib.lines import Line2D
+
+        extra = [Line2D([], [], color="0.3", ls="--", label="linearized estimate"),
+                 Line2D([], [], color="0.3", ls="-.", label="guarantee (Lambda)"),
+                 Line2D([], [], color="0.3", ls=":", label="predicted ball"),
+                 Line2D([], [], color="0.3", marker="x", ls="", label="escaped")]
+        h, _ = ax1.get_legend_handles_labels()
+        figstyle.legend_below(fig, h + extra, ncol=2, axes=ax2)
+        out = figstyle.save(fig, path)
+        plt.close(fig)
+    return out
+
+
+__all__ = ["e_min_guarantee", "e_min_estimate", "growth", "ball_radius", "with_sensor", "sweep", "plot_sweep"]
