@@ -77,6 +77,7 @@ class SimResult:
     lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
     x_meas: np.ndarray | None = None  # x_meas,k, what the sensor read ([plant.sensor]; None: x_k itself), (N, n)
+    u_plant: np.ndarray | None = None  # the input that acted after the actuator ([plant.actuator]; None: u), (N, m)
     simulator: str | None = "per-sample"  # which simulator ran: "per-sample" (this loop), "batch" (``testbed.simbatch``);
     #                                       a recording's: as its metadata says (None: a live run)
 
@@ -218,6 +219,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                        deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max,
                        device=None if device is None else device.make(n, m, qp.T))
     x_meas = np.full((N, n), np.nan) if device is not None and device.sensor is not None else None
+    u_plant = np.zeros((N, m)) if device is not None and device.actuator is not None else None
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     delays = np.zeros(N, dtype=np.int64) if physical else None
     if method is None:
@@ -306,6 +308,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         except PlantFault as e:  # the run stops at this sample (x_final = x_k): reported, not raised
             fault, fault_at, last = str(e), k, k + 1
             break
+        if u_plant is not None:
+            u_plant[k] = pp.u_applied
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
@@ -325,7 +329,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      plant_fault=fault, plant_fault_at=fault_at,
                      loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
                      method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
-                     ends=(encp.enc, ctlp.dec), x_meas=None if x_meas is None else x_meas[sl])
+                     ends=(encp.enc, ctlp.dec), x_meas=None if x_meas is None else x_meas[sl],
+                     u_plant=None if u_plant is None else u_plant[sl])
 
 
 def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb):

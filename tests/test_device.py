@@ -87,6 +87,7 @@ def test_simulated_plant_applies_actuator_and_disturbance_exactly():
         u = prev + np.clip(u - prev, -0.2, 0.2)
         clipped += int(not np.array_equal(u, res.u[k]))
         prev = u
+        assert np.array_equal(res.u_plant[k], u), k
         proc.reset(res.x[k])
         proc.advance(u, sc.T)
         want = proc.x + (np.array([1e-6, -2e-6]) + 1e-6 * rng.standard_normal(2))
@@ -209,3 +210,18 @@ def test_bad_device_tables_are_one_line(tmp_path, extra, key):
     f.write_text(text)
     rc, out, err = run_cli(tb_cmd("simulate", str(f)))
     assert rc == 2 and len(err.strip().splitlines()) == 1 and key in err, err
+
+
+def test_noise_command_sweeps_and_says_what_it_found(tmp_path):
+    rc, out, err = run_cli(tb_cmd("noise", "docs/examples/paper-noisy.toml", "--scale", "1e-5", "--ratio", "0", "3",
+                                  "--json"))
+    assert rc == 0, err
+    d = json.loads(out)
+    (e,) = d["scales"]
+    assert e["b"] == 1e-5 and e["E_min_estimate"] < e["E_min_guarantee"]
+    none, floor = e["runs"]
+    assert none["E_min"] == 0 and none["saturations_after"] > 0
+    assert floor["E_min"] == pytest.approx(3e-5, rel=1e-12)
+    assert floor["saturations"] == 0 and floor["inside_ball"] and not floor["escaped"]
+    rc, out, err = run_cli(tb_cmd("noise", "docs/examples/paper-noisy.toml", "--settle", "99"))
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "--settle" in err, err
