@@ -87,7 +87,8 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
     ],
     "Header": [("stamp", "ts", "an absolute time (t0 + k T for telemetry)")],
     # ---- control path as it crossed the network (topics /loop/...)
-    "Sensor": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"), ("x", "f64*", "x_k")],
+    "Sensor": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
+               ("x", "f64*", "x_k as the sensor read it (x_meas with [plant.sensor])")],
     "Symbol": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
                ("data", "bytes", "the packed symbol bits exactly as sent (Codebook.pack)")],
     "Actuation": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),

@@ -30,7 +30,7 @@ FIELD_DOC = {
     ("Header", "k"): ("0 .. N-1; 4294967295 = warm-up", "sample index k (WARMUP_K: a warm-up put before t0, ignore it)"),
     ("Header", "stamp_ns"): ("ns since t0", "the sender's run clock when it sent the message (Sensor: when x_k was "
                                             "sampled; a forwarded Symbol or Ack keeps the original header)"),
-    ("Sensor", "x"): ("n x float64", "x_k, the plant's state sampled at t_k"),
+    ("Sensor", "x"): ("n x float64", "x_k, the plant's state sampled at t_k, as its sensor read it ([plant.sensor])"),
     ("Symbol", "data"): ("ceil(bits/8) bytes, big-endian", "the symbol i, 0 <= i < n_codes (M^n, + 1 for OVERFLOW)"),
     ("Actuation", "theta"): ("0 or 1", "theta_k: 0 the symbol of sample k was accepted, 1 it was not"),
     ("Actuation", "last_rx"): ("-1 .. k", "the latest sample whose symbol the decoder accepted (-1: none)"),
