@@ -381,7 +381,8 @@ class PlantProtocol:
         return x if self.device is None else self.device.measure(k, x)
 
     def check_input(self, u) -> tuple[np.ndarray | None, str | None]:
-        """u_k as the actuator takes it: (u, None), (clamped u, "clamped") or (None, "nonfinite")."""
+        """u_k past the safety check (``[controller] u_max``, before the actuator's own limits):
+        (u, None), (clamped u, "clamped") or (None, "nonfinite")."""
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(u)):
             self.rejected_nonfinite += 1

@@ -225,3 +225,11 @@ def test_noise_command_sweeps_and_says_what_it_found(tmp_path):
     assert floor["saturations"] == 0 and floor["inside_ball"] and not floor["escaped"]
     rc, out, err = run_cli(tb_cmd("noise", "docs/examples/paper-noisy.toml", "--settle", "99"))
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "--settle" in err, err
+
+
+def test_campaigns_run_a_device_on_the_per_sample_loop():
+    from testbed.campaignbatch import batch_key
+
+    text = noisy_paper("[plant.sensor]\nscale = 1e-6\n", E_min=3e-5)
+    assert batch_key(scenario.loads(text), text, "") is None
+    assert batch_key(scenario.load("paper"), PAPER, "") is not None

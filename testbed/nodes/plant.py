@@ -21,6 +21,10 @@ sample whose instant has not come yet is rejected.  Each is counted and logged a
 an event.  If the controller's liveliness token disappears the plant stops waiting
 and runs on with u = 0; the run is marked (``controller_lost_at``).
 
+A plant that is a device (``[plant.sensor]``, ``[plant.actuator]``, ``[plant.disturbance]``,
+``testbed.device``, applied by ``PlantProtocol`` as in the simulator): the sensor message carries
+x_meas,k, the telemetry both x_k and x_meas,k, and u is the input that acted after the actuator.
+
 Colocated encoder (``--colocate encoder``, a smart sensor): the plant's process also
 runs the encoder (``testbed.nodes.encoder.EncoderNode``, ``embedded``) on x_k as it is
 sampled: no sensor message (x_k is still published for a greedy attacker that scores
