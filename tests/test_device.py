@@ -181,6 +181,10 @@ def test_recording_keeps_true_and_measured_state_and_resimulates(tmp_path):
     rc, out, err = run_cli(tb_cmd("report", str(rec), "--json"))
     assert rc in (0, 1), err
     assert json.loads(out)["x_meas"] == sim["x_meas"]
+    import testbed
+
+    run = testbed.open(rec)
+    assert np.array_equal(run.arrays["x_meas"], res.x_meas) and "x_meas2" in run.columns()
     rc, out, err = run_cli(tb_cmd("resimulate", str(rec), "--json"))
     r = json.loads(out)
     assert r["reproduced"] and r["max_state_error"] == 0, r
