@@ -155,13 +155,13 @@ def transport_of(flags) -> str:
 #: the shared options and the commands that must have them (docs/cli.md)
 SHARED = {
     "--json": ["scenarios", "simulate", "run", "report", "replay", "analyze", "roa", "sweep", "resimulate",
-               "plants", "check-plant", "worst-attack", "vulnerability", "secret", "compare"],
+               "plants", "check-plant", "worst-attack", "vulnerability", "secret", "compare", "noise"],
     "--out": ["run", "simulate", "record"],
     "--rrd": ["run", "simulate", "replay"],
-    "--plot": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
-    "--figsize": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare"],
+    "--plot": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare", "noise"],
+    "--figsize": ["simulate", "analyze", "roa", "sweep", "report", "vulnerability", "compare", "noise"],
     "--no-roa": ["run", "simulate", "replay"],
-    "--no-progress": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
+    "--no-progress": ["analyze", "roa", "sweep", "worst-attack", "vulnerability", "noise"],
     "--workers": ["analyze", "roa", "sweep", "worst-attack", "vulnerability"],
 }
 
