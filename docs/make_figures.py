@@ -76,6 +76,15 @@ JOBS = (
         title="Empirical DoS tolerance: `testbed sweep --plot`",
         about="The worst converged fraction over (rho_D, rho_F) (21 x 21 budgets, three attacker kinds), the "
               "empirical boundary of each kind, Theorem 1's boundaries, and a zoom on the theorem's region."),
+    Job("noise-paper", (("noise", "docs/examples/paper-noisy.toml", "--plot", "{out}/figures/noise-paper.png",
+                         "--no-progress", "--json"),),
+        ("figures/noise-paper.png",), data="figures/noise-paper.json",
+        title="E_min against sensor noise: `testbed noise --plot`",
+        about="The paper's example read through a noisy sensor (uniform noise, three scales), over E_min / b (b: "
+              "the noise's bound): the saturations (OVERFLOW recaptures) after the state settled, and the steady "
+              "||x||_inf against the predicted ball (dotted; crosses: escaped), with the linearized estimate "
+              "(dashed) and the guarantee (dash-dotted) of [the quantizer under sensor noise]"
+              "(plants-and-quantizer.md#the-quantizer-under-sensor-noise)."),
     Job("analyze-paper", (("analyze", "paper", "--full", "--plot", "{out}/analysis", "--escape-x0", "0.3", "0.3",
                            "--no-progress", "--json"),),
         ("analysis/paper-allowable-region.png", "analysis/paper-delta.png", "analysis/paper-time-series.png",

@@ -275,7 +275,51 @@ def compute() -> tuple[dict[str, str], dict[str, str]]:
     n["vuln_median"] = f"{g(vu['median_duration'])} s"
     n["vuln_max"] = f"{g(vu['largest_duration'])} s"
     b.update(methods_numbers())
+    nn, nb = noise_numbers()
+    n.update(nn)
+    b.update(nb)
     return n, b
+
+
+NOISE_SCENARIO = "docs/examples/paper-noisy.toml"
+
+
+def noise_numbers() -> tuple[dict[str, str], dict[str, str]]:
+    """docs/plants-and-quantizer.md: E_min against sensor noise (``testbed noise``), and the bundled
+    methods under the same noisy sensor (``testbed noise --method``)."""
+    d = testbed("noise", NOISE_SCENARIO, "--no-progress")
+    n = {"noise_growth": g(d["growth"]), "noise_settle": f"{g(d['settle_s'], 3)} s"}
+    first = d["scales"][0]
+    n["noise_guarantee_ratio"] = g(first["E_min_guarantee"] / first["b"], 2)
+    n["noise_estimate_ratio"] = g(first["E_min_estimate"] / first["b"], 3)
+
+    def escapes(entry):
+        esc = [g(r["ratio"], 3) for r in entry["runs"] if r["escaped"]]
+        return "none" if not esc else esc[0] if len(esc) == 1 else ", ".join(esc[:-1]) + " and " + esc[-1]
+
+    by_scale = {e["scale"]: e for e in d["scales"]}
+    n["noise_escapes_mid"] = escapes(by_scale[1e-5])
+    n["noise_escapes_big"] = escapes(by_scale[1e-4])
+
+    def cell(r):
+        return "escaped" if r["escaped"] else f"{r['saturations_after']}, {g(r['tail_norm'], 2)}"
+
+    rows = ["| E_min / b | " + " | ".join(f"noise {g(e['scale'])}: saturations, max \\|\\|x\\|\\|" for e in d["scales"])
+            + " |", "|---" * (1 + len(d["scales"])) + "|"]
+    for i, r0 in enumerate(d["scales"][0]["runs"]):
+        rows.append(f"| {g(r0['ratio'], 3)} | " + " | ".join(cell(e["runs"][i]) for e in d["scales"]) + " |")
+    tables = {"noise_sweep": "\n".join(rows)}
+    rows = ["| method | E_min = 0: saturations (after settling) | max \\|\\|x\\|\\| after settling | "
+            "E_min = 3 b: saturations | max \\|\\|x\\|\\| after settling |", "|---|---|---|---|---|"]
+    for m in METHODS:
+        e = testbed("noise", NOISE_SCENARIO, "--method", m, "--scale", "1e-5", "--ratio", "0", "3",
+                    "--no-progress")["scales"][0]
+        a, c = e["runs"]
+        rows.append(f"| `{m}` | {a['saturations']} ({a['saturations_after']}) | "
+                    f"{'escaped' if a['escaped'] else g(a['tail_norm'], 2)} | {c['saturations']} ({c['saturations_after']}) | "
+                    f"{'escaped' if c['escaped'] else g(c['tail_norm'], 2)} |")
+    tables["noise_methods"] = "\n".join(rows)
+    return n, tables
 
 
 METHODS = ["paper", "zoom", "static", "unquantized", "unquantized-hold"]
@@ -331,7 +375,9 @@ def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
               "theorem1": "Theorem 1 (`testbed analyze paper`)", "theorem2": "Theorem 2 (`testbed analyze paper`)",
               "worst_attack": "The strongest attacker (`testbed worst-attack paper`)",
               "methods_versus": "Methods on the paper's example (`testbed versus paper --methods ...`, "
-                                "`testbed worst-attack paper --method ...`)"}
+                                "`testbed worst-attack paper --method ...`)",
+              "noise_sweep": "E_min against sensor noise (`testbed noise docs/examples/paper-noisy.toml`)",
+              "noise_methods": "The bundled methods under sensor noise (`testbed noise ... --method NAME`)"}
     for key, table in b.items():
         lines += [f"## {titles.get(key, key)}", "", f"<!--numbers:{key}-->", table, "<!--/numbers-->", ""]
     lines += ["## Values", "", "| name | value |", "|---|---|"]

@@ -226,6 +226,8 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
         "attack_on": A & (cols.get("attacker", "attack_on")[:N] != 0),
         "dropped": A & (cols.get("attacker", "dropped")[:N] != 0),
     }
+    if s.get("x_meas") is not None:  # what the sensor read ([plant.sensor])
+        arrays["x_meas"] = s["x_meas"]
     live = cols.source == "live"
     if live:
         arrays.update(_timing_arrays(cols, N, sc.T))
@@ -247,11 +249,14 @@ def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
     from .simulate import attack_on_samples, summarize
 
     N = len(res.t)
-    arrays = {"k": np.arange(N), "t": np.asarray(res.t), "x": res.x, "u": res.u, "q": res.q, "xi": res.xi_enc,
+    u = res.u if res.u_plant is None else res.u_plant  # what acted (after [plant.actuator]), as recorded
+    arrays = {"k": np.arange(N), "t": np.asarray(res.t), "x": res.x, "u": u, "q": res.q, "xi": res.xi_enc,
               "E": res.E_enc, "E_dec": res.E_dec, "xi_dec": res.xi_dec, "q_enc": res.q_enc,
               "theta": np.asarray(res.theta).astype(np.int64), "symbols": np.asarray(res.symbols, dtype=np.int64),
               "saturated": np.asarray(res.saturated, dtype=bool), "attack_on": attack_on_samples(sc, res),
               "dropped": np.asarray(res.theta, dtype=bool) if res.loss_cause is None else res.loss_cause == ATTACKER}
+    if res.x_meas is not None:  # what the sensor read ([plant.sensor])
+        arrays["x_meas"] = res.x_meas
     events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",
                "detail": f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"} for k in np.flatnonzero(res.saturated)]
     s = summarize(sc, res, arrays=True)

@@ -59,6 +59,7 @@ for _name, _mod, _help in [
     ("analyze", "testbed.commands.analyze", "Theorem 1 and 2 bounds for a scenario"),
     ("roa", "testbed.commands.analyze", "nominal region of attraction on a grid"),
     ("sweep", "testbed.commands.search", "empirical DoS tolerance over (rho_F, rho_D)"),
+    ("noise", "testbed.commands.noise", "E_min against sensor noise: saturations and the ball, swept"),
     ("worst-attack", "testbed.commands.search", "the shortest DoS that drives the loop out of the region of attraction"),
     ("vulnerability", "testbed.commands.search", "that least DoS duration over the region of attraction (heat map)"),
     ("campaign", "testbed.commands.campaign", "many runs (the product of axes over a scenario) in one table, resumable"),

@@ -329,6 +329,10 @@ class OdeProcess:
     def x(self) -> np.ndarray:
         return self._x.copy()
 
+    def perturb(self, w) -> None:
+        """x <- x + w (a process disturbance, ``[plant.disturbance]``)."""
+        self._x = self._x + np.asarray(w, dtype=np.float64)
+
     def close(self) -> None:
         pass
 
@@ -357,6 +361,8 @@ class PlantProtocol:
     u_held: np.ndarray = field(default=None)
     rejected_nonfinite: int = 0
     clamped: int = 0
+    device: object = None           # the sensor, actuator and disturbance (``testbed.device.Device``), or None
+    u_applied: np.ndarray = field(default=None)  # the input that acted last (after the actuator)
 
     def __post_init__(self):
         if self.u_held is None:
@@ -365,11 +371,18 @@ class PlantProtocol:
     @classmethod
     def for_scenario(cls, sc, process) -> "PlantProtocol":
         phys, sched, s_ns, d_ns, loss_ns = (int(v) for v in sc.timing_params)
+        dev = sc.plant.device
         return cls(process, sc.T, timing=sc.run.timing, actuation=sc.run.actuation, sched_ns=s_ns,
-                   deadline_ns=d_ns, loss_ns=loss_ns, u_max=sc.controller.u_max)
+                   deadline_ns=d_ns, loss_ns=loss_ns, u_max=sc.controller.u_max,
+                   device=None if dev is None else dev.make(process.n, process.m, sc.T))
+
+    def measure(self, k: int, x: np.ndarray) -> np.ndarray:
+        """x_meas,k: what the sensor reads of x_k (``[plant.sensor]``; x_k itself without one)."""
+        return x if self.device is None else self.device.measure(k, x)
 
     def check_input(self, u) -> tuple[np.ndarray | None, str | None]:
-        """u_k as the actuator takes it: (u, None), (clamped u, "clamped") or (None, "nonfinite")."""
+        """u_k past the safety check (``[controller] u_max``, before the actuator's own limits):
+        (u, None), (clamped u, "clamped") or (None, "nonfinite")."""
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(u)):
             self.rejected_nonfinite += 1
@@ -391,14 +404,23 @@ class PlantProtocol:
         time until the deadline).  Physical timing only uses ``delay_ns``.  Returns the status."""
         proc = self.process
         m = proc.m
-        if self.timing != "physical":
-            return proc.advance(np.zeros(m) if u is None else u, self.T)
+        dev = self.device
         u_k = np.zeros(m) if u is None else np.asarray(u, dtype=np.float64)
-        d = delay_ns / 1e9
-        st = proc.advance(self.u_held, d)
-        if st == FLOW_OK:
-            st = proc.advance(u_k, self.T - d)
-        self.u_held = u_k
+        if dev is not None:  # the actuator's physics acts on what arrived (zeros when nothing did)
+            u_k = dev.actuate(u_k)
+        self.u_applied = u_k
+        if self.timing != "physical":
+            st = proc.advance(u_k, self.T)
+        else:
+            d = delay_ns / 1e9
+            st = proc.advance(self.u_held, d)
+            if st == FLOW_OK:
+                st = proc.advance(u_k, self.T - d)
+            self.u_held = u_k
+        if dev is not None and st == FLOW_OK:
+            w = dev.disturbance()
+            if w is not None:  # x_k+1 = phi_T(x_k, u_k) + w_k
+                proc.perturb(w)
         return st
 
 

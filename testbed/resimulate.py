@@ -81,7 +81,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
     try:
         res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n, None, sc.flow, model=sc.make_model(),
                             process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
-                            replay=run["replay"], method=sc.make_method())
+                            replay=run["replay"], method=sc.make_method(), device=sc.plant.device)
     finally:
         process.close()
     M = len(res.t)  # the resimulation stops early if its flow diverged

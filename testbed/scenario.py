@@ -16,7 +16,7 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
-from . import traces
+from . import device, traces
 from .channel import ChannelError, parse_network
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
@@ -48,7 +48,7 @@ _SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow
 
 
 _KEYS = {
-    "plant": {"name", "params", "x0", "fmu", "inputs", "states"},
+    "plant": {"name", "params", "x0", "fmu", "inputs", "states", *device.TABLES},
     "model": {"name", "params"},
     "quantizer": {"T", "M", "L", "E0", "mode", "zoom_out", "E_min", "allow_M_le_Lambda",
                   "allow_x0_outside", "rule", "L_u"},
@@ -440,7 +440,8 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         network = parse_network(data["network"]) if "network" in data else None
     except ChannelError as e:
         raise ScenarioError(f"{where}: {e}") from None
-    spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu)
+    spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu,
+                     device=device.parse(pt, n, m, ctx.err, fmu=fmu is not None))
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
                   description=description, model=model, L_u=L_u, base_dir=base_dir, method=mspec,

@@ -14,6 +14,7 @@ import plants
 from attackers import generators as attack_generators
 
 from .channel import NetworkModel
+from .device import DeviceSpec
 from .errors import BadInput
 from .loopspec import FlowOptions, QuantizerParams
 
@@ -45,6 +46,7 @@ class PlantSpec:
     ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
     base_dir: str = ""             # the scenario file's folder ("" for bundled scenarios and strings)
     fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
+    device: DeviceSpec | None = None  # [plant.sensor], [plant.actuator], [plant.disturbance] (``testbed.device``)
 
     def make(self) -> plants.Plant:
         if self.fmu is not None:

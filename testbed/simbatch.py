@@ -265,6 +265,8 @@ def kernel_refusal(sc, network: Network | None = None) -> str | None:
     """Why the batch kernel cannot run scenario ``sc`` (one phrase), or None when it can."""
     if sc.plant.fmu is not None:
         return "the true plant is an FMU"
+    if sc.plant.device is not None:
+        return f"the plant is a device ({sc.plant.device.describe()}: the protocol objects model it)"
     try:
         if not _bundled(sc.make_plant()) or not _bundled(sc.make_model()):
             return "the plant or the model is not a bundled plant"
@@ -437,6 +439,7 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
     try:
         return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
                              process=process, timing=sc.timing_params, latency=latency,
-                             u_max=sc.controller.u_max, network=network, method=sc.make_method())
+                             u_max=sc.controller.u_max, network=network, method=sc.make_method(),
+                             device=sc.plant.device)
     finally:
         process.close()

@@ -78,6 +78,8 @@ class SimResult:
     method_fault_at: int = -1        # ... at this sample
     lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
+    x_meas: np.ndarray | None = None  # x_meas,k, what the sensor read ([plant.sensor]; None: x_k itself), (N, n)
+    u_plant: np.ndarray | None = None  # the input that acted after the actuator ([plant.actuator]; None: u), (N, m)
     simulator: str | None = "per-sample"  # which simulator ran: "per-sample" (this loop), "batch" (``testbed.simbatch``);
     #                                       a recording's: as its metadata says (None: a live run)
 
@@ -175,7 +177,7 @@ class Replay:
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
                   flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
                   u_max: float = math.inf, network: Network | None = None,
-                  replay: Replay | None = None, method=None) -> SimResult:
+                  replay: Replay | None = None, method=None, device=None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
 
     The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
@@ -201,6 +203,10 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     ``method``: the coding-and-control method (``testbed.methods.Method``; default the paper's).
     A method whose ends raise ends the run at that sample (``method_fault``, ``method_fault_at``);
     one whose ends' shared state differs is counted in ``lockstep_breaks`` (``agree`` is then False).
+
+    ``device``: the plant's sensor, actuator and disturbance (``testbed.device.DeviceSpec``, the
+    scenario's ``sc.plant.device``): the encoder and the attacker see x_meas,k, the true plant
+    integrates the input the actuator lets through, and x_k+1 carries the disturbance.
     """
     model = plant if model is None else model
     n, m = model.n, model.m
@@ -225,7 +231,10 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         physical = True
     pp = PlantProtocol(process, qp.T, timing="physical" if physical else "ideal",
                        actuation="scheduled" if tpar[1] else "arrival", sched_ns=int(tpar[2]),
-                       deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max)
+                       deadline_ns=int(tpar[3]), loss_ns=int(tpar[4]), u_max=u_max,
+                       device=None if device is None else device.make(n, m, qp.T))
+    x_meas = np.full((N, n), np.nan) if device is not None and device.sensor is not None else None
+    u_plant = np.zeros((N, m)) if device is not None and device.actuator is not None else None
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     delays = np.zeros(N, dtype=np.int64) if physical else None
     if method is None:
@@ -268,6 +277,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     for k in range(N):
         x = process.x
         rec["x"][k] = x
+        if x_meas is not None:
+            x = x_meas[k] = pp.measure(k, x)
         try:
             send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan)
         except Exception as e:  # a method's end raised: the run ends at this sample
@@ -320,6 +331,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         except PlantFault as e:  # the run stops at this sample (x_final = x_k): reported, not raised
             fault, fault_at, last = str(e), k, k + 1
             break
+        if u_plant is not None:
+            u_plant[k] = pp.u_applied
         if st != FLOW_OK:
             status, diverged_at, last = int(st), k, k + 1
             break
@@ -341,11 +354,13 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl], loss_cause=cause,
                      delays=None if delays is None else delays[:last].copy(),
                      counters={"encoder": encp.counters(), "controller": ctl_counters,
-                               "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
+                               "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped,
+                                         **({} if pp.device is None else pp.device.counters())}},
                      plant_fault=fault, plant_fault_at=fault_at,
                      loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
                      method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
-                     ends=(encp.enc, ctlp.dec))
+                     ends=(encp.enc, ctlp.dec), x_meas=None if x_meas is None else x_meas[sl],
+                     u_plant=None if u_plant is None else u_plant[sl])
 
 
 def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan=None):

@@ -646,7 +646,8 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "K": res.K.tolist(),
         "t": L(res.t),
         "x": L(res.x),
-        "u": L(res.u),
+        **({} if res.x_meas is None else {"x_meas": L(res.x_meas)}),  # what the sensor read ([plant.sensor])
+        "u": L(res.u if res.u_plant is None else res.u_plant),  # what acted (after [plant.actuator], as recorded)
         "q": L(res.q),
         "xi": L(res.xi_enc),
         "E": L(res.E_enc),

@@ -95,6 +95,8 @@ def main_simulate(args) -> int:
               + f"{out['bits']} bits/symbol, method {out['method']}"
               + (f" (quantizer {out['mode']})" if out["method"] == "paper" else ""))
         print(f"  K = {out['K']}")
+        if sc.plant.device is not None and args.simulator == "auto":  # the batch kernel has no device model
+            print(f"  simulator: the per-sample loop (the plant is a device: {sc.plant.device.describe()})")
         if sc.model is not None and sc.model.explicit:
             print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
                   "(predictions, design)")

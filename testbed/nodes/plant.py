@@ -21,6 +21,10 @@ sample whose instant has not come yet is rejected.  Each is counted and logged a
 an event.  If the controller's liveliness token disappears the plant stops waiting
 and runs on with u = 0; the run is marked (``controller_lost_at``).
 
+A plant that is a device (``[plant.sensor]``, ``[plant.actuator]``, ``[plant.disturbance]``,
+``testbed.device``, applied by ``PlantProtocol`` as in the simulator): the sensor message carries
+x_meas,k, the telemetry both x_k and x_meas,k, and u is the input that acted after the actuator.
+
 Colocated encoder (``--colocate encoder``, a smart sensor): the plant's process also
 runs the encoder (``testbed.nodes.encoder.EncoderNode``, ``embedded``) on x_k as it is
 sampled: no sensor message (x_k is still published for a greedy attacker that scores
@@ -242,14 +246,15 @@ class PlantNode(Node):
                 else:
                     self._got.clear()
             x = proc.x
+            xm = pp.measure(k, x)  # x_meas,k: what the sensor reads ([plant.sensor]; x_k itself without one)
             if self.pub_sensor is not None:
-                payload, att = msg.Sensor(k, t_act, tuple(x.tolist())).encode()
+                payload, att = msg.Sensor(k, t_act, tuple(xm.tolist())).encode()
                 self.pub_sensor.put(payload, attachment=att)
             sensor_tx = clock.now()
             if self.encoder is not None:  # the colocated encoder: x_k handed over in the process
                 enc = self.encoder
                 try:
-                    enc.sensor_in(k, t_act, x, clock.now())
+                    enc.sensor_in(k, t_act, xm, clock.now())
                 except Exception as e:  # noqa: BLE001 - the encoder fails alone
                     enc.fail(e)
             # -- hold t_k until u_k or the deadline t_k + d T (ideal), or until u_k acts (physical).
@@ -313,9 +318,10 @@ class PlantNode(Node):
                 st = pp.step(u, delay)
             except PlantFault as e:  # the run ends at this sample, as in testbed simulate
                 fault, st = e, FLOW_OK
-            u_applied = np.zeros(proc.m) if u is None else u
+            u_applied = (np.zeros(proc.m) if u is None else u) if pp.device is None else pp.u_applied
             tel.put(PT(k=k, t_ns=t_act, sensor_tx_ns=sensor_tx, u_rx_ns=u_rx, delay_ns=delay, theta=theta,
-                       flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u_applied.tolist())).encode())
+                       flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u_applied.tolist()),
+                       x_meas=() if xm is x else tuple(xm.tolist())).encode())
             self.k_done = k + 1
             if fault is not None:
                 self._on_plant_fault(fault, k)
@@ -327,6 +333,7 @@ class PlantNode(Node):
         x = proc.x
         self.x_final = x
         self.rejected_nonfinite, self.clamped = pp.rejected_nonfinite, pp.clamped
+        self.device_counters = {} if pp.device is None else pp.device.counters()
         final_k = self.k_done
         tel.put(PT(k=final_k, t_ns=clock.now(), sensor_tx_ns=msg.NO_TIME, u_rx_ns=msg.NO_TIME, delay_ns=0,
                    theta=msg.THETA_NONE, flags=PT.FLAG_FINAL, flow_status=self.flow_status,
@@ -355,5 +362,6 @@ class PlantNode(Node):
                 "controller_lost_at": self.controller_lost_at, "timing": self.timing,
                 "plant_fault": self.plant_fault, "plant_fault_at": self.plant_fault_at,
                 "jitter_us": percentiles(self.jitter), "latency_us": percentiles(self.latency),
+                **getattr(self, "device_counters", {}),
                 "spin_us": self.spin_ns / 1e3, "colocated": ["encoder"] if self.encoder is not None else [],
                 **self.rx_summary()}

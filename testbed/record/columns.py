@@ -87,7 +87,7 @@ G_SKIP, G_I64, G_I32, G_U8, G_F64, G_VEC, G_K, G_U32 = range(8)
 _U8_FIELDS = {"theta", "flags", "reason"}          # u32 fields whose values fit a byte (checked)
 
 
-_VEC_WIDTH = {"x": "n", "xi": "n", "q": "n", "u": "m"}
+_VEC_WIDTH = {"x": "n", "xi": "n", "q": "n", "u": "m", "x_meas": "n"}
 
 
 #: the value of a field in the rows of samples a role did not record (by default NaN for floats,

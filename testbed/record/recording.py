@@ -296,6 +296,8 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         u_missing = res.u_missing if res.u_missing is not None else np.zeros(N, dtype=bool)
         reasons = res.reason
         fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
+        x_meas = getattr(res, "x_meas", None)       # what the sensor read ([plant.sensor])
+        u_plant = getattr(res, "u_plant", None)     # what acted after the actuator ([plant.actuator])
         if bulk:
             _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total, drop, unsensed)
         for k in range(0 if bulk else N):  # the per-message path
@@ -309,7 +311,9 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
                 theta=msg.THETA_NONE if miss else th,
                 flags=(msg.PlantTelemetry.FLAG_NO_U | msg.PlantTelemetry.FLAG_MISS) if miss else 0,
                 flow_status=int(res.flow_status) if k == res.diverged_at else 0,
-                x=tuple(res.x[k]), u=(0.0,) * res.u.shape[1] if miss else tuple(res.u[k]))
+                x=tuple(res.x[k]), u=tuple(u_plant[k]) if u_plant is not None else
+                (0.0,) * res.u.shape[1] if miss else tuple(res.u[k]),
+                x_meas=() if x_meas is None else tuple(x_meas[k]))
             tele("/telemetry/plant", "PlantSample", p, lt)
             tap(fox.plant(p, lt))
             if fault is not None and k == res.plant_fault_at:  # the event a live plant node publishes

@@ -43,6 +43,7 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
         ("x", "f64*", "plant state x_k"),
         ("u", "f64*", "input applied over [t_k, t_k+1) (empty for the final state)"),
         ("header", "hdr", "header.stamp = t_k = t0 + k T, the sample instant, absolute (a Plot panel's x axis)"),
+        ("x_meas", "f64*", "what the sensor read of x_k, sent to the encoder ([plant.sensor]; empty: x_k itself)"),
     ],
     "EncoderSample": [
         ("k", "u32", "sample index"),
@@ -86,7 +87,8 @@ SPEC: dict[str, list[tuple[str, str, str]]] = {
     ],
     "Header": [("stamp", "ts", "an absolute time (t0 + k T for telemetry)")],
     # ---- control path as it crossed the network (topics /loop/...)
-    "Sensor": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"), ("x", "f64*", "x_k")],
+    "Sensor": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
+               ("x", "f64*", "x_k as the sensor read it (x_meas with [plant.sensor])")],
     "Symbol": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),
                ("data", "bytes", "the packed symbol bits exactly as sent (Codebook.pack)")],
     "Actuation": [("k", "u32", "sample index"), ("stamp_ns", "i64", "send time"),

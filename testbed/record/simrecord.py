@@ -194,11 +194,13 @@ def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, droppe
     dk = np.zeros(N, np.int64) if res.delays is None else np.asarray(res.delays[sl], dtype=np.int64)
     miss = np.zeros(N, bool) if res.u_missing is None else np.asarray(res.u_missing[sl], dtype=bool)
     held = np.zeros(N, bool) if res.withheld is None else np.asarray(res.withheld[sl], dtype=bool)
-    u = np.where(miss[:, None], 0.0, res.u[sl])
+    u = np.where(miss[:, None], 0.0, res.u[sl]) if getattr(res, "u_plant", None) is None else res.u_plant[sl]
     fs = np.where(ks == res.diverged_at, int(res.flow_status), 0)
     plant = {"k": ks, "t_ns": (tk, yes), "sensor_tx_ns": (tk, yes), "u_rx_ns": (tk + dk, ~miss), "delay_ns": dk,
              "theta": np.where(miss, 255, th), "flags": np.where(miss, 3, 0), "flow_status": fs,
              "x": (res.x[sl], np.full(N, n)), "u": (u, np.full(N, m)), "header": hdr}
+    if getattr(res, "x_meas", None) is not None:  # what the sensor read ([plant.sensor])
+        plant["x_meas"] = (res.x_meas[sl], np.full(N, n))
     sym = np.asarray(res.symbols[sl], dtype=np.int64)
     E = np.where(held, np.nan, res.E_enc[sl])
     lg, has = _log10(E)

@@ -46,7 +46,7 @@ class RowsOrNone:
 #: the telemetry fields ``build_summary`` prints (``testbed.record.columns.read_columns(fields=...)``); q_k at the
 #: encoder is not printed and stays NaN unless decoded (``testbed.open`` decodes every field)
 SUMMARY_FIELDS = {
-    "plant.x", "plant.u", "plant.t_ns", "plant.u_rx_ns", "plant.theta", "plant.flags", "plant.flow_status",
+    "plant.x", "plant.x_meas", "plant.u", "plant.t_ns", "plant.u_rx_ns", "plant.theta", "plant.flags", "plant.flow_status",
     "encoder.symbol", "encoder.saturated", "encoder.silent", "encoder.E", "encoder.xi", "encoder.tx_ns",
     "controller.theta", "controller.q", "controller.xi", "controller.E", "controller.reason", "controller.tx_ns",
     "controller.u",
@@ -132,6 +132,10 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
                     xi_dec=xi_dec, E_dec=E_dec, theta=theta, symbols=symbols, saturated=sat, x_final=x_final,
                     flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float),
                     simulator=cols.metadata.get("testbed.run", {}).get("simulator"))  # None: a live run
+    if ("plant", "x_meas") in cols.lay.cols:  # what the sensor read ([plant.sensor]); NaN where not recorded
+        xm = g("plant", "x_meas")[:N]
+        if np.isfinite(xm).any():
+            res.x_meas = xm
     events = cols.events
     pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
     if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample

@@ -248,11 +248,14 @@ class _Telemetry:
     _scalars: ClassVar[struct.Struct]
     _scalar_fields: ClassVar[tuple[str, ...]]
     _vector_fields: ClassVar[tuple[str, ...]]
+    _optional_vector: ClassVar[str | None] = None  # a last vector sent only when not empty (then absent: ())
 
     def encode(self) -> bytes:
         out = self._scalars.pack(*[getattr(self, f) for f in self._scalar_fields])
         for f in self._vector_fields:
             out += _vec(getattr(self, f))
+        if self._optional_vector is not None and getattr(self, self._optional_vector):
+            out += _vec(getattr(self, self._optional_vector))
         return out
 
     @classmethod
@@ -264,6 +267,10 @@ class _Telemetry:
         off = cls._scalars.size
         for f in cls._vector_fields:
             vals[f], off = _unvec(data, off)
+        if cls._optional_vector is not None and off < len(data):
+            vals[cls._optional_vector], off = _unvec(data, off)
+            if not vals[cls._optional_vector]:  # never sent empty: an empty one is a trailing byte
+                raise MessageError(f"{cls.__name__}: {len(data) - off + 1} trailing bytes")
         if off != len(data):
             raise MessageError(f"{cls.__name__}: {len(data) - off} trailing bytes")
         return cls(**vals)
@@ -280,7 +287,8 @@ class PlantTelemetry(_Telemetry):
     (THETA_NONE if u_k never came); ``flags``: bit 0 deadline miss, bit 1 u_k
     missing (u = 0 applied), bit 2 controller known dead, bit 3 final state x_N
     (then u is empty); ``flow_status``: FLOW_* of phi_T for this period;
-    ``delay_ns``: physical timing, how long u_{k-1} still acted after t_k.
+    ``delay_ns``: physical timing, how long u_{k-1} still acted after t_k;
+    ``x_meas``: what the sensor read of x_k (``[plant.sensor]``; empty, and not sent, without one).
     """
 
     FLAG_MISS: ClassVar[int] = 1
@@ -291,6 +299,7 @@ class PlantTelemetry(_Telemetry):
     _scalar_fields: ClassVar[tuple[str, ...]] = ("k", "t_ns", "sensor_tx_ns", "u_rx_ns", "delay_ns",
                                                 "theta", "flags", "flow_status")
     _vector_fields: ClassVar[tuple[str, ...]] = ("x", "u")
+    _optional_vector: ClassVar[str | None] = "x_meas"
 
     k: int
     t_ns: int
@@ -302,6 +311,7 @@ class PlantTelemetry(_Telemetry):
     flow_status: int
     x: tuple[float, ...]
     u: tuple[float, ...]
+    x_meas: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

@@ -30,7 +30,7 @@ FIELD_DOC = {
     ("Header", "k"): ("0 .. N-1; 4294967295 = warm-up", "sample index k (WARMUP_K: a warm-up put before t0, ignore it)"),
     ("Header", "stamp_ns"): ("ns since t0", "the sender's run clock when it sent the message (Sensor: when x_k was "
                                             "sampled; a forwarded Symbol or Ack keeps the original header)"),
-    ("Sensor", "x"): ("n x float64", "x_k, the plant's state sampled at t_k"),
+    ("Sensor", "x"): ("n x float64", "x_k, the plant's state sampled at t_k, as its sensor read it ([plant.sensor])"),
     ("Symbol", "data"): ("ceil(bits/8) bytes, big-endian", "the symbol i, 0 <= i < n_codes (M^n, + 1 for OVERFLOW)"),
     ("Actuation", "theta"): ("0 or 1", "theta_k: 0 the symbol of sample k was accepted, 1 it was not"),
     ("Actuation", "last_rx"): ("-1 .. k", "the latest sample whose symbol the decoder accepted (-1: none)"),
@@ -49,6 +49,8 @@ FIELD_DOC = {
     ("PlantTelemetry", "flow_status"): ("int8", "status of the flow map phi_T over this period (0: ok)"),
     ("PlantTelemetry", "x"): ("n x float64", "x_k"),
     ("PlantTelemetry", "u"): ("m x float64", "the u that acted over [t_k, t_k+1) (empty in the final record)"),
+    ("PlantTelemetry", "x_meas"): ("n x float64, optional", "what the sensor read of x_k ([plant.sensor]); not sent "
+                                                            "(the message ends after u) without a sensor"),
     ("EncoderTelemetry", "k"): ("0 .. N-1", "sample index"),
     ("EncoderTelemetry", "sensor_tx_ns"): ("ns since t0", "the sensor message's stamp"),
     ("EncoderTelemetry", "rx_ns"): ("ns since t0", "arrival of x_k"),
@@ -194,7 +196,7 @@ def telemetry_layouts() -> str:
     out = []
     for role, cls in msg.TELEMETRY_TYPES.items():
         rows, off = _struct_rows(cls.__name__, cls._scalars, cls._scalar_fields)
-        for f in cls._vector_fields:
+        for f in cls._vector_fields + ((cls._optional_vector,) if cls._optional_vector else ()):
             unit, meaning = FIELD_DOC[(cls.__name__, f)]
             rows.append(f"| {off if isinstance(off, int) else off} | 1 + 8 len | uint8 len, float64[len] | `{f}` | "
                         f"{unit} | {meaning} |")
