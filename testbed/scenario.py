@@ -17,6 +17,7 @@ import plants
 from attackers import generators as attack_generators
 
 from . import traces
+from .channel import ChannelError, parse_network
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
 from .loopspec import RULES, Codebook, CodebookTooLarge, FlowOptions, QuantizerParams, delay_margin_gain
@@ -42,7 +43,8 @@ MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML
 
 
 # ----------------------------------------------------------------------------- validation
-_SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description", "method"}
+_SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description", "method",
+             "network"}
 
 
 _KEYS = {
@@ -434,11 +436,15 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     flow = FlowOptions(**{k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
                           for k, v in ft.items()})
 
+    try:  # [network]: the emulated channels (testbed/channel.py)
+        network = parse_network(data["network"]) if "network" in data else None
+    except ChannelError as e:
+        raise ScenarioError(f"{where}: {e}") from None
     spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu)
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
                   description=description, model=model, L_u=L_u, base_dir=base_dir, method=mspec,
-                  method_note=mnote)
+                  method_note=mnote, network=network)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))

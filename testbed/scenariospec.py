@@ -13,6 +13,7 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
+from .channel import NetworkModel
 from .errors import BadInput
 from .loopspec import FlowOptions, QuantizerParams
 
@@ -230,6 +231,7 @@ class Scenario:
     base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
     method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
     method_note: str = ""  # a swapped method (``--method``): the [quantizer] keys it ignores, one line
+    network: NetworkModel | None = None   # [network]: the emulated channels (None: ideal links)
 
     def make_method(self):
         """The coding-and-control method ([method]; ``testbed.methods.Method``)."""
