@@ -81,7 +81,8 @@ class PlantNode(Node):
         self.pub_start = ctx.session.declare_publisher(keys.start)
         self.pub_stop = ctx.session.declare_publisher(keys.stop)
         self._ack_to_encoder = self.encoder is not None and ctx.opts.ack_on_actuation
-        self._sub_act = self.subscribe(keys.actuation, self._on_actuation, primary=True, thread=False)
+        self._sub_act = self.subscribe(keys.actuation, self._on_actuation, primary=True, thread=False,
+                                       link="actuation")
         self._lock = threading.Lock()
         self._got = threading.Event()
         self._waiting_k = 0                  # the sample whose u_k the loop needs next
