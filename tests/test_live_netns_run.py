@@ -83,7 +83,7 @@ def test_netns_link_cut_rides_through():
     during = set(range(int(down / T) + 1, int(up / T)))   # samples wholly inside the outage
     lost = set(s["deadline_missed_at"]) | set(s["attacker_dropped_at"]) | set(s["withheld_at"])
     assert during <= lost, (sorted(during - lost), s["loss_reasons"])
-    after = [k for k, th in enumerate(s["theta"]) if k * T > up + 1.0 and th == 1]
+    after = [k for k, th in enumerate(s["theta"]) if k * T > up + 1.0 and th == 0]  # theta_k = 0: received
     assert after, ("no symbol arrived after the link came back", s["theta"])
     from testbed.record import reader
 

@@ -1,0 +1,53 @@
+"""The live channel stage: a run with ``[network]`` loses the samples the channel model's seeded draws
+say (``testbed.channel.draws``, the simulator's draws), and holds each message for its drawn delay."""
+
+from __future__ import annotations
+
+import os
+import secrets
+
+import numpy as np
+import pytest
+from helpers import live
+
+from testbed import channel, scenario
+
+pytestmark = pytest.mark.process
+
+NETWORK = """
+[network]
+seed = 7
+[network.symbol]
+loss = 0.1
+[network.actuation]
+delay = 0.01
+jitter = 0.005
+"""
+
+
+def test_live_channel_losses_are_the_models_draws(tmp_path):
+    path = tmp_path / "chan.toml"
+    path.write_text(scenario.load("paper").source + NETWORK)
+    sc = scenario.load(str(path))
+    run_id = f"t{os.getpid()}chan{secrets.token_hex(3)}"
+    rc, s, err = live(run_id, str(path), "--duration", "5")
+    assert rc == 0, (s["faults"], err[-3000:])
+    N = s["n_steps"]
+    drawn = set(np.flatnonzero(channel.draws(sc.network, "symbol", N).lost).tolist())
+    sent = set(range(N)) - set(s["attacker_dropped_at"]) - set(s["withheld_at"])
+    ch = s["node_summaries"]["controller"]["channel"]["symbol"]
+    # the channel lost exactly the drawn samples whose symbol was on the link (the attacker's and the
+    # encoder's losses come first), and each of them is a loss (theta_k = 1) at the controller's deadline
+    assert ch["lost_at"] == sorted(drawn & sent) and ch["lost_at"], (ch["lost_at"], sorted(drawn), sorted(sent))
+    assert all(s["theta"][k] == 1 for k in ch["lost_at"]), s["theta"]
+    assert s["events"].get("channel_lost") == len(ch["lost_at"])
+    # every u_k that reached the plant was held for at least its drawn delay (one host: the nodes'
+    # run clocks agree within microseconds), and not much longer
+    delay = channel.draws(sc.network, "actuation", N).delay
+    rows = s["node_summaries"]["plant"]["channel"]["actuation"]["delay_s"]
+    assert len(rows) >= N // 2, rows
+    for k, model, realized in rows:
+        assert model == delay[k]
+        assert model - 1e-4 <= realized < model + 0.05, (k, model, realized)
+    # the ideal links add no stage
+    assert "channel" not in s["node_summaries"]["encoder"]
