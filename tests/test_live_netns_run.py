@@ -142,3 +142,38 @@ def test_netns_nothing_left_after_crash_ctrl_c_and_sigkill():
     rc, out, err = run_cli(tb_cmd("run", "--netns-clean"), 60)
     assert rc == 0 and killed2 in out, (out, err)
     assert not _left(tag), _left(tag)
+
+
+@pytest.mark.process
+def test_netns_physical_timing_over_a_delayed_actuation_link(tmp_path):
+    """Physical timing (scheduled actuation, the delay-aware rule) with ``[network.actuation] delay = 5 ms,
+    jitter = 2 ms`` across network namespaces: every u_k is held for its drawn delay and still comes
+    before its instant (0.4 d T = 36 ms at deadline 0.9), so the run converges, equals the simulator
+    bit for bit, and its recording re-simulates within 1e-9."""
+    from failclosed import fifo_permitted
+
+    from testbed import channel, scenario
+
+    _require_netns()
+    path = tmp_path / "paper-delay.toml"
+    path.write_text(scenario.load("paper").source + "\n[network]\nseed = 3\n[network.actuation]\ndelay = 0.005\n"
+                                                    "jitter = 0.002\n")
+    sc = scenario.load(str(path))
+    run_id = f"t{os.getpid()}nsphys{secrets.token_hex(3)}"
+    rt = ("--realtime",) if fifo_permitted() else ()
+    dl = ("--deadline", "0.9")
+    rc, s, err = live_exact(run_id, str(path), "--netns", "--duration", "30", "--timing", "physical", *dl, *rt)
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["timing_mode"] == "physical" and s["complete"] and s["rule"] == "delay-aware"
+    assert s["samples"] == 300 and s["converged"] and s["final_norm"] < 1e-4, s["final_norm"]
+    rows = s["node_summaries"]["plant"]["channel"]["actuation"]["delay_s"]
+    delay = channel.draws(sc.network, "actuation", 300).delay
+    assert len(rows) >= 250 and all(model == delay[k] and realized >= model - 1e-4 for k, model, realized in rows)
+    rc, out, err = run_cli(tb_cmd("resimulate", s["recording"]["path"], "--json"))
+    r = json.loads(out)
+    assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
+    rc, out, err = run_cli(tb_cmd("simulate", "paper", "--timing", "physical", *dl, "--json"))
+    sim = json.loads(out)
+    for key in ("symbols", "theta", "E", "x"):
+        assert s[key] == sim[key], mismatch(s, sim, key)
+    assert not _left(run_id)
