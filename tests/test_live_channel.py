@@ -41,6 +41,10 @@ def test_live_channel_losses_are_the_models_draws(tmp_path):
     assert ch["lost_at"] == sorted(drawn & sent) and ch["lost_at"], (ch["lost_at"], sorted(drawn), sorted(sent))
     assert all(s["theta"][k] == 1 for k in ch["lost_at"]), s["theta"]
     assert s["events"].get("channel_lost") == len(ch["lost_at"])
+    from testbed.record import reader
+
+    rec = reader.read(s["recording"]["path"])  # the recording keeps it, for resimulate and report
+    assert rec.summaries["controller"]["channel"]["symbol"] == ch
     # every u_k that reached the plant was held for at least its drawn delay (one host: the nodes'
     # run clocks agree within microseconds), and not much longer
     delay = channel.draws(sc.network, "actuation", N).delay
