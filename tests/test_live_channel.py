@@ -3,12 +3,13 @@ say (``testbed.channel.draws``, the simulator's draws), and holds each message f
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 
 import numpy as np
 import pytest
-from helpers import live
+from helpers import live, run_cli, tb_cmd
 
 from testbed import channel, scenario
 
@@ -22,6 +23,11 @@ loss = 0.1
 [network.actuation]
 delay = 0.01
 jitter = 0.005
+[network.sensor]
+delay = 0.002
+[network.ack]
+loss = 0.1
+loss_burst = 2.0
 """
 
 
@@ -40,7 +46,9 @@ def test_live_channel_losses_are_the_models_draws(tmp_path):
     # encoder's losses come first), and each of them is a loss (theta_k = 1) at the controller's deadline
     assert ch["lost_at"] == sorted(drawn & sent) and ch["lost_at"], (ch["lost_at"], sorted(drawn), sorted(sent))
     assert all(s["theta"][k] == 1 for k in ch["lost_at"]), s["theta"]
-    assert s["events"].get("channel_lost") == len(ch["lost_at"])
+    every = [k for node in s["node_summaries"].values() for link in (node.get("channel") or {}).values()
+             for k in link["lost_at"]]
+    assert s["events"].get("channel_lost") == len(every)  # one event per drop, on every link
     from testbed.record import reader
 
     rec = reader.read(s["recording"]["path"])  # the recording keeps it, for resimulate and report
@@ -53,5 +61,13 @@ def test_live_channel_losses_are_the_models_draws(tmp_path):
     for k, model, realized in rows:
         assert model == delay[k]
         assert model - 1e-4 <= realized < model + 0.05, (k, model, realized)
-    # the ideal links add no stage
-    assert "channel" not in s["node_summaries"]["encoder"]
+    # the sensor link's x_k held 2 ms; the ack link's losses are its draws (every sample's ack is sent;
+    # the last one or two may still be on their way when the encoder stops)
+    enc = s["node_summaries"]["encoder"]["channel"]
+    assert enc["sensor"]["delay_s"] and all(m == 0.002 and r >= m - 1e-4 for _, m, r in enc["sensor"]["delay_s"])
+    ack = set(np.flatnonzero(channel.draws(sc.network, "ack", N).lost).tolist())
+    assert set(range(N - 2)) & ack <= set(enc["ack"]["lost_at"]) <= ack and enc["ack"]["lost_at"], enc["ack"]
+    # the run re-simulates exactly from its recording
+    rc, out, err = run_cli(tb_cmd("resimulate", s["recording"]["path"], "--json"))
+    r = json.loads(out)
+    assert r["reproduced"] and r["max_state_error"] == 0 and r["symbols_identical"], r
