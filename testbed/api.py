@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from . import traces
+from .channel import ATTACKER
 from .errors import BadInput
 
 
@@ -48,7 +49,7 @@ traces.recording_trace_reader = recording_trace
 SUMMARY_KEYS = ("scenario", "plant", "model", "plant_params", "model_params", "n", "m", "T", "M", "Lambda", "mode",
                 "bits", "K", "timing_mode", "rule", "packets_dropped", "dos_intervals", "saturations", "withheld_at",
                 "encoder_decoder_agree", "x_final", "final_norm", "converged", "escaped", "diverged", "diverged_at",
-                "plant_fault", "plant_fault_at", "method", "max_norm", "samples_lost", "simulator")
+                "plant_fault", "plant_fault_at", "method", "max_norm", "samples_lost", "simulator", "losses")
 #: ``Run.summary`` of a recording (``testbed.open``), live or simulated, besides ``SUMMARY_KEYS``
 RECORDING_KEYS = ("source", "run_id", "t0_ns", "samples", "complete", "outcome", "dos", "loss_reasons",
                   "dropped_by_attacker", "agreement")
@@ -250,7 +251,7 @@ def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
               "E": res.E_enc, "E_dec": res.E_dec, "xi_dec": res.xi_dec, "q_enc": res.q_enc,
               "theta": np.asarray(res.theta).astype(np.int64), "symbols": np.asarray(res.symbols, dtype=np.int64),
               "saturated": np.asarray(res.saturated, dtype=bool), "attack_on": attack_on_samples(sc, res),
-              "dropped": np.asarray(res.theta, dtype=bool)}
+              "dropped": np.asarray(res.theta, dtype=bool) if res.loss_cause is None else res.loss_cause == ATTACKER}
     events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",
                "detail": f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"} for k in np.flatnonzero(res.saturated)]
     s = summarize(sc, res, arrays=True)

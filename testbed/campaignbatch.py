@@ -6,7 +6,7 @@ final loop state of both ends: ``tests/test_simulate.py``, ``tests/test_methods.
 is judged by the same ``judge_escape`` from the same final loop state, so a row from here equals
 ``testbed simulate --json`` of its scenario (``tests/test_campaign.py`` checks every row of a campaign
 against the per-sample simulator).  A run the kernel cannot run -- an FMU plant, a user's method,
-physical timing, an online (greedy) attacker -- or whose flow diverged in the kernel (the per-sample
+physical timing, an online (greedy) attacker, a ``[network]`` channel -- or whose flow diverged in the kernel (the per-sample
 simulator then says where and why) runs on the per-sample simulator.
 """
 
@@ -20,8 +20,8 @@ import numpy as np
 
 def batch_key(sc, text: str, base_dir: str):
     """What a run shares with the runs it can share a kernel call with; None: the per-sample simulator."""
-    if sc.plant.fmu is not None or sc.run.timing != "ideal" or sc.attack.online:
-        return None
+    if sc.plant.fmu is not None or sc.run.timing != "ideal" or sc.attack.online or sc.network is not None:
+        return None   # (a [network] channel: testbed simulate's kernel, one run at a time, applies it)
     if sc.make_method().kernel_code(sc.quantizer) is None:
         return None
     data = tomllib.loads(text)

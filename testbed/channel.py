@@ -147,6 +147,134 @@ def draws(model: NetworkModel | None, link: str, n: int, bits: int = 0) -> LinkD
     return LinkDraws(lost=lost, delay=delay)
 
 
+# ----------------------------------------------------------------------------- the channel per sample
+#: why sample k was lost (``SimResult.loss_cause``, the summary's ``losses``); RECEIVED: not lost
+RECEIVED, ATTACKER, CHANNEL, LATE, WITHHELD = 0, 1, 2, 3, 4
+LOSS_KINDS = ("attacker", "channel", "late", "withheld")
+
+
+def payload_bits(link: str, n: int, m: int, symbol_bytes: int) -> int:
+    """The bits a ``rate`` charges for one message on ``link``: its payload (the summary's ``sizes``:
+    the sensor's 8 n bytes, the symbol's codebook bytes, the actuation's 5 + 8 m, the ack's 5); the
+    message header is not charged."""
+    return 8 * {"sensor": 8 * n, "symbol": int(symbol_bytes), "actuation": 5 + 8 * m, "ack": 5}[link]
+
+
+@dataclass(frozen=True)
+class SampleChannel:
+    """What the channel does to sample k's messages (k = 0..N-1), as the simulator applies it.
+
+    sensed : x_k reaches the encoder (the sensor link did not lose it)
+    symbol_lost : the symbol link loses the symbol (after the attacker: the attacker forwarded it)
+    late : physical timing only: the symbol arrives after the controller's loss deadline
+        (sensor delay + symbol delay > loss deadline): a loss by the deadline rule
+    ack_lost : the controller's ack of sample k never reaches the encoder
+    actuation_lost : u_k never reaches the plant (u_missing)
+    upstream_ns : sensor + symbol delay [ns]: added to u_k's latency when the symbol was received
+    actuation_ns : the actuation link's delay [ns]: added to u_k's latency
+    withheld : the encoder withholds sample k (its ack of an earlier sent sample never came, and
+        no later ack came before x_k): what ``protocol.EncoderProtocol`` does, computed ahead
+        (acks cross only the ack link here, and arrive before the next sample when not lost)
+    """
+
+    sensed: np.ndarray
+    symbol_lost: np.ndarray
+    late: np.ndarray
+    ack_lost: np.ndarray
+    actuation_lost: np.ndarray
+    upstream_ns: np.ndarray
+    actuation_ns: np.ndarray
+    withheld: np.ndarray
+
+    @property
+    def forced(self) -> np.ndarray:
+        """The samples the controller cannot receive whatever the attacker does (theta_k = 1)."""
+        return ~self.sensed | self.withheld | self.symbol_lost | self.late
+
+
+def withheld_pattern(sensed: np.ndarray, ack_lost: np.ndarray) -> np.ndarray:
+    """The samples the encoder withholds (Algorithm 1's ack protocol, ``EncoderProtocol``): it sends
+    x_k when it has no unacknowledged sample; a sent sample stays unacknowledged until an ack of it or
+    of a later sample arrives (before the next sample, unless the ack link loses it)."""
+    N = len(sensed)
+    out = np.zeros(N, dtype=bool)
+    pending = False
+    for k, (s, lost_ack) in enumerate(zip(sensed.tolist(), ack_lost.tolist())):
+        if s:
+            if pending:
+                out[k] = True
+            else:
+                pending = True
+        if not lost_ack:   # the ack of sample k (sent, withheld or not sensed) resolves what is pending
+            pending = False
+    return out
+
+
+def sample_channel(model: NetworkModel, N: int, *, physical: bool, loss_ns: int, n: int, m: int,
+                   symbol_bytes: int) -> SampleChannel:
+    """The channel of a simulated run of N samples: the draws of every link (``draws``) turned into
+    what happens to each sample.  Under ideal timing only losses matter (delays are not applied: no
+    sample is late, u_k's latency is not simulated); under physical timing a symbol whose sensor +
+    symbol delay exceeds the loss deadline ``loss_ns`` is late, and the delays add to u_k's latency."""
+    d = {k: draws(model, k, N, payload_bits(k, n, m, symbol_bytes)) for k in LINKS}
+
+    def ns(a):
+        return np.round(a * 1e9).astype(np.int64)
+
+    sensed = ~d["sensor"].lost
+    up = ns(d["sensor"].delay) + ns(d["symbol"].delay)
+    late = (up > loss_ns) & sensed & ~d["symbol"].lost if physical else np.zeros(N, dtype=bool)
+    act = ns(d["actuation"].delay) if physical else np.zeros(N, dtype=np.int64)
+    return SampleChannel(sensed=sensed, symbol_lost=d["symbol"].lost & sensed, late=late,
+                         ack_lost=d["ack"].lost, actuation_lost=d["actuation"].lost,
+                         upstream_ns=up if physical else np.zeros(N, dtype=np.int64), actuation_ns=act,
+                         withheld=withheld_pattern(sensed, d["ack"].lost))
+
+
+def loss_cause(theta, *, withheld=None, sensed=None, attacker=None, symbol_lost=None, late=None) -> np.ndarray:
+    """Why each lost sample (theta_k = 1) was lost, the first cause on the symbol's way: the encoder
+    withheld it (WITHHELD), the sensor link lost x_k (CHANNEL), the attacker dropped or corrupted it
+    (ATTACKER), the symbol link lost it (CHANNEL), it came after the loss deadline (LATE).  A loss with
+    none of the causes given is the channel's (sent, forwarded, never received).  RECEIVED where theta_k = 0."""
+    th = np.asarray(theta) != 0
+    N = len(th)
+    out = np.where(th, CHANNEL, RECEIVED).astype(np.int8)
+    done = ~th
+    for mask, code in ((withheld, WITHHELD), (None if sensed is None else ~np.asarray(sensed, dtype=bool), CHANNEL),
+                       (attacker, ATTACKER), (symbol_lost, CHANNEL), (late, LATE)):
+        if mask is None:
+            continue
+        sel = np.asarray(mask, dtype=bool)[:N] & ~done
+        out[sel] = code
+        done |= sel
+    return out
+
+
+def loss_counts(cause: np.ndarray) -> dict:
+    """``{"attacker", "channel", "late", "withheld"}``: how many samples each cause lost."""
+    c = np.bincount(np.asarray(cause, dtype=np.int64), minlength=5)
+    return {"attacker": int(c[ATTACKER]), "channel": int(c[CHANNEL]), "late": int(c[LATE]),
+            "withheld": int(c[WITHHELD])}
+
+
+def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None) -> dict:
+    """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
+    ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
+    invalid counts as the attacker's too: only the attacker corrupts), the controller's reason
+    (``superseded``: decided only after a later sample came: late), and the controller's count of
+    symbols that arrived after their sample was decided (``late_symbols``, its summary's ``late``).
+    Every other lost sample was sent (and forwarded) and did not arrive by the loss deadline: it is
+    the channel's, except the ``late_symbols`` that did arrive, later (late).  The four add up to
+    the samples lost."""
+    lost = np.asarray(theta) != 0
+    w = lost & np.asarray(withheld, dtype=bool)
+    a = lost & ~w & (np.asarray(attacker, dtype=bool) | np.asarray(invalid, dtype=bool))
+    sup = lost & ~w & ~a & np.asarray(superseded, dtype=bool)
+    rest = int(np.count_nonzero(lost & ~w & ~a & ~sup))
+    late = min(max(int(late_symbols or 0), 0), rest)
+    return {"attacker": int(a.sum()), "channel": rest - late, "late": late + int(sup.sum()), "withheld": int(w.sum())}
+
+
 # ----------------------------------------------------------------------------- parsing
 def _num(key: str, v, *, lo: float | None = None, lo_open: bool = False, hi: float | None = None,
          hi_open: bool = False, integer: bool = False, allow_inf: bool = False) -> float:
@@ -199,4 +327,6 @@ def parse_network(table) -> NetworkModel:
 
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
-           "loss_chain", "parse_link", "parse_network"]
+           "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
+           "payload_bits", "loss_cause", "loss_counts", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER",
+           "CHANNEL", "LATE", "WITHHELD"]

@@ -76,6 +76,37 @@ def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
     return out
 
 
+def losses_as_dos(sc, theta: np.ndarray) -> dict:
+    """Every lost sample -- the attacker's, the channel's, late and withheld -- taken together as if it
+    were DoS: the runs of lost samples as attacks (one each), their realized average frequency N(H)/H and
+    duration fraction |A(H)|/H (``attackers.budget.realized_rates``), the smallest kappa_F, kappa_D at
+    those rates (Assumptions 3 and 4, ``attackers.budget.check``), and whether the point lies in Theorem 1's
+    allowable region (``analysis.allowable_region``, the paper's rule) of the scenario's model."""
+    from attackers.budget import check, realized_rates
+    from attackers.schedule import Schedule
+
+    H = len(theta) * sc.T
+    sch = Schedule.from_theta(np.asarray(theta, dtype=np.uint8), sc.T) if len(theta) else Schedule.empty()
+    out: dict = {"what": "all losses as if DoS: runs of lost samples, one attack each", "count": len(sch),
+                 "total_duration": float(sch.total_duration), "horizon": H}
+    if H <= 0:
+        return out
+    fF, fD = realized_rates(sch, H)
+    out.update(frequency=fF, duration_fraction=fD)
+    if fD < 1:
+        rep = check(sch, fF, fD, horizon=H)
+        out.update(kappa_F_min=rep.kappa_F_min, kappa_D_min=rep.kappa_D_min)
+    try:
+        from .analysis import Loop, allowable_region
+
+        reg = allowable_region(Loop.from_scenario(sc), "paper")
+        out["theorem1"] = {"rule": "paper", "rho_F_max": reg.rho_F_max, "rho_D_max": reg.rho_D_max,
+                           "in_allowable_region": bool(fD < 1 and reg.holds(fF, fD))}
+    except Exception as e:  # noqa: BLE001 - the region needs the model's Jacobians; say why it is missing
+        out["theorem1"] = {"rule": "paper", "in_allowable_region": None, "why": f"{type(e).__name__}: {e}"}
+    return out
+
+
 def _actuation_section(sc, cols, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
@@ -188,6 +219,8 @@ def _report(cols, sc, *, arrays: bool, resimulate: int | None) -> dict:
     dropped = A & (cols.get("attacker", "dropped")[:N] != 0)
     out["dos"] = _budget_section(sc, attack_on, N * sc.T)
     out["dos"]["attacker_log_samples"] = int(np.count_nonzero(cols.has("attacker")))
+    out["dos"]["counts"] = "the attacker's losses only (losses.attacker), not the channel's, late or withheld ones"
+    out["losses_as_dos"] = losses_as_dos(sc, np.asarray(out["theta"]))
     out["dropped_by_attacker"] = int(dropped.sum())
     out["agreement"] = _agreement(cols, N)
     out["saturation_events"] = [e.k for e in cols.events if e.kind == "saturation"]
@@ -284,6 +317,17 @@ def print_text(s: dict) -> None:
     if d.get("realized"):
         print(f"  realized rates: N(H)/H = {d['realized']['frequency']:.4g} /s, "
               f"|A(H)|/H = {d['realized']['duration_fraction']:.4g}")
+    ls = s.get("losses")
+    if ls:
+        print(f"  losses: attacker {ls['attacker']}, channel {ls['channel']}, late {ls['late']}, "
+              f"withheld {ls['withheld']} (the budget below counts the attacker's only)")
+    ld = s.get("losses_as_dos") or {}
+    if "frequency" in ld:
+        th1 = ld.get("theorem1") or {}
+        ok = th1.get("in_allowable_region")
+        print(f"  all losses as DoS: N(H)/H = {ld['frequency']:.4g} /s, |A(H)|/H = {ld['duration_fraction']:.4g} -> "
+              + ("inside" if ok else "OUTSIDE" if ok is not None else "unknown (" + th1.get("why", "") + "):")
+              + " Theorem 1's allowable region (paper's rule)")
     b = d.get("budget")
     if b:
         dec = b["declared"]

@@ -274,11 +274,15 @@ class Scenario:
         """The latency [ns] of u_k in a simulated run (``[run] sim_delay``; None under ideal timing).
 
         Default: a constant latency at the received sample's nominal actuation delay under
-        arrival actuation, and 0 under scheduled actuation (every u_k then acts on schedule).
+        arrival actuation, and 0 under scheduled actuation (every u_k then acts on schedule); with a
+        ``[network]`` section 0 (the links' delays are added by the simulator; a ``sim_delay`` given
+        is the nodes' own latency on top of them).
         """
         if self.run.timing != "physical":
             return None
         N = self.n_steps if n_steps is None else n_steps
+        if self.network is not None and self.run.sim_delay is None:
+            return np.zeros(N, dtype=np.int64)   # the [network] links' delays are u_k's latency
         spec = self.run.sim_delay or SimDelaySpec(
             "constant", value=self.run.delay.nominal if self.run.actuation == "arrival" else 0.0)
         return spec.draw(N)

@@ -22,6 +22,7 @@ Everything else runs the per-sample loop.  ``simulator="per-sample"`` forces the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numba as nb
@@ -29,6 +30,7 @@ import numpy as np
 
 from attackers.greedy import greedy_init, greedy_step
 
+from .channel import LATE, loss_cause
 from .flow import FLOW_OK, flow_into
 from .methods.ends import unaware_update
 from .quantizer import box_center, control_input, quantize_index, zoom_update
@@ -43,11 +45,13 @@ PER_SAMPLE = "per-sample"
 
 @nb.njit(cache=True)
 def _record_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, x0, E0, M, Lambda, mode, sigma, E_min, dpar, u_max,
-                   theta_tab, tpar, lat, greedy_params, g_init, score_kind, n_steps,
+                   theta_tab, tpar, lat, chan, greedy_params, g_init, score_kind, n_steps,
                    X, U, Q, QE, XIE, EE, XID, ED, TH, SYM, SAT, UMISS, DEL, x_final, state_final, info):
     # One trajectory of ``simulate._batch_kernel`` (the same statements in the same order, hence the same
     # numbers), keeping what ``simloop.simulate_loop`` records per sample.  info: [samples run, flow status,
-    # non-finite inputs rejected, inputs clamped, overflows received]
+    # non-finite inputs rejected, inputs clamped, overflows received].  chan (4, N): the channel per sample
+    # (``channel.SampleChannel``): [the controller cannot receive it, upstream delay ns, u_k lost] and, written
+    # here, the attacker's own decision
     n = x0.shape[0]
     m = Kgain.shape[0]
     K_s = np.empty((13, n))
@@ -101,6 +105,9 @@ def _record_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, x0, E0, M, Lambda, mode, 
             th = theta_tab[k]
         else:
             th = 0
+        chan[3, k] = th
+        if chan[0, k] != 0:
+            th = 1
         TH[k] = th
         if mode == 5 or mode == 6:  # exact state feedback: the symbol is x_k itself (recorded as 0)
             SYM[k] = 0
@@ -201,8 +208,8 @@ def _record_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, x0, E0, M, Lambda, mode, 
                     u[r] = -u_max
         # --- the true plant
         if physical:
-            arr = lat[k] + (tpar[4] if th == 1 else 0)
-            missing = bad or arr > tpar[3]
+            arr = lat[k] + (tpar[4] if th == 1 else chan[1, k])
+            missing = bad or chan[2, k] != 0 or arr > tpar[3]
             if missing:
                 dns = tpar[3]
             elif tpar[1] == 1:
@@ -220,7 +227,10 @@ def _record_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, x0, E0, M, Lambda, mode, 
             for r in range(m):
                 u_held[r] = u_app[r]
         else:
-            UMISS[k] = bad
+            UMISS[k] = bad or chan[2, k] != 0
+            if chan[2, k] != 0:
+                for r in range(m):
+                    u[r] = 0.0
             st = flow_into(rhs, x, u, p, T, opts, K_s, ytmp, xn)
         for i in range(n):
             x[i] = xn[i]
@@ -263,7 +273,48 @@ def kernel_refusal(sc, network: Network | None = None) -> str | None:
         return "acks via the attacker or corrupted payloads (only the protocol objects model them)"
     if sc.attack.online and sc.attack.kind != "greedy":
         return f"the online attacker {sc.attack.kind!r}"
+    if sc.network is not None and sc.attack.online and sc.attack.score == "E" and sc.network.link("ack").loss > 0:
+        return "the greedy attacker scoring E with a lossy ack link (it reads the encoder's E while it withholds)"
     return None
+
+
+class _Ledger:
+    """An encoder end that only keeps the books: ``EncoderProtocol``'s counters of a kernel run with a
+    channel come from the protocol object itself, fed the samples' fates (the numbers are the kernel's)."""
+
+    xi = E = q = None
+    saturations = 0
+
+    def encode(self, x):
+        return 0, False
+
+    def ack(self, theta):
+        pass
+
+
+def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> dict:
+    """The encoder's counters (``EncoderProtocol.counters``) of a kernel run with a channel: the same
+    protocol object driven as ``simloop.simulate_loop`` drives it (acks before the next sensor sample)."""
+    from .protocol import EncoderProtocol
+
+    encp = EncoderProtocol(_Ledger(), len(chan.sensed))
+    acks: list = []
+    last_rx = -1
+    for k in range(last):
+        for a in acks:
+            encp.ack(*a)
+        acks.clear()
+        if chan.sensed[k]:
+            encp.sensor(k, None)
+        if theta[k] == 0:
+            last_rx = k
+        if not chan.ack_lost[k]:
+            acks.append((k, int(theta[k]), last_rx))
+    for a in acks:
+        encp.ack(*a)
+    out = encp.counters()
+    out["saturations"] = int(sat.sum())
+    return out
 
 
 def simulate_kernel(sc, N: int, latency=None) -> SimResult:
@@ -287,7 +338,16 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     physical = bool(tpar[0])
     if latency is None:
         latency = sc.sim_latency(N)
-    lat = np.ascontiguousarray(np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,)))
+    lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
+    cb = method.codebook(n, qp)
+    chan = Network(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
+    ctab = np.zeros((4, N), dtype=np.int64)
+    if chan is not None:
+        ctab[0] = chan.forced
+        ctab[1] = chan.upstream_ns
+        ctab[2] = chan.actuation_lost
+        lat = lat + chan.actuation_ns
+    lat = np.ascontiguousarray(lat)
     a = {k: np.zeros((N, n)) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
     U = np.zeros((N, m))
     EE, ED = np.zeros(N), np.zeros(N)
@@ -302,7 +362,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     info = np.zeros(5, dtype=np.int64)
     _record_kernel(type(plant).rhs.cfunc, plant.p, type(model).rhs.cfunc, model.p, float(qp.T), sc.flow.as_array(),
                    K, np.ascontiguousarray(sc.x0, dtype=np.float64), E0, int(qp.M), float(qp.Lambda), mode,
-                   float(qp.sigma), float(qp.E_min), dpar, float(sc.controller.u_max), tab, tpar, lat, gp,
+                   float(qp.sigma), float(qp.E_min), dpar, float(sc.controller.u_max), tab, tpar, lat, ctab, gp,
                    greedy_init(), SCORES[sc.attack.score], N, a["x"], U, a["q"], a["q_enc"], a["xi_enc"], EE,
                    a["xi_dec"], ED, TH, SYM, SAT, UMISS, DEL, x_final, state_final, info)
     last, status, nrej, nclamp, novf = (int(v) for v in info)
@@ -310,16 +370,31 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     theta = TH[sl].copy()
     lost = int(theta.sum())
     sat = SAT[sl].copy()
-    counters = {"encoder": {"sent": last, "withheld": 0, "saturations": int(sat.sum()), "desync_episodes": 0,
-                            "stale_sensor": 0, "stale_acks": 0, "inconsistent_acks": 0},
-                "controller": {"received": last - lost, "lost_deadline": lost, "invalid": 0, "late": 0,
+    enc_counters = {"sent": last, "withheld": 0, "saturations": int(sat.sum()), "desync_episodes": 0,
+                    "stale_sensor": 0, "stale_acks": 0, "inconsistent_acks": 0}
+    withheld = np.zeros(last, dtype=bool)
+    c = {}
+    if chan is not None:  # what the encoder did not send: as the per-sample loop records it
+        withheld = chan.withheld[sl].copy()
+        unsent = withheld | ~chan.sensed[sl]
+        SYM[sl][unsent] = -1
+        sat[unsent] = False
+        for arr in (a["xi_enc"], a["q_enc"]):
+            arr[sl][unsent] = np.nan
+        EE[sl][unsent] = np.nan
+        enc_counters = _encoder_counters(chan, theta, sat, last)
+        c = {"sensed": chan.sensed[sl], "symbol_lost": chan.symbol_lost[sl], "late": chan.late[sl]}
+    cause = loss_cause(theta, withheld=withheld, attacker=ctab[3, sl] != 0, **c)
+    counters = {"encoder": enc_counters,
+                "controller": {"received": last - lost, "lost_deadline": lost, "invalid": 0,
+                               "late": int(np.count_nonzero(cause == LATE)),
                                "superseded": 0, "future": 0, "overflows": novf, "decided": last},
                 "plant": {"rejected_nonfinite": nrej, "clamped": nclamp}}
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=a["x"][sl], u=U[sl], q=a["q"][sl], q_enc=a["q_enc"][sl],
                      xi_enc=a["xi_enc"][sl], E_enc=EE[sl], xi_dec=a["xi_dec"][sl], E_dec=ED[sl], theta=theta,
                      symbols=SYM[sl], saturated=sat, x_final=x_final,
                      flow_status=FLOW_OK if status == 0 else status, diverged_at=-1 if status == 0 else last - 1, K=K,
-                     reason=theta.astype(np.int64), withheld=np.zeros(last, dtype=bool), u_missing=UMISS[sl],
+                     reason=theta.astype(np.int64), withheld=withheld, u_missing=UMISS[sl], loss_cause=cause,
                      delays=DEL[sl].copy() if physical else None, counters=counters, loop_state=state_final,
                      simulator=BATCH)
 
@@ -338,6 +413,8 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
     if simulator not in SIMULATORS:
         raise ValueError(f"simulator must be one of {', '.join(SIMULATORS)}, got {simulator!r}")
     N = sc.n_steps if n_steps is None else int(n_steps)
+    if sc.network is not None:  # [network]: the emulated channels, applied by both simulators
+        network = dataclasses.replace(network or Network(), channel=sc.network)
     if simulator != PER_SAMPLE:
         why = kernel_refusal(sc, network)
         if why is None:

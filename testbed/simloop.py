@@ -18,6 +18,7 @@ import numpy as np
 from attackers.greedy import greedy_init, greedy_step
 from plants.base import PlantFault
 
+from .channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from .methods.base import symbol_code
 from .protocol import (
@@ -66,6 +67,7 @@ class SimResult:
     K: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
     reason: np.ndarray | None = None     # the controller's reason per sample (protocol.REASONS)
     withheld: np.ndarray | None = None   # the encoder withheld the symbol (a lost ack), (N,) bool
+    loss_cause: np.ndarray | None = None  # why theta_k = 1: channel.ATTACKER, CHANNEL, LATE, WITHHELD (0: received)
     delays: np.ndarray | None = None     # physical timing: delta_k [ns] (None: ideal timing)
     u_missing: np.ndarray | None = None  # u_k never reached the plant (u = 0 after the deadline)
     counters: dict = field(default_factory=dict)
@@ -132,10 +134,23 @@ class Network:
         the attacker dropped sample k (``testbed run --ack-via-attacker``).
     corrupt : {k: "range" | "length"}: the attacker replaces the payload of sample k by an
         out-of-range code or a payload of the wrong length (``testbed run --corrupt``).
+    channel : the emulated channels (the scenario's ``[network]``, ``testbed.channel``): per
+        sample, the sensor link can lose x_k (the encoder never gets it), the symbol link the
+        symbol (after the attacker), the ack link the ack (the encoder withholds), the actuation
+        link u_k (u_missing); under physical timing a symbol later than the loss deadline is lost
+        and the delays add to u_k's latency (``channel.sample_channel``).
     """
 
     ack_via_attacker: bool = False
     corrupt: tuple[tuple[int, str], ...] = ()
+    channel: NetworkModel | None = None
+
+    def samples(self, N: int, tpar, n: int, m: int, symbol_bytes: int) -> SampleChannel | None:
+        """The channel's effect on samples 0..N-1 (None without a channel)."""
+        if self.channel is None:
+            return None
+        return sample_channel(self.channel, N, physical=bool(tpar[0]), loss_ns=int(tpar[4]), n=n, m=m,
+                              symbol_bytes=symbol_bytes)
 
 
 @dataclass(frozen=True)
@@ -219,6 +234,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     else:
         encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
         ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
+    chan = net.samples(N, tpar, n, m, ctlp.codebook.nbytes) if replay is None else None
+    dropped = np.zeros(N, dtype=bool)   # the attacker dropped or corrupted sample k's symbol
     enc_state: dict = {}
     breaks = []
     mfault, mfault_at = None, -1
@@ -252,7 +269,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         x = process.x
         rec["x"][k] = x
         try:
-            send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb)
+            send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan)
         except Exception as e:  # a method's end raised: the run ends at this sample
             if method is None:
                 raise
@@ -266,12 +283,13 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
             rec["xi_enc"][k] = send.xi
             E_enc[k] = send.E
             rec["q_enc"][k] = send.q
-        else:
-            withheld[k] = True
+        else:  # withheld (a lost ack), or x_k never came (the sensor link lost it: not the encoder's doing)
+            withheld[k] = chan is None or bool(chan.sensed[k])
         drop = decs.pop()
+        dropped[k] = bool(drop) or k in corrupt
         for d in decs:
             record(d)
-            if not (net.ack_via_attacker and drop):
+            if not (net.ack_via_attacker and drop) and not (chan is not None and chan.ack_lost[d.k]):
                 acks.append((d.k, d.theta, d.last_rx))
         d = decs[-1]
         # --- plant
@@ -282,12 +300,17 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                 u_k = None
             if physical:
                 dns = int(replay.delays[k])
-        elif physical:
-            arr = int(lat[k]) + (pp.loss_ns if d.theta == 1 else 0)
-            if u_k is None or arr > pp.deadline_ns:  # u_{k-1} held until the deadline, then 0
-                u_k, dns = None, pp.deadline_ns
-            else:
-                dns = pp.delay_ns(arr, d.theta)
+        else:
+            if chan is not None and chan.actuation_lost[k]:
+                u_k = None
+            if physical:
+                arr = int(lat[k]) + (pp.loss_ns if d.theta == 1 else 0)
+                if chan is not None:
+                    arr += int(chan.actuation_ns[k]) + (0 if d.theta == 1 else int(chan.upstream_ns[k]))
+                if u_k is None or arr > pp.deadline_ns:  # u_{k-1} held until the deadline, then 0
+                    u_k, dns = None, pp.deadline_ns
+                else:
+                    dns = pp.delay_ns(arr, d.theta)
         if u_k is None:
             u_missing[k] = True
         if physical:
@@ -304,13 +327,20 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         for a in acks:
             encp.ack(*a)
     sl = slice(0, last)
+    cause = None   # a replay's causes are the recording's (``testbed report``)
+    if replay is None:
+        c = {} if chan is None else {"sensed": chan.sensed[sl], "symbol_lost": chan.symbol_lost[sl], "late": chan.late[sl]}
+        cause = loss_cause(theta[sl], withheld=withheld[sl], attacker=dropped[sl], **c)
+    ctl_counters = ctlp.counters()
+    if cause is not None:  # a late symbol arrives after its sample was decided (counted as the live controller does)
+        ctl_counters["late"] += int(np.count_nonzero(cause == LATE))
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=rec["x"][sl], u=u_rec[sl], q=rec["q"][sl],
                      q_enc=rec["q_enc"][sl], xi_enc=rec["xi_enc"][sl], E_enc=E_enc[sl],
                      xi_dec=rec["xi_dec"][sl], E_dec=E_dec[sl], theta=theta[sl], symbols=symbols[sl],
                      saturated=sat[sl], x_final=process.x, flow_status=status, diverged_at=diverged_at, K=K,
-                     reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl],
+                     reason=reason[sl], withheld=withheld[sl], u_missing=u_missing[sl], loss_cause=cause,
                      delays=None if delays is None else delays[:last].copy(),
-                     counters={"encoder": encp.counters(), "controller": ctlp.counters(),
+                     counters={"encoder": encp.counters(), "controller": ctl_counters,
                                "plant": {"rejected_nonfinite": pp.rejected_nonfinite, "clamped": pp.clamped}},
                      plant_fault=fault, plant_fault_at=fault_at,
                      loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
@@ -318,15 +348,16 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                      ends=(encp.enc, ctlp.dec))
 
 
-def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb):
+def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan=None):
     """One sample of the method's ends through the protocol: the encoder (acks first), the
-    attacker and the controller.  Returns (send, decisions + [drop])."""
+    attacker, the channel (``chan``: sensor and symbol links) and the controller.  Returns
+    (send, decisions + [drop])."""
     if replay is None or not replay.withheld[k]:
         for a in acks:
             encp.ack(*a)
         acks.clear()
     send = None
-    if replay is None or replay.sensed[k]:
+    if (replay.sensed[k] if replay is not None else (chan is None or chan.sensed[k])):
         send = encp.sensor(k, x)
     payload = cb.pack(send.symbol) if isinstance(send, Send) else None
     if replay is None:
@@ -335,6 +366,8 @@ def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb):
             payload = None
         elif payload is not None and k in corrupt:
             payload = corrupt_payload(cb, payload, corrupt[k])
+        if chan is not None and (chan.symbol_lost[k] or chan.late[k]):
+            payload = None
     else:
         drop = 0
         r = int(replay.reason[k])

@@ -25,6 +25,7 @@ import numpy as np
 
 from attackers.greedy import greedy_init, greedy_step
 
+from .channel import loss_counts
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
 from .methods.ends import unaware_update
 from .quantizer import (
@@ -675,4 +676,5 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "simulator": res.simulator,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),
+        "losses": None if res.loss_cause is None else loss_counts(res.loss_cause),  # channel.loss_cause
     })

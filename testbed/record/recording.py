@@ -57,6 +57,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from ..channel import ATTACKER
 from ..wire import messages as msg
 from . import schema
 from .recorded import resolved_metadata, scenario_metadata, software_versions
@@ -283,7 +284,9 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         tap(fox.start(start, t0))
         theta = np.asarray(res.theta, dtype=np.int64)
         attack_on = attack_on_samples(sc, res)  # an online attacker (greedy) is on when it drops
-        dropped_total = np.cumsum(theta)
+        # the attacker's own drops (a loss the channel caused, or a withheld sample, it forwarded or never saw)
+        drop = theta if res.loss_cause is None else (np.asarray(res.loss_cause) == ATTACKER).astype(np.int64)
+        dropped_total = np.cumsum(drop)
         prev_on = False
         delays = res.delays
         u_missing = res.u_missing if res.u_missing is not None else np.zeros(N, dtype=bool)
@@ -291,7 +294,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         reasons = res.reason
         fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
         if bulk:
-            _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total)
+            _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total, drop)
         for k in range(0 if bulk else N):  # the per-message path
             tk = k * Tn
             lt = t0 + tk
@@ -327,7 +330,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
                 tap(fox.event(ev, lt))
             on = bool(attack_on[k])
             tele("/telemetry/attacker", "AttackerSample", msg.AttackerTelemetry(
-                k=k, rx_ns=tk, tx_ns=msg.NO_TIME if th else tk, dropped=th, corrupted=0, attack_on=int(on),
+                k=k, rx_ns=tk, tx_ns=msg.NO_TIME if drop[k] else tk, dropped=int(drop[k]), corrupted=0, attack_on=int(on),
                 dropped_total=int(dropped_total[k]), forwarded_total=int(k + 1 - dropped_total[k])), lt)
             if on != prev_on:
                 st = msg.AttackerStatus(k=k, attack_on=on, dropped=int(dropped_total[k]),
@@ -351,6 +354,9 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
             w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=0, t_ns=0, detail=fault), t0)
         stop = msg.Stop(reason="end of run" if fault is None else f"plant fault at sample {res.plant_fault_at}: {fault}",
                         origin="simulator")
+        if sc.network is not None:  # the controller's counters: its late symbols (the summary's losses.late)
+            w.write("/summary/controller", {"node": "controller", "json": json.dumps(res.counters.get("controller", {}))},
+                    t0 + tN, name="NodeSummary")
         w.write("/control/stop", stop, t0 + tN)
         tap(fox.stop(stop, t0 + tN))
     finally:
@@ -359,7 +365,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
 
 
 def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int, theta, attack_on,
-                  dropped_total, block: int = 1 << 15) -> None:
+                  dropped_total, drop, block: int = 1 << 15) -> None:
     """Every sample's messages, in the order of the per-message path: the telemetry encoded from the
     arrays (``simrecord``), blocks of ``block`` samples at a time; events, attack switches and the
     decimated phase plane between them as that path writes them."""
@@ -391,7 +397,7 @@ def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int
 
     for k0 in range(0, N, block):
         k1 = min(N, k0 + block)
-        cols = telemetry_columns(res, k0, k1, t0, Tn, attack_on, dropped_total, reason)
+        cols = telemetry_columns(res, k0, k1, t0, Tn, attack_on, dropped_total, reason, drop)
         P, E, A, C = (encode(nm, k1 - k0, cols[nm]) for nm in names)
         for k in range(k0, k1):
             i = k - k0

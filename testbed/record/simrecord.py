@@ -180,7 +180,7 @@ def _log10(E: np.ndarray):
     return out, ok
 
 
-def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, dropped_total, reason) -> dict:
+def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, dropped_total, reason, drop=None) -> dict:
     """The columns of the four telemetry messages of samples k0..k1-1 of a ``SimResult`` (what
     ``record_simulation``'s per-message path puts in each): schema name -> columns for :func:`encode`."""
     N = k1 - k0
@@ -207,7 +207,8 @@ def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, droppe
            "symbol": np.where(held, -1, sym), "saturated": np.where(held, 0, res.saturated[sl]), "silent": held,
            "E": E, "xi": (res.xi_enc[sl], keep), "q": (res.q_enc[sl], keep), "header": hdr, "log10_E": (lg, has)}
     tot = np.asarray(dropped_total[sl], dtype=np.int64)
-    att = {"k": ks, "rx_ns": (tk, yes), "tx_ns": (tk, th == 0), "dropped": th, "corrupted": np.zeros(N, np.int64),
+    dr = th if drop is None else np.asarray(drop[sl], dtype=np.int64)   # the attacker's own drops
+    att = {"k": ks, "rx_ns": (tk, yes), "tx_ns": (tk, dr == 0), "dropped": dr, "corrupted": np.zeros(N, np.int64),
            "attack_on": np.asarray(attack_on[sl], dtype=np.int64), "dropped_total": tot,
            "forwarded_total": ks + 1 - tot, "header": hdr}
     rs = np.asarray(reason[sl], dtype=np.int64)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..channel import recorded_losses
 from ..simulate import json_clean as _clean
 from ..stats import percentiles
 from ..wire import messages as msg
@@ -197,6 +198,9 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         "nodes": nodes,
         "node_summaries": summaries,
     })
+    out["losses"] = recorded_losses(  # the attacker's, the channel's, late, withheld (docs/recording-format.md)
+        theta, withheld=EN & silent, attacker=A & (g("attacker", "dropped")[:N] != 0),
+        invalid=C & (reason == CT.INVALID), superseded=C & (reason == CT.SUPERSEDED), late_symbols=cs.get("late"))
     out["attacker"] = {"dropped": ats.get("dropped"), "forwarded": ats.get("forwarded"),
                        "corrupted": ats.get("corrupted"), "acks_dropped": ats.get("acks_dropped")}
     return {k: v if k in base_keys else _clean(v) for k, v in out.items()}
