@@ -1,5 +1,6 @@
 """The live channel stage: a run with ``[network]`` loses the samples the channel model's seeded draws
-say (``testbed.channel.draws``, the simulator's draws), and holds each message for its drawn delay."""
+say (``testbed.channel.draws``, the simulator's draws), holds each message for its drawn delay, and
+equals the simulator with the same ``[network]`` bit for bit."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import secrets
 
 import numpy as np
 import pytest
-from helpers import live, run_cli, tb_cmd
+from helpers import BIT_EXACT_KEYS, live_exact, mismatch, run_cli, simulate, tb_cmd
 
 from testbed import channel, scenario
 
@@ -21,8 +22,8 @@ seed = 7
 [network.symbol]
 loss = 0.1
 [network.actuation]
-delay = 0.01
-jitter = 0.005
+delay = 0.003
+jitter = 0.002
 [network.sensor]
 delay = 0.002
 [network.ack]
@@ -31,13 +32,19 @@ loss_burst = 2.0
 """
 
 
-def test_live_channel_losses_are_the_models_draws(tmp_path):
+def test_live_channel_losses_are_the_models_draws_and_the_simulators(tmp_path):
     path = tmp_path / "chan.toml"
     path.write_text(scenario.load("paper").source + NETWORK)
     sc = scenario.load(str(path))
     run_id = f"t{os.getpid()}chan{secrets.token_hex(3)}"
-    rc, s, err = live(run_id, str(path), "--duration", "5")
+    rc, s, err = live_exact(run_id, str(path), "--duration", "5")
     assert rc == 0, (s["faults"], err[-3000:])
+    # the same [network] and seed, simulated: the same lost samples, and the same run bit for bit
+    sim = simulate(str(path), 5)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], mismatch(s, sim, key)
+    # and the losses told apart alike: the channel's are the symbol link's drops
+    assert s["losses"] == sim["losses"] and s["losses"]["channel"] > 0, (s["losses"], sim["losses"])
     N = s["n_steps"]
     drawn = set(np.flatnonzero(channel.draws(sc.network, "symbol", N).lost).tolist())
     sent = set(range(N)) - set(s["attacker_dropped_at"]) - set(s["withheld_at"])
@@ -49,6 +56,7 @@ def test_live_channel_losses_are_the_models_draws(tmp_path):
     every = [k for node in s["node_summaries"].values() for link in (node.get("channel") or {}).values()
              for k in link["lost_at"]]
     assert s["events"].get("channel_lost") == len(every)  # one event per drop, on every link
+    assert s["losses"]["channel"] == len(ch["lost_at"])
     from testbed.record import reader
 
     rec = reader.read(s["recording"]["path"])  # the recording keeps it, for resimulate and report

@@ -9,8 +9,9 @@ extra work. The links and where they are received:
 - ``actuation``: the plant receiving u_k;
 - ``ack``: the encoder receiving theta_k (the actuation message that carries it, or the ack).
 
-Message k (the header's sample index) is dropped iff ``channel.draws(model, link, n).lost[k]``,
-the same draws the simulator makes with the same seed; otherwise it is handed to the node at
+Message k (the header's sample index) is dropped iff ``channel.draws(model, link, n, bits).lost[k]``,
+the same draws the simulator makes with the same seed (``bits``: the payload a finite ``rate``
+charges, ``channel.payload_bits``); otherwise it is handed to the node at
 its send time (the header's stamp, run clock) plus ``delay[k]``, or at once if the real network
 took longer (the realized delay is then max(real, model)). Held messages are delivered in
 order of their due times by one thread per stage. The realized drops and delays go into the
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 import threading
 
 from .. import channel
@@ -36,13 +38,22 @@ def stage_for(node, link: str, fn):
     return ChannelStage(node, link, net, fn)
 
 
+def _bits(node, link: str, model: channel.NetworkModel) -> int:
+    """The payload bits a finite ``rate`` charges for one message (``channel.payload_bits``, as the simulator)."""
+    if not math.isfinite(model.link(link).rate):
+        return 0
+    sc, plant = node.sc, node.model
+    nbytes = sc.make_method().codebook(plant.n, sc.quantizer).nbytes if link == "symbol" else 0
+    return channel.payload_bits(link, plant.n, plant.m, nbytes)
+
+
 class ChannelStage:
     def __init__(self, node, link: str, model: channel.NetworkModel, fn):
         self.node = node
         self.link = link
         self.fn = fn
         n = node.ctx.n_steps + 2  # prefix-stable: a few samples more than the run has change nothing
-        d = channel.draws(model, link, n)
+        d = channel.draws(model, link, n, _bits(node, link, model))
         self.lost = d.lost.tolist()
         self.delay_ns = [int(round(v * 1e9)) for v in d.delay.tolist()]
         self.delay_s = d.delay.tolist()
