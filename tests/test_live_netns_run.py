@@ -177,3 +177,35 @@ def test_netns_physical_timing_over_a_delayed_actuation_link(tmp_path):
     for key in ("symbols", "theta", "E", "x"):
         assert s[key] == sim[key], mismatch(s, sim, key)
     assert not _left(run_id)
+
+
+@pytest.mark.process
+def test_netns_bursty_symbol_channel_equals_the_simulator(tmp_path):
+    """A Gilbert-Elliott symbol link (loss 0.15, mean burst 3) across network namespaces: the run equals
+    ``testbed simulate`` of the same scenario and seed bit for bit; ``testbed report --json`` of its
+    recording tells the losses apart as the simulator does (the channel's positive, the attacker's those
+    its schedule covers), and the recording shows the channel's losses in bursts."""
+    from testbed import scenario
+
+    _require_netns()
+    path = tmp_path / "paper-burst.toml"
+    path.write_text(scenario.load("paper").source + "\n[network]\nseed = 5\n[network.symbol]\nloss = 0.15\n"
+                                                    "loss_burst = 3.0\n")
+    run_id = f"t{os.getpid()}nsburst{secrets.token_hex(3)}"
+    rc, s, err = live_exact(run_id, str(path), "--netns", "--duration", "10")
+    assert rc == 0, (s["faults"], err[-2000:])
+    sim = simulate(str(path), 10)
+    for key in BIT_EXACT_KEYS:
+        assert s[key] == sim[key], mismatch(s, sim, key)
+    rc, out, err = run_cli(tb_cmd("report", s["recording"]["path"], "--json"))
+    assert rc == 0, err
+    rep = json.loads(out)
+    assert rep["losses"] == sim["losses"] and rep["losses"]["channel"] > 0, (rep["losses"], sim["losses"])
+    assert rep["losses"]["attacker"] == len(s["attacker_dropped_at"]) > 0
+    assert "attacker's losses only" in rep["dos"]["counts"]
+    from testbed.record import reader
+
+    lost = reader.read(s["recording"]["path"]).summaries["controller"]["channel"]["symbol"]["lost_at"]
+    runs = [j - i for i, j in zip(lost, lost[1:]) if j - i == 1]
+    assert len(runs) >= 3, lost  # consecutive samples lost by the channel: bursts
+    assert not _left(run_id)
