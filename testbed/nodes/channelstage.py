@@ -9,6 +9,9 @@ extra work. The links and where they are received:
 - ``actuation``: the plant receiving u_k;
 - ``ack``: the encoder receiving theta_k (the actuation message that carries it, or the ack).
 
+With ``--colocate encoder`` the sensor and ack links do not cross the network: their losses are
+applied where the plant hands x_k and the ack over (``InProcessLink``).
+
 Message k (the header's sample index) is dropped iff ``channel.draws(model, link, n, bits).lost[k]``,
 the same draws the simulator makes with the same seed (``bits``: the payload a finite ``rate``
 charges, ``channel.payload_bits``); otherwise it is handed to the node at
@@ -109,3 +112,36 @@ class ChannelStage:
 
     def summary(self) -> dict:
         return {"lost_at": list(self.lost_at), "delay_s": [list(r) for r in self.delays]}
+
+
+class InProcessLink:
+    """A link that does not cross the network (``--colocate encoder``: x_k and the ack handed over inside
+    the plant's process): the model's losses alone, as the simulator applies them (a delay has nothing
+    to hold here: the ack rides on the actuation message, which its own link delays)."""
+
+    def __init__(self, node, link: str, model: channel.NetworkModel):
+        self.node = node
+        self.link = link
+        self.lost = channel.draws(model, link, node.ctx.n_steps + 2).lost.tolist()
+        self.lost_at: list[int] = []
+
+    def drops(self, k: int) -> bool:
+        """Whether the channel loses sample k's message (recorded when it does)."""
+        if 0 <= k < len(self.lost) and self.lost[k]:
+            self.lost_at.append(k)
+            self.node.ctx.event("channel_lost", k=k, detail=f"{self.link}: lost by the channel model", level=20)
+            return True
+        return False
+
+    def summary(self) -> dict:
+        return {"lost_at": list(self.lost_at), "delay_s": []}
+
+
+def in_process_links(guest) -> dict[str, InProcessLink]:
+    """The colocated encoder's ``sensor`` and ``ack`` links that lose messages (registered as its stages)."""
+    net = getattr(guest.sc, "network", None)
+    out = {}
+    for link in ("sensor", "ack"):
+        if net is not None and net.link(link).loss > 0:
+            out[link] = guest.channel_stages[link] = InProcessLink(guest, link, net)
+    return out
