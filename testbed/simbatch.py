@@ -14,7 +14,11 @@ The kernel runs a scenario when (:func:`kernel_refusal` says why not otherwise):
   ``static``, ``unquantized``, ``unquantized-hold``; a user's method has none);
 * the network is the plain one: no ``--ack-via-attacker``, no ``--corrupt`` (with those an ack
   can be lost and the encoder withholds samples, which only the protocol objects model);
-* ideal or physical timing, an offline schedule or the online greedy attacker (all it has).
+* ideal or physical timing, an offline schedule or the online greedy attacker (all it has);
+* a ``[network]`` channel (``testbed.channel``): its draws are made ahead and given to the kernel per sample
+  (the controller cannot receive it; the upstream delay; u_k lost), and the samples the encoder withholds
+  after a lost ack are computed ahead (``channel.withheld_pattern``); only the greedy attacker scoring E
+  with a lossy ack link (it reads the withholding encoder's E_k) runs the loop.
 
 Everything else runs the per-sample loop.  ``simulator="per-sample"`` forces the loop
 (``testbed simulate --simulator per-sample``); a ``SimResult`` says which ran (``simulator``).
@@ -273,6 +277,8 @@ def kernel_refusal(sc, network: Network | None = None) -> str | None:
         return "acks via the attacker or corrupted payloads (only the protocol objects model them)"
     if sc.attack.online and sc.attack.kind != "greedy":
         return f"the online attacker {sc.attack.kind!r}"
+    if network is not None and network.channel is not None and network.channel != sc.network:
+        return "a channel other than the scenario's [network] (the kernel applies the scenario's)"
     if sc.network is not None and sc.attack.online and sc.attack.score == "E" and sc.network.link("ack").loss > 0:
         return "the greedy attacker scoring E with a lossy ack link (it reads the encoder's E while it withholds)"
     return None

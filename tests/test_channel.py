@@ -24,7 +24,8 @@ def _model(**kw) -> NetworkModel:
 
 
 def test_draws_are_deterministic_and_prefix_stable():
-    m = NetworkModel(seed=3, links={k: LinkModel(delay=0.004, jitter=0.002, loss=0.2, loss_burst=3.0, rate=1e5)
+    m = NetworkModel(seed=3, links={k: LinkModel(delay=0.004, jitter=0.002, loss=0.2, loss_burst=3.0, rate=1e5,
+                                                 distribution="normal" if k == "ack" else "uniform")
                                     for k in LINKS})
     for link in LINKS:
         a, b = draws(m, link, 5000, bits=64), draws(m, link, 5000, bits=64)

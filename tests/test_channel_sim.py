@@ -154,17 +154,23 @@ def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
     from testbed.record.recording import record_simulation
     from testbed.report import report
 
-    sc = _sc("paper", {"seed": 3, "symbol": {"loss": 0.05, "delay": 0.03, "jitter": 0.02}, "ack": {"loss": 0.05}},
-             timing="physical")
+    sc = _sc("paper", {"seed": 3, "symbol": {"loss": 0.05, "delay": 0.03, "jitter": 0.02}, "ack": {"loss": 0.05},
+                       "sensor": {"loss": 0.05}, "actuation": {"loss": 0.05, "delay": 0.004}}, timing="physical")
     res = simulate_scenario(sc)
     want = loss_counts(res.loss_cause)
     assert all(want[k] > 0 for k in want)
     path = tmp_path / "net.mcap"
     record_simulation(str(path), sc, res)
-    s = report(path, resimulate=0)
+    s = report(path, resimulate=None)   # every sample
     assert s["losses"] == want
-    attack = sc.theta(sc.n_steps).astype(bool)   # the attack's samples the encoder did not withhold
-    assert s["dropped_by_attacker"] == want["attacker"] == int((attack & ~res.withheld).sum())
+    # the recording says what happened (x_k that never reached the encoder: no encoder record), so it
+    # re-simulates bit for bit, and its summary is the simulation's
+    assert s["resimulation"]["reproduced"] is True, s["resimulation"]["verdict"]
+    sim = json.loads(json.dumps(summarize(sc, res)))
+    for key in ("samples_lost", "withheld_at", "symbols", "E", "theta", "x_final", "losses"):
+        assert json.loads(json.dumps(s[key], default=lambda a: a.tolist())) == sim[key], key
+    attack = sc.theta(sc.n_steps).astype(bool)   # the attack's samples the encoder sent (symbol >= 0)
+    assert s["dropped_by_attacker"] == want["attacker"] == int((attack & (res.symbols >= 0)).sum())
     assert "attacker's losses only" in s["dos"]["counts"]
     ld = s["losses_as_dos"]
     H = sc.n_steps * sc.T
@@ -211,3 +217,10 @@ def test_a_campaign_sweeps_network_keys(tmp_path):
         assert {k: row[k] for k in want} == want
         lost.setdefault(r.axes["network.symbol.loss"], []).append(row["samples_lost"])
     assert min(lost[0.2]) > max(lost[0.0])
+
+
+def test_the_kernel_refuses_only_greedy_scoring_E_with_a_lossy_ack_link():
+    sc = _sc("paper-greedy", ALL_LINKS, attack={"score": "E"})
+    assert "ack link" in kernel_refusal(sc)
+    assert simulate_scenario(sc).simulator == "per-sample"
+    assert kernel_refusal(_sc("paper-greedy", {**ALL_LINKS, "ack": {}}, attack={"score": "E"})) is None

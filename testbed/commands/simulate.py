@@ -101,6 +101,10 @@ def main_simulate(args) -> int:
         print(f"  {len(out['t'])} samples, {out['packets_dropped']} dropped in {len(out['dos_intervals'])} "
               f"DoS intervals, {out['saturations']} saturations, encoder/decoder agree: "
               f"{out['encoder_decoder_agree']}")
+        if sc.network is not None and out.get("losses"):
+            ls = out["losses"]
+            print(f"  losses: attacker {ls['attacker']}, channel {ls['channel']}, late {ls['late']}, "
+                  f"withheld {ls['withheld']} ([network] seed {sc.network.seed})")
         print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}"
               + (f" (flow diverged at sample {out['diverged_at']})"
                  if out["diverged"] and out["plant_fault"] is None else ""))

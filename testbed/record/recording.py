@@ -57,7 +57,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from ..channel import ATTACKER
+from ..channel import ATTACKER, CHANNEL
 from ..wire import messages as msg
 from . import schema
 from .recorded import resolved_metadata, scenario_metadata, software_versions
@@ -287,14 +287,17 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         # the attacker's own drops (a loss the channel caused, or a withheld sample, it forwarded or never saw)
         drop = theta if res.loss_cause is None else (np.asarray(res.loss_cause) == ATTACKER).astype(np.int64)
         dropped_total = np.cumsum(drop)
+        withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
+        # x_k never reached the encoder (a [network] sensor link lost it): no encoder record, as live
+        unsensed = np.zeros(N, dtype=bool) if res.loss_cause is None else \
+            (np.asarray(res.loss_cause) == CHANNEL) & (np.asarray(res.symbols) == -1) & ~np.asarray(withheld, dtype=bool)
         prev_on = False
         delays = res.delays
         u_missing = res.u_missing if res.u_missing is not None else np.zeros(N, dtype=bool)
-        withheld = res.withheld if res.withheld is not None else np.zeros(N, dtype=bool)
         reasons = res.reason
         fault = getattr(res, "plant_fault", None)   # the true plant failed (an FMU step) at plant_fault_at
         if bulk:
-            _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total, drop)
+            _bulk_samples(w, fox, sc, res, t0, Tn, every, theta, attack_on, dropped_total, drop, unsensed)
         for k in range(0 if bulk else N):  # the per-message path
             tk = k * Tn
             lt = t0 + tk
@@ -321,8 +324,9 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
                 e = msg.EncoderTelemetry(k=k, sensor_tx_ns=tk, rx_ns=tk, tx_ns=tk, symbol=sym,
                                          saturated=int(res.saturated[k]), silent=0, E=float(res.E_enc[k]),
                                          xi=tuple(res.xi_enc[k]), q=tuple(res.q_enc[k]))
-            tele("/telemetry/encoder", "EncoderSample", e, lt)
-            tap(fox.encoder(e, lt))
+            if not unsensed[k]:
+                tele("/telemetry/encoder", "EncoderSample", e, lt)
+                tap(fox.encoder(e, lt))
             if res.saturated[k]:
                 ev = msg.Event(node="encoder", kind="saturation", k=k, t_ns=tk,
                                detail=f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}")
@@ -365,7 +369,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
 
 
 def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int, theta, attack_on,
-                  dropped_total, drop, block: int = 1 << 15) -> None:
+                  dropped_total, drop, unsensed, block: int = 1 << 15) -> None:
     """Every sample's messages, in the order of the per-message path: the telemetry encoded from the
     arrays (``simrecord``), blocks of ``block`` samples at a time; events, attack switches and the
     decimated phase plane between them as that path writes them."""
@@ -404,7 +408,8 @@ def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int
             lt = t0 + k * Tn
             if k not in special:
                 add(cp, lt, P[i], lt)
-                add(ce, lt, E[i], lt)
+                if not unsensed[k]:
+                    add(ce, lt, E[i], lt)
                 add(ca, lt, A[i], lt)
                 add(cc, lt, C[i], lt)
                 continue
@@ -414,9 +419,10 @@ def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int
                 ev = msg.Event(node="plant", kind="plant_fault", k=k, t_ns=tk, detail=res.plant_fault)
                 w.write("/events/plant", ev, lt)
                 tap(fox.event(ev, lt))
-            add(ce, lt, E[i], lt)
+            if not unsensed[k]:
+                add(ce, lt, E[i], lt)
             if k % every == 0:
-                held = bool(withheld[k])
+                held = bool(withheld[k] or unsensed[k])
                 w.write_bytes(TOPIC_PHASE, "foxglove.SceneUpdate",
                               scene.sample(lt, res.x[k], None if held else res.xi_enc[k],
                                            None if held else float(res.E_enc[k])), lt)
@@ -433,7 +439,7 @@ def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int
                 tap(fox.status(st, lt))
             add(cc, lt, C[i], lt)
         for t in topics:
-            w.counts[t] += k1 - k0
+            w.counts[t] += k1 - k0 - (int(unsensed[k0:k1].sum()) if t == "/telemetry/encoder" else 0)
         w.maybe_flush()
 
 
