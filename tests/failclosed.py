@@ -96,7 +96,8 @@ def stalled(summary: dict, *, attacker: bool = False) -> dict | None:
 
     Deadline misses, overruns, sensor samples that reached the encoder out of order, (physical
     timing, scheduled actuation) a u_k that arrived after its instant, (ideal ack) an ack that
-    missed the encoder's grace window, which only a stall of about one sampling period can cause;
+    missed the encoder's grace window, which only a stall of about one sampling period can cause
+    (less what a ``[network]`` channel model lost on purpose: u_k on the actuation link, acks);
     and, unless ``attacker``: late symbols, symbols superseded by a later one, and genuine messages
     a node took for ones from the future (its run clock read during a stall at the start).
     """
@@ -106,8 +107,12 @@ def stalled(summary: dict, *, attacker: bool = False) -> dict | None:
     stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
              "stale_sensor": enc.get("stale_sensor"),
              "late_for_schedule": tm.get("late_for_schedule")}
-    if not summary.get("ack_via_attacker"):
-        stall["ack_missing"] = ev.get("ack_missing")
+    chan = {r: (n or {}).get("channel") or {} for r, n in summary.get("node_summaries", {}).items()}
+    if not summary.get("ack_via_attacker") and not chan.get("encoder", {}).get("ack", {}).get("lost_at"):
+        stall["ack_missing"] = ev.get("ack_missing")  # (an ack the channel model lost: its ack_missing is no stall)
+    u_lost = set(chan.get("plant", {}).get("actuation", {}).get("lost_at") or ())
+    if u_lost:  # a u_k the channel model lost is a miss of the channel's, not of a stalled machine
+        stall["deadline_misses"] = len(set(summary.get("deadline_missed_at") or ()) - u_lost)
     if not attacker:
         stall["late_symbols"] = summary.get("late_symbols")
         stall["superseded"] = summary.get("loss_reasons", {}).get("superseded")

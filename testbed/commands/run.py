@@ -11,6 +11,7 @@ from .. import cliargs
 from ..live.external import add_external_arguments
 from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
+from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
 from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
 from ..stats import fmt_percentiles
@@ -19,7 +20,7 @@ from ..wire.session import add_security_arguments
 
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", help="scenario file (.toml) or bundled name")
+    p.add_argument("scenario", nargs="?", help="scenario file (.toml) or bundled name")
     cliargs.add_json(p, "the run's summary (the keys of testbed simulate --json, plus timing and faults)")
     add_run_option_arguments(p)
     g = p.add_argument_group("network")
@@ -34,6 +35,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
     add_security_arguments(g, launcher=True)
+    add_netns_arguments(g)
     g = p.add_argument_group("recording")
     cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
                        "never overwritten", aliases=("--record",))
@@ -68,6 +70,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                    help="make a node raise at sample K (repeatable)")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
                    help="the attacker corrupts the payload of these samples")
+    add_cut_arguments(g)
 
 
 def print_text(s: dict) -> None:
@@ -117,6 +120,10 @@ def print_text(s: dict) -> None:
 def main_run(args) -> int:
     from ..errors import BadInput
 
+    if args.netns_clean:  # only that
+        return main_clean()
+    if args.scenario is None:
+        raise BadInput("which scenario? (a .toml file or a bundled name; testbed scenarios lists them)")
     launcher = Launcher(args)
     try:
         code, summary = launcher.run()

@@ -31,6 +31,7 @@ class Node:
         spin_us = getattr(args, "rx_spin_us", None)
         self.rx_spin_ns = int(spin_us * 1e3) if spin_us is not None else min(1_000_000, ctx.T_ns // 20)
         self.inlet: Inlet | None = None
+        self.channel_stages: dict = {}  # link -> its ChannelStage ([network]: ``channelstage``)
 
     # -- to override
     def setup(self) -> None: ...
@@ -70,7 +71,8 @@ class Node:
 
         return wrapped
 
-    def subscribe(self, key: str, fn, *, blocking: bool = False, primary: bool = False, thread: bool = True):
+    def subscribe(self, key: str, fn, *, blocking: bool = False, primary: bool = False, thread: bool = True,
+                  link: str | None = None):
         """Subscribe ``fn(sample)`` (guarded) the way the node's ``--rx`` mode says.
 
         ``thread``: zenoh-python's callback thread runs it (one thread per subscriber, woken
@@ -80,17 +82,30 @@ class Node:
         node's primary input (``primary``, the one on the loop's path) is an ``Inlet``: its
         own thread handles it and spins just before it is due (``thread=False``: the node's
         loop calls ``Inlet.spin`` itself).  ``fn`` returns the sample index of a control
-        message (the inlet learns when it is due) or None.
+        message (the inlet learns when it is due) or None.  ``link``: the channel link this stream
+        is received on; with a non-ideal ``[network.<link>]`` model, its channel stage drops and
+        holds the messages (``testbed.nodes.channelstage``); without one, nothing is added.
         """
         import zenoh
 
         h = self.guard(fn)
+        if link is not None and self.sc.network is not None:
+            from .channelstage import stage_for
+
+            stage = stage_for(self, link, h)
+            if stage is not h:
+                self.channel_stages[link] = stage
+                h = self.guard(stage)
         if self.rx_mode == "spin" and primary:
             self.inlet = Inlet(self, key, h, budget_ns=self.rx_spin_ns, thread=thread)
             return self.inlet.sub
         if self.rx_mode != "thread" and not blocking:
             return self.ctx.session.declare_subscriber(key, zenoh.handlers.Callback(h, indirect=False))
         return self.ctx.session.declare_subscriber(key, h)
+
+    def channel_summary(self) -> dict:
+        """The realized channel drops and delays of each link this node receives (``channel``), if any."""
+        return {"channel": {k: s.summary() for k, s in self.channel_stages.items()}} if self.channel_stages else {}
 
     def rx_summary(self) -> dict:
         d = {"rx": self.rx_mode}

@@ -50,7 +50,7 @@ class ControllerNode(Node):
         self.decode_time: list[int] = []
         self.net_latency: list[int] = []
         self.loss_ns = int(sc.timing_params[4])  # t_k + loss_fraction d T
-        self._sub = self.subscribe(keys.symbol_rx, self._on_symbol, primary=True)
+        self._sub = self.subscribe(keys.symbol_rx, self._on_symbol, primary=True, link="symbol")
         ctx.on_peer(self._on_peer)
 
     @property

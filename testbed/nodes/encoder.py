@@ -71,12 +71,13 @@ class EncoderNode(Node):
         opts = ctx.opts
         self._subs = []
         if not self.embedded:
-            self._subs.append(self.subscribe(keys.sensor, self._on_sensor, blocking=True, primary=True))
+            self._subs.append(self.subscribe(keys.sensor, self._on_sensor, blocking=True, primary=True,
+                                                             link="sensor"))
         if opts.ack_on_actuation:
             if not self.embedded:  # embedded: the plant's actuation handler hands the ack over (``ack_in``)
-                self._subs.append(self.subscribe(keys.actuation, self._on_actuation))
+                self._subs.append(self.subscribe(keys.actuation, self._on_actuation, link="ack"))
         else:
-            self._subs.append(self.subscribe(keys.ack_for_encoder(opts.ack_via_attacker), self._on_ack))
+            self._subs.append(self.subscribe(keys.ack_for_encoder(opts.ack_via_attacker), self._on_ack, link="ack"))
 
     def warmup(self) -> None:
         warm_kernels(self.sc, self.model)

@@ -241,6 +241,7 @@ def main_node(args) -> int:
         if guest is not None and not guest.killed:  # the colocated encoder's own account, under its name
             guest.ctx.telemetry.flush()
             gd = guest.summary()
+            gd.update(guest.channel_summary())
             if guest_tap is not None:
                 guest.ctx.telemetry.tap = None
                 gd.update(guest_tap.close())
@@ -254,6 +255,7 @@ def main_node(args) -> int:
             guest_tap.close()
         ctx.telemetry.flush()
         data = node.summary()
+        data.update(node.channel_summary())
         data.update(cpu_info)
         if tap is not None:
             ctx.telemetry.tap = None

@@ -85,7 +85,13 @@ class PlantNode(Node):
         self.pub_start = ctx.session.declare_publisher(keys.start)
         self.pub_stop = ctx.session.declare_publisher(keys.stop)
         self._ack_to_encoder = self.encoder is not None and ctx.opts.ack_on_actuation
-        self._sub_act = self.subscribe(keys.actuation, self._on_actuation, primary=True, thread=False)
+        self._guest_links: dict = {}  # [network] sensor/ack losses of the colocated encoder (``channelstage``)
+        if self.encoder is not None and sc.network is not None:
+            from .channelstage import in_process_links
+
+            self._guest_links = in_process_links(self.encoder)
+        self._sub_act = self.subscribe(keys.actuation, self._on_actuation, primary=True, thread=False,
+                                       link="actuation")
         self._lock = threading.Lock()
         self._got = threading.Event()
         self._waiting_k = 0                  # the sample whose u_k the loop needs next
@@ -173,8 +179,8 @@ class PlantNode(Node):
             return None
         if a.k == msg.WARMUP_K:
             return None
-        if self._ack_to_encoder:  # the colocated encoder's ack rides on this message
-            self.encoder.ack_in(a.k, a.theta, a.last_rx, rx)
+        if self._ack_to_encoder and not ("ack" in self._guest_links and self._guest_links["ack"].drops(a.k)):
+            self.encoder.ack_in(a.k, a.theta, a.last_rx, rx)  # the colocated encoder's ack rides on this message
         if len(a.u) != self.process.m:
             self.bad_message("actuation", msg.MessageError(f"u has {len(a.u)} entries, plant has m = {self.process.m}"))
             return None
@@ -251,8 +257,9 @@ class PlantNode(Node):
                 payload, att = msg.Sensor(k, t_act, tuple(xm.tolist())).encode()
                 self.pub_sensor.put(payload, attachment=att)
             sensor_tx = clock.now()
-            if self.encoder is not None:  # the colocated encoder: x_k handed over in the process
-                enc = self.encoder
+            if self.encoder is not None and not (self._guest_links and "sensor" in self._guest_links
+                                                 and self._guest_links["sensor"].drops(k)):
+                enc = self.encoder  # the colocated encoder: x_k handed over in the process
                 try:
                     enc.sensor_in(k, t_act, xm, clock.now())
                 except Exception as e:  # noqa: BLE001 - the encoder fails alone
