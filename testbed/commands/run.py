@@ -62,6 +62,9 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("fault injection")
     g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
                    help="SIGKILL a node (or the recorder) SECONDS after t0 (repeatable)")
+    g.add_argument("--stall", action="append", default=[], metavar="ROLE@SECONDS:DURATION",
+                   help="freeze a node's process (SIGSTOP) SECONDS after t0 and resume it (SIGCONT) DURATION "
+                        "seconds later (repeatable)")
     g.add_argument("--crash", action="append", default=[], metavar="ROLE@K",
                    help="make a node raise at sample K (repeatable)")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",

@@ -32,6 +32,7 @@ class Collector:
         self.events_dropped = 0
         self.lock = threading.Lock()
         self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}
+        self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
         self.summaries: dict[str, dict] = {}
@@ -78,6 +79,8 @@ class Collector:
                     self.rejected += 1  # never stored: a k from the wire sizes nothing
                 else:
                     d[t.k] = t
+                    if t.k > self.top[role]:
+                        self.top[role] = t.k
 
     def _on_event(self, sample) -> None:
         try:
@@ -150,8 +153,18 @@ class Collector:
 
     def last_k(self, role: str) -> int:
         with self.lock:
-            d = self.tele.get(role, {})
-            return max(d) if d else -1
+            return self.top.get(role, -1)
+
+    def record(self, role: str, k: int):
+        """``role``'s telemetry record of sample ``k``, or None."""
+        with self.lock:
+            return self.tele[role].get(k)
+
+    def first_after(self, role: str, k: int):
+        """``role``'s first telemetry record after sample ``k``, or None."""
+        with self.lock:
+            d = self.tele[role]
+            return next((d[j] for j in range(k + 1, self.top[role] + 1) if j in d), None)
 
     def lost_at(self, node: str) -> int | None:
         """monotonic ns at which ``node``'s liveliness token went away (last time), or None."""

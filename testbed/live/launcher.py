@@ -42,6 +42,7 @@ from ..wire import messages as msg
 from ..wire import transport
 from .credentials import RunCredentials, choose_topology
 from .spawn import Forked, _forked_node
+from .stalls import Stalls
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
@@ -61,7 +62,7 @@ def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
     return out
 
 
-class Launcher(RunCredentials):
+class Launcher(RunCredentials, Stalls):
     def __init__(self, args):
         self.args = args
         self.phase("up")
@@ -89,6 +90,7 @@ class Launcher(RunCredentials):
         self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, transport.RECORDER)).items()}
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
         self.colocated = self.opts.colocate           # roles run inside another node's process
+        self.init_stalls(args)                        # --stall, and the watch for stalled nodes (``stalls``)
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
         self.fork_ok = getattr(args, "spawn", "exec") == "fork"  # --spawn fork (``forks``)
         self.processes = self.opts.processes          # the node processes
@@ -535,6 +537,7 @@ class Launcher(RunCredentials):
                             self._signal_group(self.opts.process_of(role), signal.SIGUSR2)
                         else:
                             self._signal_group(role, signal.SIGKILL)
+                self.stalls_tick(col, now, t0_mono)
                 if now > end_mono:
                     self.faults.append({"node": None, "kind": "timeout",
                                         "why": "nodes still running 10 s after the end of the run"})
@@ -601,6 +604,7 @@ class Launcher(RunCredentials):
                     self.phase("watched")
                 finally:
                     self.router_realtime(False)
+                    self.stall_inject.release(self.procs)  # a node still frozen by --stall
                     self.stop_all(session, outcome)
                     for r, p in self.procs.items():
                         if r not in self.exits and p.poll() is not None:
@@ -610,6 +614,7 @@ class Launcher(RunCredentials):
                     for guest in self.colocated:  # one that died alone just before the end
                         if guest not in self.exits:
                             self.check_guest(guest, col, self.t0_mono, final=True)
+                    self.stalls_end(col)
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     self.publish_faults(session)
@@ -667,7 +672,7 @@ class Launcher(RunCredentials):
         summary["run_dir"] = str(self.run_dir)
         if self.signal is not None:
             code = 128 + self.signal
-        elif self.faults or not summary.get("complete"):
+        elif any(f["kind"] != "stalled" for f in self.faults) or not summary.get("complete"):
             code = 1
         else:
             code = 0

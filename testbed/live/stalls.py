@@ -1,0 +1,201 @@
+"""Frozen nodes: ``--stall ROLE@SECONDS:DURATION`` and the watch that notices a stalled node.
+
+A stall is a node that stops (SIGSTOP, a debugger, swapping, a paused VM) and then goes on as if
+nothing happened; its liveliness token stays (Zenoh's lease is kept by the peers' transport
+until the lease runs out, see docs/live.md "Frozen nodes").  ``StallInjector`` sends SIGSTOP to a
+node's process group SECONDS after t0 and SIGCONT DURATION later.  ``StallWatch`` notices a
+stall whether injected or not: a node is *behind* when it has fallen more than ``gap`` behind
+what drives it (the run clock for the plant and the controller, the plant's samples for the
+encoder, the encoder's for the attacker), and the stall is confirmed when the node's own time
+stamps jump by more than ``gap`` across it (so a launcher that was itself starved, which sees
+everything late, reports nothing).  The interval is read off the node's own stamps: from its
+last sample before the stall to its first after, in run time.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sys
+import time
+
+from ..errors import BadInput
+from ..wire import messages as msg
+from ..wire import transport
+
+#: the shortest stall the watch reports (a gap of at least 3 periods, and at least this long)
+MIN_GAP_NS = 300_000_000
+
+
+def parse_stalls(items, colocated=()) -> dict[str, tuple[float, float]]:
+    """``ROLE@SECONDS:DURATION`` items -> {role: (seconds after t0, duration s)}; BadInput if malformed."""
+    out = {}
+    for it in items:
+        role, at, rest = it.partition("@")
+        sec, colon, dur = rest.partition(":")
+        try:
+            s, d = float(sec), float(dur)
+        except ValueError:
+            s = d = math.nan
+        if not at or not colon or role not in transport.ROLES or not (s >= 0 and d > 0) \
+                or not (math.isfinite(s) and math.isfinite(d)):
+            raise BadInput(f"--stall must be ROLE@SECONDS:DURATION with ROLE in {', '.join(transport.ROLES)}, "
+                           f"SECONDS >= 0 and DURATION > 0, got {it!r}")
+        if role in colocated:
+            raise BadInput(f"--stall {it}: the {role} runs inside another node's process (--colocate {role}); "
+                           f"a stall freezes a whole process: stall that one, which freezes both")
+        out[role] = (s, d)
+    return out
+
+
+class StallInjector:
+    """SIGSTOP to a node's process group at t0 + SECONDS, SIGCONT at t0 + SECONDS + DURATION."""
+
+    def __init__(self, stalls: dict[str, tuple[float, float]]):
+        self.stalls = stalls
+        self.stopped: dict[str, int] = {}   # role -> monotonic ns of SIGSTOP
+        self.resumed: dict[str, int] = {}   # role -> monotonic ns of SIGCONT
+
+    def tick(self, now: int, t0_mono: int, procs: dict) -> None:
+        for role, (sec, dur) in self.stalls.items():
+            p = procs.get(role)
+            if p is None or role in self.resumed:
+                continue
+            if role not in self.stopped and now >= t0_mono + int(sec * 1e9):
+                self.stopped[role] = time.monotonic_ns()
+                _signal(p, signal.SIGSTOP)
+            elif role in self.stopped and now >= t0_mono + int((sec + dur) * 1e9):
+                self.resumed[role] = time.monotonic_ns()
+                _signal(p, signal.SIGCONT)
+
+    def release(self, procs: dict) -> None:
+        """SIGCONT to every node still stopped (the run ends or is interrupted during a stall)."""
+        for role in self.stopped:
+            if role not in self.resumed and role in procs:
+                self.resumed[role] = time.monotonic_ns()
+                _signal(procs[role], signal.SIGCONT)
+
+
+def _signal(p, sig) -> None:
+    if p.poll() is None:
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            pass
+
+
+def own_stamp(role: str, t) -> int:
+    """When the node handled a telemetry record's sample, on its own clock (ns since t0), or NO_TIME."""
+    if role == "plant":
+        return t.t_ns
+    if role == "encoder":
+        return t.rx_ns
+    if role == "controller":
+        return t.tx_ns
+    return t.rx_ns  # attacker
+
+
+def lateness(role: str, t, col, T_ns: int) -> int | None:
+    """How late the node handled a sample against when it was due or when its input came (ns), or None.
+
+    The plant takes x_k at t_k; the controller decides by t_k + c d T (< t_k+1); the encoder
+    handles x_k as it arrives (since the plant sent it); the attacker a symbol since the encoder
+    sent it.  A node that was starved of input handles what comes at once: only a frozen node is late.
+    """
+    if role == "plant":
+        return t.t_ns - t.k * T_ns
+    if role == "controller":
+        return None if t.tx_ns == msg.NO_TIME else t.tx_ns - (t.k + 1) * T_ns
+    if role == "encoder":
+        return None if msg.NO_TIME in (t.rx_ns, t.sensor_tx_ns) else t.rx_ns - t.sensor_tx_ns
+    enc = col.record("encoder", t.k)
+    if enc is None or msg.NO_TIME in (enc.tx_ns, t.rx_ns):
+        return None
+    return t.rx_ns - enc.tx_ns
+
+
+class StallWatch:
+    """Notices nodes whose samples stop while their liveliness stays; ``tick`` returns closed stalls as faults."""
+
+    #: what drives each role's samples (None: the run clock)
+    UPSTREAM = {"plant": None, "controller": None, "encoder": "plant", "attacker": "encoder"}
+
+    def __init__(self, T_ns: int, n_steps: int, colocated=()):
+        self.T_ns, self.N = int(T_ns), int(n_steps)
+        self.gap_ns = max(MIN_GAP_NS, 3 * self.T_ns)
+        self.gap_k = math.ceil(self.gap_ns / self.T_ns)
+        self.colocated = set(colocated)
+        self.open: dict[str, int] = {}      # role -> last k before it fell behind
+
+    def _ref_k(self, role: str, now: int, t0_mono: int, col) -> int:
+        up = self.UPSTREAM[role]
+        if up is None:
+            return min(self.N - 1, (now - t0_mono) // self.T_ns)
+        return col.last_k(up)
+
+    def tick(self, now: int, t0_mono: int, col, alive: set[str], injected=frozenset(), final: bool = False) -> list[dict]:
+        out = []
+        for role in transport.ROLES:
+            k = col.last_k(role)
+            if role not in self.open:
+                if not final and role in alive and k >= 0 and self._ref_k(role, now, t0_mono, col) - k > self.gap_k:
+                    self.open[role] = k
+                continue
+            k0 = self.open[role]
+            if k <= k0 and not final:
+                continue
+            del self.open[role]
+            a, b = col.record(role, k0), None
+            for j in range(k0 + 1, k + 1):  # the first sample it handled late, after the gap
+                t = col.record(role, j)
+                if t is None:
+                    continue
+                late = lateness(role, t, col, self.T_ns)
+                if late is not None and late > self.gap_ns:
+                    b = t
+                    break
+                a = t
+            if a is None or b is None:
+                continue  # it handled what came in time (starved of input, or seen late by the launcher)
+            ta, tb = own_stamp(role, a), own_stamp(role, b)
+            if msg.NO_TIME in (ta, tb):
+                continue
+            f = {"node": role, "kind": "stalled", "from_s": round(ta / 1e9, 4), "to_s": round(tb / 1e9, 4),
+                 "duration_s": round((tb - ta) / 1e9, 4), "at_sample": b.k, "last_sample_before": a.k,
+                 "injected": role in injected,
+                 "why": f"no samples for {(tb - ta) / 1e9:.3f} s (samples {a.k} -> {b.k}) while its liveliness stayed"}
+            if role == "plant" and "encoder" in self.colocated:
+                f["colocated"] = ["encoder"]
+            out.append(f)
+        return out
+
+
+class Stalls:
+    """The launcher's part (a mixin of ``Launcher``): inject ``--stall``, watch for stalls, record them as faults."""
+
+    def init_stalls(self, args) -> None:
+        self.stall_inject = StallInjector(parse_stalls(getattr(args, "stall", None) or [], self.opts.colocate))
+        self.stall_watch: StallWatch | None = None
+
+    def stalls_tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
+        if not final:
+            self.stall_inject.tick(now, t0_mono, self.procs)
+        if self.stall_watch is None:
+            if col.start is None:
+                return
+            self.stall_watch = StallWatch(col.start.T_ns, col.start.n_steps, self.opts.colocate)
+        alive = {r for r in transport.ROLES if r not in self.exits}
+        for f in self.stall_watch.tick(now, t0_mono, col, alive, set(self.stall_inject.stopped), final=final):
+            self.faults.append(f)
+            print(f"testbed run: node {f['node']} stalled from {f['from_s']:g} s to {f['to_s']:g} s "
+                  f"({'injected' if f['injected'] else 'not injected'}); the run went on", file=sys.stderr, flush=True)
+
+    def stalls_end(self, col) -> None:
+        """At the run's end: resume a node still stopped, and close the stalls that ended."""
+        self.stall_inject.release(self.procs)
+        if self.t0_mono is not None:
+            self.stalls_tick(col, time.monotonic_ns(), self.t0_mono, final=True)
+
+
+__all__ = ["parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]
