@@ -316,6 +316,8 @@ def print_text(s: dict) -> None:
         print(f"  sampling jitter      {fmt_percentiles(tm['sampling_jitter_us'])}")
         print(f"  sensor-to-actuator   {fmt_percentiles(tm['sensor_to_actuator_us'])}")
         print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
+    if s.get("timing_degraded"):
+        print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     for f in s.get("faults") or []:
         print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
     if s.get("events"):

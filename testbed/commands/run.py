@@ -101,6 +101,8 @@ def print_text(s: dict) -> None:
         print(f"    {st:18s} {fmt_percentiles(v)}")
     print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}; symbol payload "
           f"{s['sizes']['symbol_payload_bytes']} B + header {s['sizes']['header_bytes']} B")
+    if s.get("timing_degraded"):
+        print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
         print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
     for f in s["faults"]:
