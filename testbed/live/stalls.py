@@ -96,23 +96,23 @@ def own_stamp(role: str, t) -> int:
     return t.rx_ns  # attacker
 
 
-def lateness(role: str, t, col, T_ns: int) -> int | None:
-    """How late the node handled a sample against when it was due or when its input came (ns), or None.
-
-    The plant takes x_k at t_k; the controller decides by t_k + c d T (< t_k+1); the encoder
-    handles x_k as it arrives (since the plant sent it); the attacker a symbol since the encoder
-    sent it.  A node that was starved of input handles what comes at once: only a frozen node is late.
+def lateness(role: str, a, t, col, T_ns: int) -> int | None:
+    """How late the node handled sample ``t.k`` (ns), or None: against when it was due (the plant takes
+    x_k at t_k; the controller decides it by t_k + c d T < t_k+1), or for the encoder and the attacker
+    against when the oldest input it had not handled since its record ``a`` was sent to it (the plant's
+    x_j, the encoder's symbol j, for a.k < j <= t.k: it may skip stale ones).  A node that was starved
+    of input handles what comes at once: only a frozen node is late.
     """
     if role == "plant":
         return t.t_ns - t.k * T_ns
     if role == "controller":
         return None if t.tx_ns == msg.NO_TIME else t.tx_ns - (t.k + 1) * T_ns
-    if role == "encoder":
-        return None if msg.NO_TIME in (t.rx_ns, t.sensor_tx_ns) else t.rx_ns - t.sensor_tx_ns
-    enc = col.record("encoder", t.k)
-    if enc is None or msg.NO_TIME in (enc.tx_ns, t.rx_ns):
+    if t.rx_ns == msg.NO_TIME:
         return None
-    return t.rx_ns - enc.tx_ns
+    up, field = ("plant", "sensor_tx_ns") if role == "encoder" else ("encoder", "tx_ns")
+    sent = [getattr(r, field) for j in range(a.k + 1, t.k + 1) if (r := col.record(up, j)) is not None]
+    sent = [x for x in sent if x != msg.NO_TIME]
+    return t.rx_ns - min(sent) if sent else None
 
 
 class StallWatch:
@@ -151,7 +151,7 @@ class StallWatch:
                 t = col.record(role, j)
                 if t is None:
                     continue
-                late = lateness(role, t, col, self.T_ns)
+                late = None if a is None else lateness(role, a, t, col, self.T_ns)
                 if late is not None and late > self.gap_ns:
                     b = t
                     break
