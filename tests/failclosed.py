@@ -44,6 +44,7 @@ CAPABILITIES = {
     "port9876": "the Rerun viewer's port 9876 free on loopback (the --rerun spawn test)",
     "foxglove": "foxglove-sdk (pip install '.[foxglove]')",
     "dask": "dask.distributed (pip install '.[dask]')",
+    "mount": "mount a small tmpfs (root): the recording that fills its disk",
 }
 
 REQUIRE_ENV = "TESTBED_REQUIRE"

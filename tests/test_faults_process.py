@@ -50,3 +50,76 @@ def test_stall_bad_input_is_one_line_exit_2(run_id):
     rc, o, e = run_cli(tb_cmd("run", "paper", "--duration", "1", "--no-record", "--run-id", run_id,
                               "--colocate", "encoder", "--stall", "encoder@0.5:1"), timeout=60)
     assert rc == 2 and "stall that one" in e and "Traceback" not in e, e
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 64 KiB tmpfs: a 10-second recording of the paper's run fills it after a few seconds."""
+    import os
+    import subprocess
+
+    from failclosed import require
+
+    d = tmp_path / "tiny"
+    d.mkdir()
+    if os.geteuid() != 0:
+        require("mount", "mounting a tmpfs needs root")
+    p = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(d)], capture_output=True, text=True)
+    if p.returncode != 0:
+        require("mount", f"mount -t tmpfs failed: {p.stderr.strip()}")
+    yield d
+    subprocess.run(["umount", "-l", str(d)], capture_output=True)
+
+
+def test_recording_on_a_full_disk_says_so_and_stays_readable(run_id, tiny_disk):
+    """The recorder's disk fills mid-run: one clear line, the run goes on (``continue``, the default) and
+    reports its own outcome, the summary and the exit code (3) say the recording is incomplete, and the
+    part written reads, with ``testbed report`` saying where it ends and why."""
+    from testbed.live.recorderr import RECORDING_INCOMPLETE
+
+    out = tiny_disk / "full.mcap"
+    rc, s, err = live(run_id, "paper", "--duration", "10", "--out", str(out))
+    assert rc == RECORDING_INCOMPLETE, err[-2000:]
+    assert s["outcome"] == "done" and s["complete"] and s["samples"] == 100
+    assert s["recording_complete"] is False and not s["recording"]["complete"]
+    (f,) = [f for f in s["faults"] if f["node"] == "recorder"]
+    assert f["kind"] == "record_error" and "No space left on device" in f["why"], f
+    lines = [x for x in err.splitlines() if "No space left on device" in x]
+    assert len([x for x in lines if x.startswith("testbed run: the recording failed")]) == 1, err[-2000:]
+    assert "Traceback" not in err
+    rc, o, e = run_cli(tb_cmd("report", str(out), "--json", "--resimulate", "all"))
+    assert rc == 0, e[-2000:]
+    r = json.loads(o)
+    assert r["recording"]["truncated"] and 10 <= r["samples"] < 100, (r["samples"], r["recording"])
+    assert "No space left on device" in r["recording"]["ends"], r["recording"]
+    assert r["resimulation"]["reproduced"], r["resimulation"]
+    rc, o, e = run_cli(tb_cmd("report", str(out)))
+    assert rc == 0 and "INCOMPLETE RECORDING: ends after" in o, o
+
+
+def test_recording_removed_under_the_recorder_stops_the_run_when_asked(run_id, tmp_path):
+    """The file removed mid-run (its link count drops to 0): found at the next flush; with
+    ``--on-record-error stop`` the run ends there, and says why."""
+    import subprocess
+    import time
+
+    from helpers import PY, TIMEOUT
+
+    out = tmp_path / "gone.mcap"
+    cmd = [PY, "-m", "testbed.cli", "run", "paper", "--duration", "20", "--json", "--run-id", run_id,
+           "--out", str(out), "--on-record-error", "stop"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        end = time.monotonic() + TIMEOUT
+        while time.monotonic() < end and p.poll() is None and (not out.exists() or out.stat().st_size < 20_000):
+            time.sleep(0.05)
+        out.unlink()
+        o, e = p.communicate(timeout=TIMEOUT)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    s = json.loads(o)
+    assert p.returncode == 1 and s["outcome"] == "stopped: the recording failed", (p.returncode, s["outcome"], e[-2000:])
+    (f,) = [f for f in s["faults"] if f["node"] == "recorder"]
+    assert f["kind"] == "record_error" and "link count is 0" in f["why"], f
+    assert s["recording_complete"] is False and s["samples"] < 200

@@ -10,6 +10,7 @@ import sys
 from .. import cliargs
 from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
+from ..live.recorderr import add_record_error_argument
 from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
 from ..stats import fmt_percentiles
@@ -38,6 +39,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                        "never overwritten", aliases=("--record",))
     g.add_argument("--force", action="store_true", help="replace an existing --out file")
     g.add_argument("--no-record", action="store_true", help="do not record the run")
+    add_record_error_argument(g)
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
     add_rerun_run_arguments(p)
@@ -112,7 +114,8 @@ def print_text(s: dict) -> None:
     rec = s.get("recording")
     if rec:
         print(f"  recording: {rec['path']}" + ("" if rec["complete"] else " (INCOMPLETE: the recorder did not "
-                                                                          "finish; readable up to its last flush)"))
+                                                                          "finish; readable up to its last flush)")
+              + (f": {rec['error']}" if rec.get("error") else ""))
     if s.get("run_dir"):
         print(f"  node logs: {s['run_dir']}")
 

@@ -14,7 +14,7 @@ processes; the plant's runs the encoder, whose death alone (``--kill encoder@S``
 SIGUSR2 to the plant) the launcher reports from its liveliness token.
 
 Exit codes: 0 clean run, 1 a node died or the run did not complete,
-2 bad scenario, 128 + signal when interrupted.
+2 bad scenario, 3 the recording is incomplete, 128 + signal when interrupted.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
 from .credentials import RunCredentials, choose_topology
+from .recorderr import RECORD_FAILED, exit_code, recorder_fault
 from .spawn import Forked, _forked_node
 from .stalls import Stalls
 
@@ -254,19 +255,20 @@ class Launcher(RunCredentials, Stalls):
         now = time.monotonic_ns()
         self.recorder_exit = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
                               "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
-        if not self.stopping:
-            why = f"killed by {self.recorder_exit['signal']}" if rc < 0 else f"exit code {rc}"
-            self.faults.append({"node": transport.RECORDER, "kind": "killed" if rc < 0 else "crashed", "why": why,
-                                "t_s": self.recorder_exit["t_s"], "injected": transport.RECORDER in self.kill_sent,
-                                "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
-            print(f"testbed run: the recorder died ({why}); the run goes on unrecorded, the file keeps "
-                  f"what was flushed: {self.record_path}", file=sys.stderr)
+        if not self.stopping or rc == RECORD_FAILED:
+            f, line = recorder_fault(rc, self.recorder_exit, self.log_tail(transport.RECORDER),
+                                     transport.RECORDER in self.kill_sent)
+            self.faults.append(f)
+            stop = f["kind"] == "record_error" and getattr(self.args, "on_record_error", "continue") == "stop"
+            print(f"{line}; " + ("the run stops (--on-record-error stop)" if stop else "the run goes on unrecorded")
+                  + f", the file keeps what was flushed: {self.record_path}", file=sys.stderr)
 
     def recording_info(self) -> dict | None:
         if self.record_path is None:
             return None
         ok = self.recorder_exit is not None and self.recorder_exit["exit_code"] == 0
-        return {"path": str(self.record_path), "complete": ok, "recorder_exit": self.recorder_exit,
+        err = next((f["why"] for f in self.faults if f.get("kind") == "record_error"), None)
+        return {"path": str(self.record_path), "complete": ok, "error": err, "recorder_exit": self.recorder_exit,
                 "log": str(self.run_dir / f"{transport.RECORDER}.log")}
 
     def publish_faults(self, session) -> None:
@@ -515,6 +517,9 @@ class Launcher(RunCredentials, Stalls):
                 return "recorder did not start"
             self.check_recorder(col, t0_mono)
             self.publish_faults(session)
+            if getattr(a, "on_record_error", "continue") == "stop" and any(f["kind"] == "record_error"
+                                                                           for f in self.faults):
+                return "stopped: the recording failed"
             if all(r in self.exits for r in self.procs):
                 return "done" if self._plant_ok(col) else "all nodes exited"
             now = time.monotonic_ns()
@@ -670,12 +675,8 @@ class Launcher(RunCredentials, Stalls):
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)
-        if self.signal is not None:
-            code = 128 + self.signal
-        elif any(f["kind"] != "stalled" for f in self.faults) or not summary.get("complete"):
-            code = 1
-        else:
-            code = 0
+        summary["recording_complete"] = None if summary["recording"] is None else summary["recording"]["complete"]
+        code = exit_code(self.signal, self.faults, summary)
         if code == 0 and self.own_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
             summary["run_dir"] = None
