@@ -589,7 +589,7 @@ class Launcher(RunCredentials, Stalls):
                 raise
             with session_cm as session:
                 self.phase("router")
-                col = Collector(session, self.keys, self.sc.n_steps)
+                col = Collector(session, self.keys, self.sc.n_steps, spill=self.run_dir / "telemetry.bin")
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
                 self._tokens = tokens
                 try:

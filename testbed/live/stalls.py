@@ -126,7 +126,7 @@ class StallWatch:
         self.gap_ns = max(MIN_GAP_NS, 3 * self.T_ns)
         self.gap_k = math.ceil(self.gap_ns / self.T_ns)
         self.colocated = set(colocated)
-        self.open: dict[str, int] = {}      # role -> last k before it fell behind
+        self.open: dict[str, tuple] = {}    # role -> (last k before it fell behind, its record)
 
     def _ref_k(self, role: str, now: int, t0_mono: int, col) -> int:
         up = self.UPSTREAM[role]
@@ -140,13 +140,13 @@ class StallWatch:
             k = col.last_k(role)
             if role not in self.open:
                 if not final and role in alive and k >= 0 and self._ref_k(role, now, t0_mono, col) - k > self.gap_k:
-                    self.open[role] = k
+                    self.open[role] = (k, col.record(role, k))
                 continue
-            k0 = self.open[role]
+            k0, a = self.open[role]
             if k <= k0 and not final:
                 continue
             del self.open[role]
-            a, b = col.record(role, k0), None
+            b = None
             for j in range(k0 + 1, k + 1):  # the first sample it handled late, after the gap
                 t = col.record(role, j)
                 if t is None:
