@@ -27,6 +27,15 @@ from pathlib import Path
 
 #: memory growth per hour after warm-up that counts as flat (the goal of docs/benchmarks.md)
 GOAL_MB_PER_H = 5.0
+#: readings later than the run's length plus this (start-up) are after the loop: left out of the growth
+STARTUP_S = 5.0
+
+
+def cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
 
 
 def proc_info(pid: int) -> dict | None:
@@ -90,27 +99,32 @@ def main(argv=None) -> int:
     cmd = [sys.executable, "-m", "testbed.cli", "run", "paper", "--T", str(a.T), "--duration", str(dur),
            "--json", "--out", out, "--force"]
     print(f"bench_soak: {' '.join(cmd[2:])}", flush=True)
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    so_path, se_path = Path(tmp) / "summary.json", Path(tmp) / "stderr.txt"
+    with open(so_path, "w") as so_f, open(se_path, "w") as se_f:  # a pipe would fill with the summary and block it
+        p = subprocess.Popen(cmd, stdout=so_f, stderr=se_f, text=True, start_new_session=True)
     t_start = time.monotonic()
     readings: list[dict] = []
     try:
-        print(f"{'t [s]':>7}  " + "  ".join(f"{'process':>13} {'RSS MB':>7} {'fds':>4} {'thr':>4}" for _ in range(1)))
+        print(f"{'t [s]':>7}  {'process':>13} {'RSS MB':>7} {'fds':>4} {'thr':>4}")
         while p.poll() is None:
             time.sleep(every if readings else min(every, 5.0))
             t = time.monotonic() - t_start
             procs = {p.pid: proc_info(p.pid), **{c: proc_info(c) for c in children(p.pid)}}
-            row = {"t_s": round(t, 1), "procs": {}}
+            row = {"t_s": round(t, 1), "procs": {}, "running": t <= dur + STARTUP_S}
             for pid, info in procs.items():
                 if info is None:
                     continue
                 name = "launcher" if pid == p.pid else info["name"]
+                if pid != p.pid and not name.startswith("tb-"):
+                    name = "recorder" if " record " in cmdline(pid) else name
                 row["procs"][name] = info
                 print(f"{t:7.0f}  {name:>13} {info['rss_mb']:7.1f} {info['fds']:4d} {info['threads']:4d}", flush=True)
             readings.append(row)
-        so, se = p.communicate()
+        p.wait()
     except KeyboardInterrupt:
         os.killpg(p.pid, signal.SIGINT)
-        so, se = p.communicate()
+        p.wait()
+    so, se = so_path.read_text(), se_path.read_text()
     try:
         summary = json.loads(so)
     except ValueError:
@@ -120,7 +134,8 @@ def main(argv=None) -> int:
     print(f"\nmemory growth after {warmup:g} s of warm-up (goal < {GOAL_MB_PER_H:g} MB/h):")
     names = sorted({n for r in readings for n in r["procs"]})
     for name in names:
-        pts = [(r["t_s"], r["procs"][name]) for r in readings if name in r["procs"] and r["t_s"] >= warmup]
+        pts = [(r["t_s"], r["procs"][name]) for r in readings
+               if name in r["procs"] and r["t_s"] >= warmup and r["running"]]
         g = slope_per_hour([t for t, _ in pts], [i["rss_mb"] for _, i in pts])
         first = pts[0][1] if pts else None
         last = pts[-1][1] if pts else None
@@ -150,7 +165,10 @@ def main(argv=None) -> int:
                                             "growth": figures, "recording": rec}, indent=1))
     if not a.out:
         Path(out).unlink(missing_ok=True)
-        os.rmdir(tmp) if not os.listdir(tmp) else None
+    for f in (so_path, se_path):
+        f.unlink(missing_ok=True)
+    if not os.listdir(tmp):
+        os.rmdir(tmp)
     return 0
 
 

@@ -27,7 +27,7 @@ class Collector:
     #: events kept (the rest are counted): a flood cannot grow the launcher without bound
     MAX_EVENTS = 10_000
     #: records of each node kept in memory when they are spilled to a file (the stall watch reads them)
-    RECENT = 4096
+    RECENT = 1024
     _SPILL_HEAD = struct.Struct("<BI")  # role index, record length
 
     def __init__(self, session, keys: transport.Keys, n_steps: int, spill=None):
