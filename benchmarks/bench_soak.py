@@ -47,6 +47,8 @@ def proc_info(pid: int) -> dict | None:
     except OSError:
         return None
     f = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    if "VmRSS" not in f:  # a zombie: exited, not yet reaped
+        return None
     return {"name": comm, "rss_mb": int(f["VmRSS"].split()[0]) / 1024, "fds": fds, "threads": int(f["Threads"])}
 
 
