@@ -123,3 +123,33 @@ def test_recording_removed_under_the_recorder_stops_the_run_when_asked(run_id, t
     (f,) = [f for f in s["faults"] if f["node"] == "recorder"]
     assert f["kind"] == "record_error" and "link count is 0" in f["why"], f
     assert s["recording_complete"] is False and s["samples"] < 200
+
+
+def test_overloaded_host_reports_timing_degraded_and_resimulates(run_id, tmp_path):
+    """A CPU hog on every core (at a higher priority where permitted) during a 3-second run at T = 5 ms:
+    the timing summary counts the misses, the run says ``timing_degraded`` with the reason (summary and
+    report alike), and what happened is still reproduced by ``testbed resimulate``."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "hog.mcap"
+    hog = "import os, sys\ntry:\n    os.nice(-10)\nexcept OSError:\n    pass\nos.sched_setaffinity(0, {int(sys.argv[1])})\n" \
+          "while True:\n    pass\n"
+    hogs = [subprocess.Popen([sys.executable, "-c", hog, str(c)]) for c in sorted(os.sched_getaffinity(0))]
+    try:
+        rc, s, err = live(run_id, "paper", "--T", "0.005", "--duration", "3", "--out", str(out))
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    assert rc in (0, 1), err[-2000:]  # a node may even be late for its own start; the run itself must end
+    tm = s["timing"]
+    assert tm["deadline_misses"] + tm["overruns"] > 0, tm
+    assert s["timing_degraded"] is True and s["timing_degraded_why"], s.get("timing_degraded_why")
+    assert s["timing_faults"].get("deadline_misses") == (tm["deadline_misses"] or None)
+    rc, o, e = run_cli(tb_cmd("resimulate", str(out), "--json"))
+    assert rc == 0 and json.loads(o)["first_divergence"] is None, (o[-2000:], e[-2000:])
+    rc, o, e = run_cli(tb_cmd("report", str(out), "--json", "--resimulate", "0"))
+    rep = json.loads(o)
+    assert rep["timing_degraded"] is True, rep.get("timing_degraded_why")
