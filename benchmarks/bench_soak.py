@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     ap.add_argument("--every", type=float, default=None, metavar="S",
                     help="seconds between two readings (default: 30, or the run's length / 20 if shorter)")
     ap.add_argument("--warmup", type=float, default=None, metavar="S",
-                    help="seconds left out of the growth figure (default: 60, or a fifth of the run if shorter)")
+                    help="seconds left out of the growth figure (default: 60, or half the run if shorter)")
     ap.add_argument("--out", help="the recording (default: a temporary file, removed)")
     ap.add_argument("--json", metavar="FILE", help="also write every reading and the figures as JSON")
     a = ap.parse_args(argv)
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
         return 2
     dur = a.minutes * 60
     every = a.every or min(30.0, max(1.0, dur / 20))
-    warmup = a.warmup if a.warmup is not None else min(60.0, dur / 5)
+    warmup = a.warmup if a.warmup is not None else min(60.0, dur / 2)
     tmp = tempfile.mkdtemp(prefix="bench-soak-")
     out = a.out or os.path.join(tmp, "soak.mcap")
     cmd = [sys.executable, "-m", "testbed.cli", "run", "paper", "--T", str(a.T), "--duration", str(dur),

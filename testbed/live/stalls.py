@@ -141,11 +141,13 @@ class StallWatch:
             if role not in self.open:
                 if not final and role in alive and k >= 0 and self._ref_k(role, now, t0_mono, col) - k > self.gap_k:
                     self.open[role] = (k, col.record(role, k))
+                    if os.environ.get("TB_STALL_DEBUG"):
+                        print(f"stall? open {role} k0={k} ref={self._ref_k(role, now, t0_mono, col)} "
+                              f"t={(now - t0_mono) / 1e9:.3f}", file=sys.stderr)
                 continue
             k0, a = self.open[role]
             if k <= k0 and not final:
                 continue
-            del self.open[role]
             b = None
             for j in range(k0 + 1, k + 1):  # the first sample it handled late, after the gap
                 t = col.record(role, j)
@@ -156,8 +158,15 @@ class StallWatch:
                     b = t
                     break
                 a = t
-            if a is None or b is None:
-                continue  # it handled what came in time (starved of input, or seen late by the launcher)
+            if b is None:
+                if not final and self._ref_k(role, now, t0_mono, col) - k > self.gap_k:
+                    self.open[role] = (k, a)  # still behind: what came was handled before the gap
+                else:
+                    del self.open[role]  # it caught up in time (starved of input, or seen late by the launcher)
+                continue
+            del self.open[role]
+            if a is None:
+                continue
             ta, tb = own_stamp(role, a), own_stamp(role, b)
             if msg.NO_TIME in (ta, tb):
                 continue
