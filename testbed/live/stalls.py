@@ -141,9 +141,6 @@ class StallWatch:
             if role not in self.open:
                 if not final and role in alive and k >= 0 and self._ref_k(role, now, t0_mono, col) - k > self.gap_k:
                     self.open[role] = (k, col.record(role, k))
-                    if os.environ.get("TB_STALL_DEBUG"):
-                        print(f"stall? open {role} k0={k} ref={self._ref_k(role, now, t0_mono, col)} "
-                              f"t={(now - t0_mono) / 1e9:.3f}", file=sys.stderr)
                 continue
             k0, a = self.open[role]
             if k <= k0 and not final:
