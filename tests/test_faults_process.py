@@ -153,3 +153,18 @@ def test_overloaded_host_reports_timing_degraded_and_resimulates(run_id, tmp_pat
     rc, o, e = run_cli(tb_cmd("report", str(out), "--json", "--resimulate", "0"))
     rep = json.loads(o)
     assert rep["timing_degraded"] is True, rep.get("timing_degraded_why")
+
+
+def test_a_stall_longer_than_the_lease_is_a_peer_loss(run_id, tmp_path):
+    """The controller frozen for 11.5 s, beyond Zenoh's 10-second lease: its peers drop it (fault ``lost``,
+    exit 1), the plant runs on with u = 0 to the end, and the run is still re-simulated exactly."""
+    out = tmp_path / "lease.mcap"
+    rc, s, err = live(run_id, "paper", "--duration", "14", "--out", str(out), "--stall", "controller@1:11.5")
+    assert rc == 1, err[-2000:]
+    assert s["complete"] and s["samples"] == 140
+    (f,) = [f for f in s["faults"] if f["kind"] == "lost"]
+    assert f["node"] == "controller" and f["injected"] and 10.5 <= f["t_s"] <= 12.5, f
+    assert "back_s" in f and (f["back_s"] is None or f["back_s"] >= 12.4), f  # its session back, if it came by the end
+    assert 100 <= s["controller_lost_at"] <= 125
+    rc, o, e = run_cli(tb_cmd("resimulate", str(out), "--json"))
+    assert rc == 0 and json.loads(o)["first_divergence"] is None, (o[-2000:], e[-2000:])

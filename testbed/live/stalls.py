@@ -170,7 +170,7 @@ class StallWatch:
             f = {"node": role, "kind": "stalled", "from_s": round(ta / 1e9, 4), "to_s": round(tb / 1e9, 4),
                  "duration_s": round((tb - ta) / 1e9, 4), "at_sample": b.k, "last_sample_before": a.k,
                  "injected": role in injected,
-                 "why": f"no samples for {(tb - ta) / 1e9:.3f} s (samples {a.k} -> {b.k}) while its liveliness stayed"}
+                 "why": f"no samples for {(tb - ta) / 1e9:.3f} s (samples {a.k} -> {b.k}), then on as before"}
             if role == "plant" and "encoder" in self.colocated:
                 f["colocated"] = ["encoder"]
             out.append(f)
@@ -180,13 +180,45 @@ class StallWatch:
 class Stalls:
     """The launcher's part (a mixin of ``Launcher``): inject ``--stall``, watch for stalls, record them as faults."""
 
+    #: a node process whose liveliness token has been gone this long while it runs is lost
+    LOST_GRACE_NS = 500_000_000
+
     def init_stalls(self, args) -> None:
         self.stall_inject = StallInjector(parse_stalls(getattr(args, "stall", None) or [], self.opts.colocate))
         self.stall_watch: StallWatch | None = None
+        self._lost: dict[str, dict] = {}  # role -> its fault ``lost``
+
+    def check_lost(self, col, now: int, t0_mono: int) -> None:
+        """A node whose liveliness token went while its process runs on (a stall longer than Zenoh's lease,
+        a link down): its peers have dropped it, as if it had died; a fault ``lost``, once."""
+        if col.plant_done():
+            return
+        for role, p in self.procs.items():
+            lost = col.lost_at(role)
+            if role in self._lost or role in self.exits or lost is None or now - lost < self.LOST_GRACE_NS \
+                    or p.poll() is not None:
+                continue
+            f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": col.last_k(role),
+                 "injected": role in self.stall_inject.stopped,
+                 "why": "its liveliness token went away while its process ran on (frozen for longer than Zenoh's "
+                        "lease, or its link down): its peers dropped it"}
+            self._lost[role] = f
+            self.faults.append(f)
+            print(f"testbed run: node {role} lost at {f['t_s']:g} s ({f['why']})", file=sys.stderr, flush=True)
+
+    def lost_back(self, col) -> None:
+        """When each lost node's liveliness came back, if it did (``back_s``)."""
+        with col.lock:
+            events = list(col.liveliness)
+        for role, f in self._lost.items():
+            t_lost = self.t0_mono + int(f["t_s"] * 1e9)
+            back = next((t for t, n, alive in events if n == role and alive and t > t_lost), None)
+            f["back_s"] = None if back is None else round((back - self.t0_mono) / 1e9, 4)
 
     def stalls_tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
         if not final:
             self.stall_inject.tick(now, t0_mono, self.procs)
+            self.check_lost(col, now, t0_mono)
         if self.stall_watch is None:
             if col.start is None:
                 return
@@ -202,6 +234,7 @@ class Stalls:
         self.stall_inject.release(self.procs)
         if self.t0_mono is not None:
             self.stalls_tick(col, time.monotonic_ns(), self.t0_mono, final=True)
+            self.lost_back(col)
 
 
 __all__ = ["parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]
