@@ -260,8 +260,9 @@ class Launcher(RunCredentials, Stalls):
                                      transport.RECORDER in self.kill_sent)
             self.faults.append(f)
             stop = f["kind"] == "record_error" and getattr(self.args, "on_record_error", "continue") == "stop"
-            print(f"{line}; " + ("the run stops (--on-record-error stop)" if stop else "the run goes on unrecorded")
-                  + f", the file keeps what was flushed: {self.record_path}", file=sys.stderr)
+            go = "as the run ended" if self.stopping else ("the run stops (--on-record-error stop)" if stop else
+                                                           "the run goes on unrecorded")
+            print(f"{line}; {go}, the file keeps what was flushed: {self.record_path}", file=sys.stderr)
 
     def recording_info(self) -> dict | None:
         if self.record_path is None:
