@@ -481,7 +481,7 @@ class Launcher(RunCredentials, Stalls):
         """When each dead node's liveliness token went away (it may trail the process exit)."""
         for f in self.faults:
             role = f.get("node")
-            if role is None:
+            if role is None or f["kind"] in ("stalled", "lost"):  # it went on; its token goes at the end
                 continue
             lost = col.lost_at(role)
             f["liveliness_lost"] = lost is not None
