@@ -250,9 +250,29 @@ def _report(cols, sc, *, arrays: bool, resimulate: int | None) -> dict:
         "overrides": overrides,
         "security": _security(runmeta),
     }
+    out["recording"].update(recording_end(path, out["recording"], out.get("samples")))
     out["plant_source"] = getattr(cols, "plant_source", None)
     out["model_source"] = getattr(cols, "model_source", None)
     return out
+
+
+def recording_end(path, rec: dict, samples) -> dict:
+    """Where an incomplete recording ends and why: ``ends`` (a sentence, None when complete) and ``error``
+    (what the recorder wrote beside it, ``PATH.error``, when it could not write the file)."""
+    from .record.recording import error_path
+
+    err = None
+    try:
+        err = json.loads(error_path(path).read_text())
+    except (OSError, ValueError):
+        pass
+    if rec["complete"] and err is None:
+        return {"ends": None, "error": None}
+    at = f"after {samples} samples" + (f" (last message at {rec['last_message_s']:.3f} s)"
+                                       if rec.get("last_message_s") is not None else "")
+    why = (f"the recorder could not write it: {err.get('error')} ({error_path(path).name})" if isinstance(err, dict)
+           else "no footer: the recorder did not finish (killed, or its host stopped)")
+    return {"ends": f"ends {at}; {why}", "error": err}
 
 
 def plot(summary: dict, path: str | Path, *, title: str = "", size: str = "page") -> Path:
@@ -283,6 +303,8 @@ def print_text(s: dict) -> None:
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
+    if r.get("ends"):
+        print(f"  INCOMPLETE RECORDING: {r['ends']}")
     if (s.get("plant"), s.get("plant_params")) != (s.get("model"), s.get("model_params")):
         print(f"  true plant {s['plant']} {s.get('plant_params')}, model {s.get('model')} {s.get('model_params')} "
               "(predictions, design)")
@@ -360,6 +382,8 @@ def print_text(s: dict) -> None:
         print(f"  sampling jitter      {fmt_percentiles(tm['sampling_jitter_us'])}")
         print(f"  sensor-to-actuator   {fmt_percentiles(tm['sensor_to_actuator_us'])}")
         print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}")
+    if s.get("timing_degraded"):
+        print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     for f in s.get("faults") or []:
         print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
     if s.get("events"):

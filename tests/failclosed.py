@@ -33,6 +33,8 @@ import warnings
 
 import pytest
 
+from testbed.record.degraded import ATTACKER_CAUSED, timing_faults
+
 #: every capability a test may require, and what it is
 CAPABILITIES = {
     "fifo": "SCHED_FIFO for the node processes (root or CAP_SYS_NICE)",
@@ -42,6 +44,7 @@ CAPABILITIES = {
     "port9876": "the Rerun viewer's port 9876 free on loopback (the --rerun spawn test)",
     "foxglove": "foxglove-sdk (pip install '.[foxglove]')",
     "dask": "dask.distributed (pip install '.[dask]')",
+    "mount": "mount a small tmpfs (root): the recording that fills its disk",
 }
 
 REQUIRE_ENV = "TESTBED_REQUIRE"
@@ -87,36 +90,20 @@ def import_or_require(module: str, capability: str):
 #: instant).  The last run is compared whatever it reports.
 STALL_RERUNS = 4
 
-#: what an attacker can cause, left out of the stall criterion where an attacker is the test's subject
-ATTACKER_CAUSED = ("late_symbols", "superseded", "future_sensor", "future_symbol", "future_actuation")
-
 
 def stalled(summary: dict, *, attacker: bool = False) -> dict | None:
     """The timing faults a run reports about itself (a machine that stalled a node), or None.
 
-    Deadline misses, overruns, sensor samples that reached the encoder out of order, (physical
+    The product's own criterion (``testbed.record.degraded.timing_faults``, the run's ``timing_degraded``):
+    deadline misses, overruns, sensor samples that reached the encoder out of order, (physical
     timing, scheduled actuation) a u_k that arrived after its instant, (ideal ack) an ack that
     missed the encoder's grace window, which only a stall of about one sampling period can cause
     (less what a ``[network]`` channel model lost on purpose: u_k on the actuation link, acks);
     and, unless ``attacker``: late symbols, symbols superseded by a later one, and genuine messages
-    a node took for ones from the future (its run clock read during a stall at the start).
+    a node took for ones from the future (its run clock read during a stall at the start); a node the launcher found stalled.
     """
     tm = summary.get("timing", {})
-    ev = summary.get("events", {})
-    enc = summary.get("node_summaries", {}).get("encoder", {})
-    stall = {"deadline_misses": tm.get("deadline_misses"), "overruns": tm.get("overruns"),
-             "stale_sensor": enc.get("stale_sensor"),
-             "late_for_schedule": tm.get("late_for_schedule")}
-    chan = {r: (n or {}).get("channel") or {} for r, n in summary.get("node_summaries", {}).items()}
-    if not summary.get("ack_via_attacker") and not chan.get("encoder", {}).get("ack", {}).get("lost_at"):
-        stall["ack_missing"] = ev.get("ack_missing")  # (an ack the channel model lost: its ack_missing is no stall)
-    u_lost = set(chan.get("plant", {}).get("actuation", {}).get("lost_at") or ())
-    if u_lost:  # a u_k the channel model lost is a miss of the channel's, not of a stalled machine
-        stall["deadline_misses"] = len(set(summary.get("deadline_missed_at") or ()) - u_lost)
-    if not attacker:
-        stall["late_symbols"] = summary.get("late_symbols")
-        stall["superseded"] = summary.get("loss_reasons", {}).get("superseded")
-        stall.update({k: ev.get(k) for k in ("future_sensor", "future_symbol", "future_actuation")})
+    stall = {k: v for k, v in timing_faults(summary).items() if not (attacker and k in ATTACKER_CAUSED)}
     if not any(stall.values()):
         return None
     stall = {k: v for k, v in stall.items() if v}

@@ -12,6 +12,7 @@ from ..live.external import add_external_arguments
 from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
+from ..live.recorderr import add_record_error_argument
 from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
 from ..stats import fmt_percentiles
@@ -41,6 +42,7 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
                        "never overwritten", aliases=("--record",))
     g.add_argument("--force", action="store_true", help="replace an existing --out file")
     g.add_argument("--no-record", action="store_true", help="do not record the run")
+    add_record_error_argument(g)
     g.add_argument("--record-loop", choices=["auto", "on", "off"], default="auto",
                    help="also record the control-path messages (auto: when T >= 10 ms)")
     add_rerun_run_arguments(p)
@@ -66,6 +68,9 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("fault injection")
     g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
                    help="SIGKILL a node (or the recorder) SECONDS after t0 (repeatable)")
+    g.add_argument("--stall", action="append", default=[], metavar="ROLE@SECONDS:DURATION",
+                   help="freeze a node's process (SIGSTOP) SECONDS after t0 and resume it (SIGCONT) DURATION "
+                        "seconds later (repeatable)")
     g.add_argument("--crash", action="append", default=[], metavar="ROLE@K",
                    help="make a node raise at sample K (repeatable)")
     g.add_argument("--corrupt", metavar="K[:range|:length],...",
@@ -103,6 +108,8 @@ def print_text(s: dict) -> None:
         print(f"    {st:18s} {fmt_percentiles(v)}")
     print(f"  deadline misses {tm['deadline_misses']}, overruns {tm['overruns']}; symbol payload "
           f"{s['sizes']['symbol_payload_bytes']} B + header {s['sizes']['header_bytes']} B")
+    if s.get("timing_degraded"):
+        print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
         print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
     for f in s["faults"]:
@@ -112,7 +119,8 @@ def print_text(s: dict) -> None:
     rec = s.get("recording")
     if rec:
         print(f"  recording: {rec['path']}" + ("" if rec["complete"] else " (INCOMPLETE: the recorder did not "
-                                                                          "finish; readable up to its last flush)"))
+                                                                          "finish; readable up to its last flush)")
+              + (f": {rec['error']}" if rec.get("error") else ""))
     if s.get("run_dir"):
         print(f"  node logs: {s['run_dir']}")
 

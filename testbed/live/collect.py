@@ -3,10 +3,15 @@
 Everything arrives over Zenoh as it happens, so a node killed mid-run leaves
 its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
 ``testbed.record.summary.build_summary`` (shared with ``testbed report``).
+
+With a ``spill`` file (the launcher's: ``telemetry.bin`` in the run folder) the records are
+appended there as they arrive and only the last ``RECENT`` of each node stay in memory, so that
+the launcher's memory stays flat however long the run; the whole is read back once, at the end.
 """
 
 from __future__ import annotations
 
+import struct
 import threading
 import time
 
@@ -21,8 +26,11 @@ class Collector:
 
     #: events kept (the rest are counted): a flood cannot grow the launcher without bound
     MAX_EVENTS = 10_000
+    #: records of each node kept in memory when they are spilled to a file (the stall watch reads them)
+    RECENT = 1024
+    _SPILL_HEAD = struct.Struct("<BI")  # role index, record length
 
-    def __init__(self, session, keys: transport.Keys, n_steps: int):
+    def __init__(self, session, keys: transport.Keys, n_steps: int, spill=None):
         import zenoh
 
         self._zenoh = zenoh
@@ -31,7 +39,10 @@ class Collector:
         self.rejected = 0        # telemetry records for a sample outside [0, N), or a second copy of one
         self.events_dropped = 0
         self.lock = threading.Lock()
-        self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}
+        self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}  # all, or the recent ones
+        self._seen = {r: bytearray(self.n_steps // 8 + 1) for r in transport.ROLES}  # one bit per sample
+        self._spill = None if spill is None else open(spill, "w+b", buffering=1 << 20)
+        self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
         self.summaries: dict[str, dict] = {}
@@ -61,23 +72,35 @@ class Collector:
         if typ is None:
             return
         try:
-            recs = [typ.decode(r) for r in msg.unpack_batch(sample.payload)]
+            raw = list(msg.unpack_batch(sample.payload))
+            recs = [typ.decode(r) for r in raw]
         except msg.MessageError:
             self.bad += 1
             return
         N = self.n_steps
+        ri = transport.ROLES.index(role)
         with self.lock:
-            d = self.tele[role]
-            for t in recs:
+            d, seen = self.tele[role], self._seen[role]
+            for t, b in zip(recs, raw):
                 if role == "plant" and t.flags & PT.FLAG_FINAL:
                     if not 0 <= t.k <= N or self.plant_final is not None:
                         self.rejected += 1
                         continue
                     self.plant_final = t
-                elif not 0 <= t.k < N or t.k in d:
+                elif not 0 <= t.k < N or seen[t.k >> 3] & (1 << (t.k & 7)):
                     self.rejected += 1  # never stored: a k from the wire sizes nothing
                 else:
+                    seen[t.k >> 3] |= 1 << (t.k & 7)
                     d[t.k] = t
+                    if t.k > self.top[role]:
+                        self.top[role] = t.k
+                    if self._spill is not None:
+                        b = bytes(b)
+                        self._spill.write(self._SPILL_HEAD.pack(ri, len(b)) + b)
+            if self._spill is not None and len(d) > 2 * self.RECENT:
+                keep = self.top[role] - self.RECENT
+                for k in [k for k in d if k < keep]:
+                    del d[k]
 
     def _on_event(self, sample) -> None:
         try:
@@ -150,8 +173,18 @@ class Collector:
 
     def last_k(self, role: str) -> int:
         with self.lock:
-            d = self.tele.get(role, {})
-            return max(d) if d else -1
+            return self.top.get(role, -1)
+
+    def record(self, role: str, k: int):
+        """``role``'s telemetry record of sample ``k``, or None."""
+        with self.lock:
+            return self.tele[role].get(k)
+
+    def first_after(self, role: str, k: int):
+        """``role``'s first telemetry record after sample ``k``, or None."""
+        with self.lock:
+            d = self.tele[role]
+            return next((d[j] for j in range(k + 1, self.top[role] + 1) if j in d), None)
 
     def lost_at(self, node: str) -> int | None:
         """monotonic ns at which ``node``'s liveliness token went away (last time), or None."""
@@ -174,6 +207,27 @@ class Collector:
         with self.lock:
             return any(s.origin == "plant" for s in self.stops)
 
+    def _all_telemetry(self) -> dict[str, dict[int, object]]:
+        """Every record by role and k: from the spill file when there is one (call with the lock held)."""
+        if self._spill is None:
+            return {r: dict(d) for r, d in self.tele.items()}
+        out: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}
+        f = self._spill
+        f.flush()
+        f.seek(0)
+        head = self._SPILL_HEAD
+        data = f.read()
+        f.seek(0, 2)
+        off = 0
+        while off + head.size <= len(data):
+            ri, n = head.unpack_from(data, off)
+            off += head.size
+            role = transport.ROLES[ri]
+            t = msg.TELEMETRY_TYPES[role].decode(data[off:off + n])
+            off += n
+            out[role][t.k] = t
+        return out
+
     def telemetry_check(self) -> list[dict]:
         """Each node's own account of its telemetry (records and digest, in its summary) against what
         arrived here: a difference means records were lost, forged or altered on the way."""
@@ -181,11 +235,13 @@ class Collector:
 
         out = []
         with self.lock:
+            tele = None
             for role in transport.ROLES:
                 s = self.summaries.get(role) or {}
                 if "telemetry_sha256" not in s:
                     continue
-                recs = [self.tele[role][k] for k in sorted(self.tele[role])]
+                tele = tele or self._all_telemetry()
+                recs = [tele[role][k] for k in sorted(tele[role])]
                 if role == "plant" and self.plant_final is not None:
                     recs.append(self.plant_final)
                 h = hashlib.sha256()
@@ -202,7 +258,7 @@ class Collector:
         from ..record.columns import from_records
 
         with self.lock:
-            tele = {r: dict(d) for r, d in self.tele.items()}
+            tele = self._all_telemetry()
             final, events, status, summaries = self.plant_final, list(self.events), list(self.status), \
                 dict(self.summaries)
         return from_records(sc, tele, plant_final=final, events=events, status=status, summaries=summaries)

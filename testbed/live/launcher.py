@@ -14,7 +14,7 @@ processes; the plant's runs the encoder, whose death alone (``--kill encoder@S``
 SIGUSR2 to the plant) the launcher reports from its liveliness token.
 
 Exit codes: 0 clean run, 1 a node died or the run did not complete,
-2 bad scenario, 128 + signal when interrupted.
+2 bad scenario, 3 the recording is incomplete, 128 + signal when interrupted.
 """
 
 from __future__ import annotations
@@ -42,7 +42,9 @@ from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
 from .credentials import RunCredentials, choose_topology
+from .recorderr import RECORD_FAILED, exit_code, recorder_fault
 from .spawn import Forked, _forked_node
+from .stalls import Stalls
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
@@ -62,7 +64,7 @@ def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
     return out
 
 
-class Launcher(RunCredentials):
+class Launcher(RunCredentials, Stalls):
     def __init__(self, args):
         self.args = args
         self.phase("up")
@@ -92,6 +94,7 @@ class Launcher(RunCredentials):
         self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, transport.RECORDER)).items()}
         self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
         self.colocated = self.opts.colocate           # roles run inside another node's process
+        self.init_stalls(args)                        # --stall, and the watch for stalled nodes (``stalls``)
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
         self.fork_ok = getattr(args, "spawn", "exec") == "fork"  # --spawn fork (``forks``)
         self.processes = self.opts.processes          # the node processes
@@ -256,19 +259,21 @@ class Launcher(RunCredentials):
         now = time.monotonic_ns()
         self.recorder_exit = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
                               "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
-        if not self.stopping:
-            why = f"killed by {self.recorder_exit['signal']}" if rc < 0 else f"exit code {rc}"
-            self.faults.append({"node": transport.RECORDER, "kind": "killed" if rc < 0 else "crashed", "why": why,
-                                "t_s": self.recorder_exit["t_s"], "injected": transport.RECORDER in self.kill_sent,
-                                "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
-            print(f"testbed run: the recorder died ({why}); the run goes on unrecorded, the file keeps "
-                  f"what was flushed: {self.record_path}", file=sys.stderr)
+        if not self.stopping or rc == RECORD_FAILED:
+            f, line = recorder_fault(rc, self.recorder_exit, self.log_tail(transport.RECORDER),
+                                     transport.RECORDER in self.kill_sent)
+            self.faults.append(f)
+            stop = f["kind"] == "record_error" and getattr(self.args, "on_record_error", "continue") == "stop"
+            go = "as the run ended" if self.stopping else ("the run stops (--on-record-error stop)" if stop else
+                                                           "the run goes on unrecorded")
+            print(f"{line}; {go}, the file keeps what was flushed: {self.record_path}", file=sys.stderr)
 
     def recording_info(self) -> dict | None:
         if self.record_path is None:
             return None
         ok = self.recorder_exit is not None and self.recorder_exit["exit_code"] == 0
-        return {"path": str(self.record_path), "complete": ok, "recorder_exit": self.recorder_exit,
+        err = next((f["why"] for f in self.faults if f.get("kind") == "record_error"), None)
+        return {"path": str(self.record_path), "complete": ok, "error": err, "recorder_exit": self.recorder_exit,
                 "log": str(self.run_dir / f"{transport.RECORDER}.log")}
 
     def publish_faults(self, session) -> None:
@@ -480,7 +485,7 @@ class Launcher(RunCredentials):
         """When each dead node's liveliness token went away (it may trail the process exit)."""
         for f in self.faults:
             role = f.get("node")
-            if role is None:
+            if role is None or f["kind"] in ("stalled", "lost"):  # it went on; its token goes at the end
                 continue
             lost = col.lost_at(role)
             f["liveliness_lost"] = lost is not None
@@ -517,6 +522,9 @@ class Launcher(RunCredentials):
                 return "recorder did not start"
             self.check_recorder(col, t0_mono)
             self.publish_faults(session)
+            if getattr(a, "on_record_error", "continue") == "stop" and any(f["kind"] == "record_error"
+                                                                           for f in self.faults):
+                return "stopped: the recording failed"
             if all(r in self.exits for r in self.procs):
                 return "done" if self._plant_ok(col) else "all nodes exited"
             now = time.monotonic_ns()
@@ -541,6 +549,7 @@ class Launcher(RunCredentials):
                             self._signal_group(role, signal.SIGKILL)
                 if self.netns is not None:
                     self.netns.tick(self.faults, now, t0_mono)  # --cut
+                self.stalls_tick(col, now, t0_mono)
                 if now > end_mono:
                     self.faults.append({"node": None, "kind": "timeout",
                                         "why": "nodes still running 10 s after the end of the run"})
@@ -590,7 +599,7 @@ class Launcher(RunCredentials):
                 raise
             with session_cm as session:
                 self.phase("router")
-                col = Collector(session, self.keys, self.sc.n_steps)
+                col = Collector(session, self.keys, self.sc.n_steps, spill=self.run_dir / "telemetry.bin")
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
                 self._tokens = tokens
                 try:
@@ -610,6 +619,7 @@ class Launcher(RunCredentials):
                     self.phase("watched")
                 finally:
                     self.router_realtime(False)
+                    self.stall_inject.release(self.procs)  # a node still frozen by --stall
                     self.stop_all(session, outcome)
                     for r, p in self.procs.items():
                         if r not in self.exits and p.poll() is not None:
@@ -619,6 +629,7 @@ class Launcher(RunCredentials):
                     for guest in self.colocated:  # one that died alone just before the end
                         if guest not in self.exits:
                             self.check_guest(guest, col, self.t0_mono, final=True)
+                    self.stalls_end(col)
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     if self.netns is not None:
@@ -680,12 +691,8 @@ class Launcher(RunCredentials):
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)
-        if self.signal is not None:
-            code = 128 + self.signal
-        elif any(f.get("kind") not in netns.RIDDEN_THROUGH for f in self.faults) or not summary.get("complete"):
-            code = 1
-        else:
-            code = 0
+        summary["recording_complete"] = None if summary["recording"] is None else summary["recording"]["complete"]
+        code = exit_code(self.signal, self.faults, summary, ridden=netns.RIDDEN_THROUGH)
         if code == 0 and self.own_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
             summary["run_dir"] = None

@@ -71,7 +71,7 @@ class AttackerNode(Node):
         self._lock = threading.Lock()
         self._score_cond = threading.Condition()
         self.scores: dict[int, float] = {}
-        self.decisions: dict[int, int] = {}
+        self.decisions = bytearray(sc.n_steps)  # 1 = drop sample k: one byte a sample, allocated once
         self.next_decide = 0
         self.dropped = 0
         self.forwarded = 0
@@ -154,9 +154,11 @@ class AttackerNode(Node):
             while self.next_decide <= k:
                 j = self.next_decide
                 score = self._score(j, wait_score and j == k) if self.gate.is_online else 0.0
-                self.decisions[j] = int(self.gate.decide(j, j * T, score))
+                d = int(self.gate.decide(j, j * T, score))
+                if 0 <= j < len(self.decisions):
+                    self.decisions[j] = d
                 self.next_decide = j + 1
-            return self.decisions.get(k, 0)
+            return self.decisions[k] if 0 <= k < len(self.decisions) else 0
 
     def _publish_status(self, k: int) -> None:
         on = bool(self.gate.attack_on)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import threading
 
 from ..protocol import ControllerProtocol, Decision
-from ..stats import percentiles
+from ..stats import Timings, percentiles
 from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher
@@ -47,8 +47,8 @@ class ControllerNode(Node):
         # the ideal ack rides on the actuation message; a message of its own only on request or via the attacker
         self.pub_ack = None if ctx.opts.ack_on_actuation else self.publisher(keys.ack_tx)
         self._cond = threading.Condition()
-        self.decode_time: list[int] = []
-        self.net_latency: list[int] = []
+        self.decode_time = Timings()  # fixed memory however long the run
+        self.net_latency = Timings()  # fixed memory however long the run
         self.loss_ns = int(sc.timing_params[4])  # t_k + loss_fraction d T
         self._sub = self.subscribe(keys.symbol_rx, self._on_symbol, primary=True, link="symbol")
         ctx.on_peer(self._on_peer)

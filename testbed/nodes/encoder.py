@@ -28,7 +28,7 @@ import time
 
 from ..methods.base import symbol_code
 from ..protocol import EncoderProtocol, Send, skip_sample
-from ..stats import percentiles
+from ..stats import Timings, percentiles
 from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher
@@ -58,8 +58,8 @@ class EncoderNode(Node):
         self.pub_symbol = self.publisher(keys.symbol_tx)
         self._cond = threading.Condition()
         self.pending_tx = 0
-        self.ack_latency: list[int] = []
-        self.encode_time: list[int] = []
+        self.ack_latency = Timings()  # fixed memory however long the run
+        self.encode_time = Timings()  # fixed memory however long the run
         self.future_sensor = 0
         self.dead = False
         self.killed = False

@@ -49,7 +49,7 @@ from plants.base import PlantFault
 
 from ..flow import FLOW_OK, STATUS_NAMES
 from ..protocol import PlantProtocol
-from ..stats import percentiles
+from ..stats import Timings, percentiles
 from ..wire import messages as msg
 from ..wire import transport
 from .base import Node
@@ -103,8 +103,8 @@ class PlantNode(Node):
         self.misses = 0
         self.no_u = 0
         self.overruns = 0
-        self.jitter: list[int] = []
-        self.latency: list[int] = []
+        self.jitter = Timings()  # fixed memory however long the run
+        self.latency = Timings()  # fixed memory however long the run
         self.k_done = 0
         self.flow_status = FLOW_OK
         self.diverged_at = -1

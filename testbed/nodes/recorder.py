@@ -87,6 +87,7 @@ class Recorder:
         self.malformed = 0
         self.max_queue = 0
         self.write_errors = 0
+        self.failed: str | None = None  # why the file cannot be written (``RecordingFailed``)
         self.fox = foxglove   # testbed.view.foxglove.FoxgloveTopics, or None
         self.T_ns = 0 if foxglove is None else foxglove.T_ns
         self.stop_seen: msg.Stop | None = None
@@ -120,6 +121,8 @@ class Recorder:
     MAX_QUEUE = 500_000
 
     def _on_sample(self, sample) -> None:
+        if self.failed is not None:
+            return
         if len(self.q) >= self.MAX_QUEUE:
             self.overflow += 1
             return
@@ -149,14 +152,23 @@ class Recorder:
             self._wake.wait(0.1)
             self._wake.clear()
             self.max_queue = max(self.max_queue, len(self.q))
-            while self.q:
-                item = self.q.popleft()
-                try:
-                    self._write(*item)
-                except Exception:
-                    self.write_errors += 1
-                    log.exception("recorder: could not write a message")
-            self.w.maybe_flush()
+            try:
+                while self.q:
+                    item = self.q.popleft()
+                    try:
+                        self._write(*item)
+                    except recording.RecordingFailed:
+                        raise
+                    except Exception:
+                        self.write_errors += 1
+                        log.exception("recorder: could not write a message")
+                self.w.maybe_flush()
+            except recording.RecordingFailed as e:  # the file cannot take more: say so once, write no more
+                self.failed = str(e)
+                self.q.clear()
+                print(f"testbed record: {e}; the recording ends here (what was written before stays readable)",
+                      file=sys.stderr, flush=True)
+                return
             if self._done.is_set() and not self.q:
                 return
 
@@ -278,6 +290,10 @@ class Recorder:
 
 
 # ============================================================================ command line
+#: the recorder's exit code when its file could not be written to the end (``RecordingFailed``)
+RECORD_FAILED = 4
+
+
 def add_arguments_record(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="the run's scenario (file or bundled name): stored in the recording")
     p.add_argument("--out", metavar="PATH.mcap",
@@ -333,13 +349,18 @@ def main_record(args) -> int:
     if args.insecure and not args.launched:
         print(f"testbed record: INSECURE: no authentication, any local process can join run {args.run_id}",
               file=sys.stderr)
-    w = recording.RecordingWriter(out, flush_interval=args.flush, exclusive=not args.force)
-    recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
-                                  extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
-                                         "ack_via_attacker": opts.ack_via_attacker,
-                                         "ack_on_actuation": opts.ack_on_actuation,
-                                         "colocate": list(opts.colocate),
-                                         "security": security_info(args)})
+    w = recording.RecordingWriter(out, flush_interval=args.flush, exclusive=not args.force, reserve=True)
+    try:
+        recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
+                                      extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
+                                             "ack_via_attacker": opts.ack_via_attacker,
+                                             "ack_on_actuation": opts.ack_on_actuation,
+                                             "colocate": list(opts.colocate),
+                                             "security": security_info(args)})
+    except recording.RecordingFailed as e:
+        w.close()
+        print(f"testbed record: {e}; nothing recorded", file=sys.stderr, flush=True)
+        return RECORD_FAILED
     loop = loop_default(sc, args.loop)
     print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
     try:
@@ -357,6 +378,9 @@ def main_record(args) -> int:
                   session.liveliness().declare_token(keys.ready(ROLE))]
         try:
             while not stop.wait(0.05):
+                if rec.failed is not None:
+                    why["reason"] = "the file cannot be written"
+                    break
                 if args.launched and transport.COLLECTOR in rec.lost:
                     why["reason"] = "launcher gone"
                     break
@@ -374,7 +398,10 @@ def main_record(args) -> int:
     log.info("recorder stopped (%s): %s", why["reason"], st)
     print(f"testbed record: {st['written']} messages written to {out} ({why['reason'] or 'stopped'})",
           file=sys.stderr, flush=True)
-    return 0
+    if rec.failed is None and w.failed is not None:  # it failed as it closed the file
+        print(f"testbed record: cannot write {out}: {w.failed}; the recording has no footer (readable up to its "
+              "last complete chunk)", file=sys.stderr, flush=True)
+    return RECORD_FAILED if rec.failed is not None or w.failed is not None else 0
 
 
-__all__ = ["Recorder", "stats_key", "add_arguments_record", "main_record", "loop_default"]
+__all__ = ["RECORD_FAILED", "Recorder", "stats_key", "add_arguments_record", "main_record", "loop_default"]

@@ -84,11 +84,31 @@ def default_path(scenario_name: str, when: float | None = None, directory: str |
     return p
 
 
+class RecordingFailed(OSError):
+    """The recording file cannot be written (a full disk, an I/O error, the file removed under the writer)."""
+
+
+#: bytes a recorder keeps allocated beside its file (``PATH.reserve``), freed to say why it failed (``PATH.error``)
+RESERVE_BYTES = 16 * 1024
+
+
+def error_path(path: str | Path) -> Path:
+    """Where a recorder that could not write says why: ``PATH.error`` (one JSON object), beside the file."""
+    return Path(f"{path}.error")
+
+
 class RecordingWriter:
-    """Thread-safe MCAP writer of protobuf messages, flushed at least every ``flush_interval`` seconds."""
+    """Thread-safe MCAP writer of protobuf messages, flushed at least every ``flush_interval`` seconds.
+
+    A write that fails (ENOSPC, EIO, or the file found removed at a flush: its link count is 0) raises
+    ``RecordingFailed`` once; ``failed`` then says why, later writes are dropped, and ``close`` leaves
+    the part already written as it is (readable up to its last complete chunk).  With ``reserve`` a
+    small file is kept allocated beside it and freed on failure, so that ``PATH.error`` can say why
+    even on a full disk.
+    """
 
     def __init__(self, path: str | Path, *, flush_interval: float = 0.5, chunk_size: int = 1 << 20,
-                 compression: str = "zstd", exclusive: bool = True):
+                 compression: str = "zstd", exclusive: bool = True, reserve: bool = False):
         from mcap.writer import CompressionType, Writer
 
         from ..errors import BadInput
@@ -113,6 +133,39 @@ class RecordingWriter:
         self._last_flush = time.monotonic()
         self.counts: Counter = Counter()
         self.closed = False
+        self.failed: str | None = None
+        self._reserve = None
+        if reserve:
+            try:
+                self._reserve = Path(f"{self.path}.reserve")
+                fd = os.open(self._reserve, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+                try:
+                    os.posix_fallocate(fd, 0, RESERVE_BYTES)
+                finally:
+                    os.close(fd)
+            except OSError:
+                self._drop_reserve()
+
+    def _drop_reserve(self) -> None:
+        if self._reserve is not None:
+            try:
+                self._reserve.unlink()
+            except OSError:
+                pass
+            self._reserve = None
+
+    def _fail(self, e: BaseException) -> RecordingFailed:
+        """Mark the file failed (once), say why in ``PATH.error``; the exception to raise."""
+        if self.failed is None:
+            self.failed = (e.strerror or str(e)) if isinstance(e, OSError) and e.strerror else str(e)
+            self._drop_reserve()
+            try:
+                error_path(self.path).write_text(json.dumps({
+                    "error": self.failed, "errno": getattr(e, "errno", None), "messages_written": sum(self.counts.values()),
+                    "at_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
+            except OSError:
+                pass
+        return RecordingFailed(f"cannot write {self.path}: {self.failed}")
 
     def _channel(self, topic: str, name: str) -> int:
         ch = self._channels.get(topic)
@@ -147,9 +200,12 @@ class RecordingWriter:
     def metadata(self, name: str, data: dict) -> None:
         clean = {str(k): v if isinstance(v, str) else json.dumps(v, default=str) for k, v in data.items()}
         with self._lock:
-            if not self.closed:
-                self._w.add_metadata(name, clean)
-                self._f.flush()
+            if not self.closed and self.failed is None:
+                try:
+                    self._w.add_metadata(name, clean)
+                    self._f.flush()
+                except OSError as e:
+                    raise self._fail(e) from None
 
     def write(self, topic: str, obj, log_time: int, publish_time: int | None = None,
               name: str | None = None, extra: dict | None = None) -> None:
@@ -168,41 +224,63 @@ class RecordingWriter:
     def write_bytes(self, topic: str, name: str, data: bytes, log_time: int, publish_time: int | None = None) -> None:
         log_time = int(log_time)
         with self._lock:
-            if self.closed:
+            if self.closed or self.failed is not None:
                 return
-            ch = self._channel(topic, name)
             pub = int(log_time if publish_time is None else publish_time)
-            self._w.add_message(channel_id=ch, log_time=min(max(log_time, 0), _U64_MAX),
-                                data=data, publish_time=min(max(pub, 0), _U64_MAX))
+            try:
+                ch = self._channel(topic, name)
+                self._w.add_message(channel_id=ch, log_time=min(max(log_time, 0), _U64_MAX),
+                                    data=data, publish_time=min(max(pub, 0), _U64_MAX))
+            except OSError as e:
+                raise self._fail(e) from None
             self.counts[topic] += 1
             if time.monotonic() - self._last_flush >= self.flush_interval:
                 self._flush_locked()
 
     def maybe_flush(self) -> None:
         with self._lock:
-            if not self.closed and time.monotonic() - self._last_flush >= self.flush_interval:
+            if not self.closed and self.failed is None and time.monotonic() - self._last_flush >= self.flush_interval:
                 self._flush_locked()
 
     def flush(self) -> None:
         with self._lock:
-            if not self.closed:
+            if not self.closed and self.failed is None:
                 self._flush_locked()
 
     def _flush_locked(self) -> None:
-        self._w.flush()   # closes the chunk in progress and flushes the stream (no fsync: a killed
-        self._last_flush = time.monotonic()  # process's written data survives in the page cache)
+        try:
+            self._w.flush()   # closes the chunk in progress and flushes the stream (no fsync: a killed
+            if os.fstat(self._f.fileno()).st_nlink == 0:  # process's written data survives in the page cache)
+                raise OSError("the file was removed while it was being written (its link count is 0)")
+        except OSError as e:
+            raise self._fail(e) from None
+        self._last_flush = time.monotonic()
 
     def close(self, recorder_stats: dict | None = None) -> None:
         with self._lock:
             if self.closed:
                 return
-            stats = {"messages": sum(self.counts.values()), "per_topic": dict(self.counts)}
-            if recorder_stats:
-                stats.update(recorder_stats)
-            self._w.add_metadata("testbed.recorder", {k: json.dumps(v) for k, v in stats.items()})
-            self._w.finish()
-            self._f.close()
-            self.closed = True
+            if self.failed is None:
+                try:
+                    self._close_locked(recorder_stats)
+                    return
+                except OSError as e:
+                    self._fail(e)
+            self.closed = True  # failed: what was written stays as it is, readable up to its last complete chunk
+            try:
+                self._f.close()
+            except OSError:
+                pass
+
+    def _close_locked(self, recorder_stats: dict | None) -> None:
+        stats = {"messages": sum(self.counts.values()), "per_topic": dict(self.counts)}
+        if recorder_stats:
+            stats.update(recorder_stats)
+        self._w.add_metadata("testbed.recorder", {k: json.dumps(v) for k, v in stats.items()})
+        self._w.finish()
+        self._f.close()
+        self.closed = True
+        self._drop_reserve()
 
     def __enter__(self):
         return self

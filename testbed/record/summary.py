@@ -21,6 +21,7 @@ from ..simulate import json_clean as _clean
 from ..stats import percentiles
 from ..wire import messages as msg
 from ..wire import transport
+from .degraded import timing_degraded
 
 ROLES = transport.ROLES
 PT = msg.PlantTelemetry
@@ -207,6 +208,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         invalid=C & (reason == CT.INVALID), superseded=C & (reason == CT.SUPERSEDED), late_symbols=cs.get("late"))
     out["attacker"] = {"dropped": ats.get("dropped"), "forwarded": ats.get("forwarded"),
                        "corrupted": ats.get("corrupted"), "acks_dropped": ats.get("acks_dropped")}
+    out.update(timing_degraded(out))  # by the criterion of ``testbed.record.degraded``
     return {k: v if k in base_keys else _clean(v) for k, v in out.items()}
 
 

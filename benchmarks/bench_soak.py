@@ -1,0 +1,178 @@
+"""Soak benchmark: a long live run, and every process's memory, open files and threads over time.
+
+Runs ``testbed run paper --T 0.01 --duration 60*M`` (the paper's plant and gain at T = 10 ms,
+recorded) and every ``--every`` seconds prints, for the launcher and each of its child processes
+(the nodes ``tb-plant``, ``tb-encoder``, ``tb-attacker``, ``tb-controller`` and the recorder), the
+resident memory (VmRSS), the open file descriptors and the threads, read from ``/proc``.  At the
+end it prints each process's memory growth after the warm-up (``--warmup`` s: a least-squares
+slope of RSS over time, in MB per hour) against the goal (less than 5 MB an hour), and the
+recording's completeness: ``recording_complete`` from the run's summary and the samples
+``testbed report`` reads back against the run's samples.
+
+    python benchmarks/bench_soak.py --minutes 10          # what docs/benchmarks.md quotes for 10 min
+    python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: memory growth per hour after warm-up that counts as flat (the goal of docs/benchmarks.md)
+GOAL_MB_PER_H = 5.0
+#: readings later than the run's length plus this (start-up) are after the loop: left out of the growth
+STARTUP_S = 5.0
+
+
+def cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def proc_info(pid: int) -> dict | None:
+    """RSS (MB), open files and threads of one process, from /proc; None when it is gone."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        fds = len(os.listdir(f"/proc/{pid}/fd"))
+        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return None
+    f = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    if "VmRSS" not in f:  # a zombie: exited, not yet reaped
+        return None
+    return {"name": comm, "rss_mb": int(f["VmRSS"].split()[0]) / 1024, "fds": fds, "threads": int(f["Threads"])}
+
+
+def children(pid: int) -> list[int]:
+    """The direct children of ``pid`` (the launcher's nodes and recorder, in sessions of their own)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{d}/stat").read_text()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append(int(d))
+    return sorted(out)
+
+
+def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
+    """Least-squares slope of ys over ts (seconds), per hour; None with fewer than 3 points."""
+    if len(ts) < 3:
+        return None
+    n = len(ts)
+    mt, my = sum(ts) / n, sum(ys) / n
+    var = sum((t - mt) ** 2 for t in ts)
+    if var == 0:
+        return None
+    return sum((t - mt) * (y - my) for t, y in zip(ts, ys)) / var * 3600
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="length of the live run (default %(default)s)")
+    ap.add_argument("--T", type=float, default=0.01, help="sample period, s (default %(default)s)")
+    ap.add_argument("--every", type=float, default=None, metavar="S",
+                    help="seconds between two readings (default: 30, or the run's length / 20 if shorter)")
+    ap.add_argument("--warmup", type=float, default=None, metavar="S",
+                    help="seconds left out of the growth figure (default: 60, or half the run if shorter)")
+    ap.add_argument("--out", help="the recording (default: a temporary file, removed)")
+    ap.add_argument("--json", metavar="FILE", help="also write every reading and the figures as JSON")
+    a = ap.parse_args(argv)
+    if not a.minutes > 0 or not a.T > 0:
+        print("bench_soak: --minutes and --T must be positive", file=sys.stderr)
+        return 2
+    dur = a.minutes * 60
+    every = a.every or min(30.0, max(1.0, dur / 20))
+    warmup = a.warmup if a.warmup is not None else min(60.0, dur / 2)
+    tmp = tempfile.mkdtemp(prefix="bench-soak-")
+    out = a.out or os.path.join(tmp, "soak.mcap")
+    cmd = [sys.executable, "-m", "testbed.cli", "run", "paper", "--T", str(a.T), "--duration", str(dur),
+           "--json", "--out", out, "--force"]
+    print(f"bench_soak: {' '.join(cmd[2:])}", flush=True)
+    so_path, se_path = Path(tmp) / "summary.json", Path(tmp) / "stderr.txt"
+    with open(so_path, "w") as so_f, open(se_path, "w") as se_f:  # a pipe would fill with the summary and block it
+        p = subprocess.Popen(cmd, stdout=so_f, stderr=se_f, text=True, start_new_session=True)
+    t_start = time.monotonic()
+    readings: list[dict] = []
+    try:
+        print(f"{'t [s]':>7}  {'process':>13} {'RSS MB':>7} {'fds':>4} {'thr':>4}")
+        while p.poll() is None:
+            time.sleep(every if readings else min(every, 5.0))
+            t = time.monotonic() - t_start
+            procs = {p.pid: proc_info(p.pid), **{c: proc_info(c) for c in children(p.pid)}}
+            row = {"t_s": round(t, 1), "procs": {}, "running": t <= dur + STARTUP_S}
+            for pid, info in procs.items():
+                if info is None:
+                    continue
+                name = "launcher" if pid == p.pid else info["name"]
+                if pid != p.pid and not name.startswith("tb-"):
+                    name = "recorder" if " record " in cmdline(pid) else name
+                row["procs"][name] = info
+                print(f"{t:7.0f}  {name:>13} {info['rss_mb']:7.1f} {info['fds']:4d} {info['threads']:4d}", flush=True)
+            readings.append(row)
+        p.wait()
+    except KeyboardInterrupt:
+        os.killpg(p.pid, signal.SIGINT)
+        p.wait()
+    so, se = so_path.read_text(), se_path.read_text()
+    try:
+        summary = json.loads(so)
+    except ValueError:
+        print(f"bench_soak: the run printed no summary (exit {p.returncode}): {se[-1000:]}", file=sys.stderr)
+        return 1
+    figures = {}
+    print(f"\nmemory growth after {warmup:g} s of warm-up (goal < {GOAL_MB_PER_H:g} MB/h):")
+    names = sorted({n for r in readings for n in r["procs"]})
+    for name in names:
+        pts = [(r["t_s"], r["procs"][name]) for r in readings
+               if name in r["procs"] and r["t_s"] >= warmup and r["running"]]
+        g = slope_per_hour([t for t, _ in pts], [i["rss_mb"] for _, i in pts])
+        first = pts[0][1] if pts else None
+        last = pts[-1][1] if pts else None
+        figures[name] = {"mb_per_hour": g, "rss_first_mb": first and first["rss_mb"], "rss_last_mb": last and last["rss_mb"],
+                         "fds_first": first and first["fds"], "fds_last": last and last["fds"],
+                         "threads_first": first and first["threads"], "threads_last": last and last["threads"],
+                         "flat": None if g is None else g < GOAL_MB_PER_H}
+        print(f"  {name:>13}: " + ("too few readings" if g is None else
+                                   f"{g:+8.2f} MB/h ({first['rss_mb']:.1f} -> {last['rss_mb']:.1f} MB; fds "
+                                   f"{first['fds']} -> {last['fds']}, threads {first['threads']} -> {last['threads']})"
+                                   f" {'ok' if g < GOAL_MB_PER_H else 'OVER THE GOAL'}"))
+    rep = subprocess.run([sys.executable, "-m", "testbed.cli", "report", out, "--json", "--resimulate", "0"],
+                         capture_output=True, text=True)
+    try:
+        rec_samples = json.loads(rep.stdout)["samples"]
+    except (ValueError, KeyError):
+        rec_samples = None
+    rec = {"recording_complete": summary.get("recording_complete"), "run_samples": summary.get("samples"),
+           "n_steps": summary.get("n_steps"), "recorded_samples": rec_samples, "exit_code": p.returncode,
+           "outcome": summary.get("outcome"), "deadline_misses": summary.get("timing", {}).get("deadline_misses"),
+           "timing_degraded": summary.get("timing_degraded")}
+    print(f"\nrun: {rec['outcome']}, exit {rec['exit_code']}, {rec['run_samples']}/{rec['n_steps']} samples, "
+          f"{rec['deadline_misses']} deadline misses, timing degraded: {rec['timing_degraded']}")
+    print(f"recording: complete {rec['recording_complete']}, {rec_samples} samples read back by testbed report")
+    if a.json:
+        Path(a.json).write_text(json.dumps({"minutes": a.minutes, "T": a.T, "warmup_s": warmup, "readings": readings,
+                                            "growth": figures, "recording": rec}, indent=1))
+    if not a.out:
+        Path(out).unlink(missing_ok=True)
+    for f in (so_path, se_path):
+        f.unlink(missing_ok=True)
+    if not os.listdir(tmp):
+        os.rmdir(tmp)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
