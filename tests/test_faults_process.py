@@ -75,7 +75,7 @@ def test_recording_on_a_full_disk_says_so_and_stays_readable(run_id, tiny_disk):
     """The recorder's disk fills mid-run: one clear line, the run goes on (``continue``, the default) and
     reports its own outcome, the summary and the exit code (3) say the recording is incomplete, and the
     part written reads, with ``testbed report`` saying where it ends and why."""
-    from testbed.live.recorderr import RECORDING_INCOMPLETE
+    from testbed.live.recorder import RECORDING_INCOMPLETE
 
     out = tiny_disk / "full.mcap"
     rc, s, err = live(run_id, "paper", "--duration", "10", "--out", str(out))

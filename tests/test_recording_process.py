@@ -74,7 +74,7 @@ def test_live_recording_reports_what_the_simulator_computes(run_id, tmp_path, to
 def test_recorder_killed_the_run_goes_on_and_the_file_reads(run_id, tmp_path):
     path = tmp_path / "rk.mcap"
     rc, s, err = live(run_id, "paper", "--duration", "5", "--out", str(path), "--kill", "recorder@2.5")
-    assert rc == 3  # the run was clean, its recording incomplete (testbed.live.recorderr.RECORDING_INCOMPLETE)
+    assert rc == 3  # the run was clean, its recording incomplete (testbed.live.recorder.RECORDING_INCOMPLETE)
     (f,) = [f for f in s["faults"] if f["node"] == "recorder"]
     assert f["kind"] == "killed" and f["injected"]
     assert s["complete"] and not s["recording"]["complete"]

@@ -12,7 +12,7 @@ from ..live.external import add_external_arguments
 from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
-from ..live.recorderr import add_record_error_argument
+from ..live.recorder import add_record_error_argument
 from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
 from ..stats import fmt_percentiles

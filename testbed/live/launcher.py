@@ -42,7 +42,7 @@ from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
 from .credentials import RunCredentials, choose_topology
-from .recorderr import RECORD_FAILED, exit_code, recorder_fault
+from .recorder import RecorderControl, exit_code
 from .spawn import Forked, _forked_node
 from .stalls import Stalls
 
@@ -64,7 +64,7 @@ def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
     return out
 
 
-class Launcher(RunCredentials, Stalls):
+class Launcher(RunCredentials, Stalls, RecorderControl):
     def __init__(self, args):
         self.args = args
         self.phase("up")
@@ -188,40 +188,11 @@ class Launcher(RunCredentials, Stalls):
             cmd += self.rerun.node_flags(role)
         return cmd
 
-    def recorder_command(self) -> list[str]:
-        a = self.args
-        cmd = [sys.executable, "-P", "-m", "testbed.cli", "record", self.scenario_ref, *self.opts.cli(),
-               "--run-id", self.run_id, "--connect", self.node_connect,
-               "--out", str(self.record_path), "--loop", a.record_loop, "--launched",
-               "--parent-pid", str(os.getpid()), "--scenario-ref", a.scenario]
-        if a.force:
-            cmd.append("--force")
-        cmd += self.session_flags(transport.RECORDER)
-        if transport.RECORDER in self.cpus:
-            cmd += ["--cpus", self.cpus[transport.RECORDER]]
-        if a.verbose:
-            cmd.append("--verbose")
-        return cmd
-
     def declare_collector_ready(self, session) -> None:
         """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
         if not self._collector_ready:
             self._collector_ready = True
             self._tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
-
-    def recorder_started(self, session, col) -> bool:
-        """During start-up: declare the collector ready once the recorder is (False: it died first)."""
-        if self._collector_ready or self.recorder is None:
-            return True
-        if transport.RECORDER in col.ready_nodes():
-            self.declare_collector_ready(session)
-            return True
-        rc = self.recorder.poll()
-        if rc is None:
-            return True
-        self.faults.append({"node": transport.RECORDER, "kind": "startup_failed", "why": f"exit code {rc}",
-                            "last_log_line": (self.log_tail(transport.RECORDER).splitlines() or [""])[-1]})
-        return False
 
     def wait_summaries(self, col, timeout: float = 0.3) -> None:
         """Until every node that exited cleanly has its summary in (they publish it before they exit)."""
@@ -250,32 +221,6 @@ class Launcher(RunCredentials, Stalls):
         except Exception:  # noqa: BLE001 - only a warm-up: the summary computes it anyway
             pass
 
-    def check_recorder(self, col, t0_mono: int | None) -> None:
-        if self.recorder is None or self.recorder_exit is not None:
-            return
-        rc = self.recorder.poll()
-        if rc is None:
-            return
-        now = time.monotonic_ns()
-        self.recorder_exit = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
-                              "t_s": None if t0_mono is None else round((now - t0_mono) / 1e9, 4)}
-        if not self.stopping or rc == RECORD_FAILED:
-            f, line = recorder_fault(rc, self.recorder_exit, self.log_tail(transport.RECORDER),
-                                     transport.RECORDER in self.kill_sent)
-            self.faults.append(f)
-            stop = f["kind"] == "record_error" and getattr(self.args, "on_record_error", "continue") == "stop"
-            go = "as the run ended" if self.stopping else ("the run stops (--on-record-error stop)" if stop else
-                                                           "the run goes on unrecorded")
-            print(f"{line}; {go}, the file keeps what was flushed: {self.record_path}", file=sys.stderr)
-
-    def recording_info(self) -> dict | None:
-        if self.record_path is None:
-            return None
-        ok = self.recorder_exit is not None and self.recorder_exit["exit_code"] == 0
-        err = next((f["why"] for f in self.faults if f.get("kind") == "record_error"), None)
-        return {"path": str(self.record_path), "complete": ok, "error": err, "recorder_exit": self.recorder_exit,
-                "log": str(self.run_dir / f"{transport.RECORDER}.log")}
-
     def publish_faults(self, session) -> None:
         """Each new fault as an ``Event`` of node ``launcher`` (so the recording has it)."""
         while self._faults_published < len(self.faults):
@@ -288,20 +233,6 @@ class Launcher(RunCredentials, Stalls):
                 session.put(self.keys.events("launcher"), e.encode())
             except Exception:  # noqa: BLE001 - the session may be closing
                 pass
-
-    def stop_recorder(self, grace: float = 15.0) -> None:
-        p = self.recorder
-        if p is None or p.poll() is not None:
-            return
-        try:
-            os.killpg(p.pid, signal.SIGINT)
-        except ProcessLookupError:
-            return
-        try:
-            p.wait(grace)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait(5)
 
     def _popen(self, cmd: list[str], name: str) -> subprocess.Popen:
         """A child in its own session and process group, its output in ``<run dir>/<name>.log``."""
