@@ -401,7 +401,15 @@ def main_record(args) -> int:
     if rec.failed is None and w.failed is not None:  # it failed as it closed the file
         print(f"testbed record: cannot write {out}: {w.failed}; the recording has no footer (readable up to its "
               "last complete chunk)", file=sys.stderr, flush=True)
-    return RECORD_FAILED if rec.failed is not None or w.failed is not None else 0
+    code = RECORD_FAILED if rec.failed is not None or w.failed is not None else 0
+    if rec.fox is not None and rec.fox.busy():
+        # The phase-plane outline's daemon thread is still in numba's compiler (a short run of a plant
+        # whose kernels were not cached): finalizing the interpreter under it can abort in LLVM
+        # (SIGABRT) after the file is complete.  The file is closed and the lines above flushed: leave now.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 __all__ = ["RECORD_FAILED", "Recorder", "stats_key", "add_arguments_record", "main_record", "loop_default"]

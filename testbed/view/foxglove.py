@@ -327,6 +327,11 @@ class FoxgloveTopics:
     def _log(self, t: int, level: int, text: str, name: str, log_time: int):
         return (TOPIC_LOG, LOG, log_message(t, level, text, name), log_time)
 
+    def busy(self) -> bool:
+        """The outline's background thread is still running (in numba's compiler, for a plant whose
+        kernels are not cached yet)."""
+        return bool(self._roa_thread) and self._roa_thread.is_alive()
+
     def _compute_roa(self):
         try:
             self.roa = roa_outline(self.sc)
