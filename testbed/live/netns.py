@@ -31,7 +31,7 @@ import sys
 import time
 
 from ..errors import BadInput
-from ..wire import transport
+from .stalls import parse_role_interval
 
 PREFIX = "tbn-"
 NET = "10.77.0"
@@ -117,15 +117,7 @@ def main_clean() -> int:
 def _parse_cuts(items: list[str], processes: tuple[str, ...], colocated: tuple[str, ...]) -> list[tuple[str, float, float]]:
     cuts = []
     for it in items:
-        role, at, rest = it.partition("@")
-        sec, colon, dur = rest.partition(":")
-        try:
-            s, d = float(sec), float(dur)
-        except ValueError:
-            s = d = -1.0
-        if not at or not colon or role not in transport.ROLES or not (s >= 0 and d > 0):
-            raise BadInput(f"--cut must be ROLE@SECONDS:DURATION with ROLE in {', '.join(transport.ROLES)}, "
-                           f"SECONDS >= 0 and DURATION > 0, got {it!r}")
+        role, s, d = parse_role_interval(it, "--cut")
         if role in colocated:
             raise BadInput(f"--cut {it}: the {role} runs in another node's process and namespace (--colocate "
                            f"{role}); cut that node's link")

@@ -28,20 +28,27 @@ from ..wire import transport
 MIN_GAP_NS = 300_000_000
 
 
+def parse_role_interval(it: str, flag: str) -> tuple[str, float, float]:
+    """One ``ROLE@SECONDS:DURATION`` item (``--stall``, ``--cut``) -> (role, seconds after t0, duration s);
+    BadInput naming ``flag`` if malformed."""
+    role, at, rest = it.partition("@")
+    sec, colon, dur = rest.partition(":")
+    try:
+        s, d = float(sec), float(dur)
+    except ValueError:
+        s = d = math.nan
+    if not at or not colon or role not in transport.ROLES or not (s >= 0 and d > 0) \
+            or not (math.isfinite(s) and math.isfinite(d)):
+        raise BadInput(f"{flag} must be ROLE@SECONDS:DURATION with ROLE in {', '.join(transport.ROLES)}, "
+                       f"SECONDS >= 0 and DURATION > 0, got {it!r}")
+    return role, s, d
+
+
 def parse_stalls(items, colocated=()) -> dict[str, tuple[float, float]]:
     """``ROLE@SECONDS:DURATION`` items -> {role: (seconds after t0, duration s)}; BadInput if malformed."""
     out = {}
     for it in items:
-        role, at, rest = it.partition("@")
-        sec, colon, dur = rest.partition(":")
-        try:
-            s, d = float(sec), float(dur)
-        except ValueError:
-            s = d = math.nan
-        if not at or not colon or role not in transport.ROLES or not (s >= 0 and d > 0) \
-                or not (math.isfinite(s) and math.isfinite(d)):
-            raise BadInput(f"--stall must be ROLE@SECONDS:DURATION with ROLE in {', '.join(transport.ROLES)}, "
-                           f"SECONDS >= 0 and DURATION > 0, got {it!r}")
+        role, s, d = parse_role_interval(it, "--stall")
         if role in colocated:
             raise BadInput(f"--stall {it}: the {role} runs inside another node's process (--colocate {role}); "
                            f"a stall freezes a whole process: stall that one, which freezes both")
