@@ -15,8 +15,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from testbed import campaign as cmp
-from testbed import campaignrun
+from testbed.campaign import run as campaignrun
+from testbed.campaign import spec as cmp
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable

@@ -199,8 +199,8 @@ def test_a_campaign_sweeps_network_keys(tmp_path):
     """``[axes]`` with dotted ``network.*`` keys: every row is its scenario's ``testbed simulate`` run (the
     channel applied: more samples lost on the lossy link), and the batch-kernel grouping leaves the channel
     runs to the simulator that applies it."""
-    from testbed import campaign as cmp
-    from testbed.engine import outcome
+    from testbed.campaign import spec as cmp
+    from testbed.campaign.engine import outcome
 
     (tmp_path / "paper.toml").write_text(scenario.load("paper").source)
     c = tmp_path / "c.toml"

@@ -232,7 +232,7 @@ def test_noise_command_sweeps_and_says_what_it_found(tmp_path):
 
 
 def test_campaigns_run_a_device_on_the_per_sample_loop():
-    from testbed.campaignbatch import batch_key
+    from testbed.campaign.batch import batch_key
 
     text = noisy_paper("[plant.sensor]\nscale = 1e-6\n", E_min=3e-5)
     assert batch_key(scenario.loads(text), text, "") is None

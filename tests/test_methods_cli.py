@@ -60,7 +60,7 @@ def test_versus_paper_zoom_unquantized(tmp_path):
 def test_versus_seeds_summary(tmp_path):
     """--seeds: every method on the same random attack per seed; success rate, Wilson interval, paired
     difference to the first method (checked against the rows)."""
-    from testbed.engine import wilson
+    from testbed.campaign.engine import wilson
 
     sc = tmp_path / "rand.toml"
     sc.write_text((EXAMPLES.parents[0].parent / "testbed" / "scenarios" / "paper.toml").read_text()
@@ -89,7 +89,7 @@ def test_versus_seeds_summary(tmp_path):
 
 
 def test_wilson_against_a_direct_computation():
-    from testbed.engine import wilson
+    from testbed.campaign.engine import wilson
 
     lo, hi = wilson(7, 10)
     # Wilson (1927): (p + z^2/2n -+ z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n), p = 0.7, z = 1.96

@@ -38,8 +38,8 @@ def main(args) -> int:
         raise BadInput("give a campaign file (testbed campaign FILE.toml) or --verify DIR")
     if args.sample is not None or args.seed is not None:
         raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
-    from .. import campaign as cmp
-    from .. import campaignrun
+    from ..campaign import run as campaignrun
+    from ..campaign import spec as cmp
 
     c = cmp.parse(args.campaign)
     base = cmp.base_scenario(c)
@@ -87,7 +87,7 @@ def main(args) -> int:
 
 
 def _verify(args) -> int:
-    from .. import campaignrun
+    from ..campaign import run as campaignrun
     from ..errors import BadInput
 
     if args.sample is not None and args.sample < 1:

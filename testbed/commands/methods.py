@@ -77,7 +77,8 @@ def _methods_arg(v: str) -> list[str]:
 
 
 def main_versus(args) -> int:
-    from .. import engine, scenario
+    from .. import scenario
+    from ..campaign import engine
     from ..errors import BadInput
 
     names = _methods_arg(args.methods)
@@ -177,7 +178,7 @@ class _Series:
 
 
 def _row_from_recording(rec, p):
-    from .. import engine
+    from ..campaign import engine
     from ..report import report
 
     d = report(str(rec), resimulate=None)

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import scenario as scenario_mod
-from .errors import BadInput
+from .. import scenario as scenario_mod
+from ..errors import BadInput
 
 #: the keys of one row (``testbed versus --json``)
 ROW_KEYS = ("method", "seed", "converged", "escaped", "final_norm", "max_norm", "saturations", "samples_lost",
@@ -68,7 +68,7 @@ OUTCOME_KEYS = ("method", "bits", "converged", "escaped", "diverged", "final_nor
 def simulate_one(sc):
     """One scenario on the per-sample simulator, as ``testbed simulate`` runs it: (its ``testbed simulate
     --json`` document, the ``SimResult``)."""
-    from .simulate import simulate_scenario, summarize
+    from ..simulate import simulate_scenario, summarize
 
     res = simulate_scenario(sc)
     return summarize(sc, res), res

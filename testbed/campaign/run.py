@@ -1,5 +1,5 @@
 """Running a campaign (resumable, over local workers or a Dask cluster), verifying a campaign's
-folder, and its figure.  The campaign itself (file, runs, seeds, journal, table): ``testbed.campaign``.
+folder, and its figure.  The campaign itself (file, runs, seeds, journal, table): ``testbed.campaign.spec``.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import sys
 import time
 from pathlib import Path
 
-from . import campaign as cmp
-from .errors import BadInput
+from ..errors import BadInput
+from . import spec as cmp
 
 
 class Progress:
@@ -228,13 +228,13 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
     for r in live:
         rec = folder / r["recording"]
         try:
-            from .resimulate import resimulate
+            from ..resimulate import resimulate
 
             d = resimulate(str(rec))
             if not d.get("reproduced"):
                 differences.append({"run": r["run"], "column": "recording", "table": str(rec),
                                     "rerun": d.get("verdict")})
-            from .report import report
+            from ..report import report
 
             rep = report(str(rec), resimulate=0)
             for k in COMPARED:
@@ -266,7 +266,7 @@ def _norm(v):
 def plot(path, c: cmp.Campaign, summary: dict, size: str = "page") -> Path:
     """The success rate (95 % Wilson interval as error bars) over the first axis of more than one value
     (not a seed, where there is another), one line per value of the second such axis; the others pooled."""
-    from .figstyle import pyplot, save, subplots
+    from ..figstyle import pyplot, save, subplots
 
     multi = [k for k, v in c.axes.items() if len(v) > 1]
     pref = [k for k in multi if not k.endswith("seed")] or multi

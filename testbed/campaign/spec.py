@@ -18,7 +18,7 @@ flushed and fsynced as the run ends), the table written from the journal (``runs
 summaries (``summary.json``, ``summary.md``) and ``manifest.json`` (versions, hashes, seeds).
 
 A row's outcome columns equal ``testbed simulate --json`` of the run's scenario bit for bit: the runs
-that share a loop go through the batch kernel together (``testbed.campaignbatch``, equal to the
+that share a loop go through the batch kernel together (``testbed.campaign.batch``, equal to the
 per-sample simulator bit for bit), the others through the per-sample simulator as ``testbed simulate``.
 """
 
@@ -36,12 +36,12 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .. import scenario as scenario_mod
+from ..errors import BadInput
+from ..scenariospec import ScenarioError
+from ..scenariowrite import to_toml
 from . import engine
-from . import scenario as scenario_mod
 from .engine import wilson
-from .errors import BadInput
-from .scenariospec import ScenarioError
-from .scenariowrite import to_toml
 
 #: the outcome columns of a row: keys of ``testbed simulate --json`` (and ``testbed report --json``)
 OUTCOME_KEYS = engine.OUTCOME_KEYS
@@ -213,7 +213,7 @@ def _resolve(base, axes: dict, seeds_from) -> tuple[dict, dict, str]:
         if k != "method.name":
             _set(data, k, v)
     if "method.name" in axes:
-        from . import methods
+        from .. import methods
 
         try:
             m = methods.make(str(axes["method.name"]), base.base_dir or None, _get(data, "method.params") or {})
@@ -304,9 +304,9 @@ def _reason(e: Exception) -> str:
 def simulate_runs(items: list, batch: bool = True) -> list[dict]:
     """Run a chunk of simulated runs (``(id, text, name, base_dir)``, data only); one row each (outcome keys
     of ``testbed simulate --json``, or ``status = "failed"``), in order.  ``batch``: the runs that share a
-    loop go through the batch kernel in one call (``testbed.campaignbatch``), the others (and every run
+    loop go through the batch kernel in one call (``testbed.campaign.batch``), the others (and every run
     without ``batch``) through the per-sample simulator, as ``testbed simulate`` runs them."""
-    from .campaignbatch import batch_key, run_group
+    from .batch import batch_key, run_group
 
     rows: dict = {}
     groups: dict = {}
@@ -385,7 +385,7 @@ def live_run(run: Run, folder: Path, *, timeout: float | None = None) -> dict:
 
 
 def _live_outcome(rec: Path) -> dict:
-    from .report import report
+    from ..report import report
 
     d = report(str(rec), resimulate=0)
     out = {k: d.get(k) for k in OUTCOME_KEYS}
@@ -501,7 +501,7 @@ def source_hash() -> str:
     import plants
 
     h = hashlib.sha256()
-    for root in (Path(__file__).parent, Path(plants.__file__).parent, Path(attackers.__file__).parent):
+    for root in (Path(__file__).parents[1], Path(plants.__file__).parent, Path(attackers.__file__).parent):
         for f in sorted(root.rglob("*")):
             if f.suffix in (".py", ".toml") and "__pycache__" not in f.parts:
                 h.update(str(f.relative_to(root.parent)).encode() + b"\0" + f.read_bytes() + b"\0")
@@ -509,7 +509,7 @@ def source_hash() -> str:
 
 
 def manifest(c: Campaign, runs: list[Run], base) -> dict:
-    __version__ = sys.modules[__package__].__version__  # the package's face is a layer above: read, not imported
+    __version__ = sys.modules["testbed"].__version__  # the package's face is a layer above: read, not imported
 
     return {"campaign": c.path.name, "campaign_sha256": c.sha256, "scenario": c.scenario,
             "runs_kind": c.runs, "repeat": c.repeat, "seed": c.seed, "axes": c.axes,
