@@ -15,6 +15,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from testbed.campaign import folder as cmp_folder
+from testbed.campaign import rows as cmp_rows
 from testbed.campaign import run as campaignrun
 from testbed.campaign import spec as cmp
 
@@ -224,7 +226,7 @@ def test_sigkill_and_resume_every_run_once(tmp_path):
     the same command to the end: every run exactly once, and the table equals an uninterrupted run's."""
     c = _campaign(tmp_path, CAMPAIGN_120.format(seeds=", ".join(str(s) for s in range(150))))
     (tmp_path / "random.toml").write_text(RANDOM_SCENARIO.replace("duration = 8.0", "duration = 30.0"))
-    journal_path = tmp_path / "out" / cmp.JOURNAL
+    journal_path = tmp_path / "out" / cmp_folder.JOURNAL
     # the moments count from the first run this process journals (start-up time varies with the machine's load)
     moments = np.random.default_rng(2027).uniform(0.0, 1.2, size=4)
     killed = 0
@@ -259,23 +261,23 @@ def test_sigkill_and_resume_every_run_once(tmp_path):
 
 def test_journal_cut_mid_line(tmp_path):
     """A kill in the middle of a journal line: that line is dropped and cut off, the others stay."""
-    (tmp_path / cmp.JOURNAL).write_text('{"run": "p00000r0", "status": "ok"}\n{"run": "p00001r0", "sta')
-    rows = cmp.read_journal(tmp_path)
+    (tmp_path / cmp_folder.JOURNAL).write_text('{"run": "p00000r0", "status": "ok"}\n{"run": "p00001r0", "sta')
+    rows = cmp_folder.read_journal(tmp_path)
     assert list(rows) == ["p00000r0"]
-    assert (tmp_path / cmp.JOURNAL).read_text() == '{"run": "p00000r0", "status": "ok"}\n'
+    assert (tmp_path / cmp_folder.JOURNAL).read_text() == '{"run": "p00000r0", "status": "ok"}\n'
 
 
 def test_a_crashed_run_is_a_failed_row_and_exit_1(tmp_path):
     """A run that raises is a failed row (the others are results); a failed run is run again on resume."""
     c = _campaign(tmp_path, 'scenario = "random.toml"\n[axes]\n"attack.seed" = [1, 2]\n')
     runs, _ = cmp.plan(cmp.parse(c))
-    rows = cmp.simulate_runs([(runs[0].id, runs[0].text, "x", ""), ("p9", "not toml [", "x", "")])
+    rows = cmp_rows.simulate_runs([(runs[0].id, runs[0].text, "x", ""), ("p9", "not toml [", "x", "")])
     assert rows[0]["status"] == "ok" and rows[1]["status"] == "failed" and "TOML" in rows[1]["error"]
     # exit code of a campaign with a failed row
     c.write_text('scenario = "random.toml"\n[axes]\n"attack.seed" = [1]\n')
     out = campaignrun.run(cmp.parse(c), tmp_path / "o", progress=False)
     assert out["summary"]["failed"] == 0
-    j = tmp_path / "o" / cmp.JOURNAL
+    j = tmp_path / "o" / cmp_folder.JOURNAL
     j.write_text(j.read_text().replace('"status": "ok"', '"status": "failed"'))
     out = campaignrun.run(cmp.parse(c), tmp_path / "o", progress=False)  # a failed run is run again
     assert out["ran"] == 1 and out["summary"]["failed"] == 0 and len(out["rows"]) == 1
@@ -367,8 +369,8 @@ def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
                             '"quantizer.allow_x0_outside" = [true]\n"run.duration" = [30.0]\n')
     runs, _ = cmp.plan(cmp.parse(c))
     items = [(r.id, r.text, r.name, r.base_dir) for r in runs]
-    batch = cmp.simulate_runs(items)
-    single = cmp.simulate_runs(items, batch=False)
+    batch = cmp_rows.simulate_runs(items)
+    single = cmp_rows.simulate_runs(items, batch=False)
     assert sum(r["simulator"] == "batch" for r in batch) >= len(runs) // 2
     assert all(r["simulator"] == "per-sample" for r in single)
     assert len({r["converged"] for r in single}) == 2 and any(r["escaped"] for r in single)

@@ -199,6 +199,7 @@ def test_a_campaign_sweeps_network_keys(tmp_path):
     """``[axes]`` with dotted ``network.*`` keys: every row is its scenario's ``testbed simulate`` run (the
     channel applied: more samples lost on the lossy link), and the batch-kernel grouping leaves the channel
     runs to the simulator that applies it."""
+    from testbed.campaign import rows as cmp_rows
     from testbed.campaign import spec as cmp
     from testbed.campaign.engine import outcome
 
@@ -208,7 +209,7 @@ def test_a_campaign_sweeps_network_keys(tmp_path):
                  '"network.symbol.loss_burst" = [1.0, 4.0]\n"network.seed" = [1, 2]\n')
     runs, _ = cmp.plan(cmp.parse(c))
     assert len(runs) == 8
-    rows = cmp.simulate_runs([(r.id, r.text, r.name, r.base_dir) for r in runs])
+    rows = cmp_rows.simulate_runs([(r.id, r.text, r.name, r.base_dir) for r in runs])
     lost = {}
     for r, row in zip(runs, rows, strict=True):
         sc = scenario.loads(r.text, base_dir=r.base_dir)

@@ -1,5 +1,6 @@
 """Running a campaign (resumable, over local workers or a Dask cluster), verifying a campaign's
-folder, and its figure.  The campaign itself (file, runs, seeds, journal, table): ``testbed.campaign.spec``.
+folder, and its figure.  The campaign file, runs and seeds: ``spec``; a run's row: ``rows``; the journal,
+table and summaries: ``folder``.
 """
 
 from __future__ import annotations
@@ -12,7 +13,9 @@ import time
 from pathlib import Path
 
 from ..errors import BadInput
-from . import spec as cmp
+from .folder import Journal, prepare, read_journal, read_parquet, source_hash, summarize_group, versions, write_results
+from .rows import live_run, simulate_runs, simulate_runs_per_sample
+from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
 
 
 class Progress:
@@ -53,20 +56,20 @@ def chunks(items: list, workers: int, dask: bool) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
 
 
-def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, live_timeout: float | None = None,
+def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live_timeout: float | None = None,
         notes=None) -> dict:
     """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.
 
     Returns ``{"rows", "summary", "folder", "ran", "skipped", "notes"}``.
     """
-    base = cmp.base_scenario(c)
-    runs, notes = cmp.plan(c, base)
-    cmp.prepare(c, runs, folder, base)
-    done = cmp.read_journal(folder)
+    base = base_scenario(c)
+    runs, notes = plan(c, base)
+    prepare(c, runs, folder, base)
+    done = read_journal(folder)
     finished = {k for k, r in done.items() if r.get("status") == "ok"}
     todo = [r for r in runs if r.id not in finished]
     prog = Progress(len(runs), len(runs) - len(todo), progress)
-    journal = cmp.Journal(folder)
+    journal = Journal(folder)
     count = {"done": len(runs) - len(todo), "failed": 0}
 
     def store(row: dict) -> None:  # durably, as the run ends
@@ -79,7 +82,7 @@ def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, 
         if c.runs == "live":
             rows = (_live_on_dask(executor, todo, folder, live_timeout)
                     if executor is not None and executor.kind == "dask"
-                    else (cmp.live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
+                    else (live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
             for row in rows:
                 store(row)
                 prog(count["done"], count["failed"])
@@ -87,13 +90,13 @@ def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, 
             items = [(r.id, r.text, r.name, r.base_dir) for r in todo]
             first, rest = items[:1], items[1:]
             # the first run here: it loads (or compiles) the kernels before any worker does
-            for row in cmp.simulate_runs(first):
+            for row in simulate_runs(first):
                 store(row)
             prog(count["done"], count["failed"])
             dask = executor is not None and executor.kind == "dask"
             parts = chunks(rest, executor.workers if executor is not None else 1, dask)
-            gen = (executor.imap(cmp.simulate_runs, parts, warm=first if dask else None) if executor is not None
-                   else ((i, cmp.simulate_runs(p)) for i, p in enumerate(parts)))
+            gen = (executor.imap(simulate_runs, parts, warm=first if dask else None) if executor is not None
+                   else ((i, simulate_runs(p)) for i, p in enumerate(parts)))
             for _i, rows in gen:
                 for row in rows:
                     store(row)
@@ -102,7 +105,7 @@ def run(c: cmp.Campaign, folder: Path, *, executor=None, progress: bool = True, 
         journal.close()
     prog(len([r for r in runs if r.id in done]), sum(1 for r in runs if r.id in done and done[r.id]["status"] != "ok"),
          final=True)
-    rows, s = cmp.write_results(folder, c, runs, done)
+    rows, s = write_results(folder, c, runs, done)
     return {"rows": rows, "summary": s, "folder": str(folder), "ran": len(todo), "skipped": len(runs) - len(todo),
             "notes": notes}
 
@@ -135,7 +138,7 @@ def _live_on_dask(executor, todo: list, folder: Path, timeout):
         try:
             row, data = f.result()
         except Exception as e:  # noqa: BLE001 - a run lost with its workers is a failed row (exit 1)
-            row, data = {"run": r.id, **{k: None for k in cmp.OUTCOME_KEYS}, "status": "failed",
+            row, data = {"run": r.id, **{k: None for k in OUTCOME_KEYS}, "status": "failed",
                          "error": f"{type(e).__name__}: {e}", "wall_s": None}, None
         if data is not None:
             rec = folder / row["recording"]
@@ -154,15 +157,15 @@ def _remote_live(rid, text, timeout):
         d = Path(d)
         (d / "scenarios").mkdir()
         (d / "scenarios" / f"{rid}.toml").write_text(text)
-        run = cmp.Run(rid, 0, 0, {}, {}, text, "scenario", "")
-        row = cmp.live_run(run, d / "recordings", timeout=timeout)
+        run = Run(rid, 0, 0, {}, {}, text, "scenario", "")
+        row = live_run(run, d / "recordings", timeout=timeout)
         rec = d / row["recording"]
         return row, (rec.read_bytes() if rec.exists() else None)
 
 
 # ============================================================================ verify
 #: the columns --verify compares bit for bit
-COMPARED = tuple(k for k in cmp.OUTCOME_KEYS)
+COMPARED = tuple(k for k in OUTCOME_KEYS)
 
 
 def _same(a, b) -> bool:
@@ -185,7 +188,7 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
             raise BadInput(f"{folder}: no {f}: not a campaign's folder (testbed campaign FILE --out DIR makes one)")
     try:
         man = json.loads((folder / "manifest.json").read_text())
-        rows = cmp.read_parquet(folder / "runs.parquet")
+        rows = read_parquet(folder / "runs.parquet")
     except (OSError, ValueError) as e:
         raise BadInput(f"{folder}: {e}") from None
     differences, problems = [], []
@@ -215,7 +218,7 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
               str(folder / "scenarios")) for r in sim]
     parts = chunks(items, executor.workers if executor is not None else 1, False)
     got = {}
-    fn = cmp.simulate_runs_per_sample  # the simulator testbed simulate runs, whatever ran the campaign
+    fn = simulate_runs_per_sample  # the simulator testbed simulate runs, whatever ran the campaign
     results = executor.map(fn, parts) if executor is not None else map(fn, parts)
     for rs in results:
         for x in rs:
@@ -242,10 +245,10 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
                     differences.append({"run": r["run"], "column": k, "table": r.get(k), "rerun": rep.get(k)})
         except (OSError, ValueError) as e:
             differences.append({"run": r["run"], "column": "recording", "table": str(rec), "rerun": str(e)})
-    here = cmp.versions()
+    here = versions()
     vdiff = {k: {"manifest": v, "here": here.get(k)} for k, v in (man.get("packages") or {}).items()
              if here.get(k) != v}
-    src = cmp.source_hash()
+    src = source_hash()
     return {"folder": str(folder), "checked_simulated": len(sim), "checked_live": len(live), "rows": len(rows),
             "planned": len(planned), "missing": missing, "differences": differences, "problems": problems,
             "versions_differ": vdiff, "source_differs": src != man.get("source"),
@@ -263,7 +266,7 @@ def _norm(v):
 
 
 # ============================================================================ figure
-def plot(path, c: cmp.Campaign, summary: dict, size: str = "page") -> Path:
+def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
     """The success rate (95 % Wilson interval as error bars) over the first axis of more than one value
     (not a seed, where there is another), one line per value of the second such axis; the others pooled."""
     from ..figstyle import pyplot, save, subplots
@@ -274,7 +277,7 @@ def plot(path, c: cmp.Campaign, summary: dict, size: str = "page") -> Path:
         pref = list(c.axes)[:1]
     x_axis = pref[0] if pref else None
     series_axis = pref[1] if len(pref) > 1 else None
-    rows = cmp.read_parquet(Path(summary["folder"]) / "runs.parquet") if "folder" in summary else []
+    rows = read_parquet(Path(summary["folder"]) / "runs.parquet") if "folder" in summary else []
     plt = pyplot()
     fig, axs = subplots(size, 1, 1)
     ax = axs[0, 0] if hasattr(axs, "shape") else axs
@@ -286,7 +289,7 @@ def plot(path, c: cmp.Campaign, summary: dict, size: str = "page") -> Path:
         for xv in xs:
             sel = [r for r in rows if (x_axis is None or _eq(r.get(x_axis), xv))
                    and (series_axis is None or _eq(r.get(series_axis), sv))]
-            g = cmp._group(sel)
+            g = summarize_group(sel)
             w = g["wilson95"] or [math.nan, math.nan]
             rate = g["success_rate"] if g["success_rate"] is not None else math.nan
             ys.append(rate)

@@ -39,14 +39,15 @@ def main(args) -> int:
     if args.sample is not None or args.seed is not None:
         raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
     from ..campaign import run as campaignrun
-    from ..campaign import spec as cmp
+    from ..campaign.folder import default_dir
+    from ..campaign.spec import base_scenario, parse, plan
 
-    c = cmp.parse(args.campaign)
-    base = cmp.base_scenario(c)
-    runs, notes = cmp.plan(c, base)  # every run validated before anything runs (or the folder is made)
+    c = parse(args.campaign)
+    base = base_scenario(c)
+    runs, notes = plan(c, base)  # every run validated before anything runs (or the folder is made)
     for n in notes:
         print(f"testbed campaign: note: {n}", file=sys.stderr)
-    folder = Path(args.out) if args.out else cmp.default_dir(c)
+    folder = Path(args.out) if args.out else default_dir(c)
     executor = None
     if c.runs == "simulated" or args.scheduler:
         from ..analysis import parallel
