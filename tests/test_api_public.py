@@ -12,25 +12,19 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
 import threading
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import PY
+from helpers import tb_run
 
 import testbed
 from testbed import errors, figstyle, scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 API_MD = (ROOT / "docs" / "api.md").read_text()
-
-
-def _cli(*args, timeout=300, **kw):
-    return subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout,
-                          **kw)
 
 
 # ============================================================================ Run.save, Run.plot
@@ -43,10 +37,10 @@ def test_run_save_writes_a_recording_that_every_reader_and_viewer_opens(tmp_path
         assert np.array_equal(run.arrays[name], a, equal_nan=a.dtype.kind == "f"), name
     assert list(run.scenario.x0) == [0.05, -0.02]          # the overrides went into the recording
     assert testbed.compare(run, sim)["identical"]
-    r = _cli("report", path, "--json")
+    r = tb_run("report", path, "--json")
     assert r.returncode == 0, r.stderr
     rrd = tmp_path / "sim.rrd"
-    r = _cli("replay", path, "--rrd", rrd, "--no-roa")
+    r = tb_run("replay", path, "--rrd", rrd, "--no-roa")
     assert r.returncode == 0, r.stderr
     assert rrd.stat().st_size > 1000
 
@@ -64,7 +58,7 @@ def test_run_save_never_overwrites_unless_asked_and_copies_a_recording(tmp_path)
 def test_run_plot_is_the_figure_of_simulate_plot(tmp_path):
     """Same data drawn (the digests every figure carries are equal), in each format and size."""
     png = tmp_path / "cli.png"
-    r = _cli("simulate", "paper", "--plot", png)
+    r = tb_run("simulate", "paper", "--plot", png)
     assert r.returncode == 0, r.stderr
     sim = testbed.simulate("paper")
     want = figstyle.read_digest(png)
@@ -162,15 +156,15 @@ def test_x_final_is_the_state_one_period_after_the_last_sample():
 
 def test_scenarios_show_prints_the_bundled_toml(tmp_path):
     for name in scenario.bundled_names():
-        r = _cli("scenarios", "--show", name)
+        r = tb_run("scenarios", "--show", name)
         assert r.returncode == 0, r.stderr
         assert r.stdout == scenario.load(name).source
         tomllib.loads(r.stdout)
     f = tmp_path / "mine.toml"
-    f.write_text(_cli("scenarios", "--show", "paper").stdout)
+    f.write_text(tb_run("scenarios", "--show", "paper").stdout)
     a, b = testbed.simulate(str(f)), testbed.simulate("paper")
     assert np.array_equal(a.arrays["x"], b.arrays["x"])
-    r = _cli("scenarios", "--show", "nope")
+    r = tb_run("scenarios", "--show", "nope")
     assert r.returncode == 2 and "bundled ones are" in r.stderr and len(r.stderr.splitlines()) == 1
 
 
@@ -239,7 +233,7 @@ def test_the_cli_installs_the_notice_where_it_computes():
     from testbed import cli
 
     assert {"simulate", "analyze", "sweep", "check-plant", "compare", "report"}.isdisjoint(cli.QUIET_START)
-    r = _cli("simulate", "paper", "--duration", "1")         # cached kernels: nothing said
+    r = tb_run("simulate", "paper", "--duration", "1")         # cached kernels: nothing said
     assert r.returncode == 0 and "compiling" not in r.stderr
 
 
@@ -259,11 +253,11 @@ def test_the_first_analysis_of_an_own_plant_says_it_compiles_once(tmp_path):
     """A real first compilation: the batch kernel specialized for a new plant, in a fresh kernel cache."""
     toml = _own_plant(tmp_path)
     env = dict(os.environ, TESTBED_CACHE_DIR=str(tmp_path / "cache"))
-    r = _cli("roa", toml, "--grid", "5", "--no-progress", "--workers", "1", env=env, timeout=900)
+    r = tb_run("roa", toml, "--grid", "5", "--no-progress", "--workers", "1", env=env, timeout=900)
     assert r.returncode == 0, r.stderr
     assert re.search(r"testbed: compiling the batch simulator for this plant .* \(this happens once", r.stderr), r.stderr
     assert re.search(r"testbed: compiled in \d+\.\d s", r.stderr)
-    r = _cli("roa", toml, "--grid", "5", "--no-progress", "--workers", "1", env=env, timeout=900)
+    r = tb_run("roa", toml, "--grid", "5", "--no-progress", "--workers", "1", env=env, timeout=900)
     assert r.returncode == 0 and "compiling" not in r.stderr, r.stderr
 
 
@@ -271,24 +265,24 @@ def test_check_plant_takes_the_plant_from_the_scenario(tmp_path):
     toml = _own_plant(tmp_path)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    r = _cli("check-plant", "--scenario", toml, "--json", cwd=elsewhere)
+    r = tb_run("check-plant", "--scenario", toml, "--json", cwd=elsewhere)
     assert r.returncode in (0, 1), r.stderr                 # a verdict, not bad input
     import json
 
     d = json.loads(r.stdout)
     assert d["ref"] == "myplants:VanDerPol" and d["params"] == {"mu": 0.5} and d["class"] == "myplants:VanDerPol"
     assert d["settings"]["from"].startswith("scenario")
-    r = _cli("check-plant")
+    r = tb_run("check-plant")
     assert r.returncode == 2 and "name a plant (REF) or a scenario" in r.stderr
 
 
 def test_analyze_prints_prose_and_the_papers_delta_only_for_the_papers_example():
-    r = _cli("analyze", "paper")
+    r = tb_run("analyze", "paper")
     assert r.returncode == 0, r.stderr
     assert "{" not in r.stdout and "'paper'" not in r.stdout, r.stdout
     assert "Theorem 1's condition at this budget holds" in r.stdout
     assert "the paper's delta" in r.stdout
-    r = _cli("analyze", "pendulum")
+    r = tb_run("analyze", "pendulum")
     assert r.returncode == 0, r.stderr
     assert "{" not in r.stdout and "paper's delta" not in r.stdout, r.stdout
 
@@ -298,7 +292,7 @@ def test_a_refused_run_leaves_no_run_folder(tmp_path):
     tmp.mkdir()
     out = tmp_path / "exists.mcap"
     out.write_bytes(b"x")
-    r = _cli("run", "paper", "--out", out, env=dict(os.environ, TMPDIR=str(tmp)), timeout=60)
+    r = tb_run("run", "paper", "--out", out, env=dict(os.environ, TMPDIR=str(tmp)), timeout=60)
     assert r.returncode == 2 and "exists" in r.stderr
     assert list(tmp.iterdir()) == []
 
@@ -312,7 +306,7 @@ def test_a_live_runs_summary_has_the_documented_keys_and_no_process_details(tmp_
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     path = tmp_path / "live.mcap"
-    r = _cli("run", "paper", "--duration", "2", "--out", path, env=dict(os.environ, TMPDIR=str(tmp)), timeout=180)
+    r = tb_run("run", "paper", "--duration", "2", "--out", path, env=dict(os.environ, TMPDIR=str(tmp)), timeout=180)
     assert r.returncode == 0, r.stderr[-3000:]
     run = testbed.open(path)
     assert run.source == "live"

@@ -3,17 +3,18 @@ input, the seeds rule, resume after SIGKILL, ``--verify`` (and a tampered row), 
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from helpers import tb_cmd, tb_run
 
 from testbed.campaign import folder as cmp_folder
 from testbed.campaign import rows as cmp_rows
@@ -21,7 +22,6 @@ from testbed.campaign import run as campaignrun
 from testbed.campaign import spec as cmp
 
 ROOT = Path(__file__).resolve().parents[1]
-PY = sys.executable
 
 #: the paper's example under a random DoS within a budget, 8 s (short runs: the campaign is the subject)
 RANDOM_SCENARIO = """\
@@ -64,9 +64,7 @@ seed = 1
 """
 
 
-def _cli(*args, cwd, timeout=600, env=None):
-    return subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                          timeout=timeout, env=env)
+_cli = functools.partial(tb_run, timeout=600)
 
 
 def _campaign(tmp_path: Path, text: str, name: str = "c.toml") -> Path:
@@ -232,8 +230,8 @@ def test_sigkill_and_resume_every_run_once(tmp_path):
     killed = 0
     for t in moments:
         size0 = journal_path.stat().st_size if journal_path.exists() else 0
-        p = subprocess.Popen([PY, "-m", "testbed.cli", "campaign", str(c), "--out", "out", "--workers", "2",
-                              "--no-progress"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        p = subprocess.Popen(tb_cmd("campaign", str(c), "--out", "out", "--workers", "2", "--no-progress"), cwd=tmp_path,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                              start_new_session=True)
         t0 = time.monotonic()
         while p.poll() is None and time.monotonic() - t0 < 120:

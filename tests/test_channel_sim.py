@@ -7,7 +7,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from test_simbatch import ARRAYS, _assert_identical, _both, _same
+from helpers import SIM_ARRAYS, assert_simulators_identical, both_simulators, same_bits
 
 from testbed import channel, scenario
 from testbed.channel import ATTACKER, CHANNEL, LATE, WITHHELD, loss_counts
@@ -46,9 +46,9 @@ CASES = [
 def test_kernel_equals_per_sample_loop_with_a_channel(name, net, over):
     sc = _sc(name, net, **over)
     assert kernel_refusal(sc) is None
-    per, bat = _both(sc)
-    _assert_identical(sc, per, bat)
-    assert _same(per.loss_cause, bat.loss_cause)
+    per, bat = both_simulators(sc)
+    assert_simulators_identical(sc, per, bat)
+    assert same_bits(per.loss_cause, bat.loss_cause)
     # the channel did something, and every loss has exactly one cause
     assert (per.loss_cause == CHANNEL).any() or (per.loss_cause == LATE).any()
     assert np.array_equal(per.loss_cause != 0, per.theta != 0)
@@ -71,8 +71,8 @@ def test_one_seed_one_loss_pattern_and_another_seed_another():
     a = simulate_scenario(_sc("paper", ALL_LINKS))
     b = simulate_scenario(_sc("paper", ALL_LINKS))
     c = simulate_scenario(_sc("paper", {**ALL_LINKS, "seed": 5}))
-    for name in ARRAYS:
-        assert _same(getattr(a, name), getattr(b, name)), name
+    for name in SIM_ARRAYS:
+        assert same_bits(getattr(a, name), getattr(b, name)), name
     assert not np.array_equal(a.loss_cause, c.loss_cause)
 
 

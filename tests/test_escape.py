@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
-import sys
 
 import numpy as np
+from helpers import tb_run
 
 from testbed import scenario
 from testbed.analysis.sweep import classify
@@ -59,8 +58,7 @@ def test_an_attack_ending_at_the_horizon_escapes_although_x_N_is_in_the_nominal_
     assert set(crit) >= {"kind", "horizon_s", "x_tol", "E_tol"}
     assert crit["horizon_s"] > 0 and crit["x_tol"] == sc.run.converge_tol
     # through the command, as a user runs it
-    p = subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", "paper", "--duration", "2", "--json"],
-                       capture_output=True, text=True, timeout=300)
+    p = tb_run("simulate", "paper", "--duration", "2", "--json", timeout=300)
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["escape_criterion"] == crit
 

@@ -160,37 +160,43 @@ def _simulated(*args) -> dict:
     return json.loads(out)
 
 
-def test_a_broken_build_whose_outsider_gets_in_fails_the_security_test(monkeypatch, tmp_path):
+def test_a_broken_build_whose_outsider_gets_in_fails_the_security_test():
     """Broken build: the outsider's forged symbol for sample 30 is taken, and its later copies arrive late.
-    The old test read the late symbols as a stall, ran it again, and skipped; now the run is compared."""
-    import test_security_process as sec
+    The old test read the late symbols as a stall, ran it again, and skipped; now the run is compared.
+    (The security test's verdict is ``helpers.assert_outsider_changed_nothing``; the broken build stands
+    in for its run.)"""
+    from helpers import OUTSIDER_S, assert_outsider_changed_nothing
 
-    sim = _simulated("--duration", str(sec.OUTSIDER_S))
+    sim = _simulated("--duration", str(OUTSIDER_S))
     broken = dict(sim, complete=True, outcome="done", faults=[], events={}, late_symbols=4,
                   security={"authenticated": True, "topology": "router", "transport": "user/password"},
                   recording={"complete": True}, timing={"deadline_misses": 0, "overruns": 0})
     broken["symbols"] = list(sim["symbols"])
     broken["symbols"][30] = 7
     calls = []
-    monkeypatch.setattr(sec, "_outsider_run", lambda rid, peer, foreign, more=(): calls.append(rid) or (0, broken, ""))
+
+    def outsider_run(rid, peer, foreign, more=()):
+        calls.append(rid)
+        return 0, broken, ""
+
     with pytest.raises(AssertionError, match="symbols first differs at sample 30"):
-        sec.test_an_outsider_without_credentials_changes_nothing("tbroken", "router", tmp_path)
+        assert_outsider_changed_nothing("tbroken", "router", outsider_run)
     assert calls == ["tbroken"]  # late symbols are the attacker's doing here: no rerun
     # a build that makes every run stall (a deadline miss in each) is run three times and still compared
     calls.clear()
     broken["timing"] = {"deadline_misses": 1, "overruns": 0}
     with pytest.warns(UserWarning, match="machine stalled"), \
             pytest.raises(AssertionError, match="symbols first differs at sample 30"):
-        sec.test_an_outsider_without_credentials_changes_nothing("tbroken", "router", tmp_path)
+        assert_outsider_changed_nothing("tbroken", "router", outsider_run)
     assert calls == ["tbroken" + "r" * i for i in range(STALL_RERUNS + 1)]
 
 
 def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing_test(monkeypatch):
     """Broken build: under physical timing u_k acts a little after its instant in every run (late for its
     schedule), so the loop leaves the simulator's path though it still converges and re-simulates.  The
-    old test compared nothing when the last run was late; now the last run is compared."""
+    old test compared nothing when the last run was late; now the last run is compared.  (The test is
+    ``helpers.assert_physical_timing_on_the_paper``; the broken build stands in for its live runs.)"""
     import helpers
-    import test_live_process as lp
 
     sim = _simulated("--timing", "physical", "--deadline", "0.9")  # as the test runs it
     broken = dict(sim, complete=True, outcome="done", faults=[], events={}, samples=len(sim["t"]),
@@ -200,11 +206,10 @@ def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing
     broken["x"][100][0] += 1e-12
     calls = []
     monkeypatch.setattr(helpers, "live", lambda rid, *a, **k: calls.append(rid) or (0, broken, ""))
-    for mod in (helpers, lp):  # live_exact (helpers) reaps a stalled run; the test reaps its own
-        monkeypatch.setattr(mod, "reap", lambda token, wait=5.0: [])
-    monkeypatch.setattr(lp, "resimulated", lambda s: {"reproduced": True, "max_state_error": 0.0,
-                                                     "symbols_identical": True})
+    monkeypatch.setattr(helpers, "reap", lambda token, wait=5.0: [])  # live_exact reaps a stalled run
+    monkeypatch.setattr(helpers, "resimulated", lambda s: {"reproduced": True, "max_state_error": 0.0,
+                                                          "symbols_identical": True})
     with pytest.warns(UserWarning, match="late_for_schedule"), \
             pytest.raises(AssertionError, match="x first differs at sample 100"):
-        lp.test_physical_timing_converges_on_the_paper_and_resimulates("tbroken", ())
+        helpers.assert_physical_timing_on_the_paper("tbroken", ())
     assert calls == ["tbroken" + "r" * i for i in range(STALL_RERUNS + 1)]

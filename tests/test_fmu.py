@@ -12,12 +12,12 @@ import importlib.util
 import json
 import os
 import secrets
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import live, live_exact, tb
 
 import plants
 from plants.base import PlantFault, PlantProcess
@@ -295,39 +295,17 @@ def test_analysis_that_needs_the_true_plant_refuses_an_fmu(lienard_fmu, tmp_path
     assert (d["plant"], d["model"]) == ("fmu:lienard.fmu", "lienard")
 
 
-def _run(cmd, cwd, timeout=300.0, env=None):
-    r = subprocess.run([sys.executable, "-m", "testbed.cli", *map(str, cmd)], cwd=cwd, capture_output=True,
-                       text=True, timeout=timeout, start_new_session=True, env={**os.environ, **(env or {})})
-    return r.returncode, r.stdout, r.stderr
-
-
-def _live(tmp_path, scenario_file, rid, *args):
-    """``testbed run --json`` with the processes' temporary files (the extracted FMUs) in ``tmp_path/tmp``."""
+def _where(tmp_path) -> dict:
+    """Where an FMU run runs: in ``tmp_path``, the processes' temporary files (the extracted FMUs) in
+    ``tmp_path/tmp``, the node logs in ``tmp_path/logs/RUN_ID``."""
     (tmp_path / "tmp").mkdir(exist_ok=True)
-    rc, out, err = _run(["run", scenario_file, "--json", "--run-id", rid, "--run-dir", tmp_path / f"logs-{rid}",
-                         *args], tmp_path, env={"TMPDIR": str(tmp_path / "tmp")})
-    try:
-        return rc, json.loads(out), err
-    except json.JSONDecodeError:
-        pytest.fail(f"no JSON summary (exit {rc})\nstdout: {out[-2000:]}\nstderr: {err[-3000:]}")
+    return {"cwd": tmp_path, "env": {"TMPDIR": str(tmp_path / "tmp")}, "logs": tmp_path / "logs"}
 
 
 def _live_exact(tmp_path, scenario_file, rid: str, *args):
-    """``_live`` for the bit-exact tests, under the one rerun policy (``failclosed.rerun_while_stalled``):
-    a stalled run is run again (run id ``rid`` + "r" per rerun), the last run is returned to be compared."""
-    from failclosed import rerun_flags, rerun_while_stalled
-    from helpers import reap
-
-    def run(attempt):
-        if attempt:
-            assert not reap(rid + "r" * (attempt - 1))
-        again = (*args, "--force") if attempt and "--out" in args else args  # a stalled run's recording is replaced
-        return _live(tmp_path, scenario_file, rid + "r" * attempt, *again, *rerun_flags(attempt, args))
-
-    try:
-        return rerun_while_stalled(run, f"FMU run {scenario_file}")
-    finally:
-        assert not reap(rid)  # every attempt's processes (their run ids begin with rid)
+    """``helpers.live_exact`` of an FMU run (the one rerun policy: a stalled run is run again, run id ``rid`` +
+    "r" per rerun, the last run is returned to be compared); no attempt may leave a process behind."""
+    return live_exact(rid, scenario_file, *args, no_leftovers=True, what=f"FMU run {scenario_file}", **_where(tmp_path))
 
 
 @pytest.mark.process
@@ -340,7 +318,7 @@ def test_live_run_with_the_fmu_as_true_plant_equals_its_simulation(lienard_fmu, 
     rc, s, err = _live_exact(tmp_path, f, rid, "--duration", "3", "--no-record")
     assert rc == 0, (s.get("faults"), err[-2000:])
     assert s["complete"] and s["samples"] == 30 and s["plant"] == "fmu:lienard.fmu" and s["model"] == "lienard"
-    rc, out, err = _run(["simulate", f, "--duration", "3", "--json"], tmp_path)
+    rc, out, err = tb("simulate", f, "--duration", "3", "--json", cwd=tmp_path)
     assert rc == 0, err
     sim = json.loads(out)
     for key in BIT_EXACT_KEYS:
@@ -365,13 +343,13 @@ def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp
     assert fault["node"] == "plant" and fault["kind"] == "plant_fault" and fault["exit_code"] == 1
     assert fault["at_sample"] == 11 and s["outcome"] == "plant fault at sample 11"
     assert "plant_fault k=11 FMU lienard.fmu: step from t = 1.1 s by 0.1 s failed" in fault["last_log_line"]
-    assert "Traceback" not in (tmp_path / f"logs-{rid}" / "plant.log").read_text()
+    assert "Traceback" not in (tmp_path / "logs" / rid / "plant.log").read_text()
     assert s["node_summaries"]["plant"]["plant_fault_at"] == 11
     assert s["node_summaries"]["encoder"]["stop_reason"].startswith("stop from plant: plant fault at sample 11: ")
-    rc, out, err = _run(["report", rec, "--json"], tmp_path)
+    rc, out, err = tb("report", rec, "--json", cwd=tmp_path)
     assert rc == 0, err
     rep = json.loads(out)
-    rc, out, _ = _run(["simulate", f, "--duration", "3", "--json"], tmp_path)
+    rc, out, _ = tb("simulate", f, "--duration", "3", "--json", cwd=tmp_path)
     assert rc == 1
     sim = json.loads(out)
     assert rep["samples"] == 12 and rep["plant_fault"] == sim["plant_fault"] and rep["plant_fault_at"] == 11
@@ -382,11 +360,11 @@ def test_fmu_failing_mid_run_ends_the_live_run_as_a_plant_fault(lienard_fmu, tmp
     f0 = fmu_scenario(tmp_path, lienard_fmu, "n_sub = 0", name="bad0.toml")
     rid0 = rid + "s"
     try:
-        rc, s, err = _live(tmp_path, f0, rid0, "--duration", "3", "--no-record")
+        rc, s, err = live(rid0, f0, "--duration", "3", "--no-record", **_where(tmp_path))
     finally:
         assert not reap(rid0)
     assert rc == 1 and s["samples"] == 0 and s["outcome"] == "plant exited before the start"
     line = "testbed node plant: startup failed: plant fault: FMU lienard.fmu: initialization failed"
     assert any(line in (x.get("last_log_line") or "") and "n_sub must be >= 1" in x["last_log_line"]
                for x in s["faults"]), s["faults"]
-    assert (tmp_path / f"logs-{rid0}" / "plant.log").read_text().strip().startswith(line)
+    assert (tmp_path / "logs" / rid0 / "plant.log").read_text().strip().startswith(line)

@@ -179,3 +179,39 @@ def test_no_module_over_700_lines():
         if n > MAX_LINES and rel not in GENERATED:
             long.append(f"{rel}: {n} lines")
     assert not long, f"modules over {MAX_LINES} lines (split them by responsibility): {long}"
+
+
+# ---------------------------------------------------------------------------------------------- the tests' own shape
+TESTS = ROOT / "tests"
+
+
+def imports_of_test_modules(source: str) -> list[tuple[int, str]]:
+    """(line, module) of every import of a test module (``test_*``) in ``source``: ``import test_x``, ``from
+    test_x import ...``, inside functions too, and ``importlib.import_module("test_x")``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names if a.name.split(".")[0].startswith("test_")]
+        elif isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0].startswith("test_"):
+            found.append((node.lineno, node.module))
+        elif (isinstance(node, ast.Call) and ast.unparse(node.func) in ("importlib.import_module", "import_module",
+                                                                         "__import__")
+              and node.args and isinstance(node.args[0], ast.Constant) and str(node.args[0].value).startswith("test_")):
+            found.append((node.lineno, node.args[0].value))
+    return found
+
+
+def test_no_test_module_imports_another():
+    """What tests share lives in tests/helpers.py, tests/conftest.py (fixtures) or tests/failclosed.py (the
+    rerun policy, capabilities): a test module never imports another (that would run its tests' set-up,
+    tie the two together, and hide the shared part)."""
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {mod}" for p in sorted(TESTS.rglob("*.py"))
+           for line, mod in imports_of_test_modules(p.read_text())]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_test_import_finder_finds_one():
+    src = ("import json\nimport test_a\nfrom test_b import x\nfrom helpers import tb\n"
+           "def f():\n    import test_c as c\n    from . import test_d\n"
+           "    importlib.import_module('test_e')\n    import_module('helpers')\n")
+    assert imports_of_test_modules(src) == [(2, "test_a"), (3, "test_b"), (6, "test_c"), (8, "test_e")]

@@ -22,11 +22,13 @@ from helpers import (
     TIMEOUT,
     TOPOLOGIES,
     WITH_ROUTER,
+    assert_physical_timing_on_the_paper,
     live,
     live_exact,
     mismatch,
     procs_with,
     reap,
+    resimulated,
     run_cli,
     simulate,
     tb_cmd,
@@ -124,13 +126,6 @@ def test_realtime_runs_the_nodes_and_the_router_under_sched_fifo(run_id):
 
 
 # ====================================================================== faults
-def resimulated(s: dict) -> dict:
-    """``testbed resimulate --json`` of a live run's recording."""
-    rc, out, err = run_cli(tb_cmd("resimulate", s["recording"]["path"], "--json"))
-    assert rc in (0, 1), err
-    return json.loads(out)
-
-
 @pytest.mark.parametrize("topology", TOPOLOGIES)
 def test_malformed_and_out_of_range_payloads_are_losses(run_id, topology):
     """The attacker corrupts samples 4 (out-of-range code) and 6 (wrong length)."""
@@ -307,29 +302,9 @@ def test_ack_through_the_attacker_keeps_lockstep(run_id, topology):
 
 @pytest.mark.parametrize("topology", TOPOLOGIES)
 def test_physical_timing_converges_on_the_paper_and_resimulates(run_id, topology):
-    """The paper's scenario and attacks with u_k acting at a real instant: scheduled actuation,
-    the delay-aware rule; it converges (both topologies, the whole 30 s), equals the simulator bit
-    for bit, and the recording re-simulates exactly.  A u_k later than its instant is a stall
-    (``failclosed.stalled``): such a run is run again, and the last run is compared whatever it
-    reports."""
-    # under SCHED_FIFO where permitted (as a physical-timing lab would run it): on a busy shared
-    # machine the plain scheduler left u_k late for its instant in run after run
-    rt = ("--realtime",) if fifo_permitted() else ()
-    # deadline 0.9 T: u_k of a received sample scheduled at 0.4 d T = 36 ms (20 ms at the default
-    # 0.5), lost at 72 ms; a busy CI machine still left u_k later than 20 ms now and then under FIFO
-    dl = ("--deadline", "0.9")
-    rc, s, err = live_exact(run_id, "paper", "--duration", "30", "--timing", "physical", *dl, *rt, *topology)
-    assert rc == 0, (s["faults"], err[-2000:])
-    assert s["timing_mode"] == "physical" and s["complete"] and s["rule"] == "delay-aware"
-    assert s["samples"] == 300 and s["converged"] and s["final_norm"] < 1e-4, s["final_norm"]
-    assert s["encoder_decoder_agree_where_known"] is True
-    r = resimulated(s)
-    assert r["reproduced"] and r["max_state_error"] <= 1e-9 and r["symbols_identical"], r
-    # u_k acted exactly on schedule (received samples at 36 ms): the live run is the simulator's, bit for bit
-    rc, out, err = run_cli(tb_cmd("simulate", "paper", "--timing", "physical", *dl, "--json"))
-    sim = json.loads(out)
-    for key in ("symbols", "theta", "E", "x"):
-        assert s[key] == sim[key], mismatch(s, sim, key)
+    """The paper's scenario and attacks with u_k acting at a real instant (``helpers.assert_physical_timing_
+    on_the_paper``): it converges, equals the simulator bit for bit, and the recording re-simulates exactly."""
+    assert_physical_timing_on_the_paper(run_id, topology)
 
 
 def test_physical_timing_on_arrival_survives_latency(run_id, tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import tb_run
 
 from testbed import methods, scenario
 from testbed.simulate import OnlineAttacker, simulate_batch, simulate_loop
@@ -115,14 +116,11 @@ def test_worst_attack_with_a_method_agrees_with_the_per_sample_simulator(tmp_pat
     """worst-attack --method (batch kernel, escape by the method's own loop) against testbed.simulate
     (per-sample simulator): the schedule it returns escapes, the same one shortened by one sample does not."""
     import json
-    import os
-    import subprocess
-    import sys
 
     import testbed
 
-    r = subprocess.run([sys.executable, "-m", "testbed.cli", "worst-attack", "paper", "--method", "unquantized",
-                        "--json", "--no-progress"], capture_output=True, text=True, cwd=tmp_path, env=dict(os.environ))
+    r = tb_run("worst-attack", "paper", "--method", "unquantized", "--json", "--no-progress", cwd=tmp_path,
+               timeout=900)
     assert r.returncode == 0, r.stderr
     w = json.loads(r.stdout)
     assert w["method"] == "unquantized" and w["escaped"]

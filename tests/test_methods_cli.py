@@ -9,20 +9,16 @@ import json
 import os
 import secrets
 import shutil
-import subprocess
 from pathlib import Path
 
+import helpers
 import pytest
-from helpers import PY
 
-TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 
 
-def tb(*args, cwd, timeout=TIMEOUT):
-    r = subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                       timeout=timeout, env={**os.environ, "MPLBACKEND": "Agg"})
-    return r.returncode, r.stdout, r.stderr
+def tb(*args, cwd, timeout=helpers.TIMEOUT):
+    return helpers.tb(*args, cwd=cwd, env={"MPLBACKEND": "Agg"}, timeout=timeout)
 
 
 @pytest.fixture
@@ -310,7 +306,7 @@ def test_versus_live(tmp_path):
     the same attack for both (the same lost samples where none was withheld), equal to the simulation
     where the live run was bit exact."""
     rc, out, err = tb("versus", "paper", "--methods", "paper,unquantized", "--live", "--out", tmp_path / "recs",
-                      "--json", "--plot", tmp_path / "v.png", cwd=tmp_path, timeout=2 * TIMEOUT)
+                      "--json", "--plot", tmp_path / "v.png", cwd=tmp_path, timeout=2 * helpers.TIMEOUT)
     assert rc == 0, err
     d = json.loads(out)
     assert [r["method"] for r in d["rows"]] == ["paper", "unquantized"]

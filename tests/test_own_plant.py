@@ -18,11 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import PY
+from helpers import PY, tb
 
 import plants
-
-TIMEOUT = float(os.environ.get("TESTBED_PROCESS_TIMEOUT", "300"))
 
 VDP = '''"""Van der Pol oscillator, written like plants/pendulum.py."""
 from dataclasses import dataclass
@@ -85,13 +83,6 @@ intervals = [[1.0, 0.5]]
 [run]
 duration = {duration}
 '''
-
-
-def tb(*args, cwd, env=None, timeout=TIMEOUT):
-    """``testbed ARGS`` in its own process, in ``cwd``: (exit code, stdout, stderr)."""
-    r = subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                       timeout=timeout, env={**os.environ, **(env or {})})
-    return r.returncode, r.stdout, r.stderr
 
 
 @pytest.fixture

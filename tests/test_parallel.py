@@ -19,6 +19,7 @@ import time
 import numpy as np
 import pytest
 from failclosed import import_or_require
+from helpers import tb_run
 
 from testbed.analysis.parallel import Executor, run_batch, shutdown
 from testbed.analysis.roa import nominal_roa
@@ -180,8 +181,8 @@ def test_two_workers_match_one(paper):
 def test_cli_roa_digest_is_the_same_for_1_and_2_workers():
     out = {}
     for w in ("1", "2"):
-        p = subprocess.run([sys.executable, "-m", "testbed.cli", "roa", "paper", "--grid", "41", "--horizon", "20",
-                            "--json", "--no-progress", "--workers", w], capture_output=True, text=True, timeout=300)
+        p = tb_run("roa", "paper", "--grid", "41", "--horizon", "20", "--json", "--no-progress", "--workers", w,
+                timeout=300)
         assert p.returncode == 0, p.stderr
         d = json.loads(p.stdout)
         assert d["parallel"]["workers"] == int(w)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import PY, assert_columns_equal_reference, sim_recording
+from helpers import PY, assert_columns_equal_reference, sim_recording, tb_run
 
 import testbed
 from testbed import scenario
@@ -32,10 +32,6 @@ from testbed.simulate import simulate_scenario
 from testbed.wire import messages as msg
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _cli(*args, timeout=120):
-    return subprocess.run([PY, "-m", "testbed.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout)
 
 
 
@@ -68,7 +64,7 @@ def test_a_file_cut_mid_chunk_reads_like_the_reference(tmp_path):
     rec = reader.read(cut)
     assert cols.truncated and rec.truncated and 0 < cols.last_k("plant") < len(res.t) - 1
     assert_columns_equal_reference(cols, rec)
-    r = _cli("report", cut)
+    r = tb_run("report", cut)
     assert r.returncode == 0 and "TRUNCATED" in r.stdout, r.stderr
     s = report(cut)
     assert s["recording"]["truncated"] and s["samples"] == cols.last_k("plant") + 1
@@ -97,11 +93,11 @@ def test_telemetry_outside_0_N_is_rejected_and_counted(tmp_path):
     assert path.stat().st_size < 20_000
     cols = columns.read_columns(path)
     assert cols.rows == 20 and cols.rejected == {"plant": 3} and cols.malformed == 1   # k >= N; a 3-vector
-    r = _cli("report", path, "--json")
+    r = tb_run("report", path, "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert s["samples"] == 2 and s["recording"]["rejected"] == {"plant": 3}
-    r = _cli("report", path)
+    r = tb_run("report", path)
     assert "WARNING: 3 telemetry messages rejected" in r.stdout
 
 
@@ -150,11 +146,11 @@ def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, caps
             assert code == 2 and len(err.strip().splitlines()) == 1, (what, cmd, err)
         with pytest.raises((BadInput, OSError)):
             testbed.open(path)
-        r = _cli("report", path)
+        r = tb_run("report", path)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, \
             (what, r.stderr)
-    assert "corrupt recording" in _cli("report", bad["bit-flipped"]).stderr
-    assert "no scenario" in _cli("report", bad["foreign"]).stderr
+    assert "corrupt recording" in tb_run("report", bad["bit-flipped"]).stderr
+    assert "no scenario" in tb_run("report", bad["foreign"]).stderr
 
 
 def test_a_cut_recording_is_read_up_to_the_cut_by_every_command(tmp_path, capsys):
@@ -296,7 +292,7 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
 
     sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     out = tmp_path / f"run.{fmt}"
-    r = _cli("export", path, "--format", fmt, "-o", out, "--json")
+    r = tb_run("export", path, "--format", fmt, "-o", out, "--json")
     assert r.returncode == 0, r.stderr
     t = pq.read_table(out) if fmt == "parquet" else pcsv.read_csv(out)
     cols = testbed.open(path).columns()
@@ -312,14 +308,14 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
 
 def test_compare_identical_and_different_runs(tmp_path):
     _, _, a = sim_recording(tmp_path, "paper", duration=5.0)
-    r = _cli("compare", a, "paper", "--json", "--plot", tmp_path / "c.png")
+    r = tb_run("compare", a, "paper", "--json", "--plot", tmp_path / "c.png")
     c = json.loads(r.stdout)
     assert r.returncode == 0 and c["identical"] and c["first_divergence"] is None and c["max_state_error"] == 0.0
     assert c["theta_differs_at"] == [] and c["symbols_differ_at"] == [] and c["samples"]["b"] == 50
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
     text = tmp_path / "late.toml"
     text.write_text(scenario.load("paper").source.replace("[[1.0, 1.2], [4.0, 0.8]]", "[[1.0, 1.2], [4.1, 0.8]]"))
-    c = json.loads(_cli("compare", a, text, "--json").stdout)
+    c = json.loads(tb_run("compare", a, text, "--json").stdout)
     assert not c["identical"] and c["first_divergence"] == 40 and c["theta_differs_at"][0] == 40
     assert c["theta_differs"] == 2 and c["max_state_error"] > 0
 

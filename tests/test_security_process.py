@@ -26,7 +26,16 @@ import time
 
 import pytest
 from failclosed import rerun_flags, rerun_while_stalled
-from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, mismatch, procs_with, simulate, tb_cmd
+from helpers import (
+    LOGS,
+    OUTSIDER_S,
+    TIMEOUT,
+    assert_outsider_changed_nothing,
+    mismatch,
+    procs_with,
+    simulate,
+    tb_cmd,
+)
 
 from testbed.wire import messages as msg
 from testbed.wire import transport
@@ -110,10 +119,6 @@ def forge_everything(session, keys: transport.Keys, n_steps: int, k_now: int, sy
         session.put(keys.symbol_rx, b"\x07", attachment=msg.Header(k_now, 0).encode())
 
 
-#: the outsider's run: long enough for at least 10 attempts after the start-up
-OUTSIDER_S = 8
-
-
 def _run_ca(run_id, into) -> str:
     """A copy of the run's authority certificate (no secret; the run removes its folder as it ends)."""
     import glob
@@ -172,24 +177,8 @@ def _outsider_run(run_id, peer=False, foreign=None, more=()):
 def test_an_outsider_without_credentials_changes_nothing(run_id, topology, tmp_path):
     """Router: no password or a wrong one.  Peer (mutual TLS): plain TCP, or a certificate named after a
     node but made by another authority.  Neither gets a link: nothing reaches a node."""
-    peer = topology == "peer"
-    foreign = transport.TlsCredentials.new(tmp_path / "foreign").folder if peer else None
-    # a run the machine stalled is run again (a new run id); what the outsider could cause is no stall,
-    # and the last run is compared whatever it reports
-    rc, s, err = rerun_while_stalled(lambda attempt: _outsider_run(run_id + "r" * attempt, peer, foreign,
-                                                                   rerun_flags(attempt)),
-                                     f"outsider ({topology})", attacker=True)
-    assert rc == 0, (s["faults"], err[-2000:])
-    assert s["complete"] and s["outcome"] == "done" and not s["faults"]
-    assert s["security"]["authenticated"] and s["security"]["topology"] == topology
-    assert s["security"]["transport"] == ("mutual tls" if peer else "user/password")
-    sim = simulate("paper", OUTSIDER_S)
-    for key in BIT_EXACT_KEYS:
-        assert s[key] == sim[key], mismatch(s, sim, key)
-    assert s["recording"]["complete"]
-    for ev in ("stop_rejected", "future_symbol", "future_actuation", "input_rejected", "input_clamped"):
-        assert ev not in s["events"], s["events"]  # nothing even reached the nodes
-    assert s["security"]["topology_auto"] == peer  # the peer run is the default's (--topology auto)
+    foreign = transport.TlsCredentials.new(tmp_path / "foreign").folder if topology == "peer" else None
+    assert_outsider_changed_nothing(run_id, topology, _outsider_run, foreign)
 
 
 def insider(secret: str, user: str, port: int, peer: bool = False):

@@ -6,44 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from helpers import assert_simulators_identical, both_simulators
 
 from testbed import cli, scenario
 from testbed.simbatch import kernel_refusal, simulate_scenario
 from testbed.simloop import Network
-from testbed.simulate import summarize
-
-ARRAYS = ("t", "x", "u", "q", "q_enc", "xi_enc", "E_enc", "xi_dec", "E_dec", "theta", "symbols", "saturated",
-          "x_final", "reason", "withheld", "delays", "u_missing", "loop_state")
-
-
-def _same(a, b) -> bool:
-    """Bit for bit (NaN where NaN, -0.0 where -0.0), dtype and shape too."""
-    if a is None or b is None:
-        return a is None and b is None
-    a, b = np.asarray(a), np.asarray(b)
-    if a.dtype != b.dtype or a.shape != b.shape:
-        return False
-    return a.tobytes() == b.tobytes()
-
-
-def _both(sc, **kw):
-    per = simulate_scenario(sc, simulator="per-sample", **kw)
-    bat = simulate_scenario(sc, simulator="batch", **kw)
-    assert per.simulator == "per-sample" and bat.simulator == "batch"
-    return per, bat
-
-
-def _assert_identical(sc, per, bat):
-    for name in ARRAYS:
-        assert _same(getattr(per, name), getattr(bat, name)), name
-    for name in ("T", "flow_status", "diverged_at", "plant_fault", "plant_fault_at", "method_fault",
-                 "lockstep_breaks"):
-        assert getattr(per, name) == getattr(bat, name), name
-    assert np.array_equal(per.K, bat.K)
-    assert per.counters == bat.counters
-    sp, sb = summarize(sc, per), summarize(sc, bat)
-    assert sp.pop("simulator") == "per-sample" and sb.pop("simulator") == "batch"
-    assert json.dumps(sp) == json.dumps(sb)
 
 
 def _sc(name, **over):
@@ -71,9 +38,9 @@ CASES = [
 def test_kernel_equals_per_sample_loop_bit_for_bit(name, over):
     sc = _sc(name, **over)
     assert kernel_refusal(sc) is None
-    per, bat = _both(sc)
+    per, bat = both_simulators(sc)
     assert len(per.t) > 0
-    _assert_identical(sc, per, bat)
+    assert_simulators_identical(sc, per, bat)
 
 
 RANDOM = {"kind": "random", "kappa_F": 0.5, "rho_F": 0.3, "kappa_D": 0.3, "rho_D": 0.25}
@@ -83,24 +50,24 @@ RANDOM = {"kind": "random", "kappa_F": 0.5, "rho_F": 0.3, "kappa_D": 0.3, "rho_D
 @pytest.mark.parametrize("method", ["paper", "zoom", "unquantized-hold"])
 def test_random_attacks(seed, method):
     sc = _sc("paper", attack={**RANDOM, "seed": seed}, method=method)
-    per, bat = _both(sc)
+    per, bat = both_simulators(sc)
     assert per.theta.any()
-    _assert_identical(sc, per, bat)
+    assert_simulators_identical(sc, per, bat)
 
 
 def test_cartpole_random_attack_seeds():
     for seed in (4, 5):
         sc = _sc("cartpole", seed=seed)
-        per, bat = _both(sc)
-        _assert_identical(sc, per, bat)
+        per, bat = both_simulators(sc)
+        assert_simulators_identical(sc, per, bat)
 
 
 def test_a_clamped_input():
     sc = scenario.load("paper")
     sc = dataclasses.replace(sc, controller=dataclasses.replace(sc.controller, u_max=0.05))
-    per, bat = _both(sc)
+    per, bat = both_simulators(sc)
     assert per.counters["plant"]["clamped"] > 0
-    _assert_identical(sc, per, bat)
+    assert_simulators_identical(sc, per, bat)
 
 
 def test_a_diverging_run_stops_at_the_same_sample():
@@ -109,8 +76,8 @@ def test_a_diverging_run_stops_at_the_same_sample():
     sc = scenario.load("paper")
     qp = dataclasses.replace(sc.quantizer, L=3.0)
     sc = dataclasses.replace(sc, quantizer=qp)
-    per, bat = _both(sc)
-    _assert_identical(sc, per, bat)
+    per, bat = both_simulators(sc)
+    assert_simulators_identical(sc, per, bat)
     assert plants  # the bundled registry is what the kernel accepts
 
 
@@ -140,6 +107,6 @@ def test_physical_timing_with_a_drawn_latency():
     """u_k's latency drawn per sample (as --latency-from gives it), some past the deadline d T."""
     sc = _sc("paper", timing="physical", actuation="arrival")
     lat = np.random.default_rng(7).integers(0, 60_000_000, sc.n_steps)
-    per, bat = _both(sc, latency=lat)
+    per, bat = both_simulators(sc, latency=lat)
     assert per.u_missing.any() and len(np.unique(per.delays)) > 10
-    _assert_identical(sc, per, bat)
+    assert_simulators_identical(sc, per, bat)

@@ -2,11 +2,10 @@
 
 import dataclasses
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from helpers import tb_run
 
 import plants
 from testbed import cli, scenario
@@ -127,8 +126,7 @@ def test_cli_reports_bad_scenario(tmp_path, capsys):
 
 
 def test_console_script_runs():
-    r = subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", "paper-escape", "--json"],
-                       capture_output=True, text=True, timeout=120)
+    r = tb_run("simulate", "paper-escape", "--json", timeout=120)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["escaped"] is True and out["converged"] is False

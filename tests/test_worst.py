@@ -6,16 +6,16 @@ The paper check runs ``testbed simulate`` on scenario files with the returned in
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import re
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import tb_run
 
 from attackers import budget
 from attackers.schedule import Schedule
@@ -220,16 +220,14 @@ def _simulate(tmp_path: Path, base: str, intervals, name: str) -> dict:
     text = re.sub(r"^intervals = .*$", f"intervals = {json.dumps(intervals)}", base, flags=re.M)
     f = tmp_path / f"{name}.toml"
     f.write_text(text)
-    p = subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", str(f), "--json"], capture_output=True,
-                       text=True, timeout=300)
+    p = tb_run("simulate", f, "--json", timeout=300)
     assert p.returncode == 0, p.stderr
     return json.loads(p.stdout)
 
 
 @pytest.mark.slow
 def test_worst_attack_on_the_paper_is_minimal_in_testbed_simulate(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "testbed.cli", "worst-attack", "paper", "--json", "--no-progress",
-                        "--workers", "1"], capture_output=True, text=True, timeout=600)
+    p = tb_run("worst-attack", "paper", "--json", "--no-progress", "--workers", "1", timeout=600)
     assert p.returncode == 0, p.stderr
     d = json.loads(p.stdout)
     for key in ("intervals", "total_duration", "samples_lost", "escaped", "exact", "greedy", "search", "front",
@@ -291,9 +289,7 @@ def test_cli_vulnerability_json_and_plot(tmp_path, capsys):
     assert d2["states_exact"] == int(ex2[S2 > -2].sum())
 
 
-def _cli(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "testbed.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+_cli = functools.partial(tb_run, timeout=900)
 
 
 @pytest.mark.slow

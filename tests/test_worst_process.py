@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import tb_run
 
 from testbed import scenario
 
@@ -24,14 +23,12 @@ def test_the_worst_attack_scenario_escapes_live(tmp_path):
     short = tmp_path / "paper3.toml"
     short.write_text(re.sub(r"^duration = .*$", "duration = 3.0", base, flags=re.M))
     out = tmp_path / "worst.toml"
-    p = subprocess.run([sys.executable, "-m", "testbed.cli", "worst-attack", str(short), "--attacks", "2", "--json",
-                        "--no-progress", "--no-greedy", "--scenario-out", str(out)],
-                       capture_output=True, text=True, timeout=900)
+    p = tb_run("worst-attack", short, "--attacks", "2", "--json", "--no-progress", "--no-greedy", "--scenario-out", out,
+            timeout=900)
     assert p.returncode == 0, p.stderr
     d = json.loads(p.stdout)
     assert d["escaped"] and d["n_steps"] == 30 and out.exists()
-    p = subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", str(out), "--json"], capture_output=True,
-                       text=True, timeout=300)
+    p = tb_run("simulate", out, "--json", timeout=300)
     assert p.returncode == 0, p.stderr
     sim = json.loads(p.stdout)
     assert sim["escaped"] is True
