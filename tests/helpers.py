@@ -225,6 +225,15 @@ def assert_columns_equal_reference(cols, rec):
     assert dict(cols.counts) == dict(rec.counts)
 
 
+def paper_loop_toml(x0=(0.1, 0.1), E0=0.1, mode: str | None = None) -> str:
+    """The ``[plant]``, ``[quantizer]`` and ``[controller]`` tables of the paper's example (the Lienard plant
+    a = 1/3, b = 0.02; T = 0.1, M = 6, L = 10; the paper's K) as scenario text, for a test's own scenario;
+    ``x0``, ``E0`` and the quantizer's ``mode`` (none: the default) as given."""
+    return (f'[plant]\nname = "lienard"\nparams = {{ a = 0.3333333333333333, b = 0.02 }}\nx0 = [{x0[0]}, {x0[1]}]\n\n'
+            f"[quantizer]\nT = 0.1\nM = 6\nL = 10.0\nE0 = {E0}\n" + (f'mode = "{mode}"\n' if mode else "")
+            + "\n[controller]\nK = [[-1.81, -1.90]]\n")
+
+
 def sim_recording(tmp_path, name="paper", **over):
     """A simulation of scenario ``name`` (with ``over``) recorded to ``tmp_path/NAME.mcap``: (sc, res, path)."""
     from testbed import scenario

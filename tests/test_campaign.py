@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from helpers import tb_cmd, tb_run
+from helpers import paper_loop_toml, tb_cmd, tb_run
 
 from testbed.campaign import folder as cmp_folder
 from testbed.campaign import rows as cmp_rows
@@ -28,21 +28,7 @@ RANDOM_SCENARIO = """\
 name = "paper-random"
 description = "the paper's example under a random DoS"
 
-[plant]
-name = "lienard"
-params = { a = 0.3333333333333333, b = 0.02 }
-x0 = [0.1, 0.1]
-
-[quantizer]
-T = 0.1
-M = 6
-L = 10.0
-E0 = 0.1
-mode = "resilient"
-
-[controller]
-K = [[-1.81, -1.90]]
-
+""" + paper_loop_toml(mode="resilient") + """
 [attack]
 kind = "random"
 kappa_F = 1.0
@@ -394,22 +380,23 @@ def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
         "        if self.params['a'] < 0.9:\n"
         "            raise RuntimeError('no codebook below a = 0.9')\n"
         "        return super().codebook(n, qp)\n")
-    (tmp_path / "c.toml").write_text('scenario = "mymethod.toml"\n[axes]\n"method.params.a" = [0.96, 0.92]\n'
-                                     '"run.duration" = [6.0]\n')
-    p = _cli("campaign", "c.toml", "--out", "o", "--workers", 1, "--json", cwd=tmp_path)
+
+    def campaign(out: str, axes: str):
+        """The campaign of mymethod.toml over ``axes`` (TOML lines) in ``tmp_path/out``: (process, rows or None)."""
+        (tmp_path / f"{out}.toml").write_text(f'scenario = "mymethod.toml"\n[axes]\n{axes}"run.duration" = [6.0]\n')
+        p = _cli("campaign", f"{out}.toml", "--out", out, "--workers", 1, "--json", cwd=tmp_path)
+        return p, _table(tmp_path / out) if (tmp_path / out / "runs.parquet").exists() else None
+
+    p, rows = campaign("o", '"method.params.a" = [0.96, 0.92]\n')
     assert p.returncode == 0, p.stderr
-    rows = _table(tmp_path / "o")
     assert [r["simulator"] for r in rows] == ["per-sample", "per-sample"]
     for r in rows:
         s = json.loads(_cli("simulate", tmp_path / "o" / "scenarios" / f"{r['run']}.toml", "--json",
                             cwd=tmp_path).stdout)
         assert all(r[k] == s[k] for k in cmp.OUTCOME_KEYS)
     assert rows[0]["final_norm"] != rows[1]["final_norm"]
-    (tmp_path / "c2.toml").write_text('scenario = "mymethod.toml"\n[axes]\n"method.name" = ["crashy:Crashy"]\n'
-                                      '"method.params.a" = [0.96, 0.8]\n"run.duration" = [6.0]\n')
-    p = _cli("campaign", "c2.toml", "--out", "o2", "--workers", 1, "--json", cwd=tmp_path)
+    p, rows = campaign("o2", '"method.name" = ["crashy:Crashy"]\n"method.params.a" = [0.96, 0.8]\n')
     assert p.returncode == 1, p.stderr
-    rows = _table(tmp_path / "o2")
     assert [r["status"] for r in rows] == ["ok", "failed"]
     assert "no codebook below a = 0.9" in rows[1]["error"] and rows[1]["converged"] is None
     assert json.loads(p.stdout)["summary"]["failed"] == 1

@@ -7,7 +7,7 @@ import dataclasses
 import json
 
 import numpy as np
-from helpers import tb_run
+from helpers import paper_loop_toml, tb_run
 
 from testbed import scenario
 from testbed.analysis.sweep import classify
@@ -22,20 +22,7 @@ from testbed.simulate import (
     summarize,
 )
 
-SHORT = """
-name = "short"
-[plant]
-name = "lienard"
-params = { a = 0.3333333333333333, b = 0.02 }
-x0 = [-0.497, -0.316]
-[quantizer]
-T = 0.1
-M = 6
-L = 10.0
-E0 = 0.497
-mode = "resilient"
-[controller]
-K = [[-1.81, -1.90]]
+SHORT = 'name = "short"\n' + paper_loop_toml(x0=(-0.497, -0.316), E0=0.497, mode="resilient") + """
 [attack]
 kind = "intervals"
 intervals = [[0.8, 1.1]]

@@ -21,13 +21,13 @@ import threading
 import time
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 from failclosed import import_or_require, require
 
 from testbed import scenario
-from testbed.record import recording, schema
-from testbed.simulate import simulate_scenario
+from testbed.record import schema
 from testbed.view import foxglove as fx
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,11 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def sim_recording(tmp_path_factory):
-    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 8.0})
-    res = simulate_scenario(sc)
-    path = tmp_path_factory.mktemp("fox") / "paper.mcap"
-    recording.record_simulation(path, sc, res, overrides={"duration": 8.0})
-    return sc, res, path
+    """The paper's 8 s simulation recorded: (sc, res, path)."""
+    return helpers.sim_recording(tmp_path_factory.mktemp("fox"), duration=8.0)
 
 
 def _messages(path, topic):

@@ -211,10 +211,11 @@ def test_exec_spawn_equals_simulator(run_id):
     assert len({s["node_summaries"][r]["pid"] for r in ("plant", "encoder", "attacker", "controller")}) == 4
 
 
-@pytest.mark.parametrize("rx", ["direct", "spin"])
+@pytest.mark.parametrize("rx", ["thread", "direct", "spin"])
 def test_receive_modes_equal_simulator(run_id, rx):
-    """``--rx direct`` (handlers on Zenoh's receive thread) and ``--rx spin`` (the primary input through an
-    ``Inlet``, its own thread spinning before the input is due): the same run, bit for bit."""
+    """``--rx thread`` (the default: a handler on a thread of its own per subscriber), ``--rx direct``
+    (handlers on Zenoh's receive thread) and ``--rx spin`` (the primary input through an ``Inlet``, its own
+    thread spinning before the input is due): the same run, bit for bit."""
     rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--rx", rx, "--no-record")
     assert rc == 0, (s["faults"], err[-2000:])
     sim = simulate("paper", 3)

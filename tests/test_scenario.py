@@ -2,25 +2,12 @@
 
 import numpy as np
 import pytest
+from helpers import paper_loop_toml
 
 from testbed import scenario
 from testbed.scenariospec import ScenarioError
 
-GOOD = """
-[plant]
-name = "lienard"
-params = { a = 0.3333333333333333, b = 0.02 }
-x0 = [0.1, 0.1]
-
-[quantizer]
-T = 0.1
-M = 6
-L = 10.0
-E0 = 0.1
-
-[controller]
-K = [[-1.81, -1.90]]
-
+GOOD = paper_loop_toml() + """
 [attack]
 kind = "intervals"
 intervals = [[1.0, 0.5], [3.0, 0.8]]
