@@ -1,5 +1,7 @@
 """What the tests share: running the testbed command in a subprocess, the live runs and their
-processes, the keys a live run must reproduce bit for bit, and checks used by more than one module.
+processes, the keys a live run must reproduce bit for bit, the paper's loop as scenario text, the
+batch-versus-per-sample checks, and the verdicts of the live tests that ``test_failclosed.py`` also runs
+on broken builds.  A test module never imports another (``tests/test_layers.py``): what two share is here.
 (The fixtures are in ``conftest.py``; the rerun policy and the capability checks in ``failclosed.py``.)"""
 
 from __future__ import annotations
