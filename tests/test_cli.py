@@ -50,6 +50,14 @@ def test_every_option_of_every_command_has_a_help_line():
                 assert a.help, f"testbed {name} {a.option_strings}: no help line"
 
 
+def test_every_command_prints_its_help():
+    """argparse formats help with ``%``: a literal percent sign must be written ``%%`` (``testbed campaign
+    --help`` once ended in a traceback over "95 % Wilson")."""
+    for name, p in _parsers().items():
+        text = p.format_help()
+        assert f"testbed {name}" in text, name
+
+
 def test_old_names_are_hidden_aliases_of_the_new_ones():
     ps = _parsers()
     run = ps["run"]

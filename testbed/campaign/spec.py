@@ -39,6 +39,8 @@ OUTCOME_KEYS = engine.OUTCOME_KEYS
 RUN_KEYS = ("run", "point", "repeat", "status", "error", "simulator", "wall_s")
 #: the random choices a campaign seeds: column name -> dotted scenario key of the seed
 SEED_KEYS = {"seeds.attack": "attack.seed", "seeds.sim_delay": "run.sim_delay.seed"}
+#: the kind of a seed's table that draws random numbers (another kind keeps no seed)
+RANDOM_KIND = {"attack.seed": "random", "run.sim_delay.seed": "uniform"}
 #: keys of a campaign file
 CAMPAIGN_KEYS = {"scenario", "runs", "repeat", "seed", "axes", "description"}
 
@@ -221,21 +223,15 @@ def _resolve(base, axes: dict, seeds_from) -> tuple[dict, dict, str]:
     if "attack.seed" in axes and att.get("kind") != "random":
         raise BadInput(f"varies nothing: the attack's kind {att.get('kind')!r} draws no random numbers "
                        "(only kind = 'random' does)")
-    if att.get("kind") == "random":
-        s = seeds_from("attack.seed") if "attack.seed" not in axes else None
-        if s is not None:
-            att["seed"] = s
-        seeds["seeds.attack"] = att.get("seed")
-    else:
-        seeds["seeds.attack"] = None
-    sd = _get(data, "run.sim_delay")
-    if isinstance(sd, dict) and sd.get("kind") == "uniform":
-        s = seeds_from("run.sim_delay.seed") if "run.sim_delay.seed" not in axes else None
-        if s is not None:
-            sd["seed"] = s
-        seeds["seeds.sim_delay"] = sd.get("seed")
-    else:
-        seeds["seeds.sim_delay"] = None
+    for column, key in SEED_KEYS.items():
+        table = _get(data, key.rpartition(".")[0])
+        if isinstance(table, dict) and table.get("kind") == RANDOM_KIND[key]:
+            s = seeds_from(key) if key not in axes else None
+            if s is not None:
+                table["seed"] = s
+            seeds[column] = table.get("seed")
+        else:
+            seeds[column] = None
     return data, seeds, note
 
 

@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_workers(p)
     cliargs.add_scheduler(p)
     cliargs.add_json(p, "the summary (and with --verify the comparison)")
-    cliargs.add_plot(p, "the success rate over one or two axes, 95 % Wilson intervals as error bars")
+    cliargs.add_plot(p, "the success rate over one or two axes, 95 %% Wilson intervals as error bars")
     cliargs.add_no_progress(p)
     p.add_argument("--verify", metavar="DIR", help="re-run the rows of a campaign's folder and compare them bit for "
                                                    "bit (live rows: re-simulated from their recordings)")
