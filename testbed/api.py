@@ -77,6 +77,8 @@ class Run:
     #: the overrides the run was simulated with (``testbed.simulate``), stored by ``save``
     overrides: dict = field(default_factory=dict)
     _result: object = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
+    _columns: object = field(default=None, repr=False)  # a recording's columns (``testbed report`` reads them)
+    _details: dict | None = field(default=None, repr=False)  # a recording's whole summary (``recording_summary``)
 
     @property
     def N(self) -> int:
@@ -202,6 +204,41 @@ def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
     }
 
 
+def run_of_recording(cols, sc) -> Run:
+    """A :class:`Run` from a recording's columns (``testbed.record.columns.Columns``) and its scenario.
+
+    ``Run.summary`` comes from ``testbed.record.sections.recording_summary``; the whole of it and the
+    columns stay with the run (``testbed report`` adds its own sections from them).
+    """
+    from .record.sections import recorded_attack, recording_summary
+    from .wire import messages as msg
+
+    s = recording_summary(cols, sc)
+    N = s["samples"]
+    attack_on, dropped = recorded_attack(cols, N)  # the attacker's own log
+    sat = np.zeros(N, dtype=bool)
+    sat[np.asarray(s["saturated_at"], dtype=np.int64)] = True
+    arrays = {
+        "k": np.arange(N), "t": np.asarray(s["t"]), "x": s["x"], "u": s["u"], "q": s["q"], "xi": s["xi"],
+        "E": s["E"], "E_dec": s["E_dec"], "xi_dec": s["xi_dec"], "q_enc": cols.get("encoder", "q")[:N],
+        "theta": np.asarray(s["theta"]), "symbols": np.asarray(s["symbols"], dtype=np.int64), "saturated": sat,
+        "attack_on": attack_on, "dropped": dropped,
+    }
+    if s.get("x_meas") is not None:  # what the sensor read ([plant.sensor])
+        arrays["x_meas"] = s["x_meas"]
+    live = cols.source == "live"
+    if live:
+        arrays.update(_timing_arrays(cols, N, sc.T))
+    events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
+               "detail": e.detail} for e in cols.events]
+    keyed = dict(s, t0_ns=cols.start.t0_ns if cols.start else None)
+    keys = SUMMARY_KEYS + RECORDING_KEYS + (LIVE_KEYS if live else ())
+    summary = {k: keyed[k] for k in keys if k in keyed}
+    return Run(scenario=sc, arrays=arrays, events=events, timing=s.get("timing"), summary=summary,
+               source=cols.source, path=None if cols.path is None else str(cols.path), metadata=cols.metadata,
+               _columns=cols, _details=s)
+
+
 def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue names it
     """A recording (``testbed run`` or ``testbed simulate --out``) as a :class:`Run`.
 
@@ -209,43 +246,16 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     """
     from . import compilenotice
     from .record.columns import read_columns, scenario_of
-    from .report import report
 
     compilenotice.install()
     cols = read_columns(path)
-    sc = scenario_of(cols.metadata, str(path))
-    s = report((cols, sc), arrays=True, resimulate=0)  # Run.arrays need no resimulation
-    N = s["samples"]
-    A = cols.has("attacker")[:N]
-    sat = np.zeros(N, dtype=bool)
-    sat[np.asarray(s["saturated_at"], dtype=np.int64)] = True
-    arrays = {
-        "k": np.arange(N), "t": np.asarray(s["t"]), "x": s["x"], "u": s["u"], "q": s["q"], "xi": s["xi"],
-        "E": s["E"], "E_dec": s["E_dec"], "xi_dec": s["xi_dec"], "q_enc": cols.get("encoder", "q")[:N],
-        "theta": np.asarray(s["theta"]), "symbols": np.asarray(s["symbols"], dtype=np.int64), "saturated": sat,
-        "attack_on": A & (cols.get("attacker", "attack_on")[:N] != 0),
-        "dropped": A & (cols.get("attacker", "dropped")[:N] != 0),
-    }
-    if s.get("x_meas") is not None:  # what the sensor read ([plant.sensor])
-        arrays["x_meas"] = s["x_meas"]
-    live = cols.source == "live"
-    if live:
-        arrays.update(_timing_arrays(cols, N, sc.T))
-    t0 = cols.start.t0_ns if cols.start else None
-    from .wire import messages as msg
-
-    events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
-               "detail": e.detail} for e in cols.events]
-    s = dict(s, t0_ns=t0)
-    keys = SUMMARY_KEYS + RECORDING_KEYS + (LIVE_KEYS if live else ())
-    summary = {k: s[k] for k in keys if k in s}
-    return Run(scenario=sc, arrays=arrays, events=events, timing=s.get("timing"), summary=summary,
-               source=cols.source, path=str(path), metadata=cols.metadata)
+    return run_of_recording(cols, scenario_of(cols.metadata, str(path)))
 
 
 # ============================================================================ from the simulator
-def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
-    """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result."""
+def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict | None = None) -> Run:
+    """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result; ``summary``: its
+    ``testbed.simulate.summarize(sc, res)`` when the caller has made it already."""
     from .simulate import attack_on_samples, summarize
 
     N = len(res.t)
@@ -259,7 +269,7 @@ def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
         arrays["x_meas"] = res.x_meas
     events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",
                "detail": f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"} for k in np.flatnonzero(res.saturated)]
-    s = summarize(sc, res, arrays=True)
+    s = summarize(sc, res, arrays=True) if summary is None else summary
     summary = {k: s[k] for k in SUMMARY_KEYS}
     return Run(scenario=sc, arrays=arrays, events=events, timing=None, summary=summary, source="simulate",
                overrides=dict(overrides or {}), _result=res)
@@ -291,5 +301,5 @@ def simulate(scenario, **overrides) -> Run:
     return run_of_simulation(sc, simulate_scenario(sc), {k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "MissingExtra",
+__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "run_of_recording", "MissingExtra",
            "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]
