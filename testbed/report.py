@@ -325,21 +325,10 @@ def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     cliargs.add_json(p, "the report (the keys of testbed simulate --json and more)")
     cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
-    p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
+    p.add_argument("--resimulate", metavar="N|all", type=cliargs.int_at_least(0, or_all=True),
+                   default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
                         "all: every sample, as testbed resimulate; 0: none)")
-
-
-def _resimulate_count(text: str) -> int | None:
-    if text == "all":
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of samples or 'all', got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a number of samples >= 0 or 'all', got {text!r}")
-    return n
 
 
 def main_report(args) -> int:
