@@ -245,11 +245,10 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
     """
     from . import compilenotice
-    from .record.columns import read_columns, scenario_of
+    from .record.summary import load
 
     compilenotice.install()
-    cols = read_columns(path)
-    return run_of_recording(cols, scenario_of(cols.metadata, str(path)))
+    return run_of_recording(*load(path, fields=None))  # every field (q_k at the encoder, the stage times)
 
 
 # ============================================================================ from the simulator
