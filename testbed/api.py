@@ -204,8 +204,9 @@ def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
     }
 
 
-def run_of_recording(cols, sc) -> Run:
-    """A :class:`Run` from a recording's columns (``testbed.record.columns.Columns``) and its scenario.
+def run_of_recording(cols, sc, path: str | Path | None = None) -> Run:
+    """A :class:`Run` from a recording's columns (``testbed.record.columns.Columns``) and its scenario;
+    ``Run.path`` is ``path`` as given (default: the columns').
 
     ``Run.summary`` comes from ``testbed.record.sections.recording_summary``; the whole of it and the
     columns stay with the run (``testbed report`` adds its own sections from them).
@@ -235,7 +236,7 @@ def run_of_recording(cols, sc) -> Run:
     keys = SUMMARY_KEYS + RECORDING_KEYS + (LIVE_KEYS if live else ())
     summary = {k: keyed[k] for k in keys if k in keyed}
     return Run(scenario=sc, arrays=arrays, events=events, timing=s.get("timing"), summary=summary,
-               source=cols.source, path=None if cols.path is None else str(cols.path), metadata=cols.metadata,
+               source=cols.source, path=str(cols.path if path is None else path), metadata=cols.metadata,
                _columns=cols, _details=s)
 
 
@@ -248,7 +249,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     from .record.summary import load
 
     compilenotice.install()
-    return run_of_recording(*load(path, fields=None))  # every field (q_k at the encoder, the stage times)
+    return run_of_recording(*load(path, fields=None), path)  # every field (q_k at the encoder, the stage times)
 
 
 # ============================================================================ from the simulator
