@@ -134,21 +134,21 @@ class Run:
 
     def to_pandas(self):
         """A ``pandas.DataFrame``, one row per sample (``columns()``)."""
-        try:
-            import pandas as pd
-        except ImportError:
-            raise MissingExtra("to_pandas() needs pandas: pip install pandas "
-                               "(or pip install 'dos-testbed[dataframes]')") from None
-        return pd.DataFrame(self.columns())
+        return self._frame("pandas")
 
     def to_polars(self):
         """A ``polars.DataFrame``, one row per sample (``columns()``)."""
+        return self._frame("polars")
+
+    def _frame(self, library: str):
+        import importlib
+
         try:
-            import polars as pl
+            lib = importlib.import_module(library)
         except ImportError:
-            raise MissingExtra("to_polars() needs polars: pip install polars "
+            raise MissingExtra(f"to_{library}() needs {library}: pip install {library} "
                                "(or pip install 'dos-testbed[dataframes]')") from None
-        return pl.DataFrame(self.columns())
+        return lib.DataFrame(self.columns())
 
 
 def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
