@@ -77,6 +77,8 @@ class Run:
     #: the overrides the run was simulated with (``testbed.simulate``), stored by ``save``
     overrides: dict = field(default_factory=dict)
     _result: object = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
+    _columns: object = field(default=None, repr=False)  # a recording's columns (``testbed report`` reads them)
+    _details: dict | None = field(default=None, repr=False)  # a recording's whole summary (``recording_summary``)
 
     @property
     def N(self) -> int:
@@ -132,21 +134,21 @@ class Run:
 
     def to_pandas(self):
         """A ``pandas.DataFrame``, one row per sample (``columns()``)."""
-        try:
-            import pandas as pd
-        except ImportError:
-            raise MissingExtra("to_pandas() needs pandas: pip install pandas "
-                               "(or pip install 'dos-testbed[dataframes]')") from None
-        return pd.DataFrame(self.columns())
+        return self._frame("pandas")
 
     def to_polars(self):
         """A ``polars.DataFrame``, one row per sample (``columns()``)."""
+        return self._frame("polars")
+
+    def _frame(self, library: str):
+        import importlib
+
         try:
-            import polars as pl
+            lib = importlib.import_module(library)
         except ImportError:
-            raise MissingExtra("to_polars() needs polars: pip install polars "
+            raise MissingExtra(f"to_{library}() needs {library}: pip install {library} "
                                "(or pip install 'dos-testbed[dataframes]')") from None
-        return pl.DataFrame(self.columns())
+        return lib.DataFrame(self.columns())
 
 
 def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -202,50 +204,58 @@ def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
     }
 
 
-def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue names it
-    """A recording (``testbed run`` or ``testbed simulate --out``) as a :class:`Run`.
+def run_of_recording(cols, sc, path: str | Path | None = None) -> Run:
+    """A :class:`Run` from a recording's columns (``testbed.record.columns.Columns``) and its scenario;
+    ``Run.path`` is ``path`` as given (default: the columns').
 
-    Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
+    ``Run.summary`` comes from ``testbed.record.sections.recording_summary``; the whole of it and the
+    columns stay with the run (``testbed report`` adds its own sections from them).
     """
-    from . import compilenotice
-    from .record.columns import read_columns, scenario_of
-    from .report import report
+    from .record.sections import recorded_attack, recording_summary
+    from .wire import messages as msg
 
-    compilenotice.install()
-    cols = read_columns(path)
-    sc = scenario_of(cols.metadata, str(path))
-    s = report((cols, sc), arrays=True, resimulate=0)  # Run.arrays need no resimulation
+    s = recording_summary(cols, sc)
     N = s["samples"]
-    A = cols.has("attacker")[:N]
+    attack_on, dropped = recorded_attack(cols, N)  # the attacker's own log
     sat = np.zeros(N, dtype=bool)
     sat[np.asarray(s["saturated_at"], dtype=np.int64)] = True
     arrays = {
         "k": np.arange(N), "t": np.asarray(s["t"]), "x": s["x"], "u": s["u"], "q": s["q"], "xi": s["xi"],
         "E": s["E"], "E_dec": s["E_dec"], "xi_dec": s["xi_dec"], "q_enc": cols.get("encoder", "q")[:N],
         "theta": np.asarray(s["theta"]), "symbols": np.asarray(s["symbols"], dtype=np.int64), "saturated": sat,
-        "attack_on": A & (cols.get("attacker", "attack_on")[:N] != 0),
-        "dropped": A & (cols.get("attacker", "dropped")[:N] != 0),
+        "attack_on": attack_on, "dropped": dropped,
     }
     if s.get("x_meas") is not None:  # what the sensor read ([plant.sensor])
         arrays["x_meas"] = s["x_meas"]
     live = cols.source == "live"
     if live:
         arrays.update(_timing_arrays(cols, N, sc.T))
-    t0 = cols.start.t0_ns if cols.start else None
-    from .wire import messages as msg
-
     events = [{"k": e.k, "t": None if e.t_ns == msg.NO_TIME else e.t_ns / 1e9, "node": e.node, "kind": e.kind,
                "detail": e.detail} for e in cols.events]
-    s = dict(s, t0_ns=t0)
+    keyed = dict(s, t0_ns=cols.start.t0_ns if cols.start else None)
     keys = SUMMARY_KEYS + RECORDING_KEYS + (LIVE_KEYS if live else ())
-    summary = {k: s[k] for k in keys if k in s}
+    summary = {k: keyed[k] for k in keys if k in keyed}
     return Run(scenario=sc, arrays=arrays, events=events, timing=s.get("timing"), summary=summary,
-               source=cols.source, path=str(path), metadata=cols.metadata)
+               source=cols.source, path=str(cols.path if path is None else path), metadata=cols.metadata,
+               _columns=cols, _details=s)
+
+
+def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue names it
+    """A recording (``testbed run`` or ``testbed simulate --out``) as a :class:`Run`.
+
+    Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
+    """
+    from . import compilenotice
+    from .record.summary import load
+
+    compilenotice.install()
+    return run_of_recording(*load(path, fields=None), path)  # every field (q_k at the encoder, the stage times)
 
 
 # ============================================================================ from the simulator
-def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
-    """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result."""
+def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict | None = None) -> Run:
+    """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result; ``summary``: its
+    ``testbed.simulate.summarize(sc, res)`` when the caller has made it already."""
     from .simulate import attack_on_samples, summarize
 
     N = len(res.t)
@@ -259,7 +269,7 @@ def run_of_simulation(sc, res, overrides: dict | None = None) -> Run:
         arrays["x_meas"] = res.x_meas
     events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",
                "detail": f"x_k outside Q(xi_k, E_k), E_k = {res.E_enc[k]:.3e}"} for k in np.flatnonzero(res.saturated)]
-    s = summarize(sc, res, arrays=True)
+    s = summarize(sc, res, arrays=True) if summary is None else summary
     summary = {k: s[k] for k in SUMMARY_KEYS}
     return Run(scenario=sc, arrays=arrays, events=events, timing=None, summary=summary, source="simulate",
                overrides=dict(overrides or {}), _result=res)
@@ -291,5 +301,5 @@ def simulate(scenario, **overrides) -> Run:
     return run_of_simulation(sc, simulate_scenario(sc), {k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "MissingExtra",
+__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "run_of_recording", "MissingExtra",
            "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]

@@ -71,18 +71,26 @@ def add_scenario(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
 
 
-def _positive_int(v: str) -> int:
-    try:
-        n = int(v)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {v!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
-    return n
+def int_at_least(low: int, *, or_all: bool = False):
+    """An argparse ``type``: an integer >= ``low``; with ``or_all`` also the word ``all`` (read as None)."""
+    what = f"an integer >= {low}" + (" or 'all'" if or_all else "")
+
+    def parse(text: str) -> int | None:
+        if or_all and text == "all":
+            return None
+        try:
+            n = int(text)
+        except ValueError:
+            n = None
+        if n is None or n < low:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return n
+
+    return parse
 
 
 def add_workers(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workers", type=_positive_int, metavar="N",
+    p.add_argument("--workers", type=int_at_least(1), metavar="N",
                    help="worker processes for the batch simulations (default: every core; 1 runs in this "
                         "process); results are identical for every N")
 

@@ -42,16 +42,14 @@ def _is_recording(ref: str) -> bool:
 
 def load_side(ref, other_overrides: dict | None = None):
     """A ``testbed.api.Run`` from a recording path, a scenario, or a ``Run`` as it is."""
-    from .api import Run, resolve_scenario, run_of_simulation
+    from .api import Run, simulate
     from .api import open as open_run
-    from .simulate import simulate_scenario
 
     if isinstance(ref, Run):
         return ref
     if _is_recording(str(ref)):
         return open_run(ref)
-    sc = resolve_scenario(ref, other_overrides)
-    return run_of_simulation(sc, simulate_scenario(sc), other_overrides)
+    return simulate(ref, **(other_overrides or {}))
 
 
 def _overrides(run) -> dict:

@@ -2,19 +2,15 @@
 
 Everything comes from the recording alone: the scenario is rebuilt from the
 TOML stored in its metadata (with the run's overrides), the per-sample arrays
-from the telemetry topics.  They go through the same
-``testbed.record.summary.build_summary`` as ``testbed run`` (and, inside it,
-``testbed.simulate.summarize``), so every key of ``testbed simulate --json`` means
-the same thing here.  Added beside them:
+from the telemetry topics.  The report starts from the recording's ``testbed.Run``
+(``testbed.api.run_of_recording``, what ``testbed.open`` returns): its summary goes
+through the same ``testbed.record.summary.build_summary`` as ``testbed run`` (and,
+inside it, ``testbed.simulate.summarize``), so every key of ``testbed simulate --json``
+means the same thing here, and ``testbed.record.sections`` adds ``dos``, ``agreement``,
+``dropped_by_attacker`` and ``outcome``.  The report adds:
 
-* ``dos``: the attack intervals -- an ``intervals`` attack's as declared (``priced``
-  says so), else the runs of lost samples the attacker logged (its per-sample
-  ``attack_on``, one attack per run; ``logged_intervals`` always) --, their lengths,
-  the realized rates N(H)/H and |A(H)|/H, and the smallest kappa_F, kappa_D at the
-  scenario's rho_F, rho_D (``attackers.budget.check``), checked against the
-  scenario's declared budget when it has one;
-* ``agreement``: encoder and decoder xi_k, E_k compared at every sample;
-* ``saturation_events``, ``dropped_by_attacker``, ``recording`` (source,
+* ``losses_as_dos``: every lost sample taken as if it were DoS, against Theorem 1's region;
+* ``saturation_events``, ``recording`` (source,
   truncation, message counts, software versions);
 * ``actuation`` (physical timing): the delays the plant measured, the bounds and
   margins the quantizer used;
@@ -39,41 +35,12 @@ from pathlib import Path
 import numpy as np
 
 from . import cliargs
-from .record.summary import build_summary, load, to_lists, write_json
+from .api import run_of_recording
+from .record.summary import load, to_lists, write_json
+from .resimulate import compare, recorded_run
 from .stats import fmt_percentiles
 from .wire import messages as msg
 from .wire import transport
-
-
-def _budget_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
-    from attackers.budget import check, realized_rates
-    from attackers.schedule import Schedule
-
-    logged = Schedule.from_theta(attack_on.astype(np.uint8), sc.T) if attack_on.size else Schedule.empty()
-    if sc.attack.kind == "intervals":
-        # priced as declared: back-to-back attacks lose the samples one longer attack would lose,
-        # for less duration, so the log's runs of lost samples would overprice them
-        full = sc.attack.schedule(sc.T, horizon)
-        sch = Schedule.from_list([iv for iv in full.intervals if iv[0] < horizon - 1e-9]) if horizon > 0 else full
-        priced = "declared intervals"
-    else:
-        sch, priced = logged, "runs of lost samples in the attacker's log (one attack each)"
-    out: dict = {"intervals": [list(iv) for iv in sch.intervals], "count": len(sch),
-                 "lengths": [float(x) for x in sch.lengths], "total_duration": float(sch.total_duration),
-                 "horizon": horizon, "priced": priced, "logged_intervals": [list(iv) for iv in logged.intervals]}
-    if horizon > 0:
-        rr = realized_rates(sch, horizon)
-        out["realized"] = {"frequency": rr[0], "duration_fraction": rr[1]}
-    declared = sc.attack.budget
-    if declared is not None:
-        kF, rF, kD, rD = declared
-        rep = check(sch, rF, rD, horizon=horizon if horizon > 0 else None)
-        out["budget"] = {"declared": {"kappa_F": kF, "rho_F": rF, "kappa_D": kD, "rho_D": rD},
-                         "kappa_F_min": rep.kappa_F_min, "kappa_D_min": rep.kappa_D_min,
-                         "within": bool(rep.satisfies(kF, kD))}
-    else:
-        out["budget"] = None
-    return out
 
 
 def losses_as_dos(sc, theta: np.ndarray) -> dict:
@@ -163,20 +130,6 @@ def _security(runmeta: dict) -> dict | None:
         return None
 
 
-def _agreement(cols, N: int) -> dict:
-    """Encoder and decoder (xi_k, E_k) compared bit for bit at every sample both recorded."""
-    e_ok = cols.has("encoder")[:N] & (cols.get("encoder", "silent")[:N] == 0)
-    both = e_ok & cols.has("controller")[:N]
-    xi_e, xi_c = cols.get("encoder", "xi")[:N], cols.get("controller", "xi")[:N]
-    E_e, E_c = cols.get("encoder", "E")[:N], cols.get("controller", "E")[:N]
-    differ = np.flatnonzero(both & ((E_e != E_c) | np.any(xi_e != xi_c, axis=1)))
-    missing = np.flatnonzero(~both)
-    compared = int(np.count_nonzero(both))
-    return {"samples": N, "compared": compared, "disagree": int(differ.size), "disagree_at": differ[:50].tolist(),
-            "not_compared": int(missing.size), "not_compared_at": missing[:50].tolist(),
-            "all_agree": not differ.size and not missing.size}
-
-
 #: how many samples ``testbed report`` resimulates by default (about 1.3 s; every sample of a
 #: run up to 1,000 s at T = 0.1 s or 10 s at 1 kHz): ``--resimulate all`` or ``testbed resimulate`` for more
 RESIMULATE_SAMPLES = 10_000
@@ -189,48 +142,38 @@ def report(path, *, arrays: bool = False, resimulate: int | None | str = "defaul
     ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none;
     "default": ``RESIMULATE_SAMPLES``, read when the report is made).
     """
-    if resimulate == "default":
-        resimulate = RESIMULATE_SAMPLES
-    cols, sc = load(path) if isinstance(path, (str, Path)) else path
-    out = _report(cols, sc, arrays=arrays, resimulate=resimulate)
+    out = report_of_run(run_of(path), resimulate=resimulate)
     return out if arrays else to_lists(out)
 
 
-def _report(cols, sc, *, arrays: bool, resimulate: int | None) -> dict:
+def run_of(path):
+    """The ``testbed.Run`` of a recording (a path, or ``(columns, scenario)`` from ``load``), read with the
+    fields the report needs (``record.summary.load``)."""
+    cols, sc = load(path) if isinstance(path, (str, Path)) else path
+    return run_of_recording(cols, sc)
+
+
+def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
+    """The report of a recording's ``Run`` (``testbed.api.run_of_recording``): its whole summary and the
+    report's own sections (module docstring); per-sample values as numpy arrays."""
+    if resimulate == "default":
+        resimulate = RESIMULATE_SAMPLES
+    cols, sc, s = run._columns, run.scenario, run._details
     path = cols.path
     runmeta = cols.metadata.get("testbed.run", {})
-    launcher = cols.summaries.get("launcher", {})
-    plant = sc.make_model()
-    cb = sc.make_method().codebook(plant.n, sc.quantizer)
     start = cols.start
-    run_id = start.run_id if start else runmeta.get("run_id", "?")
-    ack_via = runmeta.get("ack_via_attacker", "false") == "true" or bool(start and start.ack_via_attacker)
-    out = build_summary(sc, cols, run_id=run_id, ack_via_attacker=ack_via,
-                        nodes=launcher.get("nodes") or {}, faults=launcher.get("faults") or [], codebook=cb,
-                        arrays=True)
-    live = cols.source == "live"
-    out["live"] = live
-    out["source"] = cols.source
-    N = out["samples"]
-    if not live:
-        out["timing"] = None  # a simulation has nominal times only
-    A = cols.has("attacker")[:N]
-    attack_on = A & (cols.get("attacker", "attack_on")[:N] != 0)
-    dropped = A & (cols.get("attacker", "dropped")[:N] != 0)
-    out["dos"] = _budget_section(sc, attack_on, N * sc.T)
-    out["dos"]["attacker_log_samples"] = int(np.count_nonzero(cols.has("attacker")))
-    out["dos"]["counts"] = "the attacker's losses only (losses.attacker), not the channel's, late or withheld ones"
-    out["losses_as_dos"] = losses_as_dos(sc, np.asarray(out["theta"]))
-    out["dropped_by_attacker"] = int(dropped.sum())
-    out["agreement"] = _agreement(cols, N)
-    out["saturation_events"] = [e.k for e in cols.events if e.kind == "saturation"]
-    out["outcome"] = launcher.get("outcome", "simulated" if not live else None)
+    N = run.N
+    out = {k: v for k, v in s.items() if k not in ("dos", "dropped_by_attacker", "agreement", "outcome")}
+    out["dos"] = s["dos"]
+    out["losses_as_dos"] = losses_as_dos(sc, run.arrays["theta"])
+    out["dropped_by_attacker"] = s["dropped_by_attacker"]
+    out["agreement"] = s["agreement"]
+    out["saturation_events"] = [e["k"] for e in run.events if e["kind"] == "saturation"]
+    out["outcome"] = s["outcome"]
     out["actuation"] = _actuation_section(sc, cols, N)
     out["telemetry_check"] = telemetry_check(cols, N)
-    from .resimulate import compare, recorded_run
-
     try:
-        out["resimulation"] = (compare(recorded_run(cols, sc), limit=resimulate) if resimulate != 0 else
+        out["resimulation"] = (compare(recorded_run(run), limit=resimulate) if resimulate != 0 else
                                {"reproduced": None, "verdict": "not resimulated (testbed resimulate checks the run)"})
     except Exception as e:  # noqa: BLE001 - the report stands without it; say why
         out["resimulation"] = {"reproduced": None, "verdict": f"not resimulated: {type(e).__name__}: {e}"}
@@ -275,26 +218,14 @@ def recording_end(path, rec: dict, samples) -> dict:
     return {"ends": f"ends {at}; {why}", "error": err}
 
 
-def plot(summary: dict, path: str | Path, *, title: str = "", size: str = "page") -> Path:
-    """The paper's Fig. 2 from a report: states, input, E_k at encoder and decoder, DoS shaded."""
-    from types import SimpleNamespace
+def plot(run, path: str | Path, *, title: str = "", size: str = "page") -> Path:
+    """The paper's Fig. 2 of a recording's ``Run``: states, input, E_k at encoder and decoder, the DoS
+    intervals of its ``dos`` section shaded."""
+    from .analysis.figures import plot_time_series, series_of_run
 
-    from .analysis.figures import plot_time_series
-
-    def arr(key):
-        v = summary.get(key)
-        if isinstance(v, np.ndarray):
-            return v.astype(float)
-        v = v or []
-        return np.array([[np.nan if a is None else a for a in row] if isinstance(row, list) else
-                         (np.nan if row is None else row) for row in v], dtype=float)
-
-    res = SimpleNamespace(T=summary["T"], t=np.asarray(summary["t"], dtype=float), x=arr("x"), u=arr("u"),
-                          E_enc=arr("E"), E_dec=arr("E_dec"), theta=np.asarray(summary["theta"], dtype=int))
-    intervals = summary.get("dos", {}).get("intervals")
-    kind = {"live": "live run", "simulate": "simulation"}.get(summary.get("source"), summary.get("source"))
-    return plot_time_series(res, path, title=title or f"{summary.get('scenario')}, {kind}", intervals=intervals,
-                            size=size)
+    kind = {"live": "live run", "simulate": "simulation"}.get(run.source, run.source)
+    return plot_time_series(series_of_run(run), path, title=title or f"{run.scenario.name}, {kind}",
+                            intervals=run.summary["dos"]["intervals"], size=size)
 
 
 def print_text(s: dict) -> None:
@@ -394,27 +325,17 @@ def add_arguments_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     cliargs.add_json(p, "the report (the keys of testbed simulate --json and more)")
     cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
-    p.add_argument("--resimulate", metavar="N|all", type=_resimulate_count, default=RESIMULATE_SAMPLES,
+    p.add_argument("--resimulate", metavar="N|all", type=cliargs.int_at_least(0, or_all=True),
+                   default=RESIMULATE_SAMPLES,
                    help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
                         "all: every sample, as testbed resimulate; 0: none)")
 
 
-def _resimulate_count(text: str) -> int | None:
-    if text == "all":
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of samples or 'all', got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a number of samples >= 0 or 'all', got {text!r}")
-    return n
-
-
 def main_report(args) -> int:
-    s = report(args.recording, arrays=True, resimulate=args.resimulate)
+    run = run_of(args.recording)
+    s = report_of_run(run, resimulate=args.resimulate)
     if args.plot:
-        plot(s, args.plot, size=args.figsize)
+        plot(run, args.plot, size=args.figsize)
     if args.json:
         write_json(s, sys.stdout)  # streamed: no list of every sample in memory
         sys.stdout.write("\n")

@@ -33,28 +33,30 @@ import sys
 import numpy as np
 
 from . import cliargs
+from .api import run_of_recording
 
 #: physical timing: the largest state error that still counts as reproduced
 PHYSICAL_TOLERANCE = 1e-9
 
 
-def recorded_run(cols, sc) -> dict:
-    """The per-sample record a resimulation needs, from ``testbed.record.columns.Columns`` and its scenario."""
+def recorded_run(run) -> dict:
+    """The per-sample record a resimulation needs, from a recording's ``testbed.Run``
+    (``testbed.api.run_of_recording``): the values from its arrays, which samples each node recorded
+    and what the controller and the plant said happened from its columns."""
     from .simloop import Replay
     from .wire import messages as msg
 
-    final = cols.final
-    N = final["k"] if final is not None else cols.last_k("plant") + 1
-    N = max(0, min(int(N), sc.n_steps, cols.rows))
+    cols, sc, a = run._columns, run.scenario, run.arrays
+    N = min(run.N, sc.n_steps)
     hp, he, hc = cols.has("plant")[:N], cols.has("encoder")[:N], cols.has("controller")[:N]
     silent = he & (cols.get("encoder", "silent")[:N] != 0)
     have_sym = he & ~silent
     live = {
-        "x": np.where(hp[:, None], cols.get("plant", "x")[:N], np.nan),
-        "symbols": np.where(have_sym, cols.get("encoder", "symbol")[:N], -1).astype(np.int64),
-        "E": np.where(have_sym, cols.get("encoder", "E")[:N], np.nan),
-        "E_dec": np.where(hc, cols.get("controller", "E")[:N], np.nan),
-        "theta": np.where(hc, cols.get("controller", "theta")[:N], -1).astype(np.int64),
+        "x": np.where(hp[:, None], a["x"][:N], np.nan),
+        "symbols": np.where(have_sym, a["symbols"][:N], -1).astype(np.int64),
+        "E": np.where(have_sym, a["E"][:N], np.nan),
+        "E_dec": np.where(hc, a["E_dec"][:N], np.nan),
+        "theta": np.where(hc, a["theta"][:N], -1).astype(np.int64),  # the controller's where it recorded
         "have_x": hp.copy(), "have_sym": have_sym, "have_dec": hc.copy(),
     }
     reason = np.where(hc, cols.get("controller", "reason")[:N], -1).astype(np.int64)
@@ -63,6 +65,7 @@ def recorded_run(cols, sc) -> dict:
     physical = sc.run.timing == "physical"
     replay = Replay(reason=reason, sensed=he.copy(), withheld=silent, u_missing=u_missing,
                     delays=delays if physical else None)
+    final = cols.final
     x_final = None if final is None else np.asarray(final["x"], dtype=float)
     return {"scenario": sc, "N": N, "replay": replay, "live": live, "x_final": x_final}
 
@@ -137,8 +140,7 @@ def resimulate(path) -> dict:
     """``testbed resimulate PATH --json`` as a dict."""
     from .record.summary import load
 
-    cols, sc = load(path)
-    return compare(recorded_run(cols, sc))
+    return compare(recorded_run(run_of_recording(*load(path))))
 
 
 def add_arguments_resimulate(p: argparse.ArgumentParser) -> None:

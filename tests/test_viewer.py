@@ -62,9 +62,22 @@ def sim(paper):
 
 
 # ---------------------------------------------------------------- pure parts
-def test_attack_intervals_to_samples():
-    on = viewer.Trace.attack_from_intervals([[1.0, 1.2], [4.0, 0.8]], 0.1, 60)
-    assert on[:10].sum() == 0 and on[10:22].all() and not on[22] and on[40:48].all() and on.sum() == 20
+def test_attack_intervals_to_samples(paper):
+    """One attack_on of a simulation (``simulate.attack_on_samples``), the Run's and the view's: the DoS
+    schedule at t_k with the schedule's own convention, a_i <= k T <= a_i + tau_i (``Schedule.theta_samples``),
+    so the sample at the end of an interval is on, as it is lost."""
+    from testbed import scenario
+    from testbed.api import simulate
+    from testbed.simulate import attack_on_samples, simulate_scenario
+
+    sc = scenario.with_overrides(paper, {"duration": 6.0, "attack": {"intervals": [[1.0, 1.2], [4.0, 0.8]]}})
+    res = simulate_scenario(sc)
+    on = attack_on_samples(sc, res)
+    assert len(on) == 60
+    assert on[:10].sum() == 0 and on[10:23].all() and not on[23] and on[40:49].all() and on.sum() == 22
+    assert np.array_equal(on, sc.attack.schedule(sc.T, 6.0).theta_samples(sc.T, 60).astype(bool))
+    assert np.array_equal(on, res.theta.astype(bool))  # every sample of an interval is lost, no other
+    assert np.array_equal(simulate(sc).arrays["attack_on"], on)
 
 
 def test_roa_outline_paper_and_none_for_cartpole(paper):
@@ -80,7 +93,10 @@ def test_roa_outline_paper_and_none_for_cartpole(paper):
 def test_simulation_rrd_entities_and_E(sim, tmp_path):
     sc, res = sim
     path = tmp_path / "sim.rrd"
-    viewer.simulation_to_rrd(path, sc, res)
+    from testbed.api import run_of_simulation
+    from testbed.simulate import attack_on_samples
+
+    viewer.run_to_rrd(path, run_of_simulation(sc, res), recording_id=f"sim-{sc.name}")
     r = RrdReader(path)
     assert len(r.recordings()) == 1 and len(r.blueprints()) == 1
     paths = entity_paths(path)
@@ -97,6 +113,8 @@ def test_simulation_rrd_entities_and_E(sim, tmp_path):
     np.testing.assert_allclose([lg[k][0] for k in sorted(lg)], np.log10(res.E_enc))
     theta = scalars(path, "/controller/theta")
     assert [int(theta[k][0]) for k in sorted(theta)] == res.theta.astype(int).tolist()
+    on = scalars(path, "/attacker/attack_on")
+    assert [int(on[k][0]) for k in sorted(on)] == attack_on_samples(sc, res).astype(int).tolist()
     v = rrd_verify(path)
     assert v.returncode == 0, v.stderr[-2000:]
 
@@ -128,7 +146,11 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
     E = scalars(rrd, "/encoder/E")
     assert np.array_equal(np.array([E[k][0] for k in sorted(E)]), res.E_enc)
     on = scalars(rrd, "/attacker/attack_on")
-    assert sum(v[0] for v in on.values()) == 20  # [1.0, 2.2) and [4.0, 4.8) at T = 0.1
+    # the attacker's recorded attack_on (the simulator's): [1.0, 2.2] and [4.0, 4.8] at T = 0.1, ends included
+    from testbed.simulate import attack_on_samples
+
+    assert [int(on[k][0]) for k in sorted(on)] == attack_on_samples(sc, res).astype(int).tolist()
+    assert sum(v[0] for v in on.values()) == 22
     assert rrd_verify(rrd).returncode == 0
 
 

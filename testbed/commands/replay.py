@@ -6,9 +6,8 @@ import argparse
 import json
 
 from .. import cliargs
-from ..record.summary import load
-from ..report import report
-from ..view.rerun import Trace, trace_to_rrd
+from ..api import open as open_run
+from ..view.rerun import run_to_rrd
 
 
 def add_arguments_replay(p: argparse.ArgumentParser) -> None:
@@ -20,11 +19,10 @@ def add_arguments_replay(p: argparse.ArgumentParser) -> None:
 
 
 def main_replay(args) -> int:
-    cols, sc = load(args.recording)
-    s = report((cols, sc), arrays=True)
+    run = open_run(args.recording)
+    s, sc = run.summary, run.scenario
     spawn = args.spawn or not args.rrd
-    trace_to_rrd(args.rrd, sc, Trace.from_report(s), recording_id=str(s.get("run_id") or sc.name),
-                 roa=not args.no_roa, spawn=spawn)
+    run_to_rrd(args.rrd, run, recording_id=str(s.get("run_id") or sc.name), roa=not args.no_roa, spawn=spawn)
     if args.json:
         print(json.dumps({"rrd": args.rrd, "spawned": spawn, "run_id": s.get("run_id"), "samples": s.get("samples"),
                           "scenario": sc.name}))

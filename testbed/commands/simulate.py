@@ -74,9 +74,11 @@ def main_simulate(args) -> int:
         record_simulation(args.out, sc, res, overrides={k: v for k, v in overrides.items() if v is not None},
                           ref=args.scenario, exclusive=not args.force)
     if args.rrd:
-        from ..view.rerun import simulation_to_rrd
+        from ..api import run_of_simulation
+        from ..view.rerun import run_to_rrd
 
-        simulation_to_rrd(args.rrd, sc, res, roa=not args.no_roa)
+        run_to_rrd(args.rrd, run_of_simulation(sc, res, summary=out), recording_id=f"sim-{sc.name}",
+                   roa=not args.no_roa)
     if args.plot:
         from ..analysis.figures import figure_title, plot_time_series
 

@@ -40,7 +40,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import BadInput
 from ..wire import messages as msg
 from . import schema
 from .mcapfile import (
@@ -509,9 +508,7 @@ def read_columns(path: str | Path, *, fields: set[str] | None = None, sc=None) -
     usable scenario, or is corrupt; a file cut short is read up to its cut.
     """
     path = Path(path)
-    if path.is_dir():
-        raise BadInput(f"{path}: is a directory, not a recording")
-    meta, _footer = read_metadata(path)
+    meta, _footer = read_metadata(path)  # BadInput for a directory or a file that is not MCAP
     if sc is None:
         sc = scenario_of(meta, str(path))
     if callable(fields):

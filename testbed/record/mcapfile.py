@@ -38,6 +38,8 @@ class _File:
 
     def __init__(self, path: Path):
         self.path = path
+        if path.is_dir():
+            raise BadInput(f"{path}: is a directory, not a recording")
         self.f = open(path, "rb")
         self.size = self.f.seek(0, 2)
         self.f.seek(0)

@@ -368,9 +368,10 @@ def _fields(meta: dict) -> set[str]:
     return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
 
 
-def load(path: str | Path):
+def load(path: str | Path, *, fields=_fields):
     """The columns of a recording and its scenario (``BadInput`` for anything unusable).
 
+    ``fields``: what to decode (``read_columns``; default what the report reads, None: every field).
     The columns carry ``plant_source`` and ``model_source`` (``recorded.recorded_scenario``).
     """
     from .columns import read_columns
@@ -379,6 +380,6 @@ def load(path: str | Path):
 
     meta, _ = read_metadata(path)
     sc, ps, ms = recorded_scenario(meta, str(path))
-    cols = read_columns(path, fields=_fields, sc=sc)
+    cols = read_columns(path, fields=fields, sc=sc)
     cols.plant_source, cols.model_source = ps, ms
     return cols, sc

@@ -1,8 +1,8 @@
 """Rerun view of a run: live (``testbed run --rerun``), replayed (``testbed replay``) or simulated.
 
-One core, :func:`log_samples`, logs plain per-sample arrays; the simulator
-(``testbed simulate --rrd``), the replay of an MCAP recording and the live nodes
-all go through it, so they produce the same entities and the same blueprint.
+One core, :func:`log_samples`, logs plain per-sample arrays; a whole run (a ``testbed.Run``:
+``testbed simulate --rrd`` and the replay of an MCAP recording, :func:`log_run`) and the
+live nodes all go through it, so they produce the same entities and the same blueprint.
 
 Timelines
 ---------
@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import argparse
 from contextlib import contextmanager
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -241,81 +240,29 @@ def blueprint(sc, bounds=None):
     )
 
 
-# ============================================================================ offline: arrays of a whole run
-@dataclass
-class Trace:
-    """A whole run as plain arrays (rows k = 0..N-1), the input of :func:`log_trace`."""
+# ============================================================================ offline: a whole run
+def log_run(rec, run) -> None:
+    """Every entity of a whole run (the same ones a live run streams).
 
-    T: float
-    x: np.ndarray              # (N, n)
-    u: np.ndarray              # (N, m)
-    E_enc: np.ndarray          # (N,)
-    xi_enc: np.ndarray         # (N, n)
-    E_dec: np.ndarray
-    xi_dec: np.ndarray
-    theta: np.ndarray          # (N,) 1 = lost
-    attack_on: np.ndarray      # (N,)
-    saturated: np.ndarray      # (N,)
-    x_final: np.ndarray | None = None  # x_N
-
-    @staticmethod
-    def attack_from_intervals(intervals, T: float, N: int) -> np.ndarray:
-        """attack_on[k] = 1 when t_k lies in one of the (start, length) intervals [s, s + l)."""
-        t = np.arange(N) * T
-        on = np.zeros(N, dtype=np.uint8)
-        for s, ln in intervals:
-            on[(t >= s - 1e-9 * T) & (t < s + ln - 1e-9 * T)] = 1
-        return on
-
-    @classmethod
-    def from_simulation(cls, sc, res) -> "Trace":
-        N = len(res.t)
-        return cls(T=float(res.T), x=res.x, u=res.u, E_enc=res.E_enc, xi_enc=res.xi_enc, E_dec=res.E_dec,
-                   xi_dec=res.xi_dec, theta=np.asarray(res.theta), saturated=np.asarray(res.saturated),
-                   attack_on=cls.attack_from_intervals(res.intervals().intervals, res.T, N),
-                   x_final=np.asarray(res.x_final))
-
-    @classmethod
-    def from_report(cls, s: dict) -> "Trace":
-        """From ``testbed.report.report(path)`` (the post-mortem of a recording)."""
-        T = float(s["T"])
-        x = np.asarray(s["x"], dtype=float)
-        N = len(x)
-        x = x.reshape(N, -1)
-
-        def arr(key, width=None):
-            v = s.get(key)
-            if isinstance(v, np.ndarray):  # report(..., arrays=True): NaN already marks what is missing
-                v = v.astype(float)
-                return v.reshape(len(v), -1) if width else v
-            v = v or []
-            rows = [r if r is not None and len(np.atleast_1d(r)) else [np.nan] * (width or 1) for r in v]
-            return np.asarray(rows, dtype=float).reshape(len(rows), -1) if width else \
-                np.asarray([np.nan if r is None else r for r in v], dtype=float)
-
-        n = x.shape[1] if x.ndim == 2 else 1
-        sat = np.zeros(N, dtype=np.uint8)
-        sat[[k for k in s.get("saturated_at", []) if k < N]] = 1
-        xf = s.get("x_final")
-        m = s["u"].shape[1] if isinstance(s.get("u"), np.ndarray) else (len(s["u"][0]) if s.get("u") else 1)
-        return cls(T=T, x=x, u=arr("u", m), E_enc=arr("E"),
-                   xi_enc=arr("xi", n), E_dec=arr("E_dec"), xi_dec=arr("xi_dec", n),
-                   theta=np.asarray(s["theta"] if s.get("theta") is not None else np.zeros(N), dtype=float),
-                   attack_on=cls.attack_from_intervals(s.get("dos", {}).get("intervals", []), T, N),
-                   saturated=sat, x_final=None if xf is None else np.asarray(xf, dtype=float))
-
-
-def log_trace(rec, tr: Trace) -> None:
-    """Every entity of a whole run (the same ones a live run streams)."""
-    N = len(tr.x)
+    ``run``: a ``testbed.Run`` (a simulation or a recording), read duck-typed (this layer sits below
+    it): ``run.arrays`` (``x``, ``u``, ``E``, ``xi``, ``E_dec``, ``xi_dec``, ``theta``, ``attack_on``,
+    ``saturated``; rows k = 0..N-1), ``run.scenario.T`` and ``run.summary["x_final"]`` (x_N, or None).
+    NaN in E_k or xi_k marks a sample an end did not record: it is not logged.
+    """
+    a, T = run.arrays, float(run.scenario.T)
+    x = np.asarray(a["x"], dtype=np.float64)
+    N = len(x)
     k = np.arange(N)
-    ok_e = np.isfinite(tr.E_enc) & np.all(np.isfinite(tr.xi_enc), axis=1)
-    ok_d = np.isfinite(tr.E_dec) & np.all(np.isfinite(tr.xi_dec), axis=1)
-    x = tr.x if tr.x_final is None else np.vstack([tr.x, tr.x_final[None, :]])
-    log_samples(rec, np.arange(len(x)), tr.T, x=x)
-    log_samples(rec, k, tr.T, u=tr.u, theta=tr.theta, attack_on=tr.attack_on, saturated=tr.saturated)
-    log_samples(rec, k[ok_e], tr.T, E_enc=tr.E_enc[ok_e], xi_enc=tr.xi_enc[ok_e])
-    log_samples(rec, k[ok_d], tr.T, E_dec=tr.E_dec[ok_d], xi_dec=tr.xi_dec[ok_d])
+    E_enc, xi_enc = np.asarray(a["E"], dtype=np.float64), np.asarray(a["xi"], dtype=np.float64)
+    E_dec, xi_dec = np.asarray(a["E_dec"], dtype=np.float64), np.asarray(a["xi_dec"], dtype=np.float64)
+    ok_e = np.isfinite(E_enc) & np.all(np.isfinite(xi_enc), axis=1)
+    ok_d = np.isfinite(E_dec) & np.all(np.isfinite(xi_dec), axis=1)
+    x_final = run.summary.get("x_final")
+    xs = x if x_final is None else np.vstack([x, np.asarray(x_final, dtype=np.float64)[None, :]])
+    log_samples(rec, np.arange(len(xs)), T, x=xs)
+    log_samples(rec, k, T, u=a["u"], theta=a["theta"], attack_on=a["attack_on"], saturated=a["saturated"])
+    log_samples(rec, k[ok_e], T, E_enc=E_enc[ok_e], xi_enc=xi_enc[ok_e])
+    log_samples(rec, k[ok_d], T, E_dec=E_dec[ok_d], xi_dec=xi_dec[ok_d])
 
 
 def new_stream(recording_id: str | None = None):
@@ -324,14 +271,17 @@ def new_stream(recording_id: str | None = None):
     return rr.RecordingStream(APP_ID, recording_id=recording_id)
 
 
-def trace_to_rrd(path, sc, tr: Trace, *, recording_id: str | None = None, roa: bool = True,
-                 spawn: bool = False) -> None:
-    """Write (and/or show) a whole run: statics, blueprint and every sample."""
+def run_to_rrd(path, run, *, recording_id: str | None = None, roa: bool = True, spawn: bool = False) -> None:
+    """Write (and/or show) a whole run (``log_run``): statics, blueprint and every sample.
+
+    ``testbed simulate --rrd`` and ``testbed replay`` (the recording id: ``sim-NAME`` and the run id)."""
     import rerun as rr
 
+    sc = run.scenario
     rec = new_stream(recording_id)
     out = roa_outline(sc) if roa else None
-    bp = blueprint(sc, phase_bounds(sc, tr.x, out))
+    x, u = np.asarray(run.arrays["x"]), np.asarray(run.arrays["u"])
+    bp = blueprint(sc, phase_bounds(sc, x, out))
     sinks = []
     if path is not None:
         sinks.append(rr.FileSink(str(path)))
@@ -347,16 +297,11 @@ def trace_to_rrd(path, sc, tr: Trace, *, recording_id: str | None = None, roa: b
         sinks.append(rr.GrpcSink())
     rec.set_sinks(*sinks)
     rec.send_blueprint(bp)
-    log_styles(rec, tr.x.shape[1], tr.u.shape[1] if tr.u.ndim == 2 else 1)
+    log_styles(rec, x.shape[1], u.shape[1] if u.ndim == 2 else 1)
     log_scenario(rec, sc, roa=roa)
-    log_trace(rec, tr)
+    log_run(rec, run)
     rec.flush()
     rec.disconnect()
-
-
-def simulation_to_rrd(path, sc, res, *, roa: bool = True) -> None:
-    """``testbed simulate --rrd PATH``: the simulated run as a Rerun recording."""
-    trace_to_rrd(path, sc, Trace.from_simulation(sc, res), recording_id=f"sim-{sc.name}", roa=roa)
 
 
 # ============================================================================ live: testbed run --rerun
