@@ -9,7 +9,6 @@ import sys
 
 from .. import cliargs
 from ..live.external import add_external_arguments
-from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
 from ..live.recorder import add_record_error_argument
@@ -19,6 +18,19 @@ from ..stats import fmt_percentiles
 from ..view.rerun import add_rerun_run_arguments
 from ..wire.session import add_network_arguments
 from .liveconfig import run_config
+
+#: ``--foxglove``'s port when none is given
+FOXGLOVE_PORT = 8765
+
+
+def add_foxglove_run_arguments(p) -> None:
+    """The ``--foxglove`` option of ``testbed run``."""
+    g = p.add_argument_group("foxglove (live view)")
+    g.add_argument("--foxglove", nargs="?", type=int, const=FOXGLOVE_PORT, default=None, metavar="PORT",
+                   help=f"serve the run live over Foxglove's WebSocket protocol on 127.0.0.1:PORT (default "
+                        f"{FOXGLOVE_PORT}; needs foxglove-sdk); connect Foxglove to ws://127.0.0.1:PORT")
+    g.add_argument("--foxglove-linger", type=float, default=0.0, metavar="S",
+                   help="keep the server up S seconds after the run (default %(default)s)")
 
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:

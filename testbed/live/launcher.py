@@ -37,7 +37,6 @@ from .. import scenario
 from ..errors import BadInput
 from ..nodes.options import NodeConfig, RunConfig, load_scenario
 from ..nodes.process import parse_cpus
-from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
@@ -123,7 +122,11 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
         self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
         self._tokens: list = []
-        self.rerun = LiveRerun.from_options(cfg.rerun, cfg.rrd, cfg.roa, self.sc, self.run_id)  # --rerun, or None
+        self.rerun = None                                              # testbed run --rerun / --rrd
+        if cfg.rerun or cfg.rrd:
+            from ..view.rerun import LiveRerun
+
+            self.rerun = LiveRerun.from_options(cfg.rerun, cfg.rrd, cfg.roa, self.sc, self.run_id)
         self.foxglove = None                                           # testbed run --foxglove PORT
         if cfg.foxglove is not None:
             from .foxglove_tap import FoxgloveLive

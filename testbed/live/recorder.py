@@ -15,8 +15,7 @@ import subprocess
 import sys
 import time
 
-from ..nodes.options import RecorderConfig
-from ..nodes.recorder import RECORD_FAILED
+from ..nodes.options import RECORD_FAILED, RecorderConfig
 from ..wire import transport
 
 #: ``testbed run``'s exit code when the run itself was clean but its recording is incomplete

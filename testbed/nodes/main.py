@@ -28,7 +28,6 @@ import time
 
 from ..wire import transport
 from ..wire.session import zenoh_config
-from . import joined, rerun_tap
 from .context import NodeContext
 from .options import NodeConfig, load_scenario
 from .process import (
@@ -78,6 +77,8 @@ def run_node(cfg: NodeConfig) -> int:
         os.sched_setaffinity(0, parse_cpus(cfg.cpus))
     jf = None
     if cfg.scenario is None:  # TESTBED_JOIN: the configuration and the scenario from the join file
+        from . import joined
+
         jf, cfg = joined.apply(cfg)
     opts = cfg.opts
     if role in opts.colocate:
@@ -131,7 +132,10 @@ def run_node(cfg: NodeConfig) -> int:
         holder["node"] = node
         tap = guest_tap = None
         try:
-            tap = rerun_tap.of(cfg, role, sc)
+            if cfg.rerun_url or cfg.rerun_save:  # rerun's view (numpy, rerun) only when asked for
+                from . import rerun_tap
+
+                tap = rerun_tap.of(cfg, role, sc)
             if tap is not None:
                 ctx.telemetry.tap = tap.put
             node.setup()

@@ -129,6 +129,10 @@ class NodeConfig:
         return out
 
 
+#: the recorder's exit code when its file could not be written to the end (``RecordingFailed``)
+RECORD_FAILED = 4
+
+
 @dataclass(frozen=True)
 class RecorderConfig:
     """The recorder process of a run (``testbed record``)."""

@@ -34,7 +34,7 @@ from ..record import recording, topics
 from ..wire import messages as msg
 from ..wire import transport
 from ..wire.session import security_info, zenoh_config
-from .options import RecorderConfig, T_ns, load_scenario
+from .options import RECORD_FAILED, RecorderConfig, T_ns, load_scenario
 from .process import on_stop_signals, parse_cpus, tune_process
 
 log = logging.getLogger("testbed.recorder")
@@ -289,8 +289,6 @@ class Recorder:
 
 
 # ============================================================================ command line
-#: the recorder's exit code when its file could not be written to the end (``RecordingFailed``)
-RECORD_FAILED = 4
 
 
 def loop_default(sc, choice: str) -> bool:
