@@ -4,6 +4,7 @@ flags that hand them to each process, and the launcher's own session (the run's 
 from __future__ import annotations
 
 import ipaddress
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -67,11 +68,31 @@ def choose_topology(cfg) -> tuple[str, str]:
     return "peer", ONE_HOST
 
 
+def _start_tls_maker(folder: Path) -> int:
+    """Fork a child that makes the run's TLS folder (``TlsCredentials.new``) and exits 0, or 1 if it could not;
+    the launcher loads its kernels meanwhile (``Launcher.prewarm``) and never imports ``cryptography``."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 1
+        try:
+            transport.TlsCredentials.new(folder)
+            code = 0
+        except BaseException:  # noqa: BLE001 - the launcher makes the folder itself and reports why not
+            pass
+        finally:
+            os._exit(code)
+    return pid
+
+
 class RunCredentials:
     """The launcher's part that makes and hands out the run's credentials (a base of ``Launcher``)."""
 
+    _tls_maker: int | None = None  # the child making the run's certificates (``make_secrets``)
+
     def make_secrets(self) -> None:
-        """The run's credentials: one password per process, in 0600 files under a 0700 folder.
+        """The run's credentials: one password per process, in 0600 files under a 0700 folder; or, for
+        mutual TLS, the run's certificates, made by a child process while the launcher goes on
+        (``secrets_ready`` waits for them).
 
         The launcher (the router) keeps the whole dictionary; every process gets a file
         with its own line only.
@@ -81,10 +102,11 @@ class RunCredentials:
         if self.tls:
             if self.cfg.tls_dir:
                 self.tls_dir = Path(self.cfg.tls_dir).resolve()
+                transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
             else:
                 self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
-                self.tls_dir = transport.TlsCredentials.new(self.secret_dir / "tls").folder
-            transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
+                self.tls_dir = self.secret_dir / "tls"
+                self._tls_maker = _start_tls_maker(self.tls_dir)
             return
         if self.cfg.secret_file:
             self.secret_path = Path(self.cfg.secret_file).resolve()
@@ -96,7 +118,25 @@ class RunCredentials:
         for u in (*transport.ROLES, transport.RECORDER):
             cred.only(u).write(self.secret_dir / f"{u}.secret")
 
+    def secrets_ready(self) -> None:
+        """Once the run's certificates are needed (a process opens a session, a join file names them): wait for
+        the child making them; if it failed, make them here, which says why (one clear line)."""
+        pid, self._tls_maker = self._tls_maker, None
+        if pid is None:
+            return
+        _, status = os.waitpid(pid, 0)
+        if os.waitstatus_to_exitcode(status) != 0:
+            shutil.rmtree(self.tls_dir, ignore_errors=True)
+            transport.TlsCredentials.new(self.tls_dir)
+        transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
+
     def remove_secrets(self) -> None:
+        if self._tls_maker is not None:  # refused or interrupted before they were used
+            try:
+                os.waitpid(self._tls_maker, 0)
+            except ChildProcessError:
+                pass
+            self._tls_maker = None
         if self.secret_dir is not None:
             shutil.rmtree(self.secret_dir, ignore_errors=True)
 

@@ -487,9 +487,10 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         if transport.LAUNCHER in self.cpus:  # before Zenoh starts its threads: the router's CPUs
             os.sched_setaffinity(0, parse_cpus(self.cpus[transport.LAUNCHER]))
-        self.make_secrets()
+        self.make_secrets()  # the certificates of a TLS run are made meanwhile (``secrets_ready``)
+        if self.external is not None:
+            self.secrets_ready()  # the join file names them
         join_path = external.write_join(self)
-        conf = self.session_config()
         if not self.secure:
             print(f"testbed run: INSECURE: no authentication and no access control; any local process can join, "
                   f"stop or steer run {self.run_id}", file=sys.stderr)
@@ -502,9 +503,11 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 if self.rerun is not None:
                     self.rerun.prepare()  # the part files the nodes' flags name
                 self.prewarm()
+                self.secrets_ready()
                 self.spawn(forked=True)
             try:
-                session_cm = zenoh.open(conf)
+                self.secrets_ready()
+                session_cm = zenoh.open(self.session_config())
             except BaseException:
                 for r in self.procs:
                     self._signal_group(r, signal.SIGKILL)
