@@ -83,6 +83,17 @@ def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def _settings(cfg) -> list[str]:
+    """A process configuration's own settings as flags: ``--NAME VALUE`` for each of its ``_VALUED`` that is set,
+    ``--NAME`` for each of its ``_SWITCHES`` that is on."""
+    out = []
+    for name in cfg._VALUED:
+        v = getattr(cfg, name)
+        if v is not None:
+            out += [_flag(name), repr(v) if isinstance(v, float) else str(v)]
+    return out + [_flag(name) for name in cfg._SWITCHES if getattr(cfg, name)]
+
+
 @dataclass(frozen=True)
 class NodeConfig:
     """One node process of a run (``testbed node ROLE``): the run's options, its session, and its own settings.
@@ -119,14 +130,8 @@ class NodeConfig:
 
     def argv(self) -> list[str]:
         """``testbed node`` and the flags that make the same configuration (the launcher's command line)."""
-        out = ["node", self.role, *([self.scenario] if self.scenario is not None else []), *self.opts.cli(),
-               *self.session.argv()]
-        for name in self._VALUED:
-            v = getattr(self, name)
-            if v is not None:
-                out += [_flag(name), repr(v) if isinstance(v, float) else str(v)]
-        out += [_flag(name) for name in self._SWITCHES if getattr(self, name)]
-        return out
+        return ["node", self.role, *([self.scenario] if self.scenario is not None else []), *self.opts.cli(),
+                *self.session.argv(), *_settings(self)]
 
 
 #: the recorder's exit code when its file could not be written to the end (``RecordingFailed``)
@@ -157,13 +162,7 @@ class RecorderConfig:
 
     def argv(self) -> list[str]:
         """``testbed record`` and the flags that make the same configuration (the launcher's command line)."""
-        out = ["record", self.scenario, *self.opts.cli(), *self.session.argv()]
-        for name in self._VALUED:
-            v = getattr(self, name)
-            if v is not None:
-                out += [_flag(name), repr(v) if isinstance(v, float) else str(v)]
-        out += [_flag(name) for name in self._SWITCHES if getattr(self, name)]
-        return out
+        return ["record", self.scenario, *self.opts.cli(), *self.session.argv(), *_settings(self)]
 
 
 @dataclass(frozen=True)
