@@ -18,8 +18,8 @@ QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run", "method
 
 #: the commands that a live run's launcher starts as its children: command -> (module, one-line help)
 CHILD_COMMANDS: dict[str, tuple[str, str]] = {
-    "node": ("testbed.nodes.main", "run one node of a live run"),
-    "record": ("testbed.nodes.recorder", "record a live run to MCAP (testbed run starts one itself)"),
+    "node": ("testbed.commands.node", "run one node of a live run"),
+    "record": ("testbed.commands.record", "record a live run to MCAP (testbed run starts one itself)"),
 }
 
 

@@ -226,13 +226,14 @@ def test_free_port_and_endpoint_host():
 
 # ---------------------------------------------------------------- run options and scenario overrides
 def test_run_options_cli_roundtrip():
+    from testbed.commands.liveconfig import run_options
     from testbed.nodes.options import RunOptions, add_run_option_arguments
 
     o = RunOptions(duration=5.0, T=0.05, timing="physical", deadline=0.4, mode="ideal", ack_via_attacker=True,
                    separate_ack=True, colocate=("encoder",))
     p = argparse.ArgumentParser()
     add_run_option_arguments(p)
-    assert RunOptions.from_args(p.parse_args(o.cli())) == o
+    assert run_options(p.parse_args(o.cli())) == o
     assert RunOptions().cli() == []
     assert RunOptions().ack_on_actuation and not o.ack_on_actuation
     assert not RunOptions(separate_ack=True).ack_on_actuation

@@ -120,22 +120,19 @@ def test_a_client_joins_the_router_topology_over_mutual_tls_and_the_router_check
     router, by ``zenoh_config``), the controller's (a client, likewise), and a bare Zenoh client with the
     encoder's certificate and nothing else, as a device would present.  The device's symbol reaches the
     controller; its forged actuation does not; a certificate of another authority gets no session."""
-    import argparse
     import threading
     import time
 
     import zenoh
 
-    from testbed.wire.session import security_info, zenoh_config
+    from testbed.wire.session import SessionOptions, security_info, zenoh_config
 
     tls = transport.TlsCredentials.new(tmp_path / "tls")
     keys = transport.Keys.for_run("tlsrouter")
     ep = f"tls/127.0.0.1:{transport.free_port()}"
 
     def args(**kw):
-        base = dict(topology="router", tls_dir=str(tls.folder), secret_file=None, insecure=False, listen=[],
-                    connect=[], zenoh_config=None, low_latency=False, colocate=None, launched=False)
-        return argparse.Namespace(**{**base, **kw})
+        return SessionOptions(**{"topology": "router", "tls_dir": str(tls.folder), **kw})
 
     assert security_info(args())["transport"] == "mutual tls"
     device_conf = transport.make_config(connect=[ep], mode="client", tls=tls.zenoh("encoder"))
@@ -145,8 +142,8 @@ def test_a_client_joins_the_router_topology_over_mutual_tls_and_the_router_check
         with lock:
             got.append((str(sample.key_expr), sample.payload.to_bytes()))
 
-    with zenoh.open(zenoh_config(args(listen=[ep]), "plant", keys)) as plant, \
-            zenoh.open(zenoh_config(args(connect=[ep]), "controller", keys)) as ctl, \
+    with zenoh.open(zenoh_config(args(listen=(ep,)), "plant", keys, hub=True)) as plant, \
+            zenoh.open(zenoh_config(args(connect=(ep,)), "controller", keys)) as ctl, \
             zenoh.open(device_conf) as device:
         assert plant is not None
         subs = [ctl.declare_subscriber(keys.symbol_tx, on), ctl.declare_subscriber(keys.actuation, on)]
@@ -164,7 +161,7 @@ def test_a_client_joins_the_router_topology_over_mutual_tls_and_the_router_check
     assert (keys.symbol_tx, b"\x23") in got
     assert not [g for g in got if g[0] == keys.actuation]
     other = transport.TlsCredentials.new(tmp_path / "other")
-    with zenoh.open(zenoh_config(args(listen=[ep]), "plant", keys)):
+    with zenoh.open(zenoh_config(args(listen=(ep,)), "plant", keys, hub=True)):
         stranger = transport.make_config(connect=[ep], mode="client", tls=other.zenoh("encoder"))
         stranger.insert_json5("connect/timeout_ms", "2000")
         with pytest.raises(zenoh.ZError):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import stat
@@ -78,24 +79,24 @@ def test_a_tls_session_speaks_tls_only_and_checks_by_certificate_name(tmp_path):
 
 
 def test_a_node_of_the_peer_topology_needs_tls_endpoints(tmp_path):
-    from testbed.wire.session import zenoh_config
+    from testbed.wire.session import SessionOptions, zenoh_config
 
     d = transport.TlsCredentials.new(tmp_path / "tls").folder
-    base = dict(listen=[], connect=[], zenoh_config=None, topology="peer", insecure=False, secret_file=None,
-                tls_dir=str(d), low_latency=False, colocate=None, launched=False)
+    base = SessionOptions(topology="peer", tls_dir=str(d))
     keys = transport.Keys.for_run("r")
-    conf = zenoh_config(argparse.Namespace(**base), "plant", keys)  # standalone: the plant listens on 7447, TLS
+    conf = zenoh_config(base, "plant", keys, hub=True)  # standalone: the plant listens on 7447, TLS
     assert json.loads(conf.get_json("listen/endpoints")) == ["tls/127.0.0.1:7447"]
-    conf = zenoh_config(argparse.Namespace(**base), "encoder", keys)
+    conf = zenoh_config(base, "encoder", keys)
     assert json.loads(conf.get_json("connect/endpoints")) == ["tls/127.0.0.1:7447"]
     with pytest.raises(BadInput, match="mutual TLS"):
-        zenoh_config(argparse.Namespace(**dict(base, connect=["tcp/127.0.0.1:7447"])), "encoder", keys)
+        zenoh_config(dataclasses.replace(base, connect=("tcp/127.0.0.1:7447",)), "encoder", keys)
     with pytest.raises(BadInput, match="--tls-dir"):
-        zenoh_config(argparse.Namespace(**dict(base, tls_dir=None)), "encoder", keys)
+        zenoh_config(dataclasses.replace(base, tls_dir=None), "encoder", keys)
 
 
 def test_topology_auto_is_peer_on_one_host_and_router_when_a_node_may_be_elsewhere(tmp_path):
     """``testbed run --topology auto`` (the default): peer exactly when every node runs on the launcher's host."""
+    from testbed.commands.liveconfig import run_config
     from testbed.commands.run import add_arguments_run
     from testbed.live.credentials import ONE_HOST, choose_topology
 
@@ -103,7 +104,7 @@ def test_topology_auto_is_peer_on_one_host_and_router_when_a_node_may_be_elsewhe
     add_arguments_run(p)
 
     def choice(*flags):
-        return choose_topology(p.parse_args(["paper", *flags]))
+        return choose_topology(run_config(p.parse_args(["paper", *flags])))
 
     assert p.parse_args(["paper"]).topology == "auto"
     assert choice() == ("peer", ONE_HOST)

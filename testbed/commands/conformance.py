@@ -43,7 +43,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
 def main(args) -> int:
     from ..errors import BadInput
     from ..live.conformance import ADVERSE, REQUIREMENTS, conformance
-    from ..nodes.options import RunOptions
+    from .liveconfig import run_options
 
     # the options after SCENARIO, then -- COMMAND [ARGS...] (argparse drops a -- that directly follows SCENARIO)
     rest = list(args.command)
@@ -61,7 +61,7 @@ def main(args) -> int:
     from .. import scenario
 
     scenario.load(args.scenario)  # a bad scenario: one line, exit 2, before anything runs
-    opts = RunOptions.from_args(args)
+    opts = run_options(args)
     if opts.colocate:
         raise BadInput("--colocate: an external node runs alone in its process")
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="testbed-conformance-"))

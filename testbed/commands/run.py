@@ -9,7 +9,6 @@ import sys
 
 from .. import cliargs
 from ..live.external import add_external_arguments
-from ..live.foxglove_tap import add_foxglove_run_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
 from ..live.recorder import add_record_error_argument
@@ -17,7 +16,21 @@ from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
 from ..stats import fmt_percentiles
 from ..view.rerun import add_rerun_run_arguments
-from ..wire.session import add_security_arguments
+from ..wire.session import add_network_arguments
+from .liveconfig import run_config
+
+#: ``--foxglove``'s port when none is given
+FOXGLOVE_PORT = 8765
+
+
+def add_foxglove_run_arguments(p) -> None:
+    """The ``--foxglove`` option of ``testbed run``."""
+    g = p.add_argument_group("foxglove (live view)")
+    g.add_argument("--foxglove", nargs="?", type=int, const=FOXGLOVE_PORT, default=None, metavar="PORT",
+                   help=f"serve the run live over Foxglove's WebSocket protocol on 127.0.0.1:PORT (default "
+                        f"{FOXGLOVE_PORT}; needs foxglove-sdk); connect Foxglove to ws://127.0.0.1:PORT")
+    g.add_argument("--foxglove-linger", type=float, default=0.0, metavar="S",
+                   help="keep the server up S seconds after the run (default %(default)s)")
 
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:
@@ -25,17 +38,13 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the run's summary (the keys of testbed simulate --json, plus timing and faults)")
     add_run_option_arguments(p)
     g = p.add_argument_group("network")
-    g.add_argument("--run-id", help="key prefix testbed/RUN_ID/... (default: unique per run)")
-    g.add_argument("--listen", metavar="ENDPOINT",
-                   help="the launcher's endpoint (default tcp/127.0.0.1:<free port>); nodes connect to it")
+    add_network_arguments(g, launcher=True)
     g.add_argument("--node-connect", metavar="ENDPOINT",
                    help="endpoint the nodes connect to (default: --listen)")
     g.add_argument("--node-listen", action="append", default=[], metavar="ROLE=ENDPOINT",
                    help="a node's own listener (default tcp/127.0.0.1:0), e.g. plant=tcp/10.0.0.2:0")
     g.add_argument("--node-prefix", action="append", default=[], metavar="ROLE=COMMAND",
                    help="run a node under a command, e.g. plant='ip netns exec tb-plant' or 'ssh host'")
-    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config for every session (e.g. TLS)")
-    add_security_arguments(g, launcher=True)
     add_netns_arguments(g)
     g = p.add_argument_group("recording")
     cliargs.add_out(g, "recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); "
@@ -132,7 +141,8 @@ def main_run(args) -> int:
         return main_clean()
     if args.scenario is None:
         raise BadInput("which scenario? (a .toml file or a bundled name; testbed scenarios lists them)")
-    launcher = Launcher(args)
+    cfg = run_config(args)  # the run's typed configuration, built once: the launcher and the nodes get it
+    launcher = Launcher(cfg)
     try:
         code, summary = launcher.run()
     except BadInput:  # refused before any node ran (certificates, ...): no run folder left behind
@@ -140,7 +150,7 @@ def main_run(args) -> int:
             shutil.rmtree(launcher.run_dir, ignore_errors=True)
         raise
     launcher.phase("closed")
-    if args.json:
+    if cfg.json:
         json.dump(summary, sys.stdout)
         sys.stdout.write("\n")
     else:

@@ -36,12 +36,12 @@ def main_simulate(args) -> int:
     from .. import scenario
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
-    from ..nodes.options import RunOptions
     from ..simbatch import simulate_scenario
     from ..simloop import Network
     from ..simulate import summarize
+    from .liveconfig import run_options
 
-    opts = RunOptions.from_args(args)
+    opts = run_options(args)
     overrides = opts.overrides()
     sc = scenario.with_overrides(scenario.load(args.scenario), overrides)
     sc, over = scenario.with_seed(sc, overrides)

@@ -4,12 +4,13 @@ flags that hand them to each process, and the launcher's own session (the run's 
 from __future__ import annotations
 
 import ipaddress
+import os
 import shutil
 import tempfile
 from pathlib import Path
 
 from ..wire import transport
-from ..wire.session import AUTO, session_config
+from ..wire.session import AUTO, SessionOptions, zenoh_config
 
 #: why ``--topology auto`` chose the peer topology
 ONE_HOST = "every node runs on the launcher's host"
@@ -26,7 +27,7 @@ def _loopback(ep: str) -> bool:
         return False
 
 
-def choose_topology(args) -> tuple[str, str]:
+def choose_topology(cfg) -> tuple[str, str]:
     """``--topology``'s topology for the run and why: (``router`` | ``peer``, reason).
 
     ``auto`` is the peer topology (direct links, mutual TLS: one link per hop instead of two
@@ -44,34 +45,54 @@ def choose_topology(args) -> tuple[str, str]:
 
     None of these: peer.  A given ``--topology router`` or ``peer`` is used as given.
     """
-    if args.topology != AUTO:
-        return args.topology, f"--topology {args.topology}"
-    if getattr(args, "tls_dir", None):
+    if cfg.topology != AUTO:
+        return cfg.topology, f"--topology {cfg.topology}"
+    if cfg.tls_dir:
         return "peer", "--tls-dir: the peer topology's certificates"
-    if args.secret_file:
+    if cfg.secret_file:
         return "router", "--secret-file: the router topology's password file"
-    prefixed = [p.partition("=")[0] for p in args.node_prefix]
+    prefixed = list(cfg.node_prefix)
     if prefixed:
         return "router", (f"--node-prefix {', '.join(prefixed)}: a node started under a command runs on another host "
                           "or in another network namespace")
-    if args.zenoh_config:
+    if cfg.zenoh_config:
         return "router", "--zenoh-config: the file's endpoints may name other hosts"
-    given = [("--listen", args.listen), ("--node-connect", args.node_connect),
-             *(("--node-listen", p.partition("=")[2]) for p in args.node_listen)]
+    given = [("--listen", cfg.listen), ("--node-connect", cfg.node_connect),
+             *(("--node-listen", ep) for ep in cfg.node_listen.values())]
     for flag, ep in given:
         if ep and not _loopback(ep):
             return "router", f"{flag} {ep}: not a loopback address (for processes on other hosts)"
     for flag, ep in given:
-        if ep and not args.insecure and not ep.startswith("tls/"):
+        if ep and not cfg.insecure and not ep.startswith("tls/"):
             return "router", f"{flag} {ep}: a plain TCP endpoint (the peer topology's links are TLS)"
     return "peer", ONE_HOST
+
+
+def _start_tls_maker(folder: Path) -> int:
+    """Fork a child that makes the run's TLS folder (``TlsCredentials.new``) and exits 0, or 1 if it could not;
+    the launcher loads its kernels meanwhile (``Launcher.prewarm``) and never imports ``cryptography``."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 1
+        try:
+            transport.TlsCredentials.new(folder)
+            code = 0
+        except BaseException:  # noqa: BLE001 - the launcher makes the folder itself and reports why not
+            pass
+        finally:
+            os._exit(code)
+    return pid
 
 
 class RunCredentials:
     """The launcher's part that makes and hands out the run's credentials (a base of ``Launcher``)."""
 
+    _tls_maker: int | None = None  # the child making the run's certificates (``make_secrets``)
+
     def make_secrets(self) -> None:
-        """The run's credentials: one password per process, in 0600 files under a 0700 folder.
+        """The run's credentials: one password per process, in 0600 files under a 0700 folder; or, for
+        mutual TLS, the run's certificates, made by a child process while the launcher goes on
+        (``secrets_ready`` waits for them).
 
         The launcher (the router) keeps the whole dictionary; every process gets a file
         with its own line only.
@@ -79,15 +100,16 @@ class RunCredentials:
         if not self.secure:
             return
         if self.tls:
-            if getattr(self.args, "tls_dir", None):
-                self.tls_dir = Path(self.args.tls_dir).resolve()
+            if self.cfg.tls_dir:
+                self.tls_dir = Path(self.cfg.tls_dir).resolve()
+                transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
             else:
                 self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
-                self.tls_dir = transport.TlsCredentials.new(self.secret_dir / "tls").folder
-            transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
+                self.tls_dir = self.secret_dir / "tls"
+                self._tls_maker = _start_tls_maker(self.tls_dir)
             return
-        if self.args.secret_file:
-            self.secret_path = Path(self.args.secret_file).resolve()
+        if self.cfg.secret_file:
+            self.secret_path = Path(self.cfg.secret_file).resolve()
             transport.Credentials.read(self.secret_path)  # checked now: one clear line if unusable
             return
         self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
@@ -96,7 +118,25 @@ class RunCredentials:
         for u in (*transport.ROLES, transport.RECORDER):
             cred.only(u).write(self.secret_dir / f"{u}.secret")
 
+    def secrets_ready(self) -> None:
+        """Once the run's certificates are needed (a process opens a session, a join file names them): wait for
+        the child making them; if it failed, make them here, which says why (one clear line)."""
+        pid, self._tls_maker = self._tls_maker, None
+        if pid is None:
+            return
+        _, status = os.waitpid(pid, 0)
+        if os.waitstatus_to_exitcode(status) != 0:
+            shutil.rmtree(self.tls_dir, ignore_errors=True)
+            transport.TlsCredentials.new(self.tls_dir)
+        transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
+
     def remove_secrets(self) -> None:
+        if self._tls_maker is not None:  # refused or interrupted before they were used
+            try:
+                os.waitpid(self._tls_maker, 0)
+            except ChildProcessError:
+                pass
+            self._tls_maker = None
         if self.secret_dir is not None:
             shutil.rmtree(self.secret_dir, ignore_errors=True)
 
@@ -105,21 +145,17 @@ class RunCredentials:
             return self.secret_dir / f"{who}.secret"
         return self.secret_path
 
-    def session_flags(self, who: str) -> list[str]:
-        """``--topology``, credentials (a file path, never the secret itself) and listeners of a process."""
-        a = self.args
-        out = ["--topology", self.topology]
-        if self.tls:
-            out += ["--tls-dir", str(self.tls_dir)]
-        else:
-            out += ["--secret-file", str(self.secret_for(who))] if self.secure else ["--insecure"]
-        if a.low_latency:
-            out.append("--low-latency")
-        if self.topology == "peer":  # every process's own listener: the peers link to each other directly
-            out += ["--listen", self.node_listen.get(who) or self.own_listener(who)]
-        if a.zenoh_config:
-            out += ["--zenoh-config", str(Path(a.zenoh_config).resolve())]
-        return out
+    def session_options(self, who: str) -> SessionOptions:
+        """The session of process ``who`` (a node or the recorder): the run's topology, its credentials (a file
+        path, never the secret itself), the launcher's endpoint and, in the peer topology, its own listener."""
+        c = self.cfg
+        return SessionOptions(
+            run_id=self.run_id, connect=(self.node_connect,), topology=self.topology,
+            listen=(self.node_listen.get(who) or self.own_listener(who),) if self.topology == "peer" else (),
+            tls_dir=str(self.tls_dir) if self.tls else None,
+            secret_file=str(self.secret_for(who)) if self.secure and not self.tls else None,
+            insecure=not self.secure, low_latency=c.low_latency,
+            zenoh_config=str(Path(c.zenoh_config).resolve()) if c.zenoh_config else None)
 
     def own_listener(self, who: str) -> str:
         """A peer's listener when ``--node-listen`` names none: loopback for a node, and for the recorder
@@ -133,19 +169,20 @@ class RunCredentials:
 
     def session_config(self):
         """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""
-        a = self.args
-        return session_config(transport.LAUNCHER, "router" if self.topology == "router" else "peer", self.keys,
-                              listen=[self.listen], config_file=a.zenoh_config, colocate=self.colocated,
-                              low_latency=a.low_latency, insecure=not self.secure, tls_dir=self.tls_dir,
-                              secret_file=self.secret_path, accepts=True)
+        c = self.cfg
+        own = SessionOptions(run_id=self.run_id, listen=(self.listen,), zenoh_config=c.zenoh_config,
+                             topology="router" if self.topology == "router" else "peer",
+                             tls_dir=self.tls_dir, secret_file=self.secret_path, insecure=not self.secure,
+                             low_latency=c.low_latency)
+        return zenoh_config(own, transport.LAUNCHER, self.keys, hub=True, colocate=self.colocated)
 
     def security(self) -> dict:
         from ..wire.session import access_control, transport_security
 
-        given = self.args.secret_file or getattr(self.args, "tls_dir", None)
+        given = self.cfg.secret_file or self.cfg.tls_dir
         return {"authenticated": self.secure, "topology": self.topology,
-                "topology_auto": self.args.topology == AUTO, "topology_why": self.topology_why,
-                "low_latency": bool(self.args.low_latency),
+                "topology_auto": self.cfg.topology == AUTO, "topology_why": self.topology_why,
+                "low_latency": self.cfg.low_latency,
                 "access_control": access_control(self.topology) if self.secure else "none",
                 "transport": transport_security(self.topology, not self.secure, self.tls),
                 "credentials": None if not self.secure else ("given" if given else "made for the run")}

@@ -29,7 +29,7 @@ def add_external_arguments(p) -> None:
 
 def check(launcher) -> str | None:
     """The external role of the run (None: none), refused with one line where the run cannot have it."""
-    role = getattr(launcher.args, "external", None)
+    role = launcher.cfg.external
     if role is None:
         return None
     if launcher.colocated:
@@ -56,7 +56,7 @@ def join_data(launcher) -> dict:
                 "secret_file": str(path)}
     peer = la.topology == "peer"
     ack = la.keys.ack_for_encoder(opts.ack_via_attacker, opts.ack_on_actuation)
-    ref = Path(la.args.scenario)
+    ref = Path(la.cfg.scenario)
     base_dir = str(ref.resolve().parent) if (ref.suffix == ".toml" or ref.exists()) else None
     options = dataclasses.asdict(opts)
     options["colocate"] = list(opts.colocate)
@@ -64,10 +64,10 @@ def join_data(launcher) -> dict:
             "run_id": la.run_id, "key_prefix": la.keys.prefix, "ack_key": ack[len(la.keys.prefix) + 1:],
             "topology": la.topology, "mode": "peer" if peer else "client", "connect": [la.node_connect],
             "listen": [la.node_listen.get(role) or la.own_listener(role)] if peer else [],
-            "low_latency": bool(la.args.low_latency), "credentials": cred, "T_ns": T_ns(sc), "n_steps": sc.n_steps,
+            "low_latency": la.cfg.low_latency, "credentials": cred, "T_ns": T_ns(sc), "n_steps": sc.n_steps,
             "timing": sc.run.timing, "ack_via_attacker": opts.ack_via_attacker, "digest": run_digest(sc, opts),
             "t0_ns": None, "start_lead_ns": 200_000_000, "wait_ready": [*transport.ROLES, transport.COLLECTOR],
-            "ready_timeout_s": float(la.args.startup_timeout), "run_options": options,
+            "ready_timeout_s": float(la.cfg.startup_timeout), "run_options": options,
             "scenario": {"name": sc.name, "toml": sc.source, "base_dir": base_dir}}
 
 

@@ -28,13 +28,12 @@ from ..wire import messages as msg
 
 log = logging.getLogger("testbed.launcher")
 NICE = 10
-DEFAULT_PORT = 8765
 
 
 class FoxgloveLive:
     """A foxglove-sdk WebSocket server fed from the run's Zenoh keys by a background thread."""
 
-    def __init__(self, sc, run_id: str, port: int = DEFAULT_PORT, *, host: str = "127.0.0.1"):
+    def __init__(self, sc, run_id: str, port: int, *, host: str = "127.0.0.1"):
         try:
             import foxglove
         except ImportError:
@@ -149,14 +148,4 @@ class FoxgloveLive:
         return {"url": f"ws://{self.host}:{self.port}", "messages": self.logged, "errors": self.errors}
 
 
-def add_foxglove_run_arguments(p) -> None:
-    """The ``--foxglove`` option of ``testbed run``."""
-    g = p.add_argument_group("foxglove (live view)")
-    g.add_argument("--foxglove", nargs="?", type=int, const=DEFAULT_PORT, default=None, metavar="PORT",
-                   help=f"serve the run live over Foxglove's WebSocket protocol on 127.0.0.1:PORT (default "
-                        f"{DEFAULT_PORT}; needs foxglove-sdk); connect Foxglove to ws://127.0.0.1:PORT")
-    g.add_argument("--foxglove-linger", type=float, default=0.0, metavar="S",
-                   help="keep the server up S seconds after the run (default %(default)s)")
-
-
-__all__ = ["FoxgloveLive", "add_foxglove_run_arguments", "DEFAULT_PORT"]
+__all__ = ["FoxgloveLive"]

@@ -35,9 +35,8 @@ from pathlib import Path
 
 from .. import scenario
 from ..errors import BadInput
-from ..nodes.options import RunOptions, load_scenario
+from ..nodes.options import NodeConfig, RunConfig, load_scenario
 from ..nodes.process import parse_cpus
-from ..view.rerun import LiveRerun
 from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
@@ -53,23 +52,12 @@ def recording_default_path(name: str, run_id: str) -> Path:
     return default_path(name, run_id=run_id)
 
 
-def _pairs(items, sep, what, roles=transport.ROLES) -> dict[str, str]:
-    out = {}
-    for it in items:
-        role, s, val = it.partition(sep)
-        if not s or role not in roles:
-            raise SystemExit(f"testbed run: {what} must be ROLE{sep}VALUE with ROLE in "
-                             f"{', '.join(roles)}, got {it!r}")
-        out[role] = val
-    return out
-
-
 class Launcher(RunCredentials, Stalls, RecorderControl):
-    def __init__(self, args):
-        self.args = args
+    def __init__(self, cfg: RunConfig):
+        self.cfg = cfg
         self.phase("up")
-        self.opts = RunOptions.from_args(args)
-        self.sc = load_scenario(args.scenario, self.opts)
+        self.opts = cfg.opts
+        self.sc = load_scenario(cfg.scenario, self.opts)
         if self.sc.method_note:
             print(f"testbed run: {self.sc.method_note}", file=sys.stderr)
         self.phase("scenario")
@@ -78,27 +66,29 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             self.opts = dataclasses.replace(self.opts, seed=over["seed"])
             print(f"testbed run: the random attack has no seed; drew seed = {self.opts.seed} (recorded; "
                   f"--seed {self.opts.seed} repeats it)", file=sys.stderr)
-        ref = args.scenario
+        ref = cfg.scenario
         self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
-        self.run_id = args.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
+        self.run_id = cfg.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = transport.Keys.for_run(self.run_id)
-        self.netns = netns.plan(args, self.run_id, self.opts)  # testbed run --netns: sets the endpoints in args
-        self.topology, self.topology_why = choose_topology(args)  # --topology auto: peer on one host
-        self.secure = not args.insecure
+        self.netns = netns.plan(cfg, self.run_id, self.opts)  # testbed run --netns: its namespaces and endpoints
+        if self.netns is not None:
+            cfg = self.cfg = dataclasses.replace(cfg, **self.netns.endpoints(cfg))
+        self.topology, self.topology_why = choose_topology(cfg)  # --topology auto: peer on one host
+        self.secure = not cfg.insecure
         # mutual TLS links (``TlsCredentials``): the peer topology, or the router topology given --tls-dir
-        self.tls = self.secure and (self.topology == "peer" or (bool(args.tls_dir) and not args.secret_file))
-        self.listen = args.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
-        self.node_connect = args.node_connect or self.listen
-        self.node_listen = _pairs(args.node_listen, "=", "--node-listen")
-        self.node_prefix = _pairs(args.node_prefix, "=", "--node-prefix")
-        self.kills = {r: float(v) for r, v in _pairs(args.kill, "@", "--kill", (*transport.ROLES, transport.RECORDER)).items()}
-        self.crashes = {r: int(v) for r, v in _pairs(args.crash, "@", "--crash").items()}
+        self.tls = self.secure and (self.topology == "peer" or (bool(cfg.tls_dir) and not cfg.secret_file))
+        self.listen = cfg.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
+        self.node_connect = cfg.node_connect or self.listen
+        self.node_listen = cfg.node_listen
+        self.node_prefix = cfg.node_prefix
+        self.kills = cfg.kill
+        self.crashes = cfg.crash
         self.colocated = self.opts.colocate           # roles run inside another node's process
-        self.init_stalls(args)                        # --stall, and the watch for stalled nodes (``stalls``)
+        self.init_stalls(cfg.stall)                   # --stall, and the watch for stalled nodes (``stalls``)
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
-        self.fork_ok = getattr(args, "spawn", "exec") == "fork"  # --spawn fork (``forks``)
+        self.fork_ok = cfg.spawn == "fork"            # --spawn fork (``forks``)
         self.processes = self.opts.processes          # the node processes
-        self.cpus = _pairs(args.cpu, "=", "--cpu", (*transport.ROLES, transport.RECORDER, transport.LAUNCHER))
+        self.cpus = cfg.cpu
         for who, spec in self.cpus.items():
             parse_cpus(spec)  # one clear line now if unusable
             if who in self.colocated:
@@ -110,17 +100,17 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self.kill_sent: dict[str, int] = {}
         self.signal: int | None = None
         self.stopping = False
-        self.record_path = None if args.no_record else Path(args.out or recording_default_path(self.sc.name,
-                                                                                                self.run_id))
-        if self.record_path is not None and self.record_path.exists() and not args.force:
+        self.record_path = None if cfg.no_record else Path(cfg.out or recording_default_path(self.sc.name,
+                                                                                              self.run_id))
+        if self.record_path is not None and self.record_path.exists() and not cfg.force:
             raise BadInput(f"{self.record_path} exists: a recording is never overwritten (remove it, choose "
                            "another --out, or pass --force)")
         if self.tls:
-            if args.secret_file:
+            if cfg.secret_file:
                 raise BadInput("--secret-file: the peer topology's credentials are TLS certificates (--tls-dir DIR, "
                                "made with 'testbed secret --tls DIR'; by default made for the run)")
             transport.require_tls((self.listen, self.node_connect, *self.node_listen.values()))
-        elif getattr(args, "tls_dir", None):
+        elif cfg.tls_dir:
             raise BadInput("--tls-dir with --secret-file: the router topology authenticates by one of them")
         self.secret_dir = None
         self.secret_path: Path | None = None
@@ -132,61 +122,52 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
         self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
         self._tokens: list = []
-        self.rerun = LiveRerun.from_args(args, self.sc, self.run_id)  # testbed run --rerun, or None
+        self.rerun = None                                              # testbed run --rerun / --rrd
+        if cfg.rerun or cfg.rrd:
+            from ..view.rerun import LiveRerun
+
+            self.rerun = LiveRerun.from_options(cfg.rerun, cfg.rrd, cfg.roa, self.sc, self.run_id)
         self.foxglove = None                                           # testbed run --foxglove PORT
-        if getattr(args, "foxglove", None) is not None:
+        if cfg.foxglove is not None:
             from .foxglove_tap import FoxgloveLive
 
-            self.foxglove = FoxgloveLive(self.sc, self.run_id, args.foxglove)
+            self.foxglove = FoxgloveLive(self.sc, self.run_id, cfg.foxglove)
         self.external = external.check(self)           # --external ROLE: a node from outside (join file)
         # the run folder last: a run refused above (bad input) leaves nothing behind
-        self.own_dir = args.run_dir is None
-        self.run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
+        self.own_dir = cfg.run_dir is None
+        self.run_dir = Path(cfg.run_dir or tempfile.mkdtemp(prefix="testbed-run-"))
         self.run_dir.mkdir(parents=True, exist_ok=True)
 
     def phase(self, name: str) -> None:
         """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
-        if self.args.verbose:
+        if self.cfg.verbose:
             from ..nodes.process import process_age
 
             print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}",
                   file=sys.stderr, flush=True)
 
     # ---- processes
+    def node_config(self, role: str) -> NodeConfig:
+        """What the node process ``role`` runs: the run's options, its session and its own settings."""
+        c = self.cfg
+        guest_crash = {f"{g}_crash_at": self.crashes[g] for g in self.colocated
+                       if self.opts.process_of(g) == role and g in self.crashes}  # --encoder-crash-at
+        here = role not in self.node_prefix or self.node_prefix[role].startswith("ip netns exec")
+        rerun = {} if self.rerun is None else {"recording_id": self.rerun.recording_id, **(
+            {"rerun_save": self.rerun.part(role)} if self.rerun.mode == "save" else {"rerun_url": self.rerun.url})}
+        return NodeConfig(
+            role=role, scenario=self.scenario_ref, opts=self.opts, session=self.session_options(role),
+            ready_timeout=c.startup_timeout, launched=True, rx=c.rx or "thread", rx_spin_us=c.rx_spin_us,
+            cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=c.realtime,
+            verbose=c.verbose, crash_at=self.crashes.get(role), **guest_crash, **rerun,
+            spin_us=c.spin_us if role == "plant" else None,
+            ack_grace=c.ack_grace if role == "encoder" or self.opts.process_of("encoder") == role else None,
+            corrupt=c.corrupt if role == "attacker" else None)
+
     def command(self, role: str) -> list[str]:
-        a = self.args
-        cmd = shlex.split(self.node_prefix.get(role, ""))
-        cmd += [sys.executable, "-P", "-m", "testbed.cli", "node", role, self.scenario_ref, *self.opts.cli(),
-                "--run-id", self.run_id, "--connect", self.node_connect,
-                "--ready-timeout", str(a.startup_timeout), "--launched"]
-        cmd += self.session_flags(role)
-        if a.rx:
-            cmd += ["--rx", a.rx]
-        if a.rx_spin_us is not None:
-            cmd += ["--rx-spin-us", str(a.rx_spin_us)]
-        if role in self.cpus:
-            cmd += ["--cpus", self.cpus[role]]
-        if role not in self.node_prefix or self.node_prefix[role].startswith("ip netns exec"):
-            cmd += ["--parent-pid", str(os.getpid())]
-        if a.realtime:
-            cmd.append("--realtime")
-        if a.verbose:
-            cmd.append("--verbose")
-        if role in self.crashes:
-            cmd += ["--crash-at", str(self.crashes[role])]
-        for guest in self.colocated:
-            if self.opts.process_of(guest) == role and guest in self.crashes:
-                cmd += [f"--{guest}-crash-at", str(self.crashes[guest])]
-        if role == "plant":
-            if a.spin_us is not None:
-                cmd += ["--spin-us", str(a.spin_us)]
-        if (role == "encoder" or self.opts.process_of("encoder") == role) and a.ack_grace is not None:
-            cmd += ["--ack-grace", str(a.ack_grace)]
-        if role == "attacker" and a.corrupt:
-            cmd += ["--corrupt", a.corrupt]
-        if self.rerun is not None:
-            cmd += self.rerun.node_flags(role)
-        return cmd
+        """The node's command line: ``testbed node`` with its ``NodeConfig`` as flags, under its ``--node-prefix``."""
+        return [*shlex.split(self.node_prefix.get(role, "")), sys.executable, "-P", "-m", "testbed.cli",
+                *self.node_config(role).argv()]
 
     def declare_collector_ready(self, session) -> None:
         """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
@@ -400,7 +381,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         each message it forwards."""
         from ..nodes.process import set_realtime
 
-        if not self.args.realtime or on == self._router_rt:
+        if not self.cfg.realtime or on == self._router_rt:
             return
         if on:
             self._router_rt = set_realtime(True)
@@ -424,7 +405,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 f["liveliness_detect_ms"] = round((lost - self.kill_sent[role]) / 1e6, 3)
 
     def watch(self, session, col) -> str:
-        a = self.args
+        a = self.cfg
         t_launch = time.monotonic()
         t0_mono = None
         end_mono = None
@@ -453,7 +434,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 return "recorder did not start"
             self.check_recorder(col, t0_mono)
             self.publish_faults(session)
-            if getattr(a, "on_record_error", "continue") == "stop" and any(f["kind"] == "record_error"
+            if a.on_record_error == "stop" and any(f["kind"] == "record_error"
                                                                            for f in self.faults):
                 return "stopped: the recording failed"
             if all(r in self.exits for r in self.procs):
@@ -506,9 +487,10 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         if transport.LAUNCHER in self.cpus:  # before Zenoh starts its threads: the router's CPUs
             os.sched_setaffinity(0, parse_cpus(self.cpus[transport.LAUNCHER]))
-        self.make_secrets()
+        self.make_secrets()  # the certificates of a TLS run are made meanwhile (``secrets_ready``)
+        if self.external is not None:
+            self.secrets_ready()  # the join file names them
         join_path = external.write_join(self)
-        conf = self.session_config()
         if not self.secure:
             print(f"testbed run: INSECURE: no authentication and no access control; any local process can join, "
                   f"stop or steer run {self.run_id}", file=sys.stderr)
@@ -521,9 +503,11 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 if self.rerun is not None:
                     self.rerun.prepare()  # the part files the nodes' flags name
                 self.prewarm()
+                self.secrets_ready()
                 self.spawn(forked=True)
             try:
-                session_cm = zenoh.open(conf)
+                self.secrets_ready()
+                session_cm = zenoh.open(self.session_config())
             except BaseException:
                 for r in self.procs:
                     self._signal_group(r, signal.SIGKILL)
@@ -610,7 +594,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     self.rerun.finish()
                     summary["rerun"] = self.rerun.info()
                 if self.foxglove is not None:
-                    self.foxglove.finish(getattr(self.args, "foxglove_linger", 0.0))
+                    self.foxglove.finish(self.cfg.foxglove_linger)
                     summary["foxglove"] = self.foxglove.info()
         finally:
             if self.recorder is not None and self.recorder.poll() is None:  # an exception above

@@ -142,11 +142,12 @@ class NetnsRun:
         self._home: int | None = None                      # the launcher's own namespace (an fd)
 
     # ---- the run's arguments
-    def endpoints(self, args) -> None:
-        scheme = "tls" if getattr(args, "topology", None) == "peer" and not getattr(args, "insecure", False) else "tcp"
-        args.listen = f"{scheme}/{self.addr['hub']}:{HUB_PORT}"
-        args.node_listen = [f"{r}={scheme}/{self.addr[r]}:0" for r in self.who if r != "hub"]
-        args.node_prefix = [f"{r}=ip netns exec {self.names[r]}" for r in self.who if r != "hub"]
+    def endpoints(self, cfg) -> dict:
+        """The run's endpoints in the namespaces: ``listen``, ``node_listen`` and ``node_prefix`` of its ``RunConfig``."""
+        scheme = "tls" if cfg.topology == "peer" and not cfg.insecure else "tcp"
+        return {"listen": f"{scheme}/{self.addr['hub']}:{HUB_PORT}",
+                "node_listen": {r: f"{scheme}/{self.addr[r]}:0" for r in self.who if r != "hub"},
+                "node_prefix": {r: f"ip netns exec {self.names[r]}" for r in self.who if r != "hub"}}
 
     # ---- making and removing
     def up(self) -> None:
@@ -231,22 +232,19 @@ class NetnsRun:
                                "up_s": round((st["up_ns"] - base) / 1e9, 4)})
 
 
-def plan(args, run_id: str, opts) -> NetnsRun | None:
-    """From ``testbed run``'s arguments: this run's namespaces (None without ``--netns``), the
-    endpoints set in ``args``; one clear line (``BadInput``) for what cannot be."""
-    cuts_given = getattr(args, "cut", None) or []
-    if not getattr(args, "netns", False):
-        if cuts_given:
+def plan(cfg, run_id: str, opts) -> NetnsRun | None:
+    """From ``testbed run``'s ``RunConfig``: this run's namespaces (None without ``--netns``), whose
+    ``endpoints`` the launcher then uses; one clear line (``BadInput``) for what cannot be."""
+    if not cfg.netns:
+        if cfg.cut:
             raise BadInput("--cut needs --netns: it sets the node's veth link down and up (a run over loopback "
                            "has no link of its own to cut)")
         return None
     why = privileges_missing()
     if why:
         raise BadInput(f"--netns: {why}")
-    clash = [f for f, v in (("--listen", args.listen), ("--node-connect", args.node_connect),
-                            ("--node-listen", args.node_listen), ("--node-prefix", args.node_prefix)) if v]
+    clash = [f for f, v in (("--listen", cfg.listen), ("--node-connect", cfg.node_connect),
+                            ("--node-listen", cfg.node_listen), ("--node-prefix", cfg.node_prefix)) if v]
     if clash:
         raise BadInput(f"--netns sets the endpoints itself: drop {', '.join(clash)}")
-    net = NetnsRun(run_id, opts.processes, _parse_cuts(cuts_given, opts.processes, opts.colocate))
-    net.endpoints(args)
-    return net
+    return NetnsRun(run_id, opts.processes, _parse_cuts(list(cfg.cut), opts.processes, opts.colocate))

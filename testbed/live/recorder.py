@@ -15,7 +15,7 @@ import subprocess
 import sys
 import time
 
-from ..nodes.recorder import RECORD_FAILED
+from ..nodes.options import RECORD_FAILED, RecorderConfig
 from ..wire import transport
 
 #: ``testbed run``'s exit code when the run itself was clean but its recording is incomplete
@@ -60,23 +60,19 @@ def exit_code(sig: int | None, faults: list, summary: dict, ridden: tuple = ()) 
 
 
 class RecorderControl:
-    """The launcher's recorder process (a mixin of ``Launcher``: it uses the launcher's args, keys,
+    """The launcher's recorder process (a mixin of ``Launcher``: it uses the launcher's configuration, keys,
     credentials, faults and run folder)."""
 
+    def recorder_config(self) -> RecorderConfig:
+        """What the recorder process runs: the run's options, its session, the file."""
+        c = self.cfg
+        return RecorderConfig(scenario=self.scenario_ref, opts=self.opts, session=self.session_options(transport.RECORDER),
+                              out=str(self.record_path), loop=c.record_loop, launched=True, parent_pid=os.getpid(),
+                              scenario_ref=c.scenario, force=c.force, cpus=self.cpus.get(transport.RECORDER),
+                              verbose=c.verbose)
+
     def recorder_command(self) -> list[str]:
-        a = self.args
-        cmd = [sys.executable, "-P", "-m", "testbed.cli", "record", self.scenario_ref, *self.opts.cli(),
-               "--run-id", self.run_id, "--connect", self.node_connect,
-               "--out", str(self.record_path), "--loop", a.record_loop, "--launched",
-               "--parent-pid", str(os.getpid()), "--scenario-ref", a.scenario]
-        if a.force:
-            cmd.append("--force")
-        cmd += self.session_flags(transport.RECORDER)
-        if transport.RECORDER in self.cpus:
-            cmd += ["--cpus", self.cpus[transport.RECORDER]]
-        if a.verbose:
-            cmd.append("--verbose")
-        return cmd
+        return [sys.executable, "-P", "-m", "testbed.cli", *self.recorder_config().argv()]
 
     def recorder_started(self, session, col) -> bool:
         """During start-up: declare the collector ready once the recorder is (False: it died first)."""
@@ -105,7 +101,7 @@ class RecorderControl:
             f, line = recorder_fault(rc, self.recorder_exit, self.log_tail(transport.RECORDER),
                                      transport.RECORDER in self.kill_sent)
             self.faults.append(f)
-            stop = f["kind"] == "record_error" and getattr(self.args, "on_record_error", "continue") == "stop"
+            stop = f["kind"] == "record_error" and self.cfg.on_record_error == "stop"
             go = "as the run ended" if self.stopping else ("the run stops (--on-record-error stop)" if stop else
                                                            "the run goes on unrecorded")
             print(f"{line}; {go}, the file keeps what was flushed: {self.record_path}", file=sys.stderr)

@@ -190,8 +190,9 @@ class Stalls:
     #: a node process whose liveliness token has been gone this long while it runs is lost
     LOST_GRACE_NS = 500_000_000
 
-    def init_stalls(self, args) -> None:
-        self.stall_inject = StallInjector(parse_stalls(getattr(args, "stall", None) or [], self.opts.colocate))
+    def init_stalls(self, stalls) -> None:
+        """``stalls``: the ``--stall ROLE@SECONDS:DURATION`` items."""
+        self.stall_inject = StallInjector(parse_stalls(stalls, self.opts.colocate))
         self.stall_watch: StallWatch | None = None
         self._lost: dict[str, dict] = {}  # role -> its fault ``lost``
 

@@ -67,7 +67,7 @@ class AttackerNode(Node):
             self.gate = Gate(a.schedule(sc.T, attack_horizon(sc)), sc.T)
             self.score_kind = None
         self.codebook = sc.make_method().codebook(self.model.n, sc.quantizer)
-        self.corrupt = parse_corrupt(getattr(self.args, "corrupt", None))
+        self.corrupt = parse_corrupt(self.cfg.corrupt)
         self._lock = threading.Lock()
         self._score_cond = threading.Condition()
         self.scores: dict[int, float] = {}

@@ -8,6 +8,7 @@ from ..wire import messages as msg
 from ..wire import transport
 from .context import NodeContext
 from .inlet import Inlet
+from .options import NodeConfig
 
 log = logging.getLogger("testbed.nodes")
 
@@ -18,17 +19,17 @@ class Node:
 
     role = ""
 
-    def __init__(self, ctx: NodeContext, args):
+    def __init__(self, ctx: NodeContext, cfg: NodeConfig):
         self.ctx = ctx
-        self.args = args
+        self.cfg = cfg
         self.sc = ctx.sc
         self.model = ctx.sc.make_model()  # the predictions' model (n, m); the plant node has the true plant
-        self.crash_at = getattr(args, "crash_at", None)
+        self.crash_at = cfg.crash_at
         self.malformed = 0
         self.error: BaseException | None = None
         self._pubs: list = []
-        self.rx_mode = getattr(args, "rx", None) or "thread"
-        spin_us = getattr(args, "rx_spin_us", None)
+        self.rx_mode = cfg.rx or "thread"
+        spin_us = cfg.rx_spin_us
         self.rx_spin_ns = int(spin_us * 1e3) if spin_us is not None else min(1_000_000, ctx.T_ns // 20)
         self.inlet: Inlet | None = None
         self.channel_stages: dict = {}  # link -> its ChannelStage ([network]: ``channelstage``)

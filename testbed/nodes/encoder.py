@@ -63,7 +63,7 @@ class EncoderNode(Node):
         self.future_sensor = 0
         self.dead = False
         self.killed = False
-        self.ack_grace_ns = int(self.args.ack_grace * ctx.T_ns) if self.args.ack_grace is not None \
+        self.ack_grace_ns = int(self.cfg.ack_grace * ctx.T_ns) if self.cfg.ack_grace is not None \
             else max(int(0.2 * sc.run.deadline * ctx.T_ns), 50_000)
         if sc.attack.online and sc.attack.score == "E":
             ctx.telemetry.n = 1  # the greedy attacker reads E_k from it before deciding sample k

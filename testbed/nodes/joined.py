@@ -2,48 +2,51 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from ..wire import join
+from .options import NodeConfig, RunOptions
 
 
-def apply(args):
-    """Read ``$TESTBED_JOIN`` and set ``args`` as the launcher sets its own nodes' flags; the checked ``JoinFile``.
+def apply(cfg: NodeConfig) -> tuple:
+    """Read ``$TESTBED_JOIN``: the checked ``JoinFile`` and ``cfg`` set as the launcher sets its own nodes'.
 
     A file of another role, or unusable credentials, is ``BadInput`` (one line, exit 2)."""
     from ..errors import BadInput
 
     jf = join.read()
-    if jf.role != args.role:
-        raise BadInput(f"join file {jf.path}: it is for the {jf.role}, not the {args.role}")
-    args.run_id = jf.run_id
-    args.connect, args.listen = list(jf.connect), list(jf.listen)
-    args.topology = jf.topology
-    args.low_latency = jf.low_latency
+    role = cfg.role
+    if jf.role != role:
+        raise BadInput(f"join file {jf.path}: it is for the {jf.role}, not the {role}")
     cred = jf.credentials
-    args.insecure = cred["kind"] == "none"
-    args.tls_dir = args.secret_file = None
+    tls_dir = secret_file = None
     if cred["kind"] == "mutual_tls":
         folder = Path(cred["cert"]).parent
-        want = {"ca": folder / "ca.pem", "cert": folder / f"{args.role}.pem", "key": folder / f"{args.role}.key"}
+        want = {"ca": folder / "ca.pem", "cert": folder / f"{role}.pem", "key": folder / f"{role}.key"}
         if any(Path(cred[k]) != v for k, v in want.items()):
-            raise BadInput(f"join file {jf.path}: the bundled node reads ca.pem, {args.role}.pem and {args.role}.key "
+            raise BadInput(f"join file {jf.path}: the bundled node reads ca.pem, {role}.pem and {role}.key "
                            "of one folder")
-        args.tls_dir = str(folder)
+        tls_dir = str(folder)
     elif cred["kind"] == "user_password":
-        args.secret_file = cred["secret_file"]
+        secret_file = cred["secret_file"]
+    session = dataclasses.replace(cfg.session, run_id=jf.run_id, connect=tuple(jf.connect), listen=tuple(jf.listen),
+                                  topology=jf.topology, low_latency=jf.low_latency, insecure=cred["kind"] == "none",
+                                  tls_dir=tls_dir, secret_file=secret_file)
+    known = {f.name for f in dataclasses.fields(RunOptions)}
+    options = {}
     for k, v in jf.run_options.items():
         if k == "colocate":
             v = tuple(v or ())
             if v:
                 raise BadInput(f"join file {jf.path}: an external node with --colocate is not supported")
-        if not hasattr(args, k):
+        if k not in known:
             raise BadInput(f"join file {jf.path}: unknown run option {k!r}")
-        setattr(args, k, v)
-    args.ready_timeout = float(jf.ready_timeout_s)
-    args.start_lead = jf.start_lead_ns / 1e9
-    args.launched = True  # a node of a testbed run: it waits for the collector and stops when it goes
-    return jf
+        options[k] = v
+    # a node of a testbed run: it waits for the collector and stops when it goes
+    return jf, dataclasses.replace(cfg, opts=dataclasses.replace(cfg.opts, **options), session=session,
+                                   ready_timeout=float(jf.ready_timeout_s), start_lead=jf.start_lead_ns / 1e9,
+                                   launched=True)
 
 
 def scenario(jf):

@@ -17,7 +17,7 @@ different run configuration than the plant's or a Start of another protocol vers
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import gc
 import logging
 import os
@@ -27,11 +27,9 @@ import sys
 import time
 
 from ..wire import transport
-from ..wire.session import add_zenoh_arguments, zenoh_config
-from . import joined, rerun_tap
+from ..wire.session import zenoh_config
 from .context import NodeContext
-from .inlet import RX_MODES
-from .options import RunOptions, add_run_option_arguments, load_scenario
+from .options import NodeConfig, load_scenario
 from .process import (
     on_stop_signals,
     parse_cpus,
@@ -68,68 +66,30 @@ def _refuse_protocol(role: str, ctx) -> int:
     return 2
 
 
-def add_arguments_node(p: argparse.ArgumentParser) -> None:
-    p.add_argument("role", choices=transport.ROLES, help="which node to run")
-    p.add_argument("scenario", nargs="?",
-                   help="scenario file (.toml) or bundled name; without it, the run of the join file named by "
-                        "$TESTBED_JOIN (docs/protocol.md#joining-a-run-from-outside)")
-    add_run_option_arguments(p)
-    add_zenoh_arguments(p)
-    g = p.add_argument_group("node")
-    g.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
-                   help="give up if the other nodes are not up after S seconds (default %(default)s)")
-    g.add_argument("--realtime", action="store_true", help="run the loop under SCHED_FIFO (needs CAP_SYS_NICE)")
-    g.add_argument("--cpus", metavar="LIST", help="pin this node to these CPUs, e.g. 2 or 2,3 or 2-3")
-    g.add_argument("--rx", choices=RX_MODES, default="thread",
-                   help="how control messages are received: thread (zenoh-python's callback thread), direct "
-                        "(on Zenoh's own receive thread where the handler never waits), spin (direct, and the "
-                        "node's input on the loop's path is polled just before it is due) (default %(default)s)")
-    g.add_argument("--rx-spin-us", type=float, metavar="US",
-                   help="--rx spin: spin at most this long per sample (default min(1000, T/20 in us))")
-    g.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
-    g.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
-    g.add_argument("--crash-at", type=int, metavar="K", help="fault injection: raise at sample K")
-    g.add_argument("-v", "--verbose", action="store_true", help="log at INFO (start-up, every event)")
-    g = p.add_argument_group("rerun (testbed run --rerun passes these)")
-    g.add_argument("--rerun-url", metavar="URL", help="stream this node's telemetry to a Rerun gRPC URL")
-    g.add_argument("--rerun-save", metavar="PATH.rrd", help="write this node's telemetry to a Rerun file")
-    g.add_argument("--recording-id", help="Rerun recording id shared by the nodes of a run (default: --run-id)")
-    g = p.add_argument_group("plant")
-    g.add_argument("--wait-collector", action="store_true",
-                   help="also wait for the launcher's collector before starting")
-    g.add_argument("--start-lead", type=float, default=0.2, metavar="S",
-                   help="t0 = now + S once everybody is ready (default %(default)s)")
-    g.add_argument("--spin-us", type=float, metavar="US",
-                   help="busy-wait this long before each sample instant (default min(200, T/20 in us))")
-    g.add_argument("--encoder-crash-at", type=int, metavar="K",
-                   help="--colocate encoder: fault injection: the colocated encoder raises at sample K (it alone stops)")
-    g = p.add_argument_group("encoder")
-    g.add_argument("--ack-grace", type=float, metavar="FRACTION",
-                   help="wait this fraction of T for a late ack before withholding (default 0.2 d)")
-    g = p.add_argument_group("attacker")
-    g.add_argument("--corrupt", metavar="K[:range|:length],...",
-                   help="fault injection: corrupt the payload of these samples")
-
-
-def main_node(args) -> int:
+def run_node(cfg: NodeConfig) -> int:
+    """Run one node process of configuration ``cfg`` to its end; its exit code."""
     import zenoh
 
-    role = args.role
-    setup_logging(role, args.verbose)
+    role = cfg.role
+    setup_logging(role, cfg.verbose)
     phase(role, "up")
-    if args.cpus:
-        os.sched_setaffinity(0, parse_cpus(args.cpus))
-    jf = joined.apply(args) if args.scenario is None else None  # TESTBED_JOIN: flags and scenario from the file
-    opts = RunOptions.from_args(args)
+    if cfg.cpus:
+        os.sched_setaffinity(0, parse_cpus(cfg.cpus))
+    jf = None
+    if cfg.scenario is None:  # TESTBED_JOIN: the configuration and the scenario from the join file
+        from . import joined
+
+        jf, cfg = joined.apply(cfg)
+    opts = cfg.opts
     if role in opts.colocate:
         from ..errors import BadInput
 
         raise BadInput(f"--colocate {role}: the {role} runs inside the {opts.process_of(role)}'s process; "
                        f"start no {role} node")
-    sc = load_scenario(args.scenario if jf is None else joined.scenario(jf), opts,
-                       check_design=not args.launched)  # ScenarioError -> exit 2 in the CLI
+    sc = load_scenario(cfg.scenario if jf is None else joined.scenario(jf), opts,
+                       check_design=not cfg.launched)  # ScenarioError -> exit 2 in the CLI
     phase(role, "scenario")
-    tune_process(args.parent_pid)
+    tune_process(cfg.parent_pid)
     sys.setswitchinterval(1e-4)  # a callback thread waiting for the GIL waits 100 us, not 5 ms
     holder: dict = {}
 
@@ -149,10 +109,10 @@ def main_node(args) -> int:
 
     on_stop_signals(on_signal, main_handler=before_context, grace=STOP_GRACE_S,
                     others={signal.SIGUSR2: kill_guest} if "encoder" in opts.colocate and role == "plant" else None)
-    keys = transport.Keys.for_run(args.run_id)
-    conf = zenoh_config(args, role, keys)
-    if args.insecure and not args.launched:
-        print(f"testbed node {role}: INSECURE: no authentication, any local process can join run {args.run_id}",
+    keys = transport.Keys.for_run(cfg.session.run_id)
+    conf = zenoh_config(cfg.session, role, keys, hub=role == "plant" and not cfg.launched, colocate=opts.colocate)
+    if cfg.session.insecure and not cfg.launched:
+        print(f"testbed node {role}: INSECURE: no authentication, any local process can join run {cfg.session.run_id}",
               file=sys.stderr)
     code = 0
     cpu_info: dict = {}
@@ -166,22 +126,23 @@ def main_node(args) -> int:
         phase(role, "session")
         ctx = NodeContext(role, session, sc, opts, keys)
         holder["ctx"] = ctx
-        ctx.watch_collector = args.launched
-        args.wait_collector = args.wait_collector or args.launched
-        node = _node_class(role)(ctx, args)
+        ctx.watch_collector = cfg.launched
+        cfg = dataclasses.replace(cfg, wait_collector=cfg.wait_collector or cfg.launched)
+        node = _node_class(role)(ctx, cfg)
         holder["node"] = node
         tap = guest_tap = None
         try:
-            tap = rerun_tap.from_args(args, role, sc)
+            if cfg.rerun_url or cfg.rerun_save:  # rerun's view (numpy, rerun) only when asked for
+                from . import rerun_tap
+
+                tap = rerun_tap.of(cfg, role, sc)
             if tap is not None:
                 ctx.telemetry.tap = tap.put
             node.setup()
             guest = getattr(node, "encoder", None)
             if tap is not None and guest is not None:  # the colocated encoder's own stream (its part file)
-                ga = argparse.Namespace(**vars(args))
-                if ga.rerun_save:
-                    ga.rerun_save = os.path.join(os.path.dirname(ga.rerun_save), "encoder.rrd")
-                guest_tap = rerun_tap.from_args(ga, "encoder", sc)
+                save = cfg.rerun_save and os.path.join(os.path.dirname(cfg.rerun_save), "encoder.rrd")
+                guest_tap = rerun_tap.of(dataclasses.replace(cfg, rerun_save=save), "encoder", sc)
                 guest.ctx.telemetry.tap = guest_tap.put
             node.warmup()
             phase(role, "warm")
@@ -191,12 +152,12 @@ def main_node(args) -> int:
             gc.freeze()
             gc.disable()
             node.declare_alive()
-            if not ctx.wait_for("alive", transport.ROLES, args.ready_timeout):
+            if not ctx.wait_for("alive", transport.ROLES, cfg.ready_timeout):
                 if ctx.protocol_refused is not None:
                     return _refuse_protocol(role, ctx)
                 if ctx.stop.is_set():
                     return 0
-                print(f"testbed node {role}: peers not up after {args.ready_timeout:g} s: "
+                print(f"testbed node {role}: peers not up after {cfg.ready_timeout:g} s: "
                       f"{', '.join(ctx.missing('alive', transport.ROLES))}", file=sys.stderr)
                 return 3
             phase(role, "peers")
@@ -206,9 +167,9 @@ def main_node(args) -> int:
             node.declare_ready()
             phase(role, "ready")
             if role == "plant":
-                st = node.start_run(args.start_lead, args.ready_timeout)
+                st = node.start_run(cfg.start_lead, cfg.ready_timeout)
             else:
-                st = ctx.wait_start(args.ready_timeout)
+                st = ctx.wait_start(cfg.ready_timeout)
             if st is None:
                 if ctx.protocol_refused is not None:
                     return _refuse_protocol(role, ctx)
@@ -218,16 +179,16 @@ def main_node(args) -> int:
                     return 2
                 if ctx.stop.is_set():
                     return 0
-                print(f"testbed node {role}: no start after {args.ready_timeout:g} s", file=sys.stderr)
+                print(f"testbed node {role}: no start after {cfg.ready_timeout:g} s", file=sys.stderr)
                 return 3
             phase(role, "start")
             log.info("%s: start, t0 = %d, %d samples of %g s", role, st.t0_ns, st.n_steps, st.T_ns / 1e9)
-            rt = set_realtime(True) if args.realtime else False
+            rt = set_realtime(True) if cfg.realtime else False
             ru0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
             try:
                 node.run()
             finally:
-                if args.realtime:
+                if cfg.realtime:
                     set_realtime(False)
                 gc.enable()
                 ru1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()

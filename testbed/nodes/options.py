@@ -1,5 +1,10 @@
-"""The options of a live run that every node must share (they enter the start digest), and the
-scenario they make."""
+"""The typed configuration of a live run: the options every node must share (``RunOptions``, they enter
+the start digest), one node's configuration (``NodeConfig``) and the recorder's (``RecorderConfig``), and
+the scenario the options make.
+
+``testbed node`` and ``testbed record`` build theirs from their flags (``testbed.commands.liveconfig``);
+the launcher builds one for each process it starts and hands it over as those flags (``argv``), or, for
+a node from outside, in the join file (``testbed.nodes.joined``)."""
 
 from __future__ import annotations
 
@@ -7,9 +12,10 @@ import argparse
 import dataclasses
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..wire import transport
+from ..wire.session import SessionOptions
 
 
 # ============================================================================ run options
@@ -37,13 +43,6 @@ class RunOptions:
     _OVERRIDES = (("duration", "--duration"), ("T", "--T"), ("timing", "--timing"), ("deadline", "--deadline"),
                   ("mode", "--mode"), ("loss_fraction", "--loss-fraction"), ("actuation", "--actuation"),
                   ("rule", "--rule"), ("seed", "--seed"), ("method", "--method"))
-
-    @classmethod
-    def from_args(cls, args) -> "RunOptions":
-        return cls(**{k: getattr(args, k, None) for k, _ in cls._OVERRIDES},
-                   ack_via_attacker=bool(getattr(args, "ack_via_attacker", False)),
-                   separate_ack=bool(getattr(args, "separate_ack", False)),
-                   colocate=transport.colocated_roles(getattr(args, "colocate", None)))
 
     @property
     def ack_on_actuation(self) -> bool:
@@ -77,6 +76,149 @@ class RunOptions:
         for r in self.colocate:
             out += ["--colocate", r]
         return out
+
+
+# ============================================================================ one process's configuration
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _settings(cfg) -> list[str]:
+    """A process configuration's own settings as flags: ``--NAME VALUE`` for each of its ``_VALUED`` that is set,
+    ``--NAME`` for each of its ``_SWITCHES`` that is on."""
+    out = []
+    for name in cfg._VALUED:
+        v = getattr(cfg, name)
+        if v is not None:
+            out += [_flag(name), repr(v) if isinstance(v, float) else str(v)]
+    return out + [_flag(name) for name in cfg._SWITCHES if getattr(cfg, name)]
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """One node process of a run (``testbed node ROLE``): the run's options, its session, and its own settings.
+
+    ``scenario`` None: the run of the join file named by ``$TESTBED_JOIN`` (``testbed.nodes.joined``)."""
+
+    role: str
+    scenario: str | None
+    opts: RunOptions = RunOptions()
+    session: SessionOptions = SessionOptions()
+    ready_timeout: float = 120.0
+    realtime: bool = False
+    cpus: str | None = None
+    rx: str = "thread"
+    rx_spin_us: float | None = None
+    parent_pid: int | None = None
+    launched: bool = False                # started by testbed run: waits for its collector, stops when it goes
+    crash_at: int | None = None
+    verbose: bool = False
+    rerun_url: str | None = None
+    rerun_save: str | None = None
+    recording_id: str | None = None
+    wait_collector: bool = False
+    start_lead: float = 0.2
+    spin_us: float | None = None
+    encoder_crash_at: int | None = None
+    ack_grace: float | None = None
+    corrupt: str | None = None
+
+    #: settings passed on as ``--NAME VALUE`` when set (``argv``)
+    _VALUED = ("ready_timeout", "cpus", "rx", "rx_spin_us", "parent_pid", "crash_at", "rerun_url", "rerun_save",
+               "recording_id", "start_lead", "spin_us", "encoder_crash_at", "ack_grace", "corrupt")
+    _SWITCHES = ("realtime", "launched", "verbose", "wait_collector")
+
+    def argv(self) -> list[str]:
+        """``testbed node`` and the flags that make the same configuration (the launcher's command line)."""
+        return ["node", self.role, *([self.scenario] if self.scenario is not None else []), *self.opts.cli(),
+                *self.session.argv(), *_settings(self)]
+
+
+#: the recorder's exit code when its file could not be written to the end (``RecordingFailed``)
+RECORD_FAILED = 4
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """The recorder process of a run (``testbed record``)."""
+
+    scenario: str
+    opts: RunOptions = RunOptions()
+    session: SessionOptions = SessionOptions()
+    out: str | None = None
+    force: bool = False
+    loop: str = "auto"
+    flush: float = 0.5
+    linger: float = 2.0
+    nice: int = 10
+    cpus: str | None = None
+    parent_pid: int | None = None
+    launched: bool = False
+    scenario_ref: str | None = None
+    verbose: bool = False
+
+    _VALUED = ("out", "loop", "flush", "linger", "nice", "cpus", "parent_pid", "scenario_ref")
+    _SWITCHES = ("force", "launched", "verbose")
+
+    def argv(self) -> list[str]:
+        """``testbed record`` and the flags that make the same configuration (the launcher's command line)."""
+        return ["record", self.scenario, *self.opts.cli(), *self.session.argv(), *_settings(self)]
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A whole live run (``testbed run``): built once from the command line (``testbed.commands.liveconfig``)
+    and passed to the launcher (``testbed.live.launcher``), which builds each node's ``NodeConfig`` and the
+    recorder's ``RecorderConfig`` from it.  The field names are those of ``testbed run``'s flags; a
+    repeatable ``ROLE=VALUE`` or ``ROLE@VALUE`` flag is a dict by role."""
+
+    scenario: str | None
+    opts: RunOptions = RunOptions()
+    json: bool = False
+    # network and security
+    run_id: str | None = None
+    listen: str | None = None
+    node_connect: str | None = None
+    node_listen: dict = field(default_factory=dict)      # role -> endpoint
+    node_prefix: dict = field(default_factory=dict)      # role -> command
+    zenoh_config: str | None = None
+    topology: str = "auto"
+    secret_file: str | None = None
+    tls_dir: str | None = None
+    insecure: bool = False
+    low_latency: bool = False
+    netns: bool = False
+    netns_clean: bool = False
+    # recording
+    out: str | None = None
+    force: bool = False
+    no_record: bool = False
+    on_record_error: str = "continue"
+    record_loop: str = "auto"
+    # viewers and a node from outside
+    rerun: tuple[str, ...] | None = None
+    rrd: str | None = None
+    roa: bool = True
+    foxglove: int | None = None
+    foxglove_linger: float = 0.0
+    external: str | None = None
+    # run control
+    startup_timeout: float = 120.0
+    run_dir: str | None = None
+    spawn: str = "fork"
+    realtime: bool = False
+    cpu: dict = field(default_factory=dict)              # role, recorder or launcher -> CPU list
+    rx: str | None = None
+    rx_spin_us: float | None = None
+    spin_us: float | None = None
+    ack_grace: float | None = None
+    verbose: bool = False
+    # fault injection
+    kill: dict = field(default_factory=dict)             # role or recorder -> seconds after t0
+    stall: tuple[str, ...] = ()                          # ROLE@SECONDS:DURATION (``testbed.live.stalls``)
+    crash: dict = field(default_factory=dict)            # role -> sample
+    corrupt: str | None = None
+    cut: tuple[str, ...] = ()                            # ROLE@SECONDS:DURATION (``testbed.live.netns``)
 
 
 def add_run_option_arguments(p: argparse.ArgumentParser,

@@ -111,19 +111,17 @@ class PlantNode(Node):
         self.plant_fault: str | None = None
         self.plant_fault_at = -1
         self.timing = self.sc.run.timing
-        self.spin_ns = int(self.args.spin_us * 1e3) if self.args.spin_us is not None \
+        self.spin_ns = int(self.cfg.spin_us * 1e3) if self.cfg.spin_us is not None \
             else min(200_000, self.ctx.T_ns // 20)
         self.process = self.sc.make_process()
         ctx.on_peer(self._on_peer)
 
     def _embedded_encoder(self):
-        import argparse
+        import dataclasses
 
         from .encoder import EncoderNode
 
-        a = argparse.Namespace(**vars(self.args))
-        a.crash_at = getattr(self.args, "encoder_crash_at", None)
-        enc = EncoderNode(RoleView(self.ctx, "encoder"), a)
+        enc = EncoderNode(RoleView(self.ctx, "encoder"), dataclasses.replace(self.cfg, crash_at=self.cfg.encoder_crash_at))
         enc.embedded = True
         enc.setup()
         return enc
@@ -201,7 +199,7 @@ class PlantNode(Node):
     # ---- the time master
     def start_run(self, lead_s: float, timeout: float) -> msg.Start | None:
         ctx = self.ctx
-        need = set(transport.ROLES) | ({transport.COLLECTOR} if self.args.wait_collector else set())
+        need = set(transport.ROLES) | ({transport.COLLECTOR} if self.cfg.wait_collector else set())
         if not ctx.wait_for("ready", need, timeout):
             if not ctx.stop.is_set():
                 ctx.event("startup_timeout", detail=f"not ready after {timeout:g} s: "

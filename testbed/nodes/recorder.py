@@ -19,7 +19,6 @@ or by itself ``--linger`` seconds after the plant's ``Stop``.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import logging
@@ -34,8 +33,8 @@ from pathlib import Path
 from ..record import recording, topics
 from ..wire import messages as msg
 from ..wire import transport
-from ..wire.session import add_zenoh_arguments, security_info, zenoh_config
-from .options import RunOptions, T_ns, add_run_option_arguments, load_scenario
+from ..wire.session import security_info, zenoh_config
+from .options import RECORD_FAILED, RecorderConfig, T_ns, load_scenario
 from .process import on_stop_signals, parse_cpus, tune_process
 
 log = logging.getLogger("testbed.recorder")
@@ -290,49 +289,26 @@ class Recorder:
 
 
 # ============================================================================ command line
-#: the recorder's exit code when its file could not be written to the end (``RecordingFailed``)
-RECORD_FAILED = 4
-
-
-def add_arguments_record(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", help="the run's scenario (file or bundled name): stored in the recording")
-    p.add_argument("--out", metavar="PATH.mcap",
-                   help="recording file (default recordings/<scenario>-<UTC start>-<run id>.mcap); never overwritten")
-    p.add_argument("--force", action="store_true", help="replace an existing --out file")
-    p.add_argument("--loop", choices=["auto", "on", "off"], default="auto",
-                   help="record the control-path messages too (auto: when T >= 10 ms; default %(default)s)")
-    p.add_argument("--flush", type=float, default=0.5, metavar="S",
-                   help="flush the file at least every S seconds (what a SIGKILL can lose; default %(default)s)")
-    p.add_argument("--linger", type=float, default=2.0, metavar="S",
-                   help="standalone: stop S seconds after the plant's Stop (default %(default)s)")
-    p.add_argument("--nice", type=int, default=10, metavar="N",
-                   help="run at this nice value so the loop's nodes go first on a busy machine (default %(default)s)")
-    p.add_argument("--cpus", metavar="LIST", help="pin the recorder to these CPUs, e.g. 6 or 6,7")
-    p.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
-    p.add_argument("--launched", action="store_true", help=argparse.SUPPRESS)  # by testbed run
-    p.add_argument("--scenario-ref", help=argparse.SUPPRESS)
-    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (start-up, every event)")
-    add_run_option_arguments(p)
-    add_zenoh_arguments(p)
 
 
 def loop_default(sc, choice: str) -> bool:
     return choice == "on" or (choice == "auto" and sc.T >= 0.01)
 
 
-def main_record(args) -> int:
+def run_recorder(cfg: RecorderConfig) -> int:
+    """Record the run of configuration ``cfg`` until it ends; the exit code."""
     import zenoh
 
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
+    logging.basicConfig(level=logging.INFO if cfg.verbose else logging.WARNING, stream=sys.stderr,
                         format="%(asctime)s recorder   %(levelname)s %(message)s")
-    opts = RunOptions.from_args(args)
-    if args.cpus:
-        os.sched_setaffinity(0, parse_cpus(args.cpus))
-    sc = load_scenario(args.scenario, opts, check_design=not args.launched)
-    tune_process(args.parent_pid)
-    if args.nice:
+    opts = cfg.opts
+    if cfg.cpus:
+        os.sched_setaffinity(0, parse_cpus(cfg.cpus))
+    sc = load_scenario(cfg.scenario, opts, check_design=not cfg.launched)
+    tune_process(cfg.parent_pid)
+    if cfg.nice:
         try:  # recording is off the loop's path: under CPU contention the loop nodes go first
-            os.nice(args.nice)
+            os.nice(cfg.nice)
         except OSError:
             pass
     stop = threading.Event()
@@ -343,26 +319,26 @@ def main_record(args) -> int:
         stop.set()
 
     on_stop_signals(on_signal, grace=RECORDER_STOP_GRACE_S)
-    out = Path(args.out) if args.out else recording.default_path(sc.name, run_id=args.run_id)
-    keys = transport.Keys.for_run(args.run_id)
-    conf = zenoh_config(args, ROLE, keys)
-    if args.insecure and not args.launched:
-        print(f"testbed record: INSECURE: no authentication, any local process can join run {args.run_id}",
+    out = Path(cfg.out) if cfg.out else recording.default_path(sc.name, run_id=cfg.session.run_id)
+    keys = transport.Keys.for_run(cfg.session.run_id)
+    conf = zenoh_config(cfg.session, ROLE, keys, colocate=opts.colocate)
+    if cfg.session.insecure and not cfg.launched:
+        print(f"testbed record: INSECURE: no authentication, any local process can join run {cfg.session.run_id}",
               file=sys.stderr)
-    w = recording.RecordingWriter(out, flush_interval=args.flush, exclusive=not args.force, reserve=True)
+    w = recording.RecordingWriter(out, flush_interval=cfg.flush, exclusive=not cfg.force, reserve=True)
     try:
-        recording.write_text_metadata(w, sc, source="live", run_id=args.run_id, ref=args.scenario_ref or args.scenario,
+        recording.write_text_metadata(w, sc, source="live", run_id=cfg.session.run_id, ref=cfg.scenario_ref or cfg.scenario,
                                       extra={"scenario_overrides": opts.overrides(), "T_ns": T_ns(sc),
                                              "ack_via_attacker": opts.ack_via_attacker,
                                              "ack_on_actuation": opts.ack_on_actuation,
                                              "colocate": list(opts.colocate),
-                                             "security": security_info(args)})
+                                             "security": security_info(cfg.session)})
     except recording.RecordingFailed as e:
         w.close()
         print(f"testbed record: {e}; nothing recorded", file=sys.stderr, flush=True)
         return RECORD_FAILED
-    loop = loop_default(sc, args.loop)
-    print(f"testbed record: run {args.run_id} -> {out}", file=sys.stderr, flush=True)
+    loop = loop_default(sc, cfg.loop)
+    print(f"testbed record: run {cfg.session.run_id} -> {out}", file=sys.stderr, flush=True)
     try:
         session_cm = zenoh.open(conf)
     except zenoh.ZError as e:
@@ -381,11 +357,11 @@ def main_record(args) -> int:
                 if rec.failed is not None:
                     why["reason"] = "the file cannot be written"
                     break
-                if args.launched and transport.COLLECTOR in rec.lost:
+                if cfg.launched and transport.COLLECTOR in rec.lost:
                     why["reason"] = "launcher gone"
                     break
-                if not args.launched and rec.stop_seen is not None \
-                        and time.monotonic() - rec.stop_seen_mono > args.linger:
+                if not cfg.launched and rec.stop_seen is not None \
+                        and time.monotonic() - rec.stop_seen_mono > cfg.linger:
                     why["reason"] = "run ended"
                     break
         finally:
@@ -412,4 +388,4 @@ def main_record(args) -> int:
     return code
 
 
-__all__ = ["RECORD_FAILED", "Recorder", "stats_key", "add_arguments_record", "main_record", "loop_default"]
+__all__ = ["RECORD_FAILED", "Recorder", "stats_key", "run_recorder", "loop_default"]

@@ -140,9 +140,8 @@ class RerunTap:
         return {"rerun_logged": self.logged, "rerun_errors": self.errors}
 
 
-def from_args(args, role: str, sc) -> RerunTap | None:
-    """The tap asked for by ``--rerun-url`` / ``--rerun-save`` (with ``--recording-id``), or None."""
-    url, save = getattr(args, "rerun_url", None), getattr(args, "rerun_save", None)
-    if not (url or save):
+def of(cfg, role: str, sc) -> RerunTap | None:
+    """The tap a node's ``NodeConfig`` asks for (``--rerun-url`` / ``--rerun-save``, with ``--recording-id``), or None."""
+    if not (cfg.rerun_url or cfg.rerun_save):
         return None
-    return RerunTap(role, sc, args.recording_id or args.run_id, url=url, save=save)
+    return RerunTap(role, sc, cfg.recording_id or cfg.session.run_id, url=cfg.rerun_url, save=cfg.rerun_save)

@@ -399,12 +399,11 @@ class LiveRerun:
         self.merge_error: str | None = None
 
     @classmethod
-    def from_args(cls, args, sc, recording_id: str) -> "LiveRerun | None":
+    def from_options(cls, spec, rrd: str | None, roa: bool, sc, recording_id: str) -> "LiveRerun | None":
+        """From ``testbed run``'s ``--rerun`` words (``spec``), ``--rrd`` and not ``--no-roa``; None: no live view."""
         from ..errors import BadInput
 
-        spec = getattr(args, "rerun", None)
-        rrd = getattr(args, "rrd", None)
-        roa = not getattr(args, "no_roa", False)
+        spec = list(spec) if spec else None
         if rrd:
             if spec and spec != ["save", rrd]:
                 raise BadInput(f"--rrd {rrd} and --rerun {' '.join(spec)}: give one of them")

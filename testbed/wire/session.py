@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 from . import transport
 
@@ -44,17 +45,74 @@ def add_security_arguments(g, launcher: bool = False) -> None:
                         "must use it or none (testbed run: all of them)")
 
 
-def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("zenoh")
-    g.add_argument("--run-id", default=transport.DEFAULT_RUN_ID,
-                   help="key prefix testbed/RUN_ID/... (default %(default)s)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on, e.g. tcp/10.0.0.2:7447 (repeatable)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
+def add_network_arguments(g, launcher: bool = False) -> None:
+    """The network flags of every process of a run: ``--run-id``, ``--listen``, ``--zenoh-config`` and the security
+    flags (``add_security_arguments``); a node and the recorder (``launcher=False``) also take ``--connect``.  The
+    launcher (``testbed run``) listens on one endpoint and makes a run id unless given one."""
+    if launcher:
+        g.add_argument("--run-id", help="key prefix testbed/RUN_ID/... (default: unique per run)")
+        g.add_argument("--listen", metavar="ENDPOINT",
+                       help="the launcher's endpoint (default tcp/127.0.0.1:<free port>); nodes connect to it")
+    else:
+        g.add_argument("--run-id", default=transport.DEFAULT_RUN_ID,
+                       help="key prefix testbed/RUN_ID/... (default %(default)s)")
+        g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to listen on, e.g. tcp/10.0.0.2:7447 (repeatable)")
+        g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
     g.add_argument("--zenoh-config", metavar="FILE",
-                   help="Zenoh JSON5 config read first (e.g. TLS certificates); flags override it")
-    add_security_arguments(g)
+                   help="Zenoh JSON5 config for every session (e.g. TLS certificates); flags override it" if launcher
+                   else "Zenoh JSON5 config read first (e.g. TLS certificates); flags override it")
+    add_security_arguments(g, launcher=launcher)
+
+
+def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``zenoh`` group of ``testbed node`` and ``testbed record``."""
+    add_network_arguments(p.add_argument_group("zenoh"))
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """One process's session: run id, endpoints, topology and credentials (the flags of ``add_network_arguments``).
+
+    ``testbed node`` and ``testbed record`` build it from their flags; the launcher builds one for each process it
+    starts (``testbed.live.credentials``) and for its own session, and passes it on as flags (``argv``)."""
+
+    run_id: str = transport.DEFAULT_RUN_ID
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    zenoh_config: str | None = None
+    topology: str = "router"
+    secret_file: str | None = None
+    tls_dir: str | None = None
+    insecure: bool = False
+    low_latency: bool = False
+
+    @property
+    def router_tls(self) -> bool:
+        """The router topology with ``--tls-dir`` and no ``--secret-file``: the links are mutual TLS and the router
+        checks every message by certificate name (a client that cannot authenticate with a password, such as a
+        zenoh-pico device, joins this way; docs/protocol.md)."""
+        return self.topology == "router" and bool(self.tls_dir) and not self.secret_file and not self.insecure
+
+    def argv(self) -> list[str]:
+        """The same session as flags of ``testbed node`` / ``testbed record`` (credentials by path, never the secret)."""
+        out = ["--run-id", self.run_id, "--topology", self.topology]
+        for ep in self.connect:
+            out += ["--connect", ep]
+        for ep in self.listen:
+            out += ["--listen", ep]
+        if self.tls_dir:
+            out += ["--tls-dir", str(self.tls_dir)]
+        if self.secret_file:
+            out += ["--secret-file", str(self.secret_file)]
+        if self.insecure:
+            out.append("--insecure")
+        if self.low_latency:
+            out.append("--low-latency")
+        if self.zenoh_config:
+            out += ["--zenoh-config", str(self.zenoh_config)]
+        return out
 
 
 PEER_NEEDS_TLS = ("--topology peer: no --tls-dir: its links are mutual TLS; make the folder with "
@@ -73,64 +131,51 @@ def transport_security(topology: str, insecure: bool, tls: bool = False) -> str:
     return "tcp" if insecure else ("mutual tls" if topology == "peer" or tls else "user/password")
 
 
-def router_tls(args) -> bool:
-    """``testbed node``/``testbed record`` in the router topology with ``--tls-dir`` and no ``--secret-file``:
-    the links are mutual TLS and the router checks every message by certificate name (a client that cannot
-    authenticate with a password, such as a zenoh-pico device, joins this way; docs/protocol.md)."""
-    return (getattr(args, "topology", "router") == "router" and bool(getattr(args, "tls_dir", None))
-            and not getattr(args, "secret_file", None) and not getattr(args, "insecure", False))
-
-
-def security_info(args) -> dict:
+def security_info(s: SessionOptions) -> dict:
     """How a process's session is secured (it goes into the recording and the summary)."""
-    return {"authenticated": not args.insecure, "topology": args.topology,
-            "access_control": "none" if args.insecure else access_control(args.topology),
-            "transport": transport_security(args.topology, args.insecure, router_tls(args)),
-            "low_latency": bool(getattr(args, "low_latency", False))}
+    return {"authenticated": not s.insecure, "topology": s.topology,
+            "access_control": "none" if s.insecure else access_control(s.topology),
+            "transport": transport_security(s.topology, s.insecure, s.router_tls),
+            "low_latency": s.low_latency}
 
 
-def zenoh_config(args, role: str, keys: transport.Keys):
-    """The session of ``role`` (a node or the recorder).
+def zenoh_config(s: SessionOptions, role: str, keys: transport.Keys, *, hub: bool = False, colocate=()):
+    """The session of ``role``: a node, the recorder, or (``hub``) the run's router or first peer.
 
-    Standalone defaults: the plant listens on tcp/127.0.0.1:7447, the others connect to
-    it.  Router topology: the hub (the launcher, or a standalone plant) is the run's
-    router and checks every message; the others are its clients.  Unless ``--insecure``,
-    the session authenticates with the secret file's line of ``role``; the router accepts
-    the file's other lines.  Peer topology: every process is a peer, every link mutual TLS
-    with ``role``'s certificate of the ``--tls-dir`` folder, and every process checks what
-    it receives.
+    Standalone defaults (no endpoint given): the plant is the hub and listens on tcp/127.0.0.1:7447, the
+    others connect to it.  Router topology: the hub (the launcher, or a standalone plant) is the run's
+    router and checks every message; the others are its clients.  Unless ``insecure``, the session
+    authenticates with the secret file's line of ``role``; the hub accepts the file's other lines.  Peer
+    topology: every process is a peer, every link mutual TLS with ``role``'s certificate of the
+    ``tls_dir`` folder, and every process checks what it receives.  The one builder of every process's
+    session, the launcher's own included (``testbed.live.credentials``).
     """
     from ..errors import BadInput
 
-    hub = role == "plant" and not getattr(args, "launched", False)
-    peer = args.topology == "peer"
-    tls_router = router_tls(args)
-    hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if (peer or tls_router) and not args.insecure \
+    peer = s.topology == "peer"
+    hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if (peer or s.router_tls) and not s.insecure \
         else transport.DEFAULT_HUB
-    listen, connect = list(args.listen), list(args.connect)
-    if not listen and not connect and not args.zenoh_config:
+    listen, connect = list(s.listen), list(s.connect)
+    if not listen and not connect and not s.zenoh_config:
         if hub:
             listen = [hub_ep]
         else:
             connect = [hub_ep]
     mode = "peer" if peer else ("router" if hub else "client")
-    if tls_router:
+    common = dict(listen=listen, connect=connect, config_file=s.zenoh_config, colocate=tuple(colocate),
+                  low_latency=s.low_latency, accepts=hub)
+    if s.router_tls:
         transport.require_tls((*listen, *connect), "--topology router --tls-dir")
-        return session_config(role, mode, keys, listen=listen, connect=connect, config_file=args.zenoh_config,
-                              colocate=transport.colocated_roles(getattr(args, "colocate", None)),
-                              low_latency=bool(getattr(args, "low_latency", False)), tls_dir=args.tls_dir,
-                              accepts=hub)
-    if not args.insecure and not peer and not args.secret_file:
+        return session_config(role, mode, keys, tls_dir=s.tls_dir, **common)
+    if not s.insecure and not peer and not s.secret_file:
         raise BadInput("no --secret-file: make one with 'testbed secret PATH' and give it to every process "
                        "of the run (or run unauthenticated with --insecure)")
-    if not args.insecure and peer:
-        if not getattr(args, "tls_dir", None):
+    if not s.insecure and peer:
+        if not s.tls_dir:
             raise BadInput(PEER_NEEDS_TLS)
         transport.require_tls((*listen, *connect))
-    return session_config(role, mode, keys, listen=listen, connect=connect, config_file=args.zenoh_config,
-                          colocate=transport.colocated_roles(getattr(args, "colocate", None)),
-                          low_latency=bool(getattr(args, "low_latency", False)), insecure=args.insecure,
-                          tls_dir=getattr(args, "tls_dir", None), secret_file=args.secret_file, accepts=hub)
+    return session_config(role, mode, keys, insecure=s.insecure, tls_dir=s.tls_dir, secret_file=s.secret_file,
+                          **common)
 
 
 def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), connect=(), config_file=None,
