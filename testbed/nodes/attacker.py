@@ -171,13 +171,10 @@ class AttackerNode(Node):
     # ---- callbacks
     def _on_symbol(self, sample):
         ctx = self.ctx
-        h = self.rx_header(sample, "symbol header (dropped)")
-        if h is None:
+        got = self.rx_stamped(sample, "symbol header (dropped)")
+        if got is None:
             return None
-        clock = ctx.wait_clock()
-        if clock is None:
-            return None
-        rx = clock.now()
+        h, rx = got
         k = h.k
         if k >= ctx.n_steps:
             return None
@@ -198,7 +195,7 @@ class AttackerNode(Node):
                 payload = self._corrupt(payload, kind)
                 corrupted = 1
                 self.corrupted += 1
-            tx = clock.now()
+            tx = ctx.clock.now()
             self.pub_fwd.put(payload, attachment=sample.attachment)
             self.forwarded += 1
         ctx.telemetry.put(msg.AttackerTelemetry(k=k, rx_ns=rx, tx_ns=tx, dropped=int(drop), corrupted=corrupted,

@@ -99,13 +99,10 @@ class ControllerNode(Node):
 
     def _on_symbol(self, sample):
         ctx = self.ctx
-        h = self.rx_header(sample, "symbol header")
-        if h is None:
+        got = self.rx_stamped(sample, "symbol header")
+        if got is None:
             return None
-        clock = ctx.wait_clock()
-        if clock is None:
-            return None
-        rx = clock.now()
+        h, rx = got
         k = h.k
         proto = self.proto
         with self._cond:
