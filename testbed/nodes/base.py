@@ -142,16 +142,21 @@ class Node:
             return None
         return None if h.warmup else h
 
-    def rx_stamped(self, sample, what: str):
-        """(header, receive time on the run clock) of a sample, or None: a warm-up put, a malformed header
-        (counted), or a stop while the node waits for the run clock."""
-        h = self.rx_header(sample, what)
-        if h is None:
-            return None
-        clock = self.ctx.wait_clock()
-        if clock is None:
-            return None
-        return h, clock.now()
+    def stamped(self, fn, what: str):
+        """A subscriber callback that calls ``fn(sample, header, rx)``, ``rx`` the receive time on the run
+        clock; it ignores a warm-up put, a malformed header (counted as ``what``) and a sample that arrives
+        while a stop is awaited instead of the run clock."""
+
+        def handler(sample):
+            h = self.rx_header(sample, what)
+            if h is None:
+                return None
+            clock = self.ctx.wait_clock()
+            if clock is None:
+                return None
+            return fn(sample, h, clock.now())
+
+        return handler
 
     def wait_end(self, grace_s: float = 5.0) -> None:
         """Until a stop arrives, or the run's end plus ``grace_s`` (no plant to say so)."""
