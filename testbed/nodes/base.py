@@ -145,7 +145,7 @@ class Node:
     def stamped(self, fn, what: str):
         """A subscriber callback that calls ``fn(sample, header, rx)``, ``rx`` the receive time on the run
         clock; it ignores a warm-up put, a malformed header (counted as ``what``) and a sample that arrives
-        while a stop is awaited instead of the run clock."""
+        before the run clock (no Start within ``ctx.wait_clock``'s wait)."""
 
         def handler(sample):
             h = self.rx_header(sample, what)
