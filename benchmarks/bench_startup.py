@@ -33,9 +33,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from testbed.wire.transport import ROLES
+
 PHASE = re.compile(r"(?:testbed run|(\w+)): phase (\w+) t=([0-9.]+)")
 T0 = re.compile(r"start, t0 = (\d+)")
-ROLES = ("plant", "encoder", "attacker", "controller")
 
 
 def one_run(scenario: str, duration: float, extra: list[str], code: str | None = None) -> dict:

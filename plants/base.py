@@ -97,6 +97,20 @@ def _batch_rhs(rhs, x, u, p, out):
     _BATCH_RHS(rhs, x, u, p, out)
 
 
+def broadcast_xu(x, u, n: int, m: int):
+    """States x (..., n) and inputs u (..., m) broadcast against each other's leading dimensions.
+
+    Returns (lead, X, U): the common leading shape and C-contiguous float64 copies (B, n), (B, m), B the
+    product of ``lead``; a batch kernel's input (``Plant.f``, ``testbed.flow.phi_T``).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+    X = np.array(np.broadcast_to(x, lead + (n,)), dtype=np.float64, order='C').reshape(-1, n)
+    U = np.array(np.broadcast_to(u, lead + (m,)), dtype=np.float64, order='C').reshape(-1, m)
+    return lead, X, U
+
+
 @dataclass(frozen=True)
 class Plant:
     """Base class of every plant.
@@ -161,11 +175,7 @@ class Plant:
         -------
         array (..., n), float64.
         """
-        x = np.asarray(x, dtype=np.float64)
-        u = np.asarray(u, dtype=np.float64)
-        lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
-        xb = np.array(np.broadcast_to(x, lead + (self.n,)), dtype=np.float64, order='C').reshape(-1, self.n)
-        ub = np.array(np.broadcast_to(u, lead + (self.m,)), dtype=np.float64, order='C').reshape(-1, self.m)
+        lead, xb, ub = broadcast_xu(x, u, self.n, self.m)
         out = np.empty_like(xb)
         _batch_rhs(type(self).rhs.cfunc, xb, ub, self.p, out)
         return out.reshape(lead + (self.n,))

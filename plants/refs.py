@@ -174,32 +174,43 @@ def names() -> list[str]:
 
 
 # ----------------------------------------------------------------------------- resolving
+def resolve_in(ref, base_dir, *, what: str, error: type[Exception], registry: dict, cache: dict, from_module,
+               entry_points, load, unknown):
+    """The class a reference names, in the order of the module docstring: a ``"module.path:Name"``
+    (``from_module(ref, base_dir)``, once per reference and folder), a name in ``registry``, an entry point
+    (``entry_points()``, loaded once with ``load(ep)``).  ``error`` with one line when it cannot
+    (``unknown()`` for a name found nowhere).  Plants resolve with it here, methods in
+    ``testbed.methods.registry``: one order and one cache rule for both."""
+    if not isinstance(ref, str) or not ref:
+        raise error(f"{what} name must be a non-empty string, got {ref!r}")
+    bd = str(base_dir) if base_dir else ""
+    if is_module_ref(ref):
+        key = (ref, bd)
+        if key not in cache:
+            cache[key] = from_module(ref, bd or None)
+        return cache[key]
+    if ref in registry:
+        return registry[ref]
+    key = (ref, "")
+    if key not in cache:
+        ep = entry_points().get(ref)
+        if ep is None:
+            raise error(unknown())
+        cache[key] = load(ep)
+    return cache[key]
+
+
 def resolve(ref: str, base_dir: str | os.PathLike | None = None, *, registry: dict | None = None) -> type[Plant]:
     """The ``Plant`` subclass a reference names (see the module docstring for the order).
 
     Raises ``PlantRefError`` (a ``ValueError``) with one line when it cannot.
     """
-    reg = _REGISTRY if registry is None else registry
-    if not isinstance(ref, str) or not ref:
-        raise PlantRefError(f"plant name must be a non-empty string, got {ref!r}")
-    bd = str(base_dir) if base_dir else ""
-    if is_module_ref(ref):
-        key = (ref, bd)
-        cls = _RESOLVED.get(key)
-        if cls is None:
-            cls = _RESOLVED[key] = _from_module(ref, bd or None)
-        return cls
-    if ref in reg:
-        return reg[ref]
-    key = (ref, "")
-    if key in _RESOLVED:
-        return _RESOLVED[key]
-    ep = entry_points().get(ref)
-    if ep is None:
-        raise PlantRefError(f"unknown plant {ref!r}; registered plants: {', '.join(names())}; or an installed "
-                            f"plant package ({ENTRY_POINT_GROUP} entry point), or 'module.path:ClassName'")
-    cls = _RESOLVED[key] = load_entry_point(ep)
-    return cls
+    return resolve_in(ref, base_dir, what="plant", error=PlantRefError,
+                      registry=_REGISTRY if registry is None else registry, cache=_RESOLVED, from_module=_from_module,
+                      entry_points=entry_points, load=load_entry_point,
+                      unknown=lambda: f"unknown plant {ref!r}; registered plants: {', '.join(names())}; or an "
+                                      f"installed plant package ({ENTRY_POINT_GROUP} entry point), or "
+                                      "'module.path:ClassName'")
 
 
 def display_name(cls: type[Plant]) -> str:
@@ -310,4 +321,4 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
 
 __all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "resolve", "entry_points", "load_entry_point", "source_info",
            "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class",
-           "import_module_attr", "IDENT"]
+           "import_module_attr", "resolve_in", "IDENT"]

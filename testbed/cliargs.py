@@ -99,3 +99,10 @@ def add_scheduler(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="send the batch simulations to this Dask scheduler instead of local processes "
                         "(needs the extra 'dask'; see docs/scaling.md); results are identical")
+
+
+def add_batch_options(p: argparse.ArgumentParser) -> None:
+    """``--no-progress``, ``--workers``, ``--scheduler``: how an analysis command runs its batch simulations."""
+    add_no_progress(p)
+    add_workers(p)
+    add_scheduler(p)

@@ -22,6 +22,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from plants.base import broadcast_xu
+
 from ._dop853 import dop853_step
 from .loopspec import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401 - flow.py names them for its callers
 
@@ -115,11 +117,7 @@ def phi_T(plant, x, u, T: float, opts: FlowOptions = DEFAULT_FLOW):
     (x_T, status) : array (..., n) and int8 array (...) of FLOW_* codes.  x_T is
     always finite: for a diverged trajectory it is the last accepted state.
     """
-    x = np.asarray(x, dtype=np.float64)
-    u = np.asarray(u, dtype=np.float64)
-    lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
-    X = np.array(np.broadcast_to(x, lead + (plant.n,)), dtype=np.float64, order='C').reshape(-1, plant.n)
-    U = np.array(np.broadcast_to(u, lead + (plant.m,)), dtype=np.float64, order='C').reshape(-1, plant.m)
+    lead, X, U = broadcast_xu(x, u, plant.n, plant.m)
     out = np.empty_like(X)
     status = np.empty(X.shape[0], dtype=np.int8)
     flow_batch_kernel(type(plant).rhs.cfunc, X, U, plant.p, float(T), opts.as_array(), out, status)

@@ -7,7 +7,7 @@ dispatcher passed as a value is lowered as a pointer constant (a "dynamic
 global").  The cure is to make the right-hand side a *module global* of the
 kernel's own module.  This module does that by code generation:
 
-1. It takes the source of a kernel (``testbed.simulate._batch_kernel``) and of
+1. It takes the source of a kernel (``testbed.simkernel._batch_kernel``) and of
    every jitted callee that receives a right-hand side (``zoom_update``,
    ``flow_into``, ``dop853_step``), found by following the call sites where a
    right-hand-side parameter is passed on;

@@ -191,6 +191,9 @@ def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambd
 class _End:
     """State shared by the encoder and the decoder: xi_k, E_k and the sample index k."""
 
+    #: the rules (xi), (E) both ends apply (a numba function with ``zoom_update``'s arguments)
+    update_rule = staticmethod(zoom_update)
+
     def __init__(self, plant, K, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW):
         self.plant = plant
         self.K = np.ascontiguousarray(np.asarray(K, dtype=np.float64).reshape(plant.m, plant.n))
@@ -217,8 +220,8 @@ class _End:
                 self.xi, float(self.E), q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
                 self._dpar, self._Ks, self._ytmp, u_k, xi_next)
         if self._zoom is None:
-            E_next, st = zoom_update(*args)
-            self._zoom = compiled_for(zoom_update, args)  # once per sample on a live node: no type dispatch
+            E_next, st = self.update_rule(*args)
+            self._zoom = compiled_for(self.update_rule, args)  # once per sample on a live node: no type dispatch
         else:
             E_next, st = self._zoom(*args)
         self.xi = xi_next

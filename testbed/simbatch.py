@@ -2,7 +2,7 @@
 
 The per-sample loop (``testbed.simloop.simulate_loop``) runs the live nodes' protocol objects
 one sample at a time in Python (about 5,000 samples/s).  For the runs the batch kernel covers
-it is replaced here by one compiled pass over the same arithmetic that keeps every per-sample
+it is replaced here by the batch kernel itself (``simkernel._batch_kernel``) over one trajectory, keeping every per-sample
 array of a ``SimResult`` (x_k, u_k, q_k at both ends, xi_k and E_k at both ends, theta_k, the
 symbols, saturations, delays, ...): the same numbers bit for bit (``tests/test_simbatch.py``
 compares every array and the JSON summary), hundreds of times faster.
@@ -27,17 +27,14 @@ Everything else runs the per-sample loop.  ``simulator="per-sample"`` forces the
 from __future__ import annotations
 
 import dataclasses
-import math
 
-import numba as nb
 import numpy as np
 
-from attackers.greedy import greedy_init, greedy_step
+from attackers.greedy import greedy_init
 
 from .channel import LATE, loss_cause
-from .flow import FLOW_OK, flow_into
-from .methods.ends import unaware_update
-from .quantizer import box_center, control_input, quantize_index, zoom_update
+from .flow import FLOW_OK
+from .simkernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
 from .simloop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
@@ -45,216 +42,6 @@ from .simloop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
 SIMULATORS = ("auto", "batch", "per-sample")
 BATCH = "batch"
 PER_SAMPLE = "per-sample"
-
-
-@nb.njit(cache=True)
-def _record_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, x0, E0, M, Lambda, mode, sigma, E_min, dpar, u_max,
-                   theta_tab, tpar, lat, chan, greedy_params, g_init, score_kind, n_steps,
-                   X, U, Q, QE, XIE, EE, XID, ED, TH, SYM, SAT, UMISS, DEL, x_final, state_final, info):
-    # One trajectory of ``simulate._batch_kernel`` (the same statements in the same order, hence the same
-    # numbers), keeping what ``simloop.simulate_loop`` records per sample.  info: [samples run, flow status,
-    # non-finite inputs rejected, inputs clamped, overflows received].  chan (4, N): the channel per sample
-    # (``channel.SampleChannel``): [the controller cannot receive it, upstream delay ns, u_k lost] and, written
-    # here, the attacker's own decision
-    n = x0.shape[0]
-    m = Kgain.shape[0]
-    K_s = np.empty((13, n))
-    ytmp = np.empty(n)
-    u = np.empty(m)
-    u_e = np.empty(m)
-    u_d = np.empty(m)
-    up_e = np.zeros(m)
-    up_d = np.zeros(m)
-    u_held = np.zeros(m)
-    u_app = np.empty(m)
-    x = np.empty(n)
-    xn = np.empty(n)
-    xi_e = np.zeros(n)
-    xi_d = np.zeros(n)
-    xi_e_n = np.empty(n)
-    xi_d_n = np.empty(n)
-    zero = np.zeros(n)
-    q_e = np.empty(n)
-    q_d = np.empty(n)
-    gstate = g_init.copy()
-    use_greedy = greedy_params.shape[0] > 0
-    physical = tpar[0] == 1
-    n_codes_box = M ** n
-    for i in range(n):
-        x[i] = x0[i]
-    E_e = E0
-    E_d = E0
-    if mode == 3 or mode == 5 or mode == 6:
-        E_e = 0.0
-        E_d = 0.0
-    last = n_steps
-    st = 0
-    nrej = 0
-    nclamp = 0
-    novf = 0
-    for k in range(n_steps):
-        nrm = 0.0
-        for i in range(n):
-            nrm = max(nrm, abs(x[i]))
-            X[k, i] = x[i]
-            XIE[k, i] = xi_e[i]
-            XID[k, i] = xi_d[i]
-        EE[k] = E_e
-        ED[k] = E_d
-        # --- attacker
-        if use_greedy:
-            score = nrm if score_kind == 0 else E_e
-            th = greedy_step(gstate, k, T, score, greedy_params)
-        elif theta_tab.shape[0] > k:
-            th = theta_tab[k]
-        else:
-            th = 0
-        chan[3, k] = th
-        if chan[0, k] != 0:
-            th = 1
-        TH[k] = th
-        if mode == 5 or mode == 6:  # exact state feedback: the symbol is x_k itself (recorded as 0)
-            SYM[k] = 0
-            SAT[k] = False
-            for i in range(n):
-                QE[k, i] = x[i]
-                Q[k, i] = x[i] if th == 0 else 0.0
-            if mode == 5:
-                control_input(Kgain, x, th, False, u)
-                for r in range(m):
-                    up_e[r] = u[r]
-                    up_d[r] = u[r]
-            elif th == 0:
-                control_input(Kgain, x, 0, False, u)
-                for r in range(m):
-                    up_e[r] = u[r]
-                    up_d[r] = u[r]
-            else:
-                for r in range(m):
-                    u[r] = up_d[r]
-        elif mode == 3:  # static: Q(0, R), R = E0
-            idx, sat = quantize_index(x, zero, E0, M)
-            SYM[k] = idx
-            SAT[k] = sat
-            box_center(idx, zero, E0, M, q_e)
-            if th == 0:
-                box_center(idx, zero, E0, M, q_d)
-            else:
-                for i in range(n):
-                    q_d[i] = 0.0
-            for i in range(n):
-                QE[k, i] = q_e[i]
-                Q[k, i] = q_d[i]
-            control_input(Kgain, q_d, th, False, u)
-            for r in range(m):
-                up_d[r] = u[r]
-        else:
-            # --- encoder (Algorithm 1)
-            idx, sat = quantize_index(x, xi_e, E_e, M)
-            box_center(idx, xi_e, E_e, M, q_e)
-            sym = idx
-            if sat and (mode == 1 or mode == 4):
-                sym = n_codes_box
-            SYM[k] = sym
-            SAT[k] = sat
-            overflow = sym == n_codes_box
-            # --- decoder / controller (Algorithm 2, law (2))
-            if th == 0 and not overflow:
-                box_center(sym, xi_d, E_d, M, q_d)
-            else:
-                for i in range(n):
-                    q_d[i] = 0.0
-            if th == 0 and overflow:
-                novf += 1
-            for i in range(n):
-                QE[k, i] = q_e[i]
-                Q[k, i] = q_d[i]
-            control_input(Kgain, q_d, th, overflow, u)
-            # --- both ends: rules (xi), (E) on the model
-            if mode == 4:
-                E_e_n, _s1 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e,
-                                            Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
-                E_d_n, _s2 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d,
-                                            Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
-            else:
-                E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
-                                         M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
-                E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
-                                         M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
-            for i in range(n):
-                xi_e[i] = xi_e_n[i]
-                xi_d[i] = xi_d_n[i]
-            for r in range(m):
-                up_e[r] = u_e[r]
-                up_d[r] = u_d[r]
-            E_e = E_e_n
-            E_d = E_d_n
-        # --- the actuator (PlantProtocol.check_input): u_k as decided is recorded; a non-finite u_k is
-        #     not applied, |u_k| is clamped to u_max
-        bad = False
-        big = False
-        for r in range(m):
-            U[k, r] = u[r]
-            if not math.isfinite(u[r]):
-                bad = True
-            elif abs(u[r]) > u_max:
-                big = True
-        if bad:
-            nrej += 1
-            for r in range(m):
-                u[r] = 0.0
-        elif big:
-            nclamp += 1
-            for r in range(m):
-                if u[r] > u_max:
-                    u[r] = u_max
-                elif u[r] < -u_max:
-                    u[r] = -u_max
-        # --- the true plant
-        if physical:
-            arr = lat[k] + (tpar[4] if th == 1 else chan[1, k])
-            missing = bad or chan[2, k] != 0 or arr > tpar[3]
-            if missing:
-                dns = tpar[3]
-            elif tpar[1] == 1:
-                dns = max(max(arr, 0), tpar[2] if th == 0 else tpar[3])
-            else:
-                dns = max(arr, 0)
-            for r in range(m):
-                u_app[r] = 0.0 if missing else u[r]
-            UMISS[k] = missing
-            DEL[k] = dns
-            dk = dns / 1e9
-            st = flow_into(rhs, x, u_held, p, dk, opts, K_s, ytmp, xn)
-            if st == 0:
-                st = flow_into(rhs, xn, u_app, p, T - dk, opts, K_s, ytmp, xn)
-            for r in range(m):
-                u_held[r] = u_app[r]
-        else:
-            UMISS[k] = bad or chan[2, k] != 0
-            if chan[2, k] != 0:
-                for r in range(m):
-                    u[r] = 0.0
-            st = flow_into(rhs, x, u, p, T, opts, K_s, ytmp, xn)
-        for i in range(n):
-            x[i] = xn[i]
-        if st != 0:
-            last = k + 1
-            break
-    for i in range(n):
-        x_final[i] = x[i]
-        state_final[i] = xi_e[i]
-        state_final[n + 1 + m + i] = xi_d[i]
-    state_final[n] = E_e
-    state_final[2 * n + 1 + m] = E_d
-    for r in range(m):
-        state_final[n + 1 + r] = up_e[r]
-        state_final[2 * n + 2 + m + r] = up_d[r]
-    info[0] = last
-    info[1] = st
-    info[2] = nrej
-    info[3] = nclamp
-    info[4] = novf
 
 
 def _bundled(plant) -> bool:
@@ -326,7 +113,7 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
 
 
 def simulate_kernel(sc, N: int, latency=None) -> SimResult:
-    """Scenario ``sc`` for N samples on the recording kernel (``kernel_refusal(sc)`` must be None)."""
+    """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None)."""
     plant, model = sc.make_plant(), sc.make_model()
     n, m = model.n, model.m
     qp = sc.quantizer
@@ -336,12 +123,12 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     dpar = np.zeros(4) if mode == 4 else np.ascontiguousarray(qp.dpar, dtype=np.float64)
     K = np.ascontiguousarray(np.asarray(sc.K, dtype=np.float64).reshape(m, n))
     if sc.attack.online:
-        gp = np.ascontiguousarray(sc.attack.greedy_params(), dtype=np.float64)
-        tab = np.zeros(0, dtype=np.uint8)
+        gp = np.ascontiguousarray(sc.attack.greedy_params(), dtype=np.float64).reshape(1, 5)
+        tab = np.zeros((1, 0), dtype=np.uint8)
     else:
-        gp = np.zeros(0)
+        gp = np.zeros((0, 5))
         th = sc.theta(N)
-        tab = np.zeros(0, dtype=np.uint8) if th is None else np.ascontiguousarray(th, dtype=np.uint8)
+        tab = np.zeros((1, 0), dtype=np.uint8) if th is None else np.ascontiguousarray(th, dtype=np.uint8).reshape(1, -1)
     tpar = np.ascontiguousarray(sc.timing_params, dtype=np.int64)
     physical = bool(tpar[0])
     if latency is None:
@@ -355,25 +142,29 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
         ctab[1] = chan.upstream_ns
         ctab[2] = chan.actuation_lost
         lat = lat + chan.actuation_ns
-    lat = np.ascontiguousarray(lat)
-    a = {k: np.zeros((N, n)) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
-    U = np.zeros((N, m))
-    EE, ED = np.zeros(N), np.zeros(N)
-    TH = np.zeros(N, dtype=np.uint8)
-    SYM = np.zeros(N, dtype=np.int64)
-    SAT = np.zeros(N, dtype=bool)
-    UMISS = np.zeros(N, dtype=bool)
-    DEL = np.zeros(N, dtype=np.int64)
-    x_final = np.zeros(n)
-    W = 2 * (n + 1 + m)
-    state_final = np.zeros(W)
-    info = np.zeros(5, dtype=np.int64)
-    _record_kernel(type(plant).rhs.cfunc, plant.p, type(model).rhs.cfunc, model.p, float(qp.T), sc.flow.as_array(),
-                   K, np.ascontiguousarray(sc.x0, dtype=np.float64), E0, int(qp.M), float(qp.Lambda), mode,
-                   float(qp.sigma), float(qp.E_min), dpar, float(sc.controller.u_max), tab, tpar, lat, ctab, gp,
-                   greedy_init(), SCORES[sc.attack.score], N, a["x"], U, a["q"], a["q_enc"], a["xi_enc"], EE,
-                   a["xi_dec"], ED, TH, SYM, SAT, UMISS, DEL, x_final, state_final, info)
-    last, status, nrej, nclamp, novf = (int(v) for v in info)
+    lat = np.ascontiguousarray(lat.reshape(1, N))
+    one = np.zeros(1, dtype=np.int64)
+    X_rec, E_rec, TH = np.zeros((1, N, n)), np.zeros((1, N)), np.zeros((1, N), dtype=np.uint8)
+    tf = np.zeros((1, N, trace_width(n, m)))
+    ti = np.zeros((1, N, TRACE_INTS), dtype=np.int64)
+    x_final = np.zeros((1, n))
+    state_final = np.zeros((1, loop_state_width(n, m)))
+    status, stop_k = np.zeros(1, np.int8), np.zeros(1, np.int64)
+    counts = np.zeros((1, COUNTS), dtype=np.int64)
+    _batch_kernel(type(plant).rhs.cfunc, plant.p, type(model).rhs.cfunc, model.p, float(qp.T), sc.flow.as_array(),
+                  K, np.ascontiguousarray(sc.x0, dtype=np.float64).reshape(1, n), E0, int(qp.M), float(qp.Lambda),
+                  mode, float(qp.sigma), float(qp.E_min), dpar, float(sc.controller.u_max), tab, one, tpar, lat, one,
+                  gp, greedy_init(), SCORES[sc.attack.score], N, True, X_rec, E_rec, TH, x_final, np.zeros(1),
+                  status, stop_k, np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1), np.zeros(1, np.int64),
+                  np.zeros((0, state_final.shape[1])), np.zeros(3), state_final, ctab, tf, ti, counts)
+    x_final, state_final, tf, ti, EE, TH = x_final[0], state_final[0], tf[0], ti[0], E_rec[0], TH[0]
+    col = np.ascontiguousarray
+    a = {"x": X_rec[0], "q": col(tf[:, :n]), "q_enc": col(tf[:, n:2 * n]), "xi_enc": col(tf[:, 2 * n:3 * n]),
+         "xi_dec": col(tf[:, 3 * n:4 * n])}
+    U, ED = col(tf[:, 4 * n:4 * n + m]), col(tf[:, 4 * n + m])
+    SYM, SAT, UMISS, DEL = col(ti[:, 0]), ti[:, 1].astype(bool), ti[:, 2].astype(bool), col(ti[:, 3])
+    last, status = int(stop_k[0]), int(status[0])
+    nrej, nclamp, novf = (int(v) for v in counts[0])
     sl = slice(0, last)
     theta = TH[sl].copy()
     lost = int(theta.sum())

@@ -20,24 +20,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 
-from attackers.greedy import greedy_init, greedy_step
+from attackers.greedy import greedy_init
 
 from .channel import loss_counts
-from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, flow_into
-from .methods.ends import unaware_update
+from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from .quantizer import (
     MODES,
     Decoder,
     QuantizerParams,
-    box_center,
-    control_input,
-    quantize_index,
-    zoom_update,
 )
 from .simbatch import simulate_scenario  # noqa: F401 - re-exported: the scenario level's entry point
+from .simkernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width
 from .simloop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: re-exported
     SCORES,
     Network,
@@ -50,243 +45,7 @@ from .simloop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: r
 )
 
 
-# ============================================================================ batch kernel
-def loop_state_width(n: int, m: int) -> int:
-    """Width W of a packed loop state: [xi_e (n), E_e, u_e (m), xi_d (n), E_d, u_d (m)], i.e.
-    xi_k, E_k and u_{k-1} as the encoder and as the decoder know them."""
-    return 2 * (n + 1 + m)
-
-
-#: the kernel parameters that carry a right-hand side (the true plant's, the model's): the cached
-#: specialized kernel (``testbed.kernelcache``) turns each into a global bound to a plant's ``RHS.jit``
-_RHS_ARGS = ("rhs", "rhs_m")
-
-
-@nb.njit(cache=True)
-def _batch_kernel(rhs, p, rhs_m, p_m, T, opts, Kgain, X0, E0, M, Lambda, mode, sigma, E_min,
-                  dpar, u_max, theta_tab, sched_idx, tpar, lat_tab, lat_idx,
-                  greedy_params, g_init, score_kind, n_steps, record,
-                  X_rec, E_rec, th_rec, x_final, E_final, status, stop_k, sat_count,
-                  mismatch, max_norm, theta_count, init_state, stop_par, state_final):
-    # init_state (B, W) or (0, W): both ends' state to start from (``loop_state_width`` layout) instead of
-    # xi_0 = 0, E_0, u_{-1} = 0; stop_par [x_tol, E_tol, x_out]: with x_tol > 0, a trajectory stops
-    # at the first sample with ||x_k|| < x_tol and both E_k < E_tol, or with ||x_k|| > x_out
-    # (the continuation of ``EscapeCriterion``); state_final (B, W): both ends' state at the stop
-    B = X0.shape[0]
-    n = X0.shape[1]
-    m = Kgain.shape[0]
-    K_s = np.empty((13, n))
-    ytmp = np.empty(n)
-    u = np.empty(m)
-    u_e = np.empty(m)
-    u_d = np.empty(m)
-    up_e = np.empty(m)      # u_{k-1} as the encoder knows it
-    up_d = np.empty(m)      # ... as the decoder knows it
-    u_held = np.empty(m)    # u_{k-1} as the plant holds it (physical timing)
-    x = np.empty(n)
-    xn = np.empty(n)
-    xi_e = np.empty(n)
-    xi_d = np.empty(n)
-    xi_e_n = np.empty(n)
-    xi_d_n = np.empty(n)
-    q_e = np.empty(n)
-    q_d = np.empty(n)
-    gstate = np.empty(g_init.shape[0])
-    use_greedy = greedy_params.shape[0] > 0  # (B, 5): one budget per trajectory
-    physical = tpar[0] == 1                  # physical timing: u_{k-1} held for delta_k (PlantProtocol)
-    u_app = np.empty(m)
-    n_codes_box = M ** n
-    from_state = init_state.shape[0] > 0
-    x_tol = stop_par[0]
-    for b in range(B):
-        for i in range(n):
-            x[i] = X0[b, i]
-            xi_e[i] = 0.0
-            xi_d[i] = 0.0
-        for r in range(m):
-            up_e[r] = 0.0
-            up_d[r] = 0.0
-            u_held[r] = 0.0
-        E_e = E0
-        E_d = E0
-        if mode == 3 or mode == 5 or mode == 6:  # static (E0 is its range), unquantized: no zoom state
-            E_e = 0.0
-            E_d = 0.0
-        if from_state:
-            for i in range(n):
-                xi_e[i] = init_state[b, i]
-                xi_d[i] = init_state[b, n + 1 + m + i]
-            E_e = init_state[b, n]
-            E_d = init_state[b, 2 * n + 1 + m]
-            for r in range(m):
-                up_e[r] = init_state[b, n + 1 + r]
-                up_d[r] = init_state[b, 2 * n + 2 + m + r]
-        if use_greedy:
-            for i in range(gstate.shape[0]):
-                gstate[i] = g_init[i]
-        srow = sched_idx[b]
-        drow = lat_idx[b] if physical else 0
-        st = 0
-        stop_k[b] = n_steps
-        nsat = 0
-        nmis = 0
-        nth = 0
-        mx = 0.0
-        for k in range(n_steps):
-            nrm = 0.0
-            for i in range(n):
-                nrm = max(nrm, abs(x[i]))
-            if x_tol > 0.0 and ((nrm < x_tol and E_e < stop_par[1] and E_d < stop_par[1]) or nrm > stop_par[2]):
-                stop_k[b] = k
-                break
-            mx = max(mx, nrm)
-            if record:
-                for i in range(n):
-                    X_rec[b, k, i] = x[i]
-                E_rec[b, k] = E_e
-            # --- attacker
-            if use_greedy:
-                score = nrm if score_kind == 0 else E_e
-                th = greedy_step(gstate, k, T, score, greedy_params[b])
-            elif theta_tab.shape[1] > k:
-                th = theta_tab[srow, k]
-            else:
-                th = 0
-            nth += th
-            if record:
-                th_rec[b, k] = th
-            if mode == 2:  # no quantization: u_k = (1 - theta_k) K x_k
-                control_input(Kgain, x, th, False, u)
-            elif mode == 5:  # method unquantized: u_k = (1 - theta_k) K x_k, both ends keep u_k
-                control_input(Kgain, x, th, False, u)
-                for r in range(m):
-                    up_e[r] = u[r]
-                    up_d[r] = u[r]
-            elif mode == 6:  # method unquantized-hold: u_k = K x_k, or u_{k-1} through a loss
-                if th == 0:
-                    control_input(Kgain, x, 0, False, u)
-                    for r in range(m):
-                        up_e[r] = u[r]
-                        up_d[r] = u[r]
-                else:
-                    for r in range(m):
-                        u[r] = up_d[r]
-            elif mode == 3:  # method static: Q(0, R) with R = E0, M levels, no zoom
-                for i in range(n):
-                    xi_e_n[i] = 0.0
-                idx, sat = quantize_index(x, xi_e_n, E0, M)
-                if sat:
-                    nsat += 1
-                if th == 0:
-                    box_center(idx, xi_e_n, E0, M, q_d)
-                else:
-                    for i in range(n):
-                        q_d[i] = 0.0
-                control_input(Kgain, q_d, th, False, u)
-                for r in range(m):
-                    up_d[r] = u[r]
-            else:
-                # --- encoder (Algorithm 1)
-                idx, sat = quantize_index(x, xi_e, E_e, M)
-                box_center(idx, xi_e, E_e, M, q_e)
-                sym = idx
-                if sat:
-                    nsat += 1
-                    if mode == 1 or mode == 4:
-                        sym = n_codes_box
-                overflow = sym == n_codes_box
-                # --- decoder / controller (Algorithm 2, law (2))
-                if th == 0 and not overflow:
-                    box_center(sym, xi_d, E_d, M, q_d)
-                else:
-                    for i in range(n):
-                        q_d[i] = 0.0
-                control_input(Kgain, q_d, th, overflow, u)
-                # --- both ends: rules (xi), (E) on the model; each computes its own prediction
-                if mode == 4:  # method zoom: the zoom-in whatever theta_k (``methods.bundled.unaware_update``)
-                    E_e_n, _s1 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e,
-                                                Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
-                    E_d_n, _s2 = unaware_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d,
-                                                Lambda, M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
-                else:
-                    E_e_n, _s1 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_e, E_e, q_e, up_e, Lambda,
-                                             M, sigma, E_min, dpar, K_s, ytmp, u_e, xi_e_n)
-                    E_d_n, _s2 = zoom_update(rhs_m, p_m, T, opts, Kgain, th, overflow, xi_d, E_d, q_d, up_d, Lambda,
-                                             M, sigma, E_min, dpar, K_s, ytmp, u_d, xi_d_n)
-                same = E_e_n == E_d_n
-                for i in range(n):
-                    xi_e[i] = xi_e_n[i]
-                    xi_d[i] = xi_d_n[i]
-                    if xi_e_n[i] != xi_d_n[i]:
-                        same = False
-                for r in range(m):
-                    up_e[r] = u_e[r]
-                    up_d[r] = u_d[r]
-                    if u_e[r] != u_d[r]:
-                        same = False
-                E_e = E_e_n
-                E_d = E_d_n
-                if not same:
-                    nmis += 1
-            # --- the actuator (PlantProtocol.check_input): a non-finite u_k is not applied,
-            #     |u_k| is clamped to u_max
-            bad = False
-            for r in range(m):
-                if not math.isfinite(u[r]):
-                    bad = True
-                elif u[r] > u_max:
-                    u[r] = u_max
-                elif u[r] < -u_max:
-                    u[r] = -u_max
-            if bad:
-                for r in range(m):
-                    u[r] = 0.0
-            # --- the true plant: ideal timing phi_T(x_k, u_k); physical timing
-            #     phi_{T - delta_k}(phi_delta_k(x_k, u_{k-1}), u_k)
-            if physical:  # PlantProtocol.delay_ns: arrival of u_k, then the actuation policy
-                arr = lat_tab[drow, k] + (tpar[4] if th == 1 else 0)
-                missing = bad or arr > tpar[3]
-                if missing:
-                    dns = tpar[3]
-                elif tpar[1] == 1:
-                    dns = max(max(arr, 0), tpar[2] if th == 0 else tpar[3])
-                else:
-                    dns = max(arr, 0)
-                for r in range(m):
-                    u_app[r] = 0.0 if missing else u[r]
-                dk = dns / 1e9
-                st = flow_into(rhs, x, u_held, p, dk, opts, K_s, ytmp, xn)
-                if st == 0:
-                    st = flow_into(rhs, xn, u_app, p, T - dk, opts, K_s, ytmp, xn)
-                for r in range(m):
-                    u_held[r] = u_app[r]
-            else:
-                st = flow_into(rhs, x, u, p, T, opts, K_s, ytmp, xn)
-            for i in range(n):
-                x[i] = xn[i]
-            if st != 0:
-                stop_k[b] = k + 1
-                break
-        nrm = 0.0
-        for i in range(n):
-            nrm = max(nrm, abs(x[i]))
-            x_final[b, i] = x[i]
-        max_norm[b] = max(mx, nrm)
-        E_final[b] = E_e
-        for i in range(n):
-            state_final[b, i] = xi_e[i]
-            state_final[b, n + 1 + m + i] = xi_d[i]
-        state_final[b, n] = E_e
-        state_final[b, 2 * n + 1 + m] = E_d
-        for r in range(m):
-            state_final[b, n + 1 + r] = up_e[r]
-            state_final[b, 2 * n + 2 + m + r] = up_d[r]
-        status[b] = st
-        sat_count[b] = nsat
-        mismatch[b] = nmis
-        theta_count[b] = nth
-
-
+# ============================================================================ batch simulator
 @dataclass
 class BatchResult:
     """Summary (always) and traces (``record=True``) of a batch run."""
@@ -432,10 +191,10 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     rhs, rhs_m = type(plant).rhs.cfunc, type(model).rhs.cfunc
     kernel(rhs, plant.p, rhs_m, model.p, float(qp.T), flow.as_array(), Kg, X0, E0, int(qp.M),
            float(qp.Lambda), mode_code, float(qp.sigma), float(qp.E_min), dpar, float(u_max), tab, sched_idx,
-           tpar, ltab, latency_idx, gp, greedy_init(),
-                  SCORES[score], N, bool(record), X_rec, E_rec, th_rec, out["x_final"], out["E_final"],
-                  out["status"], out["stop_k"], out["saturations"], out["mismatch"], out["max_norm"],
-                  out["attacked"], ist, spar, out["state_final"])
+           tpar, ltab, latency_idx, gp, greedy_init(), SCORES[score], N, bool(record), X_rec, E_rec, th_rec,
+           out["x_final"], out["E_final"], out["status"], out["stop_k"], out["saturations"], out["mismatch"],
+           out["max_norm"], out["attacked"], ist, spar, out["state_final"], np.zeros((4, 0), dtype=np.int64),
+           np.zeros((0, 0, 0)), np.zeros((0, 0, TRACE_INTS), dtype=np.int64), np.zeros((B, COUNTS), dtype=np.int64))
     res = BatchResult(**out)
     if record:
         res.x, res.E, res.theta = X_rec, E_rec, th_rec

@@ -23,9 +23,10 @@ import pytest
 from failclosed import require, rerun_flags, rerun_while_stalled
 from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, TOPOLOGIES, mismatch, reap, run_cli, simulate
 
+from testbed.wire.transport import ROLES
+
 pytestmark = pytest.mark.process
 
-ROLES = ("plant", "encoder", "attacker", "controller")
 
 
 def _ip(*args: str) -> None:

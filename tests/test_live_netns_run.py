@@ -16,7 +16,7 @@ import pytest
 from failclosed import require
 from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, live, live_exact, mismatch, reap, run_cli, simulate, tb_cmd
 
-ROLES = ("plant", "encoder", "attacker", "controller")
+from testbed.wire.transport import ROLES
 
 
 def _require_netns():

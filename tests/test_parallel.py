@@ -41,7 +41,8 @@ def _same_sweep(a, b):
 # ============================================================================ fast: the kernel cache
 def test_specialized_kernel_is_cached_and_identical(paper):
     from testbed import kernelcache
-    from testbed.simulate import _batch_kernel, simulate_batch
+    from testbed.simkernel import _batch_kernel
+    from testbed.simulate import simulate_batch
 
     plant = paper.make_plant()
     X0 = np.random.default_rng(1).uniform(-0.3, 0.3, (64, 2))
@@ -61,12 +62,12 @@ def test_specialized_kernel_is_cached_and_identical(paper):
 
 def test_specialized_kernel_depends_on_every_source(paper):
     from testbed import kernelcache
-    from testbed.simulate import _batch_kernel
+    from testbed.simkernel import _batch_kernel
 
     gen = kernelcache._Generator({"rhs": ("plants.lienard", "lienard_rhs"), "rhs_m": ("plants.lienard", "lienard_rhs")})
     gen.function(_batch_kernel, {"rhs": "rhs", "rhs_m": "rhs_m"}, top=True)
     names = {os.path.relpath(f, os.path.dirname(os.path.dirname(kernelcache.__file__))) for f in gen.files}
-    for f in ("testbed/simulate.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+    for f in ("testbed/simkernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
               "attackers/greedy.py"):
         assert f in names, f
 
@@ -76,7 +77,7 @@ import json, sys
 from pathlib import Path
 import plants
 from testbed import kernelcache
-from testbed.simulate import _batch_kernel
+from testbed.simkernel import _batch_kernel
 
 def flip(path):  # the case of the first letter of the file: one byte, and the source still parses
     data = bytearray(Path(path).read_bytes())
@@ -110,7 +111,7 @@ def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
     for pkg in ("testbed", "plants", "attackers"):
         shutil.copytree(root / pkg, tmp_path / "src" / pkg, ignore=shutil.ignore_patterns("__pycache__"))
     src = tmp_path / "src"
-    deps = [src / f for f in ("testbed/simulate.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+    deps = [src / f for f in ("testbed/simkernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
                               "attackers/greedy.py", "plants/lienard.py")]
     env = dict(os.environ, PYTHONPATH=str(src), TESTBED_CACHE_DIR=str(tmp_path / "cache"))
     r = subprocess.run([sys.executable, "-c", _FLIP, *map(str, deps)], capture_output=True, text=True, env=env,
@@ -126,7 +127,7 @@ def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
 def test_plant_without_module_level_rhs_falls_back(paper, caplog):
     from plants.base import rhs_function
     from testbed import kernelcache
-    from testbed.simulate import _batch_kernel
+    from testbed.simkernel import _batch_kernel
 
     def local_rhs(x, u, p, dx):
         dx[0] = x[1]

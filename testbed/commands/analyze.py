@@ -168,9 +168,7 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
                    help="also draw, in the phase portrait, a trajectory under the scenario's attacks from this "
                         "initial state, or 'auto': the first state along the ray through the scenario's x0 from "
                         "which it escapes (default: only the scenario's own trajectory)")
-    cliargs.add_no_progress(p)
-    cliargs.add_workers(p)
-    cliargs.add_scheduler(p)
+    cliargs.add_batch_options(p)
 
 
 def main_analyze(args) -> int:
@@ -500,9 +498,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
                    help="attacker of --vulnerable (default greedy)")
     p.add_argument("--threshold", type=float, default=0.0, help="greedy threshold (default 0)")
     p.add_argument("--stride", type=int, default=2, help="--vulnerable uses every STRIDE-th grid state (default 2)")
-    cliargs.add_no_progress(p)
-    cliargs.add_workers(p)
-    cliargs.add_scheduler(p)
+    cliargs.add_batch_options(p)
 
 
 def main_roa(args) -> int:

@@ -47,9 +47,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
                    help="radius of the extra initial states (default 3 ||x0||_inf)")
     cliargs.add_plot(p, "write the allowable-region figure over the empirical map")
     cliargs.add_json(p, "the sweep")
-    cliargs.add_no_progress(p)
-    cliargs.add_workers(p)
-    cliargs.add_scheduler(p)
+    cliargs.add_batch_options(p)
 
 
 def main_sweep(args) -> int:
@@ -174,9 +172,7 @@ def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing --scenario-out file")
     cliargs.add_json(p, "the result (intervals, total_duration, samples_lost, escaped, exact, front, proof, "
                         "greedy, ...)")
-    cliargs.add_no_progress(p)
-    cliargs.add_workers(p)
-    cliargs.add_scheduler(p)
+    cliargs.add_batch_options(p)
 
 
 def main_worst_attack(args) -> int:
@@ -288,9 +284,7 @@ def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
     cliargs.add_plot(p, "draw the heat map (--show per state, the region's outline, Theorem 2's "
                         "delta-ball)")
     cliargs.add_json(p, "the map (least duration per grid state, counts, delta)")
-    cliargs.add_no_progress(p)
-    cliargs.add_workers(p)
-    cliargs.add_scheduler(p)
+    cliargs.add_batch_options(p)
 
 
 def main_vulnerability(args) -> int:

@@ -7,7 +7,6 @@ from dataclasses import replace
 import numba as nb
 import numpy as np
 
-from ..flow import compiled_for
 from ..quantizer import Decoder, Encoder, box_center, control_input, floor_E, quantize_index, zoom_update
 from .base import DecoderEnd, EncoderEnd, FloatCodebook
 
@@ -26,19 +25,7 @@ def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, La
 
 
 class _ZoomEnd:
-    def _update(self, theta, overflow, q):
-        xi_next = np.empty(self.plant.n)
-        u_k = np.empty(self.plant.m)
-        qp = self.qp
-        args = (self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow), self.xi, float(self.E), q,
-                self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min, self._dpar, self._Ks, self._ytmp, u_k, xi_next)
-        if self._zoom is None:
-            E_next, st = unaware_update(*args)
-            self._zoom = compiled_for(unaware_update, args)
-        else:
-            E_next, st = self._zoom(*args)
-        self.xi, self.E, self.u_prev, self.flow_status = xi_next, float(E_next), u_k, int(st)
-        self.k += 1
+    update_rule = staticmethod(unaware_update)  # quantizer._End._update applies it
 
 
 class ZoomEncoder(_ZoomEnd, Encoder):

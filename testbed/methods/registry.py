@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib.metadata
 import re
 
-from plants.refs import IDENT, import_module_attr
+from plants.refs import IDENT, import_module_attr, resolve_in
 from plants.refs import source_info as _plant_source_info
 
 from .base import Method, MethodError
@@ -50,37 +50,27 @@ def entry_points() -> dict:
 
 
 def _from_module(ref: str, base_dir: str | None):
-    return check_method_class(import_module_attr(ref, base_dir, "method", MethodError), ref)
+    try:
+        return check_method_class(import_module_attr(ref, base_dir, "method", MethodError), ref)
+    except ValueError as e:  # plants.refs.PlantRefError from the shared importer
+        raise MethodError(str(e).replace("plant", "method", 1)) from None
+
+
+def _load_entry_point(ep):
+    try:
+        obj = ep.load()
+    except Exception as e:  # noqa: BLE001 - a user's package: whatever it raises becomes one line
+        raise MethodError(f"method {ep.name!r}: entry point {ep.value!r} failed to load: {type(e).__name__}: {e}") from None
+    return check_method_class(obj, ep.name)
 
 
 def resolve(ref: str, base_dir: str | None = None) -> type[Method]:
     """The :class:`Method` subclass a reference names; :class:`MethodError` (one line) when it cannot."""
-    if not isinstance(ref, str) or not ref:
-        raise MethodError(f"method name must be a non-empty string, got {ref!r}")
-    bd = str(base_dir) if base_dir else ""
-    if ":" in ref:
-        key = (ref, bd)
-        if key not in _RESOLVED:
-            try:
-                _RESOLVED[key] = _from_module(ref, bd or None)
-            except ValueError as e:  # plants.refs.PlantRefError from the shared importer
-                raise MethodError(str(e).replace("plant", "method", 1)) from None
-        return _RESOLVED[key]
-    if ref in _REGISTRY:
-        return _REGISTRY[ref]
-    key = (ref, "")
-    if key in _RESOLVED:
-        return _RESOLVED[key]
-    ep = entry_points().get(ref)
-    if ep is None:
-        raise MethodError(f"unknown method {ref!r}; bundled methods: {', '.join(names())}; or an installed "
-                          f"method package ({ENTRY_POINT_GROUP} entry point), or 'module.path:ClassName'")
-    try:
-        obj = ep.load()
-    except Exception as e:  # noqa: BLE001 - a user's package: whatever it raises becomes one line
-        raise MethodError(f"method {ref!r}: entry point {ep.value!r} failed to load: {type(e).__name__}: {e}") from None
-    _RESOLVED[key] = check_method_class(obj, ref)
-    return _RESOLVED[key]
+    return resolve_in(ref, base_dir, what="method", error=MethodError, registry=_REGISTRY, cache=_RESOLVED,
+                      from_module=_from_module, entry_points=entry_points, load=_load_entry_point,
+                      unknown=lambda: f"unknown method {ref!r}; bundled methods: {', '.join(names())}; or an "
+                                      f"installed method package ({ENTRY_POINT_GROUP} entry point), or "
+                                      "'module.path:ClassName'")
 
 
 def make(ref: str, base_dir: str | None = None, params: dict | None = None) -> Method:

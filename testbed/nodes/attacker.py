@@ -86,7 +86,8 @@ class AttackerNode(Node):
         # the online (greedy) gate may wait for a score while it holds its lock: those handlers must not
         # run on Zenoh's own receive thread, which delivers the score
         online = self.gate.is_online
-        self._subs = [self.subscribe(keys.symbol_tx, self._on_symbol, blocking=online, primary=True)]
+        self._subs = [self.subscribe(keys.symbol_tx, self.stamped(self._on_symbol, "symbol header (dropped)"),
+                                     blocking=online, primary=True)]
         if ctx.opts.ack_via_attacker:
             self.pub_ack = self.publisher(keys.ack_rx)
             self._subs.append(self.subscribe(keys.ack_tx, self._on_ack, blocking=online))
@@ -169,15 +170,8 @@ class AttackerNode(Node):
                                                    acks_dropped=self.acks_dropped).encode())
 
     # ---- callbacks
-    def _on_symbol(self, sample):
+    def _on_symbol(self, sample, h, rx: int):
         ctx = self.ctx
-        h = self.rx_header(sample, "symbol header (dropped)")
-        if h is None:
-            return None
-        clock = ctx.wait_clock()
-        if clock is None:
-            return None
-        rx = clock.now()
         k = h.k
         if k >= ctx.n_steps:
             return None
@@ -198,7 +192,7 @@ class AttackerNode(Node):
                 payload = self._corrupt(payload, kind)
                 corrupted = 1
                 self.corrupted += 1
-            tx = clock.now()
+            tx = ctx.clock.now()
             self.pub_fwd.put(payload, attachment=sample.attachment)
             self.forwarded += 1
         ctx.telemetry.put(msg.AttackerTelemetry(k=k, rx_ns=rx, tx_ns=tx, dropped=int(drop), corrupted=corrupted,

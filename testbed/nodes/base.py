@@ -143,6 +143,22 @@ class Node:
             return None
         return None if h.warmup else h
 
+    def stamped(self, fn, what: str):
+        """A subscriber callback that calls ``fn(sample, header, rx)``, ``rx`` the receive time on the run
+        clock; it ignores a warm-up put, a malformed header (counted as ``what``) and a sample that arrives
+        before the run clock (no Start within ``ctx.wait_clock``'s wait)."""
+
+        def handler(sample):
+            h = self.rx_header(sample, what)
+            if h is None:
+                return None
+            clock = self.ctx.wait_clock()
+            if clock is None:
+                return None
+            return fn(sample, h, clock.now())
+
+        return handler
+
     def wait_end(self, grace_s: float = 5.0) -> None:
         """Until a stop arrives, or the run's end plus ``grace_s`` (no plant to say so)."""
         ctx = self.ctx

@@ -50,7 +50,8 @@ class ControllerNode(Node):
         self.decode_time = Timings()  # fixed memory however long the run
         self.net_latency = Timings()  # fixed memory however long the run
         self.loss_ns = int(sc.timing_params[4])  # t_k + loss_fraction d T
-        self._sub = self.subscribe(keys.symbol_rx, self._on_symbol, primary=True, link="symbol")
+        self._sub = self.subscribe(keys.symbol_rx, self.stamped(self._on_symbol, "symbol header"), primary=True,
+                                   link="symbol")
         ctx.on_peer(self._on_peer)
 
     @property
@@ -97,15 +98,8 @@ class ControllerNode(Node):
                                   reason=d.reason, E=d.E, xi=tuple(d.xi.tolist()), q=tuple(d.q.tolist()),
                                   u=ut).encode())
 
-    def _on_symbol(self, sample):
+    def _on_symbol(self, sample, h, rx: int):
         ctx = self.ctx
-        h = self.rx_header(sample, "symbol header")
-        if h is None:
-            return None
-        clock = ctx.wait_clock()
-        if clock is None:
-            return None
-        rx = clock.now()
         k = h.k
         proto = self.proto
         with self._cond:

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..wire import messages as msg
+from ..wire.transport import ROLES  # the readers' role columns, in this order
 from . import schema
 from .mcapfile import (
     MSG_HEAD,
@@ -59,13 +60,7 @@ from .mcapfile import (
     _schema_record,
     read_metadata,
 )
-from .topics import TELEMETRY_ROLES, TELEMETRY_SCHEMA
-
-ROLES = TELEMETRY_ROLES  # the readers' role columns
-
-
-ROLE_SCHEMA = TELEMETRY_SCHEMA
-
+from .topics import TELEMETRY_SCHEMA
 
 ROW_BYTES_MIN = 8             # a recorded sample takes more file than this: rows <= file size / 8
 
@@ -162,7 +157,7 @@ def layout(n: int, m: int, fields: set[str] | None = None) -> Layout:
     absent: dict[int, list] = {0: [], 1: [], 2: [], 3: []}
     for r, role in enumerate(ROLES):
         lo = dict(width)
-        for number, (name, ftype, _doc) in enumerate(schema.SPEC[ROLE_SCHEMA[role]], start=1):
+        for number, (name, ftype, _doc) in enumerate(schema.SPEC[TELEMETRY_SCHEMA[role]], start=1):
             g = _group(name, ftype)
             if g == G_SKIP or number >= MAX_FIELD:
                 continue
@@ -271,7 +266,7 @@ class Columns:
 
 
 def _not_decoded(role: str, name: str, rows: int, n: int, m: int) -> np.ndarray:
-    spec = dict((f, t) for f, t, _ in schema.SPEC[ROLE_SCHEMA[role]])
+    spec = dict((f, t) for f, t, _ in schema.SPEC[TELEMETRY_SCHEMA[role]])
     if name not in spec:
         raise KeyError(f"{role} telemetry has no field {name!r}")
     g = _group(name, spec[name])
@@ -344,7 +339,7 @@ class _Reader:
         mode = CH_COUNT
         if enc == "protobuf" and senc == "protobuf" and short:
             role = topic.rsplit("/", 1)[-1]
-            if topic.startswith("/telemetry/") and ROLE_SCHEMA.get(role) == short:
+            if topic.startswith("/telemetry/") and TELEMETRY_SCHEMA.get(role) == short:
                 mode = CH_TELEMETRY
                 self.chan_role[cid] = ROLES.index(role)
             elif short in _PY_SCHEMAS:
@@ -567,5 +562,5 @@ def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, ev
     return c
 
 
-__all__ = ["Columns", "read_columns", "read_metadata", "from_records", "scenario_of", "layout", "ROLES",
+__all__ = ["Columns", "read_columns", "read_metadata", "from_records", "scenario_of", "layout",
            "CorruptRecording", "rows_for"]

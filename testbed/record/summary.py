@@ -23,7 +23,6 @@ from ..wire import messages as msg
 from ..wire import transport
 from .degraded import timing_degraded
 
-ROLES = transport.ROLES
 PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
 
@@ -178,7 +177,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
                          "invalid": int(n_reason[CT.INVALID]), "superseded": int(n_reason[CT.SUPERSEDED])},
         "invalid_payloads": cs.get("invalid", int(n_reason[CT.INVALID])),
         "late_symbols": cs.get("late"),
-        "malformed": {r: summaries.get(r, {}).get("malformed") for r in ROLES},
+        "malformed": {r: summaries.get(r, {}).get("malformed") for r in transport.ROLES},
         "controller_lost_at": ps.get("controller_lost_at", -1),
         "sizes": {"symbol_payload_bytes": codebook.nbytes, "symbol_bits": codebook.bits,
                   "header_bytes": msg.HEADER_SIZE, "sensor_payload_bytes": 8 * n,

@@ -14,10 +14,8 @@ _U64_MAX = 2**64 - 1          # MCAP times are uint64 ns
 FORMAT_VERSION = "1"          # bump when a topic or field changes meaning
 
 
-#: the roles that publish telemetry (every node role: ``wire.transport.ROLES``), in the order of their
-#: topics and of the readers' columns
-TELEMETRY_ROLES = ROLES
-TELEMETRY_TOPICS = {r: f"/telemetry/{r}" for r in TELEMETRY_ROLES}
+#: every node role (``wire.transport.ROLES``) publishes telemetry: its topic, in the order of the readers' columns
+TELEMETRY_TOPICS = {r: f"/telemetry/{r}" for r in ROLES}
 
 
 TELEMETRY_SCHEMA = {"plant": "PlantSample", "encoder": "EncoderSample", "controller": "ControllerSample",
