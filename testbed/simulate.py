@@ -24,7 +24,7 @@ import numpy as np
 
 from attackers.greedy import greedy_init
 
-from .channel import loss_counts
+from .channel import ATTACKER, loss_counts
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from .quantizer import (
     MODES,
@@ -361,13 +361,16 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
 
 
 def attack_on_samples(sc, res) -> np.ndarray:
-    """Per sample: the DoS schedule is active at t_k (an online attacker: when it dropped)."""
+    """Per sample: the DoS schedule is active at t_k, or the attacker dropped sample k (an online
+    attacker is on when it drops). A loss of another cause (a ``[network]`` link, a late symbol, a
+    withheld one: ``res.loss_cause``) is not an attack, as the live attacker's own log has it."""
     theta = np.asarray(res.theta, dtype=bool)
+    dropped = theta if res.loss_cause is None else np.asarray(res.loss_cause) == ATTACKER
     N = len(theta)
     sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
     if sched is None or not N:
-        return theta.copy()
-    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | theta
+        return dropped.copy()
+    return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | dropped
 
 
 def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:

@@ -428,13 +428,6 @@ class LiveRerun:
 
         return str(Path(self.parts_dir) / f"{who}.rrd")
 
-    def node_flags(self, role: str) -> list[str]:
-        """The flags of ``testbed node`` that make it stream its telemetry."""
-        out = ["--recording-id", self.recording_id]
-        if self.mode == "save":
-            return out + ["--rerun-save", self.part(role)]
-        return out + ["--rerun-url", self.url]
-
     def prepare(self) -> None:
         """``save``: the folder of the part files, which the nodes' flags name (no rerun import here:
         the launcher forks its nodes after this, and importing rerun starts threads)."""
