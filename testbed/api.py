@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 
 from . import traces
-from .channel import ATTACKER
 from .errors import BadInput
 
 
@@ -256,7 +255,7 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict | None = None) -> Run:
     """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result; ``summary``: its
     ``testbed.simulate.summarize(sc, res)`` when the caller has made it already."""
-    from .simulate import attack_on_samples, summarize
+    from .simulate import attack_on_samples, attacker_drops, summarize
 
     N = len(res.t)
     u = res.u if res.u_plant is None else res.u_plant  # what acted (after [plant.actuator]), as recorded
@@ -264,7 +263,7 @@ def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict |
               "E": res.E_enc, "E_dec": res.E_dec, "xi_dec": res.xi_dec, "q_enc": res.q_enc,
               "theta": np.asarray(res.theta).astype(np.int64), "symbols": np.asarray(res.symbols, dtype=np.int64),
               "saturated": np.asarray(res.saturated, dtype=bool), "attack_on": attack_on_samples(sc, res),
-              "dropped": np.asarray(res.theta, dtype=bool) if res.loss_cause is None else res.loss_cause == ATTACKER}
+              "dropped": attacker_drops(res)}
     if res.x_meas is not None:  # what the sensor read ([plant.sensor])
         arrays["x_meas"] = res.x_meas
     events = [{"k": int(k), "t": float(k * sc.T), "node": "encoder", "kind": "saturation",

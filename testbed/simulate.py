@@ -360,13 +360,18 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
                              model=model, flow=sc.flow)[0])
 
 
+def attacker_drops(res) -> np.ndarray:
+    """Per sample: the attacker dropped it (``res.loss_cause``; without one, every lost sample)."""
+    theta = np.asarray(res.theta, dtype=bool)
+    return theta if res.loss_cause is None else np.asarray(res.loss_cause) == ATTACKER
+
+
 def attack_on_samples(sc, res) -> np.ndarray:
     """Per sample: the DoS schedule is active at t_k, or the attacker dropped sample k (an online
     attacker is on when it drops). A loss of another cause (a ``[network]`` link, a late symbol, a
     withheld one: ``res.loss_cause``) is not an attack, as the live attacker's own log has it."""
-    theta = np.asarray(res.theta, dtype=bool)
-    dropped = theta if res.loss_cause is None else np.asarray(res.loss_cause) == ATTACKER
-    N = len(theta)
+    dropped = attacker_drops(res)
+    N = len(dropped)
     sched = sc.attack.schedule(sc.T, max(N, 1) * sc.T)
     if sched is None or not N:
         return dropped.copy()

@@ -91,6 +91,8 @@ def test_the_launcher_gives_each_process_its_part_of_the_run_config():
 
 @pytest.mark.parametrize("flags, says", [
     (["--kill", "plant@soon"], "--kill: 'soon' is not a number"),
+    (["--kill", "plant@nan"], "--kill: 'nan' is not a finite number >= 0"),
+    (["--crash", "controller@-3"], "--crash: '-3' is not a finite number >= 0"),
     (["--crash", "plant"], "--crash must be ROLE@VALUE"),
     (["--cpu", "nobody=1"], "--cpu must be ROLE=VALUE"),
 ])
