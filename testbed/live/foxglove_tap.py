@@ -57,16 +57,22 @@ class FoxgloveLive:
         return self._fg.Schema(name=schema.full_name(name), encoding="protobuf", data=schema.file_descriptor_set())
 
     def start(self, session, keys) -> None:
-        """Start the server (loopback), declare every channel, subscribe to the run's keys."""
+        """Declare every channel, start the server (loopback), subscribe to the run's keys.
+
+        The channels exist before the server does, so a viewer that connects at once gets them all in
+        its first advertisement.  (foxglove-sdk advertises a channel created while a viewer is
+        connected before it records the channel as advertised; a viewer fast enough to subscribe in
+        between is told "Unknown channel ID" and never gets that topic.)
+        """
+        table = {**{t: n for t, n in ((topics.TELEMETRY_TOPICS[r], topics.TELEMETRY_SCHEMA[r])
+                                      for r in topics.TELEMETRY_TOPICS)}, **FOXGLOVE_TOPICS}
+        for topic, name in table.items():
+            self.channels[topic] = self._fg.Channel(topic, message_encoding="protobuf", schema=self._schema(name))
         try:
             self.server = self._fg.start_server(name=f"testbed {self.run_id}", host=self.host, port=self.port)
         except Exception as e:  # noqa: BLE001 - a port in use, mostly
             raise BadInput(f"--foxglove {self.port}: cannot serve on {self.host}:{self.port} ({e})") from None
         self.port = self.server.port
-        table = {**{t: n for t, n in ((topics.TELEMETRY_TOPICS[r], topics.TELEMETRY_SCHEMA[r])
-                                      for r in topics.TELEMETRY_TOPICS)}, **FOXGLOVE_TOPICS}
-        for topic, name in table.items():
-            self.channels[topic] = self._fg.Channel(topic, message_encoding="protobuf", schema=self._schema(name))
         p = keys.prefix
         self._plen = len(p) + 1
         for k in (f"{p}/telemetry/*", f"{p}/events/*", keys.attacker_status, keys.start, keys.stop):
