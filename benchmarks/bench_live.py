@@ -391,7 +391,7 @@ def _work_ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
             echo.wait()
     same = None
     if not lost:
-        from testbed.simulate import simulate_scenario
+        from testbed.sim.batch import simulate_scenario
 
         same = bool(np.array_equal(np.array(us), simulate_scenario(sc, n_steps=n).u))
     shutil.rmtree(d, ignore_errors=True)

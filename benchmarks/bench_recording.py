@@ -91,7 +91,7 @@ def mcap_writer_alone(tmp: Path, res, sc) -> float:
 def simulate_timing(tmp: Path, duration: float, T: float) -> dict:
     """The simulation part (see the module docstring): times in seconds and the ratios."""
     from testbed.record.recording import record_simulation
-    from testbed.simbatch import simulate_scenario
+    from testbed.sim.trajectory import simulate_scenario
 
     sc = _sim_scenario(duration, T)
     simulate_scenario(_sim_scenario(1.0, T))  # compiled once, as a user's second run finds it

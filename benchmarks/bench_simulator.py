@@ -10,7 +10,7 @@ three scipy.integrate.solve_ivp(DOP853) calls at comparable tolerances.
 Two kernels are timed: the generic one (the plant's right-hand side is a
 function pointer; compiled once and cached on disk) and the specialized one
 (``simulate_batch(..., specialize=True)``: right-hand side inlined, generated
-per plant by ``testbed.kernelcache`` and cached on disk too).  Their results are
+per plant by ``testbed.sim.kernelcache`` and cached on disk too).  Their results are
 identical, which the script checks.  The first call of each is timed in a fresh
 process (after this process has filled the caches), which is what a command pays.
 
@@ -33,7 +33,7 @@ from scipy.integrate import solve_ivp
 
 from testbed import scenario
 from testbed.flow import phi_T
-from testbed.simulate import in_nominal_roa, simulate_batch
+from testbed.sim.batch import in_nominal_roa, simulate_batch
 
 
 def naive_loop(plant, K, qp, x0, theta, n_steps, rtol=1e-10, atol=1e-12):
@@ -72,7 +72,7 @@ FRESH = """
 import time
 import numpy as np
 from testbed import scenario
-from testbed.simulate import simulate_batch
+from testbed.sim.batch import simulate_batch
 sc = scenario.load("paper")
 plant = sc.make_plant()
 t0 = time.perf_counter()

@@ -65,11 +65,11 @@ for _name, _mod, _help in [
     ("run", "testbed.commands.run", "run a scenario live: four processes over Zenoh"),
     ("conformance", "testbed.commands.conformance", "check a node from outside against the protocol and the simulator"),
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
-    ("report", "testbed.report", "post-mortem of a recording"),
-    ("resimulate", "testbed.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
+    ("report", "testbed.runs.report", "post-mortem of a recording"),
+    ("resimulate", "testbed.runs.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
     ("replay", "testbed.commands.replay", "open a recording in Rerun"),
-    ("export", "testbed.export", "a recording as Parquet or CSV, one row per sample"),
-    ("compare", "testbed.compare", "two runs (recordings or scenarios) compared sample by sample"),
+    ("export", "testbed.runs.export", "a recording as Parquet or CSV, one row per sample"),
+    ("compare", "testbed.runs.compare", "two runs (recordings or scenarios) compared sample by sample"),
 ]:
     try:
         _optional(_name, _mod, _help)
@@ -115,9 +115,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _recording_trace(*args, **kwargs):
-    """``testbed.api.recording_trace``, imported when a command first reads a recording as a trace (numpy and
+    """``testbed.runs.run.recording_trace``, imported when a command first reads a recording as a trace (numpy and
     the readers are not loaded by every command: ``testbed run`` forks its nodes before it needs them)."""
-    from .api import recording_trace
+    from .runs.run import recording_trace
 
     return recording_trace(*args, **kwargs)
 

@@ -29,8 +29,8 @@ def _describe(dispatcher) -> str:
     if py is None:
         return "a numba kernel"
     mod = getattr(py, "__module__", "") or ""
-    if mod.startswith("_testbed_kernel_"):  # testbed.kernelcache's module for one plant
-        return f"the batch simulator for this plant ({py.__qualname__}, testbed.kernelcache)"
+    if mod.startswith("_testbed_kernel_"):  # testbed.sim.kernelcache's module for one plant
+        return f"the batch simulator for this plant ({py.__qualname__}, testbed.sim.kernelcache)"
     return f"{mod}.{py.__qualname__}" if mod else py.__qualname__
 
 

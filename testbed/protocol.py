@@ -2,7 +2,7 @@
 
 Pure: no clock, no network, no threads, no locks.  The live nodes
 (``testbed.nodes``) call them from thin shells that own the clock, the waits and
-the publishing; the per-sample simulator (``testbed.simloop.simulate_loop``)
+the publishing; the per-sample simulator (``testbed.sim.loop.simulate_loop``)
 calls the very same objects with a simulated network, so whatever a live node
 decides can be reproduced in-process (``testbed resimulate``).
 

@@ -5,7 +5,7 @@ A plain file holds dropped sample indices (one per line, or separated by spaces 
 the header lines ``# T = 0.1`` (required: the period the trace was taken at) and ``# samples = 300``
 (its length; default: the last index + 1).  A recording (``.mcap``) is read by
 ``recording_trace_reader``: the scenario layer reads no MCAP itself, so the shells that read
-recordings (``testbed.entry`` for every command, ``testbed.api`` for the Python API) set it.
+recordings (``testbed.entry`` for every command, ``testbed.runs.run`` for the Python API) set it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ def read_trace(path: str | Path) -> dict:
     if p.suffix == ".mcap":
         if recording_trace_reader is None:
             raise ValueError("a recording is read as a trace by the testbed's commands and by testbed.simulate "
-                             "(import testbed.api first in a script of your own), or give a file of sample indices")
+                             "(import testbed.runs.run first in a script of your own), or give a file of sample indices")
         return recording_trace_reader(p)
     size = p.stat().st_size
     if size > TRACE_FILE_MAX:

@@ -240,7 +240,7 @@ def sim_recording(tmp_path, name="paper", **over):
     """A simulation of scenario ``name`` (with ``over``) recorded to ``tmp_path/NAME.mcap``: (sc, res, path)."""
     from testbed import scenario
     from testbed.record import recording
-    from testbed.simulate import simulate_scenario
+    from testbed.sim.batch import simulate_scenario
 
     sc = scenario.with_overrides(scenario.load(name), over)
     res = simulate_scenario(sc)
@@ -266,7 +266,7 @@ def same_bits(a, b) -> bool:
 
 def both_simulators(sc, **kw):
     """``simulate_scenario`` of ``sc`` on the per-sample loop and on the batch kernel: (per, batch)."""
-    from testbed.simbatch import simulate_scenario
+    from testbed.sim.trajectory import simulate_scenario
 
     per = simulate_scenario(sc, simulator="per-sample", **kw)
     bat = simulate_scenario(sc, simulator="batch", **kw)
@@ -277,7 +277,7 @@ def both_simulators(sc, **kw):
 def assert_simulators_identical(sc, per, bat):
     """The two simulators' results of ``sc`` are one: every array bit for bit, the scalars, the gain, the
     counters and the JSON summary (but its ``simulator``)."""
-    from testbed.simulate import summarize
+    from testbed.sim.batch import summarize
 
     for name in SIM_ARRAYS:
         assert same_bits(getattr(per, name), getattr(bat, name)), name

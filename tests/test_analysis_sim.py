@@ -39,7 +39,7 @@ def test_roa_of_the_paper_loop(paper):
     assert not roa.contains(np.array([3.0, 0.0])) and not roa.contains(np.array([-3.0, 0.0]))
     assert 0.02 < roa.fraction < 0.2
     # agrees with the core's membership test on the grid states
-    from testbed.simulate import in_nominal_roa
+    from testbed.sim.batch import in_nominal_roa
 
     GX, GY = np.meshgrid(roa.xs[::8], roa.ys[::8], indexing="xy")
     X = np.stack([GX.ravel(), GY.ravel()], axis=1)

@@ -81,11 +81,14 @@ def test_run_plot_is_the_figure_of_simulate_plot(tmp_path):
 
 
 def test_testbed_exports_compare_and_badinput():
-    import testbed.compare as compare_module
+    import testbed.runs.compare as compare_module
+    import testbed.runs.run as run_module
 
     assert testbed.BadInput is errors.BadInput
-    assert callable(testbed.compare) and testbed.compare.compare is compare_module.compare
-    assert testbed.compare.QUANTITIES == compare_module.QUANTITIES
+    assert testbed.compare is compare_module.compare
+    assert testbed.simulate is run_module.simulate and testbed.open is run_module.open and testbed.Run is run_module.Run
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        testbed.nothing  # noqa: B018 - the attribute access is the test
     c = testbed.compare("paper", "paper")
     assert c["identical"] and c["first_divergence"] is None
     assert {"open", "simulate", "compare", "Run", "BadInput"} <= set(dir(testbed))
@@ -125,7 +128,7 @@ def test_the_overrides_of_the_api_and_the_command_line_are_the_documented_sets()
 
 
 def test_summary_keys_are_documented_one_by_one_and_live_ones_apart(tmp_path):
-    from testbed.api import LIVE_KEYS, RECORDING_KEYS, SUMMARY_KEYS
+    from testbed.runs.run import LIVE_KEYS, RECORDING_KEYS, SUMMARY_KEYS
 
     sim = testbed.simulate("paper", duration=3)
     assert tuple(sim.summary) == SUMMARY_KEYS
@@ -301,7 +304,7 @@ def test_a_refused_run_leaves_no_run_folder(tmp_path):
 def test_a_live_runs_summary_has_the_documented_keys_and_no_process_details(tmp_path):
     """A real live run (four processes over Zenoh): Run.summary is SUMMARY_KEYS, RECORDING_KEYS and
     LIVE_KEYS, without node PIDs or log paths; the run folder of a finished run is gone."""
-    from testbed.api import LIVE_KEYS, RECORDING_KEYS, SUMMARY_KEYS
+    from testbed.runs.run import LIVE_KEYS, RECORDING_KEYS, SUMMARY_KEYS
 
     tmp = tmp_path / "tmp"
     tmp.mkdir()

@@ -312,7 +312,7 @@ def test_live_campaign_four_runs_recorded_and_resimulated(tmp_path):
     from failclosed import rerun_while_stalled, stalled
     from helpers import BIT_EXACT_KEYS, mismatch
 
-    from testbed.report import report
+    from testbed.runs.report import report
 
     c = tmp_path / "live.toml"
     c.write_text(LIVE_CAMPAIGN)

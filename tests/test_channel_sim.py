@@ -12,8 +12,8 @@ from helpers import SIM_ARRAYS, assert_simulators_identical, both_simulators, sa
 from testbed import channel, scenario
 from testbed.channel import ATTACKER, CHANNEL, LATE, WITHHELD, loss_counts
 from testbed.scenariowrite import to_toml
-from testbed.simbatch import kernel_refusal, simulate_scenario
-from testbed.simulate import summarize
+from testbed.sim.batch import summarize
+from testbed.sim.trajectory import kernel_refusal, simulate_scenario
 
 
 def _sc(name: str, network: dict, **over):
@@ -152,7 +152,7 @@ def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
     are judged against Theorem 1's region (computed here on its own)."""
     from testbed.analysis import Loop, allowable_region
     from testbed.record.recording import record_simulation
-    from testbed.report import report
+    from testbed.runs.report import report
 
     sc = _sc("paper", {"seed": 3, "symbol": {"loss": 0.05, "delay": 0.03, "jitter": 0.02}, "ack": {"loss": 0.05},
                        "sensor": {"loss": 0.05}, "actuation": {"loss": 0.05, "delay": 0.004}}, timing="physical")
@@ -181,7 +181,7 @@ def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
 
 
 def test_losses_as_dos_inside_and_outside_theorem1_region():
-    from testbed.report import losses_as_dos
+    from testbed.runs.report import losses_as_dos
 
     sc = scenario.load("paper")
     theta = np.zeros(300, dtype=np.uint8)

@@ -16,7 +16,7 @@ from testbed.device import ActuatorSpec, DeviceSpec, DisturbanceSpec, SensorSpec
 from testbed.protocol import OdeProcess
 from testbed.record.columns import read_columns
 from testbed.scenariospec import ScenarioError
-from testbed.simbatch import kernel_refusal, simulate_scenario
+from testbed.sim.trajectory import kernel_refusal, simulate_scenario
 
 PAPER = scenario.load("paper").source
 

@@ -14,7 +14,7 @@ from helpers import BIT_EXACT_KEYS, TOPOLOGIES, live_exact, mismatch, reap, run_
 
 from testbed import scenario
 from testbed.record.columns import read_columns
-from testbed.simbatch import simulate_scenario
+from testbed.sim.trajectory import simulate_scenario
 
 pytestmark = pytest.mark.process
 

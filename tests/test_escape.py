@@ -1,4 +1,4 @@
-"""The escape criterion (testbed.simulate.EscapeCriterion, judge_escape): the quantized loop continued
+"""The escape criterion (testbed.sim.batch.EscapeCriterion, judge_escape): the quantized loop continued
 without attack, one function for the per-sample simulator, a recording and the batch paths."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from helpers import paper_loop_toml, tb_run
 from testbed import scenario
 from testbed.analysis.sweep import classify
 from testbed.analysis.worst import Loop, evaluate, single_table
-from testbed.simulate import (
+from testbed.sim.batch import (
     EscapeCriterion,
     in_nominal_roa,
     judge_escape,
@@ -128,7 +128,7 @@ def test_the_continuation_stops_on_recovery_and_outside_the_model_region():
     crit = EscapeCriterion.for_loop(sc.make_model(), sc.quantizer, sc.run.converge_tol)
     assert crit.x_out == sc.make_model().lipschitz_region
     # from x = 0 with E small both ends have recovered at once; from far outside the region: out at once
-    from testbed.simulate import loop_state_width
+    from testbed.sim.batch import loop_state_width
 
     W = loop_state_width(2, 1)
     S = np.zeros((2, W))

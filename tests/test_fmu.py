@@ -40,7 +40,7 @@ XML = (HERE / "fmu" / "modelDescription.xml").read_text()
 def test_fmu_follows_phi_T_over_the_paper_scenario(lienard_fmu, paper):
     """The paper scenario's inputs, stepped open loop through the FMU and through phi_T: within 1e-6."""
     from testbed.flow import phi_T
-    from testbed.simulate import simulate_scenario
+    from testbed.sim.batch import simulate_scenario
 
     res = simulate_scenario(paper)
     lin = paper.make_plant()
@@ -197,7 +197,7 @@ def test_paper_scenario_with_the_fmu_as_true_plant(lienard_fmu, tmp_path):
     integrators (here 3e-13), and a box that small makes the quantizer saturate on it.
     """
     from testbed import scenario
-    from testbed.simulate import simulate_scenario
+    from testbed.sim.batch import simulate_scenario
 
     text = scenario.load("paper").source.replace('mode = "resilient"', 'mode = "resilient"\nE_min = 1e-9')
     (tmp_path / "lienard.fmu").write_bytes(Path(lienard_fmu).read_bytes())
@@ -255,7 +255,7 @@ def test_plant_fault_stops_the_simulation_and_is_reported(lienard_fmu, tmp_path,
     """A failing FMU step ends testbed simulate at that sample: the samples before it are the good FMU's,
     the fault is in the JSON and in one line on stderr, exit 1; a failing reset is a run of no samples."""
     from testbed import cli, scenario
-    from testbed.simulate import simulate_scenario, summarize
+    from testbed.sim.batch import simulate_scenario, summarize
 
     good = simulate_scenario(scenario.load(fmu_scenario(tmp_path, lienard_fmu, name="good.toml")))
     bad_sc = scenario.load(fmu_scenario(tmp_path, lienard_fmu, "fail_at = 1.0", name="bad.toml"))

@@ -15,7 +15,7 @@ from helpers import PY
 from testbed import scenario
 from testbed.quantizer import MAX_CODES
 from testbed.record import reader, recording
-from testbed.simulate import simulate_batch, simulate_scenario, summarize
+from testbed.sim.batch import simulate_batch, simulate_scenario, summarize
 from testbed.wire import messages as msg
 from testbed.wire import transport
 

@@ -7,7 +7,7 @@ import pytest
 from helpers import tb_run
 
 from testbed import methods, scenario
-from testbed.simulate import OnlineAttacker, simulate_batch, simulate_loop
+from testbed.sim.batch import OnlineAttacker, simulate_batch, simulate_loop
 
 BUNDLED = ["paper", "zoom", "static", "unquantized", "unquantized-hold"]
 

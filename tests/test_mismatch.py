@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from testbed import cli, scenario
-from testbed.simulate import simulate_batch, simulate_scenario, summarize
+from testbed.sim.batch import simulate_batch, simulate_scenario, summarize
 
 LOOP_ARRAYS = ("x", "u", "q", "q_enc", "xi_enc", "E_enc", "xi_dec", "E_dec", "theta", "symbols", "saturated",
                "x_final")

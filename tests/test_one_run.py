@@ -10,8 +10,8 @@ import pytest
 from helpers import sim_recording
 
 import testbed
-from testbed.report import report, report_of_run, run_of
-from testbed.resimulate import compare, recorded_run
+from testbed.runs.report import report, report_of_run, run_of
+from testbed.runs.resimulate import compare, recorded_run
 
 
 @pytest.mark.parametrize("name", ["paper", "paper-greedy"])

@@ -336,7 +336,7 @@ def test_recorded_model_module_is_stored_too(tmp_path):
     """A [model] of a class of your own (model mismatch): its source is in the recording as well."""
     from testbed import scenario
     from testbed.record.recording import record_simulation
-    from testbed.simulate import simulate_scenario
+    from testbed.sim.batch import simulate_scenario
 
     (tmp_path / "mymodels.py").write_text(VDP)
     text = SCENARIO.format(ref="vanderpol-unused", duration=2.0).replace(

@@ -40,9 +40,9 @@ def _same_sweep(a, b):
 
 # ============================================================================ fast: the kernel cache
 def test_specialized_kernel_is_cached_and_identical(paper):
-    from testbed import kernelcache
-    from testbed.simkernel import _batch_kernel
-    from testbed.simulate import simulate_batch
+    from testbed.sim import kernelcache
+    from testbed.sim.batch import simulate_batch
+    from testbed.sim.kernel import _batch_kernel
 
     plant = paper.make_plant()
     X0 = np.random.default_rng(1).uniform(-0.3, 0.3, (64, 2))
@@ -61,13 +61,14 @@ def test_specialized_kernel_is_cached_and_identical(paper):
 
 
 def test_specialized_kernel_depends_on_every_source(paper):
-    from testbed import kernelcache
-    from testbed.simkernel import _batch_kernel
+    from testbed.sim import kernelcache
+    from testbed.sim.kernel import _batch_kernel
 
     gen = kernelcache._Generator({"rhs": ("plants.lienard", "lienard_rhs"), "rhs_m": ("plants.lienard", "lienard_rhs")})
     gen.function(_batch_kernel, {"rhs": "rhs", "rhs_m": "rhs_m"}, top=True)
-    names = {os.path.relpath(f, os.path.dirname(os.path.dirname(kernelcache.__file__))) for f in gen.files}
-    for f in ("testbed/simkernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+    root = os.path.dirname(os.path.dirname(os.path.dirname(kernelcache.__file__)))  # testbed/sim/kernelcache.py
+    names = {os.path.relpath(f, root) for f in gen.files}
+    for f in ("testbed/sim/kernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
               "attackers/greedy.py"):
         assert f in names, f
 
@@ -76,8 +77,8 @@ _FLIP = r"""
 import json, sys
 from pathlib import Path
 import plants
-from testbed import kernelcache
-from testbed.simkernel import _batch_kernel
+from testbed.sim import kernelcache
+from testbed.sim.kernel import _batch_kernel
 
 def flip(path):  # the case of the first letter of the file: one byte, and the source still parses
     data = bytearray(Path(path).read_bytes())
@@ -111,7 +112,7 @@ def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
     for pkg in ("testbed", "plants", "attackers"):
         shutil.copytree(root / pkg, tmp_path / "src" / pkg, ignore=shutil.ignore_patterns("__pycache__"))
     src = tmp_path / "src"
-    deps = [src / f for f in ("testbed/simkernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+    deps = [src / f for f in ("testbed/sim/kernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
                               "attackers/greedy.py", "plants/lienard.py")]
     env = dict(os.environ, PYTHONPATH=str(src), TESTBED_CACHE_DIR=str(tmp_path / "cache"))
     r = subprocess.run([sys.executable, "-c", _FLIP, *map(str, deps)], capture_output=True, text=True, env=env,
@@ -126,15 +127,15 @@ def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
 
 def test_plant_without_module_level_rhs_falls_back(paper, caplog):
     from plants.base import rhs_function
-    from testbed import kernelcache
-    from testbed.simkernel import _batch_kernel
+    from testbed.sim import kernelcache
+    from testbed.sim.kernel import _batch_kernel
 
     def local_rhs(x, u, p, dx):
         dx[0] = x[1]
         dx[1] = -x[0] + u[0]
 
     obj = rhs_function(local_rhs)
-    with caplog.at_level(logging.WARNING, logger="testbed.kernelcache"):
+    with caplog.at_level(logging.WARNING, logger="testbed.sim.kernelcache"):
         assert kernelcache.specialized(_batch_kernel, {"rhs": obj, "rhs_m": obj}) is _batch_kernel
         assert kernelcache.specialized(_batch_kernel, {"rhs": obj, "rhs_m": obj}) is _batch_kernel
     lines = [r for r in caplog.records if "generic kernel" in r.getMessage()]

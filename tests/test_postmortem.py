@@ -27,8 +27,8 @@ from testbed import scenario
 from testbed.errors import BadInput
 from testbed.record import columns, reader, recording, schema, topics
 from testbed.record.summary import write_json
-from testbed.report import report
-from testbed.simulate import simulate_scenario
+from testbed.runs.report import report
+from testbed.sim.batch import simulate_scenario
 from testbed.wire import messages as msg
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -24,8 +24,8 @@ from testbed.protocol import (
     Withhold,
 )
 from testbed.quantizer import Decoder, Encoder, delay_margin_gain
-from testbed.simloop import Network, OnlineAttacker, simulate_loop
-from testbed.simulate import simulate_batch, simulate_scenario
+from testbed.sim.batch import simulate_batch, simulate_scenario
+from testbed.sim.loop import Network, OnlineAttacker, simulate_loop
 
 
 def physical(name: str, **run) -> scenario.Scenario:

@@ -48,7 +48,7 @@ def test_the_worked_example_decodes_to_the_simulators_numbers():
     import numpy as np
 
     from testbed import scenario
-    from testbed.simulate import simulate_scenario
+    from testbed.sim.batch import simulate_scenario
 
     msgs = {k.split("/", 2)[2]: (p, a) for k, p, a in _example_from_doc()}
     assert set(msgs) == {"loop/sensor", "loop/symbol/tx", "loop/symbol/rx", "loop/actuation", "telemetry/plant",

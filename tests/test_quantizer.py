@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 import plants
 from testbed.flow import phi_T
 from testbed.quantizer import Codebook, Decoder, Encoder, InvalidSymbol, QuantizerParams, box_center, quantize_index
-from testbed.simloop import OnlineAttacker, simulate_loop
+from testbed.sim.loop import OnlineAttacker, simulate_loop
 
 LIENARD = plants.make("lienard")
 K_PAPER = np.array([[-1.81, -1.90]])

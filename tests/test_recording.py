@@ -16,8 +16,8 @@ from helpers import PY, sim_recording
 
 from testbed import scenario
 from testbed.record import reader, recording, schema
-from testbed.report import report
-from testbed.simulate import simulate_scenario, summarize
+from testbed.runs.report import report
+from testbed.sim.batch import simulate_scenario, summarize
 from testbed.wire import messages as msg
 
 
@@ -131,7 +131,7 @@ def test_report_cli_json_and_plot(tmp_path):
 def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_path, monkeypatch, capsys):
     """The report's resimulation check covers RESIMULATE_SAMPLES samples by default (the API's and the
     command's default, read when the report is made) and says so; all or none on request."""
-    import testbed.report as rep_mod
+    import testbed.runs.report as rep_mod
     from testbed import cli
 
     _, res, path = sim_recording(tmp_path, "paper")

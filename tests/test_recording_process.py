@@ -27,9 +27,9 @@ from helpers import (
 )
 
 import testbed
-from testbed.compare import compare
 from testbed.record import columns, reader
-from testbed.report import report
+from testbed.runs.compare import compare
+from testbed.runs.report import report
 
 pytestmark = pytest.mark.process
 

@@ -9,8 +9,8 @@ import pytest
 from helpers import assert_simulators_identical, both_simulators
 
 from testbed import cli, scenario
-from testbed.simbatch import kernel_refusal, simulate_scenario
-from testbed.simloop import Network
+from testbed.sim.loop import Network
+from testbed.sim.trajectory import kernel_refusal, simulate_scenario
 
 
 def _sc(name, **over):

@@ -10,8 +10,8 @@ from mcap.reader import make_reader
 from testbed import scenario
 from testbed.record import recording, simrecord
 from testbed.record.schema import to_pb
-from testbed.simbatch import simulate_scenario
-from testbed.simloop import Network
+from testbed.sim.loop import Network
+from testbed.sim.trajectory import simulate_scenario
 
 T0 = 1_700_000_000_123_456_789
 
@@ -98,8 +98,8 @@ def test_every_reader_reads_a_decimated_recording(tmp_path):
     from helpers import assert_columns_equal_reference
 
     import testbed
-    from testbed import report
     from testbed.record import columns, reader
+    from testbed.runs import report
 
     sc = _sc("paper", T=0.002, duration=4.0)
     res = simulate_scenario(sc)

@@ -10,8 +10,8 @@ from helpers import tb_run
 import plants
 from testbed import cli, scenario
 from testbed.flow import FLOW_OK, phi_T
-from testbed.simloop import OnlineAttacker, simulate_loop
-from testbed.simulate import in_nominal_roa, simulate_batch, simulate_scenario, summarize
+from testbed.sim.batch import in_nominal_roa, simulate_batch, simulate_scenario, summarize
+from testbed.sim.loop import OnlineAttacker, simulate_loop
 
 
 def _open_loop_limit_cycle(p):

@@ -56,7 +56,7 @@ def rrd_verify(path) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def sim(paper):
-    from testbed.simulate import simulate_scenario
+    from testbed.sim.batch import simulate_scenario
 
     return paper, simulate_scenario(paper)
 
@@ -67,8 +67,8 @@ def test_attack_intervals_to_samples(paper):
     schedule at t_k with the schedule's own convention, a_i <= k T <= a_i + tau_i (``Schedule.theta_samples``),
     so the sample at the end of an interval is on, as it is lost."""
     from testbed import scenario
-    from testbed.api import simulate
-    from testbed.simulate import attack_on_samples, simulate_scenario
+    from testbed.runs.run import simulate
+    from testbed.sim.batch import attack_on_samples, simulate_scenario
 
     sc = scenario.with_overrides(paper, {"duration": 6.0, "attack": {"intervals": [[1.0, 1.2], [4.0, 0.8]]}})
     res = simulate_scenario(sc)
@@ -93,8 +93,8 @@ def test_roa_outline_paper_and_none_for_cartpole(paper):
 def test_simulation_rrd_entities_and_E(sim, tmp_path):
     sc, res = sim
     path = tmp_path / "sim.rrd"
-    from testbed.api import run_of_simulation
-    from testbed.simulate import attack_on_samples
+    from testbed.runs.run import run_of_simulation
+    from testbed.sim.batch import attack_on_samples
 
     viewer.run_to_rrd(path, run_of_simulation(sc, res), recording_id=f"sim-{sc.name}")
     r = RrdReader(path)
@@ -147,7 +147,7 @@ def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
     assert np.array_equal(np.array([E[k][0] for k in sorted(E)]), res.E_enc)
     on = scalars(rrd, "/attacker/attack_on")
     # the attacker's recorded attack_on (the simulator's): [1.0, 2.2] and [4.0, 4.8] at T = 0.1, ends included
-    from testbed.simulate import attack_on_samples
+    from testbed.sim.batch import attack_on_samples
 
     assert [int(on[k][0]) for k in sorted(on)] == attack_on_samples(sc, res).astype(int).tolist()
     assert sum(v[0] for v in on.values()) == 22

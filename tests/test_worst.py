@@ -204,7 +204,7 @@ def test_the_front_agrees_with_brute_force_on_a_short_horizon(paper):
 def test_the_front_agrees_with_brute_force_on_a_grid_of_initial_states(paper, n_max):
     """The issue's check: N = 2 and 3 attacks, a 5 x 5 grid of initial states inside the nominal region, every
     sample-aligned schedule within a 20-sample horizon."""
-    from testbed.simulate import in_nominal_roa
+    from testbed.sim.batch import in_nominal_roa
 
     loop = replace(Loop.from_scenario(paper), n_steps=20)
     g = np.linspace(-0.3, 0.3, 5)

@@ -46,7 +46,7 @@ def figure_title(sc) -> str:
 
 
 def series_of_run(run) -> SimpleNamespace:
-    """What :func:`plot_time_series` reads, from a ``testbed.api.Run`` (its arrays)."""
+    """What :func:`plot_time_series` reads, from a ``testbed.runs.run.Run`` (its arrays)."""
     a = run.arrays
     return SimpleNamespace(T=run.scenario.T, t=np.asarray(a["t"], float), x=np.asarray(a["x"], float),
                            u=np.asarray(a["u"], float), E_enc=np.asarray(a["E"], float),
@@ -58,7 +58,7 @@ def plot_time_series(res, path, *, title: str = "", intervals=None, size: str = 
 
     Parameters
     ----------
-    res : a ``testbed.simloop.SimResult`` (or anything with ``T, t, x, u, E_enc, E_dec, theta``;
+    res : a ``testbed.sim.loop.SimResult`` (or anything with ``T, t, x, u, E_enc, E_dec, theta``;
         :func:`series_of_run` makes one of a ``Run``).
     intervals : attack intervals [(a_i, tau_i), ...] to shade (default: runs of lost samples).
     size : ``"column"`` or ``"page"`` (``testbed.figstyle``).

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..control import c2d, closed_loop
 from ..device import DeviceSpec, SensorSpec
-from ..simbatch import simulate_scenario
+from ..sim.trajectory import simulate_scenario
 
 
 def e_min_guarantee(b: float, Lambda: float, M: int, w: float = 0.0) -> float:

@@ -3,7 +3,7 @@
 Every analysis job (region of attraction, sweep, vulnerable states, worst
 attack) is a batch of independent closed-loop runs.  :func:`run_batch` splits
 the batch into chunks of trajectories, runs each chunk with the batch
-simulator (``testbed.simulate.simulate_batch``, the cached specialized kernel)
+simulator (``testbed.sim.batch.simulate_batch``, the cached specialized kernel)
 and reassembles the per-trajectory results in input order.  A trajectory's
 result does not depend on the chunk it ran in, so the output is bit-identical
 whatever the number of workers.
@@ -319,7 +319,7 @@ class BatchChunk:
 
 def run_chunk(c: BatchChunk) -> dict:
     """Run one chunk (one simulator call per distinct E_0); per-trajectory fields in chunk order."""
-    from ..simulate import simulate_batch
+    from ..sim.batch import simulate_batch
 
     B = c.X0.shape[0]
     out: dict = {}
@@ -352,7 +352,7 @@ def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=
 
     Parameters
     ----------
-    plant, K, qp, n_steps, score, mode, flow : as for ``testbed.simulate.simulate_batch``.
+    plant, K, qp, n_steps, score, mode, flow : as for ``testbed.sim.batch.simulate_batch``.
     model : the model of the encoder's and decoder's predictions (default: ``plant``), as for
         ``simulate_batch``: ``plant`` is the true plant the state follows.
     X0 : (B, n) initial states.

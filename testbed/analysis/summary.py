@@ -12,7 +12,7 @@ import numpy as np
 
 from attackers.budget import check as budget_check
 
-from ..simulate import EscapeCriterion, in_nominal_roa, plant_and_model, simulate_batch
+from ..sim.batch import EscapeCriterion, in_nominal_roa, plant_and_model, simulate_batch
 from .region import analyze_theorem1
 from .sweep import classify, run_grouped
 from .theorem1 import RULES, Loop
@@ -71,7 +71,7 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
 
     E_0 = max(scenario E_0, ||s x_0||_inf) (Assumption 5).  Returns (s, x0) or None.
     The loop runs the true plant (``[plant]``) with the model's predictions; "nominal
-    region" is the model's nominal loop; "escaped" is ``testbed.simulate.judge_escape``.
+    region" is the model's nominal loop; "escaped" is ``testbed.sim.batch.judge_escape``.
     Needs an equation (1) true plant (the batch simulator cannot run an FMU).
     """
     plant, model = sc.make_plant(), sc.make_model()

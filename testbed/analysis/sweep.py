@@ -14,7 +14,7 @@ decoder, plant) from one or more initial states under three attackers:
 
 Attacks persist over the whole horizon (Theorem 1 is about persistent attacks).
 A run ``escaped`` when the quantized loop, continued without attack from where it
-ended, does not recover (``testbed.simulate.EscapeCriterion``, ``judge_escape``: the
+ended, does not recover (``testbed.sim.batch.EscapeCriterion``, ``judge_escape``: the
 same verdict as ``testbed simulate``'s): the attacker has pushed the loop where even
 unattacked operation no longer brings it back.  It ``converged`` when
 ||x_N||_inf < tol and it did not escape; the remaining runs are ``bounded``.
@@ -40,7 +40,7 @@ per call, so states are grouped by that value).
 With model mismatch (a scenario's ``[model]``), ``plant`` is the true plant the
 state follows and ``model`` the plant model of the encoder's and decoder's
 predictions (rule (xi)); the escape test continues that loop (true plant, model's
-predictions), as ``testbed.simulate.summarize`` does.
+predictions), as ``testbed.sim.batch.summarize`` does.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ import numpy as np
 from attackers.generators import make_schedule
 
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from ..simulate import ESCAPE_HORIZON, EscapeCriterion, judge_escape
+from ..sim.batch import ESCAPE_HORIZON, EscapeCriterion, judge_escape
 from .parallel import Stages, n_chunks, run_batch
 from .roa import RoaResult
 
@@ -104,7 +104,7 @@ def run_grouped(plant, K, qp, X0, E0s, n_steps, *, theta=None, sched_idx=None, g
 def classify(plant, K, qp, out: dict, criterion: EscapeCriterion, *, model=None,
              flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """(converged, escaped) per run of a batch ``out`` (``run_batch`` fields x_final, status,
-    state_final): escaped by ``testbed.simulate.judge_escape`` (the quantized loop continued
+    state_final): escaped by ``testbed.sim.batch.judge_escape`` (the quantized loop continued
     without attack, ``criterion``), its continuation on ``executor``; converged: ||x_N|| < x_tol
     and not escaped.
 

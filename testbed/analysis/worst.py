@@ -27,7 +27,7 @@ increase with N).  Runs are (k0, L) pairs, separated by at least one delivered
 sample; a schedule of exactly m runs with S lost samples is one of
 ``count_schedules(m, S - m, n_steps)``.
 
-**Escape** is judged by the quantized loop itself (``testbed.simulate.EscapeCriterion``,
+**Escape** is judged by the quantized loop itself (``testbed.sim.batch.EscapeCriterion``,
 ``judge_escape``): from its state after the horizon (the plant's x_N and both ends'
 xi_N, E_N), the loop continued without attack must recover (||x|| and E below their
 tolerances) within the criterion's horizon; the same function decides ``escaped``
@@ -61,7 +61,7 @@ from math import comb
 import numpy as np
 
 from ..flow import DEFAULT_FLOW, FlowOptions
-from ..simulate import EscapeCriterion
+from ..sim.batch import EscapeCriterion
 from .parallel import Stages, n_chunks, run_batch
 from .sweep import classify
 
@@ -106,7 +106,7 @@ class Loop:
 
     @property
     def escape(self) -> EscapeCriterion:
-        """The escape criterion (``testbed.simulate.EscapeCriterion``)."""
+        """The escape criterion (``testbed.sim.batch.EscapeCriterion``)."""
         return self.criterion or EscapeCriterion.for_loop(self.nominal, self.qp, self.tol)
 
     @classmethod
@@ -615,7 +615,7 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
     """Least duration budget kappa_D (on the sample grid) with which the greedy online attacker
     (kappa_F = A attacks, rho_F = rho_D = 0; thresholds ``GREEDY_THRESHOLDS``, scores
     ``GREEDY_SCORES``) makes the loop escape; its realized intervals."""
-    from ..simulate import simulate_batch
+    from ..sim.batch import simulate_batch
 
     N = int(loop.n_steps)
     T = loop.T

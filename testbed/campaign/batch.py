@@ -37,7 +37,7 @@ def batch_key(sc, text: str, base_dir: str):
 def run_group(scs: list) -> list[dict | None]:
     """The outcome of each scenario of one group (one ``batch_key``) from one kernel call; None for a run
     whose flow diverged (the per-sample simulator runs it)."""
-    from ..simulate import FLOW_OK, EscapeCriterion, json_clean, judge_escape, simulate_batch
+    from ..sim.batch import FLOW_OK, EscapeCriterion, json_clean, judge_escape, simulate_batch
 
     sc0 = scs[0]
     N = sc0.n_steps

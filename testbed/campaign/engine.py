@@ -68,7 +68,7 @@ OUTCOME_KEYS = ("method", "bits", "converged", "escaped", "diverged", "final_nor
 def simulate_one(sc):
     """One scenario on the per-sample simulator, as ``testbed simulate`` runs it: (its ``testbed simulate
     --json`` document, the ``SimResult``)."""
-    from ..simulate import simulate_scenario, summarize
+    from ..sim.batch import simulate_scenario, summarize
 
     res = simulate_scenario(sc)
     return summarize(sc, res), res

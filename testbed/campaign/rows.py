@@ -100,7 +100,7 @@ def live_run(run: Run, folder: Path, *, timeout: float | None = None) -> dict:
 
 
 def _live_outcome(rec: Path) -> dict:
-    from ..report import report
+    from ..runs.report import report
 
     d = report(str(rec), resimulate=0)
     out = {k: d.get(k) for k in OUTCOME_KEYS}

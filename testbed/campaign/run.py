@@ -231,13 +231,13 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
     for r in live:
         rec = folder / r["recording"]
         try:
-            from ..resimulate import resimulate
+            from ..runs.resimulate import resimulate
 
             d = resimulate(str(rec))
             if not d.get("reproduced"):
                 differences.append({"run": r["run"], "column": "recording", "table": str(rec),
                                     "rerun": d.get("verdict")})
-            from ..report import report
+            from ..runs.report import report
 
             rep = report(str(rec), resimulate=0)
             for k in COMPARED:

@@ -122,8 +122,8 @@ def true_plant(sc, what: str):
 
 
 def plant_and_model(sc) -> dict:
-    """``plant``, ``model`` and their parameters for the JSON outputs (``testbed.simulate.plant_and_model``)."""
-    from ..simulate import plant_and_model as names
+    """``plant``, ``model`` and their parameters for the JSON outputs (``testbed.sim.batch.plant_and_model``)."""
+    from ..sim.batch import plant_and_model as names
 
     return names(sc)
 
@@ -393,7 +393,7 @@ def _analyze_plots(sc, res, extra, plot: Path, args) -> list[str]:
     from ..analysis import figures
     from ..analysis.roa import nominal_roa
     from ..analysis.summary import find_escape, trajectory
-    from ..simulate import simulate_scenario
+    from ..sim.batch import simulate_scenario
 
     path = figure_paths(plot, sc.name)
     files = []
@@ -516,7 +516,7 @@ def _roa(sc, plant, args, ex) -> int:
     """``plant``: the model, whose nominal loop the region is; --vulnerable runs the true plant."""
     from ..analysis import figures
     from ..analysis.roa import nominal_roa
-    from ..simulate import simulate_scenario
+    from ..sim.batch import simulate_scenario
 
     roa = nominal_roa(plant, sc.K, sc.T, grid=args.grid, window=args.window, dims=args.dims, horizon=args.horizon,
                       tol=sc.run.converge_tol, flow=sc.flow,

@@ -179,7 +179,7 @@ class _Series:
 
 def _row_from_recording(rec, p):
     from ..campaign import engine
-    from ..report import report
+    from ..runs.report import report
 
     d = report(str(rec), resimulate=None)
     x = d.get("x") or []

@@ -6,7 +6,7 @@ import argparse
 import json
 
 from .. import cliargs
-from ..api import open as open_run
+from ..runs.run import open as open_run
 from ..view.rerun import run_to_rrd
 
 

@@ -36,9 +36,9 @@ def main_simulate(args) -> int:
     from .. import scenario
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
-    from ..simbatch import simulate_scenario
-    from ..simloop import Network
-    from ..simulate import summarize
+    from ..sim.batch import summarize
+    from ..sim.loop import Network
+    from ..sim.trajectory import simulate_scenario
     from .liveconfig import run_options
 
     opts = run_options(args)
@@ -74,7 +74,7 @@ def main_simulate(args) -> int:
         record_simulation(args.out, sc, res, overrides={k: v for k, v in overrides.items() if v is not None},
                           ref=args.scenario, exclusive=not args.force)
     if args.rrd:
-        from ..api import run_of_simulation
+        from ..runs.run import run_of_simulation
         from ..view.rerun import run_to_rrd
 
         run_to_rrd(args.rrd, run_of_simulation(sc, res, summary=out), recording_id=f"sim-{sc.name}",

@@ -242,8 +242,8 @@ def run_scenario(jd: dict):
 
 def simulated(sc) -> dict:
     """``testbed simulate --json`` of scenario ``sc`` (the same per-sample simulator)."""
-    from ..simbatch import simulate_scenario
-    from ..simulate import summarize
+    from ..sim.batch import summarize
+    from ..sim.trajectory import simulate_scenario
 
     return json.loads(json.dumps(summarize(sc, simulate_scenario(sc))))
 

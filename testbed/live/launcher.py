@@ -194,7 +194,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             import numpy as np
 
             from ..record import summary  # noqa: F401 - loaded early, in this idle thread, not at the end of the run
-            from ..simulate import in_nominal_roa
+            from ..sim.batch import in_nominal_roa
 
             model = self.sc.make_model()
             in_nominal_roa(model, self.sc.K, self.sc.T, np.zeros((1, model.n)), horizon=2 * self.sc.T,

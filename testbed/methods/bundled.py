@@ -18,7 +18,7 @@ from __future__ import annotations
 from ..loopspec import Codebook
 from .base import FloatCodebook, Method, MethodError, finite_params
 
-#: batch kernel codes (``simkernel._batch_kernel`` ``mode``); 0, 1 are the paper's ideal and resilient
+#: batch kernel codes (``sim.kernel._batch_kernel`` ``mode``); 0, 1 are the paper's ideal and resilient
 KERNEL_STATIC = 3
 KERNEL_ZOOM = 4
 KERNEL_UNQUANTIZED = 5

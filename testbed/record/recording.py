@@ -316,7 +316,7 @@ def phase_every(T: float) -> int:
 def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
                       t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True,
                       roa: bool = True, bulk: bool = True) -> dict:
-    """Write a simulated run (``testbed.simloop.SimResult``) with the topics and schemas of a live run.
+    """Write a simulated run (``testbed.sim.loop.SimResult``) with the topics and schemas of a live run.
 
     Times are nominal and latencies zero (t_k = k T, every message at its sample
     instant); t0 is the wall-clock time of the call.  The Foxglove topics
@@ -331,7 +331,7 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
     """
     import numpy as np
 
-    from ..simulate import attack_on_samples
+    from ..sim.batch import attack_on_samples
     from ..view.foxglove import FoxgloveTopics, telemetry_extra
 
     t0 = time.time_ns() if t0_ns is None else int(t0_ns)

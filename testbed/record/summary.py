@@ -4,7 +4,7 @@ Both feed it columns (``testbed.record.columns.Columns``): the live launcher wha
 its collector received over Zenoh, ``testbed report`` what a recording holds,
 so both print the same keys.  The
 per-sample arrays become a ``SimResult`` and go through
-``testbed.simulate.summarize``, so every key of ``testbed simulate --json``
+``testbed.sim.batch.summarize``, so every key of ``testbed simulate --json``
 means the same thing here; live-only keys (timing, faults, nodes, sizes) are
 added beside them.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..channel import recorded_losses
-from ..simulate import json_clean as _clean
+from ..sim.batch import json_clean as _clean
 from ..stats import percentiles
 from ..wire import messages as msg
 from ..wire import transport
@@ -76,8 +76,8 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     streams them); otherwise plain lists.
     """
     from ..flow import FLOW_OK
-    from ..simloop import SimResult
-    from ..simulate import summarize
+    from ..sim.batch import summarize
+    from ..sim.loop import SimResult
 
     plant = sc.make_model()
     n, m = plant.n, plant.m

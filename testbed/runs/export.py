@@ -1,6 +1,6 @@
 """``testbed export RUN.mcap --format parquet|csv -o PATH``: one row per sample, for any data tool.
 
-The columns are those of ``testbed.open(RUN).columns()`` (``testbed.api``):
+The columns are those of ``testbed.open(RUN).columns()`` (``testbed.runs.run``):
 ``k``, ``t``, ``x1..xn``, ``u1..um``, ``q1..qn``, ``xi1..xin``, ``E``, ``E_dec``,
 ``xi_dec1..``, ``q_enc1..``, ``theta``, ``symbols``, ``saturated``,
 ``attack_on``, ``dropped``, and for live runs the timing columns (seconds).
@@ -20,7 +20,7 @@ import json
 import sys
 from pathlib import Path
 
-from .errors import BadInput
+from ..errors import BadInput
 
 FORMATS = ("parquet", "csv")
 
@@ -38,13 +38,13 @@ def table(run):
 
 def _scalars(d: dict) -> dict:
     """The JSON-able, non-per-sample part of a summary."""
-    from .record.summary import to_lists
+    from ..record.summary import to_lists
 
     return {k: v for k, v in to_lists(d).items() if not (isinstance(v, list) and len(v) > 64)}
 
 
 def export(run, path: str | Path, fmt: str) -> Path:
-    """Write ``run`` (a ``testbed.api.Run``) to ``path`` as Parquet or CSV."""
+    """Write ``run`` (a ``testbed.runs.run.Run``) to ``path`` as Parquet or CSV."""
     path = Path(path)
     if fmt not in FORMATS:
         raise BadInput(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
@@ -64,7 +64,7 @@ def export(run, path: str | Path, fmt: str) -> Path:
 
 
 def add_arguments_export(p: argparse.ArgumentParser) -> None:
-    from . import cliargs
+    from .. import cliargs
 
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     p.add_argument("--format", choices=FORMATS, default=None,
@@ -74,7 +74,7 @@ def add_arguments_export(p: argparse.ArgumentParser) -> None:
 
 
 def main_export(args) -> int:
-    from .api import open as open_run
+    from .run import open as open_run
 
     fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")
     run = open_run(args.recording)

@@ -18,10 +18,10 @@ import numpy as np
 from attackers.greedy import greedy_init, greedy_step
 from plants.base import PlantFault
 
-from .channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
-from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from .methods.base import symbol_code
-from .protocol import (
+from ..channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
+from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
+from ..methods.base import symbol_code
+from ..protocol import (
     INVALID,
     RECEIVED,
     ControllerProtocol,
@@ -31,7 +31,7 @@ from .protocol import (
     Send,
     corrupt_payload,
 )
-from .quantizer import (
+from ..quantizer import (
     Decoder,
     Encoder,
     QuantizerParams,
@@ -80,7 +80,7 @@ class SimResult:
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
     x_meas: np.ndarray | None = None  # x_meas,k, what the sensor read ([plant.sensor]; None: x_k itself), (N, n)
     u_plant: np.ndarray | None = None  # the input that acted after the actuator ([plant.actuator]; None: u), (N, m)
-    simulator: str | None = "per-sample"  # which simulator ran: "per-sample" (this loop), "batch" (``testbed.simbatch``);
+    simulator: str | None = "per-sample"  # which simulator ran: "per-sample" (this loop), "batch" (``testbed.sim.trajectory``);
     #                                       a recording's: as its metadata says (None: a live run)
 
     @property
@@ -429,7 +429,7 @@ def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: Fl
 
 
 def continue_ends(plant, res: SimResult, c, T: float, flow, u_max: float) -> bool:
-    """The escape criterion ``c`` (``testbed.simulate.EscapeCriterion``) for a method without a batch
+    """The escape criterion ``c`` (``testbed.sim.batch.EscapeCriterion``) for a method without a batch
     kernel: its own two ends (``res.ends``),
     continued from where the run ended with theta_k = 0 and the true plant under ideal timing.
     Escaped unless ||x|| < x_tol with both ends' E below E_tol within the horizon."""

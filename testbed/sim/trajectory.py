@@ -1,8 +1,8 @@
 """``simulate_scenario``: a scenario on the batch kernel where it can run, else on the per-sample loop.
 
-The per-sample loop (``testbed.simloop.simulate_loop``) runs the live nodes' protocol objects
+The per-sample loop (``testbed.sim.loop.simulate_loop``) runs the live nodes' protocol objects
 one sample at a time in Python (about 5,000 samples/s).  For the runs the batch kernel covers
-it is replaced here by the batch kernel itself (``simkernel._batch_kernel``) over one trajectory, keeping every per-sample
+it is replaced here by the batch kernel itself (``sim.kernel._batch_kernel``) over one trajectory, keeping every per-sample
 array of a ``SimResult`` (x_k, u_k, q_k at both ends, xi_k and E_k at both ends, theta_k, the
 symbols, saturations, delays, ...): the same numbers bit for bit (``tests/test_simbatch.py``
 compares every array and the JSON summary), hundreds of times faster.
@@ -32,10 +32,10 @@ import numpy as np
 
 from attackers.greedy import greedy_init
 
-from .channel import LATE, loss_cause
-from .flow import FLOW_OK
-from .simkernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
-from .simloop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
+from ..channel import LATE, loss_cause
+from ..flow import FLOW_OK
+from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
+from .loop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
 #: error), "per-sample" (the loop always)
@@ -89,8 +89,8 @@ class _Ledger:
 
 def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> dict:
     """The encoder's counters (``EncoderProtocol.counters``) of a kernel run with a channel: the same
-    protocol object driven as ``simloop.simulate_loop`` drives it (acks before the next sensor sample)."""
-    from .protocol import EncoderProtocol
+    protocol object driven as ``loop.simulate_loop`` drives it (acks before the next sensor sample)."""
+    from ..protocol import EncoderProtocol
 
     encp = EncoderProtocol(_Ledger(), len(chan.sensed))
     acks: list = []

@@ -3,9 +3,9 @@
 Everything comes from the recording alone: the scenario is rebuilt from the
 TOML stored in its metadata (with the run's overrides), the per-sample arrays
 from the telemetry topics.  The report starts from the recording's ``testbed.Run``
-(``testbed.api.run_of_recording``, what ``testbed.open`` returns): its summary goes
+(``testbed.runs.run.run_of_recording``, what ``testbed.open`` returns): its summary goes
 through the same ``testbed.record.summary.build_summary`` as ``testbed run`` (and,
-inside it, ``testbed.simulate.summarize``), so every key of ``testbed simulate --json``
+inside it, ``testbed.sim.batch.summarize``), so every key of ``testbed simulate --json``
 means the same thing here, and ``testbed.record.sections`` adds ``dos``, ``agreement``,
 ``dropped_by_attacker`` and ``outcome``.  The report adds:
 
@@ -34,13 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import cliargs
-from .api import run_of_recording
-from .record.summary import load, to_lists, write_json
+from .. import cliargs
+from ..record.summary import load, to_lists, write_json
+from ..stats import fmt_percentiles
+from ..wire import messages as msg
+from ..wire import transport
 from .resimulate import compare, recorded_run
-from .stats import fmt_percentiles
-from .wire import messages as msg
-from .wire import transport
+from .run import run_of_recording
 
 
 def losses_as_dos(sc, theta: np.ndarray) -> dict:
@@ -64,7 +64,7 @@ def losses_as_dos(sc, theta: np.ndarray) -> dict:
         rep = check(sch, fF, fD, horizon=H)
         out.update(kappa_F_min=rep.kappa_F_min, kappa_D_min=rep.kappa_D_min)
     try:
-        from .analysis import Loop, allowable_region
+        from ..analysis import Loop, allowable_region
 
         reg = allowable_region(Loop.from_scenario(sc), "paper")
         out["theorem1"] = {"rule": "paper", "rho_F_max": reg.rho_F_max, "rho_D_max": reg.rho_D_max,
@@ -78,7 +78,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
-    from .record.summary import late_for_schedule, percentiles
+    from ..record.summary import late_for_schedule, percentiles
 
     have = cols.has("plant")[:N]
     theta = cols.get("plant", "theta")[:N]
@@ -154,7 +154,7 @@ def run_of(path):
 
 
 def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
-    """The report of a recording's ``Run`` (``testbed.api.run_of_recording``): its whole summary and the
+    """The report of a recording's ``Run`` (``testbed.runs.run.run_of_recording``): its whole summary and the
     report's own sections (module docstring); per-sample values as numpy arrays."""
     if resimulate == "default":
         resimulate = RESIMULATE_SAMPLES
@@ -202,7 +202,7 @@ def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
 def recording_end(path, rec: dict, samples) -> dict:
     """Where an incomplete recording ends and why: ``ends`` (a sentence, None when complete) and ``error``
     (what the recorder wrote beside it, ``PATH.error``, when it could not write the file)."""
-    from .record.recording import error_path
+    from ..record.recording import error_path
 
     err = None
     try:
@@ -221,7 +221,7 @@ def recording_end(path, rec: dict, samples) -> dict:
 def plot(run, path: str | Path, *, title: str = "", size: str = "page") -> Path:
     """The paper's Fig. 2 of a recording's ``Run``: states, input, E_k at encoder and decoder, the DoS
     intervals of its ``dos`` section shaded."""
-    from .analysis.figures import plot_time_series, series_of_run
+    from ..analysis.figures import plot_time_series, series_of_run
 
     kind = {"live": "live run", "simulate": "simulation"}.get(run.source, run.source)
     return plot_time_series(series_of_run(run), path, title=title or f"{run.scenario.name}, {kind}",

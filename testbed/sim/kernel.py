@@ -1,7 +1,7 @@
 """The compiled loop: one numba kernel for the batch simulator and the scenario simulator.
 
 ``simulate.simulate_batch`` runs it over many trajectories for their summaries (what the
-analysis runs, optionally with x_k, E_k and theta_k); ``simbatch.simulate_kernel`` runs it over
+analysis runs, optionally with x_k, E_k and theta_k); ``trajectory.simulate_kernel`` runs it over
 one trajectory with every per-sample array of a ``SimResult`` (``trace``) and a ``[network]``
 channel (``chan``).  One kernel, so both compute the same numbers from one definition.
 
@@ -22,12 +22,12 @@ import numpy as np
 
 from attackers.greedy import greedy_step
 
-from .flow import flow_into
-from .methods.ends import unaware_update
-from .quantizer import box_center, control_input, quantize_index, zoom_update
+from ..flow import flow_into
+from ..methods.ends import unaware_update
+from ..quantizer import box_center, control_input, quantize_index, zoom_update
 
 #: the kernel parameters that carry a right-hand side (the true plant's, the model's): the cached
-#: specialized kernel (``testbed.kernelcache``) turns each into a global bound to a plant's ``RHS.jit``
+#: specialized kernel (``testbed.sim.kernelcache``) turns each into a global bound to a plant's ``RHS.jit``
 _RHS_ARGS = ("rhs", "rhs_m")
 
 #: ``trace`` (B, N, TRACE_INTS) of the full record: the symbol sent, saturated, u_k missing at the

@@ -41,9 +41,9 @@ def _is_recording(ref: str) -> bool:
 
 
 def load_side(ref, other_overrides: dict | None = None):
-    """A ``testbed.api.Run`` from a recording path, a scenario, or a ``Run`` as it is."""
-    from .api import Run, simulate
-    from .api import open as open_run
+    """A ``testbed.runs.run.Run`` from a recording path, a scenario, or a ``Run`` as it is."""
+    from .run import Run, simulate
+    from .run import open as open_run
 
     if isinstance(ref, Run):
         return ref
@@ -124,7 +124,7 @@ def compare(a, b) -> dict:
 
 
 def _is_scenario_ref(ref) -> bool:
-    from .api import Run
+    from .run import Run
 
     return not isinstance(ref, Run) and not _is_recording(str(ref))
 
@@ -136,7 +136,7 @@ def _describe(ref, run) -> dict:
 
 def plot(a_run, b_run, path, *, title: str = "", size: str = "page") -> Path:
     """States of both runs over t (A solid, B dashed), ||x_A - x_B||_inf, the lost samples of each, DoS shaded."""
-    from .analysis.figures import plot_compare
+    from ..analysis.figures import plot_compare
 
     return plot_compare(a_run, b_run, path, title=title, size=size)
 
@@ -148,7 +148,7 @@ def _name(run) -> str:
 
 
 def add_arguments_compare(p: argparse.ArgumentParser) -> None:
-    from . import cliargs
+    from .. import cliargs
 
     p.add_argument("a", help="a recording (.mcap) or a scenario (bundled name or .toml) to simulate")
     p.add_argument("b", help="the other run: a recording or a scenario (simulated with the recording's overrides)")

@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import traces
-from .errors import BadInput
+from .. import traces
+from ..errors import BadInput
 
 
 def recording_trace(path) -> dict:
     """A recording read as an attack trace (``testbed.traces``); the readers load on first use."""
-    from .record.trace import read_recording_trace
+    from ..record.trace import read_recording_trace
 
     return read_recording_trace(path)
 
@@ -100,7 +100,7 @@ class Run:
         if path.exists() and not overwrite:
             raise BadInput(f"{path} exists: pass overwrite=True to replace it")
         if self._result is not None:
-            from .record.recording import record_simulation
+            from ..record.recording import record_simulation
 
             path.parent.mkdir(parents=True, exist_ok=True)
             record_simulation(path, self.scenario, self._result, overrides=dict(self.overrides),
@@ -118,8 +118,8 @@ class Run:
     def plot(self, path: str | Path, *, size: str = "page", title: str | None = None) -> Path:
         """Draw the run as ``testbed simulate --plot`` does (states, input, E_k at both ends, DoS shaded):
         ``.png``, ``.pdf`` or ``.svg`` by the extension; ``size`` ``"column"`` or ``"page"`` (IEEE widths)."""
-        from . import figstyle
-        from .analysis.figures import figure_title, plot_time_series, series_of_run
+        from .. import figstyle
+        from ..analysis.figures import figure_title, plot_time_series, series_of_run
 
         figstyle.check_path(path)
         figstyle.check_size(size)
@@ -165,7 +165,7 @@ def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 # ============================================================================ from a recording
 def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    from .wire import messages as msg
+    from ..wire import messages as msg
 
     ok = ok & (a != msg.NO_TIME)
     out = np.full(a.shape, np.nan)
@@ -174,7 +174,7 @@ def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
-    from .wire import messages as msg
+    from ..wire import messages as msg
 
     g = cols.get
     P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
@@ -210,8 +210,8 @@ def run_of_recording(cols, sc, path: str | Path | None = None) -> Run:
     ``Run.summary`` comes from ``testbed.record.sections.recording_summary``; the whole of it and the
     columns stay with the run (``testbed report`` adds its own sections from them).
     """
-    from .record.sections import recorded_attack, recording_summary
-    from .wire import messages as msg
+    from ..record.sections import recorded_attack, recording_summary
+    from ..wire import messages as msg
 
     s = recording_summary(cols, sc)
     N = s["samples"]
@@ -244,8 +244,8 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
     Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
     """
-    from . import compilenotice
-    from .record.summary import load
+    from .. import compilenotice
+    from ..record.summary import load
 
     compilenotice.install()
     return run_of_recording(*load(path, fields=None), path)  # every field (q_k at the encoder, the stage times)
@@ -253,9 +253,9 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
 
 # ============================================================================ from the simulator
 def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict | None = None) -> Run:
-    """A :class:`Run` from ``testbed.simulate.simulate_scenario``'s result; ``summary``: its
-    ``testbed.simulate.summarize(sc, res)`` when the caller has made it already."""
-    from .simulate import attack_on_samples, attacker_drops, summarize
+    """A :class:`Run` from ``testbed.sim.batch.simulate_scenario``'s result; ``summary``: its
+    ``testbed.sim.batch.summarize(sc, res)`` when the caller has made it already."""
+    from ..sim.batch import attack_on_samples, attacker_drops, summarize
 
     N = len(res.t)
     u = res.u if res.u_plant is None else res.u_plant  # what acted (after [plant.actuator]), as recorded
@@ -276,7 +276,7 @@ def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict |
 
 def resolve_scenario(scenario, overrides: dict | None = None):
     """A scenario object, bundled name or .toml path, with overrides applied (``BadInput`` if unusable)."""
-    from . import scenario as scen
+    from .. import scenario as scen
 
     sc = scenario if isinstance(scenario, scen.Scenario) else scen.load(str(scenario))
     return scen.with_overrides(sc, overrides or {})
@@ -292,8 +292,8 @@ def simulate(scenario, **overrides) -> Run:
     (a table merged into ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new
     ``kind`` replaces the table).  A bad override raises ``testbed.BadInput`` with what to change.
     """
-    from . import compilenotice
-    from .simulate import simulate_scenario
+    from .. import compilenotice
+    from ..sim.batch import simulate_scenario
 
     compilenotice.install()
     sc = resolve_scenario(scenario, overrides)

@@ -24,16 +24,15 @@ import numpy as np
 
 from attackers.greedy import greedy_init
 
-from .channel import ATTACKER, loss_counts
-from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from .quantizer import (
+from ..channel import ATTACKER, loss_counts
+from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
+from ..quantizer import (
     MODES,
     Decoder,
     QuantizerParams,
 )
-from .simbatch import simulate_scenario  # noqa: F401 - re-exported: the scenario level's entry point
-from .simkernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width
-from .simloop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: re-exported
+from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width
+from .loop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: re-exported
     SCORES,
     Network,
     OnlineAttacker,
@@ -43,6 +42,7 @@ from .simloop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: r
     loop_state_of,
     simulate_loop,
 )
+from .trajectory import simulate_scenario  # noqa: F401 - re-exported: the scenario level's entry point
 
 
 # ============================================================================ batch simulator
@@ -102,7 +102,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     record : keep x_k, E_k and theta_k for every sample.
     specialize : run the kernel specialized for this plant (its right-hand side
         inlined, about twice the throughput).  Generated and cached on disk by
-        ``testbed.kernelcache``: the first use per plant compiles for a few
+        ``testbed.sim.kernelcache``: the first use per plant compiles for a few
         seconds, later processes load it.  Falls back to the generic kernel
         (one log line) for a plant whose right-hand side is not a module-level
         ``@rhs_function``.  Results are identical either way.

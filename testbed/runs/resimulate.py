@@ -1,6 +1,6 @@
 """``testbed resimulate RUN.mcap [--json]``: re-run a recorded run in the simulator and compare.
 
-The simulator (``testbed.simloop.simulate_loop``) runs the very protocol objects
+The simulator (``testbed.sim.loop.simulate_loop``) runs the very protocol objects
 the live nodes ran, fed with what the recording says happened and nothing else:
 
 * theta_k as the controller decided it (received, lost at the deadline, an invalid
@@ -32,8 +32,8 @@ import sys
 
 import numpy as np
 
-from . import cliargs
-from .api import run_of_recording
+from .. import cliargs
+from .run import run_of_recording
 
 #: physical timing: the largest state error that still counts as reproduced
 PHYSICAL_TOLERANCE = 1e-9
@@ -41,10 +41,10 @@ PHYSICAL_TOLERANCE = 1e-9
 
 def recorded_run(run) -> dict:
     """The per-sample record a resimulation needs, from a recording's ``testbed.Run``
-    (``testbed.api.run_of_recording``): the values from its arrays, which samples each node recorded
+    (``testbed.runs.run.run_of_recording``): the values from its arrays, which samples each node recorded
     and what the controller and the plant said happened from its columns."""
-    from .simloop import Replay
-    from .wire import messages as msg
+    from ..sim.loop import Replay
+    from ..wire import messages as msg
 
     cols, sc, a = run._columns, run.scenario, run.arrays
     N = min(run.N, sc.n_steps)
@@ -76,7 +76,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
     ``limit``: resimulate only samples 0 .. limit - 1 (``testbed report`` bounds its check so;
     ``checked`` in the result says how many were, and the verdict says so when not all).
     """
-    from .simloop import simulate_loop
+    from ..sim.loop import simulate_loop
 
     sc, N, live = run["scenario"], run["N"], run["live"]
     n = N if limit is None else max(0, min(N, int(limit)))
@@ -138,7 +138,7 @@ def compare(run: dict, limit: int | None = None) -> dict:
 
 def resimulate(path) -> dict:
     """``testbed resimulate PATH --json`` as a dict."""
-    from .record.summary import load
+    from ..record.summary import load
 
     return compare(recorded_run(run_of_recording(*load(path))))
 
@@ -150,7 +150,7 @@ def add_arguments_resimulate(p: argparse.ArgumentParser) -> None:
 
 
 def main_resimulate(args) -> int:
-    from .errors import BadInput
+    from ..errors import BadInput
 
     try:
         out = resimulate(args.recording)
