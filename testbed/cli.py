@@ -65,11 +65,11 @@ for _name, _mod, _help in [
     ("run", "testbed.commands.run", "run a scenario live: four processes over Zenoh"),
     ("conformance", "testbed.commands.conformance", "check a node from outside against the protocol and the simulator"),
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
-    ("report", "testbed.runs.report", "post-mortem of a recording"),
-    ("resimulate", "testbed.runs.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
+    ("report", "testbed.commands.report", "post-mortem of a recording"),
+    ("resimulate", "testbed.commands.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
     ("replay", "testbed.commands.replay", "open a recording in Rerun"),
-    ("export", "testbed.runs.export", "a recording as Parquet or CSV, one row per sample"),
-    ("compare", "testbed.runs.compare", "two runs (recordings or scenarios) compared sample by sample"),
+    ("export", "testbed.commands.export", "a recording as Parquet or CSV, one row per sample"),
+    ("compare", "testbed.commands.compare", "two runs (recordings or scenarios) compared sample by sample"),
 ]:
     try:
         _optional(_name, _mod, _help)

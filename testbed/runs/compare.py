@@ -1,5 +1,7 @@
 """``testbed compare A B [--json] [--plot PNG]``: two runs compared sample by sample.
 
+Its arguments and text output are ``testbed.commands.compare``; this module is what it computes.
+
 A and B are each a recording (``.mcap``) or a scenario (bundled name or
 ``.toml``) to simulate.  A scenario compared with a recording is simulated with
 the recording's overrides (``--duration``, ``--T``, ``--mode``, ...), so
@@ -20,7 +22,6 @@ Exit codes: 0 compared (identical or not), 2 unusable input.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -141,45 +142,4 @@ def plot(a_run, b_run, path, *, title: str = "", size: str = "page") -> Path:
     return plot_compare(a_run, b_run, path, title=title, size=size)
 
 
-def _name(run) -> str:
-    """A run as a figure names it: its scenario and where it came from (not a file path)."""
-    kind = {"live": "live run", "simulate": "simulation"}.get(run.source, run.source)
-    return f"{run.scenario.name}, {kind}"
-
-
-def add_arguments_compare(p: argparse.ArgumentParser) -> None:
-    from .. import cliargs
-
-    p.add_argument("a", help="a recording (.mcap) or a scenario (bundled name or .toml) to simulate")
-    p.add_argument("b", help="the other run: a recording or a scenario (simulated with the recording's overrides)")
-    cliargs.add_json(p, "the comparison")
-    cliargs.add_plot(p, "draw both runs' states (A solid, B dashed), their difference and the lost samples of each, "
-                        "DoS shaded")
-
-
-def main_compare(args) -> int:
-    ra, rb = load_pair(args.a, args.b)
-    c = compare(ra, rb)
-    c["a"]["ref"], c["b"]["ref"] = str(args.a), str(args.b)
-    if args.plot:
-        plot(ra, rb, args.plot, title=f"A: {_name(ra)}; B: {_name(rb)}", size=args.figsize)
-    if args.json:
-        print(json.dumps(c))
-    else:
-        s = c["samples"]
-        print(f"A {args.a} ({c['a']['source']}, {s['a']} samples) vs B {args.b} ({c['b']['source']}, "
-              f"{s['b']} samples)")
-        if c["identical"]:
-            print("  IDENTICAL: every compared value is equal, bit for bit")
-        else:
-            print(f"  first divergence at k = {c['first_divergence']}; max ||x_A - x_B||_inf = "
-                  f"{c['max_state_error']!s}")
-            print(f"  theta differs at {c['theta_differs']} samples {c['theta_differs_at'][:10]}, symbols at "
-                  f"{c['symbols_differ']} {c['symbols_differ_at'][:10]}")
-            print("  first k per quantity: " + ", ".join(f"{q} {v}" for q, v in c["differs_first"].items()))
-        if args.plot:
-            print(f"  figure: {args.plot}")
-    return 0
-
-
-__all__ = ["compare", "load_side", "load_pair", "plot", "add_arguments_compare", "main_compare", "QUANTITIES"]
+__all__ = ["compare", "load_side", "load_pair", "plot", "QUANTITIES"]

@@ -1,5 +1,7 @@
 """``testbed export RUN.mcap --format parquet|csv -o PATH``: one row per sample, for any data tool.
 
+Its arguments and text output are ``testbed.commands.export``; this module is what it computes.
+
 The columns are those of ``testbed.open(RUN).columns()`` (``testbed.runs.run``):
 ``k``, ``t``, ``x1..xn``, ``u1..um``, ``q1..qn``, ``xi1..xin``, ``E``, ``E_dec``,
 ``xi_dec1..``, ``q_enc1..``, ``theta``, ``symbols``, ``saturated``,
@@ -15,9 +17,7 @@ Exit codes: 0 written, 2 unreadable recording or unwritable output.
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 from pathlib import Path
 
 from ..errors import BadInput
@@ -63,28 +63,4 @@ def export(run, path: str | Path, fmt: str) -> Path:
     return path
 
 
-def add_arguments_export(p: argparse.ArgumentParser) -> None:
-    from .. import cliargs
-
-    p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
-    p.add_argument("--format", choices=FORMATS, default=None,
-                   help="parquet or csv (default: from the output's suffix, else parquet)")
-    p.add_argument("-o", "--output", metavar="PATH", required=True, help="the file to write")
-    cliargs.add_json(p, "what was written (path, format, rows, columns)")
-
-
-def main_export(args) -> int:
-    from .run import open as open_run
-
-    fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")
-    run = open_run(args.recording)
-    out = export(run, args.output, fmt)
-    cols = list(run.columns())
-    if args.json:
-        print(json.dumps({"path": str(out), "format": fmt, "rows": run.N, "columns": cols}))
-    else:
-        print(f"{out}: {run.N} rows x {len(cols)} columns ({fmt})", file=sys.stderr)
-    return 0
-
-
-__all__ = ["export", "table", "FORMATS", "add_arguments_export", "main_export"]
+__all__ = ["export", "table", "FORMATS"]

@@ -1,5 +1,7 @@
 """``testbed resimulate RUN.mcap [--json]``: re-run a recorded run in the simulator and compare.
 
+Its arguments and text output are ``testbed.commands.resimulate``; this module is what it computes.
+
 The simulator (``testbed.sim.loop.simulate_loop``) runs the very protocol objects
 the live nodes ran, fed with what the recording says happened and nothing else:
 
@@ -26,13 +28,8 @@ Exit codes: 0 the run is reproduced, 1 it is not, 2 an unreadable recording.
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-
 import numpy as np
 
-from .. import cliargs
 from .run import run_of_recording
 
 #: physical timing: the largest state error that still counts as reproduced
@@ -141,31 +138,3 @@ def resimulate(path) -> dict:
     from ..record.summary import load
 
     return compare(recorded_run(run_of_recording(*load(path))))
-
-
-def add_arguments_resimulate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", help="an MCAP recording (testbed run, testbed simulate --out)")
-    cliargs.add_json(p, "the comparison (samples, max_state_error, symbols_identical, E_identical, "
-                        "first_divergence, ...)")
-
-
-def main_resimulate(args) -> int:
-    from ..errors import BadInput
-
-    try:
-        out = resimulate(args.recording)
-    except (OSError, ValueError) as e:
-        raise BadInput(f"{args.recording}: {e}") from None
-    if args.json:
-        sys.stdout.write(json.dumps(out) + "\n")
-    else:
-        print(f"{args.recording}: {out['samples']} samples ({out['timing_mode']} timing) re-simulated from what "
-              f"the recording says happened: {out['verdict']}")
-        print(f"  max ||x_k(live) - x_k(resimulated)||_inf = {out['max_state_error']:.3g}; symbols identical: "
-              f"{out['symbols_identical']}, E_k identical: {out['E_identical']}, theta_k identical: "
-              f"{out['theta_identical']}")
-        r = out["replayed"]
-        print(f"  replayed: {r['lost']} lost, {r['withheld']} withheld, {r['u_missing']} u_k missing"
-              + (f", delays {r['delays_ns']['min'] / 1e6:.3f}..{r['delays_ns']['max'] / 1e6:.3f} ms"
-                 if r["delays_ns"] else ""))
-    return 0 if out["reproduced"] else 1

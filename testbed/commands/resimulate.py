@@ -1,0 +1,41 @@
+"""``testbed resimulate RUN.mcap [--json]``: a recording re-run in the simulator, sample by sample.
+
+Its arguments and text output; the re-run itself is ``testbed.runs.resimulate``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from .. import cliargs
+from ..runs.resimulate import resimulate
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", help="an MCAP recording (testbed run, testbed simulate --out)")
+    cliargs.add_json(p, "the comparison (samples, max_state_error, symbols_identical, E_identical, "
+                        "first_divergence, ...)")
+
+
+def main(args) -> int:
+    from ..errors import BadInput
+
+    try:
+        out = resimulate(args.recording)
+    except (OSError, ValueError) as e:
+        raise BadInput(f"{args.recording}: {e}") from None
+    if args.json:
+        sys.stdout.write(json.dumps(out) + "\n")
+    else:
+        print(f"{args.recording}: {out['samples']} samples ({out['timing_mode']} timing) re-simulated from what "
+              f"the recording says happened: {out['verdict']}")
+        print(f"  max ||x_k(live) - x_k(resimulated)||_inf = {out['max_state_error']:.3g}; symbols identical: "
+              f"{out['symbols_identical']}, E_k identical: {out['E_identical']}, theta_k identical: "
+              f"{out['theta_identical']}")
+        r = out["replayed"]
+        print(f"  replayed: {r['lost']} lost, {r['withheld']} withheld, {r['u_missing']} u_k missing"
+              + (f", delays {r['delays_ns']['min'] / 1e6:.3f}..{r['delays_ns']['max'] / 1e6:.3f} ms"
+                 if r["delays_ns"] else ""))
+    return 0 if out["reproduced"] else 1
