@@ -253,22 +253,23 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
-def load_source(ref: str, base_dir: str | None, module: str, class_name: str, source: str,
-                sha256: str) -> type[Plant]:
-    """Load a plant class from a module's stored source text (``source_info``) and pin it to ``ref``.
+def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, sha256: str, check, error):
+    """Import ``class_name`` from a module's source stored in a recording, under the module's own name.
 
-    THIS RUNS THE STORED CODE.  The text is written to a private temporary
-    folder (numba caches the right-hand side next to it) and imported under its
-    original module name; afterwards ``resolve(ref, base_dir)`` returns the class
-    in this process.  The sha256 must match the text.
+    THIS RUNS THE STORED CODE.  The sha256 must match the text and the names must be identifiers.  The
+    text is written to a private temporary folder (removed at exit; numba caches a plant's right-hand
+    side next to it) and imported as ``module``; if it fails, the module that held that name before is
+    put back.  ``check(cls, ref)`` checks the class (``check_plant_class``, ``check_method_class``);
+    every refusal is one line of ``error`` naming the ``kind`` ("plant", "method") and ``ref``.  Plants
+    and methods of a recording both load through here.
     """
     if not source:
-        raise PlantRefError(f"plant {ref!r}: no stored source")
+        raise error(f"{kind} {ref!r}: no stored source")
     if _sha256(source) != sha256:
-        raise PlantRefError(f"plant {ref!r}: the stored source does not match its sha256 (corrupt recording)")
+        raise error(f"{kind} {ref!r}: the stored source does not match its sha256 (corrupt recording)")
     if not re.fullmatch(rf"{IDENT}(?:\.{IDENT})*", module or "") or not re.fullmatch(IDENT, class_name or ""):
-        raise PlantRefError(f"plant {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
-    d = tempfile.mkdtemp(prefix="testbed-recorded-plant-")
+        raise error(f"{kind} {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
+    d = tempfile.mkdtemp(prefix=f"testbed-recorded-{kind}-")
     _TMP_DIRS.append(d)
     path = Path(d) / f"{module.rsplit('.', 1)[-1]}.py"
     path.write_text(source, encoding="utf-8")
@@ -278,16 +279,23 @@ def load_source(ref: str, base_dir: str | None, module: str, class_name: str, so
     sys.modules[module] = mod
     try:
         spec.loader.exec_module(mod)
-        cls = check_plant_class(getattr(mod, class_name, None), ref)
+        return check(getattr(mod, class_name, None), ref)
     except Exception as e:
         if old is not None:
             sys.modules[module] = old
         else:
             sys.modules.pop(module, None)
-        if isinstance(e, PlantRefError):
+        if isinstance(e, error):
             raise
-        raise PlantRefError(f"plant {ref!r}: the stored source of {module!r} failed to load: "
-                            f"{type(e).__name__}: {e}") from None
+        raise error(f"{kind} {ref!r}: the stored source of {module!r} failed to load: "
+                    f"{type(e).__name__}: {e}") from None
+
+
+def load_source(ref: str, base_dir: str | None, module: str, class_name: str, source: str,
+                sha256: str) -> type[Plant]:
+    """Load a plant class from a module's stored source text (``source_info``, :func:`load_stored`) and
+    pin it to ``ref``: afterwards ``resolve(ref, base_dir)`` returns the class in this process."""
+    cls = load_stored("plant", ref, module, class_name, source, sha256, check_plant_class, PlantRefError)
     _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
     if not is_module_ref(ref):
         _RESOLVED[(ref, "")] = cls

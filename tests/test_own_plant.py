@@ -356,3 +356,41 @@ def test_recorded_model_module_is_stored_too(tmp_path):
     assert rep["model_source"]["loaded_from"] == "recording" and rep["model_source"]["module"] == "mymodels"
     assert rep["plant_source"]["loaded_from"] == "import" and not rep["plant_source"]["differs"]
     assert "model module 'mymodels' is not importable" in err
+
+
+def test_stored_source_refusals_are_one_line_and_leave_sys_modules_as_they_were():
+    """``plants.refs.load_stored``, under every plant and method a recording brings back: a corrupt text, a bad
+    name, code that raises, a class of the wrong kind; each one line, and the module that held the name stays."""
+    import hashlib
+    import sys
+
+    from plants.refs import PlantRefError, load_source
+    from testbed.methods.base import MethodError
+    from testbed.methods.registry import resolve_recorded
+
+    def sha(text):
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    raises = "raise RuntimeError('the stored code broke')\n"
+    cases = [("", "", "no stored source"),
+             (VDP, "0" * 64, "does not match its sha256 (corrupt recording)"),
+             (raises, sha(raises), "failed to load: RuntimeError: the stored code broke")]
+    for text, digest, why in cases:
+        with pytest.raises(PlantRefError) as e:
+            load_source("json:VanDerPol", None, "json", "VanDerPol", text, digest)
+        assert why in str(e.value) and "\n" not in str(e.value)
+        assert sys.modules["json"] is json   # the real json module is still the one imported
+    with pytest.raises(PlantRefError, match="bad stored module or class name"):
+        load_source("x:VanDerPol", None, "os;rm", "VanDerPol", VDP, sha(VDP))
+    # a plant module named as a method: its class is no Method
+    with pytest.raises(MethodError, match=r"is not a subclass of testbed\.methods\.Method") as e:
+        resolve_recorded("testbed_no_such_module_xyz:VanDerPol", None, module="testbed_no_such_module_xyz",
+                         class_name="VanDerPol", source=VDP, sha256=sha(VDP))
+    assert "\n" not in str(e.value) and "testbed_no_such_module_xyz" not in sys.modules
+    with pytest.raises(MethodError, match="does not match its sha256"):
+        resolve_recorded("testbed_no_such_module_xyz:M", None, module="testbed_no_such_module_xyz", class_name="M",
+                         source=VDP, sha256="0" * 64)
+    # and a good one loads, pinned to its reference
+    cls = load_source("testbed_stored_vdp:VanDerPol", None, "testbed_stored_vdp", "VanDerPol", VDP, sha(VDP))
+    assert cls.name == "vanderpol" and sys.modules["testbed_stored_vdp"].VanDerPol is cls
+    assert plants.refs.resolve("testbed_stored_vdp:VanDerPol", None) is cls

@@ -11,9 +11,8 @@ A recording stores the reference, the module's source text and its sha256 (:func
 from __future__ import annotations
 
 import importlib.metadata
-import re
 
-from plants.refs import IDENT, import_module_attr, resolve_in
+from plants.refs import import_module_attr, load_stored, resolve_in
 from plants.refs import source_info as _plant_source_info
 
 from .base import Method, MethodError
@@ -96,14 +95,9 @@ def bundled(ref: str) -> bool:
 def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "", source: str = "",
                      sha256: str = "") -> dict:
     """Resolve a recorded method reference as the run did; when it cannot be imported, load the module's
-    source stored in the recording (THIS RUNS THE STORED CODE; the sha256 must match) and pin it to
-    ``ref`` in this process.  Returns ``{"loaded_from": "import" | "recording", "reason"}``."""
-    import hashlib
-    import importlib.util
-    import sys
-    import tempfile
-    from pathlib import Path
-
+    source stored in the recording (``plants.refs.load_stored``: THIS RUNS THE STORED CODE; the sha256
+    must match) and pin it to ``ref`` in this process.  Returns ``{"loaded_from": "import" | "recording",
+    "reason"}``."""
     try:
         resolve(ref, base_dir)
         return {"loaded_from": "import", "reason": None}
@@ -111,22 +105,6 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
         if not source or ":" not in ref:
             raise
         reason = str(e)
-    if hashlib.sha256(source.encode("utf-8")).hexdigest() != sha256:
-        raise MethodError(f"method {ref!r}: the stored source does not match its sha256 (corrupt recording)")
-    if not re.fullmatch(rf"{IDENT}(?:\.{IDENT})*", module or "") or not re.fullmatch(IDENT, class_name or ""):
-        raise MethodError(f"method {ref!r}: bad stored module or class name {module!r}:{class_name!r}")
-    d = tempfile.mkdtemp(prefix="testbed-recorded-method-")
-    path = Path(d) / f"{module.rsplit('.', 1)[-1]}.py"
-    path.write_text(source, encoding="utf-8")
-    spec = importlib.util.spec_from_file_location(module, path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[module] = mod
-    try:
-        spec.loader.exec_module(mod)
-        cls = check_method_class(getattr(mod, class_name, None), ref)
-    except Exception as e:  # noqa: BLE001 - the stored code failed: one line
-        sys.modules.pop(module, None)
-        raise MethodError(f"method {ref!r}: the stored source of {module!r} failed to load: "
-                          f"{type(e).__name__}: {e}") from None
+    cls = load_stored("method", ref, module, class_name, source, sha256, check_method_class, MethodError)
     _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
     return {"loaded_from": "recording", "reason": reason}
