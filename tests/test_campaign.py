@@ -449,3 +449,24 @@ def test_the_slurm_example_renders_the_job_script_it_describes():
     assert "#SBATCH --cpus-per-task=8" in script and "#SBATCH -t 02:00:00" in script, script
     assert "source ~/testbed/.venv/bin/activate" in script and "export NUMBA_NUM_THREADS=1" in script, script
     assert "--nworkers 8" in script and "--nthreads 1" in script, script  # one thread per worker process
+
+
+def test_rows_count_the_lost_samples_by_cause(tmp_path):
+    """``losses``: a campaign over a symbol link with and without losses: each row's causes add up to
+    ``samples_lost`` and equal ``testbed simulate --json`` of its scenario (the batch kernel's rows:
+    ``test_batch_kernel_rows_equal_per_sample_rows`` and the 120 runs compare every outcome key)."""
+    (tmp_path / "random.toml").write_text(RANDOM_SCENARIO.replace("[run]", "[network]\nseed = 3\n\n[run]"))
+    (tmp_path / "c.toml").write_text('scenario = "random.toml"\nruns = "simulated"\nseed = 1\n[axes]\n'
+                                     '"network.symbol" = [{ loss = 0.0 }, { loss = 0.2 }]\n"attack.seed" = [1, 2]\n')
+    p = _cli("campaign", "c.toml", "--out", "o", "--workers", 1, "--json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    rows = _table(tmp_path / "o")
+    assert len(rows) == 4 and all(r["status"] == "ok" for r in rows)
+    for r in rows:
+        ls = r["losses"]
+        assert set(ls) == {"attacker", "channel", "late", "withheld"} and sum(ls.values()) == r["samples_lost"], r
+        s = json.loads(_cli("simulate", tmp_path / "o" / "scenarios" / f"{r['run']}.toml", "--json",
+                            cwd=tmp_path).stdout)
+        assert ls == s["losses"], (r["run"], ls, s["losses"])
+    lossy = [r for r in rows if r["losses"]["channel"] > 0]
+    assert len(lossy) == 2 and all(r["losses"]["attacker"] > 0 for r in rows)

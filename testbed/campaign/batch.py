@@ -73,5 +73,7 @@ def run_group(scs: list) -> list[dict | None]:
             "method": sc.method.name, "bits": bits, "converged": bool(fn < tol), "escaped": bool(esc[j]),
             "diverged": False, "final_norm": fn, "max_norm": float(max(np.max(np.abs(b.x[j])) if N else 0.0, fn)),
             "x_final": xf.tolist(), "saturations": int(b.saturations[j]), "samples_lost": lost,
-            "packets_dropped": lost, "encoder_decoder_agree": True, "plant_fault": None, "method_fault": None}))
+            "packets_dropped": lost, "encoder_decoder_agree": True, "plant_fault": None, "method_fault": None,
+            # no channel, ideal timing, every ack delivered: each lost sample is the attacker's
+            "losses": {"attacker": lost, "channel": 0, "late": 0, "withheld": 0}}))
     return out

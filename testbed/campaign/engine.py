@@ -61,7 +61,7 @@ def settle_samples(x, x_final, tol: float) -> int | None:
 
 #: the outcome of a run under the key names of ``testbed simulate --json`` (a campaign's row holds them)
 OUTCOME_KEYS = ("method", "bits", "converged", "escaped", "diverged", "final_norm", "max_norm", "x_final",
-                "saturations", "samples_lost", "packets_dropped", "encoder_decoder_agree", "plant_fault",
+                "saturations", "samples_lost", "packets_dropped", "losses", "encoder_decoder_agree", "plant_fault",
                 "method_fault")
 
 
