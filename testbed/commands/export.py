@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from .run import open as open_run
+    from ..runs.run import open as open_run
 
     fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")
     run = open_run(args.recording)
