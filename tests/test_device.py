@@ -237,3 +237,22 @@ def test_campaigns_run_a_device_on_the_per_sample_loop():
     text = noisy_paper("[plant.sensor]\nscale = 1e-6\n", E_min=3e-5)
     assert batch_key(scenario.loads(text), text, "") is None
     assert batch_key(scenario.load("paper"), PAPER, "") is not None
+
+
+def test_the_analysis_says_what_of_the_scenario_it_leaves_out(tmp_path):
+    """The analysis runs the paper's loop: a [network] channel and the device are named in one stderr line and in
+    ``not_modelled`` of the JSON (the paper's own example: nothing left out, no line)."""
+    f = tmp_path / "lossy-device.toml"
+    f.write_text(noisy_paper("[plant.sensor]\nscale = 1e-4\n\n[plant.actuator]\nresolution = 0.01\n\n"
+                             "[network]\nseed = 1\nsymbol = { loss = 0.2 }\n", duration=3.0))
+    for cmd in (["analyze", f, "--json"], ["worst-attack", f, "--attacks", "1", "--workers", "1", "--no-progress",
+                                           "--json"]):
+        rc, out, err = run_cli(tb_cmd(*cmd), timeout=300)
+        assert rc == 0, err
+        assert json.loads(out)["not_modelled"] == ["[network]", "[plant.sensor]", "[plant.actuator]"]
+        (line,) = [ln for ln in err.splitlines() if "note:" in ln]
+        assert line.startswith(f"testbed {cmd[0]}: note: the analysis runs the paper's loop") and \
+            line.endswith("it leaves out this scenario's [network], [plant.sensor], [plant.actuator], which "
+                          "testbed simulate and testbed run model")
+    rc, out, err = run_cli(tb_cmd("analyze", "paper", "--json"), timeout=300)
+    assert rc == 0 and json.loads(out)["not_modelled"] == [] and "note:" not in err

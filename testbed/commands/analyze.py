@@ -78,6 +78,7 @@ def _with_method(sc, args, prog: str):
     from ..errors import BadInput
     from ..methods.base import MethodQuantizerParams
 
+    note_not_modelled(sc, prog)
     name = getattr(args, "method", None)
     if name:
         sc = scenario.with_overrides(sc, {"method": name})
@@ -122,10 +123,32 @@ def true_plant(sc, what: str):
 
 
 def plant_and_model(sc) -> dict:
-    """``plant``, ``model`` and their parameters for the JSON outputs (``testbed.sim.batch.plant_and_model``)."""
+    """``plant``, ``model`` and their parameters for the JSON outputs (``testbed.sim.batch.plant_and_model``),
+    and ``not_modelled``: what of the scenario the analysis leaves out (:func:`not_modelled`)."""
     from ..sim.batch import plant_and_model as names
 
-    return names(sc)
+    return {**names(sc), "not_modelled": not_modelled(sc)}
+
+
+def not_modelled(sc) -> list[str]:
+    """The tables of ``sc`` that the analysis leaves out: it runs the paper's loop (Assumptions 3 and 4: the
+    attacker is the only cause of loss; the plant's state is measured and its input applied exactly), so a
+    ``[network]`` channel and a device around the plant (``[plant.sensor]``, ``[plant.actuator]``,
+    ``[plant.disturbance]``) are not in it.  ``testbed simulate`` and ``testbed run`` model them."""
+    from ..device import TABLES
+
+    out = ["[network]"] if sc.network is not None else []
+    dev = sc.plant.device
+    return out + ([f"[plant.{t}]" for t in TABLES if getattr(dev, t) is not None] if dev is not None else [])
+
+
+def note_not_modelled(sc, prog: str) -> None:
+    """One line on stderr when the analysis leaves part of the scenario out (:func:`not_modelled`)."""
+    left = not_modelled(sc)
+    if left:
+        print(f"{prog}: note: the analysis runs the paper's loop (the attacker the only loss, the plant measured and "
+              f"driven exactly); it leaves out this scenario's {', '.join(left)}, which testbed simulate and "
+              "testbed run model", file=sys.stderr)
 
 
 def _mismatch_line(d: dict) -> str | None:
@@ -176,6 +199,7 @@ def main_analyze(args) -> int:
     from ..analysis.summary import analyze, to_json
 
     sc = scenario.load(args.scenario)
+    note_not_modelled(sc, "testbed analyze")
     if args.full or args.plot:
         true_plant(sc, "testbed analyze --full / --plot")
     if args.plot:
@@ -184,6 +208,7 @@ def main_analyze(args) -> int:
     gamma = args.gamma if args.gamma == "auto" else float(args.gamma)
     res = analyze(sc, budget=args.budget, gamma=gamma, share=args.share, rule=args.rule)
     res["paper_example"] = is_paper_example(sc)
+    res["not_modelled"] = not_modelled(sc)
     extra = {}
     if args.full:
         with _executor(args) as ex:
