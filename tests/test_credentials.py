@@ -12,8 +12,6 @@ import pytest
 from testbed.live.credentials import RunCredentials
 from testbed.wire import transport
 
-pytest.importorskip("cryptography")
-
 
 class _Run(RunCredentials):
     """The credentials part of a launcher of the peer topology with no --tls-dir: it makes the run's own."""

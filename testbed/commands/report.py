@@ -10,12 +10,8 @@ import sys
 
 from .. import cliargs
 from ..record.summary import write_json
-from ..runs.report import (
-    RESIMULATE_SAMPLES,
-    plot,
-    report_of_run,
-    run_of,
-)
+from ..runs import report as reports
+from ..runs.report import plot, report_of_run, run_of
 from ..stats import fmt_percentiles
 
 
@@ -116,9 +112,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP file written by testbed run or testbed simulate --out")
     cliargs.add_json(p, "the report (the keys of testbed simulate --json and more)")
     cliargs.add_plot(p, "draw states, input, E_k and the DoS intervals (the figure of testbed simulate --plot)")
-    p.add_argument("--resimulate", metavar="N|all", type=cliargs.int_at_least(0, or_all=True),
-                   default=RESIMULATE_SAMPLES,
-                   help=f"re-run the first N samples in the simulator and compare (default {RESIMULATE_SAMPLES:,}; "
+    n = reports.RESIMULATE_SAMPLES  # read when the parser is made (a test may change it)
+    p.add_argument("--resimulate", metavar="N|all", type=cliargs.int_at_least(0, or_all=True), default=n,
+                   help=f"re-run the first N samples in the simulator and compare (default {n:,}; "
                         "all: every sample, as testbed resimulate; 0: none)")
 
 
