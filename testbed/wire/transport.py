@@ -68,6 +68,7 @@ USERS = (*ROLES, RECORDER, LAUNCHER)
 TOPOLOGIES = ("router", "peer")
 MAX_MESSAGE_BYTES = 1 << 20      # a received message above this size is dropped (a run's are a few kB)
 CLIENT_CONNECT_TIMEOUT_MS = 30_000  # a client waits this long for its router before it gives up
+RETRY_INIT_MS = 10  # the first retry of a refused connect (doubling up to 1 s)
 DEFAULT_RUN_ID = "default"
 DEFAULT_HUB = "tcp/127.0.0.1:7447"   # standalone nodes: the plant listens here, the others connect
 LOOPBACK_ANY = "tcp/127.0.0.1:0"     # a peer's own listener for direct links (loopback only)
@@ -210,7 +211,10 @@ def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | t
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if mode == "client":  # wait for the router a while (nodes may start in any order), then fail loudly
         conf.insert_json5("connect/timeout_ms", json.dumps(CLIENT_CONNECT_TIMEOUT_MS))
-        conf.insert_json5("connect/retry", json.dumps({"period_init_ms": 100, "period_max_ms": 1000,
+    if mode != "router":
+        # a node started a few ms before its router or hub listens connects a few ms later, not at the
+        # next 100 ms (a client) or 1 s (a peer: Zenoh's default) retry; then backing off to 1 s
+        conf.insert_json5("connect/retry", json.dumps({"period_init_ms": RETRY_INIT_MS, "period_max_ms": 1000,
                                                         "period_increase_factor": 2}))
     # no message of a run is larger than a few kB: a larger one is dropped by Zenoh itself
     conf.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
