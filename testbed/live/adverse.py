@@ -5,8 +5,10 @@ plant, the plant an encoder, the attacker a controller, the encoder an attacker)
 input key and, once each, right after the genuine message of a sample at or after the case's sample:
 
 - **duplicate**: puts the same message again (the spec: the first copy counts, later ones are late);
-- **late**: puts the genuine payload under the header of sample k - 3, a sample already past (ignored
-  as late);
+- **late**: puts the message of sample k - 3 again (its payload and header, as the feeder received it),
+  a sample already past (ignored as late).  Not sample k's payload under k - 3's header: a node that
+  wrongly kept it for the next sample would go unseen where u_k = u_{k+1} (both 0 inside a DoS
+  interval), while an old u_{k-3} differs from u_{k+1} unless the attack spans all five samples;
 - **invalid**: puts the genuine payload with an 11-byte header (malformed: dropped, counted, nothing
   else changes).
 
@@ -40,6 +42,9 @@ class Feeder:
         self.key = getattr(self.keys, attr)
         self.fed: dict[str, dict] = {}
         self._next = 0
+        self._seen: dict[int, tuple[bytes, bytes]] = {}  # the last genuine messages by k (the late case's)
+        self._sent: set[tuple[bytes, bytes]] = set()     # (payload, attachment) of the copies put here
+        self._mine = 0
         self._lock = threading.Lock()
         self._session = None
         self.error: str | None = None
@@ -63,20 +68,28 @@ class Feeder:
             return  # our own invalid copy
         if h.warmup:
             return
+        payload = sample.payload.to_bytes()
         with self._lock:
-            if self._next >= len(CASES):
-                return
+            if self._next >= len(CASES) or self._mine > 0 and (payload, att.to_bytes()) in self._sent:
+                return  # done, or a copy this peer put (its own subscriber gets it too)
+            self._seen.setdefault(h.k, (payload, att.to_bytes()))
+            self._seen = {k: v for k, v in self._seen.items() if k > h.k - 2 * LATE_BY}
             case, k0 = CASES[self._next]
-            if h.k < k0:
+            if h.k < k0 or (case == "late" and h.k - LATE_BY not in self._seen):
                 return
             self._next += 1
-        payload = sample.payload.to_bytes()
+            old = self._seen.get(h.k - LATE_BY)
+            if case == "duplicate":
+                self._sent.add((payload, att.to_bytes()))
+            elif case == "late":
+                self._sent.add(old)
+            self._mine += 1
         if case == "duplicate":
             self._session.put(self.key, payload, attachment=att.to_bytes())
             k = h.k
         elif case == "late":
             k = h.k - LATE_BY
-            self._session.put(self.key, payload, attachment=msg.Header(k, h.stamp_ns).encode())
+            self._session.put(self.key, old[0], attachment=old[1])
         else:
             k = h.k
             self._session.put(self.key, payload, attachment=att.to_bytes()[:msg.HEADER_SIZE - 1])
@@ -110,7 +123,7 @@ def verdicts(fed: dict, error: str | None, first_diff: int | None, stall_again, 
             out.append(_v(name, "inconclusive", f"not fed: {why}"))
             continue
         what = {"duplicate": f"a second copy of sample {f['k']}'s message",
-                "late": f"sample {f['after_genuine_k']}'s payload under the header of sample {f['k']} (already past)",
+                "late": f"sample {f['k']}'s message again after sample {f['after_genuine_k']}'s (already past)",
                 "invalid": f"sample {f['k']}'s payload with an 11-byte header"}[case]
         evidence = f"fed {what} on {f['key'].split('/', 2)[-1]} (as the {f['as']})"
         counts = ", ".join(f"{k} {v}" for k, v in node_counts.items() if v)
