@@ -11,7 +11,7 @@ import importlib
 import os
 import sys
 
-EPILOG = "exit codes: 0 ok, 1 the run or job failed, 2 bad input"
+from .errors import EPILOG
 
 #: commands that compile nothing (or must start fast): no numba listener (``testbed.compilenotice``)
 QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run", "methods"}
