@@ -89,18 +89,20 @@ static int scenario(errbuf *e, join_cfg *c, int sc, int opts) {
         if (strncmp(tb, "network", 7) == 0 && (tb[7] == 0 || tb[7] == '.'))
             return bad(e, "the scenario has a [network] channel: this device does not model one");
     }
+    for (int i = 0; i < toml.n_tables; i++)
+        if (strncmp(toml.tables[i], "plant.", 6) == 0)
+            return bad(e, "[%s]: this device has no sensor, actuator or disturbance model", toml.tables[i]);
     for (int i = 0; i < toml.n; i++) {
         const char *p = toml.leaves[i].path;
         if (strncmp(p, "network", 7) == 0 && (p[7] == 0 || p[7] == '.'))
             return bad(e, "the scenario has a [network] channel: this device does not model one");
         if (strncmp(p, "plant.", 6) != 0) continue;
         p += 6;
+        if (!strncmp(p, "sensor", 6) || !strncmp(p, "actuator", 8) || !strncmp(p, "disturbance", 11))
+            return bad(e, "[plant] %s: this device has no sensor, actuator or disturbance model", p);
         if (strcmp(p, "name") && strcmp(p, "x0") && strcmp(p, "params.a") && strcmp(p, "params.b"))
             return bad(e, "[plant] %s: this device runs the Lienard plant with params a, b and x0 only", p);
     }
-    for (int i = 0; i < toml.n_tables; i++)
-        if (strncmp(toml.tables[i], "plant.", 6) == 0)
-            return bad(e, "[%s]: this device has no sensor, actuator or disturbance model", toml.tables[i]);
     const tvleaf *l = tv_find(&toml, "plant.name");
     if (!l || l->type != TV_STR || strcmp(l->str, "lienard") != 0)
         return bad(e, "[plant] name: this device runs the plant \"lienard\" only");
