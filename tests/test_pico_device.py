@@ -13,6 +13,7 @@ import signal
 import stat
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -126,12 +127,14 @@ def test_the_device_refuses_a_bad_or_unsupported_join_file_with_one_line(device,
     assert rc == 1 and "cannot open a Zenoh session to tcp/127.0.0.1:9" in err, err
 
 
-def _live_with_device(device: str, run_id: str, tls: str, out: Path, attempt: int):
-    """``testbed run paper --topology router --tls-dir TLS --external plant --json --out OUT`` with the device
-    started on the join file the run announces: (rc, summary, stderr, device's exit code and stderr)."""
+def _live_with_device(device: str, run_id: str, tls: str, out: Path, *args: str, netns: bool = False):
+    """``testbed run paper --topology router --tls-dir TLS --external plant --json --out OUT ARGS`` with the
+    device started on the join file the run announces (``netns``: in the plant's namespace of the run's
+    ``--netns``, with ``ip netns exec``): (rc, summary, stderr, facts: the join file, the device's exit code
+    and stderr)."""
     p = subprocess.Popen(tb_cmd("run", "paper", "--topology", "router", "--tls-dir", tls, "--external", "plant",
                                 "--json", "--out", str(out), "--run-id", run_id,
-                                "--run-dir", os.path.join(LOGS, run_id)),
+                                "--run-dir", os.path.join(LOGS, run_id), *(("--netns",) if netns else ()), *args),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     lines, seen = [], threading.Event()
     prefix = ANNOUNCE.format(role="plant", path="")
@@ -151,7 +154,16 @@ def _live_with_device(device: str, run_id: str, tls: str, out: Path, attempt: in
         assert seen.wait(300), "".join(lines)
         path = next(ln for ln in lines if ln.startswith(prefix))[len(prefix):].strip()
         facts["join"] = json.loads(Path(path).read_text())
-        dev = subprocess.Popen([device], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cmd = [device]
+        if netns:  # the run's namespaces are made after the join file is written: wait for the plant's
+            from testbed.live.netns import _SAFE, PREFIX
+
+            name = f"{PREFIX}{p.pid}-{_SAFE.sub('_', run_id)[:100]}-plant"
+            end = time.monotonic() + 120
+            while not os.path.exists(f"/run/netns/{name}") and time.monotonic() < end and p.poll() is None:
+                time.sleep(0.1)
+            cmd = ["ip", "netns", "exec", name, device]
+        dev = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env={**os.environ, join.ENV: path}, start_new_session=True)
         so, _ = p.communicate(timeout=300)
         dso, dse = dev.communicate(timeout=60)
@@ -197,7 +209,7 @@ def test_a_live_run_with_the_device_as_plant_over_mutual_tls(device, run_id, tmp
         if attempt:
             reap(run_id + "r" * (attempt - 1))
         rec = tmp_path / f"run{attempt}.mcap"
-        rc, s, err, facts = _live_with_device(device, run_id + "r" * attempt, tls, rec, attempt)
+        rc, s, err, facts = _live_with_device(device, run_id + "r" * attempt, tls, rec)
         res.update(facts=facts, rec=rec)
         return rc, s, err
 
@@ -221,3 +233,38 @@ def test_a_live_run_with_the_device_as_plant_over_mutual_tls(device, run_id, tmp
     err_max, at = plant_model_error(rec)
     assert err_max <= 1e-9, (err_max, at)
     assert stat.S_IMODE(os.stat(tls).st_mode) == 0o700
+
+
+@pytest.mark.process
+def test_the_device_in_its_own_network_namespace(device, run_id, tmp_path):
+    """``--netns``: the device runs in the plant's namespace of the run (``ip netns exec``), its only way to
+    the router the emulated link (a veth pair and a bridge) to ``tls/10.77.0.1:7447``, over mutual TLS: the
+    run completes without a fault, every node in a namespace of its own, and the plant follows the model."""
+    if os.geteuid() != 0:
+        require("netns", "network namespaces need root (CAP_SYS_ADMIN, CAP_NET_ADMIN)")
+    if shutil.which("ip") is None:
+        require("netns", "network namespaces need iproute2 ('ip' not found)")
+    tls = str(tmp_path / "tls")
+    assert subprocess.run(tb_cmd("secret", "--tls", tls), capture_output=True).returncode == 0
+    res = {}
+
+    def run(attempt):
+        if attempt:
+            reap(run_id + "r" * (attempt - 1))
+        rec = tmp_path / f"ns{attempt}.mcap"
+        rc, s, err, facts = _live_with_device(device, run_id + "r" * attempt, tls, rec, "--duration", "5",
+                                              netns=True)
+        res.update(facts=facts, rec=rec)
+        return rc, s, err
+
+    rc, s, err = rerun_while_stalled(run, "paper --netns with the pico plant")
+    facts, rec = res["facts"], res["rec"]
+    assert rc == 0 and facts["device_rc"] == 0, (s["faults"], err[-2000:], facts.get("device_err"))
+    assert facts["join"]["connect"] == ["tls/10.77.0.1:7447"], facts["join"]["connect"]
+    assert s["outcome"] == "done" and s["complete"] and s["samples"] == 50 and s["faults"] == [], s["faults"]
+    assert s["security"]["transport"] == "mutual tls"
+    ids = {r: s["node_summaries"][r]["netns"] for r in ("plant", "encoder", "attacker", "controller")}
+    assert len(set(ids.values())) == 4 and os.readlink("/proc/self/ns/net") not in ids.values(), ids
+    assert s["node_summaries"]["plant"]["implementation"].startswith("tb-pico-plant")
+    err_max, at = plant_model_error(rec)
+    assert err_max <= 1e-9, (err_max, at)

@@ -18,6 +18,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
+#include <unistd.h>
 
 #include <mbedtls/sha256.h>
 #include <zenoh-pico.h>
@@ -636,7 +637,17 @@ int main(void) {
     mbedtls_sha256_finish(&sha, digest);
     mbedtls_sha256_free(&sha);
     for (int i = 0; i < 32; i++) snprintf(hex + 2 * i, 3, "%02x", digest[i]);
-    char jit_s[160], lat_s[160], summary[1400];
+    char jit_s[160], lat_s[160], summary[1400], ns[96] = "null";
+#ifdef __linux__
+    { /* the network namespace the device ran in, as the bundled nodes report it */
+        char link[64];
+        ssize_t len = readlink("/proc/self/ns/net", link, sizeof link - 1);
+        if (len > 0 && len < (ssize_t)sizeof link - 1) {
+            link[len] = 0;
+            json_str(ns, 0, sizeof ns, link);
+        }
+    }
+#endif
     tm_json(jit_s, sizeof jit_s, &jitter);
     tm_json(lat_s, sizeof lat_s, &latency);
     pthread_mutex_lock(&lock);
@@ -645,11 +656,11 @@ int main(void) {
         "{\"node\":\"plant\",\"data\":{\"samples\":%lu,\"deadline_misses\":%ld,\"u_missing\":%ld,\"late_u\":%ld,"
         "\"future_u\":%ld,\"inputs_rejected\":%ld,\"inputs_clamped\":%ld,\"overruns\":%ld,\"malformed\":%ld,"
         "\"controller_lost_at\":%ld,\"timing\":\"ideal\",\"plant_fault\":null,\"plant_fault_at\":-1,"
-        "\"jitter_us\":%s,\"latency_us\":%s,\"spin_us\":%.17g,\"colocated\":[],"
+        "\"jitter_us\":%s,\"latency_us\":%s,\"spin_us\":%.17g,\"colocated\":[],\"netns\":%s,"
         "\"implementation\":\"tb-pico-plant (C99, zenoh-pico)\",\"integrator\":\"rk4\",\"rk4_substeps\":%ld,"
         "\"telemetry_records\":%ld,\"telemetry_sha256\":\"%s\"}}",
         (unsigned long)k_done, misses, no_u, late_u, future_u, rejected, clamped, overruns, malformed,
-        controller_lost_at, jit_s, lat_s, (double)spin_ns / 1e3, rk4_substeps(T), records, hex);
+        controller_lost_at, jit_s, lat_s, (double)spin_ns / 1e3, ns, rk4_substeps(T), records, hex);
     pthread_mutex_unlock(&lock);
     if (m < sizeof summary) put(&pub_summary, (const uint8_t *)summary, m, NULL);
     free(jitter.v);
