@@ -438,7 +438,8 @@ int main(void) {
         z_owned_config_t try_cfg;
         if (z_config_clone(&try_cfg, z_config_loan(&zc)) < 0) die(1, "out of memory");
         if (z_open(&session, z_config_move(&try_cfg), NULL) >= 0) break;
-        if (signalled || mono_ns() + pause > give_up)
+        if (signalled) die(1, "interrupted before its session to %s opened", cfg.connect[0]);
+        if (mono_ns() + pause > give_up)
             die(1, "cannot open a Zenoh session to %s (%s)", cfg.connect[0], cfg.mutual_tls ? "mutual TLS" : "TCP");
         sleep_mono_until(mono_ns() + pause);
         pause = pause * 2 > 1000000000LL ? 1000000000LL : pause * 2;
@@ -446,16 +447,16 @@ int main(void) {
     z_config_drop(z_config_move(&zc));
 
     z_owned_subscriber_t sub_act, sub_stop, sub_alive, sub_ready;
-    declare_sub(&sub_act, "loop/actuation", on_actuation, 0);
-    declare_sub(&sub_stop, "control/stop", on_stop, 0);
-    declare_sub(&sub_alive, "alive/*", on_liveliness, 1);
-    declare_sub(&sub_ready, "ready/*", on_liveliness, 1);
-    declare_pub(&pub_sensor, "loop/sensor", 1);
+    declare_pub(&pub_sensor, "loop/sensor", 1); /* the publishers first: a handler may publish an event */
     declare_pub(&pub_start, "control/start", 1);
     declare_pub(&pub_stop, "control/stop", 1);
     declare_pub(&pub_tel, "telemetry/plant", 0);
     declare_pub(&pub_events, "events/plant", 0);
     declare_pub(&pub_summary, "summary/plant", 0);
+    declare_sub(&sub_act, "loop/actuation", on_actuation, 0);
+    declare_sub(&sub_stop, "control/stop", on_stop, 0);
+    declare_sub(&sub_alive, "alive/*", on_liveliness, 1);
+    declare_sub(&sub_ready, "ready/*", on_liveliness, 1);
 
     /* ---- start-up (docs/protocol.md: liveliness, readiness and the Start handshake) */
     z_owned_liveliness_token_t tok_alive, tok_ready;
@@ -475,6 +476,16 @@ int main(void) {
     for (int i = 0; i < cfg.n_wait; i++) wait[i] = cfg.wait_ready[i];
     if (!wait_names(wait, cfg.n_wait, 1, cfg.ready_timeout_s) && !signalled && !stop_req)
         die(3, "the run was not ready after %g s", cfg.ready_timeout_s);
+    pthread_mutex_lock(&lock);
+    int early = stop_req || signalled;
+    pthread_mutex_unlock(&lock);
+    if (early) { /* stopped before the run started: no Start, nothing of the run was due */
+        fprintf(stderr, NAME ": stopped before the run started (%s)\n", signalled ? "signal" : stop_reason);
+        z_liveliness_token_drop(z_liveliness_token_move(&tok_ready));
+        z_liveliness_token_drop(z_liveliness_token_move(&tok_alive));
+        z_session_drop(z_session_move(&session));
+        return 0;
+    }
 
     const int64_t T_ns = cfg.T_ns, N = cfg.n_steps;
     const double T = (double)T_ns / 1e9;
