@@ -56,6 +56,7 @@ def device() -> str:
         os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "testbed", "pico-plant")
     rc, so, se = run_cli(["bash", str(BUILD), out], timeout=1800)
     assert rc == 0, se[-3000:]
+    assert "warning:" not in se, se[-3000:]  # the device compiles cleanly with -Wall -Wextra (when it compiles)
     path = so.strip().splitlines()[-1]
     assert os.access(path, os.X_OK) and os.path.realpath(path).startswith(os.path.realpath(out)), (path, se[-2000:])
     return path

@@ -120,7 +120,9 @@ DEV_HASH=$( (cat "$HERE"/src/*.c "$HERE"/src/*.h "$HERE/build.sh"; echo "$(basen
 BIN="$OUT/tb-pico-plant-$DEV_HASH"
 if [ ! -x "$BIN" ]; then
     echo "build.sh: building the device in $BIN" >&2
-    "$CC" -std=c99 -O2 -Wall -Wextra -Werror -DZENOH_C_STANDARD=99 -DZENOH_LINUX -DZENOH_COMPILER_GCC \
+    COMPILER=GCC
+    if "$CC" --version 2>/dev/null | grep -qi clang; then COMPILER=CLANG; fi
+    "$CC" -std=c99 -O2 -Wall -Wextra -DZENOH_C_STANDARD=99 -DZENOH_LINUX -DZENOH_COMPILER_$COMPILER \
         -I"$ZP/include" -I"$MBED/include" "$HERE"/src/*.c -o "$BIN.tmp" \
         "$ZP/lib/libzenohpico.a" "$MBED/library/libmbedtls.a" "$MBED/library/libmbedx509.a" \
         "$MBED/library/libmbedcrypto.a" -lpthread -lm
