@@ -190,7 +190,7 @@ class _StandIns:
             if prefix == "model" and "params" not in self._table("model"):
                 params = self._table("plant").get("params")
             self.used.append(str(not_trusted(prefix, ref, self.path)))
-            if prefix == "model" or "model" not in self.data:
+            if prefix == "model" or self._table("model").get("name", ref) == ref:  # the model is this class
                 self.model_stand_in = True
             return stand_in_plant(ref, class_name, self.n, self.m, list(params) if isinstance(params, dict) else [])
         return make
@@ -203,7 +203,7 @@ class _StandIns:
 
         def make():
             self.used.append(str(not_trusted("method", ref, self.path)))
-            self.method_stand_in = True
+            self.method_stand_in = self._table("method").get("name") == ref  # not a --method swap
             uses = [k for k in self._table("quantizer") if k != "T"]
             return stand_in_method(ref, class_name, dict.fromkeys([*uses, "allow_M_le_Lambda", "allow_x0_outside",
                                                                    "L_u"]), self.bits)
