@@ -121,9 +121,10 @@ def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     m = meta["testbed.scenario"]
     assert m["method_ref"] == "mymethod:CenteredZoom" and m["method_class"] == "CenteredZoom"
     assert "class CenteredZoom" in m["method_source"] and len(m["method_sha256"]) == 64
-    # the method's folder gone: the report loads the source stored in the recording (and says so)
+    # the method's folder gone: with --trust-code the report loads the source stored in the recording (and
+    # says so; without it, tests/test_trust_code.py)
     shutil.move(method_dir, method_dir.parent / "moved")
-    rc, out, err = tb("report", method_dir.parent / "run.mcap", "--json", cwd="/")
+    rc, out, err = tb("report", method_dir.parent / "run.mcap", "--json", "--trust-code", cwd="/")
     assert rc == 0, err
     assert json.loads(out)["x"] == sim["x"] and "loaded the source stored in" in err
     shutil.move(method_dir.parent / "moved", method_dir)

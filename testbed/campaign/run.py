@@ -176,11 +176,37 @@ def _same(a, b) -> bool:
     return a == b
 
 
-def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=None) -> dict:
+def folder_code(text: str, where: Path) -> list[str]:
+    """The plant, model and method references of a scenario text whose module is a file in ``where`` (the
+    campaign folder's scenarios, where a re-run imports from first): code stored in the folder, which
+    ``--verify`` runs only with ``--trust-code``."""
+    import tomllib
+
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        return []
+    out = []
+    for sec in ("plant", "model", "method"):
+        t = data.get(sec)
+        ref = t.get("name") if isinstance(t, dict) else None
+        if isinstance(ref, str) and ":" in ref:
+            top = ref.split(":")[0].split(".")[0]
+            if (where / f"{top}.py").is_file() or (where / top / "__init__.py").is_file():
+                out.append(f"{sec} {ref!r}")
+    return out
+
+
+def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=None, trust_code: bool = False) -> dict:
     """Re-run the rows of a campaign's folder and compare: simulated rows bit for bit (every one, or
     ``sample`` drawn with ``seed``), live rows re-simulated from their recordings; the versions that
-    differ from the manifest's."""
+    differ from the manifest's.  A row whose re-run needs a plant's or method's code stored in the
+    folder (``folder_code``, or a recording's stored source) is re-run only with ``trust_code``
+    (``--trust-code``); otherwise it is skipped (``not_run``, ``not_run_why``) and the folder is not
+    called identical."""
     import numpy as np
+
+    from plants.refs import TRUST_FLAG, CodeNotTrusted
 
     folder = Path(folder)
     for f in ("campaign.toml", "manifest.json", "runs.parquet"):
@@ -214,6 +240,16 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
     if sample is not None and sample < len(sim):
         idx = np.sort(np.random.default_rng(seed).choice(len(sim), size=sample, replace=False))
         sim = [sim[i] for i in idx]
+    not_run, why = [], None
+    if not trust_code:
+        for r in list(sim):
+            code = folder_code((folder / planned[r["run"]]["scenario"]).read_text(encoding="utf-8"),
+                               folder / "scenarios")
+            if code:
+                sim.remove(r)
+                not_run.append(r["run"])
+                why = why or (f"{code[0]} is a module stored in {folder / 'scenarios'}: code, not run without "
+                              f"{TRUST_FLAG}")
     items = [(r["run"], (folder / planned[r["run"]]["scenario"]).read_text(encoding="utf-8"), "scenario",
               str(folder / "scenarios")) for r in sim]
     parts = chunks(items, executor.workers if executor is not None else 1, False)
@@ -233,27 +269,33 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
         try:
             from ..runs.resimulate import resimulate
 
-            d = resimulate(str(rec))
+            d = resimulate(str(rec), trust_code=trust_code)
             if not d.get("reproduced"):
                 differences.append({"run": r["run"], "column": "recording", "table": str(rec),
                                     "rerun": d.get("verdict")})
             from ..runs.report import report
 
-            rep = report(str(rec), resimulate=0)
+            rep = report(str(rec), resimulate=0, trust_code=trust_code)
             for k in COMPARED:
                 if not _same(_norm(r.get(k)), _norm(rep.get(k))):
                     differences.append({"run": r["run"], "column": k, "table": r.get(k), "rerun": rep.get(k)})
+        except CodeNotTrusted as e:
+            not_run.append(r["run"])
+            why = why or str(e)
         except (OSError, ValueError) as e:
             differences.append({"run": r["run"], "column": "recording", "table": str(rec), "rerun": str(e)})
+    if not_run and not sim and len(not_run) == len(ok_rows):
+        raise BadInput(f"{folder}: nothing re-run: {why}")
     here = versions()
     vdiff = {k: {"manifest": v, "here": here.get(k)} for k, v in (man.get("packages") or {}).items()
              if here.get(k) != v}
     src = source_hash()
-    return {"folder": str(folder), "checked_simulated": len(sim), "checked_live": len(live), "rows": len(rows),
+    return {"folder": str(folder), "checked_simulated": len(sim), "checked_live": len(live) - len(
+                [r for r in live if r["run"] in not_run]), "rows": len(rows), "not_run": not_run, "not_run_why": why,
             "planned": len(planned), "missing": missing, "differences": differences, "problems": problems,
             "versions_differ": vdiff, "source_differs": src != man.get("source"),
             "python_differs": man.get("python") != sys.version.split()[0],
-            "identical": not differences and not problems}
+            "identical": not differences and not problems and not not_run}
 
 
 def _norm(v):

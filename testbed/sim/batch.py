@@ -395,7 +395,8 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
     converged = (not diverged) and res.final_norm < tol
     crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
-    escaped = escaped_run(sc, res, crit)
+    # a recording's plant or method whose stored code was not run (no --trust-code): not judged
+    escaped = None if sc.code_not_run() else escaped_run(sc, res, crit)
     sch = res.intervals()
     cb = sc.make_method().codebook(model.n, sc.quantizer)
     return json_clean({
@@ -429,7 +430,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "x_final": res.x_final.tolist(),
         "final_norm": res.final_norm,
         "converged": bool(converged),
-        "escaped": bool(escaped),
+        "escaped": None if escaped is None else bool(escaped),
         "escape_criterion": crit.to_dict(),
         "diverged": bool(diverged),
         "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
