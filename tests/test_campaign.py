@@ -201,7 +201,7 @@ def test_seeds_rule(tmp_path):
     c.write_text('scenario = "seeded.toml"\nseed = 5\n[axes]\n"method.name" = ["paper", "zoom"]\n')
     runs, notes = cmp.plan(cmp.parse(c))
     assert [r.seeds["seeds.attack"] for r in runs] == [42, 42]
-    assert notes == ["method 'zoom' ignores [quantizer] mode of the scenario"]
+    assert notes == ["method 'zoom' ignores [quantizer] mode of this scenario"]  # the one swap note (testbed.methodswap)
 
 
 @pytest.mark.slow
