@@ -173,6 +173,42 @@ def test_bad_value_is_one_line_naming_axis_value_reason(tmp_path):
         assert p.returncode == 2 and len(lines) == 1 and all(w in lines[0] for w in words), (text, p.stderr)
 
 
+def test_each_method_its_own_params(tmp_path):
+    """[methods.NAME] params give one method of a method.name axis its params (over the scenario's own when
+    it is the scenario's method, under a method.params axis); a bad one is one line before anything runs,
+    and a method.params axis that one method lacks says how to give it to one method only."""
+    (tmp_path / "own.toml").write_text(RANDOM_SCENARIO.replace("[run]", '[method]\nname = "static"\n'
+                                                               'params = { range = 0.7 }\n\n[run]')
+                                       .replace('L = 10.0\nE0 = 0.1\nmode = "resilient"\n', ""))
+    base = 'scenario = "own.toml"\nseed = 2\n[axes]\n"method.name" = ["static", "unquantized"]\n'
+    c = tmp_path / "m.toml"
+    c.write_text(base)
+    runs, notes = cmp.plan(cmp.parse(c))
+    assert "range = 0.7" in runs[0].text and "[method]" in runs[1].text and "range" not in runs[1].text
+    assert notes == ["method 'unquantized' ignores [quantizer] M of this scenario and drops the [method] params "
+                     "range of 'static'"]
+    c.write_text(base + '[methods.static]\nparams = { range = 0.5 }\n')
+    runs, _ = cmp.plan(cmp.parse(c))
+    assert "range = 0.5" in runs[0].text and "range" not in runs[1].text
+    c.write_text(base.replace('"unquantized"]', '"paper"]\n"method.params.range" = [0.4]') + '[methods.static]\n'
+                 'params = { range = 0.5 }\n')
+    with pytest.raises(cmp.BadInput, match=r"has no parameter 'range'.*\[methods\.\"NAME\"\] params"):
+        cmp.plan(cmp.parse(c))
+    c.write_text(base.replace(', "unquantized"]', "]\n\"method.params.range\" = [0.4, 0.3]") + '[methods.static]\n'
+                 'params = { range = 0.5 }\n')
+    runs, _ = cmp.plan(cmp.parse(c))
+    assert ["range = 0.4" in runs[0].text, "range = 0.3" in runs[1].text] == [True, True]
+    for extra, words in [('[methods.unquantized]\nparams = { range = 1.0 }\n', ['[methods."unquantized"] params', "range"]),
+                         ('[methods.zoom]\nparams = {}\n', ['[methods."zoom"]', "runs no method 'zoom'"]),
+                         ('[methods.static]\nparams = { range = -1.0 }\n', ['[methods."static"] params', "range"]),
+                         ('[methods.static]\nrange = 1.0\n', ['[methods."static"]', "params"])]:
+        c.write_text(base + extra)
+        p = _cli("campaign", c, "--out", tmp_path / "o", cwd=tmp_path)
+        lines = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(lines) == 1 and all(w in lines[0] for w in words), (extra, p.stderr)
+        assert not (tmp_path / "o").exists()
+
+
 def test_changed_campaign_refused_and_default_folder(tmp_path):
     c = _campaign(tmp_path, 'scenario = "random.toml"\n[axes]\n"attack.seed" = [1, 2]\n', "mine.toml")
     p = _cli("campaign", c.name, "--no-progress", cwd=tmp_path)

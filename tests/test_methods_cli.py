@@ -132,6 +132,47 @@ def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     assert rc == 2 and "no batch kernel" in err and len(err.strip().splitlines()) == 1
 
 
+def test_swapping_in_the_scenarios_own_method_keeps_its_params(method_dir):
+    """One swap rule: --method with the scenario's own method keeps its [method] params (a = 0.9, not the
+    default 0.96), another method names the params it drops in one stderr line, and simulate, versus and a
+    campaign axis over method.name give the same row for the scenario's own method."""
+    work = method_dir.parent / "elsewhere"
+    sc = method_dir / "mymethod.toml"
+    sc.write_text(sc.read_text().replace("params = { a = 0.96 }", "params = { a = 0.9 }")
+                  .replace("duration = 30.0", "duration = 6.0"))
+    (method_dir / "default.toml").write_text(sc.read_text().replace("params = { a = 0.9 }\n", ""))
+    own = "mymethod:CenteredZoom"
+
+    def simulate(*a):
+        rc, out, err = tb("simulate", *a, "--json", cwd=work)
+        assert rc == 0, err
+        return json.loads(out), err
+
+    base, err0 = simulate(sc)
+    swapped, err1 = simulate(sc, "--method", own)
+    default, _ = simulate(method_dir / "default.toml")
+    assert default["final_norm"] != base["final_norm"]          # the param matters
+    assert swapped["x"] == base["x"] and swapped["final_norm"] == base["final_norm"]
+    assert "note" not in err0 + err1
+    _, err = simulate(sc, "--method", "paper")
+    notes = [ln for ln in err.splitlines() if "note" in ln]
+    assert notes == ["testbed simulate: note: method 'paper' drops the [method] params a of 'mymethod:CenteredZoom'"]
+    rc, out, err = tb("versus", sc, "--methods", f"{own},paper", "--json", cwd=work)
+    assert rc == 0, err
+    rows = {r["method"]: r for r in json.loads(out)["rows"]}
+    assert rows[own]["final_norm"] == base["final_norm"] and rows[own]["saturations"] == base["saturations"]
+    assert "drops the [method] params a of" in err
+    (work / "c.toml").write_text(f'scenario = "{sc}"\n[axes]\n"method.name" = ["{own}", "paper"]\n')
+    rc, out, err = tb("campaign", "c.toml", "--out", "o", "--workers", "1", "--no-progress", cwd=work)
+    assert rc == 0, err
+    import pyarrow.parquet as pq
+
+    crow = {r["method"]: r for r in pq.read_table(work / "o" / "runs.parquet").to_pylist()}
+    assert crow[own]["final_norm"] == base["final_norm"] and crow[own]["saturations"] == base["saturations"]
+    assert crow["paper"]["final_norm"] == rows["paper"]["final_norm"]
+    assert "testbed campaign: note: method 'paper' drops the [method] params a of 'mymethod:CenteredZoom'" in err
+
+
 def test_trace_method_b_loses_method_a_samples(tmp_path):
     """Method B on method A's recording (a trace of the samples A's attacker dropped) loses exactly them;
     the trace is embedded in B's recording (report works with A's file gone); a wrong T or a trace shorter

@@ -289,8 +289,8 @@ def _check_methods(c: Campaign, base) -> None:
     for name, params in c.methods.items():
         where = f"{c.path}: [methods.{json.dumps(name)}]"
         if name not in ran:
-            raise BadInput(f"{where}: the campaign runs no method {name!r} (it runs "
-                           f"{', '.join(repr(m) for m in ran)}: the scenario's own, or the axis \"method.name\")")
+            raise BadInput(f"{where}: the campaign runs no method {name!r} (the methods it runs: "
+                           f"{', '.join(repr(m) for m in ran)})")
         try:
             scenario_mod.swap_method(tomllib.loads(base.source), {"name": name, "params": params},
                                      base.base_dir or None, "scenario")
