@@ -302,6 +302,16 @@ def load_source(ref: str, base_dir: str | None, module: str, class_name: str, so
     return cls
 
 
+def pin(ref: str, base_dir: str | None, cls: type[Plant]) -> type[Plant]:
+    """Make ``resolve(ref, base_dir)`` return ``cls`` in this process (a class loaded from code stored in
+    a recording or a campaign's folder, so that nothing is imported from that folder in its place)."""
+    cls = check_plant_class(cls, ref)
+    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
+    if not is_module_ref(ref):
+        _RESOLVED[(ref, "")] = cls
+    return cls
+
+
 def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "",
                      source: str = "", sha256: str = "") -> tuple[type[Plant], dict]:
     """Resolve a recorded plant reference; fall back to the recorded source when it cannot be imported.
@@ -329,4 +339,4 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
 
 __all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "resolve", "entry_points", "load_entry_point", "source_info",
            "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class",
-           "import_module_attr", "resolve_in", "IDENT"]
+           "import_module_attr", "resolve_in", "IDENT", "pin"]

@@ -24,6 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sample", type=int, metavar="K", help="--verify: only K simulated rows, drawn with --seed")
     p.add_argument("--seed", type=int, metavar="S", help="--verify --sample: the draw's seed (default 0; a campaign's "
                                                          "own seed is in its file)")
+    p.add_argument("--trust-code", action="store_true",
+                   help="--verify: run the user code stored in the folder (a method's or plant's module) when "
+                        "nothing importable here has it (that runs code from the folder)")
     p.add_argument("--live-timeout", type=float, metavar="S", help=argparse.SUPPRESS)
 
 
@@ -38,6 +41,8 @@ def main(args) -> int:
         raise BadInput("give a campaign file (testbed campaign FILE.toml) or --verify DIR")
     if args.sample is not None or args.seed is not None:
         raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
+    if args.trust_code:
+        raise BadInput("--trust-code applies to --verify (a campaign runs the code its scenario names)")
     from ..campaign import run as campaignrun
     from ..campaign.folder import default_dir
     from ..campaign.spec import base_scenario, parse, plan
@@ -100,7 +105,7 @@ def _verify(args) -> int:
         executor = parallel.from_args(args)
     try:
         d = campaignrun.verify(Path(args.verify), sample=args.sample, seed=args.seed or 0,
-                                    executor=executor)
+                               executor=executor, trust_code=args.trust_code)
     finally:
         if executor is not None:
             executor.close()
@@ -114,7 +119,7 @@ def _verify(args) -> int:
         if d["missing"]:
             print(f"  not run yet: {len(d['missing'])} run(s) (the campaign command again finishes them)")
         for x in d["differences"]:
-            print(f"  DIFFERS: run {x['run']} {x['column']}: table {x['table']!r}, re-run {x['rerun']!r}")
+            print(f"  DIFFERS: run {x['run']} {x['why']}")
         for k, v in d["versions_differ"].items():
             print(f"  version: {k} {v['manifest']} in the manifest, {v['here']} here")
         if d["source_differs"]:
