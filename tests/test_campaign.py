@@ -438,6 +438,66 @@ def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
     assert json.loads(p.stdout)["summary"]["failed"] == 1
 
 
+def test_a_campaign_with_a_users_method_reruns_from_its_folder_alone(tmp_path):
+    """The folder stores the method's module (manifest: source and sha256; a copy beside the scenarios):
+    from another folder, with only the project root on PYTHONPATH, `testbed simulate DIR/scenarios/RUN.toml`
+    repeats a row, and `--verify DIR` reruns every row from the stored source only with --trust-code
+    (never importing the folder's copy: a copy with a side effect at import is named, and runs nothing);
+    a row whose re-run fails says why (the exception), not "re-run None"."""
+    import hashlib
+    import shutil
+
+    import testbed
+
+    src = tmp_path / "methoddir"
+    src.mkdir()
+    for f in ("mymethod.py", "mymethod.toml"):
+        shutil.copy(ROOT / "docs" / "examples" / f, src / f)
+    (src / "c.toml").write_text('scenario = "mymethod.toml"\n[axes]\n"method.name" = ["mymethod:CenteredZoom", '
+                                '"paper"]\n"plant.x0" = [[0.1, 0.1], [0.2, -0.1]]\n"run.duration" = [4.0]\n')
+    p = _cli("campaign", "c.toml", "--out", tmp_path / "out", "--workers", 1, "--no-progress", cwd=src)
+    assert p.returncode == 0, p.stderr
+    out = tmp_path / "out"
+    man = json.loads((out / "manifest.json").read_text())
+    text = (src / "mymethod.py").read_text()
+    assert man["code"] == [{"kind": "method", "ref": "mymethod:CenteredZoom", "module": "mymethod",
+                            "class": "CenteredZoom", "sha256": hashlib.sha256(text.encode()).hexdigest(),
+                            "source": text, "copy": "scenarios/mymethod.py"}]
+    assert (out / "scenarios" / "mymethod.py").read_text() == text
+    shutil.rmtree(src)  # the method's folder gone
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {"PYTHONPATH": str(Path(testbed.__file__).resolve().parents[1])}
+    rows = {r["run"]: r for r in _table(out)}
+    run = next(r for r in rows.values() if r["method"] == "mymethod:CenteredZoom")["run"]
+    p = _cli("simulate", out / "scenarios" / f"{run}.toml", "--json", cwd=elsewhere, env=env)
+    assert p.returncode == 0, p.stderr
+    assert all(json.loads(p.stdout)[k] == rows[run][k] for k in cmp.OUTCOME_KEYS)
+    p = _cli("campaign", "--verify", out, cwd=elsewhere, env=env)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "--trust-code" in p.stderr, p.stderr
+    assert "mymethod:CenteredZoom" in p.stderr
+    p = _cli("campaign", "--verify", out, "--trust-code", "--json", cwd=elsewhere, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    v = json.loads(p.stdout)
+    assert v["identical"] and v["checked_simulated"] == 4 and not v["differences"]
+    # a copy beside the scenarios that is not the stored module (and writes a file when imported)
+    flag = tmp_path / "imported"
+    (out / "scenarios" / "mymethod.py").write_text(text + f"\nopen({str(flag)!r}, 'w').close()\n")
+    for cwd in (elsewhere, out / "scenarios"):
+        p = _cli("campaign", "--verify", out, "--trust-code", cwd=cwd, env=env)
+        assert p.returncode == 1 and "PROBLEM: scenarios/mymethod.py: differs from the manifest's sha256" in p.stdout
+        assert "DIFFERS" not in p.stdout and not flag.exists(), p.stdout
+    (out / "scenarios" / "mymethod.py").write_text(text)
+    # a folder whose manifest stores no code (as before): each row says why its re-run failed
+    man.pop("code")
+    (out / "manifest.json").write_text(json.dumps(man))
+    p = _cli("campaign", "--verify", out, cwd=elsewhere, env=env)
+    differs = [ln for ln in p.stdout.splitlines() if "DIFFERS" in ln]
+    assert p.returncode == 1 and len(differs) == 2, p.stdout
+    assert all("the re-run failed: " in ln and "method 'mymethod:CenteredZoom': no module 'mymethod'" in ln
+               for ln in differs), differs
+
+
 @pytest.mark.process
 def test_live_campaign_on_dask_brings_the_recordings_back(tmp_path):
     """runs = "live" with --scheduler: each run on a Dask worker (one at a time per host: a LocalCluster's
