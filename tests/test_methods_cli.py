@@ -66,6 +66,7 @@ def test_versus_seeds_summary(tmp_path):
     rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--seeds", "4", "--seed", "7", "--json",
                       cwd=tmp_path)
     assert rc == 0, err
+    assert "drew seed" not in err    # the rows use seeds 7..10: nothing is drawn
     d = json.loads(out)
     assert d["seeds"] == [7, 8, 9, 10] and len(d["rows"]) == 8
     lost = {}
@@ -82,6 +83,12 @@ def test_versus_seeds_summary(tmp_path):
     a = [r["converged"] for r in d["rows"] if r["method"] == "unquantized-hold"]
     b = [r["converged"] for r in d["rows"] if r["method"] == "paper"]
     assert pd["vs"] == "paper" and pd["difference"] == pytest.approx((sum(a) - sum(b)) / 4)
+    # without --seeds: one seed drawn, named on stderr, and every method (a swapped one too) faces it
+    rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--json", cwd=tmp_path)
+    assert rc == 0, err
+    drawn = int(err.split("drew seed = ")[1].split()[0])
+    rows = json.loads(out)["rows"]
+    assert [r["seed"] for r in rows] == [drawn, drawn] and rows[0]["samples_lost"] == rows[1]["samples_lost"]
 
 
 def test_wilson_against_a_direct_computation():
