@@ -464,6 +464,11 @@ def test_a_campaign_with_a_users_method_reruns_from_its_folder_alone(tmp_path):
                             "class": "CenteredZoom", "sha256": hashlib.sha256(text.encode()).hexdigest(),
                             "source": text, "copy": "scenarios/mymethod.py"}]
     assert (out / "scenarios" / "mymethod.py").read_text() == text
+    (src / "mymethod.py").write_text(text + "\n# edited\n")  # resuming with another module is refused
+    p = _cli("campaign", "c.toml", "--out", out, "--no-progress", cwd=src)
+    errs = [ln for ln in p.stderr.strip().splitlines() if ": note: " not in ln]
+    assert p.returncode == 2 and len(errs) == 1, p.stderr
+    assert "method 'mymethod:CenteredZoom' changed since the campaign started" in errs[0]
     shutil.rmtree(src)  # the method's folder gone
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
