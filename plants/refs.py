@@ -332,6 +332,15 @@ def _plant_keys(ref: str, base_dir) -> list[tuple[str, str]]:
     return [(ref, bd)] + ([] if is_module_ref(ref) or not bd else [(ref, "")])
 
 
+def pin(ref: str, base_dir: str | None, cls: type[Plant]) -> type[Plant]:
+    """Make ``resolve(ref, base_dir)`` return ``cls`` in this process (a class loaded from code stored in
+    a recording or a campaign's folder, so that nothing is imported from that folder in its place)."""
+    cls = check_plant_class(cls, ref)
+    for key in _plant_keys(ref, base_dir):
+        _RESOLVED[key] = cls
+    return cls
+
+
 # ----------------------------------------------------------------------------- a recording's classes
 #: classes pinned to a recorded reference in this process: (kind, ref, base_dir) -> (how, sha256, class)
 _PINNED: dict[tuple[str, str, str], tuple[str, str, type]] = {}
@@ -459,4 +468,4 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
 __all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "CodeNotTrusted", "TRUST_FLAG", "not_trusted", "not_run",
            "stand_in_plant", "recorded_class", "load_stored", "resolve", "entry_points", "load_entry_point", "source_info",
            "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class",
-           "import_module_attr", "resolve_in", "IDENT"]
+           "import_module_attr", "resolve_in", "IDENT", "pin"]

@@ -232,7 +232,7 @@ class Scenario:
     L_u: float = 0.0       # input gain of the model (delay-aware rule)
     base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
     method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
-    method_note: str = ""  # a swapped method (``--method``): the [quantizer] keys it ignores, one line
+    method_note: str = ""  # a swapped method (``--method``): what it leaves out, one line (testbed.methodswap)
     network: NetworkModel | None = None   # [network]: the emulated channels (None: ideal links)
 
     def make_method(self):

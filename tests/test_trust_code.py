@@ -222,15 +222,3 @@ def test_a_stand_in_has_the_recorded_data_and_runs_nothing():
     for f in (lambda: q.make_encoder(None, None, None, None), lambda: q.kernel_code(None)):
         with pytest.raises(CodeNotTrusted):
             f()
-
-
-def test_campaign_verify_names_code_stored_in_its_folder(tmp_path):
-    """``campaign --verify`` re-runs a row whose plant or method module is a file of the campaign folder only
-    with --trust-code (``campaign.run.folder_code``)."""
-    from testbed.campaign.run import folder_code
-
-    (tmp_path / "mymethod.py").write_text("")
-    text = '[plant]\nname = "lienard"\n[method]\nname = "mymethod:CenteredZoom"\n'
-    assert folder_code(text, tmp_path) == ["method 'mymethod:CenteredZoom'"]
-    assert folder_code(text.replace("mymethod:", "elsewhere:"), tmp_path) == []
-    assert folder_code('[method]\nname = "paper"\n', tmp_path) == []

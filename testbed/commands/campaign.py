@@ -119,7 +119,7 @@ def _verify(args) -> int:
         if d["missing"]:
             print(f"  not run yet: {len(d['missing'])} run(s) (the campaign command again finishes them)")
         for x in d["differences"]:
-            print(f"  DIFFERS: run {x['run']} {x['column']}: table {x['table']!r}, re-run {x['rerun']!r}")
+            print(f"  DIFFERS: run {x['run']} {x['why']}")
         for k, v in d["versions_differ"].items():
             print(f"  version: {k} {v['manifest']} in the manifest, {v['here']} here")
         if d["source_differs"]:

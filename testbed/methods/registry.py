@@ -88,6 +88,16 @@ def source_info(cls: type[Method]) -> dict[str, str]:
     return _plant_source_info(cls)
 
 
+def pin(ref: str, base_dir: str | None, cls: type[Method]) -> type[Method]:
+    """Make ``resolve(ref, base_dir)`` return ``cls`` in this process (a class loaded from code stored in
+    a recording or a campaign's folder, so that nothing is imported from that folder in its place)."""
+    cls = check_method_class(cls, ref)
+    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
+    if ":" not in ref:
+        _RESOLVED[(ref, "")] = cls
+    return cls
+
+
 def bundled(ref: str) -> bool:
     return ref in BUNDLED
 
