@@ -51,7 +51,7 @@ def test_batch_kernel_equals_per_sample(name, specialize):
 
 
 def test_paper_method_is_the_paper():
-    """[method] absent = "paper": the same numbers as the quantizer's own Encoder/Decoder."""
+    """[method] absent = "paper": the same numbers as simulate_loop's default ends (the paper's)."""
     sc = scenario.load("paper")
     assert sc.method.name == "paper"
     a = _loop(sc, method=None)
