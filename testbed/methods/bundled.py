@@ -27,7 +27,7 @@ KERNEL_HOLD = 6
 _PAPER_KEYS = ("M", "L", "E0", "mode", "zoom_out", "E_min", "rule", "L_u", "allow_M_le_Lambda", "allow_x0_outside")
 
 
-class _End:
+class _LazyEnd:
     """A class attribute naming an end of ``methods.ends``, imported on first use (the ends load numba:
     reading a scenario does not)."""
 
@@ -45,8 +45,8 @@ class PaperMethod(Method):
     description = "the paper's resilient zoom quantizer and control law (2) (both modes)"
     source = "the paper (Algorithms 1 and 2, rules (xi), (E)); OVERFLOW: the testbed's resilient mode"
     uses = _PAPER_KEYS
-    encoder_class = _End("PaperEncoder")
-    decoder_class = _End("PaperDecoder")
+    encoder_class = _LazyEnd("PaperEncoder")
+    decoder_class = _LazyEnd("PaperDecoder")
 
     def codebook(self, n, qp):
         return Codebook(n, qp.M, resilient=(qp.mode == "resilient"))
@@ -62,8 +62,8 @@ class ZoomMethod(Method):
              "feedback, IEEE TAC 50(6), 2005"
     uses = ("M", "L", "E0", "zoom_out", "E_min", "allow_M_le_Lambda", "allow_x0_outside")
     kernel_mode = KERNEL_ZOOM
-    encoder_class = _End("ZoomEncoder")
-    decoder_class = _End("ZoomDecoder")
+    encoder_class = _LazyEnd("ZoomEncoder")
+    decoder_class = _LazyEnd("ZoomDecoder")
 
     def codebook(self, n, qp):
         return Codebook(n, qp.M, resilient=True)
@@ -76,8 +76,8 @@ class StaticMethod(Method):
     uses = ("M",)
     defaults = {"range": 1.0}
     kernel_mode = KERNEL_STATIC
-    encoder_class = _End("StaticEncoder")
-    decoder_class = _End("StaticDecoder")
+    encoder_class = _LazyEnd("StaticEncoder")
+    decoder_class = _LazyEnd("StaticDecoder")
 
     def check_params(self):
         finite_params(self, "range")
@@ -94,8 +94,8 @@ class UnquantizedMethod(Method):
     description = "exact state feedback, zero input through a loss (the infinite-data-rate control law (2))"
     source = "control law (2) of the paper with q_k = x_k"
     kernel_mode = KERNEL_UNQUANTIZED
-    encoder_class = _End("ExactEncoderZero")
-    decoder_class = _End("ExactDecoder")
+    encoder_class = _LazyEnd("ExactEncoderZero")
+    decoder_class = _LazyEnd("ExactDecoder")
 
     def codebook(self, n, qp):
         return FloatCodebook(n)
@@ -109,8 +109,8 @@ class UnquantizedHoldMethod(UnquantizedMethod):
     description = "exact state feedback holding the last received input through a loss"
     source = "C. De Persis and P. Tesi, Input-to-state stabilizing control under denial-of-service, IEEE TAC 60(11), 2015"
     kernel_mode = KERNEL_HOLD
-    encoder_class = _End("ExactEncoder")
-    decoder_class = _End("HoldDecoder")
+    encoder_class = _LazyEnd("ExactEncoder")
+    decoder_class = _LazyEnd("HoldDecoder")
 
 
 BUNDLED = {c.name: c for c in (PaperMethod, ZoomMethod, StaticMethod, UnquantizedMethod, UnquantizedHoldMethod)}
