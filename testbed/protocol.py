@@ -43,8 +43,10 @@ from .quantizer import Codebook, InvalidSymbol
 
 
 def _state(end):
-    """A method end's shared state (``methods.End.state``: xi_k and E_k unless the method says otherwise)."""
-    return np.array(end.state(), dtype=np.float64)
+    """A method end's shared state (``methods.End.state``: xi_k and E_k unless the method says otherwise),
+    or None for an object that keeps none (the kernel's bookkeeping encoder, ``sim.trajectory._Ledger``)."""
+    f = getattr(end, "state", None)
+    return None if f is None else np.array(f(), dtype=np.float64)
 
 
 # controller decision reasons (the telemetry's ``reason`` field)
