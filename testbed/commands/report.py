@@ -65,9 +65,16 @@ def print_text(s: dict) -> None:
     if "frequency" in ld:
         th1 = ld.get("theorem1") or {}
         ok = th1.get("in_allowable_region")
-        print(f"  all losses as DoS: N(H)/H = {ld['frequency']:.4g} /s, |A(H)|/H = {ld['duration_fraction']:.4g} -> "
+        print(f"  all losses as DoS over H = {ld['horizon']:g} s: N(H)/H = {ld['frequency']:.4g} /s, "
+              f"|A(H)|/H = {ld['duration_fraction']:.4g}, taken as rates rho_F, rho_D with no intercepts -> "
               + ("inside" if ok else "OUTSIDE" if ok is not None else "unknown (" + th1.get("why", "") + "):")
               + " Theorem 1's allowable region (paper's rule)")
+        bd = th1.get("budget")
+        if bd:
+            print(f"  the scenario's budget as testbed analyze checks it (rho_F {bd['rho_F']:.4g}, rho_D "
+                  f"{bd['rho_D']:.4g}, intercepts kappa_F {bd['kappa_F']:.4g}, kappa_D {bd['kappa_D']:.4g}; "
+                  f"{bd['source']}) -> {'inside' if bd['in_allowable_region'] else 'OUTSIDE'} Theorem 1's "
+                  "allowable region: Theorem 1 bounds the long-run rates; a finite run's excess is in the intercepts")
     b = d.get("budget")
     if b:
         dec = b["declared"]

@@ -77,7 +77,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     """
     from ..flow import FLOW_OK
     from ..sim.batch import summarize
-    from ..sim.loop import SimResult
+    from ..sim.loop import Replay, SimResult
 
     plant = sc.make_model()
     n, m = plant.n, plant.m
@@ -140,12 +140,15 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
     if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample
         res.plant_fault, res.plant_fault_at = pf.detail, int(pf.k)
+    # what the ends saw, as ``testbed resimulate`` replays it: the escape verdict rebuilds the ends from it
+    replay = Replay(reason=np.where(C, reason, -1).astype(np.int64), sensed=EN.copy(), withheld=EN & silent,
+                    u_missing=np.zeros(N, dtype=bool))
     if not np.all(np.isfinite(x_final)):
         res.x_final = np.array(sc.x0, dtype=float)
-        out = summarize(sc, res, arrays=arrays)
+        out = summarize(sc, res, arrays=arrays, replay=replay)
         out.update(x_final=None, final_norm=None, converged=False, escaped=None)
     else:
-        out = summarize(sc, res, arrays=arrays)
+        out = summarize(sc, res, arrays=arrays, replay=replay)
     out = _clean(out)
     base_keys = set(out)
     summaries = cols.summaries

@@ -22,6 +22,7 @@ from ..channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_chan
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..methods.base import symbol_code
 from ..protocol import (
+    DEADLINE,
     INVALID,
     RECEIVED,
     ControllerProtocol,
@@ -428,16 +429,54 @@ def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: Fl
     return loop_state_of(dec, dec)
 
 
-def continue_ends(plant, res: SimResult, c, T: float, flow, u_max: float) -> bool:
+def record_replay(res: SimResult) -> Replay:
+    """What a run's per-sample record says happened, as a :class:`Replay` of its ends: the controller's
+    reason (``res.reason``; without one, theta_k: received or lost), the samples the encoder withheld
+    (``res.withheld``), the ones it never saw (no symbol and not withheld).  ``testbed report`` builds the
+    same from a recording's columns (``testbed.record.summary.build_summary``)."""
+    N = len(res.theta)
+    theta = np.asarray(res.theta, dtype=np.int64)
+    reason = np.where(theta == 0, RECEIVED, DEADLINE) if res.reason is None else np.asarray(res.reason, np.int64)
+    withheld = np.zeros(N, dtype=bool) if res.withheld is None else np.asarray(res.withheld, dtype=bool)
+    sensed = (np.asarray(res.symbols) >= 0) | withheld
+    return Replay(reason=reason.astype(np.int64), sensed=sensed, withheld=withheld, u_missing=np.zeros(N, bool))
+
+
+def ends_from_record(res: SimResult, method, model, K, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW,
+                     replay: Replay | None = None):
+    """Both ends of ``method`` after the last sample of a run, rebuilt from its per-sample record alone.
+
+    The method's encoder and decoder ends run through the protocol objects (``_method_sample``, as
+    ``simulate_loop`` and the live nodes run them) fed with what the record says: x_k (x_meas,k where a
+    sensor read it) at the encoder, the controller's decisions and the withheld samples (``replay``,
+    default :func:`record_replay`); no plant is integrated.  A simulated run and its recording give the
+    same record, hence the same ends: the escape verdict (``testbed.sim.batch.escaped_run``) continues
+    the loop from these.  Returns (encoder, decoder), or raises what the method's ends raise.
+    """
+    replay = record_replay(res) if replay is None else replay
+    N = len(res.theta)
+    K = np.asarray(K, dtype=np.float64).reshape(model.m, model.n)
+    encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
+    ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
+    X = np.asarray(res.x if res.x_meas is None else res.x_meas, dtype=np.float64)
+    acks: list = []
+    for k in range(N):
+        _send, decs = _method_sample(encp, ctlp, replay, acks, k, X[k], None, {}, ctlp.codebook)
+        decs.pop()
+        acks.extend((d.k, d.theta, d.last_rx) for d in decs if d is not None)
+    for a in acks:
+        encp.ack(*a)
+    return encp.enc, ctlp.dec
+
+
+def continue_ends(plant, x_final, ends, c, T: float, flow, u_max: float) -> bool:
     """The escape criterion ``c`` (``testbed.sim.batch.EscapeCriterion``) for a method without a batch
-    kernel: its own two ends (``res.ends``),
-    continued from where the run ended with theta_k = 0 and the true plant under ideal timing.
+    kernel: its own two ends (``ends``, :func:`ends_from_record`),
+    continued from where the run ended (``x_final``) with theta_k = 0 and the true plant under ideal timing.
     Escaped unless ||x|| < x_tol with both ends' E below E_tol within the horizon."""
-    if res.ends is None:
-        return not (res.final_norm < c.x_tol)
-    enc, dec = res.ends
+    enc, dec = ends
     proc = OdeProcess(plant, flow)
-    proc.reset(res.x_final)
+    proc.reset(np.asarray(x_final, dtype=np.float64))
     for _ in range(c.steps(T)):
         x = proc.x
         nrm = float(np.max(np.abs(x)))
