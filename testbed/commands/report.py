@@ -17,7 +17,9 @@ from ..stats import fmt_percentiles
 
 def print_text(s: dict) -> None:
     r = s["recording"]
-    verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
+    from ..sim.batch import outcome_text  # loaded with the summary already
+
+    verdict = outcome_text(s)
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
@@ -48,6 +50,11 @@ def print_text(s: dict) -> None:
         print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
     if s.get("plant_fault"):
         print(f"  PLANT FAULT at sample {s['plant_fault_at']}: {s['plant_fault']} (the run ended there)")
+    if s.get("method_fault"):
+        print(f"  METHOD FAULT at sample {s['method_fault_at']}: {s['method_fault']} (the run ended there)")
+    if s.get("lockstep_breaks"):
+        print(f"  LOCKSTEP BROKEN: the method's encoder and decoder disagree from sample {s['lockstep_breaks'][0]} "
+              f"({len(s['lockstep_breaks'])} samples)")
     for f in s.get("telemetry_check") or []:
         print(f"  TELEMETRY MISMATCH {f['node']}: {f['why']}")
     d = s["dos"]

@@ -97,7 +97,9 @@ def print_text(s: dict) -> None:
             print(f"  node logs: {s['run_dir']}")
         return
     tm = s["timing"]
-    verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
+    from ..sim.batch import outcome_text  # loaded with the summary already
+
+    verdict = outcome_text(s)
     print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "
           f"T = {tm['T_us'] / 1e6:g} s, timing {s['timing_mode']}, outcome: {s['outcome']}")
     sec = s.get("security") or {}

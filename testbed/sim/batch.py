@@ -366,6 +366,20 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None) -> 
                              model=model, flow=sc.flow, method=None if sc.method.name == "paper" else method)[0])
 
 
+def outcome_text(s: dict) -> str:
+    """The outcome of a run in words, from its summary (``summarize``'s keys): what ``testbed simulate``,
+    ``testbed run`` and ``testbed report`` print after the final norm."""
+    if s.get("method_fault") is not None:
+        return f"METHOD FAULT at sample {s['method_fault_at']}: the run ended there"
+    if s.get("plant_fault") is not None:
+        return f"PLANT FAULT at sample {s['plant_fault_at']}: the run ended there"
+    if s.get("converged"):
+        return "converged"
+    if s.get("escaped"):
+        return "ESCAPED" + (f" (flow diverged at sample {s['diverged_at']})" if s.get("diverged") else "")
+    return "not converged"
+
+
 def attacker_drops(res) -> np.ndarray:
     """Per sample: the attacker dropped it (``res.loss_cause``; without one, every lost sample)."""
     theta = np.asarray(res.theta, dtype=bool)
@@ -439,7 +453,8 @@ def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
         "escaped": bool(escaped),
         "escape_criterion": crit.to_dict(),
         "diverged": bool(diverged),
-        "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
+        "diverged_at": (res.method_fault_at if res.method_fault is not None else
+                        res.diverged_at if res.plant_fault is None else res.plant_fault_at),
         "plant_fault": res.plant_fault,
         "plant_fault_at": res.plant_fault_at,
         "method_fault": res.method_fault,

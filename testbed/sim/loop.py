@@ -27,6 +27,7 @@ from ..protocol import (
     RECEIVED,
     ControllerProtocol,
     EncoderProtocol,
+    MethodFault,
     OdeProcess,
     PlantProtocol,
     Send,
@@ -76,7 +77,8 @@ class SimResult:
     plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
     loop_state: np.ndarray | None = None  # both ends' xi, E, u_{k-1} after the last sample (``loop_state_of``)
     method_fault: str | None = None  # the method's end raised (its one line) ...
-    method_fault_at: int = -1        # ... at this sample
+    method_fault_at: int = -1        # ... at this sample (the record holds samples 0..k-1; x_final = x_k)
+    method_fault_role: str | None = None  # the node whose end raised: "encoder" or "controller"
     lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
     x_meas: np.ndarray | None = None  # x_meas,k, what the sensor read ([plant.sensor]; None: x_k itself), (N, n)
@@ -248,7 +250,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     dropped = np.zeros(N, dtype=bool)   # the attacker dropped or corrupted sample k's symbol
     enc_state: dict = {}
     breaks = []
-    mfault, mfault_at = None, -1
+    mfault, mfault_at, mfault_role = None, -1, None
     cb = ctlp.codebook
     rec = {k: np.full((N, n), np.nan) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
     u_rec = np.zeros((N, m))
@@ -285,8 +287,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         except Exception as e:  # a method's end raised: the run ends at this sample
             if method is None:
                 raise
-            mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \
-                                      f"{type(e).__name__}: {e}", k, k
+            mf = MethodFault(method.display_name(), k, e, _raising_role(e, encp.enc))
+            mfault, mfault_at, mfault_role, last = mf.line, k, mf.role, k
             break
         if isinstance(send, Send):
             if send.state is not None:
@@ -359,9 +361,21 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                                          **({} if pp.device is None else pp.device.counters())}},
                      plant_fault=fault, plant_fault_at=fault_at,
                      loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
-                     method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
+                     method_fault=mfault, method_fault_at=mfault_at, method_fault_role=mfault_role,
+                     lockstep_breaks=breaks,
                      ends=(encp.enc, ctlp.dec), x_meas=None if x_meas is None else x_meas[sl],
                      u_plant=None if u_plant is None else u_plant[sl])
+
+
+def _raising_role(e: BaseException, enc) -> str:
+    """Which end raised ``e``: "encoder" when a frame of its traceback runs a method of ``enc``, else
+    "controller" (the decoder end, where the live run's controller node runs it)."""
+    tb = e.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_locals.get("self") is enc:
+            return "encoder"
+        tb = tb.tb_next
+    return "controller"
 
 
 def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan=None):
