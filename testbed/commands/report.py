@@ -117,7 +117,7 @@ def print_text(s: dict) -> None:
     if s.get("timing_degraded"):
         print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     for f in s.get("faults") or []:
-        print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
+        print(f"  FAULT {f.get('node') or 'run'}: {f.get('kind')} ({f.get('why')})")
     if s.get("events"):
         print("  events: " + ", ".join(f"{k} x{v}" for k, v in sorted(s["events"].items())))
 
