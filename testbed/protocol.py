@@ -49,6 +49,23 @@ def _state(end):
     return None if f is None else np.array(f(), dtype=np.float64)
 
 
+class MethodFault(Exception):
+    """A method's end raised at sample ``k``: the run ends there (``testbed simulate`` and a live node alike).
+
+    ``line`` is what every reader says (:func:`method_fault_line`); ``role`` the node whose end raised
+    ("encoder" or "controller")."""
+
+    def __init__(self, method_name: str, k: int, error: BaseException, role: str):
+        self.k, self.role, self.error = int(k), role, error
+        self.line = method_fault_line(method_name, k, error)
+        super().__init__(self.line)
+
+
+def method_fault_line(method_name: str, k: int, error: BaseException) -> str:
+    """The one line of a method fault: ``method 'NAME' raised at sample k: Error: message``."""
+    return f"method {method_name!r} raised at sample {int(k)}: {type(error).__name__}: {error}"
+
+
 # controller decision reasons (the telemetry's ``reason`` field)
 RECEIVED = 0
 DEADLINE = 1

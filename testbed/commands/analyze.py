@@ -272,8 +272,9 @@ def _print_analysis(r: dict) -> None:
         verdict = "fails"
     else:
         verdict = f"holds with {' and '.join(held)}, fails with {' and '.join(failed)}"
-    print(f"  Theorem 1's condition at this budget {verdict} "
-          f"(the headline certificate, rule {r['rule']}: {'holds' if r['theorem1_holds'] else 'fails'})")
+    print(f"  Theorem 1's condition at this budget {verdict} (at its long-run rates rho_F, rho_D; its intercepts "
+          f"kappa_F, kappa_D take a finite run's excess, which testbed report's realized rates include; "
+          f"the headline certificate, rule {r['rule']}: {'holds' if r['theorem1_holds'] else 'fails'})")
     t2 = r["theorem2"]
     print(f"Theorem 2 (convergence), gamma={r['gamma']:.4g}, for the {r['theorem2_budget']}")
     print(f"  c0={t2['c0']:.4g} c1={t2['c1']:.4g} gamma0={t2['gamma0']:.4g} gamma1={t2['gamma1']:.4g} "

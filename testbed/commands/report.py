@@ -17,7 +17,9 @@ from ..stats import fmt_percentiles
 
 def print_text(s: dict) -> None:
     r = s["recording"]
-    verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
+    from ..sim.batch import outcome_text  # loaded with the summary already
+
+    verdict = outcome_text(s)
     print(f"{r['path']}: {s['source']} run {s['run_id']}, scenario {s['scenario']} (plant {s['plant']}), "
           f"{s['samples']}/{s['n_steps']} samples of T = {s['T']:g} s"
           + (" [TRUNCATED: read up to the last complete chunk]" if r["truncated"] else ""))
@@ -51,6 +53,11 @@ def print_text(s: dict) -> None:
         print(f"  final ||x||_inf = {fn:.3e} -> {verdict}" if fn is not None else "  no final state")
     if s.get("plant_fault"):
         print(f"  PLANT FAULT at sample {s['plant_fault_at']}: {s['plant_fault']} (the run ended there)")
+    if s.get("method_fault"):
+        print(f"  METHOD FAULT at sample {s['method_fault_at']}: {s['method_fault']} (the run ended there)")
+    if s.get("lockstep_breaks"):
+        print(f"  LOCKSTEP BROKEN: the method's encoder and decoder disagree from sample {s['lockstep_breaks'][0]} "
+              f"({len(s['lockstep_breaks'])} samples)")
     for f in s.get("telemetry_check") or []:
         print(f"  TELEMETRY MISMATCH {f['node']}: {f['why']}")
     d = s["dos"]
@@ -68,9 +75,16 @@ def print_text(s: dict) -> None:
     if "frequency" in ld:
         th1 = ld.get("theorem1") or {}
         ok = th1.get("in_allowable_region")
-        print(f"  all losses as DoS: N(H)/H = {ld['frequency']:.4g} /s, |A(H)|/H = {ld['duration_fraction']:.4g} -> "
+        print(f"  all losses as DoS over H = {ld['horizon']:g} s: N(H)/H = {ld['frequency']:.4g} /s, "
+              f"|A(H)|/H = {ld['duration_fraction']:.4g}, taken as rates rho_F, rho_D with no intercepts -> "
               + ("inside" if ok else "OUTSIDE" if ok is not None else "unknown (" + th1.get("why", "") + "):")
               + " Theorem 1's allowable region (paper's rule)")
+        bd = th1.get("budget")
+        if bd:
+            print(f"  the scenario's budget as testbed analyze checks it (rho_F {bd['rho_F']:.4g}, rho_D "
+                  f"{bd['rho_D']:.4g}, intercepts kappa_F {bd['kappa_F']:.4g}, kappa_D {bd['kappa_D']:.4g}; "
+                  f"{bd['source']}) -> {'inside' if bd['in_allowable_region'] else 'OUTSIDE'} Theorem 1's "
+                  "allowable region: Theorem 1 bounds the long-run rates; a finite run's excess is in the intercepts")
     b = d.get("budget")
     if b:
         dec = b["declared"]
@@ -106,7 +120,7 @@ def print_text(s: dict) -> None:
     if s.get("timing_degraded"):
         print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     for f in s.get("faults") or []:
-        print(f"  FAULT {f.get('node')}: {f.get('kind')} ({f.get('why')})")
+        print(f"  FAULT {f.get('node') or 'run'}: {f.get('kind')} ({f.get('why')})")
     if s.get("events"):
         print("  events: " + ", ".join(f"{k} x{v}" for k, v in sorted(s["events"].items())))
 

@@ -91,13 +91,15 @@ def print_text(s: dict) -> None:
     if not s.get("samples"):  # nothing ran: no loop figures to show, only why
         print(f"run {s['run_id']}: scenario {s.get('scenario')}: the run NEVER STARTED (outcome: {s['outcome']})")
         for f in s["faults"]:
-            print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
+            print(f"  FAULT {f.get('node') or 'run'}: {f['kind']} ({f['why']})"
                   + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
         if s.get("run_dir"):
             print(f"  node logs: {s['run_dir']}")
         return
     tm = s["timing"]
-    verdict = "converged" if s.get("converged") else ("ESCAPED" if s.get("escaped") else "not converged")
+    from ..sim.batch import outcome_text  # loaded with the summary already
+
+    verdict = outcome_text(s)
     print(f"run {s['run_id']}: scenario {s.get('scenario')}, {s['samples']}/{s['n_steps']} samples, "
           f"T = {tm['T_us'] / 1e6:g} s, timing {s['timing_mode']}, outcome: {s['outcome']}")
     sec = s.get("security") or {}
@@ -122,7 +124,7 @@ def print_text(s: dict) -> None:
     if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
         print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
     for f in s["faults"]:
-        print(f"  FAULT {f.get('node')}: {f['kind']} ({f['why']})"
+        print(f"  FAULT {f.get('node') or 'run'}: {f['kind']} ({f['why']})"
               + (f" at sample {f['at_sample']}" if f.get("at_sample") is not None else "")
               + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
     rec = s.get("recording")

@@ -36,7 +36,7 @@ def main_simulate(args) -> int:
     from .. import scenario
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
-    from ..sim.batch import summarize
+    from ..sim.batch import outcome_text, summarize
     from ..sim.loop import Network
     from ..sim.trajectory import simulate_scenario
     from .liveconfig import run_options
@@ -89,9 +89,7 @@ def main_simulate(args) -> int:
         sys.stdout.write(json.dumps(out))  # the C encoder in one go: 2x json.dump on long runs
         sys.stdout.write("\n")
     else:
-        verdict = "converged" if out["converged"] else ("ESCAPED" if out["escaped"] else "not converged")
-        if out["plant_fault"] is not None:
-            verdict = f"PLANT FAULT at sample {out['plant_fault_at']}: the run ended there"
+        verdict = outcome_text(out)
         print(f"scenario {out['scenario']}: plant {out['plant']} (n={out['n']}), T={out['T']}, "
               + (f"M={out['M']}, Lambda={out['Lambda']:.4f}, " if out["method"] == "paper" else "")
               + f"{out['bits']} bits/symbol, method {out['method']}"
@@ -109,9 +107,7 @@ def main_simulate(args) -> int:
             ls = out["losses"]
             print(f"  losses: attacker {ls['attacker']}, channel {ls['channel']}, late {ls['late']}, "
                   f"withheld {ls['withheld']} ([network] seed {sc.network.seed})")
-        print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}"
-              + (f" (flow diverged at sample {out['diverged_at']})"
-                 if out["diverged"] and out["plant_fault"] is None else ""))
+        print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}")
         if args.out:
             print(f"  recording: {args.out}")
         if args.rrd:

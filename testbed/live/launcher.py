@@ -118,6 +118,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self.recorder: subprocess.Popen | None = None
         self.recorder_exit: dict | None = None
         self._faults_published = 0
+        self._method_fault: str | None = None       # the outcome once a node reported a method fault
+        self._events_seen = 0
         self._collector_ready = False
         self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
         self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
@@ -404,6 +406,34 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             if lost is not None and role in self.kill_sent:
                 f["liveliness_detect_ms"] = round((lost - self.kill_sent[role]) / 1e6, 3)
 
+    def method_fault(self, col) -> str | None:
+        """A node's ``method_fault`` event (its method's end raised at sample k): one fault, one stderr line
+        (the line ``testbed simulate`` prints), and the outcome that ends the run; None without one."""
+        if self._method_fault is None:
+            evs = col.events
+            n = len(evs)
+            e = next((evs[i] for i in range(self._events_seen, n) if evs[i].kind == "method_fault"), None)
+            self._events_seen = n
+            if e is None:
+                return None
+            self._method_fault = f"method fault at sample {e.k}"
+            self.faults.append({"node": e.node, "kind": "method_fault", "why": e.detail, "at_sample": int(e.k)})
+            print(f"testbed run: {e.detail}", file=sys.stderr)
+        return self._method_fault
+
+    def lockstep_fault(self, summary: dict) -> None:
+        """The method's ends held different shared state (``lockstep_breaks``, from the recorded xi_k, E_k):
+        a fault at its first sample and the stderr line of ``testbed simulate``."""
+        br = summary.get("lockstep_breaks") or []
+        if not br:
+            return
+        line = (f"method {self.sc.method.name!r} broke lockstep: its encoder and decoder disagree from sample "
+                f"{br[0]} ({len(br)} samples)")
+        f = {"node": None, "kind": "lockstep_break", "why": line, "at_sample": int(br[0])}
+        self.faults.append(f)
+        summary["faults"] = self.faults
+        print(f"testbed run: {line}", file=sys.stderr)
+
     def watch(self, session, col) -> str:
         a = self.cfg
         t_launch = time.monotonic()
@@ -413,6 +443,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         while True:
             if self.signal is not None:
                 return f"interrupted by {signal.Signals(self.signal).name}"
+            if self.method_fault(col):
+                return self._method_fault
             if t0_mono is None and col.start is not None:
                 st = col.start
                 self.phase("start")
@@ -553,6 +585,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 if self.signal is None:  # every node's own account of its telemetry against what arrived
                     self.faults.extend(col.telemetry_check())
                     self.publish_faults(session)
+                outcome = self.method_fault(col) or outcome  # one that arrived as the run ended
                 from ..record.summary import build_summary  # loaded meanwhile by ``_warm_summary``
 
                 plant = self.sc.make_model()
@@ -571,6 +604,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     for f in (*self.faults, *summary["faults"]):
                         if f.get("node") == "plant" and f.get("kind") == "crashed":
                             f.update(kind="plant_fault", why=summary["plant_fault"])
+                self.lockstep_fault(summary)
+                self.publish_faults(session)
                 summary["outcome"] = outcome
                 summary["security"] = self.security()
                 external.annotate(summary, self.external)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+from ..protocol import MethodFault
 from ..wire import messages as msg
 from ..wire import transport
 from .context import NodeContext
@@ -27,6 +28,7 @@ class Node:
         self.crash_at = cfg.crash_at
         self.malformed = 0
         self.error: BaseException | None = None
+        self.method_fault = None  # the method's end raised (``protocol.MethodFault``): the node goes passive
         self._pubs: list = []
         self.rx_mode = cfg.rx or "thread"
         spin_us = cfg.rx_spin_us
@@ -62,7 +64,7 @@ class Node:
         """Wrap a Zenoh callback: an exception stops the node (exit code 1) instead of vanishing."""
 
         def wrapped(sample):
-            if self.error is not None:
+            if self.error is not None or self.method_fault is not None:
                 return None
             try:
                 return fn(sample)
@@ -114,7 +116,25 @@ class Node:
             d["rx_inlet"] = self.inlet.stats()
         return d
 
+    def method_call(self, k, fn, *args, **kw):
+        """``fn(*args, **kw)``, a call into the method's end through the protocol; what it raises becomes a
+        ``MethodFault`` at sample ``k`` (an int, or a function giving it after the raise: the sample
+        ``testbed simulate`` names)."""
+        try:
+            return fn(*args, **kw)
+        except MethodFault:
+            raise
+        except Exception as e:  # a method's end raised: a method fault, not a crash of the node
+            at = k() if callable(k) else k
+            raise MethodFault(self.sc.make_method().display_name(), at, e, self.role) from e
+
     def fail(self, e: BaseException) -> None:
+        if isinstance(e, MethodFault):  # the run ends there: one event, then nothing more from this node
+            if self.method_fault is None and self.error is None:
+                self.method_fault = e
+                log.error("%s: %s", self.role, e.line)
+                self.ctx.event("method_fault", k=e.k, detail=e.line, level=logging.ERROR)
+            return
         if self.error is None:
             self.error = e
             import traceback

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import threading
 
-from ..protocol import ControllerProtocol, Decision
+from ..protocol import ControllerProtocol, Decision, MethodFault
 from ..stats import Timings, percentiles
 from ..wire import messages as msg
 from .base import Node
@@ -104,7 +104,8 @@ class ControllerNode(Node):
         proto = self.proto
         with self._cond:
             late, future, invalid = proto.late, proto.future, proto.invalid
-            decs = proto.symbol(k, sample.payload.to_bytes(), newest_k=ctx.newest_k(rx))
+            payload = sample.payload.to_bytes()
+            decs = self.method_call(lambda: proto.next_k, proto.symbol, k, payload, newest_k=ctx.newest_k(rx))
             if proto.late > late:
                 ctx.event("late_symbol", k=k, detail=f"arrived {(rx - k * ctx.T_ns) / 1e3:.0f} us after "
                                                      f"t_k, sample already decided (theta = 1)", level=20)
@@ -119,10 +120,15 @@ class ControllerNode(Node):
                     self._publish(d, rx, h.stamp_ns)
                 else:
                     self._publish(d, msg.NO_TIME, msg.NO_TIME)
-            proto.settle()  # the decoder's prediction for the next sample, after u_k went out
+            self._settle()  # the decoder's prediction for the next sample, after u_k went out
             if proto.invalid > invalid:
                 ctx.event("invalid_payload", k=k, detail="not a code of the codebook: treated as a loss (theta = 1)")
         return k
+
+    def _settle(self) -> None:
+        """The decoder's deferred update of the last decided sample (a raise there is that sample's fault)."""
+        proto = self.proto
+        self.method_call(lambda: proto.next_k - 1, proto.settle)
 
     # ---- the loss deadlines
     def run(self) -> None:
@@ -130,21 +136,25 @@ class ControllerNode(Node):
         clock = ctx.clock
         N, T_ns = ctx.n_steps, ctx.T_ns
         proto = self.proto
-        while not ctx.stop.is_set():
-            with self._cond:
-                k = proto.next_k
-                if k >= N:
-                    break
-                rem = k * T_ns + self.loss_ns - clock.now()
-                if rem > 0:
-                    self._cond.wait(min(rem / 1e9, 0.05))
-                    continue
-                d = proto.deadline(k)
-                if d is not None:
-                    self._publish(d, msg.NO_TIME, msg.NO_TIME)
-                proto.settle()
-        with self._cond:
-            proto.settle()
+        try:
+            while not ctx.stop.is_set() and self.method_fault is None:
+                with self._cond:
+                    k = proto.next_k
+                    if k >= N:
+                        break
+                    rem = k * T_ns + self.loss_ns - clock.now()
+                    if rem > 0:
+                        self._cond.wait(min(rem / 1e9, 0.05))
+                        continue
+                    d = self.method_call(k, proto.deadline, k)
+                    if d is not None:
+                        self._publish(d, msg.NO_TIME, msg.NO_TIME)
+                    self._settle()
+            if self.method_fault is None:
+                with self._cond:
+                    self._settle()
+        except MethodFault as e:  # the method raised: the run ends at that sample (the launcher stops it)
+            self.fail(e)
         self.wait_end()
 
     def summary(self) -> dict:

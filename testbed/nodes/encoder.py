@@ -27,7 +27,7 @@ import threading
 import time
 
 from ..methods.base import symbol_code
-from ..protocol import EncoderProtocol, Send, skip_sample
+from ..protocol import EncoderProtocol, MethodFault, Send, skip_sample
 from ..stats import Timings, percentiles
 from ..wire import messages as msg
 from .base import Node
@@ -104,7 +104,7 @@ class EncoderNode(Node):
 
     def sensor_in(self, k: int, stamp_ns: int, x, rx: int) -> None:
         """x_k (sampled at ``stamp_ns``) reached the encoder at ``rx`` (run clock): encode, send."""
-        if self.dead:
+        if self.dead or self.method_fault is not None:
             return
         ctx = self.ctx
         clock = ctx.clock
@@ -122,7 +122,11 @@ class EncoderNode(Node):
                     if rem <= 0:
                         break
                     self._cond.wait(rem / 1e9)
-            act = proto.sensor(k, x)
+            try:
+                act = self.method_call(k, proto.sensor, k, x)
+            except MethodFault as e:  # (embedded: the plant's loop called us) the run ends at this sample
+                self.fail(e)
+                return
             if act is None:
                 return
             if isinstance(act, Send):
@@ -169,12 +173,16 @@ class EncoderNode(Node):
 
     def ack_in(self, k: int, theta: int, last_rx: int, rx_mono: int) -> None:
         """The ack of sample k (theta_k, last_rx) arrived at ``rx_mono`` (CLOCK_MONOTONIC ns)."""
-        if self.dead:
+        if self.dead or self.method_fault is not None:
             return
         proto = self.proto
         with self._cond:
             p, silent = proto.pending, len(proto.silent)
-            what = proto.ack(k, theta, last_rx)
+            try:
+                what = self.method_call(lambda: proto.next_k, proto.ack, k, theta, last_rx)
+            except MethodFault as e:
+                self.fail(e)
+                return
             if what == "resolved" and self.ctx.clock is not None:
                 self.ack_latency.append(rx_mono - self.ctx.clock.t0_mono_ns - self.pending_tx)
             elif what == "resync":
@@ -184,7 +192,7 @@ class EncoderNode(Node):
 
     # ---- colocated: the encoder alone dies
     def fail(self, e: BaseException) -> None:
-        if not self.embedded:
+        if not self.embedded or isinstance(e, MethodFault):
             return super().fail(e)
         if self.error is None:
             self.error = e

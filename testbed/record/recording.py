@@ -438,8 +438,15 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
             x=tuple(np.asarray(res.x_final, dtype=float)), u=()), t0 + tN)
         if fault is not None and N == 0:  # the true plant failed to start
             w.write("/events/plant", msg.Event(node="plant", kind="plant_fault", k=0, t_ns=0, detail=fault), t0)
-        stop = msg.Stop(reason="end of run" if fault is None else f"plant fault at sample {res.plant_fault_at}: {fault}",
-                        origin="simulator")
+        mfault = getattr(res, "method_fault", None)
+        if mfault is not None:  # the event a live node publishes when its method's end raises at sample k
+            role = getattr(res, "method_fault_role", None) or "controller"
+            ev = msg.Event(node=role, kind="method_fault", k=int(res.method_fault_at), t_ns=tN, detail=mfault)
+            w.write(f"/events/{role}", ev, t0 + tN)
+            tap(fox.event(ev, t0 + tN))
+        stop = msg.Stop(reason="end of run" if fault is None and mfault is None else
+                        f"plant fault at sample {res.plant_fault_at}: {fault}" if fault is not None else
+                        f"method fault at sample {res.method_fault_at}: {mfault}", origin="simulator")
         if sc.network is not None:  # the controller's counters: its late symbols (the summary's losses.late)
             w.write("/summary/controller", {"node": "controller", "json": json.dumps(res.counters.get("controller", {}))},
                     t0 + tN, name="NodeSummary")

@@ -60,6 +60,24 @@ def _diffs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return a[ok] - b[ok]
 
 
+def recorded_lockstep_breaks(sc, xi_enc, E_enc, xi_dec, E_dec, both) -> list[int]:
+    """The samples where a method's two ends held different shared state, as recorded: xi_k and E_k of the
+    encoder (before it encoded x_k) and of the decoder (before it decided sample k) differ, on the samples
+    ``both`` recorded with a symbol sent.  What ``testbed simulate`` counts as ``lockstep_breaks`` for a
+    method whose ends declare a shared state (``EncoderEnd.state``, by default xi and E; the paper's ends
+    are checked by ``encoder_decoder_agree``); [] for the others."""
+    try:
+        model = sc.make_model()
+        end = sc.make_method().make_decoder(model, sc.K, sc.quantizer, sc.flow)
+    except Exception:  # noqa: BLE001 - a method that cannot build its end: its run says why elsewhere
+        return []
+    if getattr(end, "state", None) is None:
+        return []
+    both = both & np.isfinite(E_enc) & np.isfinite(E_dec)
+    differs = both & ((E_enc != E_dec) | np.any(xi_enc != xi_dec, axis=1))
+    return np.flatnonzero(differs).tolist()
+
+
 def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
     """Physical timing, scheduled actuation: how many received u_k arrived (``arrival_ns`` after
     t_k) later than their scheduled instant; 0 otherwise."""
@@ -77,7 +95,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     """
     from ..flow import FLOW_OK
     from ..sim.batch import summarize
-    from ..sim.loop import SimResult
+    from ..sim.loop import Replay, SimResult
 
     plant = sc.make_model()
     n, m = plant.n, plant.m
@@ -86,6 +104,16 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     N = final["k"] if final is not None else cols.last_k("plant") + 1
     N = max(0, min(N, cols.rows))
     g = cols.get
+    events = cols.events
+    # a method's end raised at sample k (its node's event): the run ended there, as testbed simulate ends it
+    mf = next((e for e in events if e.kind == "method_fault" and e.k >= 0), None)
+    if mf is not None and mf.k > N:
+        mf = None  # the plant's record ended before it (it died): that fault is the one to report
+    x_fault = None
+    if mf is not None:
+        N = int(mf.k)
+        if N < cols.rows and cols.has("plant")[N]:
+            x_fault = g("plant", "x")[N].copy()
     P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
     silent = g("encoder", "silent")[:N] != 0
     E_ok = EN & ~silent
@@ -120,7 +148,9 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     st_proxy = _diffs(a_tx, e_tx, A & EN)
     st_ctl = _diffs(c_tx, a_tx, A & C & (reason == CT.RECEIVED))
     n_reason = np.bincount(reason[C], minlength=4) if N else np.zeros(4, dtype=np.int64)
-    if final is not None:
+    if x_fault is not None:  # x_k at the method's fault (the plant may have run on until the Stop)
+        x_final, flow_status = x_fault, FLOW_OK
+    elif final is not None:
         x_final = np.array(final["x"], dtype=float)
         flow_status = final["flow_status"]
     else:
@@ -136,16 +166,21 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         xm = g("plant", "x_meas")[:N]
         if np.isfinite(xm).any():
             res.x_meas = xm
-    events = cols.events
+    if mf is not None:
+        res.method_fault, res.method_fault_at = mf.detail, int(mf.k)
+    res.lockstep_breaks = recorded_lockstep_breaks(sc, xi_enc, E_enc, xi_dec, E_dec, E_ok & C)
     pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
     if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample
         res.plant_fault, res.plant_fault_at = pf.detail, int(pf.k)
+    # what the ends saw, as ``testbed resimulate`` replays it: the escape verdict rebuilds the ends from it
+    replay = Replay(reason=np.where(C, reason, -1).astype(np.int64), sensed=EN.copy(), withheld=EN & silent,
+                    u_missing=np.zeros(N, dtype=bool))
     if not np.all(np.isfinite(x_final)):
         res.x_final = np.array(sc.x0, dtype=float)
-        out = summarize(sc, res, arrays=arrays)
+        out = summarize(sc, res, arrays=arrays, replay=replay)
         out.update(x_final=None, final_norm=None, converged=False, escaped=None)
     else:
-        out = summarize(sc, res, arrays=arrays)
+        out = summarize(sc, res, arrays=arrays, replay=replay)
     out = _clean(out)
     base_keys = set(out)
     summaries = cols.summaries

@@ -46,7 +46,12 @@ def losses_as_dos(sc, theta: np.ndarray) -> dict:
     were DoS: the runs of lost samples as attacks (one each), their realized average frequency N(H)/H and
     duration fraction |A(H)|/H (``attackers.budget.realized_rates``), the smallest kappa_F, kappa_D at
     those rates (Assumptions 3 and 4, ``attackers.budget.check``), and whether the point lies in Theorem 1's
-    allowable region (``analysis.allowable_region``, the paper's rule) of the scenario's model."""
+    allowable region (``analysis.allowable_region``, the paper's rule) of the scenario's model, taken as
+    rates rho_F, rho_D with no intercepts (``theorem1.in_allowable_region``).  Theorem 1 asks it of the
+    long-run rates of a budget whose intercepts kappa_F, kappa_D absorb a finite run's excess:
+    ``theorem1.budget`` is the scenario's budget (``analysis.summary.scenario_budget``) in the same
+    region, the verdict ``testbed analyze`` prints.  The two differ when a short run's losses are
+    all initial energy (an ``intervals`` attack: rho_F = rho_D = 0 with the smallest kappas)."""
     from attackers.budget import check, realized_rates
     from attackers.schedule import Schedule
 
@@ -63,10 +68,17 @@ def losses_as_dos(sc, theta: np.ndarray) -> dict:
         out.update(kappa_F_min=rep.kappa_F_min, kappa_D_min=rep.kappa_D_min)
     try:
         from ..analysis import Loop, allowable_region
+        from ..analysis.summary import scenario_budget
 
         reg = allowable_region(Loop.from_scenario(sc), "paper")
+        (kF, rF, kD, rD), src = scenario_budget(sc)
         out["theorem1"] = {"rule": "paper", "rho_F_max": reg.rho_F_max, "rho_D_max": reg.rho_D_max,
-                           "in_allowable_region": bool(fD < 1 and reg.holds(fF, fD))}
+                           "checks": "the realized rates over the horizon taken as rho_F, rho_D (no intercepts)",
+                           "in_allowable_region": bool(fD < 1 and reg.holds(fF, fD)),
+                           "budget": {"kappa_F": kF, "rho_F": rF, "kappa_D": kD, "rho_D": rD, "source": src,
+                                      "checks": "the declared budget's rates rho_F, rho_D, with its intercepts "
+                                                "kappa_F, kappa_D (what testbed analyze checks)",
+                                      "in_allowable_region": bool(rD < 1 and reg.holds(rF, rD))}}
     except Exception as e:  # noqa: BLE001 - the region needs the model's Jacobians; say why it is missing
         out["theorem1"] = {"rule": "paper", "in_allowable_region": None, "why": f"{type(e).__name__}: {e}"}
     return out

@@ -64,7 +64,38 @@ def recorded_run(run) -> dict:
                     delays=delays if physical else None)
     final = cols.final
     x_final = None if final is None else np.asarray(final["x"], dtype=float)
-    return {"scenario": sc, "N": N, "replay": replay, "live": live, "x_final": x_final}
+    fault_at = run.summary.get("method_fault_at")
+    fault_at = None if fault_at is None or fault_at < 0 or fault_at != N or N >= sc.n_steps else int(fault_at)
+    if fault_at is not None:  # the method raised at sample N: the resimulation runs into it too
+        xf = run.summary.get("x_final")  # x_N, where the run ended (the plant may have run on until the Stop)
+        replay, x_final = _through_fault(cols, sc, replay, N), None if xf is None else np.asarray(xf, dtype=float)
+    return {"scenario": sc, "N": N, "replay": replay, "live": live, "x_final": x_final, "method_fault_at": fault_at}
+
+
+def _through_fault(cols, sc, replay, N: int):
+    """``replay`` with sample N, the one the method raised at, appended: as its records say (the encoder
+    sent or withheld it, the attacker dropped it), else sensed and received unless the scenario's
+    schedule attacks t_N (a simulated recording holds nothing of the faulted sample)."""
+    from ..protocol import DEADLINE, RECEIVED
+    from ..sim.loop import Replay
+
+    def at(role, field, default):
+        return cols.get(role, field)[N] if N < cols.rows and cols.has(role)[N] else default
+
+    sensed = N >= cols.rows or not cols.has("plant")[N] or bool(N < cols.rows and cols.has("encoder")[N])
+    withheld = bool(at("encoder", "silent", 0))
+    dropped = at("attacker", "dropped", None)
+    if dropped is None:
+        sched = sc.attack.schedule(sc.T, (N + 1) * sc.T)
+        dropped = 0 if sched is None else int(np.asarray(sched.theta_samples(sc.T, N + 1))[N])
+    reason = DEADLINE if dropped or withheld or not sensed else RECEIVED
+
+    def add(a, v):
+        return np.concatenate([np.asarray(a), np.asarray([v], dtype=np.asarray(a).dtype)])
+
+    return Replay(reason=add(replay.reason, reason), sensed=add(replay.sensed, sensed),
+                  withheld=add(replay.withheld, withheld), u_missing=add(replay.u_missing, False),
+                  delays=None if replay.delays is None else add(replay.delays, 0))
 
 
 def compare(run: dict, limit: int | None = None) -> dict:
@@ -77,23 +108,26 @@ def compare(run: dict, limit: int | None = None) -> dict:
 
     sc, N, live = run["scenario"], run["N"], run["live"]
     n = N if limit is None else max(0, min(N, int(limit)))
+    fault_at = run.get("method_fault_at")
+    through = fault_at is not None and n == N  # run into the sample the method raised at
     process = sc.make_process()
     try:
-        res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n, None, sc.flow, model=sc.make_model(),
+        res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n + through, None, sc.flow, model=sc.make_model(),
                             process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
                             replay=run["replay"], method=sc.make_method(), device=sc.plant.device)
     finally:
         process.close()
-    M = len(res.t)  # the resimulation stops early if its flow diverged
+    M = min(len(res.t), n)  # the resimulation stops early if its flow diverged (or its method raised)
+    res_x, res_sym, res_E, res_Ed, res_th = (a[:M] for a in (res.x, res.symbols, res.E_enc, res.E_dec, res.theta))
     hx = live["have_x"][:M]
     err = np.zeros(M)
-    err[hx] = np.max(np.abs(live["x"][:M][hx] - res.x[hx]), axis=1)
+    err[hx] = np.max(np.abs(live["x"][:M][hx] - res_x[hx]), axis=1)
     hs = live["have_sym"][:M]
-    sym_diff = hs & (live["symbols"][:M] != res.symbols)
-    E_diff = hs & ~((live["E"][:M] == res.E_enc) | (np.isnan(live["E"][:M]) & np.isnan(res.E_enc)))
+    sym_diff = hs & (live["symbols"][:M] != res_sym)
+    E_diff = hs & ~((live["E"][:M] == res_E) | (np.isnan(live["E"][:M]) & np.isnan(res_E)))
     hd = live["have_dec"][:M]
-    E_diff |= hd & ~(live["E_dec"][:M] == res.E_dec)
-    th_diff = hd & (live["theta"][:M] != res.theta)
+    E_diff |= hd & ~(live["E_dec"][:M] == res_Ed)
+    th_diff = hd & (live["theta"][:M] != res_th)
     physical = sc.run.timing == "physical"
     tol = PHYSICAL_TOLERANCE if physical else 0.0
     state_bad = err > tol
@@ -103,9 +137,18 @@ def compare(run: dict, limit: int | None = None) -> dict:
         final_err = None
     bad = sym_diff | E_diff | th_diff | state_bad
     first = int(np.argmax(bad)) if bad.any() else (M if M < n else None)
+    fault_same = not through or res.method_fault_at == fault_at
+    if first is None and not fault_same:  # the recorded method raised at N; the resimulated one did not
+        first = N
     max_err = float(max(err.max(initial=0.0), final_err or 0.0))
     ok = first is None and (final_err is None or final_err <= tol)
     span = "" if n == N else f" (samples 0 to {n - 1} of {N}; testbed resimulate checks every sample)"
+    if through and ok:
+        span += f" up to the method fault at sample {fault_at} (the method raised there in the resimulation too)"
+    elif through and not fault_same:
+        span += (f" (the method raised at sample {fault_at} in the run, "
+                 + ("not" if res.method_fault is None else f"at sample {res.method_fault_at}")
+                 + " in the resimulation)")
     return {
         "samples": N,
         "checked": n,
@@ -118,11 +161,12 @@ def compare(run: dict, limit: int | None = None) -> dict:
         "E_identical": not bool(E_diff.any()),
         "theta_identical": not bool(th_diff.any()),
         "first_divergence": first,
+        "method_fault_at": fault_at,
         "symbols_differ_at": np.nonzero(sym_diff)[0][:50].tolist(),
         "state_differs_at": np.nonzero(state_bad)[0][:50].tolist(),
-        "replayed": {"lost": int(np.sum(run["replay"].reason != 0)),
-                     "withheld": int(run["replay"].withheld.sum()),
-                     "u_missing": int(run["replay"].u_missing.sum()),
+        "replayed": {"lost": int(np.sum(run["replay"].reason[:N] != 0)),
+                     "withheld": int(run["replay"].withheld[:N].sum()),
+                     "u_missing": int(run["replay"].u_missing[:N].sum()),
                      "delays_ns": None if run["replay"].delays is None else {
                          "min": int(run["replay"].delays[:N].min(initial=0)),
                          "max": int(run["replay"].delays[:N].max(initial=0))}},

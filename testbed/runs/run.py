@@ -48,7 +48,8 @@ traces.recording_trace_reader = recording_trace
 SUMMARY_KEYS = ("scenario", "plant", "model", "plant_params", "model_params", "n", "m", "T", "M", "Lambda", "mode",
                 "bits", "K", "timing_mode", "rule", "packets_dropped", "dos_intervals", "saturations", "withheld_at",
                 "encoder_decoder_agree", "x_final", "final_norm", "converged", "escaped", "diverged", "diverged_at",
-                "plant_fault", "plant_fault_at", "method", "max_norm", "samples_lost", "simulator", "losses")
+                "plant_fault", "plant_fault_at", "method_fault", "method_fault_at", "lockstep_breaks", "method",
+                "max_norm", "samples_lost", "simulator", "losses")
 #: ``Run.summary`` of a recording (``testbed.open``), live or simulated, besides ``SUMMARY_KEYS``
 RECORDING_KEYS = ("source", "run_id", "t0_ns", "samples", "complete", "outcome", "dos", "loss_reasons",
                   "dropped_by_attacker", "agreement")

@@ -38,6 +38,7 @@ from .loop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: re-e
     OnlineAttacker,
     SimResult,
     continue_ends,
+    ends_from_record,
     loop_state_from_samples,
     loop_state_of,
     simulate_loop,
@@ -334,30 +335,50 @@ def plant_and_model(sc) -> dict:
             "model_params": model.params_dict()}
 
 
-def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
-    """:func:`judge_escape` of one per-sample run of scenario ``sc`` (its own end state, else the one
-    :func:`loop_state_from_samples` rebuilds from its record)."""
+def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None) -> bool:
+    """The escape verdict of one run of scenario ``sc``: every reader's (``testbed simulate``, ``run``,
+    ``report``, ``testbed.open``, ``versus``, campaign rows and ``--verify``), for every method.
+
+    It reads the run's per-sample record only (what a simulation and its recording, or a live run
+    and its recording, hold alike; never the simulator's in-memory end state): both ends of the
+    run's method are rebuilt from it (:func:`testbed.sim.loop.ends_from_record`, ``replay``: what a
+    recording's columns say happened, default the record's own), then the loop is continued from x_N
+    without attack (:class:`EscapeCriterion`): by the batch kernel for a bundled method
+    (:func:`judge_escape`), by the method's own ends for a user's (``continue_ends``).  A run whose flow
+    diverged, or whose method faulted, escaped.
+    """
     if res.flow_status != FLOW_OK or res.method_fault is not None:
         return True
     model = sc.make_model()
     plant = model if sc.plant.fmu is not None else sc.make_plant()
     method = sc.make_method()
-    if method.kernel_code(sc.quantizer) is None:  # a user's method: its own ends, continued per sample
-        return continue_ends(plant, res, criterion, sc.T, sc.flow, sc.controller.u_max)
-    if sc.method.name != "paper":
-        st = res.loop_state if res.loop_state is not None else None
-        if st is None:
-            return not (res.final_norm < criterion.x_tol)
-        return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
-                                 model=model, flow=sc.flow, method=method)[0])
-    st = res.loop_state
-    if st is None:
+    st = None
+    if sc.method.name == "paper":  # its ends' state follows from the last sample (equal to the replay's, cheaper)
         st = loop_state_from_samples(res, model, sc.quantizer, sc.flow)
-    if st is None:  # no sample: the loop from x_0 as it starts
-        dec = method.make_decoder(model, res.K, sc.quantizer, sc.flow)
-        st = loop_state_of(dec, dec)
+    if st is None:
+        try:
+            ends = ends_from_record(res, method, model, res.K, sc.quantizer, sc.flow, replay)
+        except Exception:  # noqa: BLE001 - a method that raises on its own record: the loop cannot go on
+            return True
+        if method.kernel_code(sc.quantizer) is None:  # a user's method: its own ends, continued per sample
+            return continue_ends(plant, res.x_final, ends, criterion, sc.T, sc.flow, sc.controller.u_max)
+        st = loop_state_of(*ends)
     return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
-                             model=model, flow=sc.flow)[0])
+                             model=model, flow=sc.flow, method=None if sc.method.name == "paper" else method)[0])
+
+
+def outcome_text(s: dict) -> str:
+    """The outcome of a run in words, from its summary (``summarize``'s keys): what ``testbed simulate``,
+    ``testbed run`` and ``testbed report`` print after the final norm."""
+    if s.get("method_fault") is not None:
+        return f"METHOD FAULT at sample {s['method_fault_at']}: the run ended there"
+    if s.get("plant_fault") is not None:
+        return f"PLANT FAULT at sample {s['plant_fault_at']}: the run ended there"
+    if s.get("converged"):
+        return "converged"
+    if s.get("escaped"):
+        return "ESCAPED" + (f" (flow diverged at sample {s['diverged_at']})" if s.get("diverged") else "")
+    return "not converged"
 
 
 def attacker_drops(res) -> np.ndarray:
@@ -378,7 +399,7 @@ def attack_on_samples(sc, res) -> np.ndarray:
     return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | dropped
 
 
-def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
+def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
     ``escaped``: the loop continued without attack from where the run ended does not
@@ -387,6 +408,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     ended with a fault (``plant_fault``: its line, ``plant_fault_at``: the sample) counts as
     diverged and not converged; ``escaped`` is then about the state at the fault.
     ``arrays``: the per-sample values stay numpy arrays (``testbed report`` streams them out).
+    ``replay``: what a recording's columns say happened (:func:`escaped_run`; None: the record's own).
     """
     L = (lambda a: a) if arrays else (lambda a: a.tolist())
     model = sc.make_model()
@@ -396,7 +418,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     converged = (not diverged) and res.final_norm < tol
     crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
     # a recording's plant or method whose stored code was not run (no --trust-code): not judged
-    escaped = None if sc.code_not_run() else escaped_run(sc, res, crit)
+    escaped = None if sc.code_not_run() else escaped_run(sc, res, crit, replay)
     sch = res.intervals()
     cb = sc.make_method().codebook(model.n, sc.quantizer)
     return json_clean({
@@ -433,7 +455,8 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "escaped": None if escaped is None else bool(escaped),
         "escape_criterion": crit.to_dict(),
         "diverged": bool(diverged),
-        "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,
+        "diverged_at": (res.method_fault_at if res.method_fault is not None else
+                        res.diverged_at if res.plant_fault is None else res.plant_fault_at),
         "plant_fault": res.plant_fault,
         "plant_fault_at": res.plant_fault_at,
         "method_fault": res.method_fault,

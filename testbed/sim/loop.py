@@ -24,10 +24,12 @@ from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..methods.base import symbol_code
 from ..methods.bundled import PaperMethod
 from ..protocol import (
+    DEADLINE,
     INVALID,
     RECEIVED,
     ControllerProtocol,
     EncoderProtocol,
+    MethodFault,
     OdeProcess,
     PlantProtocol,
     Send,
@@ -75,7 +77,8 @@ class SimResult:
     plant_fault_at: int = -1        # ... at this sample (its advance over [t_k, t_k+1), or reset: 0)
     loop_state: np.ndarray | None = None  # both ends' xi, E, u_{k-1} after the last sample (``loop_state_of``)
     method_fault: str | None = None  # the method's end raised (its one line) ...
-    method_fault_at: int = -1        # ... at this sample
+    method_fault_at: int = -1        # ... at this sample (the record holds samples 0..k-1; x_final = x_k)
+    method_fault_role: str | None = None  # the node whose end raised: "encoder" or "controller"
     lockstep_breaks: list = field(default_factory=list)  # samples where the ends' shared state differed
     ends: tuple | None = None        # the encoder and decoder ends after the run (a method's continuation)
     x_meas: np.ndarray | None = None  # x_meas,k, what the sensor read ([plant.sensor]; None: x_k itself), (N, n)
@@ -246,7 +249,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     dropped = np.zeros(N, dtype=bool)   # the attacker dropped or corrupted sample k's symbol
     enc_state: dict = {}
     breaks = []
-    mfault, mfault_at = None, -1
+    mfault, mfault_at, mfault_role = None, -1, None
     cb = ctlp.codebook
     rec = {k: np.full((N, n), np.nan) for k in ("x", "q", "q_enc", "xi_enc", "xi_dec")}
     u_rec = np.zeros((N, m))
@@ -284,8 +287,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         except Exception as e:  # a method's end raised: the run ends at this sample
             if not own:
                 raise
-            mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \
-                                      f"{type(e).__name__}: {e}", k, k
+            mf = MethodFault(method.display_name(), k, e, _raising_role(e, encp.enc))
+            mfault, mfault_at, mfault_role, last = mf.line, k, mf.role, k
             break
         if isinstance(send, Send):
             if send.state is not None:
@@ -358,9 +361,21 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                                          **({} if pp.device is None else pp.device.counters())}},
                      plant_fault=fault, plant_fault_at=fault_at,
                      loop_state=loop_state_of(encp.enc, ctlp.dec) if mfault is None else None,
-                     method_fault=mfault, method_fault_at=mfault_at, lockstep_breaks=breaks,
+                     method_fault=mfault, method_fault_at=mfault_at, method_fault_role=mfault_role,
+                     lockstep_breaks=breaks,
                      ends=(encp.enc, ctlp.dec), x_meas=None if x_meas is None else x_meas[sl],
                      u_plant=None if u_plant is None else u_plant[sl])
+
+
+def _raising_role(e: BaseException, enc) -> str:
+    """Which end raised ``e``: "encoder" when a frame of its traceback runs a method of ``enc``, else
+    "controller" (the decoder end, where the live run's controller node runs it)."""
+    tb = e.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_locals.get("self") is enc:
+            return "encoder"
+        tb = tb.tb_next
+    return "controller"
 
 
 def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan=None):
@@ -428,16 +443,54 @@ def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: Fl
     return loop_state_of(dec, dec)
 
 
-def continue_ends(plant, res: SimResult, c, T: float, flow, u_max: float) -> bool:
+def record_replay(res: SimResult) -> Replay:
+    """What a run's per-sample record says happened, as a :class:`Replay` of its ends: the controller's
+    reason (``res.reason``; without one, theta_k: received or lost), the samples the encoder withheld
+    (``res.withheld``), the ones it never saw (no symbol and not withheld).  ``testbed report`` builds the
+    same from a recording's columns (``testbed.record.summary.build_summary``)."""
+    N = len(res.theta)
+    theta = np.asarray(res.theta, dtype=np.int64)
+    reason = np.where(theta == 0, RECEIVED, DEADLINE) if res.reason is None else np.asarray(res.reason, np.int64)
+    withheld = np.zeros(N, dtype=bool) if res.withheld is None else np.asarray(res.withheld, dtype=bool)
+    sensed = (np.asarray(res.symbols) >= 0) | withheld
+    return Replay(reason=reason.astype(np.int64), sensed=sensed, withheld=withheld, u_missing=np.zeros(N, bool))
+
+
+def ends_from_record(res: SimResult, method, model, K, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW,
+                     replay: Replay | None = None):
+    """Both ends of ``method`` after the last sample of a run, rebuilt from its per-sample record alone.
+
+    The method's encoder and decoder ends run through the protocol objects (``_method_sample``, as
+    ``simulate_loop`` and the live nodes run them) fed with what the record says: x_k (x_meas,k where a
+    sensor read it) at the encoder, the controller's decisions and the withheld samples (``replay``,
+    default :func:`record_replay`); no plant is integrated.  A simulated run and its recording give the
+    same record, hence the same ends: the escape verdict (``testbed.sim.batch.escaped_run``) continues
+    the loop from these.  Returns (encoder, decoder), or raises what the method's ends raise.
+    """
+    replay = record_replay(res) if replay is None else replay
+    N = len(res.theta)
+    K = np.asarray(K, dtype=np.float64).reshape(model.m, model.n)
+    encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
+    ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
+    X = np.asarray(res.x if res.x_meas is None else res.x_meas, dtype=np.float64)
+    acks: list = []
+    for k in range(N):
+        _send, decs = _method_sample(encp, ctlp, replay, acks, k, X[k], None, {}, ctlp.codebook)
+        decs.pop()
+        acks.extend((d.k, d.theta, d.last_rx) for d in decs if d is not None)
+    for a in acks:
+        encp.ack(*a)
+    return encp.enc, ctlp.dec
+
+
+def continue_ends(plant, x_final, ends, c, T: float, flow, u_max: float) -> bool:
     """The escape criterion ``c`` (``testbed.sim.batch.EscapeCriterion``) for a method without a batch
-    kernel: its own two ends (``res.ends``),
-    continued from where the run ended with theta_k = 0 and the true plant under ideal timing.
+    kernel: its own two ends (``ends``, :func:`ends_from_record`),
+    continued from where the run ended (``x_final``) with theta_k = 0 and the true plant under ideal timing.
     Escaped unless ||x|| < x_tol with both ends' E below E_tol within the horizon."""
-    if res.ends is None:
-        return not (res.final_norm < c.x_tol)
-    enc, dec = res.ends
+    enc, dec = ends
     proc = OdeProcess(plant, flow)
-    proc.reset(res.x_final)
+    proc.reset(np.asarray(x_final, dtype=np.float64))
     for _ in range(c.steps(T)):
         x = proc.x
         nrm = float(np.max(np.abs(x)))
