@@ -165,7 +165,7 @@ def test_no_reader_runs_stored_code_without_trust_code_and_every_reader_runs_it_
         assert g["ran"], f"{name} --trust-code did not run the code stored in the recording"
         assert g["rc"] == 0, (name, g["stderr"])
     rep = json.loads(got["report --json"]["stdout"])
-    assert rep["resimulation"]["reproduced"] is True and isinstance(rep["escaped"], bool)  # judged (by the code)
+    assert rep["resimulation"]["reproduced"] is True and rep["escaped"] is sim["escaped"]  # the one verdict
     assert rep["x"] == sim["x"]
     assert "reproduced bit for bit" in got["resimulate"]["stdout"]
     assert got["testbed.open"]["escaped"] == rep["escaped"] and not got["testbed.open"]["not_run"]
