@@ -343,7 +343,7 @@ def test_live_campaign_four_runs_recorded_and_resimulated(tmp_path):
 
 def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
     """Every bundled method, converging, escaping and diverging runs: the rows the batch kernel gives equal
-    the per-sample simulator's (testbed simulate's) bit for bit, in every outcome column."""
+    the per-sample simulator's (testbed simulate's) bit for bit, in every outcome column and settle_samples."""
     from testbed import methods
 
     names = list(methods.names())
@@ -360,8 +360,9 @@ def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
     assert len({r["converged"] for r in single}) == 2 and any(r["escaped"] for r in single)
     for a, b in zip(batch, single):
         assert a["status"] == b["status"] == "ok", (a, b)
-        for k in cmp.OUTCOME_KEYS:
+        for k in (*cmp.OUTCOME_KEYS, "settle_samples"):
             assert a[k] == b[k], (a["run"], a["method"], k, a[k], b[k])
+    assert any(r["settle_samples"] is not None for r in single) and any(r["settle_samples"] is None for r in single)
 
 
 def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):

@@ -19,7 +19,9 @@ from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
 
 
 class Progress:
-    """Runs done, failed and left, and an estimate of the time left, on stderr."""
+    """What a campaign does, on stderr: the setup's steps (:meth:`say`), then runs done, failed and left
+    and an estimate of the time left.  The estimate starts at the first run's end (that run loads or
+    compiles the simulator, which the others do not pay) and is shown once a run more has ended."""
 
     def __init__(self, total: int, done: int, enabled: bool = True):
         self.total, self.done0, self.enabled = total, done, enabled
@@ -27,24 +29,53 @@ class Progress:
         self.tty = sys.stderr.isatty()
         self.last = 0.0
         self.shown = None
+        self.clock = None  # (time, runs done) at the end of the first run: where the estimate starts
+        self.open_line = False
+
+    def say(self, text: str) -> None:
+        """One line of what the campaign is doing (the setup), on stderr."""
+        if self.enabled:
+            self.end_line()
+            sys.stderr.write(f"campaign: {text}\n")
+            sys.stderr.flush()
+
+    def end_line(self) -> None:
+        """End a progress line drawn in place (a terminal), before other output."""
+        if self.open_line:
+            sys.stderr.write("\n")
+            self.open_line = False
+
+    def eta(self, done: int, now: float) -> float | None:
+        """Seconds left, from the rate of the runs that ended after the first one (None: not known yet)."""
+        if self.clock is None:
+            return None
+        t1, d1 = self.clock
+        if done <= d1 or now <= t1:
+            return None
+        return (now - t1) / (done - d1) * (self.total - done)
 
     def __call__(self, done: int, failed: int, final: bool = False) -> None:
+        now = time.perf_counter()
+        if self.clock is None and done > self.done0:
+            self.clock = (now, done)
         if not self.enabled:
             return
-        now = time.perf_counter()
         if (not final and now - self.last < (0.2 if self.tty else 5.0)) or (final and self.shown == (done, failed)):
-            if final and self.tty and self.shown == (done, failed):
-                sys.stderr.write("\n")
+            if final:
+                self.end_line()
             return
         self.last = now
         self.shown = (done, failed)
-        new = done - self.done0
         left = self.total - done
         el = now - self.t0
-        eta = el / new * left if new > 0 else math.nan
+        eta = self.eta(done, now) if left else None
         line = (f"campaign: {done}/{self.total} runs done, {failed} failed, {left} left, {el:.1f} s"
-                + (f", about {eta:.0f} s left" if left and new else ""))
-        sys.stderr.write(("\r" + line + ("\n" if final else "")) if self.tty else line + "\n")
+                + (f", about {eta:.0f} s left" if eta is not None else ""))
+        if self.tty:
+            sys.stderr.write("\r" + line + ("\n" if final else ""))
+            self.open_line = not final
+        else:
+            sys.stderr.write(line + "\n")
         sys.stderr.flush()
 
 
@@ -57,18 +88,25 @@ def chunks(items: list, workers: int, dask: bool) -> list[list]:
 
 
 def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live_timeout: float | None = None,
-        notes=None) -> dict:
-    """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.
+        notes=None, planned: tuple | None = None) -> dict:
+    """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.  ``planned``:
+    ``(base scenario, runs, notes)`` of ``plan`` when the caller has them already (planning validates
+    every run: seconds for a large campaign).
 
     Returns ``{"rows", "summary", "folder", "ran", "skipped", "notes"}``.
     """
-    base = base_scenario(c)
-    runs, notes = plan(c, base)
+    if planned is None:
+        base = base_scenario(c)
+        runs, notes = plan(c, base)
+    else:
+        base, runs, notes = planned
     prepare(c, runs, folder, base)
     done = read_journal(folder)
     finished = {k for k, r in done.items() if r.get("status") == "ok"}
     todo = [r for r in runs if r.id not in finished]
     prog = Progress(len(runs), len(runs) - len(todo), progress)
+    prog.say(f"{len(runs)} runs in {folder}" + (f", {len(runs) - len(todo)} found done" if len(todo) < len(runs)
+                                                 else "") + f"; {len(todo)} to run")
     journal = Journal(folder)
     count = {"done": len(runs) - len(todo), "failed": 0}
 
@@ -90,11 +128,16 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
             items = [(r.id, r.text, r.name, r.base_dir) for r in todo]
             first, rest = items[:1], items[1:]
             # the first run here: it loads (or compiles) the kernels before any worker does
+            prog.say("the first run loads the simulator (compiled on first use, then cached) ...")
             for row in simulate_runs(first):
                 store(row)
             prog(count["done"], count["failed"])
             dask = executor is not None and executor.kind == "dask"
             parts = chunks(rest, executor.workers if executor is not None else 1, dask)
+            if rest:
+                prog.say(f"the other {len(rest)} runs in {len(parts)} chunks on "
+                         + (f"{executor.workers} {'Dask ' if dask else ''}worker(s)" if executor is not None
+                            else "this process") + " ...")
             gen = (executor.imap(simulate_runs, parts, warm=first if dask else None) if executor is not None
                    else ((i, simulate_runs(p)) for i, p in enumerate(parts)))
             for _i, rows in gen:
@@ -105,6 +148,7 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
         journal.close()
     prog(len([r for r in runs if r.id in done]), sum(1 for r in runs if r.id in done and done[r.id]["status"] != "ok"),
          final=True)
+    prog.say("writing the table and the summaries (with the paired tests) ...")
     rows, s = write_results(folder, c, runs, done)
     return {"rows": rows, "summary": s, "folder": str(folder), "ran": len(todo), "skipped": len(runs) - len(todo),
             "notes": notes}

@@ -19,6 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the summary (and with --verify the comparison)")
     cliargs.add_plot(p, "the success rate over one or two axes, 95 %% Wilson intervals as error bars")
     cliargs.add_no_progress(p)
+    p.add_argument("--table", choices=("latex", "markdown"),
+                   help="print the paired comparison table (each value of an axis against the axis's first, on the "
+                        "same seeds and initial states) instead of the text summary")
     p.add_argument("--verify", metavar="DIR", help="re-run the rows of a campaign's folder and compare them bit for "
                                                    "bit (live rows: re-simulated from their recordings)")
     p.add_argument("--sample", type=int, metavar="K", help="--verify: only K simulated rows, drawn with --seed")
@@ -42,8 +45,12 @@ def main(args) -> int:
     from ..campaign.folder import default_dir
     from ..campaign.spec import base_scenario, parse, plan
 
+    if args.table and args.json:
+        raise BadInput("give --json or --table, not both")
     c = parse(args.campaign)
     base = base_scenario(c)
+    if not args.no_progress:
+        print(f"campaign: resolving and validating every run of {c.path} (before anything runs) ...", file=sys.stderr)
     runs, notes = plan(c, base)  # every run validated before anything runs (or the folder is made)
     for n in notes:
         print(f"testbed campaign: note: {n}", file=sys.stderr)
@@ -56,7 +63,10 @@ def main(args) -> int:
     parallel_desc = executor.describe() if executor is not None else {"kind": "serial", "workers": 1}
     try:
         out = campaignrun.run(c, folder, executor=executor, progress=not args.no_progress,
-                              live_timeout=args.live_timeout)
+                              live_timeout=args.live_timeout, planned=(base, runs, notes))
+    except KeyboardInterrupt:
+        _interrupted(args, folder, len(runs))
+        return 130
     finally:
         if executor is not None:
             executor.close()
@@ -66,25 +76,52 @@ def main(args) -> int:
         campaignrun.plot(args.plot, c, s, args.figsize)
         s.pop("folder")
     failed = s["failed"]
-    if args.json:
+    if args.table:
+        from ..campaign import tables
+
+        print(tables.latex(s, label=c.stem) if args.table == "latex" else tables.markdown(s), end="")
+    elif args.json:
         print(json.dumps({"folder": str(folder), "ran": out["ran"], "skipped": out["skipped"],
                           "parallel": parallel_desc,
                           **({"figure": str(args.plot)} if args.plot else {}), "summary": s}))
     else:
+        from ..campaign import tables
+
         t = s["total"]
         w = t["wilson95"]
         print(f"campaign {c.stem}: {s['done']} of {s['planned']} runs ({out['ran']} run now, {out['skipped']} "
               f"found done), {failed} failed")
         if t["n"]:
             print(f"  success {t['successes']}/{t['n']} = {t['success_rate']:.3f} (95 % Wilson [{w[0]:.3f}, "
-                  f"{w[1]:.3f}]), {t['escaped']} escaped")
+                  f"{w[1]:.3f}]): {t['converged']} converged, {t['bounded']} bounded (neither converged nor "
+                  f"escaped), {t['escaped']} escaped")
         for k, groups in s["by_axis"].items():
             if len(groups) > 1 and len(groups) <= 12:
-                print(f"  by {k}: " + ", ".join(f"{json.dumps(g['value'])} {g['successes']}/{g['n']}" for g in groups))
+                print(f"  by {k} (converged/bounded/escaped): "
+                      + ", ".join(f"{json.dumps(g['value'])} {g['converged']}/{g['bounded']}/{g['escaped']}"
+                                  for g in groups))
+        for comp in s.get("comparisons", {}).values():
+            for d in comp["values"]:
+                pd = d["paired_difference"]
+                print(f"  {json.dumps(d['value'])} minus {json.dumps(d['vs'])} ({d['pairs']} pairs): converged "
+                      f"{tables.fmt_ci(pd['difference'], pd['ci95'])}, McNemar {tables.fmt_p(pd['mcnemar_p'])}")
+        print("  the comparison table: the same command with --table markdown (or latex)")
         print(f"  table: {folder / 'runs.parquet'}; summary: {folder / 'summary.md'}")
         if args.plot:
             print(f"  figure: {args.plot}")
     return 1 if failed else 0
+
+
+def _interrupted(args, folder: Path, planned: int) -> None:
+    """The line of a campaign stopped by Ctrl-C: what is stored, and the command that resumes."""
+    from ..campaign.folder import read_journal
+
+    stored = sum(1 for r in read_journal(folder).values() if r.get("status") == "ok") if folder.exists() else 0
+    if sys.stderr.isatty():
+        sys.stderr.write("\n")
+    again = " ".join(["testbed campaign", args.campaign] + ([] if not args.out else ["--out", str(folder)]))
+    print(f"testbed campaign: interrupted; {stored} of {planned} runs are stored in {folder}; the same command "
+          f"resumes: {again}", file=sys.stderr)
 
 
 def _verify(args) -> int:
