@@ -48,24 +48,25 @@ def main(args) -> int:
     if args.table and args.json:
         raise BadInput("give --json or --table, not both")
     c = parse(args.campaign)
-    base = base_scenario(c)
-    if not args.no_progress:
-        print(f"campaign: resolving and validating every run of {c.path} (before anything runs) ...", file=sys.stderr)
-    runs, notes = plan(c, base)  # every run validated before anything runs (or the folder is made)
-    for n in notes:
-        print(f"testbed campaign: note: {n}", file=sys.stderr)
     folder = Path(args.out) if args.out else default_dir(c)
     executor = None
-    if c.runs == "simulated" or args.scheduler:
-        from ..analysis import parallel
-
-        executor = parallel.from_args(args)
-    parallel_desc = executor.describe() if executor is not None else {"kind": "serial", "workers": 1}
     try:
+        base = base_scenario(c)
+        if not args.no_progress:
+            print(f"campaign: resolving and validating every run of {c.path} (before anything runs) ...",
+                  file=sys.stderr)
+        runs, notes = plan(c, base)  # every run validated before anything runs (or the folder is made)
+        for n in notes:
+            print(f"testbed campaign: note: {n}", file=sys.stderr)
+        if c.runs == "simulated" or args.scheduler:
+            from ..analysis import parallel
+
+            executor = parallel.from_args(args)
+        parallel_desc = executor.describe() if executor is not None else {"kind": "serial", "workers": 1}
         out = campaignrun.run(c, folder, executor=executor, progress=not args.no_progress,
                               live_timeout=args.live_timeout, planned=(base, runs, notes))
     except KeyboardInterrupt:
-        _interrupted(args, folder, len(runs))
+        _interrupted(args, folder)
         return 130
     finally:
         if executor is not None:
@@ -112,16 +113,22 @@ def main(args) -> int:
     return 1 if failed else 0
 
 
-def _interrupted(args, folder: Path, planned: int) -> None:
+def _interrupted(args, folder: Path) -> None:
     """The line of a campaign stopped by Ctrl-C: what is stored, and the command that resumes."""
     from ..campaign.folder import read_journal
 
-    stored = sum(1 for r in read_journal(folder).values() if r.get("status") == "ok") if folder.exists() else 0
+    stored, planned = 0, None
+    if (folder / "campaign.toml").exists():
+        stored = sum(1 for r in read_journal(folder).values() if r.get("status") == "ok")
+        try:
+            planned = len(json.loads((folder / "manifest.json").read_text()).get("runs", []))
+        except (OSError, ValueError):
+            planned = None
     if sys.stderr.isatty():
         sys.stderr.write("\n")
     again = " ".join(["testbed campaign", args.campaign] + ([] if not args.out else ["--out", str(folder)]))
-    print(f"testbed campaign: interrupted; {stored} of {planned} runs are stored in {folder}; the same command "
-          f"resumes: {again}", file=sys.stderr)
+    what = f"{stored} of {planned} runs are stored in {folder}" if planned else "no run is stored yet"
+    print(f"testbed campaign: interrupted; {what}; the same command resumes: {again}", file=sys.stderr)
 
 
 def _verify(args) -> int:
