@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..errors import BadInput
-from .folder import Journal, prepare, read_journal, read_parquet, source_hash, summarize_group, versions, write_results
+from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
 from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
 
@@ -310,10 +310,17 @@ def _norm(v):
 
 
 # ============================================================================ figure
+#: the outcomes the figure draws: (key of ``summarize_group``, panel title)
+PLOT_OUTCOMES = (("converged", "converged"), ("escaped", "escaped"))
+
+
 def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
-    """The success rate (95 % Wilson interval as error bars) over the first axis of more than one value
-    (not a seed, where there is another), one line per value of the second such axis; the others pooled."""
-    from ..figstyle import pyplot, save, subplots
+    """The rates of converged and of escaped runs (each with its 95 % Wilson interval) over the first axis of
+    more than one value (not a seed, where there is another), one series per value of the second such axis
+    (the others pooled).  In the one figure style (``testbed.figstyle``): categorical values are points side
+    by side with their intervals (a numeric axis is joined by lines), the legend below the panels."""
+    from .. import figstyle
+    from ..comparestats import wilson
 
     multi = [k for k, v in c.axes.items() if len(v) > 1]
     pref = [k for k in multi if not k.endswith("seed")] or multi
@@ -322,37 +329,44 @@ def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
     x_axis = pref[0] if pref else None
     series_axis = pref[1] if len(pref) > 1 else None
     rows = read_parquet(Path(summary["folder"]) / "runs.parquet") if "folder" in summary else []
-    plt = pyplot()
-    fig, axs = subplots(size, 1, 1)
-    ax = axs[0, 0] if hasattr(axs, "shape") else axs
     xs = c.axes[x_axis] if x_axis else [None]
-    numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
-    pos = list(xs) if numeric else list(range(len(xs)))
-    for sv in (c.axes[series_axis] if series_axis else [None]):
-        ys, lo, hi = [], [], []
-        for xv in xs:
-            sel = [r for r in rows if (x_axis is None or _eq(r.get(x_axis), xv))
-                   and (series_axis is None or _eq(r.get(series_axis), sv))]
-            g = summarize_group(sel)
-            w = g["wilson95"] or [math.nan, math.nan]
-            rate = g["success_rate"] if g["success_rate"] is not None else math.nan
-            ys.append(rate)
-            lo.append(max(0.0, rate - w[0]))
-            hi.append(max(0.0, w[1] - rate))
-        lab = None if series_axis is None else f"{series_axis} = {json.dumps(sv)}"
-        ax.errorbar(pos, ys, yerr=[lo, hi], marker="o", capsize=3, label=lab)
-    if not numeric:
-        ax.set_xticks(pos)
-        ax.set_xticklabels([json.dumps(v) for v in xs], rotation=30, fontsize=7)
-    ax.set_xlabel(x_axis or "")
-    ax.set_ylabel("success rate (converged)")
-    ax.set_ylim(-0.05, 1.05)
-    ax.set_title(f"campaign {c.stem}: success rate, 95 % Wilson interval")
-    if series_axis:
-        ax.legend(fontsize=7)
-    out = save(fig, path)
-    plt.close(fig)
-    return out
+    numeric = len(xs) > 1 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
+    series = c.axes[series_axis] if series_axis else [None]
+    pos = [float(v) for v in xs] if numeric else list(range(len(xs)))
+    # side by side: a series' points are shifted by a fraction of the smallest gap between x positions
+    gap = min((b - a for a, b in zip(sorted(pos), sorted(pos)[1:])), default=1.0) or 1.0
+    width = 0.6 * gap
+    shift = [(i - (len(series) - 1) / 2) * width / max(len(series), 1) for i in range(len(series))]
+    panels = figstyle.panels(size, len(PLOT_OUTCOMES))
+    with figstyle.style(size):
+        fig, axs = figstyle.subplots(size, *panels, aspect=0.62 if size == "page" else 0.5, sharey=True)
+        axs = axs.ravel()
+        for ax, (key, title) in zip(axs, PLOT_OUTCOMES):
+            for j, sv in enumerate(series):
+                ys, lo, hi = [], [], []
+                for xv in xs:
+                    sel = [r for r in rows if r.get("status") == "ok" and (x_axis is None or _eq(r.get(x_axis), xv))
+                           and (series_axis is None or _eq(r.get(series_axis), sv))]
+                    k = sum(1 for r in sel if r.get(key))
+                    w = wilson(k, len(sel))
+                    rate = k / len(sel) if sel else math.nan
+                    ys.append(rate)
+                    lo.append(rate - w[0] if w else math.nan)
+                    hi.append(w[1] - rate if w else math.nan)
+                lab = "all runs" if series_axis is None else f"{series_axis} = {json.dumps(sv)}"
+                ax.errorbar([p + shift[j] for p in pos], ys, yerr=[lo, hi], marker="o", capsize=2.5,
+                            ls="-" if numeric else "none", color=figstyle.CYCLE[j % len(figstyle.CYCLE)], label=lab)
+            if not numeric:
+                ax.set_xticks(pos)
+                ax.set_xticklabels([v if isinstance(v, str) else json.dumps(v) for v in xs])
+                ax.set_xlim(min(pos) - 0.5 * gap, max(pos) + 0.5 * gap)
+                ax.grid(False, axis="x")
+            ax.set_xlabel(x_axis or "")
+            ax.set_title(f"{title} (95 % Wilson interval)")
+            ax.set_ylim(-0.03, 1.03)
+        axs[0].set_ylabel("fraction of runs")
+        figstyle.legend_below(fig, axes=axs[:1])
+        return figstyle.save(fig, path)
 
 
 def _eq(a, b) -> bool:
