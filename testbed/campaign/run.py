@@ -118,6 +118,10 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
 
     try:
         if c.runs == "live":
+            if todo:
+                prog.say("live runs, each a testbed run of its scenario, recorded"
+                         + (" (on the Dask workers, one at a time per host)" if executor is not None
+                            and executor.kind == "dask" else ", one at a time") + " ...")
             rows = (_live_on_dask(executor, todo, folder, live_timeout)
                     if executor is not None and executor.kind == "dask"
                     else (live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
