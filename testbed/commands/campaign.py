@@ -52,10 +52,9 @@ def main(args) -> int:
     executor = None
     try:
         base = base_scenario(c)
-        if not args.no_progress:
-            print(f"campaign: resolving and validating every run of {c.path} (before anything runs) ...",
-                  file=sys.stderr)
-        runs, notes = plan(c, base)  # every run validated before anything runs (or the folder is made)
+        with _say_if_slow(None if args.no_progress else
+                          f"campaign: resolving and validating every run of {c.path} (before anything runs) ..."):
+            runs, notes = plan(c, base)  # every run validated before anything runs (or the folder is made)
         for n in notes:
             print(f"testbed campaign: note: {n}", file=sys.stderr)
         if c.runs == "simulated" or args.scheduler:
@@ -111,6 +110,29 @@ def main(args) -> int:
         if args.plot:
             print(f"  figure: {args.plot}")
     return 1 if failed else 0
+
+
+class _say_if_slow:
+    """``with _say_if_slow(line):`` print ``line`` on stderr if the block still runs after ``after`` seconds
+    (planning a large campaign takes seconds; a small one, or a bad value found at once, stays one line)."""
+
+    def __init__(self, line: str | None, after: float = 1.0):
+        self.line, self.after, self.timer = line, after, None
+
+    def __enter__(self):
+        if self.line:
+            import threading
+
+            self.timer = threading.Timer(self.after, lambda: print(self.line, file=sys.stderr, flush=True))
+            self.timer.daemon = True
+            self.timer.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer.join()  # no thread left: the local workers are then forked, not spawned
+        return False
 
 
 def _interrupted(args, folder: Path) -> None:
