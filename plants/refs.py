@@ -13,9 +13,13 @@
    package), whose value is ``"pkg.module:ClassName"``.
 
 A recording stores the reference, the module's source text and its sha256
-(``source_info``).  ``resolve_recorded`` imports the plant as above, and only when
-that fails loads the stored source (``load_source``): that runs code read from a
-recording, so callers say so.
+(``source_info``).  ``resolve_recorded`` imports the plant as above (a module importable
+from the user's own path is the user's code); only when that fails, and only when the
+caller passes ``trust_code=True`` (``--trust-code``), does it load the stored source
+(``load_stored``, the one loader of stored plants and methods: it runs code read from a
+recording).  Without it the recording's plant is a *stand-in* (``stand_in_plant``): its
+name, dimensions and parameters, and no code; whatever would compute with it raises
+``CodeNotTrusted``.
 """
 
 from __future__ import annotations
@@ -45,6 +49,21 @@ _MODULE_REF = re.compile(rf"^({IDENT}(?:\.{IDENT})*):({IDENT})$")
 
 class PlantRefError(ValueError):
     """A plant reference that cannot be resolved, with the reason (one line)."""
+
+
+#: the flag that lets a reader run code stored in a recording or a campaign folder
+TRUST_FLAG = "--trust-code"
+
+
+class CodeNotTrusted(ValueError):
+    """Code stored in a recording (or a campaign folder) that was not run: the user did not pass
+    ``--trust-code`` (``trust_code=True``).  One line, naming the flag."""
+
+
+def not_trusted(kind: str, ref: str, where: str = "the recording") -> CodeNotTrusted:
+    """The one line for a stored ``kind`` ("plant", "method") that is not run."""
+    return CodeNotTrusted(f"{kind} {ref!r} is not importable here and its source stored in {where} is code, "
+                          f"not run without {TRUST_FLAG} (trust_code=True in Python)")
 
 
 #: what this process resolved a (ref, base_dir) to: module references and entry points only
@@ -253,16 +272,21 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
-def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, sha256: str, check, error):
+def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, sha256: str, check, error, *,
+                trust_code: bool = False):
     """Import ``class_name`` from a module's source stored in a recording, under the module's own name.
 
-    THIS RUNS THE STORED CODE.  The sha256 must match the text and the names must be identifiers.  The
+    THIS RUNS THE STORED CODE, and only when ``trust_code`` (the user's ``--trust-code``): otherwise
+    ``CodeNotTrusted`` and nothing is written or run.  The sha256 must match the text and the names
+    must be identifiers (the hash only tells a corrupt recording: it comes from the same file).  The
     text is written to a private temporary folder (removed at exit; numba caches a plant's right-hand
     side next to it) and imported as ``module``; if it fails, the module that held that name before is
     put back.  ``check(cls, ref)`` checks the class (``check_plant_class``, ``check_method_class``);
     every refusal is one line of ``error`` naming the ``kind`` ("plant", "method") and ``ref``.  Plants
     and methods of a recording both load through here.
     """
+    if not trust_code:
+        raise not_trusted(kind, ref)
     if not source:
         raise error(f"{kind} {ref!r}: no stored source")
     if _sha256(source) != sha256:
@@ -292,34 +316,148 @@ def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, 
 
 
 def load_source(ref: str, base_dir: str | None, module: str, class_name: str, source: str,
-                sha256: str) -> type[Plant]:
-    """Load a plant class from a module's stored source text (``source_info``, :func:`load_stored`) and
-    pin it to ``ref``: afterwards ``resolve(ref, base_dir)`` returns the class in this process."""
-    cls = load_stored("plant", ref, module, class_name, source, sha256, check_plant_class, PlantRefError)
-    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
-    if not is_module_ref(ref):
-        _RESOLVED[(ref, "")] = cls
+                sha256: str, *, trust_code: bool = False) -> type[Plant]:
+    """Load a plant class from a module's stored source text (``source_info``, :func:`load_stored`: only
+    with ``trust_code``) and pin it to ``ref``: afterwards ``resolve(ref, base_dir)`` returns the class in
+    this process."""
+    cls = load_stored("plant", ref, module, class_name, source, sha256, check_plant_class, PlantRefError,
+                      trust_code=trust_code)
+    for key in _plant_keys(ref, base_dir):
+        _RESOLVED[key] = cls
     return cls
 
 
-def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "",
-                     source: str = "", sha256: str = "") -> tuple[type[Plant], dict]:
-    """Resolve a recorded plant reference; fall back to the recorded source when it cannot be imported.
+def _plant_keys(ref: str, base_dir) -> list[tuple[str, str]]:
+    bd = str(base_dir) if base_dir else ""
+    return [(ref, bd)] + ([] if is_module_ref(ref) or not bd else [(ref, "")])
 
-    Returns the class and a status ``{"ref", "sha256", "loaded_from": "import" | "recording",
+
+def pin(ref: str, base_dir: str | None, cls: type[Plant]) -> type[Plant]:
+    """Make ``resolve(ref, base_dir)`` return ``cls`` in this process (a class loaded from code stored in
+    a recording or a campaign's folder, so that nothing is imported from that folder in its place)."""
+    cls = check_plant_class(cls, ref)
+    for key in _plant_keys(ref, base_dir):
+        _RESOLVED[key] = cls
+    return cls
+
+
+# ----------------------------------------------------------------------------- a recording's classes
+#: classes pinned to a recorded reference in this process: (kind, ref, base_dir) -> (how, sha256, class)
+_PINNED: dict[tuple[str, str, str], tuple[str, str, type]] = {}
+
+
+def recorded_class(kind: str, ref: str, base_dir: str | None, *, resolve, cache: dict, keys, check, error,
+                   module: str, class_name: str, source: str, sha256: str, trust_code: bool, stand_in=None):
+    """The class of a recorded plant or method reference, one rule for both.
+
+    1. imported as the run did (``resolve(ref, base_dir)``: the scenario's folder, then ``sys.path``):
+       a module importable from the user's own path is the user's code;
+    2. else, with ``trust_code``, the source stored in the recording (:func:`load_stored`, which runs it);
+    3. else ``stand_in()``: a class made from the recording's data that runs nothing (``CodeNotTrusted``
+       when there is none, or when ``stand_in`` is None).
+
+    The class of 2 or 3 is pinned in ``cache`` under ``keys`` (the scenario rebuilt from the recording
+    resolves to it).  A class pinned from a recording earlier in this process is decided again: a reader
+    without ``trust_code`` never uses code a trusted one loaded.  Returns ``(cls, loaded_from, reason)``,
+    ``loaded_from`` one of "import", "recording", "not run"; ``reason``: why the import failed.
+    """
+    pk = (kind, ref, str(base_dir) if base_dir else "")
+    was = _PINNED.pop(pk, None)
+    if was is not None:
+        how, digest, old = was
+        if how == "recording" and trust_code and digest == sha256:
+            _PINNED[pk] = was
+            for key in keys:
+                cache[key] = old
+            return old, "recording", None
+        for key in keys:
+            cache.pop(key, None)
+        mod = sys.modules.get(old.__module__)
+        if how == "recording" and mod is not None and getattr(mod, old.__name__, None) is old:
+            sys.modules.pop(old.__module__, None)  # not importable as the user's code afterwards
+    try:
+        return resolve(ref, base_dir), "import", None
+    except error as e:
+        if not source:
+            raise
+        reason = str(e)
+    if trust_code:
+        cls = load_stored(kind, ref, module, class_name, source, sha256, check, error, trust_code=True)
+        how = "recording"
+    elif stand_in is None:
+        raise not_trusted(kind, ref)
+    else:
+        cls, how = stand_in(), "not run"
+    _PINNED[pk] = (how, sha256, cls)
+    for key in keys:
+        cache[key] = cls
+    return cls, how, reason
+
+
+class _NotRunRHS(RHS):
+    """The right-hand side of a stand-in plant: every use raises ``CodeNotTrusted``."""
+
+    def __init__(self, why: str):
+        self._why = why
+        self.__name__ = "rhs_not_run"
+        self.__doc__ = why
+
+    def _refuse(self):
+        raise CodeNotTrusted(self._why)
+
+    py = property(lambda self: self._refuse())
+    jit = property(lambda self: self._refuse())
+    cfunc = property(lambda self: self._refuse())
+
+
+def stand_in_plant(ref: str, class_name: str, n: int, m: int, params) -> type[Plant]:
+    """A plant class for a recorded plant whose stored source is not run: its class name, dimensions and
+    parameter names (the recording's data) and no code: its right-hand side, linearization and parameter
+    vector raise ``CodeNotTrusted``.  ``not_run(cls)`` is the line that says why."""
+    import dataclasses
+    import keyword
+
+    why = str(not_trusted("plant", ref))
+    taken = set(dir(Plant))
+    names = [str(k) for k in params]
+    for k in names:
+        if not re.fullmatch(IDENT, k) or keyword.iskeyword(k) or k in taken or k.startswith("_"):
+            raise CodeNotTrusted(f"{why} (its parameter {k[:40]!r} has no stand-in)")
+
+    def refuse(self, *a, **kw):
+        raise CodeNotTrusted(why)
+
+    cname = class_name if re.fullmatch(IDENT, class_name or "") else "StoredPlant"
+    ns = {"name": cname, "rhs": _NotRunRHS(why), "n": property(lambda self: int(n)), "m": property(lambda self: int(m)),
+          "param_vector": refuse, "linearization": refuse, "STORED_NOT_RUN": why}
+    return dataclasses.make_dataclass(cname, [(k, float, dataclasses.field(default=float("nan"))) for k in names],
+                                      bases=(Plant,), namespace=ns, frozen=True)
+
+
+def not_run(obj) -> str | None:
+    """The ``CodeNotTrusted`` line of a stand-in class or object (``stand_in_plant``, a method's), else None."""
+    return getattr(obj, "STORED_NOT_RUN", None)
+
+
+def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "",
+                     source: str = "", sha256: str = "", trust_code: bool = False,
+                     stand_in=None) -> tuple[type[Plant], dict]:
+    """Resolve a recorded plant reference (:func:`recorded_class`): imported, else the stored source
+    with ``trust_code``, else ``stand_in()`` (``stand_in_plant``; None: ``CodeNotTrusted``).
+
+    Returns the class and a status ``{"ref", "sha256", "loaded_from": "import" | "recording" | "not run",
     "differs", "importable_sha256", "reason"}``: ``differs`` is True when the
     importable module's source is not the recorded one; ``reason`` says why the
-    import failed when the recorded source was used.
+    import failed when the recorded source was used or not run.
     """
     status = {"ref": ref, "sha256": sha256, "loaded_from": "import", "differs": False,
               "importable_sha256": None, "reason": None}
-    try:
-        cls = resolve(ref, base_dir)
-    except PlantRefError as e:
-        if not source:
-            raise
-        cls = load_source(ref, base_dir, module, class_name, source, sha256)
-        status.update(loaded_from="recording", reason=str(e))
+    cls, how, reason = recorded_class("plant", ref, base_dir, resolve=resolve, cache=_RESOLVED,
+                                      keys=_plant_keys(ref, base_dir), check=check_plant_class, error=PlantRefError,
+                                      module=module, class_name=class_name, source=source, sha256=sha256,
+                                      trust_code=trust_code, stand_in=stand_in)
+    if how != "import":
+        status.update(loaded_from=how, reason=reason)
         return cls, status
     now = source_info(cls)["sha256"]
     status["importable_sha256"] = now or None
@@ -327,6 +465,7 @@ def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_
     return cls, status
 
 
-__all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "resolve", "entry_points", "load_entry_point", "source_info",
+__all__ = ["ENTRY_POINT_GROUP", "PlantRefError", "CodeNotTrusted", "TRUST_FLAG", "not_trusted", "not_run",
+           "stand_in_plant", "recorded_class", "load_stored", "resolve", "entry_points", "load_entry_point", "source_info",
            "load_source", "resolve_recorded", "display_name", "is_module_ref", "check_plant_class",
-           "import_module_attr", "resolve_in", "IDENT"]
+           "import_module_attr", "resolve_in", "IDENT", "pin"]

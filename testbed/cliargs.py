@@ -63,6 +63,14 @@ def add_no_roa(p: argparse.ArgumentParser, *, aliases: tuple[str, ...] = ()) -> 
         p.add_argument(a, dest="no_roa", action="store_true", help=argparse.SUPPRESS)
 
 
+def add_trust_code(p: argparse.ArgumentParser, where: str = "the recording") -> None:
+    """``--trust-code``: the readers of recordings and campaign folders (docs/security.md)."""
+    p.add_argument("--trust-code", action="store_true",
+                   help=f"run a plant's or method's source stored in {where} when its module is not importable "
+                        "here (it is code from whoever made the file; without this flag it is not run, and what "
+                        "needs it, the re-simulation, is skipped)")
+
+
 def add_no_progress(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="do not draw progress bars on stderr")
 

@@ -11,7 +11,7 @@ import importlib
 import os
 import sys
 
-EPILOG = "exit codes: 0 ok, 1 the run or job failed, 2 bad input"
+from .errors import EPILOG
 
 #: commands that compile nothing (or must start fast): no numba listener (``testbed.compilenotice``)
 QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run", "methods"}
@@ -80,6 +80,10 @@ def run_guarded(runner, args, prog: str) -> int:
         sys.stderr.close()
         return 0
     except Exception as e:  # one line, not a traceback; the variable shows it
+        refs = sys.modules.get("plants.refs")  # loaded whenever its error was raised (not imported here: start-up)
+        if refs is not None and isinstance(e, refs.CodeNotTrusted):  # code stored in a file, not run: bad input
+            print(f"{prog}: {e}", file=sys.stderr)
+            return 2
         if os.environ.get("TESTBED_TRACEBACK"):
             raise
         print(f"{prog}: internal error: {type(e).__name__}: {e} (set TESTBED_TRACEBACK=1 for the traceback)",

@@ -12,9 +12,23 @@ class BadInput(ValueError):
     """Input that cannot be used, with the reason (one line, exit 2)."""
 
 
-#: exit codes of every command (documented in docs/cli.md)
+#: exit codes of every command (the one definition: every command's --help epilog and the table of
+#: docs/cli.md are made from or checked against ``EXIT_CODES``)
 EXIT_OK = 0
 EXIT_FAILED = 1      # the run or job ran and failed (a fault, a run that did not complete)
 EXIT_BAD_INPUT = 2   # bad input: nothing was run, or nothing trustworthy came out
+EXIT_RECORDING_INCOMPLETE = 3   # testbed run: the run was clean, its recording is incomplete
 
-__all__ = ["BadInput", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT"]
+#: code -> what it means, in the words of every command's help epilog
+EXIT_CODES: dict[int, str] = {
+    EXIT_OK: "ok",
+    EXIT_FAILED: "the run or job failed",
+    EXIT_BAD_INPUT: "bad input",
+    EXIT_RECORDING_INCOMPLETE: "testbed run: the run was clean but its recording is incomplete",
+}
+
+#: the epilog of ``testbed --help`` and of every command's ``--help``
+EPILOG = "exit codes: " + ", ".join(f"{code} {meaning}" for code, meaning in EXIT_CODES.items())
+
+__all__ = ["BadInput", "EPILOG", "EXIT_BAD_INPUT", "EXIT_CODES", "EXIT_FAILED", "EXIT_OK",
+           "EXIT_RECORDING_INCOMPLETE"]

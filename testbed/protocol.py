@@ -38,12 +38,13 @@ import numpy as np
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
 from .loopspec import corrupt_payload
-from .methods.base import symbol_code
-from .quantizer import Codebook, Decoder, Encoder, InvalidSymbol
+from .methods.base import DecoderEnd, EncoderEnd, symbol_code
+from .quantizer import Codebook, InvalidSymbol
 
 
 def _state(end):
-    """A method end's shared state (``methods.EncoderEnd.state``), or None (the paper's ends: xi, E)."""
+    """A method end's shared state (``methods.End.state``: xi_k and E_k unless the method says otherwise),
+    or None for an object that keeps none (the kernel's bookkeeping encoder, ``sim.trajectory._Ledger``)."""
     f = getattr(end, "state", None)
     return None if f is None else np.array(f(), dtype=np.float64)
 
@@ -83,7 +84,7 @@ class Withhold:
     pending: int
 
 
-def skip_sample(enc: Encoder) -> None:
+def skip_sample(enc: EncoderEnd) -> None:
     """theta_k = 1 for a sample whose symbol was never sent (the decoder cannot have it).
 
     Rules (xi), (E) with theta_k = 1 depend on neither x_k nor the symbol.
@@ -95,7 +96,7 @@ def skip_sample(enc: Encoder) -> None:
 class EncoderProtocol:
     """Algorithm 1 and the ack protocol (see the module docstring)."""
 
-    def __init__(self, enc: Encoder, n_steps: int):
+    def __init__(self, enc: EncoderEnd, n_steps: int):
         self.enc = enc
         self.n_steps = int(n_steps)
         self.next_k = 0                    # next sample index expected from the plant
@@ -213,7 +214,7 @@ class ControllerProtocol:
     before the prediction phi_T(q_k, u_k) is computed.  The numbers are the same.
     """
 
-    def __init__(self, dec: Decoder, n_steps: int, defer_update: bool = False):
+    def __init__(self, dec: DecoderEnd, n_steps: int, defer_update: bool = False):
         self.dec = dec
         self.defer_update = bool(defer_update)
         self._unsettled = False

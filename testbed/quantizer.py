@@ -34,6 +34,10 @@ Symbols are packed big-endian into ceil(bits / 8) bytes, where bits is the
 number of bits of the largest code: ceil(n log2 M) in the ideal mode and
 ceil(log2(M^n + 1)) in the resilient mode (the same unless M^n is a power of two).
 Unpacking rejects a wrong length or a code outside the codebook.
+
+This module holds the pure kernels.  The ends that run them, the paper's method written
+against the method interface like every other, are ``testbed.methods.paper``
+(``PaperEncoder``, ``PaperDecoder``).
 """
 
 from __future__ import annotations
@@ -41,9 +45,8 @@ from __future__ import annotations
 import math
 
 import numba as nb
-import numpy as np
 
-from .flow import DEFAULT_FLOW, FlowOptions, compiled_for, flow_into
+from .flow import flow_into
 from .loopspec import (  # noqa: F401 - the quantizer's public names
     MAX_CODES,
     MODE_IDEAL,
@@ -187,140 +190,3 @@ def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambd
         En += margin_gain * du
     return floor_E(En, xi_out, E_min), st
 
-
-class _End:
-    """State shared by the encoder and the decoder: xi_k, E_k and the sample index k."""
-
-    #: the rules (xi), (E) both ends apply (a numba function with ``zoom_update``'s arguments)
-    update_rule = staticmethod(zoom_update)
-
-    def __init__(self, plant, K, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW):
-        self.plant = plant
-        self.K = np.ascontiguousarray(np.asarray(K, dtype=np.float64).reshape(plant.m, plant.n))
-        self.qp = qp
-        self.codebook = Codebook(plant.n, qp.M, resilient=(qp.mode == "resilient"))
-        self._rhs = type(plant).rhs.cfunc
-        self._p = plant.p
-        self._opts = flow.as_array()
-        self._Ks = np.empty((13, plant.n))
-        self._dpar = qp.dpar
-        self._ytmp = np.empty(plant.n)
-        self.k = 0
-        self.xi = np.zeros(plant.n)  # xi_0 = 0
-        self.E = float(qp.E0)
-        self.u_prev = np.zeros(plant.m)  # u_{k-1} as both ends know it (u_{-1} = 0)
-        self.flow_status = 0
-        self._zoom = None
-
-    def _update(self, theta: int, overflow: bool, q: np.ndarray) -> None:
-        xi_next = np.empty(self.plant.n)
-        u_k = np.empty(self.plant.m)
-        qp = self.qp
-        args = (self._rhs, self._p, qp.T, self._opts, self.K, int(theta), bool(overflow),
-                self.xi, float(self.E), q, self.u_prev, qp.Lambda, qp.M, qp.sigma, qp.E_min,
-                self._dpar, self._Ks, self._ytmp, u_k, xi_next)
-        if self._zoom is None:
-            E_next, st = self.update_rule(*args)
-            self._zoom = compiled_for(self.update_rule, args)  # once per sample on a live node: no type dispatch
-        else:
-            E_next, st = self._zoom(*args)
-        self.xi = xi_next
-        self.E = float(E_next)
-        self.u_prev = u_k
-        self.flow_status = int(st)
-        self.k += 1
-
-
-class Encoder(_End):
-    """Algorithm 1. ``encode(x_k)`` -> symbol; ``ack(theta_k)`` applies (xi), (E)."""
-
-    def __init__(self, *a, **kw):
-        super().__init__(*a, **kw)
-        self.saturations = 0
-        self._last: tuple[int, bool, np.ndarray] | None = None
-
-    def encode(self, x) -> tuple[int, bool]:
-        """Symbol for x_k and whether x_k was outside Q(xi_k, E_k) (a saturation event)."""
-        x = np.asarray(x, dtype=np.float64)
-        i, sat = quantize_index(x, self.xi, self.E, self.qp.M)
-        if sat:
-            self.saturations += 1
-        q = np.empty(self.plant.n)
-        box_center(i, self.xi, self.E, self.qp.M, q)
-        if sat and self.codebook.resilient:
-            i = self.codebook.overflow
-        self._last = (int(i), bool(sat), q)
-        return int(i), bool(sat)
-
-    @property
-    def q(self) -> np.ndarray:
-        """q_k as the decoder will reconstruct it (when the packet arrives)."""
-        return self._last[2]
-
-    def ack(self, theta: int) -> None:
-        if self._last is None:
-            raise RuntimeError("ack() before encode()")
-        i, _sat, q = self._last
-        overflow = i == self.codebook.overflow
-        self._update(int(theta), overflow, q)
-        self._last = None
-
-
-class Decoder(_End):
-    """Algorithm 2 and the controller: ``step(symbol | None)`` -> (u_k, q_k, theta_k)."""
-
-    def __init__(self, *a, **kw):
-        super().__init__(*a, **kw)
-        self.overflows = 0
-        self.invalid = 0
-        self._pending: tuple[int, bool, np.ndarray] | None = None
-
-    def step(self, symbol: int | None):
-        """Decode the symbol received at t_k (None: lost), return (u_k, q_k, theta_k).
-
-        An out-of-range symbol is counted in ``invalid`` and treated as a loss
-        (theta_k = 1), which the ack tells the encoder, so both stay in lockstep.
-        ``decide`` then ``commit``: the same in two steps.
-        """
-        out = self.decide(symbol)
-        self.commit()
-        return out
-
-    def decide(self, symbol: int | None):
-        """(u_k, q_k, theta_k) of Algorithm 2 and law (2), without the update (xi), (E) of ``commit``.
-
-        A live controller sends u_k between the two: the prediction xi_k+1 = phi_T(q_k, u_k)
-        is not on the path of u_k.  ``decide`` again before ``commit`` is an error.
-        """
-        if self._pending is not None:
-            raise RuntimeError("Decoder.decide() twice without commit()")
-        n = self.plant.n
-        cb = self.codebook
-        overflow = False
-        if symbol is not None and not (0 <= int(symbol) < cb.n_codes):
-            self.invalid += 1
-            symbol = None
-        if symbol is None:
-            theta = 1
-            q = np.zeros(n)
-        else:
-            theta = 0
-            if int(symbol) == cb.overflow:
-                overflow = True
-                self.overflows += 1
-                q = np.zeros(n)
-            else:
-                q = np.empty(n)
-                box_center(int(symbol), self.xi, self.E, self.qp.M, q)
-        u = np.empty(self.plant.m)
-        control_input(self.K, q, theta, overflow, u)
-        self._pending = (theta, overflow, q)
-        return u, q, theta
-
-    def commit(self) -> None:
-        """Apply (xi), (E) for the sample ``decide`` decided: xi_k+1, E_k+1 (Algorithm 2)."""
-        if self._pending is None:
-            raise RuntimeError("Decoder.commit() without decide()")
-        theta, overflow, q = self._pending
-        self._pending = None
-        self._update(theta, overflow, q)

@@ -16,7 +16,7 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
-from . import device, traces
+from . import device, methodswap, traces
 from .channel import ChannelError, parse_network
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
@@ -125,9 +125,9 @@ def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
         raise ctx.err(key, str(e)) from None
 
 
-def _method_section(ctx, data: dict, base_dir: str, swapped: bool):
-    """[method] and the [quantizer] keys it uses: (MethodSpec, method, note).  A key the scenario's own
-    method does not use is an error naming it; a swapped method (``--method``) ignores them (the note)."""
+def _method_section(ctx, data: dict, base_dir: str):
+    """[method] and the [quantizer] keys it uses: (MethodSpec, method).  A key the method does not use is
+    an error naming it (a swapped method, :func:`swap_method`, has them left out already)."""
     from . import methods
 
     mt = _table(ctx, "method", data.get("method", {}))
@@ -143,23 +143,28 @@ def _method_section(ctx, data: dict, base_dir: str, swapped: bool):
     qt = data.get("quantizer", {})
     used = set(obj.uses) | {"T"}
     unused = [k for k in qt if k not in used] if isinstance(qt, dict) else []
-    note = ""
-    if unused and not swapped:
+    if unused:
         raise ctx.err(f"quantizer.{unused[0]}", f"is not used by the method {name!r} (it uses "
                       f"{', '.join(['T', *obj.uses])}); remove it")
-    if unused:
-        note = f"note: method {name!r} ignores [quantizer] {', '.join(unused)} of this scenario"
-    return MethodSpec(name, _freeze(params), base_dir), obj, note, [k for k in unused]
+    return MethodSpec(name, _freeze(params), base_dir), obj
+
+
+def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>") -> tuple[dict, str]:
+    """``data`` with the method ``new`` swapped in by the one rule (``testbed.methodswap``: the scenario's
+    own method keeps its params, dropped params and ignored ``[quantizer]`` keys are named in the note):
+    (the document, the note without its ``note: ``)."""
+    return methodswap.swap(data, new, base_dir or None, known_quantizer_keys=_KEYS["quantizer"], where=where)
 
 
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
               base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
-              method_swapped: bool = False) -> Scenario:
+              method_note: str = "") -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
     from there first and an FMU path is relative to it.  ``check_fmu=False`` skips
     reading an FMU plant's file (a recording's scenario: the report needs only the model).
+    ``method_note``: the line of a method swapped into ``data`` (:func:`swap_method`), kept on the Scenario.
     ``check_design=False`` skips the Schur check of a given K (scipy's expm): for the
     nodes of a run whose launcher checked the same text and overrides already.
     """
@@ -239,9 +244,9 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     # [method] and [quantizer]
     qt = data["quantizer"]
     _unknown(ctx, "quantizer", qt, _KEYS["quantizer"])
-    mspec, mobj, mnote, ignored = _method_section(ctx, data, base_dir, method_swapped)
+    mspec, mobj = _method_section(ctx, data, base_dir)
     muses = set(mobj.uses)
-    qt = {k: v for k, v in qt.items() if k not in ignored}
+    qt = dict(qt)
     for k in ("T", "M", "L", "E0"):
         if k not in qt:
             if k == "T" or k in muses:
@@ -445,7 +450,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
                   description=description, model=model, L_u=L_u, base_dir=base_dir, method=mspec,
-                  method_note=mnote, network=network)
+                  method_note=f"note: {method_note}" if method_note else "", network=network)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
@@ -609,11 +614,9 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
     data = tomllib.loads(sc.source)
     for k, v in over.items():
         table, key = OVERRIDES[k]
-        if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swaps the method
-            v = {"name": v} if isinstance(v, str) else v
-            if not isinstance(v, dict):
+        if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swapped in last, below
+            if not isinstance(v, (str, dict)):
                 raise BadInput(f"override method must be a method name, got {v!r}")
-            data["method"] = {**v}
             continue
         if key is None:  # attack: a table merged into [attack] (a new kind replaces it)
             if not isinstance(v, dict):
@@ -626,10 +629,14 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
             v = v.tolist()
         as_float = isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES
         data.setdefault(table, {})[key] = float(v) if as_float else v
+    where = f"{sc.path} (with run overrides)"
     try:
-        sc2 = from_dict(data, name=sc.name, where=f"{sc.path} (with run overrides)", source=sc.source,
+        note = ""
+        if "method" in over:
+            data, note = swap_method(data, over["method"], sc.base_dir or None, where)
+        sc2 = from_dict(data, name=sc.name, where=where, source=sc.source,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                        check_design=check_design, method_swapped="method" in over)
+                        check_design=check_design, method_note=note)
     except ScenarioError as e:
         raise BadInput(_override_hint(str(e), sc, over)) from None
     return dataclasses.replace(sc2, path=sc.path)

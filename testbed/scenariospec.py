@@ -232,12 +232,28 @@ class Scenario:
     L_u: float = 0.0       # input gain of the model (delay-aware rule)
     base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
     method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
-    method_note: str = ""  # a swapped method (``--method``): the [quantizer] keys it ignores, one line
+    method_note: str = ""  # a swapped method (``--method``): what it leaves out, one line (testbed.methodswap)
     network: NetworkModel | None = None   # [network]: the emulated channels (None: ideal links)
 
     def make_method(self):
         """The coding-and-control method ([method]; ``testbed.methods.Method``)."""
         return self.method.make()
+
+    def code_not_run(self) -> list[str]:
+        """One line for each of the plant, the model and the method whose code is not here: a recording's
+        module that is not importable and whose stored source was not run (``testbed.open`` without
+        ``trust_code``, a reader without ``--trust-code``; ``plants.refs.stand_in_plant``).  What needs that
+        code (re-simulation, the escape verdict, the region of attraction) is skipped; empty: all runs."""
+        from plants.refs import not_run
+
+        from . import methods
+
+        classes = [methods.resolve(self.method.name, self.method.base_dir or None)]
+        if self.plant.fmu is None:
+            classes.append(plants.resolve(self.plant.ref or self.plant.name, self.plant.base_dir or None))
+        if self.model is not None:
+            classes.append(plants.resolve(self.model.name, self.model.base_dir or None))
+        return [w for w in dict.fromkeys(not_run(c) for c in classes) if w]
 
     @property
     def T(self) -> float:

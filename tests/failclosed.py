@@ -45,6 +45,8 @@ CAPABILITIES = {
     "foxglove": "foxglove-sdk (pip install '.[foxglove]')",
     "dask": "dask.distributed (pip install '.[dask]')",
     "mount": "mount a small tmpfs (root): the recording that fills its disk",
+    "zenoh-pico": "cmake, make, pkg-config and a C compiler, and the Mbed TLS 3.6 and zenoh-pico 1.9 sources "
+                  "(../shared/vendor, or MBEDTLS_SRC and ZENOH_PICO_SRC): the C plant device (devices/pico-plant)",
 }
 
 REQUIRE_ENV = "TESTBED_REQUIRE"

@@ -173,6 +173,42 @@ def test_bad_value_is_one_line_naming_axis_value_reason(tmp_path):
         assert p.returncode == 2 and len(lines) == 1 and all(w in lines[0] for w in words), (text, p.stderr)
 
 
+def test_each_method_its_own_params(tmp_path):
+    """[methods.NAME] params give one method of a method.name axis its params (over the scenario's own when
+    it is the scenario's method, under a method.params axis); a bad one is one line before anything runs,
+    and a method.params axis that one method lacks says how to give it to one method only."""
+    (tmp_path / "own.toml").write_text(RANDOM_SCENARIO.replace("[run]", '[method]\nname = "static"\n'
+                                                               'params = { range = 0.7 }\n\n[run]')
+                                       .replace('L = 10.0\nE0 = 0.1\nmode = "resilient"\n', ""))
+    base = 'scenario = "own.toml"\nseed = 2\n[axes]\n"method.name" = ["static", "unquantized"]\n'
+    c = tmp_path / "m.toml"
+    c.write_text(base)
+    runs, notes = cmp.plan(cmp.parse(c))
+    assert "range = 0.7" in runs[0].text and "[method]" in runs[1].text and "range" not in runs[1].text
+    assert notes == ["method 'unquantized' ignores [quantizer] M of this scenario and drops the [method] params "
+                     "range of 'static'"]
+    c.write_text(base + '[methods.static]\nparams = { range = 0.5 }\n')
+    runs, _ = cmp.plan(cmp.parse(c))
+    assert "range = 0.5" in runs[0].text and "range" not in runs[1].text
+    c.write_text(base.replace('"unquantized"]', '"paper"]\n"method.params.range" = [0.4]') + '[methods.static]\n'
+                 'params = { range = 0.5 }\n')
+    with pytest.raises(cmp.BadInput, match=r"has no parameter 'range'.*\[methods\.\"NAME\"\] params"):
+        cmp.plan(cmp.parse(c))
+    c.write_text(base.replace(', "unquantized"]', "]\n\"method.params.range\" = [0.4, 0.3]") + '[methods.static]\n'
+                 'params = { range = 0.5 }\n')
+    runs, _ = cmp.plan(cmp.parse(c))
+    assert ["range = 0.4" in runs[0].text, "range = 0.3" in runs[1].text] == [True, True]
+    for extra, words in [('[methods.unquantized]\nparams = { range = 1.0 }\n', ['[methods."unquantized"] params', "range"]),
+                         ('[methods.zoom]\nparams = {}\n', ['[methods."zoom"]', "runs no method 'zoom'"]),
+                         ('[methods.static]\nparams = { range = -1.0 }\n', ['[methods."static"] params', "range"]),
+                         ('[methods.static]\nrange = 1.0\n', ['[methods."static"]', "params"])]:
+        c.write_text(base + extra)
+        p = _cli("campaign", c, "--out", tmp_path / "o", cwd=tmp_path)
+        lines = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(lines) == 1 and all(w in lines[0] for w in words), (extra, p.stderr)
+        assert not (tmp_path / "o").exists()
+
+
 def test_changed_campaign_refused_and_default_folder(tmp_path):
     c = _campaign(tmp_path, 'scenario = "random.toml"\n[axes]\n"attack.seed" = [1, 2]\n', "mine.toml")
     p = _cli("campaign", c.name, "--no-progress", cwd=tmp_path)
@@ -201,7 +237,7 @@ def test_seeds_rule(tmp_path):
     c.write_text('scenario = "seeded.toml"\nseed = 5\n[axes]\n"method.name" = ["paper", "zoom"]\n')
     runs, notes = cmp.plan(cmp.parse(c))
     assert [r.seeds["seeds.attack"] for r in runs] == [42, 42]
-    assert notes == ["method 'zoom' ignores [quantizer] mode of the scenario"]
+    assert notes == ["method 'zoom' ignores [quantizer] mode of this scenario"]  # the one swap note (testbed.methodswap)
 
 
 @pytest.mark.slow
@@ -401,6 +437,71 @@ def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
     assert [r["status"] for r in rows] == ["ok", "failed"]
     assert "no codebook below a = 0.9" in rows[1]["error"] and rows[1]["converged"] is None
     assert json.loads(p.stdout)["summary"]["failed"] == 1
+
+
+def test_a_campaign_with_a_users_method_reruns_from_its_folder_alone(tmp_path):
+    """The folder stores the method's module (manifest: source and sha256; a copy beside the scenarios):
+    from another folder, with only the project root on PYTHONPATH, `testbed simulate DIR/scenarios/RUN.toml`
+    repeats a row, and `--verify DIR` reruns every row from the stored source only with --trust-code
+    (never importing the folder's copy: a copy with a side effect at import is named, and runs nothing);
+    a row whose re-run fails says why (the exception), not "re-run None"."""
+    import hashlib
+    import shutil
+
+    import testbed
+
+    src = tmp_path / "methoddir"
+    src.mkdir()
+    for f in ("mymethod.py", "mymethod.toml"):
+        shutil.copy(ROOT / "docs" / "examples" / f, src / f)
+    (src / "c.toml").write_text('scenario = "mymethod.toml"\n[axes]\n"method.name" = ["mymethod:CenteredZoom", '
+                                '"paper"]\n"plant.x0" = [[0.1, 0.1], [0.2, -0.1]]\n"run.duration" = [4.0]\n')
+    p = _cli("campaign", "c.toml", "--out", tmp_path / "out", "--workers", 1, "--no-progress", cwd=src)
+    assert p.returncode == 0, p.stderr
+    out = tmp_path / "out"
+    man = json.loads((out / "manifest.json").read_text())
+    text = (src / "mymethod.py").read_text()
+    assert man["code"] == [{"kind": "method", "ref": "mymethod:CenteredZoom", "module": "mymethod",
+                            "class": "CenteredZoom", "sha256": hashlib.sha256(text.encode()).hexdigest(),
+                            "source": text, "copy": "scenarios/mymethod.py"}]
+    assert (out / "scenarios" / "mymethod.py").read_text() == text
+    (src / "mymethod.py").write_text(text + "\n# edited\n")  # resuming with another module is refused
+    p = _cli("campaign", "c.toml", "--out", out, "--no-progress", cwd=src)
+    errs = [ln for ln in p.stderr.strip().splitlines() if ": note: " not in ln]
+    assert p.returncode == 2 and len(errs) == 1, p.stderr
+    assert "method 'mymethod:CenteredZoom' changed since the campaign started" in errs[0]
+    shutil.rmtree(src)  # the method's folder gone
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {"PYTHONPATH": str(Path(testbed.__file__).resolve().parents[1])}
+    rows = {r["run"]: r for r in _table(out)}
+    run = next(r for r in rows.values() if r["method"] == "mymethod:CenteredZoom")["run"]
+    p = _cli("simulate", out / "scenarios" / f"{run}.toml", "--json", cwd=elsewhere, env=env)
+    assert p.returncode == 0, p.stderr
+    assert all(json.loads(p.stdout)[k] == rows[run][k] for k in cmp.OUTCOME_KEYS)
+    p = _cli("campaign", "--verify", out, cwd=elsewhere, env=env)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "--trust-code" in p.stderr, p.stderr
+    assert "mymethod:CenteredZoom" in p.stderr
+    p = _cli("campaign", "--verify", out, "--trust-code", "--json", cwd=elsewhere, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    v = json.loads(p.stdout)
+    assert v["identical"] and v["checked_simulated"] == 4 and not v["differences"]
+    # a copy beside the scenarios that is not the stored module (and writes a file when imported)
+    flag = tmp_path / "imported"
+    (out / "scenarios" / "mymethod.py").write_text(text + f"\nopen({str(flag)!r}, 'w').close()\n")
+    for cwd in (elsewhere, out / "scenarios"):
+        p = _cli("campaign", "--verify", out, "--trust-code", cwd=cwd, env=env)
+        assert p.returncode == 1 and "PROBLEM: scenarios/mymethod.py: differs from the manifest's sha256" in p.stdout
+        assert "DIFFERS" not in p.stdout and not flag.exists(), p.stdout
+    (out / "scenarios" / "mymethod.py").write_text(text)
+    # a folder whose manifest stores no code (as before): each row says why its re-run failed
+    man.pop("code")
+    (out / "manifest.json").write_text(json.dumps(man))
+    p = _cli("campaign", "--verify", out, cwd=elsewhere, env=env)
+    differs = [ln for ln in p.stdout.splitlines() if "DIFFERS" in ln]
+    assert p.returncode == 1 and len(differs) == 2, p.stdout
+    assert all("the re-run failed: " in ln and "method 'mymethod:CenteredZoom': no module 'mymethod'" in ln
+               for ln in differs), differs
 
 
 @pytest.mark.process

@@ -140,3 +140,22 @@ def test_the_theorem_2_verdict_does_not_read_as_a_contradiction(capsys):
     out = capsys.readouterr().out
     assert "theorem2_holds=True" not in out and "within: False" not in out
     assert "does not cover it" in out
+
+
+def test_exit_codes_come_from_one_definition_in_every_help_and_in_the_docs():
+    """Every command's epilog and the table of docs/cli.md list the codes of ``errors.EXIT_CODES``
+    (0, 1, 2 and 3), and no other code below 128."""
+    from pathlib import Path
+
+    from testbed.errors import EPILOG, EXIT_CODES
+
+    assert sorted(EXIT_CODES) == [0, 1, 2, 3]
+    helps = {"testbed": cli.build_parser().epilog, **{n: p.epilog for n, p in _parsers().items()}}
+    for name, epilog in helps.items():
+        assert epilog == EPILOG, name
+        for code, meaning in EXIT_CODES.items():
+            assert f"{code} {meaning}" in epilog, (name, code)
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    section = doc.split("## Exit codes", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\| (\d+) \|", section, flags=re.M)
+    assert sorted(int(r) for r in rows) == sorted(EXIT_CODES), rows

@@ -385,11 +385,9 @@ def test_skip_sample_equals_a_lost_packet(paper):
     """An encoder that withheld sample k (skip_sample) stays in lockstep with a decoder that lost it."""
     from testbed.flow import phi_T
     from testbed.nodes.encoder import skip_sample
-    from testbed.quantizer import Decoder, Encoder
-
     plant = paper.make_plant()
-    enc = Encoder(plant, paper.K, paper.quantizer, paper.flow)
-    dec = Decoder(plant, paper.K, paper.quantizer, paper.flow)
+    enc = paper.make_method().make_encoder(plant, paper.K, paper.quantizer, paper.flow)
+    dec = paper.make_method().make_decoder(plant, paper.K, paper.quantizer, paper.flow)
     x = paper.x0
     for k in range(6):
         if k in (2, 3):

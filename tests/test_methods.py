@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import ast
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 from helpers import tb_run
 
+import testbed
 from testbed import methods, scenario
+from testbed.loopspec import ROUNDOFF
 from testbed.sim.batch import OnlineAttacker, simulate_batch, simulate_loop
 
 BUNDLED = ["paper", "zoom", "static", "unquantized", "unquantized-hold"]
@@ -51,7 +57,7 @@ def test_batch_kernel_equals_per_sample(name, specialize):
 
 
 def test_paper_method_is_the_paper():
-    """[method] absent = "paper": the same numbers as the quantizer's own Encoder/Decoder."""
+    """[method] absent = "paper": the same numbers as simulate_loop's default ends (the paper's)."""
     sc = scenario.load("paper")
     assert sc.method.name == "paper"
     a = _loop(sc, method=None)
@@ -151,3 +157,61 @@ def test_contract_every_bundled_method(name):
         assert len(cb.pack(s)) * 8 >= cb.bits >= 1
         assert cb.unpack(cb.pack(s)) == s
         enc.ack(0)
+
+
+# ------------------------------------------------------------------ a method written from docs/methods.md alone
+EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
+#: what docs/methods.md lets a method import: the documented base classes (and numpy, math)
+DOCUMENTED = {"Method", "EncoderEnd", "DecoderEnd", "IntCodebook", "FloatCodebook", "MethodError"}
+
+
+def _predictive(tmp_path, params: str = "") -> Path:
+    """The paper's scenario with docs/examples/mymethod.py's PredictiveZoom as its method (``[quantizer]
+    mode`` left out: a key the method does not use)."""
+    shutil.copy(EXAMPLES / "mymethod.py", tmp_path / "mymethod.py")
+    text = scenario.load("paper").source.replace('mode = "resilient"\n', "")
+    path = tmp_path / "predictive.toml"
+    path.write_text(text + f'\n[method]\nname = "mymethod:PredictiveZoom"\n{params}')
+    return path
+
+
+def test_the_docs_example_imports_only_the_documented_interface():
+    tree = ast.parse((EXAMPLES / "mymethod.py").read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            assert {a.name for a in node.names} <= {"math", "numpy"}, ast.dump(node)
+        elif isinstance(node, ast.ImportFrom):
+            assert node.module == "testbed.methods", node.module
+            assert {a.name for a in node.names} <= DOCUMENTED, ast.dump(node)
+
+
+def test_a_method_written_from_the_docs_equals_the_paper(tmp_path):
+    """docs/examples/mymethod.py's PredictiveZoom, written against the documented end API alone (phi_T,
+    feedback, floor_E, K, qp, u_prev), configured like the paper (hold = false), equals ``paper`` bit for bit
+    over the paper's scenario: symbols, theta, q, u, xi and E at both ends, x, the run's summary."""
+    paper = testbed.simulate("paper")
+    mine = testbed.simulate(_predictive(tmp_path))
+    assert mine.summary["method"] == "mymethod:PredictiveZoom" and mine.summary["simulator"] == "per-sample"
+    assert set(mine.arrays) == set(paper.arrays)
+    for k, a in paper.arrays.items():
+        assert np.array_equal(a, mine.arrays[k], equal_nan=a.dtype.kind == "f"), k
+    assert np.count_nonzero(paper.arrays["theta"]) == 22 and not paper.arrays["saturated"].any()
+    E, xi = mine.arrays["E_dec"], mine.arrays["xi_dec"]
+    assert np.any(E == ROUNDOFF * np.max(np.abs(xi), axis=1))   # the floor of rule (E) was reached
+    same = {k for k in paper.summary if paper.summary[k] == mine.summary.get(k)}
+    assert set(paper.summary) - same == {"method", "simulator"}
+    # the per-sample simulator on both (the paper's ends against the user's): the ends' final state too
+    sp, su = scenario.load("paper"), scenario.load(_predictive(tmp_path))
+    a, b = _loop(sp), _loop(su)
+    assert np.array_equal(a.loop_state, b.loop_state) and np.array_equal(a.E_enc, b.E_enc) and b.agree
+
+
+def test_the_docs_example_holding_the_input_through_a_loss(tmp_path):
+    """hold = true (docs/examples/predictive.toml): u_k = u_{k-1} through every loss, in lockstep, and it
+    is no longer the paper's loop."""
+    r = _loop(scenario.load(_predictive(tmp_path, "params = { hold = true }\n")))
+    lost = np.flatnonzero(r.theta == 1)
+    assert len(lost) == 22 and r.agree and not r.lockstep_breaks
+    assert all(np.array_equal(r.u[k], r.u[k - 1]) for k in lost)
+    assert np.any(r.u[lost] != 0.0) and r.final_norm < 1e-4
+    assert dict(scenario.load(EXAMPLES / "predictive.toml").method.params) == {"hold": True}

@@ -68,6 +68,7 @@ def test_versus_seeds_summary(tmp_path):
     rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--seeds", "4", "--seed", "7", "--json",
                       cwd=tmp_path)
     assert rc == 0, err
+    assert "drew seed" not in err    # the rows use seeds 7..10: nothing is drawn
     d = json.loads(out)
     assert d["seeds"] == [7, 8, 9, 10] and len(d["rows"]) == 8
     lost = {}
@@ -102,6 +103,12 @@ def test_versus_seeds_summary(tmp_path):
         float(np.median(np.subtract(mx, mp))))
     rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--seeds", "4", "--seed", "7", cwd=tmp_path)
     assert rc == 0 and "minus paper on the same seeds (4 pairs): converged" in out and "McNemar p" in out
+    # without --seeds: one seed drawn, named on stderr, and every method (a swapped one too) faces it
+    rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--json", cwd=tmp_path)
+    assert rc == 0, err
+    drawn = int(err.split("drew seed = ")[1].split()[0])
+    rows = json.loads(out)["rows"]
+    assert [r["seed"] for r in rows] == [drawn, drawn] and rows[0]["samples_lost"] == rows[1]["samples_lost"]
 
 
 def test_wilson_against_a_direct_computation():
@@ -141,15 +148,57 @@ def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     m = meta["testbed.scenario"]
     assert m["method_ref"] == "mymethod:CenteredZoom" and m["method_class"] == "CenteredZoom"
     assert "class CenteredZoom" in m["method_source"] and len(m["method_sha256"]) == 64
-    # the method's folder gone: the report loads the source stored in the recording (and says so)
+    # the method's folder gone: with --trust-code the report loads the source stored in the recording (and
+    # says so; without it, tests/test_trust_code.py)
     shutil.move(method_dir, method_dir.parent / "moved")
-    rc, out, err = tb("report", method_dir.parent / "run.mcap", "--json", cwd="/")
+    rc, out, err = tb("report", method_dir.parent / "run.mcap", "--json", "--trust-code", cwd="/")
     assert rc == 0, err
     assert json.loads(out)["x"] == sim["x"] and "loaded the source stored in" in err
     shutil.move(method_dir.parent / "moved", method_dir)
     # batch commands say clearly that a user's method has no kernel
     rc, out, err = tb("sweep", "../methoddir/mymethod.toml", cwd=work)
     assert rc == 2 and "no batch kernel" in err and len(err.strip().splitlines()) == 1
+
+
+def test_swapping_in_the_scenarios_own_method_keeps_its_params(method_dir):
+    """One swap rule: --method with the scenario's own method keeps its [method] params (a = 0.9, not the
+    default 0.96), another method names the params it drops in one stderr line, and simulate, versus and a
+    campaign axis over method.name give the same row for the scenario's own method."""
+    work = method_dir.parent / "elsewhere"
+    sc = method_dir / "mymethod.toml"
+    sc.write_text(sc.read_text().replace("params = { a = 0.96 }", "params = { a = 0.9 }")
+                  .replace("duration = 30.0", "duration = 6.0"))
+    (method_dir / "default.toml").write_text(sc.read_text().replace("params = { a = 0.9 }\n", ""))
+    own = "mymethod:CenteredZoom"
+
+    def simulate(*a):
+        rc, out, err = tb("simulate", *a, "--json", cwd=work)
+        assert rc == 0, err
+        return json.loads(out), err
+
+    base, err0 = simulate(sc)
+    swapped, err1 = simulate(sc, "--method", own)
+    default, _ = simulate(method_dir / "default.toml")
+    assert default["final_norm"] != base["final_norm"]          # the param matters
+    assert swapped["x"] == base["x"] and swapped["final_norm"] == base["final_norm"]
+    assert "note" not in err0 + err1
+    _, err = simulate(sc, "--method", "paper")
+    notes = [ln for ln in err.splitlines() if "note" in ln]
+    assert notes == ["testbed simulate: note: method 'paper' drops the [method] params a of 'mymethod:CenteredZoom'"]
+    rc, out, err = tb("versus", sc, "--methods", f"{own},paper", "--json", cwd=work)
+    assert rc == 0, err
+    rows = {r["method"]: r for r in json.loads(out)["rows"]}
+    assert rows[own]["final_norm"] == base["final_norm"] and rows[own]["saturations"] == base["saturations"]
+    assert "drops the [method] params a of" in err
+    (work / "c.toml").write_text(f'scenario = "{sc}"\n[axes]\n"method.name" = ["{own}", "paper"]\n')
+    rc, out, err = tb("campaign", "c.toml", "--out", "o", "--workers", "1", "--no-progress", cwd=work)
+    assert rc == 0, err
+    import pyarrow.parquet as pq
+
+    crow = {r["method"]: r for r in pq.read_table(work / "o" / "runs.parquet").to_pylist()}
+    assert crow[own]["final_norm"] == base["final_norm"] and crow[own]["saturations"] == base["saturations"]
+    assert crow["paper"]["final_norm"] == rows["paper"]["final_norm"]
+    assert "testbed campaign: note: method 'paper' drops the [method] params a of 'mymethod:CenteredZoom'" in err
 
 
 def test_trace_method_b_loses_method_a_samples(tmp_path):

@@ -124,13 +124,19 @@ def test_module_next_to_scenario_simulate_and_report(plant_dir):
     for key in ("x", "u", "E", "theta", "symbols"):
         assert rep[key] == sim[key], key
 
-    # the module is gone: the report uses the source stored in the recording, and says so
+    # the module is gone: without --trust-code the stored source is not run (the recorded values are read)
     (plant_dir / "myplants.py").rename(plant_dir / "myplants.py.away")
-    rc, out, err = tb("report", rec, cwd=other)
+    rc, out, err = tb("report", rec, "--json", cwd=other)
+    assert rc == 0, err
+    rep0 = json.loads(out)
+    assert rep0["plant_source"]["loaded_from"] == "not run" and "--trust-code" in err
+    assert rep0["x"] == sim["x"] and rep0["escaped"] is None and "--trust-code" in rep0["resimulation"]["verdict"]
+    # with it, the report uses the source stored in the recording, and says so
+    rc, out, err = tb("report", rec, "--trust-code", cwd=other)
     assert rc == 0, err
     assert "not importable; used the source stored in the recording" in out
     assert "runs code from the recording" in err
-    rc, out, err = tb("report", rec, "--json", cwd=other)
+    rc, out, err = tb("report", rec, "--json", "--trust-code", cwd=other)
     rep2 = json.loads(out)
     assert rep2["plant_source"]["loaded_from"] == "recording" and rep2["plant_source"]["sha256"] == sha
     assert "no module 'myplants'" in rep2["plant_source"]["reason"]
@@ -350,7 +356,7 @@ def test_recorded_model_module_is_stored_too(tmp_path):
     rec = tmp_path / "mm.mcap"
     record_simulation(rec, sc, simulate_scenario(sc))
     (tmp_path / "mymodels.py").unlink()
-    rc, out, err = tb("report", rec, "--json", cwd=tmp_path.parent)
+    rc, out, err = tb("report", rec, "--json", "--trust-code", cwd=tmp_path.parent)
     assert rc == 0, err
     rep = json.loads(out)
     assert rep["model_source"]["loaded_from"] == "recording" and rep["model_source"]["module"] == "mymodels"
@@ -377,20 +383,21 @@ def test_stored_source_refusals_are_one_line_and_leave_sys_modules_as_they_were(
              (raises, sha(raises), "failed to load: RuntimeError: the stored code broke")]
     for text, digest, why in cases:
         with pytest.raises(PlantRefError) as e:
-            load_source("json:VanDerPol", None, "json", "VanDerPol", text, digest)
+            load_source("json:VanDerPol", None, "json", "VanDerPol", text, digest, trust_code=True)
         assert why in str(e.value) and "\n" not in str(e.value)
         assert sys.modules["json"] is json   # the real json module is still the one imported
     with pytest.raises(PlantRefError, match="bad stored module or class name"):
-        load_source("x:VanDerPol", None, "os;rm", "VanDerPol", VDP, sha(VDP))
+        load_source("x:VanDerPol", None, "os;rm", "VanDerPol", VDP, sha(VDP), trust_code=True)
     # a plant module named as a method: its class is no Method
     with pytest.raises(MethodError, match=r"is not a subclass of testbed\.methods\.Method") as e:
         resolve_recorded("testbed_no_such_module_xyz:VanDerPol", None, module="testbed_no_such_module_xyz",
-                         class_name="VanDerPol", source=VDP, sha256=sha(VDP))
+                         class_name="VanDerPol", source=VDP, sha256=sha(VDP), trust_code=True)
     assert "\n" not in str(e.value) and "testbed_no_such_module_xyz" not in sys.modules
     with pytest.raises(MethodError, match="does not match its sha256"):
         resolve_recorded("testbed_no_such_module_xyz:M", None, module="testbed_no_such_module_xyz", class_name="M",
-                         source=VDP, sha256="0" * 64)
+                         source=VDP, sha256="0" * 64, trust_code=True)
     # and a good one loads, pinned to its reference
-    cls = load_source("testbed_stored_vdp:VanDerPol", None, "testbed_stored_vdp", "VanDerPol", VDP, sha(VDP))
+    cls = load_source("testbed_stored_vdp:VanDerPol", None, "testbed_stored_vdp", "VanDerPol", VDP, sha(VDP),
+                      trust_code=True)
     assert cls.name == "vanderpol" and sys.modules["testbed_stored_vdp"].VanDerPol is cls
     assert plants.refs.resolve("testbed_stored_vdp:VanDerPol", None) is cls

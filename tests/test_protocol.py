@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 import plants
 from testbed import scenario
 from testbed.flow import phi_T
+from testbed.methods.bundled import PaperMethod
 from testbed.protocol import (
     DEADLINE,
     INVALID,
@@ -23,7 +24,7 @@ from testbed.protocol import (
     Send,
     Withhold,
 )
-from testbed.quantizer import Decoder, Encoder, delay_margin_gain
+from testbed.quantizer import delay_margin_gain
 from testbed.sim.batch import simulate_batch, simulate_scenario
 from testbed.sim.loop import Network, OnlineAttacker, simulate_loop
 
@@ -39,8 +40,8 @@ def physical(name: str, **run) -> scenario.Scenario:
 
 # ============================================================================ the state machines
 def _ends(sc):
-    model = sc.make_model()
-    return Encoder(model, sc.K, sc.quantizer, sc.flow), Decoder(model, sc.K, sc.quantizer, sc.flow)
+    model, paper = sc.make_model(), PaperMethod()
+    return paper.make_encoder(model, sc.K, sc.quantizer, sc.flow), paper.make_decoder(model, sc.K, sc.quantizer, sc.flow)
 
 
 def test_encoder_withholds_until_an_ack_resolves_and_recovers_theta_from_last_rx(paper):

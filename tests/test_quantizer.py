@@ -9,11 +9,13 @@ from hypothesis import strategies as st
 
 import plants
 from testbed.flow import phi_T
-from testbed.quantizer import Codebook, Decoder, Encoder, InvalidSymbol, QuantizerParams, box_center, quantize_index
+from testbed.methods.bundled import PaperMethod
+from testbed.quantizer import Codebook, InvalidSymbol, QuantizerParams, box_center, quantize_index
 from testbed.sim.loop import OnlineAttacker, simulate_loop
 
 LIENARD = plants.make("lienard")
 K_PAPER = np.array([[-1.81, -1.90]])
+PAPER = PaperMethod()  # the paper's ends: PAPER.make_encoder(model, K, qp), PAPER.make_decoder(...)
 
 
 @settings(max_examples=300, deadline=None)
@@ -124,8 +126,8 @@ def test_ideal_quantizer_keeps_the_state_in_the_box_for_the_paper(paper):
 
 def test_invalid_symbol_is_a_counted_loss_and_keeps_lockstep():
     qp = _qp()
-    enc = Encoder(LIENARD, K_PAPER, qp)
-    dec = Decoder(LIENARD, K_PAPER, qp)
+    enc = PAPER.make_encoder(LIENARD, K_PAPER, qp)
+    dec = PAPER.make_decoder(LIENARD, K_PAPER, qp)
     x = np.array([0.05, 0.02])
     for k in range(20):
         sym, _ = enc.encode(x)
@@ -141,8 +143,8 @@ def test_invalid_symbol_is_a_counted_loss_and_keeps_lockstep():
 def _run_with_kick(mode, kick_at=15, kick=np.array([0.2, -0.2]), N=300, **kw):  # noqa: B008 - never written
     """A loop whose plant is kicked once: model mismatch puts x_k outside Q(xi_k, E_k)."""
     qp = _qp(mode, **kw)
-    enc = Encoder(LIENARD, K_PAPER, qp)
-    dec = Decoder(LIENARD, K_PAPER, qp)
+    enc = PAPER.make_encoder(LIENARD, K_PAPER, qp)
+    dec = PAPER.make_decoder(LIENARD, K_PAPER, qp)
     x = np.array([0.05, 0.05])
     sats, overflow_seen, inside = 0, 0, []
     for k in range(N):
@@ -179,8 +181,8 @@ def test_E_floor():
 def test_overflow_recovers_even_after_E_underflowed_to_zero():
     """A long run at small T can underflow E to 0; OVERFLOW must still zoom out (both ends alike)."""
     qp = _qp()
-    enc = Encoder(LIENARD, K_PAPER, qp)
-    dec = Decoder(LIENARD, K_PAPER, qp)
+    enc = PAPER.make_encoder(LIENARD, K_PAPER, qp)
+    dec = PAPER.make_decoder(LIENARD, K_PAPER, qp)
     enc.E = dec.E = 0.0
     x = np.array([0.01, -0.01])
     for _k in range(300):

@@ -8,6 +8,7 @@ import dataclasses
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -100,3 +101,28 @@ def test_a_malformed_run_flag_is_one_line_and_exit_2(flags, says):
     r = subprocess.run([sys.executable, "-m", "testbed.cli", "run", "paper", "--no-record", *flags],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and says in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+
+
+def test_the_run_digest_covers_the_method_reference_params_and_module(tmp_path):
+    """Every node must agree on the method: its reference and params (a --method swap too) and the sha256
+    of its module's source enter the digest, as the plant module's does; the same scenario gives the same."""
+    from testbed import scenario
+    from testbed.nodes.options import run_digest
+
+    examples = Path(__file__).resolve().parents[1] / "docs" / "examples"
+    for f in ("mymethod.py", "mymethod.toml"):
+        shutil.copy(examples / f, tmp_path / f)
+    opts = RunOptions()
+    sc = scenario.load(tmp_path / "mymethod.toml")
+    d0 = run_digest(sc, opts)
+    assert run_digest(scenario.load(tmp_path / "mymethod.toml"), opts) == d0
+    assert run_digest(scenario.with_overrides(sc, {"method": "paper"}), opts) != d0
+    assert run_digest(scenario.with_overrides(sc, {"method": {"params": {"a": 0.9}}}), opts) != d0
+    # the same reference and params, the module's source changed (a comment): another digest
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "mymethod.toml").write_text((tmp_path / "mymethod.toml").read_text())
+    (other / "mymethod.py").write_text((tmp_path / "mymethod.py").read_text() + "\n# edited\n")
+    sc2 = scenario.load(other / "mymethod.toml")
+    assert sc2.source == sc.source and sc2.method.name == sc.method.name
+    assert run_digest(sc2, opts) != d0

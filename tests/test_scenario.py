@@ -1,5 +1,7 @@
 """Scenario files: bundled scenarios load; every bad value gets a clear error."""
 
+import tomllib
+
 import numpy as np
 import pytest
 from helpers import paper_loop_toml
@@ -103,3 +105,29 @@ def test_reading_a_scenario_imports_no_numba():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_the_one_method_swap_rule():
+    """--method with the scenario's own method keeps its params (given params go over them); another
+    method gets its defaults and the note names the params it drops and the [quantizer] keys it ignores;
+    an unknown [quantizer] key stays an error whatever the swap."""
+    text = GOOD.replace("[attack]", '[method]\nname = "static"\nparams = { range = 0.7 }\n\n[attack]')
+    text = "\n".join(ln for ln in text.splitlines() if not ln.startswith(("L = ", "E0 = ", "mode = "))) + "\n"
+    sc = scenario.loads(text)
+    assert dict(sc.method.params) == {"range": 0.7} and not sc.method_note
+    same = scenario.with_overrides(sc, {"method": "static"})
+    assert dict(same.method.params) == {"range": 0.7} and same.method_note == ""
+    assert dict(scenario.with_overrides(sc, {"method": {"name": "static", "params": {"range": 0.5}}}).method.params) \
+        == {"range": 0.5}
+    other = scenario.with_overrides(sc, {"method": "unquantized"})
+    assert other.method.name == "unquantized" and dict(other.method.params) == {}
+    assert other.method_note == ("note: method 'unquantized' ignores [quantizer] M of this scenario and drops the "
+                                 "[method] params range of 'static'")
+    back = scenario.with_overrides(other, {"method": "static"})  # from the file again: its own params
+    assert dict(back.method.params) == {"range": 0.7}
+    data = tomllib.loads(text)
+    data["quantizer"]["foo"] = 1
+    swapped, note = scenario.swap_method(data, "unquantized", None)
+    assert swapped["quantizer"] == {"T": 0.1, "foo": 1} and "ignores [quantizer] M of" in note
+    with pytest.raises(ScenarioError, match=r"unknown key\(s\) \['foo'\]"):
+        scenario.from_dict(swapped)

@@ -415,7 +415,7 @@ def theorem2_auto(loop: Loop, plant, cert: Certificate, budget=(0.0, 0.0, 0.0, 0
         return results[0]
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     opt = minimize_scalar(lambda lg: -run(lg).E0_bound, bounds=(a, b), method="bounded",
-                          options={"xatol": 2e-3})
+                          options={"xatol": 1e-5})
     best = run(opt.x)
     return best if best.E0_bound >= vals[k] else results[k]
 

@@ -32,11 +32,15 @@ class Point:
     seed: int | None = None
 
     def scenario(self):
+        """The point's scenario: the method swapped in by the one rule (``scenario.swap_method``: the
+        scenario's own method keeps its params) and the attack seed (None: the scenario's own, also a
+        seed drawn for it by ``scenario.with_seed``, which a swap re-reading the file would lose)."""
         over = {}
-        if self.method is not None and self.method != self.sc.method.name:
+        if self.method is not None:
             over["method"] = self.method
-        if self.seed is not None:
-            over["seed"] = int(self.seed)
+        seed = self.seed if self.seed is not None else attack_seed(self.sc)
+        if self.seed is not None or (seed is not None and over):
+            over["seed"] = int(seed)
         return scenario_mod.with_overrides(self.sc, over) if over else self.sc
 
 

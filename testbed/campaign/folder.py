@@ -1,6 +1,7 @@
 """A campaign's folder: the journal (one JSON line per finished run, fsynced), the folder's files
-(``campaign.toml``, ``scenarios/RUN.toml``, ``manifest.json``), the table (``runs.parquet``) and the
-summaries (``summary.json``, ``summary.md``: success rates with their 95 % Wilson interval, medians).
+(``campaign.toml``, ``scenarios/RUN.toml``, the user code beside them (``code``), ``manifest.json``),
+the table (``runs.parquet``) and the summaries (``summary.json``, ``summary.md``: success rates with
+their 95 % Wilson interval, medians).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 from .. import comparestats
 from ..errors import BadInput
+from . import code
 from .engine import outcome_counts, wilson
 from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, Run
 
@@ -84,6 +86,10 @@ def prepare(c: Campaign, runs: list[Run], folder: Path, base) -> None:
         if now != was:
             raise BadInput(f"{folder} holds another campaign: the scenario {c.scenario!r} changed since it "
                            "started: give another --out, or restore the scenario")
+        edited = code.changed(old.get("code") or [], runs)
+        if edited:
+            raise BadInput(f"{folder}: the module of {', '.join(edited)} changed since the campaign started (its "
+                           "sha256 is in manifest.json): give another --out, or restore the module")
         return
     ours = {"scenarios", "scenario.toml", "manifest.json", "scenario.toml.tmp", "manifest.json.tmp"}
     if folder.exists() and any(p.name not in ours for p in folder.iterdir()):  # (ours: a start cut short)
@@ -91,8 +97,10 @@ def prepare(c: Campaign, runs: list[Run], folder: Path, base) -> None:
     (folder / "scenarios").mkdir(parents=True, exist_ok=True)
     for r in runs:
         _write_atomic(folder / "scenarios" / f"{r.id}.toml", r.text)
+    stored = code.collect(runs)
+    code.write_copies(folder, stored, _write_atomic)  # beside the scenarios: they import it from there
     _write_atomic(folder / "scenario.toml", base.source)
-    _write_atomic(man, json.dumps(manifest(c, runs, base), indent=1) + "\n")
+    _write_atomic(man, json.dumps(manifest(c, runs, base, stored), indent=1) + "\n")
     _write_atomic(cp, c.text)  # last: a folder with campaign.toml is complete
 
 
@@ -135,11 +143,14 @@ def source_hash() -> str:
     return "sha256:" + h.hexdigest()
 
 
-def manifest(c: Campaign, runs: list[Run], base) -> dict:
+def manifest(c: Campaign, runs: list[Run], base, stored: list[dict] | None = None) -> dict:
+    """What the folder holds and what made it; ``code``: the user code of the runs (``code.collect``:
+    each method's and plant's reference, module, class, source text, sha256 and its copy's path)."""
     __version__ = sys.modules["testbed"].__version__  # the package's face is a layer above: read, not imported
 
     return {"campaign": c.path.name, "campaign_sha256": c.sha256, "scenario": c.scenario,
-            "runs_kind": c.runs, "repeat": c.repeat, "seed": c.seed, "axes": c.axes,
+            "runs_kind": c.runs, "repeat": c.repeat, "seed": c.seed, "axes": c.axes, "methods": c.methods,
+            "code": code.collect(runs) if stored is None else stored,
             "seed_rule": "sha256(json([campaign seed, choice, sorted [[axis, value], ...], repeat]))[:8] big "
                          "endian mod 2**31, for a random choice no axis sets (unless the scenario seeds it "
                          "and repeat = 1)",

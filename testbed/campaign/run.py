@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from ..errors import BadInput
+from . import code
 from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
 from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
@@ -122,7 +123,7 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
                 prog.say("live runs, each a testbed run of its scenario, recorded"
                          + (" (on the Dask workers, one at a time per host)" if executor is not None
                             and executor.kind == "dask" else ", one at a time") + " ...")
-            rows = (_live_on_dask(executor, todo, folder, live_timeout)
+            rows = (_live_on_dask(executor, todo, folder, live_timeout, _copies(folder))
                     if executor is not None and executor.kind == "dask"
                     else (live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
             for row in rows:
@@ -158,7 +159,16 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
             "notes": notes}
 
 
-def _live_on_dask(executor, todo: list, folder: Path, timeout):
+def _copies(folder: Path) -> list:
+    """(path in the folder, text) of the user code copied beside the scenarios (``code``)."""
+    try:
+        stored = json.loads((folder / "manifest.json").read_text()).get("code") or []
+    except (OSError, ValueError):
+        return []
+    return [(e["copy"], e["source"]) for e in stored if e.get("copy")]
+
+
+def _live_on_dask(executor, todo: list, folder: Path, timeout, copies: list = ()):
     """Live runs on a Dask cluster, one at a time per host (a live run needs the host's cores): each on a
     worker of a free host, its recording brought back into ``folder``; the rows as the runs end.  A worker
     lost mid-run has its run retried elsewhere by the scheduler (``retries=1``)."""
@@ -173,7 +183,7 @@ def _live_on_dask(executor, todo: list, folder: Path, timeout):
 
     def submit(addr):
         r = queue.pop(0)
-        f = client.submit(_remote_live, r.id, r.text, timeout, pure=False, retries=1, workers=[addr],
+        f = client.submit(_remote_live, r.id, r.text, timeout, copies, pure=False, retries=1, workers=[addr],
                           allow_other_workers=True)
         running[f.key] = (r, addr)
         return f
@@ -197,13 +207,17 @@ def _live_on_dask(executor, todo: list, folder: Path, timeout):
         yield row
 
 
-def _remote_live(rid, text, timeout):
-    """On a worker: write the scenario to a scratch folder, run it live, return the row and the recording."""
+def _remote_live(rid, text, timeout, copies=()):
+    """On a worker: write the scenario (and the user code beside it) to a scratch folder, run it live,
+    return the row and the recording."""
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="testbed-campaign-") as d:
         d = Path(d)
         (d / "scenarios").mkdir()
+        for rel, src in copies:
+            (d / rel).parent.mkdir(parents=True, exist_ok=True)
+            (d / rel).write_text(src)
         (d / "scenarios" / f"{rid}.toml").write_text(text)
         run = Run(rid, 0, 0, {}, {}, text, "scenario", "")
         row = live_run(run, d / "recordings", timeout=timeout)
@@ -224,11 +238,20 @@ def _same(a, b) -> bool:
     return a == b
 
 
-def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=None) -> dict:
+def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=None, trust_code: bool = False) -> dict:
     """Re-run the rows of a campaign's folder and compare: simulated rows bit for bit (every one, or
     ``sample`` drawn with ``seed``), live rows re-simulated from their recordings; the versions that
-    differ from the manifest's."""
+    differ from the manifest's.  Each row that differs is one entry saying why (``why``: the re-run's
+    exception, or the first differing column with both values).  The user code the runs need comes from
+    the folder (``code``): the module importable here with the stored sha256, else the stored source,
+    only with ``trust_code`` (``BadInput`` naming --trust-code without it); a live row whose
+    recording holds code that is not run without ``trust_code`` is skipped (``not_run``, ``not_run_why``) and
+    the folder is not called identical."""
+    import functools
+
     import numpy as np
+
+    from plants.refs import CodeNotTrusted
 
     folder = Path(folder)
     for f in ("campaign.toml", "manifest.json", "runs.parquet"):
@@ -256,52 +279,93 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
         text = (folder / p["scenario"]).read_text(encoding="utf-8")
         if hashlib.sha256(text.encode()).hexdigest() != p["scenario_sha256"]:
             problems.append(f"{p['scenario']}: differs from the manifest's hash")
+    stored = man.get("code") or []
+    problems += code.check(folder, stored)
     ok_rows = [r for r in rows if r.get("status") == "ok" and r.get("run") in planned]
     live = [r for r in ok_rows if r.get("recording")]
     sim = [r for r in ok_rows if not r.get("recording")]
     if sample is not None and sample < len(sim):
         idx = np.sort(np.random.default_rng(seed).choice(len(sim), size=sample, replace=False))
         sim = [sim[i] for i in idx]
-    items = [(r["run"], (folder / planned[r["run"]]["scenario"]).read_text(encoding="utf-8"), "scenario",
-              str(folder / "scenarios")) for r in sim]
+    not_run, why = [], None
+    base_dir = ""  # nothing is imported from the folder: its code only through code.load
+    if sim and stored:
+        need = code.untrusted(stored, folder)
+        if need and not trust_code:
+            raise BadInput(f"{folder}: {code.refusal(need)}")
+        code.load(stored, folder, trust_code)  # here first: a stored source that fails is one line
+    items = [(r["run"], (folder / planned[r["run"]]["scenario"]).read_text(encoding="utf-8"), "scenario", base_dir)
+             for r in sim]
     parts = chunks(items, executor.workers if executor is not None else 1, False)
     got = {}
-    fn = simulate_runs_per_sample  # the simulator testbed simulate runs, whatever ran the campaign
+    # the simulator testbed simulate runs, whatever ran the campaign (the folder's code pinned in each worker)
+    fn = functools.partial(rerun_chunk, stored=stored, folder=str(folder), trust_code=trust_code)
     results = executor.map(fn, parts) if executor is not None else map(fn, parts)
     for rs in results:
         for x in rs:
             got[x["run"]] = x
     for r in sim:
         x = got[r["run"]]
-        for k in COMPARED:
-            if not _same(_norm(r.get(k)), _norm(x.get(k))):
-                differences.append({"run": r["run"], "column": k, "table": r.get(k), "rerun": x.get(k)})
+        if x.get("status") != "ok":
+            differences.append({"run": r["run"], "column": "status", "table": r.get("status"),
+                                "rerun": x.get("status"), "why": f"the re-run failed: {x.get('error')}"})
+            continue
+        d = _first_difference(r, x)
+        if d:
+            differences.append(d)
     for r in live:
         rec = folder / r["recording"]
         try:
             from ..runs.resimulate import resimulate
 
-            d = resimulate(str(rec))
+            d = resimulate(str(rec), trust_code=trust_code)
             if not d.get("reproduced"):
                 differences.append({"run": r["run"], "column": "recording", "table": str(rec),
-                                    "rerun": d.get("verdict")})
+                                    "rerun": d.get("verdict"), "why": f"{rec}: the re-simulation says "
+                                                                      f"{d.get('verdict')}"})
+                continue
             from ..runs.report import report
 
-            rep = report(str(rec), resimulate=0)
-            for k in COMPARED:
-                if not _same(_norm(r.get(k)), _norm(rep.get(k))):
-                    differences.append({"run": r["run"], "column": k, "table": r.get(k), "rerun": rep.get(k)})
-        except (OSError, ValueError) as e:
-            differences.append({"run": r["run"], "column": "recording", "table": str(rec), "rerun": str(e)})
+            d = _first_difference(r, report(str(rec), resimulate=0, trust_code=trust_code))
+            if d:
+                differences.append(d)
+        except CodeNotTrusted as e:
+            not_run.append(r["run"])
+            why = why or str(e)
+        except Exception as e:  # noqa: BLE001 - whatever stops the re-simulation is the row's reason
+            differences.append({"run": r["run"], "column": "recording", "table": str(rec), "rerun": None,
+                                "why": f"{rec}: the re-simulation failed: {type(e).__name__}: {e}"})
+    if not_run and not sim and len(not_run) == len(ok_rows):
+        raise BadInput(f"{folder}: nothing re-run: {why}")
     here = versions()
     vdiff = {k: {"manifest": v, "here": here.get(k)} for k, v in (man.get("packages") or {}).items()
              if here.get(k) != v}
     src = source_hash()
-    return {"folder": str(folder), "checked_simulated": len(sim), "checked_live": len(live), "rows": len(rows),
+    return {"folder": str(folder), "checked_simulated": len(sim), "checked_live": len(live) - len(
+                [r for r in live if r["run"] in not_run]), "rows": len(rows), "not_run": not_run, "not_run_why": why,
             "planned": len(planned), "missing": missing, "differences": differences, "problems": problems,
             "versions_differ": vdiff, "source_differs": src != man.get("source"),
             "python_differs": man.get("python") != sys.version.split()[0],
-            "identical": not differences and not problems}
+            "identical": not differences and not problems and not not_run}
+
+
+def rerun_chunk(items: list, stored: list, folder: str, trust_code: bool) -> list[dict]:
+    """``--verify`` on a worker: the folder's stored code pinned (``code.load``), then the chunk on the
+    per-sample simulator."""
+    code.load(stored, Path(folder), trust_code)
+    return simulate_runs_per_sample(items)
+
+
+def _first_difference(row: dict, rerun: dict) -> dict | None:
+    """The first compared column where ``row`` and ``rerun`` differ, with both values (and the others)."""
+    cols = [k for k in COMPARED if not _same(_norm(row.get(k)), _norm(rerun.get(k)))]
+    if not cols:
+        return None
+    k = cols[0]
+    why = f"{k}: table {row.get(k)!r}, re-run {rerun.get(k)!r}"
+    if len(cols) > 1:
+        why += f" (also {', '.join(cols[1:])})"
+    return {"run": row["run"], "column": k, "table": row.get(k), "rerun": rerun.get(k), "columns": cols, "why": why}
 
 
 def _norm(v):

@@ -27,6 +27,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .. import methodswap
 from .. import scenario as scenario_mod
 from ..errors import BadInput
 from ..scenariospec import ScenarioError
@@ -42,7 +43,7 @@ SEED_KEYS = {"seeds.attack": "attack.seed", "seeds.sim_delay": "run.sim_delay.se
 #: the kind of a seed's table that draws random numbers (another kind keeps no seed)
 RANDOM_KIND = {"attack.seed": "random", "run.sim_delay.seed": "uniform"}
 #: keys of a campaign file
-CAMPAIGN_KEYS = {"scenario", "runs", "repeat", "seed", "axes", "description"}
+CAMPAIGN_KEYS = {"scenario", "runs", "repeat", "seed", "axes", "description", "methods"}
 
 
 # ============================================================================ the campaign file
@@ -58,6 +59,7 @@ class Campaign:
     seed: int = 0
     axes: dict = field(default_factory=dict)
     description: str = ""
+    methods: dict = field(default_factory=dict)   # [methods.NAME] params: method reference -> its params
 
     @property
     def sha256(self) -> str:
@@ -114,8 +116,21 @@ def loads(text: str, path: Path) -> Campaign:
             raise BadInput(f"{where}: axis {k!r} is not a scenario key (section.key, e.g. \"attack.seed\"; "
                            f"sections: {', '.join(sorted(scenario_mod._SECTIONS - {'name', 'description'}))})")
         flat[k] = v
+    for k in flat:
+        if k.startswith("method.") and k != "method.name" and k != "method.params" and not k.startswith("method.params."):
+            raise BadInput(f"{where}: axis {k!r}: [method] has name and params (\"method.name\", "
+                           "\"method.params.KEY\")")
+    mt = d.get("methods", {})
+    if not isinstance(mt, dict):
+        raise BadInput(f"{where}: [methods] must be tables [methods.\"NAME\"] with params = {{...}}")
+    methods = {}
+    for name, t in mt.items():
+        if not isinstance(t, dict) or set(t) - {"params"} or not isinstance(t.get("params", {}), dict):
+            raise BadInput(f"{where}: [methods.{json.dumps(name)}] holds one key, params = {{...}} (the method's "
+                           f"[method] params in this campaign), got {t!r}")
+        methods[name] = dict(t.get("params", {}))
     desc = d.get("description", "")
-    return Campaign(path, text, sc, runs, int(repeat), int(seed), flat, str(desc))
+    return Campaign(path, text, sc, runs, int(repeat), int(seed), flat, str(desc), methods)
 
 
 def _flatten(d: dict, prefix: str = ""):
@@ -193,31 +208,33 @@ def _get(data: dict, key: str):
     return t
 
 
-def _resolve(base, axes: dict, seeds_from) -> tuple[dict, dict, str]:
+def _resolve(base, axes: dict, seeds_from, methods: dict | None = None) -> tuple[dict, dict, str]:
     """The scenario dict of ``base`` with ``axes`` written in and the seeds of its random choices
-    (``seeds_from(choice)`` where the campaign draws one, else None: keep); (data, seeds, note)."""
-    data = tomllib.loads(base.source)
-    note = ""
-    if "method.name" in axes:  # swaps the method as --method does (first: a method.params axis goes into it)
-        data["method"] = {"name": axes["method.name"]}
-    for k, v in axes.items():
-        if k != "method.name":
-            _set(data, k, v)
-    if "method.name" in axes:
-        from .. import methods
+    (``seeds_from(choice)`` where the campaign draws one, else None: keep); (data, seeds, note).
 
+    The method (a ``method.name`` axis, else the scenario's own) is swapped in by the one rule
+    (``scenario.swap_method``, as ``--method`` and ``testbed versus`` do) with its params: the scenario's
+    own when it is the scenario's method, then its ``[methods.NAME] params`` (``methods``), then the
+    ``method.params`` axes."""
+    data = tomllib.loads(base.source)
+    for k, v in axes.items():
+        if not k.startswith("method."):
+            _set(data, k, v)
+    own, _ = methodswap.own_method(data)
+    name = axes.get("method.name", own)
+    given = dict((methods or {}).get(name, {}))
+    if "method.params" in axes:
+        if not isinstance(axes["method.params"], dict):
+            raise BadInput(f"axis 'method.params' takes tables of params, got {axes['method.params']!r}")
+        given.update(axes["method.params"])
+    given.update({k[len("method.params."):]: v for k, v in axes.items() if k.startswith("method.params.")})
+    note = ""
+    if "method.name" in axes or given:
         try:
-            m = methods.make(str(axes["method.name"]), base.base_dir or None, _get(data, "method.params") or {})
-        except methods.MethodError as e:
+            data, note = scenario_mod.swap_method(data, {"name": name, "params": given}, base.base_dir or None,
+                                                  "scenario")
+        except ScenarioError as e:
             raise BadInput(str(e)) from None
-        except (TypeError, ValueError) as e:
-            raise BadInput(str(e)) from None
-        used = {"T", *m.uses}
-        qt = data.get("quantizer", {})
-        unused = [k for k in qt if k not in used] if isinstance(qt, dict) else []
-        if unused:
-            note = f"method {axes['method.name']!r} ignores [quantizer] {', '.join(unused)} of the scenario"
-            data["quantizer"] = {k: v for k, v in qt.items() if k in used}
     seeds = {}
     att = data.get("attack") if isinstance(data.get("attack"), dict) else {}
     if "attack.seed" in axes and att.get("kind") != "random":
@@ -239,6 +256,7 @@ def plan(c: Campaign, base=None) -> tuple[list[Run], list[str]]:
     """Every run of campaign ``c``, resolved and validated (``BadInput`` naming the axis, the value and
     the reason for a bad one), and the notes (once per campaign)."""
     base = base_scenario(c) if base is None else base
+    _check_methods(c, base)
     keys = list(c.axes)
     runs, notes = [], []
     for p, values in enumerate(itertools.product(*(c.axes[k] for k in keys))):
@@ -250,32 +268,58 @@ def plan(c: Campaign, base=None) -> tuple[list[Run], list[str]]:
                 return derived_seed(c.seed, choice, axes, r)
 
             try:
-                data, seeds, note = _resolve(base, axes, seeds_from)
+                data, seeds, note = _resolve(base, axes, seeds_from, c.methods)
                 text = to_toml(data)
                 run = Run(f"p{p:05d}r{r}", p, r, axes, seeds, text, base.name, base.base_dir or "")
                 run.scenario()
             except (BadInput, TypeError, ValueError) as e:
-                raise BadInput(f"{c.path}: {_culprit(base, axes)}: {_reason(e)}") from None
+                raise BadInput(f"{c.path}: {_culprit(base, axes, c.methods)}: {_reason(e)}{_hint(c, e)}") from None
             if note and note not in notes:
                 notes.append(note)
             runs.append(run)
     return runs, notes
 
 
-def _valid(base, axes: dict) -> bool:
+def _check_methods(c: Campaign, base) -> None:
+    """``[methods.NAME]``: each names a method the campaign runs, with params that method takes."""
+    if not c.methods:
+        return
+    own = base.method.name
+    ran = c.axes.get("method.name", [own])
+    for name, params in c.methods.items():
+        where = f"{c.path}: [methods.{json.dumps(name)}]"
+        if name not in ran:
+            raise BadInput(f"{where}: the campaign runs no method {name!r} (the methods it runs: "
+                           f"{', '.join(repr(m) for m in ran)})")
+        try:
+            scenario_mod.swap_method(tomllib.loads(base.source), {"name": name, "params": params},
+                                     base.base_dir or None, "scenario")
+        except ScenarioError as e:
+            raise BadInput(f"{where} params: {_reason(e)}") from None
+
+
+def _hint(c: Campaign, e: Exception) -> str:
+    """How to give one method its own params, when a ``method.params`` axis met a method without them."""
+    if "has no parameter" in str(e) and "method.name" in c.axes and any(k.startswith("method.params") for k in c.axes):
+        return " (a method.params axis applies to every method of the campaign: give one method its own params " \
+               "with [methods.\"NAME\"] params = {...} in the campaign file)"
+    return ""
+
+
+def _valid(base, axes: dict, methods: dict | None = None) -> bool:
     try:
-        data, _, _ = _resolve(base, axes, lambda _choice: None)
+        data, _, _ = _resolve(base, axes, lambda _choice: None, methods)
         scenario_mod.from_dict(data, name=base.name, where="scenario", base_dir=base.base_dir or None)
     except (BadInput, TypeError, ValueError):
         return False
     return True
 
 
-def _culprit(base, axes: dict) -> str:
+def _culprit(base, axes: dict, methods: dict | None = None) -> str:
     """What a bad point's error names: the one axis whose value, left to the scenario's, makes the point
     valid ("axis 'plant.x0' value [9, 0]"), else the whole point."""
     for k, v in axes.items():
-        if _valid(base, {a: b for a, b in axes.items() if a != k}):
+        if _valid(base, {a: b for a, b in axes.items() if a != k}, methods):
             return f"axis {k!r} value {json.dumps(v)}"
     return "the point " + ", ".join(f"{k} = {json.dumps(v)}" for k, v in axes.items())
 

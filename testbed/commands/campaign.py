@@ -27,6 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sample", type=int, metavar="K", help="--verify: only K simulated rows, drawn with --seed")
     p.add_argument("--seed", type=int, metavar="S", help="--verify --sample: the draw's seed (default 0; a campaign's "
                                                          "own seed is in its file)")
+    cliargs.add_trust_code(p, "the campaign's folder (--verify)")
     p.add_argument("--live-timeout", type=float, metavar="S", help=argparse.SUPPRESS)
 
 
@@ -41,6 +42,8 @@ def main(args) -> int:
         raise BadInput("give a campaign file (testbed campaign FILE.toml) or --verify DIR")
     if args.sample is not None or args.seed is not None:
         raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
+    if args.trust_code:
+        raise BadInput("--trust-code applies to --verify (a campaign runs the code its file names)")
     from ..campaign import run as campaignrun
     from ..campaign.folder import default_dir
     from ..campaign.spec import base_scenario, parse, plan
@@ -166,7 +169,7 @@ def _verify(args) -> int:
         executor = parallel.from_args(args)
     try:
         d = campaignrun.verify(Path(args.verify), sample=args.sample, seed=args.seed or 0,
-                                    executor=executor)
+                                    executor=executor, trust_code=args.trust_code)
     finally:
         if executor is not None:
             executor.close()
@@ -177,10 +180,12 @@ def _verify(args) -> int:
               f"re-simulated {d['checked_live']} live")
         for p in d["problems"]:
             print(f"  PROBLEM: {p}")
+        if d["not_run"]:
+            print(f"  SKIPPED {len(d['not_run'])} row(s): {d['not_run_why']}")
         if d["missing"]:
             print(f"  not run yet: {len(d['missing'])} run(s) (the campaign command again finishes them)")
         for x in d["differences"]:
-            print(f"  DIFFERS: run {x['run']} {x['column']}: table {x['table']!r}, re-run {x['rerun']!r}")
+            print(f"  DIFFERS: run {x['run']} {x['why']}")
         for k, v in d["versions_differ"].items():
             print(f"  version: {k} {v['manifest']} in the manifest, {v['here']} here")
         if d["source_differs"]:

@@ -28,10 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the comparison")
     cliargs.add_plot(p, "draw both runs' states (A solid, B dashed), their difference and the lost samples of each, "
                         "DoS shaded")
+    cliargs.add_trust_code(p, "a recording")
 
 
 def main(args) -> int:
-    ra, rb = load_pair(args.a, args.b)
+    ra, rb = load_pair(args.a, args.b, trust_code=args.trust_code)
     c = compare(ra, rb)
     c["a"]["ref"], c["b"]["ref"] = str(args.a), str(args.b)
     if args.plot:

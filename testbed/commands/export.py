@@ -19,13 +19,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="parquet or csv (default: from the output's suffix, else parquet)")
     p.add_argument("-o", "--output", metavar="PATH", required=True, help="the file to write")
     cliargs.add_json(p, "what was written (path, format, rows, columns)")
+    cliargs.add_trust_code(p)
 
 
 def main(args) -> int:
     from ..runs.run import open as open_run
 
     fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")
-    run = open_run(args.recording)
+    run = open_run(args.recording, trust_code=args.trust_code)
     out = export(run, args.output, fmt)
     cols = list(run.columns())
     if args.json:

@@ -85,10 +85,11 @@ def main_versus(args) -> int:
     if args.seeds is not None and args.seeds < 1:
         raise BadInput(f"--seeds must be >= 1, got {args.seeds}")
     sc = scenario.load(args.scenario)
-    sc, over = scenario.with_seed(sc, {})
-    if over:
-        print(f"testbed versus: the random attack has no seed; drew seed = {over['seed']} (every method faces it)",
-              file=sys.stderr)
+    if args.seeds is None:  # with --seeds the rows use seeds S..S+N-1: nothing is drawn
+        sc, over = scenario.with_seed(sc, {})
+        if over:
+            print(f"testbed versus: the random attack has no seed; drew seed = {over['seed']} (every method faces "
+                  "it)", file=sys.stderr)
     seeds = engine.seeds_for(sc, args.seeds, args.seed)
     points = [engine.Point(sc, m, s) for s in seeds for m in names]
     notes = set()

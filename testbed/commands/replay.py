@@ -16,13 +16,15 @@ def add_arguments_replay(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spawn", action="store_true", help="open it in a Rerun viewer (the default without --rrd)")
     cliargs.add_no_roa(p)
     cliargs.add_json(p, "what was written (the .rrd path, the run id, the number of samples)")
+    cliargs.add_trust_code(p)
 
 
 def main_replay(args) -> int:
-    run = open_run(args.recording)
+    run = open_run(args.recording, trust_code=args.trust_code)
     s, sc = run.summary, run.scenario
     spawn = args.spawn or not args.rrd
-    run_to_rrd(args.rrd, run, recording_id=str(s.get("run_id") or sc.name), roa=not args.no_roa, spawn=spawn)
+    roa = not args.no_roa and not sc.code_not_run()  # the region needs the model's code
+    run_to_rrd(args.rrd, run, recording_id=str(s.get("run_id") or sc.name), roa=roa, spawn=spawn)
     if args.json:
         print(json.dumps({"rrd": args.rrd, "spawned": spawn, "run_id": s.get("run_id"), "samples": s.get("samples"),
                           "scenario": sc.name}))

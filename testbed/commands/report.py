@@ -30,7 +30,10 @@ def print_text(s: dict) -> None:
         ps = s.get(f"{what}_source")
         if ps and ps["loaded_from"] == "recording":
             print(f"  {what} {ps['ref']}: module {ps.get('module')!r} not importable; used the source stored in the "
-                  f"recording (sha256 {ps['sha256'][:12]})")
+                  f"recording (sha256 {ps['sha256'][:12]}, --trust-code)")
+        elif ps and ps["loaded_from"] == "not run":
+            print(f"  {what} {ps['ref']}: module {ps.get('module')!r} not importable; the source stored in the "
+                  "recording was not run (--trust-code runs it)")
         elif ps and ps["differs"]:
             print(f"  {what} {ps['ref']}: the importable module {ps.get('module')!r} DIFFERS from the recorded one "
                   f"(sha256 {(ps['importable_sha256'] or '')[:12]} now, {ps['sha256'][:12]} recorded)")
@@ -116,10 +119,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resimulate", metavar="N|all", type=cliargs.int_at_least(0, or_all=True), default=n,
                    help=f"re-run the first N samples in the simulator and compare (default {n:,}; "
                         "all: every sample, as testbed resimulate; 0: none)")
+    cliargs.add_trust_code(p)
 
 
 def main(args) -> int:
-    run = run_of(args.recording)
+    run = run_of(args.recording, trust_code=args.trust_code)
     s = report_of_run(run, resimulate=args.resimulate)
     if args.plot:
         plot(run, args.plot, size=args.figsize)

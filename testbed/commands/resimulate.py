@@ -17,13 +17,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", help="an MCAP recording (testbed run, testbed simulate --out)")
     cliargs.add_json(p, "the comparison (samples, max_state_error, symbols_identical, E_identical, "
                         "first_divergence, ...)")
+    cliargs.add_trust_code(p)
 
 
 def main(args) -> int:
     from ..errors import BadInput
 
     try:
-        out = resimulate(args.recording)
+        out = resimulate(args.recording, trust_code=args.trust_code)
     except (OSError, ValueError) as e:
         raise BadInput(f"{args.recording}: {e}") from None
     if args.json:

@@ -144,10 +144,14 @@ class NetnsRun:
     # ---- the run's arguments
     def endpoints(self, cfg) -> dict:
         """The run's endpoints in the namespaces: ``listen``, ``node_listen`` and ``node_prefix`` of its ``RunConfig``."""
-        scheme = "tls" if cfg.topology == "peer" and not cfg.insecure else "tcp"
+        # mutual TLS links: the peer topology, and the router topology over mutual TLS (--topology router
+        # --tls-dir DIR, no --secret-file: the way a zenoh-pico device joins)
+        router_tls = cfg.topology == "router" and bool(cfg.tls_dir) and not cfg.secret_file
+        scheme = "tls" if (cfg.topology == "peer" or router_tls) and not cfg.insecure else "tcp"
         return {"listen": f"{scheme}/{self.addr['hub']}:{HUB_PORT}",
                 "node_listen": {r: f"{scheme}/{self.addr[r]}:0" for r in self.who if r != "hub"},
-                "node_prefix": {r: f"ip netns exec {self.names[r]}" for r in self.who if r != "hub"}}
+                "node_prefix": {r: f"ip netns exec {self.names[r]}" for r in self.who
+                                if r not in ("hub", cfg.external)}}
 
     # ---- making and removing
     def up(self) -> None:

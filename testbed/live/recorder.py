@@ -15,11 +15,12 @@ import subprocess
 import sys
 import time
 
+from ..errors import EXIT_RECORDING_INCOMPLETE
 from ..nodes.options import RECORD_FAILED, RecorderConfig
 from ..wire import transport
 
 #: ``testbed run``'s exit code when the run itself was clean but its recording is incomplete
-RECORDING_INCOMPLETE = 3
+RECORDING_INCOMPLETE = EXIT_RECORDING_INCOMPLETE
 
 
 def add_record_error_argument(g) -> None:

@@ -23,6 +23,10 @@ E_k) must be equal at every sample.  The testbed checks it at every sample the e
 and reports a method that breaks it.  ``[quantizer] T`` is every method's period; a method
 lists the other ``[quantizer]`` keys it uses in ``uses`` and its own parameters (the
 scenario's ``[method] params``) with their defaults in ``defaults``.
+
+What an end holds and may call (the model, K, the ``[quantizer]`` parameters, k, u_{k-1}, the
+flow map ``phi_T``): :class:`End`.  Every bundled method, the paper's included
+(``testbed.methods.paper``), is written against this interface and nothing else.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..loopspec import Codebook, InvalidSymbol, QuantizerParams, SymbolPacking
+from ..loopspec import DEFAULT_FLOW, ROUNDOFF, Codebook, InvalidSymbol, QuantizerParams, SymbolPacking
 
 
 class MethodError(ValueError):
@@ -107,8 +111,35 @@ def valid_symbol(codebook, symbol) -> bool:
         return False
 
 
-class _EndBase:
-    def __init__(self, method: "Method", model, K, qp, flow):
+class End:
+    """What an end holds and may call (both ends; the end API of docs/methods.md).
+
+    Built by :meth:`Method.make_encoder` / :meth:`Method.make_decoder` as ``End(method, model, K, qp,
+    flow)``, the one constructor of every end (a subclass that sets its own start state calls
+    ``super().__init__(*a, **kw)`` first).  It holds:
+
+    * ``method``: the :class:`Method` instance, its ``[method] params`` in ``method.params``;
+    * ``plant``: the model the method predicts with (``[model]``, else the plant: ``plants.Plant``,
+      with ``n``, ``m``, ``f(x, u)``, ``A``, ``B``), never the true plant;
+    * ``K``: the gain of control law (2), an (m, n) float64 array;
+    * ``qp``: the scenario's ``[quantizer]`` (``loopspec.QuantizerParams``): ``T`` the period, ``M``,
+      ``L``, ``E0``, ``Lambda`` = e^{L T}, ``sigma`` (zoom-out), ``E_min``, ``mode``, ``rule``;
+    * ``flow``: the flow map's options (tolerances, ``x_max``);
+    * ``codebook``: ``method.codebook(n, qp)``;
+    * ``k``: the sample index (0 at the start; the testbed adds 1 after every ``update``);
+    * ``xi``, ``E``: the range's centre and radius (zeros and 0.0 at the start: an end that starts
+      elsewhere, the paper's at E0, sets them in ``__init__``); with ``state()``, what the lockstep
+      check compares;
+    * ``u_prev``: u_{k-1}, the input both ends know was applied (zeros at the start; an end that
+      uses it keeps it current in ``update``, as the paper's ends do);
+    * ``flow_status``: the status of the last :meth:`phi_T` (0: ok).
+
+    and offers the paper's own arithmetic, so that a method configured like the paper's computes its
+    numbers bit for bit: :meth:`phi_T` (the model's flow map over T), :meth:`feedback` (u = K q) and
+    :meth:`floor_E` (the floor of rule (E)).
+    """
+
+    def __init__(self, method: "Method", model, K, qp, flow=DEFAULT_FLOW):
         self.method = method
         self.plant = model
         self.K = np.ascontiguousarray(np.asarray(K, dtype=np.float64).reshape(model.m, model.n))
@@ -120,14 +151,71 @@ class _EndBase:
         self.E = 0.0
         self.u_prev = np.zeros(model.m)
         self.flow_status = 0
+        self._phi = None
 
     def state(self) -> np.ndarray:
         """The state both ends must share (lockstep), checked by the testbed: xi_k and E_k by default."""
         return np.concatenate([self.xi, [self.E]])
 
+    def phi_T(self, x, u) -> np.ndarray:
+        """phi_T(x, u): the model's state one period T after x under the held input u (a new array).
 
-class EncoderEnd(_EndBase):
-    """The encoder end of a method.  Override ``symbol`` and ``update``."""
+        The flow map of ``testbed.flow`` (``flow_into``, adaptive Dormand-Prince 8(5,3)) with the
+        model's right-hand side and the scenario's ``[flow]`` options: the function the paper's rule
+        (xi) calls, xi_{k+1} = phi_T(q_k, K q_k) or phi_T(xi_k, 0).  Always finite; the status
+        (0 ok, 1 diverged past ``x_max``, 2 step limit) is left in ``flow_status``.
+        """
+        from ..flow import compiled_for, flow_into  # compiled: loaded when a run starts
+
+        n, m = self.plant.n, self.plant.m
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(n)
+        u = np.ascontiguousarray(u, dtype=np.float64).reshape(m)
+        out = np.empty(n)
+        if self._phi is None:
+            self._phi_const = (type(self.plant).rhs.cfunc, self.plant.p, self.flow.as_array(),
+                               np.empty((13, n)), np.empty(n))
+        rhs, p, opts, Ks, ytmp = self._phi_const
+        args = (rhs, x, u, p, float(self.qp.T), opts, Ks, ytmp, out)
+        if self._phi is None:
+            st = flow_into(*args)
+            self._phi = compiled_for(flow_into, args)  # a live node calls it every sample: no type dispatch
+        else:
+            st = self._phi(*args)
+        self.flow_status = int(st)
+        return out
+
+    def feedback(self, q) -> np.ndarray:
+        """u = K q, the state feedback of control law (2), summed in the order the paper's ends sum it."""
+        q = np.asarray(q, dtype=np.float64).reshape(self.plant.n)
+        u = np.empty(self.plant.m)
+        for r in range(self.plant.m):
+            acc = 0.0
+            for j in range(self.plant.n):
+                acc += float(self.K[r, j]) * float(q[j])
+            u[r] = acc
+        return u
+
+    def floor_E(self, E: float, xi_next) -> float:
+        """E_{k+1} as rule (E) of the paper's ends floors it: never below the round-off of the box
+        arithmetic around xi_{k+1} (``ROUNDOFF`` ||xi_{k+1}||_inf, 16 ulp), nor below ``qp.E_min``."""
+        big = 0.0
+        for v in np.asarray(xi_next, dtype=np.float64).ravel():
+            big = max(big, abs(float(v)))
+        E = float(E)
+        if E < ROUNDOFF * big:
+            E = ROUNDOFF * big
+        if E < self.qp.E_min:
+            E = float(self.qp.E_min)
+        return E
+
+
+class EncoderEnd(End):
+    """The encoder end of a method (Algorithm 1's place).  Override ``symbol`` and ``update``.
+
+    The testbed calls ``encode(x_k)`` (which calls ``symbol``), then, once theta_k is known,
+    ``ack(theta_k)`` (which calls ``update`` and advances ``k``).  Besides :class:`End`'s members:
+    ``q`` (q_k of this sample, readable in ``update``) and ``saturations`` (counted from ``symbol``).
+    """
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
@@ -143,6 +231,7 @@ class EncoderEnd(_EndBase):
 
     # --- what the protocol calls
     def encode(self, x):
+        """The symbol for x_k and whether x_k was outside the range (``symbol``; a saturation is counted)."""
         x = np.asarray(x, dtype=np.float64)
         s, sat, q = self.symbol(x)
         if sat:
@@ -152,19 +241,30 @@ class EncoderEnd(_EndBase):
 
     @property
     def q(self) -> np.ndarray:
+        """q_k as the decoder will reconstruct it (from ``encode`` until ``update`` returns)."""
         return self._last[1]
 
     def ack(self, theta: int) -> None:
+        """theta_k of the sample ``encode`` sent: ``update(theta_k, symbol)``, then k + 1."""
         if self._last is None:
             raise RuntimeError("ack() before encode()")
-        s, _q = self._last
-        self._last = None
-        self.update(int(theta), s)
+        try:
+            self.update(int(theta), self._last[0])
+        finally:
+            self._last = None
         self.k += 1
 
 
-class DecoderEnd(_EndBase):
-    """The decoder end (and the control law) of a method.  Override ``control`` and ``update``."""
+class DecoderEnd(End):
+    """The decoder end (and the control law) of a method (Algorithm 2's place).  Override ``control``
+    and ``update``.
+
+    The testbed calls ``decide(symbol | None)`` (which calls ``control`` and returns u_k, q_k,
+    theta_k), sends u_k, then ``commit()`` (which calls ``update`` and advances ``k``); ``step`` is
+    the two at once.  A symbol outside the codebook is counted in ``invalid`` and is a loss.
+    Besides :class:`End`'s members: ``invalid`` and ``overflows`` (an end with an OVERFLOW code
+    counts the ones it received).
+    """
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
@@ -181,6 +281,11 @@ class DecoderEnd(_EndBase):
 
     # --- what the protocol calls
     def decide(self, symbol):
+        """(u_k, q_k, theta_k) for the symbol received at t_k (None: lost), without ``update``.
+
+        A live controller sends u_k between ``decide`` and ``commit``: the decoder's update (a
+        prediction phi_T) is not on the path of u_k.  ``decide`` again before ``commit`` is an error.
+        """
         if self._pending is not None:
             raise RuntimeError("Decoder.decide() twice without commit()")
         if symbol is not None and not valid_symbol(self.codebook, symbol):
@@ -194,6 +299,7 @@ class DecoderEnd(_EndBase):
         return u, q, theta
 
     def commit(self) -> None:
+        """``update(theta_k, symbol)`` of the sample ``decide`` decided, then k + 1."""
         if self._pending is None:
             raise RuntimeError("Decoder.commit() without decide()")
         theta, symbol = self._pending
@@ -202,6 +308,7 @@ class DecoderEnd(_EndBase):
         self.k += 1
 
     def step(self, symbol):
+        """``decide`` then ``commit``: (u_k, q_k, theta_k)."""
         out = self.decide(symbol)
         self.commit()
         return out
@@ -212,8 +319,9 @@ class Method:
 
     Class attributes: ``name``, ``description`` (one line), ``uses`` (the ``[quantizer]`` keys
     besides T it reads), ``defaults`` (its ``[method] params`` and their default values),
-    ``kernel_mode`` (the batch kernel's code for a bundled method; None: the per-sample
-    simulator and the live nodes only), ``source`` (the paper it comes from).
+    ``encoder_class`` and ``decoder_class`` (its :class:`EncoderEnd` and :class:`DecoderEnd`
+    subclasses), ``kernel_mode`` (the batch kernel's code for a bundled method; None: the
+    per-sample simulator and the live nodes only), ``source`` (the paper it comes from).
     """
 
     name: str = ""
@@ -248,10 +356,12 @@ class Method:
         """The codebook (``pack``, ``unpack``, ``bits``, ``nbytes``, ``n_codes``, ``overflow``)."""
         raise NotImplementedError
 
-    def make_encoder(self, model, K, qp, flow):
+    def make_encoder(self, model, K, qp, flow=DEFAULT_FLOW) -> EncoderEnd:
+        """The encoder end: ``encoder_class(self, model, K, qp, flow)``."""
         return self.encoder_class(self, model, K, qp, flow)
 
-    def make_decoder(self, model, K, qp, flow):
+    def make_decoder(self, model, K, qp, flow=DEFAULT_FLOW) -> DecoderEnd:
+        """The decoder end: ``decoder_class(self, model, K, qp, flow)``."""
         return self.decoder_class(self, model, K, qp, flow)
 
     def kernel_code(self, qp) -> int | None:
@@ -278,5 +388,5 @@ def finite_params(method: Method, *names: str) -> None:
             raise MethodError(f"method {method.display_name()!r}: parameter {k} must be a positive number, got {v!r}")
 
 
-__all__ = ["Method", "EncoderEnd", "DecoderEnd", "MethodError", "IntCodebook", "FloatCodebook", "Codebook",
+__all__ = ["Method", "End", "EncoderEnd", "DecoderEnd", "MethodError", "IntCodebook", "FloatCodebook", "Codebook",
            "symbol_code", "valid_symbol"]

@@ -1,8 +1,8 @@
 """The bundled methods: the paper's and the baselines it argues against (docs/methods.md).
 
 * ``paper``: the resilient zoom quantizer and control law (2) of the paper (Algorithms 1, 2,
-  rules (xi), (E); ``[quantizer] mode`` ideal or resilient with OVERFLOW) -- the very
-  ``quantizer.Encoder`` / ``quantizer.Decoder`` objects.
+  rules (xi), (E); ``[quantizer] mode`` ideal or resilient with OVERFLOW): ``methods.paper``'s
+  ``PaperEncoder`` / ``PaperDecoder``, written against the end API like every other method.
 * ``zoom``: the zoom quantizer without DoS resilience (Liberzon and Hespanha 2005): the
   zoom-in E_{k+1} = (Lambda / M) E_k at *every* sample, whether or not the packet got
   through; its zoom-out stage after a saturation (OVERFLOW, as the paper's resilient mode).
@@ -27,33 +27,32 @@ KERNEL_HOLD = 6
 _PAPER_KEYS = ("M", "L", "E0", "mode", "zoom_out", "E_min", "rule", "L_u", "allow_M_le_Lambda", "allow_x0_outside")
 
 
+class _LazyEnd:
+    """A class attribute naming an end of ``methods.ends``, imported on first use (the ends load numba:
+    reading a scenario does not)."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __get__(self, obj, owner=None):
+        from . import ends
+
+        return getattr(ends, self.name)
+
+
 class PaperMethod(Method):
     name = "paper"
     description = "the paper's resilient zoom quantizer and control law (2) (both modes)"
     source = "the paper (Algorithms 1 and 2, rules (xi), (E)); OVERFLOW: the testbed's resilient mode"
     uses = _PAPER_KEYS
+    encoder_class = _LazyEnd("PaperEncoder")
+    decoder_class = _LazyEnd("PaperDecoder")
 
     def codebook(self, n, qp):
         return Codebook(n, qp.M, resilient=(qp.mode == "resilient"))
 
-    def make_encoder(self, model, K, qp, flow):
-        from ..quantizer import Encoder
-
-        return Encoder(model, K, qp, flow)
-
-    def make_decoder(self, model, K, qp, flow):
-        from ..quantizer import Decoder
-
-        return Decoder(model, K, qp, flow)
-
     def kernel_code(self, qp) -> int:
         return 1 if qp.mode == "resilient" else 0
-
-
-def _ends(name):
-    from . import ends
-
-    return getattr(ends, name)
 
 
 class ZoomMethod(Method):
@@ -63,15 +62,11 @@ class ZoomMethod(Method):
              "feedback, IEEE TAC 50(6), 2005"
     uses = ("M", "L", "E0", "zoom_out", "E_min", "allow_M_le_Lambda", "allow_x0_outside")
     kernel_mode = KERNEL_ZOOM
+    encoder_class = _LazyEnd("ZoomEncoder")
+    decoder_class = _LazyEnd("ZoomDecoder")
 
     def codebook(self, n, qp):
         return Codebook(n, qp.M, resilient=True)
-
-    def make_encoder(self, model, K, qp, flow):
-        return _ends("ZoomEncoder")(model, K, qp, flow)
-
-    def make_decoder(self, model, K, qp, flow):
-        return _ends("ZoomDecoder")(model, K, qp, flow)
 
 
 class StaticMethod(Method):
@@ -81,18 +76,14 @@ class StaticMethod(Method):
     uses = ("M",)
     defaults = {"range": 1.0}
     kernel_mode = KERNEL_STATIC
+    encoder_class = _LazyEnd("StaticEncoder")
+    decoder_class = _LazyEnd("StaticDecoder")
 
     def check_params(self):
         finite_params(self, "range")
 
     def codebook(self, n, qp):
         return Codebook(n, qp.M, resilient=False)
-
-    def make_encoder(self, model, K, qp, flow):
-        return _ends("StaticEncoder")(self, model, K, qp, flow)
-
-    def make_decoder(self, model, K, qp, flow):
-        return _ends("StaticDecoder")(self, model, K, qp, flow)
 
     def kernel_E0(self, qp):
         return float(self.params["range"])
@@ -103,16 +94,11 @@ class UnquantizedMethod(Method):
     description = "exact state feedback, zero input through a loss (the infinite-data-rate control law (2))"
     source = "control law (2) of the paper with q_k = x_k"
     kernel_mode = KERNEL_UNQUANTIZED
-    _enc, _dec = "ExactEncoderZero", "ExactDecoder"
+    encoder_class = _LazyEnd("ExactEncoderZero")
+    decoder_class = _LazyEnd("ExactDecoder")
 
     def codebook(self, n, qp):
         return FloatCodebook(n)
-
-    def make_encoder(self, model, K, qp, flow):
-        return _ends(self._enc)(self, model, K, qp, flow)
-
-    def make_decoder(self, model, K, qp, flow):
-        return _ends(self._dec)(self, model, K, qp, flow)
 
     def kernel_E0(self, qp):
         return 0.0
@@ -123,7 +109,8 @@ class UnquantizedHoldMethod(UnquantizedMethod):
     description = "exact state feedback holding the last received input through a loss"
     source = "C. De Persis and P. Tesi, Input-to-state stabilizing control under denial-of-service, IEEE TAC 60(11), 2015"
     kernel_mode = KERNEL_HOLD
-    _enc, _dec = "ExactEncoder", "HoldDecoder"
+    encoder_class = _LazyEnd("ExactEncoder")
+    decoder_class = _LazyEnd("HoldDecoder")
 
 
 BUNDLED = {c.name: c for c in (PaperMethod, ZoomMethod, StaticMethod, UnquantizedMethod, UnquantizedHoldMethod)}

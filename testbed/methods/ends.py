@@ -1,4 +1,8 @@
-"""The bundled methods' encoder and decoder ends (compiled kernels: imported when a run starts)."""
+"""The bundled methods' encoder and decoder ends (compiled kernels: imported when a run starts).
+
+Each is an ``EncoderEnd`` / ``DecoderEnd`` (``base``), built as ``End(method, model, K, qp, flow)``;
+the paper's are in ``paper`` (re-exported here, where ``bundled`` finds every end).
+"""
 
 from __future__ import annotations
 
@@ -7,8 +11,10 @@ from dataclasses import replace
 import numba as nb
 import numpy as np
 
-from ..quantizer import Decoder, Encoder, box_center, control_input, floor_E, quantize_index, zoom_update
+from ..loopspec import DEFAULT_FLOW
+from ..quantizer import box_center, control_input, floor_E, quantize_index, zoom_update
 from .base import DecoderEnd, EncoderEnd, FloatCodebook
+from .paper import PaperDecoder, PaperEncoder, ZoomRule
 
 
 @nb.njit(cache=True)
@@ -24,20 +30,20 @@ def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, La
     return En, st
 
 
-class _ZoomEnd:
-    update_rule = staticmethod(unaware_update)  # quantizer._End._update applies it
+class ZoomEncoder(PaperEncoder):
+    """The paper's encoder under ``unaware_update`` (always the resilient mode, no delay-aware rule)."""
+
+    def __init__(self, method, model, K, qp, flow=DEFAULT_FLOW):
+        super().__init__(method, model, K, replace(qp, mode="resilient", rule="paper"), flow)
+        self.zoom = ZoomRule(unaware_update, self.plant, self.K, self.qp, self.flow, dpar=np.zeros(4))
 
 
-class ZoomEncoder(_ZoomEnd, Encoder):
-    def __init__(self, model, K, qp, flow):
-        super().__init__(model, K, replace(qp, mode="resilient", rule="paper"), flow)
-        self._dpar = np.zeros(4)
+class ZoomDecoder(PaperDecoder):
+    """The paper's decoder under ``unaware_update``."""
 
-
-class ZoomDecoder(_ZoomEnd, Decoder):
-    def __init__(self, model, K, qp, flow):
-        super().__init__(model, K, replace(qp, mode="resilient", rule="paper"), flow)
-        self._dpar = np.zeros(4)
+    def __init__(self, method, model, K, qp, flow=DEFAULT_FLOW):
+        super().__init__(method, model, K, replace(qp, mode="resilient", rule="paper"), flow)
+        self.zoom = ZoomRule(unaware_update, self.plant, self.K, self.qp, self.flow, dpar=np.zeros(4))
 
 
 class StaticEncoder(EncoderEnd):

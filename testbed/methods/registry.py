@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import importlib.metadata
 
-from plants.refs import import_module_attr, load_stored, resolve_in
+from plants.refs import CodeNotTrusted, import_module_attr, not_trusted, recorded_class, resolve_in
 from plants.refs import source_info as _plant_source_info
 
 from .base import Method, MethodError
@@ -88,23 +88,60 @@ def source_info(cls: type[Method]) -> dict[str, str]:
     return _plant_source_info(cls)
 
 
+def pin(ref: str, base_dir: str | None, cls: type[Method]) -> type[Method]:
+    """Make ``resolve(ref, base_dir)`` return ``cls`` in this process (a class loaded from code stored in
+    a recording or a campaign's folder, so that nothing is imported from that folder in its place)."""
+    cls = check_method_class(cls, ref)
+    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
+    if ":" not in ref:
+        _RESOLVED[(ref, "")] = cls
+    return cls
+
+
 def bundled(ref: str) -> bool:
     return ref in BUNDLED
 
 
 def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "", source: str = "",
-                     sha256: str = "") -> dict:
-    """Resolve a recorded method reference as the run did; when it cannot be imported, load the module's
-    source stored in the recording (``plants.refs.load_stored``: THIS RUNS THE STORED CODE; the sha256
-    must match) and pin it to ``ref`` in this process.  Returns ``{"loaded_from": "import" | "recording",
-    "reason"}``."""
-    try:
-        resolve(ref, base_dir)
-        return {"loaded_from": "import", "reason": None}
-    except MethodError as e:
-        if not source or ":" not in ref:
-            raise
-        reason = str(e)
-    cls = load_stored("method", ref, module, class_name, source, sha256, check_method_class, MethodError)
-    _RESOLVED[(ref, str(base_dir) if base_dir else "")] = cls
-    return {"loaded_from": "recording", "reason": reason}
+                     sha256: str = "", trust_code: bool = False, stand_in=None) -> dict:
+    """Resolve a recorded method reference as the run did (``plants.refs.recorded_class``, the rule plants
+    follow): imported (the user's own code); else, with ``trust_code``, the module's source stored in the
+    recording (``plants.refs.load_stored``: THIS RUNS THE STORED CODE); else ``stand_in()``
+    (:func:`stand_in_method`; None: ``CodeNotTrusted``), pinned to ``ref`` in this process.  Returns
+    ``{"loaded_from": "import" | "recording" | "not run", "reason"}``."""
+    _cls, how, reason = recorded_class("method", ref, base_dir, resolve=resolve, cache=_RESOLVED,
+                                       keys=[(ref, str(base_dir) if base_dir else "")], check=check_method_class,
+                                       error=MethodError, module=module, class_name=class_name,
+                                       source=source if ":" in ref else "", sha256=sha256, trust_code=trust_code,
+                                       stand_in=stand_in)
+    return {"loaded_from": how, "reason": reason}
+
+
+class _StoredCodebook:
+    """A stand-in method's codebook: the recorded number of bits (None when the recording has none)."""
+
+    resilient = False
+    overflow = -1
+
+    def __init__(self, bits: int | None):
+        self.bits = bits
+        self.nbytes = None if bits is None else (bits + 7) // 8
+        self.n_codes = None if bits is None else 1 << min(bits, 62)
+
+
+def stand_in_method(ref: str, class_name: str, uses, bits: int | None) -> type[Method]:
+    """A method class for a recorded method whose stored source is not run: it takes any parameters, uses
+    the ``[quantizer]`` keys ``uses`` (the recorded scenario's), has a codebook of the recorded ``bits``,
+    and no ends: making them (or the batch kernel's mode) raises ``CodeNotTrusted``."""
+    why = str(not_trusted("method", ref))
+
+    def refuse(self, *a, **kw):
+        raise CodeNotTrusted(why)
+
+    def init(self, **params):
+        self.params = dict(params)
+
+    ns = {"name": "", "description": "a recorded method whose stored source was not run", "uses": tuple(uses),
+          "__init__": init, "codebook": lambda self, n, qp: _StoredCodebook(bits), "make_encoder": refuse,
+          "make_decoder": refuse, "kernel_code": refuse, "STORED_NOT_RUN": why}
+    return type(class_name if class_name.isidentifier() else "StoredMethod", (Method,), ns)

@@ -270,12 +270,16 @@ def T_ns(sc) -> int:
 
 
 def run_digest(sc, opts: RunOptions) -> str:
-    """What all nodes must agree on: the scenario text, the resolved loop and the run options."""
+    """What all nodes must agree on: the scenario text, the resolved loop, the run options, and the plant's
+    and the method's module (the method's reference and params, a ``--method`` swap included, and the
+    sha256 of each module's source: the same code in every node)."""
     d = {"source": sc.source, "K": sc.K.tolist(), "T": sc.T, "n_steps": sc.n_steps,
          "quantizer": dataclasses.asdict(sc.quantizer), "run": dataclasses.asdict(sc.run),
          "ack_via_attacker": opts.ack_via_attacker, "ack_on_actuation": opts.ack_on_actuation,
          "colocate": list(opts.colocate),
-         "plant_sha256": sc.plant.source_info()["sha256"]}  # the same plant module in every node
+         "plant_sha256": sc.plant.source_info()["sha256"],
+         "method": [sc.method.name, [list(p) for p in sc.method.params]],
+         "method_sha256": sc.method.source_info()["sha256"]}
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -72,17 +72,25 @@ def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
     return out
 
 
-def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, _cache=None):
+def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, trust_code: bool = False,
+                      note: bool = True, _cache=None):
     """The scenario a recorded run used, rebuilt from the TOML stored in its metadata.
 
     Returns ``(scenario, plant_source, model_source)``.  The run's overrides are applied
     and what the run resolved (``testbed.resolved``: the quantizer, the timing) wins over
-    this version's defaults.  The plant is imported as the run did (its reference, from
-    the scenario's folder first); only when that fails is the plant module's source
-    stored in the recording loaded, which runs code from the recording: a line on
-    stderr says so.  ``plant_source`` tells which happened (``plants.refs.resolve_recorded``).
+    this version's defaults.  The plant, a ``[model]`` of another class and the method are
+    imported as the run did (their reference, from the scenario's folder first: the user's own
+    code).  When one cannot be, the module's source stored in the recording is code, and is run
+    only with ``trust_code`` (``--trust-code``; a line on stderr says it ran).  Without it the
+    scenario holds a stand-in (its recorded name, dimensions, parameters and bits, no code:
+    ``Scenario.code_not_run``), one line on stderr says what is skipped, and everything that
+    needs no code reads as before (``note=False``: no such line, for a caller that raises instead).
+    ``plant_source`` tells which happened
+    (``plants.refs.resolve_recorded``).
     """
     import tomllib
+
+    from plants.refs import CodeNotTrusted
 
     from ..scenario import loads, with_overrides
     from ..scenariospec import ScenarioError
@@ -94,30 +102,130 @@ def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, _ca
         raise ScenarioError(f"{path}: no scenario in the recording's metadata (not a recording of testbed run or "
                             "testbed simulate --out)")
     base_dir = meta.get("base_dir") or None
-    if _cache is not None and getattr(_cache, "_resolved", False):  # once per recording: report and replay
-        ps, ms = _cache.plant_source, _cache.model_source
-    else:
-        ps = _resolve_plant(meta, base_dir, "plant", path)
-        ms = _resolve_plant(meta, base_dir, "model", path)
-        _resolve_method(meta, base_dir, path)
-        if _cache is not None:
-            _cache._resolved = True
-    if meta.get("attack_trace"):  # an embedded trace replaces the file the run read it from
-        data = tomllib.loads(toml)
-        data["attack"] = json.loads(meta["attack_trace"])
-        toml = to_toml(data)
-    sc = loads(toml, name=str(meta.get("name", "recorded"))[:200], where=f"{path} (recorded scenario)",
-               base_dir=base_dir, check_fmu=False)
-    over = metadata.get("testbed.run", {}).get("scenario_overrides")
     try:
-        sc = with_overrides(sc, json.loads(over)) if over else sc
-    except (ValueError, TypeError) as e:
-        raise ScenarioError(f"{path}: recorded overrides: {e}") from None
+        data = tomllib.loads(toml)
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"{path} (recorded scenario): not valid TOML: {e}") from None
+    stand = _StandIns(metadata, data, path)
+    try:
+        if _cache is not None and getattr(_cache, "_resolved", False):  # once per recording: report and replay
+            ps, ms = _cache.plant_source, _cache.model_source
+            stand.restore(getattr(_cache, "_stand_ins", None))
+        else:
+            ps = _resolve_plant(meta, base_dir, "plant", path, trust_code, stand)
+            ms = _resolve_plant(meta, base_dir, "model", path, trust_code, stand)
+            _resolve_method(meta, base_dir, path, trust_code, stand)
+            if stand.used and note:
+                print(f"note: {'; '.join(stand.used)}: what needs that code is skipped (re-simulation, the escape "
+                      "verdict, the region of attraction); the recorded values are read as they are", file=sys.stderr)
+            if _cache is not None:
+                _cache._resolved, _cache._stand_ins = True, stand.flags()
+        changed = False
+        if meta.get("attack_trace"):  # an embedded trace replaces the file the run read it from
+            data["attack"] = json.loads(meta["attack_trace"])
+            changed = True
+        if stand.used:  # nothing of the scenario derived from code that is not run: the recorded values
+            stand.patch(data)
+            changed = True
+        if changed:
+            toml = to_toml(data)
+        design = not stand.used
+        sc = loads(toml, name=str(meta.get("name", "recorded"))[:200], where=f"{path} (recorded scenario)",
+                   base_dir=base_dir, check_fmu=False, check_design=design)
+        over = metadata.get("testbed.run", {}).get("scenario_overrides")
+        try:
+            sc = with_overrides(sc, json.loads(over), check_design=design) if over else sc
+        except (ValueError, TypeError) as e:
+            if isinstance(e, CodeNotTrusted):
+                raise
+            raise ScenarioError(f"{path}: recorded overrides: {e}") from None
+    except CodeNotTrusted as e:  # a scenario that needs the code even to be read
+        raise ScenarioError(f"{path}: {e}") from None
     return _with_resolved(sc, metadata.get("testbed.resolved")), ps, ms
 
 
-def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> dict | None:
-    """Resolve the recorded plant (or model) reference, pinning the stored source when it is not importable."""
+class _StandIns:
+    """The classes a recording's data stands in for, when their stored source is not run."""
+
+    def __init__(self, metadata: dict, data: dict, path: str):
+        self.data, self.path, self.used = data, path, []
+        self.model_stand_in = self.method_stand_in = False
+        res = metadata.get("testbed.resolved") or {}
+        try:
+            K = json.loads(res["K"])
+            self.m, self.n = len(K), len(K[0])
+            self.K = K
+        except (KeyError, TypeError, ValueError, IndexError):
+            self.K = None
+        try:
+            self.L_u = float(json.loads(res["L_u"]))
+            self.rule = json.loads(res["quantizer"]).get("rule")
+        except (KeyError, TypeError, ValueError, AttributeError):
+            self.L_u, self.rule = None, None
+        try:
+            bits = int(metadata.get("testbed.run", {}).get("bits", ""))
+            self.bits = bits if 0 < bits < 1 << 20 else None
+        except ValueError:
+            self.bits = None
+
+    def flags(self) -> tuple:
+        return list(self.used), self.model_stand_in, self.method_stand_in
+
+    def restore(self, flags) -> None:
+        if flags:
+            self.used, self.model_stand_in, self.method_stand_in = list(flags[0]), flags[1], flags[2]
+
+    def _table(self, name: str) -> dict:
+        t = self.data.get(name)
+        return t if isinstance(t, dict) else {}
+
+    def plant(self, prefix: str, ref: str, class_name: str):
+        """A factory of the stand-in of the recorded plant (``prefix`` "plant") or model ("model")."""
+        from plants.refs import CodeNotTrusted, not_trusted, stand_in_plant
+
+        def make():
+            if self.K is None:
+                raise CodeNotTrusted(f"{not_trusted(prefix, ref)} (the recording stores no resolved K)")
+            params = self._table(prefix).get("params")
+            if prefix == "model" and "params" not in self._table("model"):
+                params = self._table("plant").get("params")
+            self.used.append(str(not_trusted(prefix, ref, self.path)))
+            if prefix == "model" or self._table("model").get("name", ref) == ref:  # the model is this class
+                self.model_stand_in = True
+            return stand_in_plant(ref, class_name, self.n, self.m, list(params) if isinstance(params, dict) else [])
+        return make
+
+    def method(self, ref: str, class_name: str):
+        """A factory of the stand-in of the recorded method."""
+        from plants.refs import not_trusted
+
+        from ..methods.registry import stand_in_method
+
+        def make():
+            self.used.append(str(not_trusted("method", ref, self.path)))
+            self.method_stand_in = self._table("method").get("name") == ref  # not a --method swap
+            uses = [k for k in self._table("quantizer") if k != "T"]
+            return stand_in_method(ref, class_name, dict.fromkeys([*uses, "allow_M_le_Lambda", "allow_x0_outside",
+                                                                   "L_u"]), self.bits)
+        return make
+
+    def patch(self, data: dict) -> None:
+        """The recorded scenario's data with what a stand-in cannot give taken from the recording: the
+        resolved K (no design on a model without code) and L_u; the checks the run passed not repeated."""
+        qt = data.setdefault("quantizer", {})
+        if self.model_stand_in and self.K is not None:
+            ct = data.get("controller") if isinstance(data.get("controller"), dict) else {}
+            data["controller"] = {"K": self.K, **({"u_max": ct["u_max"]} if "u_max" in ct else {})}
+            if self.rule == "delay-aware" and "L_u" not in qt and self.L_u is not None:
+                qt["L_u"] = self.L_u
+        if self.method_stand_in:
+            qt["allow_M_le_Lambda"] = qt["allow_x0_outside"] = True
+
+
+def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str, trust_code: bool,
+                   stand: _StandIns) -> dict | None:
+    """Resolve the recorded plant (or model) reference, pinning the stored source (``trust_code``) or a
+    stand-in when it is not importable."""
     from plants.refs import PlantRefError, resolve_recorded
 
     ref = meta.get(f"{prefix}_ref")
@@ -127,7 +235,8 @@ def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> 
         _cls, status = resolve_recorded(ref, base_dir, module=meta.get(f"{prefix}_module", ""),
                                         class_name=meta.get(f"{prefix}_class", ""),
                                         source=meta.get(f"{prefix}_source", ""),
-                                        sha256=meta.get(f"{prefix}_sha256", ""))
+                                        sha256=meta.get(f"{prefix}_sha256", ""), trust_code=trust_code,
+                                        stand_in=stand.plant(prefix, ref, meta.get(f"{prefix}_class", "")))
     except PlantRefError as e:
         from ..scenariospec import ScenarioError
 
@@ -136,7 +245,7 @@ def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> 
     if status["loaded_from"] == "recording":
         print(f"note: {prefix} module {status['module']!r} is not importable ({status['reason']}); "
               f"loaded the source stored in {path} (sha256 {status['sha256'][:12]}): "
-              "this runs code from the recording", file=sys.stderr)
+              "this runs code from the recording (--trust-code)", file=sys.stderr)
     elif status["differs"]:
         print(f"note: {prefix} module {status['module']!r} as imported now differs from the one recorded "
               f"in {path} (sha256 {status['importable_sha256'][:12]} vs {status['sha256'][:12]})",
@@ -144,8 +253,9 @@ def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str) -> 
     return status
 
 
-def _resolve_method(meta: dict, base_dir: str | None, path: str) -> None:
-    """Resolve the recorded method reference, loading its stored source when it is not importable."""
+def _resolve_method(meta: dict, base_dir: str | None, path: str, trust_code: bool, stand: _StandIns) -> None:
+    """Resolve the recorded method reference, pinning its stored source (``trust_code``) or a stand-in when
+    it is not importable."""
     from ..methods import MethodError
     from ..methods.registry import resolve_recorded
     from ..scenariospec import ScenarioError
@@ -156,13 +266,14 @@ def _resolve_method(meta: dict, base_dir: str | None, path: str) -> None:
     try:
         st = resolve_recorded(ref, base_dir, module=meta.get("method_module", ""),
                               class_name=meta.get("method_class", ""), source=meta.get("method_source", ""),
-                              sha256=meta.get("method_sha256", ""))
+                              sha256=meta.get("method_sha256", ""), trust_code=trust_code,
+                              stand_in=stand.method(ref, meta.get("method_class", "")))
     except MethodError as e:
         raise ScenarioError(f"{path}: {e}") from None
     if st["loaded_from"] == "recording":
         print(f"note: method module {meta.get('method_module')!r} is not importable ({st['reason']}); loaded the "
               f"source stored in {path} (sha256 {meta.get('method_sha256', '')[:12]}): this runs code from the "
-              "recording", file=sys.stderr)
+              "recording (--trust-code)", file=sys.stderr)
 
 
 def _with_resolved(sc, meta: dict | None):

@@ -182,7 +182,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         "sizes": {"symbol_payload_bytes": codebook.nbytes, "symbol_bits": codebook.bits,
                   "header_bytes": msg.HEADER_SIZE, "sensor_payload_bytes": 8 * n,
                   "actuation_payload_bytes": 5 + 8 * m, "ack_payload_bytes": 5,
-                  "header_overhead_per_symbol": msg.HEADER_SIZE / codebook.nbytes},
+                  "header_overhead_per_symbol": msg.HEADER_SIZE / codebook.nbytes if codebook.nbytes else None},
         "timing": {
             "T_us": Tn / 1e3,
             "sampling_jitter_us": percentiles(jitter),
@@ -367,10 +367,13 @@ def _fields(meta: dict) -> set[str]:
     return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
 
 
-def load(path: str | Path, *, fields=_fields):
+def load(path: str | Path, *, fields=_fields, trust_code: bool = False, note: bool = True):
     """The columns of a recording and its scenario (``BadInput`` for anything unusable).
 
     ``fields``: what to decode (``read_columns``; default what the report reads, None: every field).
+    ``trust_code``: run a plant's or method's source stored in the recording when its module is not
+    importable (``--trust-code``; otherwise a stand-in and, unless not ``note``, a line on stderr:
+    ``recorded.recorded_scenario``).
     The columns carry ``plant_source`` and ``model_source`` (``recorded.recorded_scenario``).
     """
     from .columns import read_columns
@@ -378,7 +381,7 @@ def load(path: str | Path, *, fields=_fields):
     from .recorded import recorded_scenario
 
     meta, _ = read_metadata(path)
-    sc, ps, ms = recorded_scenario(meta, str(path))
+    sc, ps, ms = recorded_scenario(meta, str(path), trust_code=trust_code, note=note)
     cols = read_columns(path, fields=fields, sc=sc)
     cols.plant_source, cols.model_source = ps, ms
     return cols, sc

@@ -15,7 +15,7 @@ def read_recording_trace(path: str | Path) -> dict:
     dropped (not theta, which also counts withheld, late and invalid samples), its T and length."""
     p = str(path)
     meta, _ = read_metadata(p)
-    rsc, _ps, _ms = recorded_scenario(meta, p)
+    rsc, _ps, _ms = recorded_scenario(meta, p, note=False)  # the attacker's log needs no code
     cols = read_columns(p, fields={"attacker.dropped"}, sc=rsc)
     has = cols.has("attacker")
     n = int(len(has))

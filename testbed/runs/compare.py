@@ -41,15 +41,16 @@ def _is_recording(ref: str) -> bool:
         return f.read(8) == b"\x89MCAP0\r\n"
 
 
-def load_side(ref, other_overrides: dict | None = None):
-    """A ``testbed.runs.run.Run`` from a recording path, a scenario, or a ``Run`` as it is."""
+def load_side(ref, other_overrides: dict | None = None, *, trust_code: bool = False):
+    """A ``testbed.runs.run.Run`` from a recording path (``trust_code`` as in ``testbed.runs.run.open``), a
+    scenario, or a ``Run`` as it is."""
     from .run import Run, simulate
     from .run import open as open_run
 
     if isinstance(ref, Run):
         return ref
     if _is_recording(str(ref)):
-        return open_run(ref)
+        return open_run(ref, trust_code=trust_code)
     return simulate(ref, **(other_overrides or {}))
 
 
@@ -75,18 +76,18 @@ def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return d.reshape(len(d), -1).any(axis=1) if d.ndim > 1 else d
 
 
-def load_pair(a, b):
+def load_pair(a, b, *, trust_code: bool = False):
     """Both sides as ``Run``s; a scenario opposite a recording gets the recording's overrides."""
     if _is_scenario_ref(a) and not _is_scenario_ref(b):
-        rb = load_side(b)
+        rb = load_side(b, trust_code=trust_code)
         return load_side(a, _overrides(rb)), rb
-    ra = load_side(a)
-    return ra, load_side(b, _overrides(ra))
+    ra = load_side(a, trust_code=trust_code)
+    return ra, load_side(b, _overrides(ra), trust_code=trust_code)
 
 
-def compare(a, b) -> dict:
+def compare(a, b, *, trust_code: bool = False) -> dict:
     """The comparison of two runs (recordings, scenarios or ``Run`` objects) as a JSON-able dict."""
-    ra, rb = load_pair(a, b)
+    ra, rb = load_pair(a, b, trust_code=trust_code)
     A, B = ra.arrays, rb.arrays
     n = min(ra.N, rb.N)
     first = {}

@@ -133,21 +133,22 @@ def _security(runmeta: dict) -> dict | None:
 RESIMULATE_SAMPLES = 10_000
 
 
-def report(path, *, arrays: bool = False, resimulate: int | None | str = "default") -> dict:
+def report(path, *, arrays: bool = False, resimulate: int | None | str = "default", trust_code: bool = False) -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
     ``arrays``: the per-sample values stay numpy arrays (``record.summary.write_json`` streams them).
     ``resimulate``: the resimulation check covers samples 0 .. resimulate - 1 (None: all, 0: none;
-    "default": ``RESIMULATE_SAMPLES``, read when the report is made).
+    "default": ``RESIMULATE_SAMPLES``, read when the report is made).  ``trust_code``: ``--trust-code``
+    (``testbed.runs.run.open``).
     """
-    out = report_of_run(run_of(path), resimulate=resimulate)
+    out = report_of_run(run_of(path, trust_code=trust_code), resimulate=resimulate)
     return out if arrays else to_lists(out)
 
 
-def run_of(path):
+def run_of(path, *, trust_code: bool = False):
     """The ``testbed.Run`` of a recording (a path, or ``(columns, scenario)`` from ``load``), read with the
-    fields the report needs (``record.summary.load``)."""
-    cols, sc = load(path) if isinstance(path, (str, Path)) else path
+    fields the report needs (``record.summary.load``; ``trust_code`` as in ``testbed.runs.run.open``)."""
+    cols, sc = load(path, trust_code=trust_code) if isinstance(path, (str, Path)) else path
     return run_of_recording(cols, sc)
 
 
@@ -170,9 +171,12 @@ def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
     out["outcome"] = s["outcome"]
     out["actuation"] = _actuation_section(sc, cols, N)
     out["telemetry_check"] = telemetry_check(cols, N)
+    not_run = sc.code_not_run()
     try:
-        out["resimulation"] = (compare(recorded_run(run), limit=resimulate) if resimulate != 0 else
-                               {"reproduced": None, "verdict": "not resimulated (testbed resimulate checks the run)"})
+        out["resimulation"] = (
+            {"reproduced": None, "verdict": f"not resimulated: {not_run[0]}"} if not_run and resimulate != 0 else
+            compare(recorded_run(run), limit=resimulate) if resimulate != 0 else
+            {"reproduced": None, "verdict": "not resimulated (testbed resimulate checks the run)"})
     except Exception as e:  # noqa: BLE001 - the report stands without it; say why
         out["resimulation"] = {"reproduced": None, "verdict": f"not resimulated: {type(e).__name__}: {e}"}
     last_t = (cols.last_log_time - start.t0_ns) / 1e9 if start and cols.last_log_time else None

@@ -133,8 +133,16 @@ def compare(run: dict, limit: int | None = None) -> dict:
     }
 
 
-def resimulate(path) -> dict:
-    """``testbed resimulate PATH --json`` as a dict."""
+def resimulate(path, *, trust_code: bool = False) -> dict:
+    """``testbed resimulate PATH --json`` as a dict.  ``trust_code``: run a plant's or method's source stored
+    in the recording (``testbed.runs.run.open``); without it, when that code is needed,
+    ``plants.refs.CodeNotTrusted`` (one line naming ``--trust-code``) and nothing is run."""
+    from plants.refs import CodeNotTrusted
+
     from ..record.summary import load
 
-    return compare(recorded_run(run_of_recording(*load(path))))
+    run = run_of_recording(*load(path, trust_code=trust_code, note=False))  # the error below is the line
+    not_run = run.scenario.code_not_run()
+    if not_run:
+        raise CodeNotTrusted(f"{not_run[0]}: re-simulation needs it")
+    return compare(recorded_run(run))

@@ -239,8 +239,15 @@ def run_of_recording(cols, sc, path: str | Path | None = None) -> Run:
                _columns=cols, _details=s)
 
 
-def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue names it
+def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - testbed.open, as the issue names it
     """A recording (``testbed run`` or ``testbed simulate --out``) as a :class:`Run`.
+
+    A plant or method module the recording names is imported as the run did (your own code, from the
+    recorded scenario's folder or ``sys.path``).  When it is not importable, the source stored in the
+    recording is code from whoever made the file: it runs only with ``trust_code=True`` (the
+    commands' ``--trust-code``).  Without it the arrays, the summary from the recorded values and the
+    plots are all there; what needs the code (``Run.scenario.code_not_run()`` says what) is skipped:
+    ``summary["escaped"]`` is None, and simulating the scenario raises ``plants.refs.CodeNotTrusted``.
 
     Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
     """
@@ -248,7 +255,8 @@ def open(path: str | Path) -> Run:  # noqa: A001 - testbed.open, as the issue na
     from ..record.summary import load
 
     compilenotice.install()
-    return run_of_recording(*load(path, fields=None), path)  # every field (q_k at the encoder, the stage times)
+    # every field (q_k at the encoder, the stage times)
+    return run_of_recording(*load(path, fields=None, trust_code=trust_code), path)
 
 
 # ============================================================================ from the simulator

@@ -2,8 +2,9 @@
 
 Two entry points share one semantics (sample k = 0, ..., N-1 at t_k = k T):
 
-1. ``simulate_loop`` - one trajectory, per sample, with *separate* ``Encoder`` and
-   ``Decoder`` objects that only see symbols and acks (what a live run does).
+1. ``simulate_loop`` - one trajectory, per sample, with *separate* encoder and
+   decoder ends (``methods.EncoderEnd``, ``DecoderEnd``) that only see symbols and acks
+   (what a live run does).
    Returns every per-sample quantity (``SimResult``).
 2. ``simulate_batch`` - many initial states and/or schedules at once in one
    numba kernel (one core; ``testbed.analysis.parallel`` spreads batches over
@@ -28,7 +29,6 @@ from ..channel import ATTACKER, loss_counts
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..quantizer import (
     MODES,
-    Decoder,
     QuantizerParams,
 )
 from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width
@@ -354,7 +354,7 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion) -> bool:
     if st is None:
         st = loop_state_from_samples(res, model, sc.quantizer, sc.flow)
     if st is None:  # no sample: the loop from x_0 as it starts
-        dec = Decoder(model, res.K, sc.quantizer, sc.flow)
+        dec = method.make_decoder(model, res.K, sc.quantizer, sc.flow)
         st = loop_state_of(dec, dec)
     return bool(judge_escape(plant, res.K, sc.quantizer, res.x_final[None, :], st[None, :], [FLOW_OK], criterion,
                              model=model, flow=sc.flow)[0])
@@ -395,7 +395,8 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
     diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
     converged = (not diverged) and res.final_norm < tol
     crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
-    escaped = escaped_run(sc, res, crit)
+    # a recording's plant or method whose stored code was not run (no --trust-code): not judged
+    escaped = None if sc.code_not_run() else escaped_run(sc, res, crit)
     sch = res.intervals()
     cb = sc.make_method().codebook(model.n, sc.quantizer)
     return json_clean({
@@ -429,7 +430,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False) -> dict:
         "x_final": res.x_final.tolist(),
         "final_norm": res.final_norm,
         "converged": bool(converged),
-        "escaped": bool(escaped),
+        "escaped": None if escaped is None else bool(escaped),
         "escape_criterion": crit.to_dict(),
         "diverged": bool(diverged),
         "diverged_at": res.diverged_at if res.plant_fault is None else res.plant_fault_at,

@@ -1,7 +1,8 @@
 """The per-sample simulator (``simulate_loop``): one trajectory, sample by sample, with *separate*
-``Encoder`` and ``Decoder`` objects that only see symbols and acks (what a live run does), run through
-the protocol objects of ``testbed.protocol`` that the live nodes run too.  Returns every per-sample
-quantity (``SimResult``).  ``testbed.simulate`` holds the batch kernel and the scenario level.
+encoder and decoder ends (``methods.EncoderEnd``, ``DecoderEnd``) that only see symbols and acks
+(what a live run does), run through the protocol objects of ``testbed.protocol`` that the live
+nodes run too.  Returns every per-sample quantity (``SimResult``).  ``testbed.simulate`` holds the
+batch kernel and the scenario level.
 
 At every sample:  x_k -> encoder symbol (Algorithm 1) -> attacker (theta_k) ->
 decoder q_k, u_k = (1 - theta_k) K q_k (Algorithm 2, law (2)) -> ack theta_k ->
@@ -21,6 +22,7 @@ from plants.base import PlantFault
 from ..channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..methods.base import symbol_code
+from ..methods.bundled import PaperMethod
 from ..protocol import (
     INVALID,
     RECEIVED,
@@ -32,8 +34,6 @@ from ..protocol import (
     corrupt_payload,
 )
 from ..quantizer import (
-    Decoder,
-    Encoder,
     QuantizerParams,
     control_input,
 )
@@ -237,12 +237,11 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     u_plant = np.zeros((N, m)) if device is not None and device.actuator is not None else None
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     delays = np.zeros(N, dtype=np.int64) if physical else None
+    own = method is not None   # a method of the caller's: a raise is its fault, not the testbed's
     if method is None:
-        encp = EncoderProtocol(Encoder(model, K, qp, flow), N)
-        ctlp = ControllerProtocol(Decoder(model, K, qp, flow), N)
-    else:
-        encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
-        ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
+        method = PaperMethod()
+    encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
+    ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
     chan = net.samples(N, tpar, n, m, ctlp.codebook.nbytes) if replay is None else None
     dropped = np.zeros(N, dtype=bool)   # the attacker dropped or corrupted sample k's symbol
     enc_state: dict = {}
@@ -265,7 +264,8 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     last = N
 
     def record(d) -> None:
-        if d.state is not None and d.k in enc_state and not np.array_equal(enc_state.pop(d.k), d.state):
+        if d.state is not None and d.k in enc_state and not np.array_equal(enc_state.pop(d.k), d.state,
+                                                                           equal_nan=True):
             breaks.append(d.k)
         theta[d.k] = d.theta
         rec["q"][d.k] = d.q
@@ -282,7 +282,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         try:
             send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan)
         except Exception as e:  # a method's end raised: the run ends at this sample
-            if method is None:
+            if not own:
                 raise
             mfault, mfault_at, last = f"method {method.display_name()!r} raised at sample {k}: " \
                                       f"{type(e).__name__}: {e}", k, k
@@ -395,7 +395,7 @@ def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan=N
 
 
 def loop_state_of(enc, dec) -> np.ndarray:
-    """The packed loop state (``loop_state_width``) of an encoder and a decoder (``quantizer._End``)."""
+    """The packed loop state (``loop_state_width``) of an encoder and a decoder end (``methods.End``)."""
     return np.concatenate([enc.xi, [enc.E], enc.u_prev, dec.xi, [dec.E], dec.u_prev]).astype(np.float64)
 
 
@@ -413,7 +413,7 @@ def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: Fl
         xi, E = res.xi_enc[-1], res.E_enc[-1]  # in lockstep)
     else:
         return None
-    dec = Decoder(model, res.K, qp, flow)
+    dec = PaperMethod().make_decoder(model, res.K, qp, flow)
     cb = dec.codebook
     dec.xi = np.array(xi, dtype=np.float64)
     dec.E = float(E)
