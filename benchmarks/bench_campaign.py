@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -37,7 +38,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-campaign-") as d:
         d = Path(d)
         text = (ROOT / "docs" / "examples" / "paper-random.toml").read_text()
-        text = text.replace("duration = 30.0", f"duration = {a.duration!r}")
+        text = re.sub(r"(?m)^duration = .*$", f"duration = {a.duration!r}", text)
         (d / "random.toml").write_text(text)
         seeds = list(range(a.seeds))
         (d / "c.toml").write_text(f'scenario = "random.toml"\nseed = 1\n[axes]\n"method.name" = ["paper", "zoom"]\n'

@@ -94,6 +94,12 @@ JOBS = (
               "bound, the time series, the phase portrait (with the run from x0 = [0.3, 0.3] under the same "
               "attacks, asked for with `--escape-x0 0.3 0.3`) and the initial states the attacker defeats. "
               "These are the figures of [analysis](analysis.md)."),
+    Job("campaign-methods", (("campaign", "docs/examples/campaign-methods.toml", "--out", "{tmp}/campaign", "--plot",
+                              "{out}/figures/campaign-methods.png", "--no-progress"),),
+        ("figures/campaign-methods.png",), title="A campaign: `testbed campaign --plot`",
+        about="The worked example of [campaigns](campaigns.md#worked-example-the-papers-method-against-the-baselines): "
+              "the fraction of converged and of escaped runs of each method (95 % Wilson intervals), one series "
+              "per initial state, the attack seeds pooled; the values of an axis side by side, not joined."),
     Job("vulnerability-paper", (("vulnerability", "paper", "--grid", "41", "--plot",
                                  "{out}/analysis/paper-vulnerability.png", "--no-progress"),),
         ("analysis/paper-vulnerability.png",), title="The least attack per state: `testbed vulnerability --plot`",

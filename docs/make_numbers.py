@@ -278,6 +278,9 @@ def compute() -> tuple[dict[str, str], dict[str, str]]:
     nn, nb = noise_numbers()
     n.update(nn)
     b.update(nb)
+    cn, cb = campaign_numbers()
+    n.update(cn)
+    b.update(cb)
     return n, b
 
 
@@ -343,6 +346,27 @@ def methods_numbers() -> dict[str, str]:
     return {"methods_versus": "\n".join(rows)}
 
 
+CAMPAIGN = "docs/examples/campaign-methods.toml"
+
+
+def campaign_numbers() -> tuple[dict[str, str], dict[str, str]]:
+    """docs/campaigns.md: the worked example (``testbed campaign ... --json``, then ``--table markdown`` of the
+    same folder, which runs nothing more)."""
+    with tempfile.TemporaryDirectory() as d:
+        s = testbed("campaign", CAMPAIGN, "--out", d, "--no-progress")["summary"]
+        r = subprocess.run([sys.executable, "-m", "testbed.cli", "campaign", CAMPAIGN, "--out", d, "--no-progress",
+                            "--table", "markdown"], capture_output=True, text=True, cwd=ROOT,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=1800)
+        if r.returncode != 0:
+            raise SystemExit(f"testbed campaign {CAMPAIGN} --table markdown: exit {r.returncode}\n{r.stderr[-2000:]}")
+    by = {g["value"]: g for g in s["by_axis"]["method.name"]}
+    n = {f"campaign_{m}": f"{g['converged']}/{g['bounded']}/{g['escaped']} of {g['n']}" for m, g in by.items()}
+    zoom = next(d for d in s["comparisons"]["method.name"]["values"] if d["value"] == "zoom")["paired_difference"]
+    n["campaign_zoom_diff"] = f"{zoom['difference']:+.2f} [{zoom['ci95'][0]:.2f}, {zoom['ci95'][1]:.2f}]"
+    n["campaign_zoom_p"] = "p < 0.001" if zoom["mcnemar_p"] < 0.001 else f"p = {zoom['mcnemar_p']:.3g}"
+    return n, {"campaign_methods": r.stdout.strip()}
+
+
 def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
     """Every page with its markers filled (docs/numbers.md is written whole)."""
     out = {}
@@ -377,7 +401,9 @@ def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
               "methods_versus": "Methods on the paper's example (`testbed versus paper --methods ...`, "
                                 "`testbed worst-attack paper --method ...`)",
               "noise_sweep": "E_min against sensor noise (`testbed noise docs/examples/paper-noisy.toml`)",
-              "noise_methods": "The bundled methods under sensor noise (`testbed noise ... --method NAME`)"}
+              "noise_methods": "The bundled methods under sensor noise (`testbed noise ... --method NAME`)",
+              "campaign_methods": "The worked campaign (`testbed campaign docs/examples/campaign-methods.toml "
+                                  "--table markdown`)"}
     for key, table in b.items():
         lines += [f"## {titles.get(key, key)}", "", f"<!--numbers:{key}-->", table, "<!--/numbers-->", ""]
     lines += ["## Values", "", "| name | value |", "|---|---|"]

@@ -379,7 +379,7 @@ def test_live_campaign_four_runs_recorded_and_resimulated(tmp_path):
 
 def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
     """Every bundled method, converging, escaping and diverging runs: the rows the batch kernel gives equal
-    the per-sample simulator's (testbed simulate's) bit for bit, in every outcome column."""
+    the per-sample simulator's (testbed simulate's) bit for bit, in every outcome column and settle_samples."""
     from testbed import methods
 
     names = list(methods.names())
@@ -396,8 +396,9 @@ def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
     assert len({r["converged"] for r in single}) == 2 and any(r["escaped"] for r in single)
     for a, b in zip(batch, single):
         assert a["status"] == b["status"] == "ok", (a, b)
-        for k in cmp.OUTCOME_KEYS:
+        for k in (*cmp.OUTCOME_KEYS, "settle_samples"):
             assert a[k] == b[k], (a["run"], a["method"], k, a[k], b[k])
+    assert any(r["settle_samples"] is not None for r in single) and any(r["settle_samples"] is None for r in single)
 
 
 def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
@@ -571,3 +572,107 @@ def test_rows_count_the_lost_samples_by_cause(tmp_path):
         assert ls == s["losses"], (r["run"], ls, s["losses"])
     lossy = [r for r in rows if r["losses"]["channel"] > 0]
     assert len(lossy) == 2 and all(r["losses"]["attacker"] > 0 for r in rows)
+
+
+# ============================================================================ summary, comparisons, progress
+def test_summary_pairs_the_runs_and_the_table_shows_them(tmp_path):
+    """The summary's paired comparison of two methods equals the one counted here from the rows paired by
+    seed; every group tells converged, bounded and escaped apart; --table prints it as Markdown and LaTeX.
+    Without an axis of seeds and with repeat = 2 the methods face other attacks: no pairs, said so."""
+    import math
+    import statistics
+
+    from testbed.campaign import tables
+
+    c = _campaign(tmp_path, 'scenario = "random.toml"\nseed = 4\n[axes]\n"method.name" = ["paper", "zoom"]\n'
+                            '"attack.seed" = [0, 1, 2, 3, 4, 5]\n"plant.x0" = [[0.1, 0.1], [0.3, 0.3]]\n'
+                            '"quantizer.E0" = [0.6]\n"quantizer.allow_x0_outside" = [true]\n"run.duration" = [30.0]\n')
+    out = campaignrun.run(cmp.parse(c), tmp_path / "o", progress=False)
+    s, rows = out["summary"], out["rows"]
+    for g in [s["total"], *s["by_axis"]["method.name"], *s["points"]]:
+        assert g["converged"] + g["bounded"] + g["escaped"] == g["n"]
+    assert any(r["escaped"] for r in rows) and any(r["converged"] for r in rows)
+    assert set(s["comparisons"]) == {"method.name", "plant.x0"}  # not the seeds
+    comp = s["comparisons"]["method.name"]
+    assert comp["reference"] == "paper" and len(comp["values"]) == 1
+    d = comp["values"][0]
+    by = {(r["method.name"], r["attack.seed"], json.dumps(r["plant.x0"])): r for r in rows}
+    keys = [(s_, x) for (m, s_, x) in by if m == "zoom"]
+    a_only = sum(1 for k in keys if by[("zoom", *k)]["converged"] and not by[("paper", *k)]["converged"])
+    b_only = sum(1 for k in keys if by[("paper", *k)]["converged"] and not by[("zoom", *k)]["converged"])
+    pd = d["paired_difference"]
+    assert (d["pairs"], d["unpaired"], pd["a_only"], pd["b_only"]) == (12, 0, a_only, b_only)
+    m = a_only + b_only
+    p = 1.0 if m == 0 else min(1.0, 2 * sum(math.comb(m, i) for i in range(min(a_only, b_only) + 1)) / 2 ** m)
+    assert pd["mcnemar_p"] == pytest.approx(p) and pd["difference"] == pytest.approx((a_only - b_only) / 12)
+    mx = d["paired_continuous"]["max_norm"]
+    assert mx["median_difference"] == pytest.approx(statistics.median(
+        by[("zoom", *k)]["max_norm"] - by[("paper", *k)]["max_norm"] for k in keys))
+    assert mx["ci95"][0] <= mx["median_difference"] <= mx["ci95"][1]
+    on_disk = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert on_disk["comparisons"] == json.loads(json.dumps(s["comparisons"]))
+    assert "## Paired comparisons" in (tmp_path / "o" / "summary.md").read_text()
+    md = tables.markdown(s)
+    assert "| zoom | 12 | " in md and "| paper (reference) | 12 | " in md and "Newcombe" in md
+    tex = tables.latex(s, "c")
+    assert tex.count(r"\begin{tabular}") == 2 and r"\label{tab:c-method-name}" in tex and "zoom & 12 &" in tex
+    p = _cli("campaign", c, "--out", tmp_path / "o", "--table", "markdown", "--no-progress", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout == md
+    p = _cli("campaign", c, "--out", tmp_path / "o", "--table", "latex", "--json", cwd=tmp_path)
+    assert p.returncode == 2 and "--json or --table" in p.stderr
+    # other seeds per method (derived from the axis values): nothing to pair, and the summary says it
+    c2 = _campaign(tmp_path, 'scenario = "random.toml"\nrepeat = 2\n[axes]\n"method.name" = ["paper", "zoom"]\n',
+                   name="c2.toml")
+    s2 = campaignrun.run(cmp.parse(c2), tmp_path / "o2", progress=False)["summary"]
+    d2 = s2["comparisons"]["method.name"]["values"][0]
+    assert (d2["pairs"], d2["unpaired"]) == (0, 2)
+    assert d2["paired_difference"]["difference"] is None and d2["paired_continuous"]["max_norm"]["wilcoxon_p"] is None
+    assert "| zoom | 2 |" in tables.markdown(s2)
+
+
+def test_progress_estimates_from_the_runs_after_the_first():
+    """The first run pays the kernels' loading or compiling: the estimate of the time left starts at its
+    end, and is known only once another run has ended."""
+    p = campaignrun.Progress(10, 0, enabled=False)
+    assert p.eta(0, 5.0) is None
+    p(1, 0)  # the first run ended
+    t1, d1 = p.clock
+    assert d1 == 1 and p.eta(1, t1 + 50.0) is None
+    assert p.eta(3, t1 + 2.0) == pytest.approx(1.0 * 7)   # 2 runs in 2 s after the first: 7 left, 7 s
+    q = campaignrun.Progress(10, 4, enabled=False)         # resumed: 4 found done
+    q(4, 0)
+    assert q.clock is None                                 # nothing ran yet
+    q(5, 0)
+    assert q.clock[1] == 5
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_how_to_resume(tmp_path):
+    """SIGINT to a running campaign (its process group, as Ctrl-C in a terminal): exit 130 and one line that
+    names how many runs are stored and the command that resumes; that command finishes the campaign."""
+    c = _campaign(tmp_path, CAMPAIGN_120.format(seeds=", ".join(str(s) for s in range(150))))
+    (tmp_path / "random.toml").write_text(RANDOM_SCENARIO.replace("duration = 8.0", "duration = 30.0"))
+    journal_path = tmp_path / "out" / cmp_folder.JOURNAL
+    p = subprocess.Popen(tb_cmd("campaign", str(c), "--out", "out", "--workers", "2"), cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    t0 = time.monotonic()
+    # after a worker's first chunk: the workers are forked (a SIGINT in a child's fork handlers prints
+    # "Exception ignored" from that child: the workers share the terminal's process group)
+    while p.poll() is None and time.monotonic() - t0 < 120:
+        if journal_path.exists() and journal_path.read_bytes().count(b"\n") > 1:
+            break
+        time.sleep(0.02)
+    assert p.poll() is None, p.communicate()
+    os.killpg(p.pid, signal.SIGINT)
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    line = [x for x in err.splitlines() if "interrupted" in x]
+    assert len(line) == 1 and "Traceback" not in err, err
+    stored = len(cmp_folder.read_journal(tmp_path / "out"))
+    assert f"interrupted; {stored} of 300 runs are stored in out; the same command resumes: testbed campaign " \
+           f"{c} --out out" in line[0]
+    assert "campaign: the first run loads the simulator" in err  # the setup said what it did
+    p = _cli("campaign", c, "--out", "out", "--workers", 2, "--json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert len(_table(tmp_path / "out")) == 300

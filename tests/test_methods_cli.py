@@ -6,12 +6,14 @@ The commands run in their own processes, from a working directory that is not th
 from __future__ import annotations
 
 import json
+import math
 import os
 import secrets
 import shutil
 from pathlib import Path
 
 import helpers
+import numpy as np
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
@@ -83,6 +85,24 @@ def test_versus_seeds_summary(tmp_path):
     a = [r["converged"] for r in d["rows"] if r["method"] == "unquantized-hold"]
     b = [r["converged"] for r in d["rows"] if r["method"] == "paper"]
     assert pd["vs"] == "paper" and pd["difference"] == pytest.approx((sum(a) - sum(b)) / 4)
+    # the exact McNemar p of the discordant pairs, from the binomial pmf; Newcombe's interval is never a point
+    x, y = sum(p and not q for p, q in zip(a, b)), sum(q and not p for p, q in zip(a, b))
+    m = x + y
+    p_hand = 1.0 if m == 0 else min(1.0, 2 * sum(math.comb(m, i) for i in range(min(x, y) + 1)) / 2 ** m)
+    assert (pd["a_only"], pd["b_only"]) == (x, y) and pd["mcnemar_p"] == pytest.approx(p_hand)
+    lo, hi = pd["ci95"]
+    assert lo <= pd["difference"] <= hi and lo < hi
+    for m_ in ("paper", "unquantized-hold"):
+        s = d["summary"][m_]
+        assert s["converged"] + s["bounded"] + s["escaped"] == 4
+    cont = d["summary"]["unquantized-hold"]["paired_continuous"]
+    assert set(cont) == {"settle_samples", "max_norm", "saturations"}
+    mx = [r["max_norm"] for r in d["rows"] if r["method"] == "unquantized-hold"]
+    mp = [r["max_norm"] for r in d["rows"] if r["method"] == "paper"]
+    assert cont["max_norm"]["n"] == 4 and cont["max_norm"]["median_difference"] == pytest.approx(
+        float(np.median(np.subtract(mx, mp))))
+    rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--seeds", "4", "--seed", "7", cwd=tmp_path)
+    assert rc == 0 and "minus paper on the same seeds (4 pairs): converged" in out and "McNemar p" in out
     # without --seeds: one seed drawn, named on stderr, and every method (a swapped one too) faces it
     rc, out, err = tb("versus", sc, "--methods", "paper,unquantized-hold", "--json", cwd=tmp_path)
     assert rc == 0, err

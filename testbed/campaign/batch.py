@@ -38,6 +38,7 @@ def run_group(scs: list) -> list[dict | None]:
     """The outcome of each scenario of one group (one ``batch_key``) from one kernel call; None for a run
     whose flow diverged (the per-sample simulator runs it)."""
     from ..sim.batch import FLOW_OK, EscapeCriterion, json_clean, judge_escape, simulate_batch
+    from .engine import settle_samples
 
     sc0 = scs[0]
     N = sc0.n_steps
@@ -73,6 +74,7 @@ def run_group(scs: list) -> list[dict | None]:
             "method": sc.method.name, "bits": bits, "converged": bool(fn < tol), "escaped": bool(esc[j]),
             "diverged": False, "final_norm": fn, "max_norm": float(max(np.max(np.abs(b.x[j])) if N else 0.0, fn)),
             "x_final": xf.tolist(), "saturations": int(b.saturations[j]), "samples_lost": lost,
+            "settle_samples": settle_samples(b.x[j], xf, tol),
             "packets_dropped": lost, "encoder_decoder_agree": True, "plant_fault": None, "method_fault": None,
             # no channel, ideal timing, every ack delivered: each lost sample is the attacker's
             "losses": {"attacker": lost, "channel": 0, "late": 0, "withheld": 0}}))

@@ -5,16 +5,16 @@
 with the per-sample simulator (the live nodes' protocol objects, every method) and returns a row
 with the keys of ``testbed simulate --json`` that a comparison needs.  :func:`summarize_rows`
 gives, per method, the success rate (success = converged) with a 95 % Wilson score interval and
-the paired difference to a reference method over the same seeds.
+the paired comparison to a reference method over the same seeds (``testbed.comparestats``).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from .. import comparestats
 from .. import scenario as scenario_mod
 from ..errors import BadInput
 
@@ -107,43 +107,57 @@ def run_points(points, *, keep=False, progress=None) -> list:
     return out
 
 
-def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float] | None:
-    """The Wilson score interval of a binomial proportion (95 % for the default z); None for n = 0."""
-    if n == 0:
-        return None
-    p = successes / n
-    den = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, centre - half), min(1.0, centre + half)
+def wilson(successes: int, n: int) -> tuple[float, float] | None:
+    """The 95 % Wilson score interval of a binomial proportion (scipy's); None for n = 0."""
+    return comparestats.wilson(successes, n)
 
 
-def paired_difference(a: list[bool], b: list[bool], z: float = 1.959963984540054) -> dict:
-    """Success of ``a`` minus success of ``b`` over the same seeds (paired): the mean difference, a 95 %
-    normal interval of the mean of the paired differences, and the discordant pairs (a only, b only)."""
-    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
-    n = d.size
-    mean = float(d.mean()) if n else None
-    half = float(z * d.std(ddof=1) / math.sqrt(n)) if n > 1 else None
-    return {"difference": mean, "ci95": None if half is None else [mean - half, mean + half],
-            "a_only": int(np.sum(d > 0)), "b_only": int(np.sum(d < 0)), "n": int(n)}
+def paired_difference(a: list[bool], b: list[bool]) -> dict:
+    """Success of ``a`` minus success of ``b`` over the same seeds (paired): ``difference``, its 95 %
+    Newcombe hybrid score interval ``ci95``, the exact McNemar ``mcnemar_p``, the discordant pairs
+    (``a_only``, ``b_only``), ``both``, ``neither`` and ``n`` (``testbed.comparestats.paired_binary``)."""
+    return comparestats.paired_binary(a, b)
+
+
+#: the paired continuous outcomes of a comparison (Wilcoxon signed-rank, bootstrap of the median difference)
+CONTINUOUS = ("settle_samples", "max_norm", "saturations")
+
+
+def outcome_counts(rows: list[dict]) -> dict:
+    """How runs ended, by the rows' own verdicts: ``converged``, ``bounded`` (neither converged nor escaped:
+    still converging at the end of the horizon, or held in a ball) and ``escaped``."""
+    esc = sum(1 for r in rows if r.get("escaped"))
+    conv = sum(1 for r in rows if r.get("converged") and not r.get("escaped"))
+    return {"converged": conv, "bounded": len(rows) - conv - esc, "escaped": esc}
+
+
+def compare_paired(pairs: list[tuple[dict, dict]], seed: int = 0) -> dict:
+    """Rows paired (A, B) on the same seeds and initial states: ``paired_difference`` (converged),
+    ``paired_escaped`` (escaped), and ``paired_continuous`` (``CONTINUOUS``: each A - B)."""
+    a = [p[0] for p in pairs]
+    b = [p[1] for p in pairs]
+    return {"paired_difference": paired_difference([r.get("converged") for r in a], [r.get("converged") for r in b]),
+            "paired_escaped": paired_difference([r.get("escaped") for r in a], [r.get("escaped") for r in b]),
+            "paired_continuous": {k: comparestats.paired_continuous([r.get(k) for r in a], [r.get(k) for r in b],
+                                                                    seed=seed) for k in CONTINUOUS}}
 
 
 def summarize_rows(rows: list[dict], methods: list[str]) -> dict:
-    """Per method: ``n``, ``successes``, ``success_rate``, ``wilson95`` and (except the first)
-    ``paired_difference`` to the first method (rows paired by seed)."""
-    by = {m: {r["seed"]: bool(r["converged"]) for r in rows if r["method"] == m} for m in methods}
+    """Per method: ``n``, ``successes``, ``success_rate``, ``wilson95``, ``converged``/``bounded``/``escaped``
+    counts and (except the first) the paired comparison to the first method over the seeds both ran
+    (``compare_paired``: ``paired_difference`` with ``vs``, ``paired_escaped``, ``paired_continuous``)."""
+    by = {m: {r["seed"]: r for r in rows if r["method"] == m} for m in methods}
     out = {}
     ref = methods[0]
     for m in methods:
-        ok = list(by[m].values())
-        n, s = len(ok), int(sum(ok))
-        w = wilson(s, n)
-        d = {"n": n, "successes": s, "success_rate": s / n if n else None, "wilson95": None if w is None else list(w)}
+        rs = list(by[m].values())
+        d = {**comparestats.success_rate(sum(1 for r in rs if r["converged"]), len(rs)), **outcome_counts(rs)}
         if m != ref:
             seeds = [k for k in by[m] if k in by[ref]]
-            pd = paired_difference([by[m][k] for k in seeds], [by[ref][k] for k in seeds])
-            d["paired_difference"] = {"vs": ref, **pd}
+            cmp = compare_paired([(by[m][k], by[ref][k]) for k in seeds])
+            d["paired_difference"] = {"vs": ref, **cmp["paired_difference"]}
+            d["paired_escaped"] = cmp["paired_escaped"]
+            d["paired_continuous"] = cmp["paired_continuous"]
         out[m] = d
     return out
 

@@ -14,9 +14,10 @@ import platform
 import sys
 from pathlib import Path
 
+from .. import comparestats
 from ..errors import BadInput
 from . import code
-from .engine import wilson
+from .engine import outcome_counts, wilson
 from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, Run
 
 JOURNAL = "journal.jsonl"
@@ -227,8 +228,9 @@ def summarize_group(rows: list[dict]) -> dict:
     w = wilson(s, len(ok))
     return {"runs": len(rows), "failed": len(rows) - len(ok), "n": len(ok), "successes": s,
             "success_rate": s / len(ok) if ok else None, "wilson95": None if w is None else list(w),
-            "escaped": sum(1 for r in ok if r.get("escaped")),
+            **outcome_counts(ok),
             "median_final_norm": _median([r.get("final_norm") for r in ok]),
+            "median_settle_samples": _median([r.get("settle_samples") for r in ok]),
             "median_max_norm": _median([r.get("max_norm") for r in ok]),
             "median_saturations": _median([r.get("saturations") for r in ok]),
             "median_samples_lost": _median([r.get("samples_lost") for r in ok]),
@@ -237,7 +239,9 @@ def summarize_group(rows: list[dict]) -> dict:
 
 def summarize(c: Campaign, runs: list[Run], rows: list[dict]) -> dict:
     """Per point and per value of each axis: the success rate (success = converged) with its 95 %
-    Wilson score interval, and medians; the totals."""
+    Wilson score interval, how the runs ended (converged, bounded, escaped) and medians; the totals; the
+    paired comparisons of each axis's values with its first (``tables.comparisons``)."""
+    from .tables import comparisons
     keys = list(c.axes)
     by_point: dict = {}
     for r in rows:
@@ -258,7 +262,11 @@ def summarize(c: Campaign, runs: list[Run], rows: list[dict]) -> dict:
     return {"campaign": c.path.name, "scenario": c.scenario, "runs_kind": c.runs, "planned": len(runs),
             "done": len(rows), "failed": sum(1 for r in rows if r.get("status") != "ok"),
             "success": "converged (final ||x||_inf < converge_tol)", "interval": "95 % Wilson score",
+            "outcomes": "converged; bounded: neither converged nor escaped by the end of the run (still "
+                        "converging, or held in a ball); escaped: the run's escape verdict",
+            "statistics": dict(comparestats.METHODS),
             "total": summarize_group(rows), "by_axis": by_axis, "points": points,
+            "comparisons": comparisons(c.axes, rows),
             "partial_recordings": [p for r in rows if r.get("partial_recordings")
                                    for p in json.loads(r["partial_recordings"])]}
 
@@ -273,17 +281,21 @@ def summary_md(s: dict) -> str:
              f"{s['failed']} failed. Success: {s['success']}; interval: {s['interval']}.", ""]
 
     def table(title, head, groups):
-        out = [f"## {title}", "", f"| {head} | runs | success | rate | 95 % Wilson | escaped | median final "
-               "norm | median max norm | median saturations |", "|---|---|---|---|---|---|---|---|---|"]
+        out = [f"## {title}", "", f"| {head} | runs | success | rate | 95 % Wilson | bounded | escaped | median "
+               "final norm | median max norm | median saturations |", "|---|---|---|---|---|---|---|---|---|---|"]
         for label, g in groups:
             w = g["wilson95"]
             out.append(f"| {label} | {g['runs']} | {g['successes']}/{g['n']} | {_fmt(g['success_rate'], '.3f')} | "
                        + ("-" if w is None else f"[{w[0]:.3f}, {w[1]:.3f}]")
-                       + f" | {g['escaped']} | {_fmt(g['median_final_norm'])} | {_fmt(g['median_max_norm'])} | "
-                       f"{_fmt(g['median_saturations'])} |")
+                       + f" | {g.get('bounded', '-')} | {g['escaped']} | {_fmt(g['median_final_norm'])} | "
+                       f"{_fmt(g['median_max_norm'])} | {_fmt(g['median_saturations'])} |")
         return out + [""]
 
     lines += table("All runs", "group", [("all", s["total"])])
+    if s.get("comparisons"):
+        from .tables import markdown
+
+        lines += ["## Paired comparisons", "", markdown(s)]
     if s.get("partial_recordings"):
         lines += ["Partial recordings of interrupted live runs (kept aside; each run was run again): "
                   + ", ".join(f"`{p}`" for p in s["partial_recordings"]), ""]

@@ -1,7 +1,7 @@
 """A campaign's runs, one row each: a chunk of simulated runs (those that share a loop on the batch
 kernel, ``testbed.campaign.batch``; the others on the per-sample simulator, as ``testbed simulate``
 runs them), or one live run (``testbed run`` of its scenario, recorded).  A row's outcome columns are
-``spec.OUTCOME_KEYS``; a run that crashes is a row with ``status = "failed"``.
+``spec.OUTCOME_KEYS`` and ``settle_samples`` (``engine.settle_samples``); a run that crashes is a row with ``status = "failed"``.
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ import json
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 from .. import scenario as scenario_mod
 from . import engine
@@ -53,8 +55,10 @@ def simulate_runs(items: list, batch: bool = True) -> list[dict]:
                              "wall_s": wall}
     for rid, sc, t0 in single:
         try:
-            s, _ = engine.simulate_one(sc)  # the run engine's single run, as testbed versus runs it
-            rows[rid] = {"run": rid, **engine.outcome(s), "status": "ok", "error": None,
+            s, res = engine.simulate_one(sc)  # the run engine's single run, as testbed versus runs it
+            rows[rid] = {"run": rid, **engine.outcome(s),
+                         "settle_samples": engine.settle_samples(res.x, res.x_final, sc.run.converge_tol),
+                         "status": "ok", "error": None,
                          "simulator": "per-sample", "wall_s": time.perf_counter() - t0}
         except Exception as e:  # noqa: BLE001 - a crashed run is a row of its own (exit 1), the campaign goes on
             rows[rid] = _failed(rid, e, t0)
@@ -104,6 +108,12 @@ def _live_outcome(rec: Path) -> dict:
 
     d = report(str(rec), resimulate=0)
     out = {k: d.get(k) for k in OUTCOME_KEYS}
+    x = np.asarray(d.get("x") or [], dtype=float)
+    if x.size and d.get("x_final") is not None:
+        tol = (d.get("escape_criterion") or {}).get("x_tol", 1e-4)
+        out["settle_samples"] = engine.settle_samples(x, np.asarray(d["x_final"], dtype=float), tol)
+    else:
+        out["settle_samples"] = None
     t = d.get("timing")
     out["timing"] = None if t is None else json.dumps(t, sort_keys=True)
     return out

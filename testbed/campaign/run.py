@@ -14,13 +14,15 @@ from pathlib import Path
 
 from ..errors import BadInput
 from . import code
-from .folder import Journal, prepare, read_journal, read_parquet, source_hash, summarize_group, versions, write_results
+from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
 from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
 
 
 class Progress:
-    """Runs done, failed and left, and an estimate of the time left, on stderr."""
+    """What a campaign does, on stderr: the setup's steps (:meth:`say`), then runs done, failed and left
+    and an estimate of the time left.  The estimate starts at the first run's end (that run loads or
+    compiles the simulator, which the others do not pay) and is shown once a run more has ended."""
 
     def __init__(self, total: int, done: int, enabled: bool = True):
         self.total, self.done0, self.enabled = total, done, enabled
@@ -28,24 +30,53 @@ class Progress:
         self.tty = sys.stderr.isatty()
         self.last = 0.0
         self.shown = None
+        self.clock = None  # (time, runs done) at the end of the first run: where the estimate starts
+        self.open_line = False
+
+    def say(self, text: str) -> None:
+        """One line of what the campaign is doing (the setup), on stderr."""
+        if self.enabled:
+            self.end_line()
+            sys.stderr.write(f"campaign: {text}\n")
+            sys.stderr.flush()
+
+    def end_line(self) -> None:
+        """End a progress line drawn in place (a terminal), before other output."""
+        if self.open_line:
+            sys.stderr.write("\n")
+            self.open_line = False
+
+    def eta(self, done: int, now: float) -> float | None:
+        """Seconds left, from the rate of the runs that ended after the first one (None: not known yet)."""
+        if self.clock is None:
+            return None
+        t1, d1 = self.clock
+        if done <= d1 or now <= t1:
+            return None
+        return (now - t1) / (done - d1) * (self.total - done)
 
     def __call__(self, done: int, failed: int, final: bool = False) -> None:
+        now = time.perf_counter()
+        if self.clock is None and done > self.done0:
+            self.clock = (now, done)
         if not self.enabled:
             return
-        now = time.perf_counter()
         if (not final and now - self.last < (0.2 if self.tty else 5.0)) or (final and self.shown == (done, failed)):
-            if final and self.tty and self.shown == (done, failed):
-                sys.stderr.write("\n")
+            if final:
+                self.end_line()
             return
         self.last = now
         self.shown = (done, failed)
-        new = done - self.done0
         left = self.total - done
         el = now - self.t0
-        eta = el / new * left if new > 0 else math.nan
+        eta = self.eta(done, now) if left else None
         line = (f"campaign: {done}/{self.total} runs done, {failed} failed, {left} left, {el:.1f} s"
-                + (f", about {eta:.0f} s left" if left and new else ""))
-        sys.stderr.write(("\r" + line + ("\n" if final else "")) if self.tty else line + "\n")
+                + (f", about {eta:.0f} s left" if eta is not None else ""))
+        if self.tty:
+            sys.stderr.write("\r" + line + ("\n" if final else ""))
+            self.open_line = not final
+        else:
+            sys.stderr.write(line + "\n")
         sys.stderr.flush()
 
 
@@ -58,18 +89,25 @@ def chunks(items: list, workers: int, dask: bool) -> list[list]:
 
 
 def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live_timeout: float | None = None,
-        notes=None) -> dict:
-    """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.
+        notes=None, planned: tuple | None = None) -> dict:
+    """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.  ``planned``:
+    ``(base scenario, runs, notes)`` of ``plan`` when the caller has them already (planning validates
+    every run: seconds for a large campaign).
 
     Returns ``{"rows", "summary", "folder", "ran", "skipped", "notes"}``.
     """
-    base = base_scenario(c)
-    runs, notes = plan(c, base)
+    if planned is None:
+        base = base_scenario(c)
+        runs, notes = plan(c, base)
+    else:
+        base, runs, notes = planned
     prepare(c, runs, folder, base)
     done = read_journal(folder)
     finished = {k for k, r in done.items() if r.get("status") == "ok"}
     todo = [r for r in runs if r.id not in finished]
     prog = Progress(len(runs), len(runs) - len(todo), progress)
+    prog.say(f"{len(runs)} runs in {folder}" + (f", {len(runs) - len(todo)} found done" if len(todo) < len(runs)
+                                                 else "") + f"; {len(todo)} to run")
     journal = Journal(folder)
     count = {"done": len(runs) - len(todo), "failed": 0}
 
@@ -81,6 +119,10 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
 
     try:
         if c.runs == "live":
+            if todo:
+                prog.say("live runs, each a testbed run of its scenario, recorded"
+                         + (" (on the Dask workers, one at a time per host)" if executor is not None
+                            and executor.kind == "dask" else ", one at a time") + " ...")
             rows = (_live_on_dask(executor, todo, folder, live_timeout, _copies(folder))
                     if executor is not None and executor.kind == "dask"
                     else (live_run(r, folder / "recordings", timeout=live_timeout) for r in todo))
@@ -91,11 +133,16 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
             items = [(r.id, r.text, r.name, r.base_dir) for r in todo]
             first, rest = items[:1], items[1:]
             # the first run here: it loads (or compiles) the kernels before any worker does
+            prog.say("the first run loads the simulator (compiled on first use, then cached) ...")
             for row in simulate_runs(first):
                 store(row)
             prog(count["done"], count["failed"])
             dask = executor is not None and executor.kind == "dask"
             parts = chunks(rest, executor.workers if executor is not None else 1, dask)
+            if rest:
+                prog.say(f"the other {len(rest)} runs in {len(parts)} chunks on "
+                         + (f"{executor.workers} {'Dask ' if dask else ''}worker(s)" if executor is not None
+                            else "this process") + " ...")
             gen = (executor.imap(simulate_runs, parts, warm=first if dask else None) if executor is not None
                    else ((i, simulate_runs(p)) for i, p in enumerate(parts)))
             for _i, rows in gen:
@@ -106,6 +153,7 @@ def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live
         journal.close()
     prog(len([r for r in runs if r.id in done]), sum(1 for r in runs if r.id in done and done[r.id]["status"] != "ok"),
          final=True)
+    prog.say("writing the table and the summaries (with the paired tests) ...")
     rows, s = write_results(folder, c, runs, done)
     return {"rows": rows, "summary": s, "folder": str(folder), "ran": len(todo), "skipped": len(runs) - len(todo),
             "notes": notes}
@@ -330,10 +378,17 @@ def _norm(v):
 
 
 # ============================================================================ figure
+#: the outcomes the figure draws: (key of ``summarize_group``, panel title)
+PLOT_OUTCOMES = (("converged", "converged"), ("escaped", "escaped"))
+
+
 def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
-    """The success rate (95 % Wilson interval as error bars) over the first axis of more than one value
-    (not a seed, where there is another), one line per value of the second such axis; the others pooled."""
-    from ..figstyle import pyplot, save, subplots
+    """The rates of converged and of escaped runs (each with its 95 % Wilson interval) over the first axis of
+    more than one value (not a seed, where there is another), one series per value of the second such axis
+    (the others pooled).  In the one figure style (``testbed.figstyle``): categorical values are points side
+    by side with their intervals (a numeric axis is joined by lines), the legend below the panels."""
+    from .. import figstyle
+    from ..comparestats import wilson
 
     multi = [k for k, v in c.axes.items() if len(v) > 1]
     pref = [k for k in multi if not k.endswith("seed")] or multi
@@ -342,37 +397,44 @@ def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
     x_axis = pref[0] if pref else None
     series_axis = pref[1] if len(pref) > 1 else None
     rows = read_parquet(Path(summary["folder"]) / "runs.parquet") if "folder" in summary else []
-    plt = pyplot()
-    fig, axs = subplots(size, 1, 1)
-    ax = axs[0, 0] if hasattr(axs, "shape") else axs
     xs = c.axes[x_axis] if x_axis else [None]
-    numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
-    pos = list(xs) if numeric else list(range(len(xs)))
-    for sv in (c.axes[series_axis] if series_axis else [None]):
-        ys, lo, hi = [], [], []
-        for xv in xs:
-            sel = [r for r in rows if (x_axis is None or _eq(r.get(x_axis), xv))
-                   and (series_axis is None or _eq(r.get(series_axis), sv))]
-            g = summarize_group(sel)
-            w = g["wilson95"] or [math.nan, math.nan]
-            rate = g["success_rate"] if g["success_rate"] is not None else math.nan
-            ys.append(rate)
-            lo.append(max(0.0, rate - w[0]))
-            hi.append(max(0.0, w[1] - rate))
-        lab = None if series_axis is None else f"{series_axis} = {json.dumps(sv)}"
-        ax.errorbar(pos, ys, yerr=[lo, hi], marker="o", capsize=3, label=lab)
-    if not numeric:
-        ax.set_xticks(pos)
-        ax.set_xticklabels([json.dumps(v) for v in xs], rotation=30, fontsize=7)
-    ax.set_xlabel(x_axis or "")
-    ax.set_ylabel("success rate (converged)")
-    ax.set_ylim(-0.05, 1.05)
-    ax.set_title(f"campaign {c.stem}: success rate, 95 % Wilson interval")
-    if series_axis:
-        ax.legend(fontsize=7)
-    out = save(fig, path)
-    plt.close(fig)
-    return out
+    numeric = len(xs) > 1 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
+    series = c.axes[series_axis] if series_axis else [None]
+    pos = [float(v) for v in xs] if numeric else list(range(len(xs)))
+    # side by side: a series' points are shifted by a fraction of the smallest gap between x positions
+    gap = min((b - a for a, b in zip(sorted(pos), sorted(pos)[1:])), default=1.0) or 1.0
+    width = 0.6 * gap
+    shift = [(i - (len(series) - 1) / 2) * width / max(len(series), 1) for i in range(len(series))]
+    panels = figstyle.panels(size, len(PLOT_OUTCOMES))
+    with figstyle.style(size):
+        fig, axs = figstyle.subplots(size, *panels, aspect=0.62 if size == "page" else 0.5, sharey=True)
+        axs = axs.ravel()
+        for ax, (key, title) in zip(axs, PLOT_OUTCOMES):
+            for j, sv in enumerate(series):
+                ys, lo, hi = [], [], []
+                for xv in xs:
+                    sel = [r for r in rows if r.get("status") == "ok" and (x_axis is None or _eq(r.get(x_axis), xv))
+                           and (series_axis is None or _eq(r.get(series_axis), sv))]
+                    k = sum(1 for r in sel if r.get(key))
+                    w = wilson(k, len(sel))
+                    rate = k / len(sel) if sel else math.nan
+                    ys.append(rate)
+                    lo.append(rate - w[0] if w else math.nan)
+                    hi.append(w[1] - rate if w else math.nan)
+                lab = "all runs" if series_axis is None else f"{series_axis} = {json.dumps(sv)}"
+                ax.errorbar([p + shift[j] for p in pos], ys, yerr=[lo, hi], marker="o", capsize=2.5,
+                            ls="-" if numeric else "none", color=figstyle.CYCLE[j % len(figstyle.CYCLE)], label=lab)
+            if not numeric:
+                ax.set_xticks(pos)
+                ax.set_xticklabels([v if isinstance(v, str) else json.dumps(v) for v in xs])
+                ax.set_xlim(min(pos) - 0.5 * gap, max(pos) + 0.5 * gap)
+                ax.grid(False, axis="x")
+            ax.set_xlabel(x_axis or "")
+            ax.set_title(f"{title} (95 % Wilson interval)")
+            ax.set_ylim(-0.03, 1.03)
+        axs[0].set_ylabel("fraction of runs")
+        figstyle.legend_below(fig, axes=axs[:1])
+        return figstyle.save(fig, path)
 
 
 def _eq(a, b) -> bool:

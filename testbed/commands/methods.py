@@ -125,14 +125,30 @@ def main_versus(args) -> int:
             print(f"{r['method']:<18} {str(r['seed']):>6} {str(r['converged']):>9} {str(r['escaped']):>7} "
                   f"{r['final_norm']:>10.3e} {r['max_norm']:>9.3g} {r['saturations']:>5} {r['samples_lost']:>5} "
                   f"{r['bits']:>5} {str(r['settle_samples']):>6}")
-        for m, d in out.get("summary", {}).items():
-            w = d["wilson95"]
-            line = f"{m}: success {d['successes']}/{d['n']} (95 % Wilson [{w[0]:.2f}, {w[1]:.2f}])"
-            if "paired_difference" in d:
-                pd = d["paired_difference"]
-                line += f", minus {pd['vs']}: {pd['difference']:+.2f}"
+        for line in _summary_lines(out.get("summary", {})):
             print(line)
     return 0
+
+
+def _summary_lines(summary: dict) -> list[str]:
+    """``versus --seeds``' summary as text: per method its rate and outcomes, then its paired comparison."""
+    from ..campaign.tables import fmt_ci, fmt_p
+
+    lines = []
+    for m, d in summary.items():
+        w = d["wilson95"]
+        lines.append(f"{m}: success {d['successes']}/{d['n']} (95 % Wilson [{w[0]:.2f}, {w[1]:.2f}]); "
+                     f"{d['converged']} converged, {d['bounded']} bounded, {d['escaped']} escaped")
+        if "paired_difference" in d:
+            pd, pe = d["paired_difference"], d["paired_escaped"]
+            lines.append(f"  minus {pd['vs']} on the same seeds ({pd['n']} pairs): converged "
+                         f"{fmt_ci(pd['difference'], pd['ci95'])} (McNemar {fmt_p(pd['mcnemar_p'])}), escaped "
+                         f"{fmt_ci(pe['difference'], pe['ci95'])} "
+                         f"({fmt_p(pe['mcnemar_p'])})")
+            for k, c in d["paired_continuous"].items():
+                lines.append(f"  {k}: median difference {fmt_ci(c['median_difference'], c['ci95'], '+.3g')} over "
+                             f"{c['n']} pairs (Wilcoxon {fmt_p(c['wilcoxon_p'])})")
+    return lines
 
 
 def _live(args, sc, points):
