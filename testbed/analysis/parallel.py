@@ -30,6 +30,7 @@ from __future__ import annotations
 import atexit
 import math
 import os
+import signal
 import sys
 import threading
 from dataclasses import dataclass, replace
@@ -62,6 +63,12 @@ def default_workers() -> int:
 
 def _init_worker() -> None:
     os.environ.update(WORKER_ENV)
+    # Ctrl-C reaches the workers too (they share the terminal's process group); it is the parent's to
+    # handle: it cancels the chunks not started and says what was interrupted, and the running chunks end
+    # before the process exits.  (An idle worker interrupted would print a traceback from multiprocessing's
+    # bootstrap; a worker that ended itself would make Python 3.11's pool set a result on a cancelled
+    # future: another traceback.)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 # ============================================================================ executors
