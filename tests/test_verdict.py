@@ -22,40 +22,11 @@ from pathlib import Path
 import helpers
 import numpy as np
 import pytest
+from faulty_method import FAULTY
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 METHODS = ("paper", "zoom", "static", "unquantized", "unquantized-hold", "mymethod:CenteredZoom")
 
-#: a method whose ends raise (decoder at sample RAISE_AT) or break lockstep (the encoder's E drifts)
-FAULTY = '''
-import numpy as np
-from testbed.methods import DecoderEnd, EncoderEnd, IntCodebook, Method
-
-RAISE_AT = {raise_at}
-DRIFT = {drift}
-
-
-class Enc(EncoderEnd):
-    def symbol(self, x):
-        return 0, False, np.zeros(self.plant.n)
-
-    def update(self, theta, symbol):
-        self.E += DRIFT
-
-
-class Dec(DecoderEnd):
-    def control(self, symbol):
-        if self.k == RAISE_AT:
-            raise ZeroDivisionError("boom")
-        return np.zeros(self.plant.m), np.zeros(self.plant.n)
-
-
-class Faulty(Method):
-    encoder_class, decoder_class = Enc, Dec
-
-    def codebook(self, n, qp):
-        return IntCodebook(2)
-'''
 
 
 def tb(capsys, *args) -> tuple[int, str, str]:

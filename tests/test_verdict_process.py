@@ -20,42 +20,13 @@ from pathlib import Path
 
 import helpers
 import pytest
+from faulty_method import FAULTY
 
 pytestmark = pytest.mark.process
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "docs" / "examples"
 
-#: a method whose decoder raises at sample RAISE_AT, or whose encoder's E drifts (lockstep broken)
-FAULTY = '''
-import numpy as np
-from testbed.methods import DecoderEnd, EncoderEnd, IntCodebook, Method
-
-RAISE_AT = {raise_at}
-DRIFT = {drift}
-
-
-class Enc(EncoderEnd):
-    def symbol(self, x):
-        return 0, False, np.zeros(self.plant.n)
-
-    def update(self, theta, symbol):
-        self.E += DRIFT
-
-
-class Dec(DecoderEnd):
-    def control(self, symbol):
-        if self.k == RAISE_AT:
-            raise ZeroDivisionError("boom")
-        return np.zeros(self.plant.m), np.zeros(self.plant.n)
-
-
-class Faulty(Method):
-    encoder_class, decoder_class = Enc, Dec
-
-    def codebook(self, n, qp):
-        return IntCodebook(2)
-'''
 
 
 def tb(*args, cwd):
