@@ -67,6 +67,7 @@ for _name, _mod, _help in [
     *((name, module, help_) for name, (module, help_) in CHILD_COMMANDS.items()),
     ("report", "testbed.commands.report", "post-mortem of a recording"),
     ("resimulate", "testbed.commands.resimulate", "re-run a recording in the simulator and compare, sample by sample"),
+    ("vectors", "testbed.commands.vectors", "test vectors for a node implemented elsewhere: phi_T and each role's messages"),
     ("replay", "testbed.commands.replay", "open a recording in Rerun"),
     ("export", "testbed.commands.export", "a recording as Parquet or CSV, one row per sample"),
     ("compare", "testbed.commands.compare", "two runs (recordings or scenarios) compared sample by sample"),

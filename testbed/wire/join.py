@@ -50,8 +50,9 @@ FIELDS = (
     ("t0_ns", "null", "the start time is not known yet when the file is written: t0 comes in `Start` "
                       "(a plant picks it: now + `start_lead_ns` once every `ready/*` token is there)"),
     ("start_lead_ns", "integer", "an external plant: t0 = now + this, once the others are ready"),
-    ("wait_ready", "array of strings", "the `ready/<name>` tokens the plant waits for before it publishes Start "
-                                       "(the four roles and `collector`)"),
+    ("wait_ready", "array of strings", "bare names, not keys (`[\"plant\", \"encoder\", \"attacker\", "
+                                       "\"controller\", \"collector\"]`): a plant waits for the liveliness token "
+                                       "`<key_prefix>/ready/<name>` of each before it publishes Start"),
     ("ready_timeout_s", "number", "how long the run waits for the node to join (`--startup-timeout`)"),
     ("run_options", "object", "the run's options over the scenario (the flags of `testbed node`: duration, T, "
                               "timing, ..., ack_via_attacker, separate_ack); null: the scenario's value"),

@@ -281,7 +281,7 @@ class _Telemetry:
 
 @dataclass(frozen=True, slots=True)
 class PlantTelemetry(_Telemetry):
-    """Plant, sample k: x_k taken at ``t_ns`` (nominal k T_ns), the u that acted over [t_k, t_k+1).
+    """Plant, sample k: x_k taken at ``t_ns`` (the sampling instant: at or just after k T_ns), the u that acted over [t_k, t_k+1).
 
     ``u_rx_ns``: arrival of u_k (NO_TIME if it never came); ``theta`` as received
     (THETA_NONE if u_k never came); ``flags``: bit 0 deadline miss, bit 1 u_k

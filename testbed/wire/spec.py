@@ -28,8 +28,10 @@ _CODES = {"B": ("uint8", 1), "b": ("int8", 1), "H": ("uint16", 2), "i": ("int32"
 #: (class name, field) -> "unit or range | meaning"; one line per field of every message
 FIELD_DOC = {
     ("Header", "k"): ("0 .. N-1; 4294967295 = warm-up", "sample index k (WARMUP_K: a warm-up put before t0, ignore it)"),
-    ("Header", "stamp_ns"): ("ns since t0", "the sender's run clock when it sent the message (Sensor: when x_k was "
-                                            "sampled; a forwarded Symbol or Ack keeps the original header)"),
+    ("Header", "stamp_ns"): ("ns since t0", "the sender's run clock when it sent the message (Sensor: the instant x_k "
+                                            "was sampled, the plant's run clock on waking for t_k, at or just after k T, "
+                                            "the same number as PlantTelemetry t_ns; a forwarded Symbol or Ack keeps the "
+                                            "original header)"),
     ("Sensor", "x"): ("n x float64", "x_k, the plant's state sampled at t_k, as its sensor read it ([plant.sensor])"),
     ("Symbol", "data"): ("ceil(bits/8) bytes, big-endian", "the symbol i, 0 <= i < n_codes (M^n, + 1 for OVERFLOW)"),
     ("Actuation", "theta"): ("0 or 1", "theta_k: 0 the symbol of sample k was accepted, 1 it was not"),
@@ -39,14 +41,18 @@ FIELD_DOC = {
     ("Ack", "last_rx"): ("-1 .. k", "as in Actuation"),
     # telemetry
     ("PlantTelemetry", "k"): ("0 .. N", "sample index (N: the final record, flag bit 3)"),
-    ("PlantTelemetry", "t_ns"): ("ns since t0", "when x_k was sampled (nominal k T)"),
+    ("PlantTelemetry", "t_ns"): ("ns since t0", "the instant x_k was sampled: the plant's run clock when it woke "
+                                          "for t_k (at or just after k T; not k T itself), the Sensor header's "
+                                          "stamp; the final record: when it was written"),
     ("PlantTelemetry", "sensor_tx_ns"): ("ns since t0", "when x_k was published"),
     ("PlantTelemetry", "u_rx_ns"): ("ns since t0, or NO_TIME", "arrival of u_k (NO_TIME: never came)"),
     ("PlantTelemetry", "delay_ns"): ("0 .. T", "physical timing: how long u_(k-1) still acted after t_k (0 in ideal)"),
     ("PlantTelemetry", "theta"): ("0, 1 or 255", "theta_k as received (255: u_k never came)"),
     ("PlantTelemetry", "flags"): ("bit set", "bit 0 deadline miss, 1 u_k missing (u = 0 applied), 2 controller dead, "
                                              "3 final record (x_N, u empty)"),
-    ("PlantTelemetry", "flow_status"): ("int8", "status of the flow map phi_T over this period (0: ok)"),
+    ("PlantTelemetry", "flow_status"): ("0, 1 or 2", "status of the flow map phi_T over this period: 0 ok, 1 "
+                                                           "diverged, 2 step limit (Flow map); the final record: "
+                                                           "the run's last status"),
     ("PlantTelemetry", "x"): ("n x float64", "x_k"),
     ("PlantTelemetry", "u"): ("m x float64", "the u that acted over [t_k, t_k+1) (empty in the final record)"),
     ("PlantTelemetry", "x_meas"): ("n x float64, optional", "what the sensor read of x_k ([plant.sensor]); not sent "
@@ -340,9 +346,59 @@ def join_fields() -> str:
     return "\n".join(["| field | JSON type | meaning |", "|---|---|---|", *rows])
 
 
+def plant_flags() -> str:
+    """The bits of ``PlantTelemetry.flags`` (``PlantTelemetry.FLAG_*``)."""
+    PT = msg.PlantTelemetry
+    rows = [(PT.FLAG_MISS, "deadline miss: no u_k by t_k + d T, u = 0 acted (with bit 1)"),
+            (PT.FLAG_NO_U, "u_k missing: u = 0 acted (no actuation, a non-finite u_k, or the controller dead)"),
+            (PT.FLAG_CTRL_DEAD, "controller dead: its `alive` token went; the plant no longer waits (with bit 1, "
+                                "theta 255, never with bit 0)"),
+            (PT.FLAG_FINAL, "the final record: x_N (k = N when the run completed), u empty")]
+    out = ["| bit | value | meaning |", "|---|---|---|"]
+    return "\n".join(out + [f"| {v.bit_length() - 1} | {v} | {m} |" for v, m in rows])
+
+
+def flow_codes() -> str:
+    """The ``flow_status`` codes (``testbed.loopspec.STATUS_NAMES``)."""
+    from ..loopspec import FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES
+
+    meaning = {FLOW_OK: "the period was integrated to its end",
+               FLOW_DIVERGED: "an accepted step had ||x||_inf > x_max (1e8): x is that step's state; the run ends",
+               FLOW_STEP_LIMIT: "more than max_steps (20000) trial steps, or the step fell below 1e-15 T: x is the "
+                                "last accepted state; the run ends"}
+    rows = [f"| {c} | `{STATUS_NAMES[c]}` | {meaning[c]} |" for c in sorted(STATUS_NAMES)]
+    return "\n".join(["| code | name | meaning |", "|---|---|---|", *rows])
+
+
+def dop853_coefficients() -> str:
+    """The stages and error estimators of ``testbed/_dop853.py`` as written there (its float64 literals)."""
+    src = (Path(__file__).resolve().parents[1] / "_dop853.py").read_text()
+    stages = re.findall(r"ytmp\[i\] = y\[i\] \+ h \* \((.*)\)\n", src)
+    errs = dict(re.findall(r"(a[53]) = \((.*)\) / sc", src))
+    if len(stages) != 12 or set(errs) != {"a5", "a3"}:
+        raise AssertionError("testbed/_dop853.py: 12 stages and two error sums expected")
+
+    def expr(e):
+        return re.sub(r"K\[(\d+), i\]", r"K\1", e).replace("+ -", "- ")
+
+    lines = [f"stage {j:2d}: Y = y + h*({expr(e)}); K{j} = f(Y, u)" for j, e in enumerate(stages, 1)]
+    lines[-1] = lines[-1].replace("Y = y", "ynew = y").replace("f(Y, u)", "f(ynew, u)")
+    lines += [f"err5 sum:  ({expr(errs['a5'])}) / sc", f"err3 sum:  ({expr(errs['a3'])}) / sc"]
+    return "```\n" + "\n".join(lines) + "\n```"
+
+
+def acl_block() -> str:
+    """The access control of a run (``transport.acl_config``) for run id ``RUN``, by certificate common name."""
+    import json
+
+    acl = transport.acl_config(transport.Keys.for_run("RUN"), by="cert_common_names")
+    return "```json5\n" + json.dumps({"access_control": acl}, indent=1) + "\n```"
+
+
 # ============================================================================ the document
 BLOCKS = {"constants": constants, "keys": keys_table, "layouts": layouts, "telemetry": telemetry_layouts,
-          "json": json_fields, "example": example, "join": join_fields}
+          "json": json_fields, "example": example, "join": join_fields, "flags": plant_flags, "flow_codes": flow_codes,
+          "dop853": dop853_coefficients, "acl": acl_block}
 _BLOCK = re.compile(r"(<!-- BEGIN generated:(\w+) -->\n)(.*?)(<!-- END generated:\2 -->)", re.S)
 DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 
