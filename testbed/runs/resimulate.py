@@ -76,7 +76,7 @@ def recorded_run(run) -> dict:
         "u_acted": np.where(hp[:, None], g("plant", "u")[:N], np.nan),  # the input the plant applied
     })
     xm = g("plant", "x_meas")[:N] if ("plant", "x_meas") in cols.lay.cols else None
-    live["x_meas"] = None if xm is None else np.where(np.isfinite(xm), xm, live["x"])
+    live["x_meas"] = None if xm is None or not np.isfinite(xm).any() else np.where(np.isfinite(xm), xm, live["x"])
     final = cols.final
     x_final = None if final is None else np.asarray(final["x"], dtype=float)
     nodes = (cols.summaries.get("launcher") or {}).get("nodes") or {}
