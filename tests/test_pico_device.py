@@ -233,6 +233,12 @@ def test_a_live_run_with_the_device_as_plant_over_mutual_tls(device, run_id, tmp
     assert rep["samples"] == 300 and rep["converged"] and rep["resimulation"]["checked"] == 300, rep["resimulation"]
     err_max, at = plant_model_error(rec)
     assert err_max <= 1e-9, (err_max, at)
+    rs = rep["resimulation"]  # the external plant: the loop re-run on the device's reported states
+    assert rs["plant"] == "recorded" and "external" in rs["plant_why"], rs
+    assert rs["loop_identical"] is True and rs["loop_first_divergence"] is None and rs["reproduced"] is True, rs
+    assert rs["plant_model_error"]["max"] <= 1e-9, rs["plant_model_error"]
+    p = subprocess.run([PY, "-m", "testbed.cli", "report", str(rec)], capture_output=True, text=True, timeout=600)
+    assert "reproduced: the loop is identical on the recorded plant" in p.stdout, p.stdout[-3000:]
     assert stat.S_IMODE(os.stat(tls).st_mode) == 0o700
 
 

@@ -110,7 +110,7 @@ def print_text(s: dict) -> None:
               + (f"; {act['late_for_schedule']} later than scheduled" if act["actuation"] == "scheduled" else ""))
     rs = s.get("resimulation")
     if rs:
-        print(f"  resimulation: {rs['verdict']}"
+        print(f"  resimulation{' ' + rs['plant_line'] if rs.get('plant_line') else ''}: {rs['verdict']}"
               + (f" (max state error {rs['max_state_error']:.3g})" if rs.get("max_state_error") else ""))
     tm = s.get("timing")
     if tm:

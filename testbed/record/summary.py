@@ -394,7 +394,8 @@ TIMING_FIELDS = {"plant.u_rx_ns", "encoder.tx_ns", "controller.tx_ns", "attacker
 
 
 #: what the resimulation and the actuation section read beyond the summary's fields
-REPLAY_FIELDS = {"plant.delay_ns"}
+REPLAY_FIELDS = {"plant.delay_ns", "plant.x_meas", "encoder.q", "encoder.xi", "encoder.saturated", "controller.q",
+                 "controller.xi", "controller.u", "plant.u"}
 
 
 def _fields(meta: dict) -> set[str]:

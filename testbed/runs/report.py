@@ -37,7 +37,7 @@ import numpy as np
 from ..record.summary import load, to_lists
 from ..wire import messages as msg
 from ..wire import transport
-from .resimulate import compare, recorded_run
+from .resimulate import resimulation
 from .run import run_of_recording
 
 
@@ -187,7 +187,7 @@ def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
     try:
         out["resimulation"] = (
             {"reproduced": None, "verdict": f"not resimulated: {not_run[0]}"} if not_run and resimulate != 0 else
-            compare(recorded_run(run), limit=resimulate) if resimulate != 0 else
+            resimulation(run, limit=resimulate) if resimulate != 0 else
             {"reproduced": None, "verdict": "not resimulated (testbed resimulate checks the run)"})
     except Exception as e:  # noqa: BLE001 - the report stands without it; say why
         out["resimulation"] = {"reproduced": None, "verdict": f"not resimulated: {type(e).__name__}: {e}"}

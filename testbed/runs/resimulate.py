@@ -32,8 +32,11 @@ import numpy as np
 
 from .run import run_of_recording
 
-#: physical timing: the largest state error that still counts as reproduced
+#: physical timing: the largest state error that still counts as reproduced (on the model)
 PHYSICAL_TOLERANCE = 1e-9
+
+#: ``--plant``: what the loop is re-run on
+PLANTS = ("auto", "model", "recorded")
 
 
 def recorded_run(run) -> dict:
@@ -62,6 +65,18 @@ def recorded_run(run) -> dict:
     physical = sc.run.timing == "physical"
     replay = Replay(reason=reason, sensed=he.copy(), withheld=silent, u_missing=u_missing,
                     delays=delays if physical else None)
+    g = cols.get
+    live.update({  # what the loop computed, each where its node recorded it (NaN elsewhere)
+        "xi": np.where(have_sym[:, None], g("encoder", "xi")[:N], np.nan),
+        "q_enc": np.where(have_sym[:, None], g("encoder", "q")[:N], np.nan),
+        "saturated": have_sym & (g("encoder", "saturated")[:N] != 0),
+        "xi_dec": np.where(hc[:, None], g("controller", "xi")[:N], np.nan),
+        "q": np.where(hc[:, None], g("controller", "q")[:N], np.nan),
+        "u": np.where(hc[:, None], g("controller", "u")[:N], np.nan),
+        "u_acted": np.where(hp[:, None], g("plant", "u")[:N], np.nan),  # the input the plant applied
+    })
+    xm = g("plant", "x_meas")[:N] if ("plant", "x_meas") in cols.lay.cols else None
+    live["x_meas"] = None if xm is None or not np.isfinite(xm).any() else np.where(np.isfinite(xm), xm, live["x"])
     final = cols.final
     x_final = None if final is None else np.asarray(final["x"], dtype=float)
     fault_at = run.summary.get("method_fault_at")
@@ -69,7 +84,10 @@ def recorded_run(run) -> dict:
     if fault_at is not None:  # the method raised at sample N: the resimulation runs into it too
         xf = run.summary.get("x_final")  # x_N, where the run ended (the plant may have run on until the Stop)
         replay, x_final = _through_fault(cols, sc, replay, N), None if xf is None else np.asarray(xf, dtype=float)
-    return {"scenario": sc, "N": N, "replay": replay, "live": live, "x_final": x_final, "method_fault_at": fault_at}
+    nodes = (cols.summaries.get("launcher") or {}).get("nodes") or {}
+    external = bool(isinstance(nodes.get("plant"), dict) and nodes["plant"].get("external"))
+    return {"scenario": sc, "N": N, "replay": replay, "live": live, "x_final": x_final, "method_fault_at": fault_at,
+            "external_plant": external}
 
 
 def _through_fault(cols, sc, replay, N: int):
@@ -98,57 +116,206 @@ def _through_fault(cols, sc, replay, N: int):
                   delays=None if replay.delays is None else add(replay.delays, 0))
 
 
-def compare(run: dict, limit: int | None = None) -> dict:
+def plant_choice(run: dict, plant: str = "auto") -> tuple[str, str]:
+    """Which plant ``--plant`` re-runs the loop on, and why: ("model" | "recorded", reason).  ``auto``:
+    the recorded plant when the plant was a node from outside (``--external plant``, ``TESTBED_JOIN``) or
+    the scenario declares it a device ([plant.sensor], [plant.actuator], [plant.disturbance]), else the model."""
+    if plant not in PLANTS:
+        raise ValueError(f"--plant {plant!r}: expected one of {', '.join(PLANTS)}")
+    if plant != "auto":
+        return plant, f"--plant {plant}"
+    if run.get("external_plant"):
+        return "recorded", "auto: the plant was an external node"
+    if run["scenario"].plant.device is not None:
+        return "recorded", "auto: the scenario declares the plant a device"
+    return "model", "auto: the plant was the testbed's own"
+
+
+class _NoPlant:
+    """The process of a loop on the recorded plant: x_k comes from the recording, so nothing integrates."""
+
+    def __init__(self, n: int, m: int):
+        self.n, self.m = n, m
+        self.x = np.zeros(n)
+
+    def reset(self, x0) -> None:
+        pass
+
+    def advance(self, u, dt: float) -> int:
+        return 0
+
+    def perturb(self, w) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def plant_model_error(run: dict, n: int | None = None) -> dict | None:
+    """e_k = ||x_k+1 - phi_T(x_k, u_k)||_inf over samples 0 .. n - 1 of a recording: the plant's reported
+    x_k+1 against the scenario's model (its flow map, as the simulator runs it) from the reported x_k with
+    the input that acted (the plant's recorded u_k; under physical timing u_k-1 held for the recorded
+    delta_k first).  x_N is the final record's.  {"max", "at", "mean"}; None when no step is known
+    (no two consecutive plant records) or the model has no right-hand side (an FMU)."""
+    from ..protocol import OdeProcess
+
+    sc, N, live = run["scenario"], run["N"], run["live"]
+    n = N if n is None else min(N, n)
+    model = sc.make_model()
+    if not hasattr(type(model), "rhs"):
+        return None
+    x, have, u = live["x"], live["have_x"], live["u_acted"]
+    delays = run["replay"].delays
+    x_next = np.vstack([x[1:], (np.full(x.shape[1], np.nan) if run["x_final"] is None else run["x_final"])[None]])
+    have_next = np.append(have[1:], run["x_final"] is not None)
+    u_max = sc.controller.u_max
+    proc = OdeProcess(model, sc.flow)
+    T = sc.T
+    errs, at = [], []
+    for k in range(n):
+        if not (have[k] and have_next[k]):
+            continue
+        proc.reset(x[k])
+        u_k = np.clip(u[k], -u_max, u_max)
+        if delays is None:
+            st = proc.advance(u_k, T)
+        else:  # as ``protocol.PlantProtocol.step``: u_k-1 for delta_k, then u_k
+            d = int(delays[k]) / 1e9
+            u_prev = np.clip(u[k - 1], -u_max, u_max) if k > 0 and have[k - 1] else np.zeros_like(u_k)
+            st = proc.advance(u_prev, d)
+            if st == 0:
+                st = proc.advance(u_k, T - d)
+        e = float(np.max(np.abs(x_next[k] - proc.x))) if st == 0 else float("inf")
+        errs.append(e)
+        at.append(k)
+    if not errs:
+        return None
+    e = np.asarray(errs)
+    i = int(np.argmax(e))
+    return {"max": float(e[i]), "at": int(at[i]), "mean": float(e.mean())}
+
+
+#: what the loop computed, compared bit for bit by ``loop_differences`` (NaN equals NaN)
+LOOP_QUANTITIES = ("symbols", "saturated", "E", "xi", "q_enc", "theta", "E_dec", "xi_dec", "q", "u")
+
+
+def loop_differences(live: dict, res, M: int) -> dict[str, np.ndarray]:
+    """Per quantity of ``LOOP_QUANTITIES``: the samples (of 0 .. M - 1) where the recording and the re-run
+    ``res`` (``sim.loop.SimResult``) differ, each where its node recorded it."""
+    def same(a, b):
+        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+        eq = (a == b) | (np.isnan(a) & np.isnan(b))
+        return eq if eq.ndim == 1 else eq.all(axis=1)
+
+    hs, hd = live["have_sym"][:M], live["have_dec"][:M]
+    ours = {"symbols": res.symbols, "saturated": res.saturated, "E": res.E_enc, "xi": res.xi_enc,
+            "q_enc": res.q_enc, "theta": res.theta, "E_dec": res.E_dec, "xi_dec": res.xi_dec, "q": res.q,
+            "u": res.u}
+    out = {}
+    for name in LOOP_QUANTITIES:
+        where = hs if name in ("symbols", "saturated", "E", "xi", "q_enc") else hd
+        out[name] = np.nonzero(where & ~same(live[name][:M], ours[name][:M]))[0]
+    return out
+
+
+def is_reproduced(plant: str, *, loop_identical: bool, first_divergence: int | None, final_error: float | None,
+                  tolerance: float) -> bool:
+    """The one verdict "reproduced": on the recorded plant, the loop is identical (the plant's own error
+    against the model is reported beside it, not judged); on the model, no sample differs in any
+    compared quantity and x_N is within the tolerance."""
+    if plant == "recorded":
+        return bool(loop_identical)
+    return first_divergence is None and (final_error is None or final_error <= tolerance)
+
+
+def compare(run: dict, limit: int | None = None, plant: str = "model", why: str | None = None) -> dict:
     """Resimulate ``recorded_run(...)`` and compare it with the recording, sample by sample.
 
     ``limit``: resimulate only samples 0 .. limit - 1 (``testbed report`` bounds its check so;
     ``checked`` in the result says how many were, and the verdict says so when not all).
+    ``plant``: "model", the whole loop re-simulated, the plant by the scenario's true plant; "recorded",
+    the encoder, the attacker's decisions, the controller and the method re-run on the states the plant
+    reported (up to its first missing record), everything they computed compared bit for bit.
+    ``why``: the reason for the choice (``plant_choice``), said in the verdict line.
     """
     from ..sim.loop import simulate_loop
 
     sc, N, live = run["scenario"], run["N"], run["live"]
     n = N if limit is None else max(0, min(N, int(limit)))
+    recorded = plant == "recorded"
+    if recorded:  # the loop stops at the plant's first missing record: no x_k to give it
+        missing = np.nonzero(~live["have_x"][:n])[0]
+        n_loop = int(missing[0]) if len(missing) else n
+        model = sc.make_model()
+        process = _NoPlant(model.n, model.m)
+        extra = {"states": live["x"], "measured": live["x_meas"]}
+    else:
+        n_loop, model, process, extra = n, sc.make_model(), sc.make_process(), {}
     fault_at = run.get("method_fault_at")
-    through = fault_at is not None and n == N  # run into the sample the method raised at
-    process = sc.make_process()
+    # on the model, run into the sample the method raised at (on the recorded plant there is no x_N to give it)
+    through = fault_at is not None and n == N and not recorded
     try:
-        res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n + through, None, sc.flow, model=sc.make_model(),
+        res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n_loop + through, None, sc.flow, model=model,
                             process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
-                            replay=run["replay"], method=sc.make_method(), device=sc.plant.device)
+                            replay=run["replay"], method=sc.make_method(), device=sc.plant.device, **extra)
     finally:
         process.close()
-    M = min(len(res.t), n)  # the resimulation stops early if its flow diverged (or its method raised)
-    res_x, res_sym, res_E, res_Ed, res_th = (a[:M] for a in (res.x, res.symbols, res.E_enc, res.E_dec, res.theta))
+    M = min(len(res.t), n_loop)  # the resimulation stops early if its flow diverged (or its method raised)
+    diffs = loop_differences(live, res, M)
+    loop_bad = np.zeros(M, dtype=bool)
+    for d in diffs.values():
+        loop_bad[d] = True
+    loop_first = int(np.argmax(loop_bad)) if loop_bad.any() else (M if M < n_loop else None)
+    loop_identical = loop_first is None
+    pme = plant_model_error(run, n)
     hx = live["have_x"][:M]
     err = np.zeros(M)
-    err[hx] = np.max(np.abs(live["x"][:M][hx] - res_x[hx]), axis=1)
-    hs = live["have_sym"][:M]
-    sym_diff = hs & (live["symbols"][:M] != res_sym)
-    E_diff = hs & ~((live["E"][:M] == res_E) | (np.isnan(live["E"][:M]) & np.isnan(res_E)))
-    hd = live["have_dec"][:M]
-    E_diff |= hd & ~(live["E_dec"][:M] == res_Ed)
-    th_diff = hd & (live["theta"][:M] != res_th)
+    if not recorded:
+        err[hx] = np.max(np.abs(live["x"][:M][hx] - res.x[hx]), axis=1)
+    sym_diff = np.zeros(M, dtype=bool)
+    sym_diff[diffs["symbols"]] = True
+    E_diff = np.zeros(M, dtype=bool)
+    E_diff[np.concatenate([diffs["E"], diffs["E_dec"]])] = True
+    th_diff = np.zeros(M, dtype=bool)
+    th_diff[diffs["theta"]] = True
     physical = sc.run.timing == "physical"
-    tol = PHYSICAL_TOLERANCE if physical else 0.0
+    tol = PHYSICAL_TOLERANCE if physical and not recorded else 0.0
     state_bad = err > tol
-    if run["x_final"] is not None and M == N:
-        final_err = float(np.max(np.abs(run["x_final"] - res.x_final)))
-    else:
+    if recorded:
         final_err = None
-    bad = sym_diff | E_diff | th_diff | state_bad
-    first = int(np.argmax(bad)) if bad.any() else (M if M < n else None)
-    fault_same = not through or res.method_fault_at == fault_at
-    if first is None and not fault_same:  # the recorded method raised at N; the resimulated one did not
-        first = N
-    max_err = float(max(err.max(initial=0.0), final_err or 0.0))
-    ok = first is None and (final_err is None or final_err <= tol)
+        max_err = 0.0 if pme is None else pme["max"]  # one step of the model from each reported state
+        first = loop_first
+    else:
+        if run["x_final"] is not None and M == N:
+            final_err = float(np.max(np.abs(run["x_final"] - res.x_final)))
+        else:
+            final_err = None
+        bad = sym_diff | E_diff | th_diff | state_bad
+        first = int(np.argmax(bad)) if bad.any() else (M if M < n else None)
+        if first is None and through and res.method_fault_at != fault_at:  # raised at N in the run, not here
+            first = N
+        max_err = float(max(err.max(initial=0.0), final_err or 0.0))
+    ok = is_reproduced(plant, loop_identical=loop_identical, first_divergence=first, final_error=final_err,
+                       tolerance=tol)
     span = "" if n == N else f" (samples 0 to {n - 1} of {N}; testbed resimulate checks every sample)"
+    if recorded and n_loop < n:
+        span += f" (the plant's records end at sample {n_loop})"
     if through and ok:
         span += f" up to the method fault at sample {fault_at} (the method raised there in the resimulation too)"
-    elif through and not fault_same:
+    elif through and res.method_fault_at != fault_at:
         span += (f" (the method raised at sample {fault_at} in the run, "
                  + ("not" if res.method_fault is None else f"at sample {res.method_fault_at}")
                  + " in the resimulation)")
+    which = [name for name, d in diffs.items() if len(d) and d[0] == loop_first]
+    pm = "" if pme is None else f"; plant vs model: max e_k {pme['max']:.3g} at sample {pme['at']}"
+    if recorded:
+        verdict = ("reproduced: the loop is identical on the recorded plant" if ok else
+                   f"NOT reproduced: the loop on the recorded plant differs from sample {loop_first}"
+                   + (f" ({', '.join(which)})" if which else " (the re-run stopped)")) + pm
+    else:
+        verdict = ("reproduced bit for bit" if ok and max_err == 0.0 else
+                   f"reproduced (state within {max_err:.2g} <= {tol:g})" if ok else
+                   f"NOT reproduced: first divergence at sample {first}")
     return {
         "samples": N,
         "checked": n,
@@ -170,23 +337,39 @@ def compare(run: dict, limit: int | None = None) -> dict:
                      "delays_ns": None if run["replay"].delays is None else {
                          "min": int(run["replay"].delays[:N].min(initial=0)),
                          "max": int(run["replay"].delays[:N].max(initial=0))}},
+        "plant": plant,
+        "plant_why": why or f"--plant {plant}",
+        "plant_line": f"re-run {'on the recorded plant' if recorded else 'on the model'} ({why or '--plant ' + plant})",
+        "loop_identical": loop_identical,
+        "loop_first_divergence": loop_first,
+        "loop_differs_in": which,
+        "plant_model_error": pme,
         "reproduced": bool(ok),
-        "verdict": ("reproduced bit for bit" if ok and max_err == 0.0 else
-                    f"reproduced (state within {max_err:.2g} <= {tol:g})" if ok else
-                    f"NOT reproduced: first divergence at sample {first}") + span,
+        "verdict": verdict + span,
     }
 
 
-def resimulate(path, *, trust_code: bool = False) -> dict:
-    """``testbed resimulate PATH --json`` as a dict.  ``trust_code``: run a plant's or method's source stored
-    in the recording (``testbed.runs.run.open``); without it, when that code is needed,
-    ``plants.refs.CodeNotTrusted`` (one line naming ``--trust-code``) and nothing is run."""
+def resimulation(run, *, plant: str = "auto", limit: int | None = None) -> dict:
+    """The re-run of a recording's ``testbed.Run`` (``run_of_recording``) on the plant ``plant_choice`` picks:
+    the dict of ``testbed resimulate --json`` (``plant``, ``loop_identical``, ``loop_first_divergence``,
+    ``plant_model_error``, ``reproduced``, ...).  The conformance kit's ``loop_equals_replay`` and
+    ``plant_follows_model`` read it.  Raises ``plants.refs.CodeNotTrusted`` when the scenario's code is
+    not run (``Run.scenario.code_not_run()``): the re-run needs the method's and the model's code."""
     from plants.refs import CodeNotTrusted
 
-    from ..record.summary import load
-
-    run = run_of_recording(*load(path, trust_code=trust_code, note=False))  # the error below is the line
     not_run = run.scenario.code_not_run()
     if not_run:
         raise CodeNotTrusted(f"{not_run[0]}: re-simulation needs it")
-    return compare(recorded_run(run))
+    rr = recorded_run(run)
+    mode, why = plant_choice(rr, plant)
+    return compare(rr, limit=limit, plant=mode, why=why)
+
+
+def resimulate(path, *, trust_code: bool = False, plant: str = "auto") -> dict:
+    """``testbed resimulate PATH [--plant P] --json`` as a dict (``resimulation``).  ``trust_code``: run a
+    plant's or method's source stored in the recording (``testbed.runs.run.open``); without it, when that
+    code is needed, ``plants.refs.CodeNotTrusted`` (one line naming ``--trust-code``) and nothing is run."""
+    from ..record.summary import load
+
+    run = run_of_recording(*load(path, trust_code=trust_code, note=False))  # the error below is the line
+    return resimulation(run, plant=plant)

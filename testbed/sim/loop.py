@@ -180,7 +180,8 @@ class Replay:
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
                   flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
                   u_max: float = math.inf, network: Network | None = None,
-                  replay: Replay | None = None, method=None, device=None) -> SimResult:
+                  replay: Replay | None = None, method=None, device=None, states=None,
+                  measured=None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
 
     The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
@@ -210,6 +211,10 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     ``device``: the plant's sensor, actuator and disturbance (``testbed.device.DeviceSpec``, the
     scenario's ``sc.plant.device``): the encoder and the attacker see x_meas,k, the true plant
     integrates the input the actuator lets through, and x_k+1 carries the disturbance.
+
+    ``states``, ``measured``: the loop on a recorded plant (``testbed.runs.replay``): x_k is ``states[k]``
+    (what the plant reported, not the process's state) and the encoder reads ``measured[k]`` (x_meas,k;
+    None: x_k, or the sensor model of ``device``).
     """
     model = plant if model is None else model
     n, m = model.n, model.m
@@ -278,9 +283,13 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
         reason[d.k] = d.reason
 
     for k in range(N):
-        x = process.x
+        x = process.x if states is None else np.array(states[k], dtype=np.float64)
         rec["x"][k] = x
-        if x_meas is not None:
+        if measured is not None:
+            x = np.array(measured[k], dtype=np.float64)
+            if x_meas is not None:
+                x_meas[k] = x
+        elif x_meas is not None:
             x = x_meas[k] = pp.measure(k, x)
         try:
             send, decs = _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan)
