@@ -271,7 +271,7 @@ def compare(run: dict, limit: int | None = None, plant: str = "model", why: str 
     hx = live["have_x"][:M]
     err = np.zeros(M)
     if not recorded:
-        err[hx] = np.max(np.abs(live["x"][:M][hx] - res.x[hx]), axis=1)
+        err[hx] = np.max(np.abs(live["x"][:M][hx] - res.x[:M][hx]), axis=1)
     sym_diff = np.zeros(M, dtype=bool)
     sym_diff[diffs["symbols"]] = True
     E_diff = np.zeros(M, dtype=bool)
