@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 
-from ..protocol import MethodFault
 from ..wire import messages as msg
 from ..wire import transport
 from .context import NodeContext
@@ -122,13 +121,17 @@ class Node:
         ``testbed simulate`` names)."""
         try:
             return fn(*args, **kw)
-        except MethodFault:
-            raise
         except Exception as e:  # a method's end raised: a method fault, not a crash of the node
+            from ..protocol import MethodFault  # here, not at the top: the attacker node loads no numba
+
+            if isinstance(e, MethodFault):
+                raise
             at = k() if callable(k) else k
             raise MethodFault(self.sc.make_method().display_name(), at, e, self.role) from e
 
     def fail(self, e: BaseException) -> None:
+        from ..protocol import MethodFault  # here, not at the top: the attacker node loads no numba
+
         if isinstance(e, MethodFault):  # the run ends there: one event, then nothing more from this node
             if self.method_fault is None and self.error is None:
                 self.method_fault = e
