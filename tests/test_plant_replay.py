@@ -34,6 +34,15 @@ def test_a_healthy_run_re_runs_identically_on_its_recorded_plant(tmp_path):
     assert auto["plant_model_error"]["max"] == 0.0
     rep = report(path)["resimulation"]
     assert all(k in rep for k in NEW_KEYS) and rep["plant"] == "model" and rep["reproduced"]
+    # the API: Run.resimulate is the same dict (one computation behind the command, the report and the API)
+    for plant in ("auto", "recorded"):
+        api = run.resimulate(plant)
+        assert api == resimulation(run, plant=plant), plant
+    try:
+        run.resimulate("hardware")
+        raise AssertionError("an unknown plant was accepted")
+    except testbed.BadInput as e:
+        assert "auto, model, recorded" in str(e)
 
 
 def test_a_plant_whose_physics_differ_from_the_model(tmp_path):

@@ -128,6 +128,23 @@ class Run:
         return plot_time_series(series_of_run(self), path, intervals=ivs, size=size,
                                 title=figure_title(self.scenario) if title is None else title)
 
+    def resimulate(self, plant: str = "auto", limit: int | None = None) -> dict:
+        """Re-run a recording's loop in the simulator and compare it with the recording: the dict of
+        ``testbed resimulate --plant PLANT --json`` (the ``resimulation`` section of ``testbed report``):
+        ``plant`` ("model" or "recorded"), ``loop_identical``, ``loop_first_divergence``,
+        ``plant_model_error``, ``reproduced``, ``verdict``, ...  ``plant``: "auto" (the recorded plant
+        when the plant was an external node or a declared device, else the model), "model" or "recorded";
+        ``limit``: samples 0 .. limit - 1 only.  A simulated ``Run`` (``testbed.simulate``) has no
+        recording to compare with: ``BadInput``.  The run's own code must have been trusted
+        (``open(..., trust_code=True)`` where the recording stores it): ``plants.refs.CodeNotTrusted``."""
+        if self._columns is None:
+            raise BadInput("resimulate: this Run is not a recording (save it and testbed.open it)")
+        from .resimulate import PLANTS, resimulation
+
+        if plant not in PLANTS:
+            raise BadInput(f"plant={plant!r}: expected one of {', '.join(PLANTS)}")
+        return resimulation(self, plant=plant, limit=limit)
+
     def columns(self) -> dict[str, np.ndarray]:
         """Flat 1-D columns, one row per sample: vectors as x1..xn, u1..um, ... (what ``export`` writes)."""
         return flat_columns(self.arrays)
