@@ -289,7 +289,9 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
             plant.put(keys.stop, msg.Stop(reason="forged", origin="encoder").encode())     # not from the plant
             fake = msg.PlantTelemetry(k=2**32 - 2, t_ns=0, sensor_tx_ns=0, u_rx_ns=0, delay_ns=0, theta=0,
                                       flags=0, flow_status=0, x=(1e-9, 1e-9), u=(0.0,))
-            plant.put(keys.telemetry("plant"), msg.pack_batch([fake.encode()]))            # k outside [0, N)
+            for _ in range(3):  # k outside [0, N); three times: a new peer's links to the mesh form under load
+                plant.put(keys.telemetry("plant"), msg.pack_batch([fake.encode()]))
+                time.sleep(0.2)
             falsified = msg.PlantTelemetry(k=58, t_ns=0, sensor_tx_ns=0, u_rx_ns=0, delay_ns=0, theta=0, flags=0,
                                            flow_status=0, x=(1e-9, 1e-9), u=(0.0,))
             plant.put(keys.telemetry("plant"), msg.pack_batch([falsified.encode()]))       # ahead of the real one
