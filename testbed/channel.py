@@ -149,8 +149,16 @@ def draws(model: NetworkModel | None, link: str, n: int, bits: int = 0) -> LinkD
 
 # ----------------------------------------------------------------------------- the channel per sample
 #: why sample k was lost (``SimResult.loss_cause``, the summary's ``losses``); RECEIVED: not lost
-RECEIVED, ATTACKER, CHANNEL, LATE, WITHHELD = 0, 1, 2, 3, 4
-LOSS_KINDS = ("attacker", "channel", "late", "withheld")
+RECEIVED, ATTACKER, CHANNEL, LATE, WITHHELD, NETWORK = 0, 1, 2, 3, 4, 5
+#: the causes of a lost sample, each sample exactly one: the attacker dropped or corrupted it, the ``[network]``
+#: channel model lost it, the real network lost it (a live run only: sent, not lost by the model, never
+#: received), it came after the loss deadline, the encoder withheld it
+LOSS_KINDS = ("attacker", "channel", "network", "late", "withheld")
+
+
+def loss_text(losses: dict) -> str:
+    """``losses`` in words, every cause named (what every command prints: the counts add up to the samples lost)."""
+    return ", ".join(f"{k} {int(losses.get(k) or 0)}" for k in LOSS_KINDS)
 
 
 def payload_bits(link: str, n: int, m: int, symbol_bytes: int) -> int:
@@ -251,28 +259,35 @@ def loss_cause(theta, *, withheld=None, sensed=None, attacker=None, symbol_lost=
 
 
 def loss_counts(cause: np.ndarray) -> dict:
-    """``{"attacker", "channel", "late", "withheld"}``: how many samples each cause lost."""
-    c = np.bincount(np.asarray(cause, dtype=np.int64), minlength=5)
-    return {"attacker": int(c[ATTACKER]), "channel": int(c[CHANNEL]), "late": int(c[LATE]),
-            "withheld": int(c[WITHHELD])}
+    """``{"attacker", "channel", "network", "late", "withheld"}`` (``LOSS_KINDS``): how many samples each
+    cause lost (a simulation has no real network: its ``network`` is 0)."""
+    c = np.bincount(np.asarray(cause, dtype=np.int64), minlength=len(LOSS_KINDS) + 1)
+    return {"attacker": int(c[ATTACKER]), "channel": int(c[CHANNEL]), "network": int(c[NETWORK]),
+            "late": int(c[LATE]), "withheld": int(c[WITHHELD])}
 
 
-def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None) -> dict:
+def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None,
+                    channel_lost=None) -> dict:
     """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
     ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
     invalid counts as the attacker's too: only the attacker corrupts), the controller's reason
-    (``superseded``: decided only after a later sample came: late), and the controller's count of
-    symbols that arrived after their sample was decided (``late_symbols``, its summary's ``late``).
-    Every other lost sample was sent (and forwarded) and did not arrive by the loss deadline: it is
-    the channel's, except the ``late_symbols`` that did arrive, later (late).  The four add up to
-    the samples lost."""
+    (``superseded``: decided only after a later sample came: late), the samples the ``[network]``
+    channel model lost on the sensor or the symbol link (``channel_lost``, from the receiving nodes'
+    ``channel`` summaries: the model's own record of what it dropped; None: it dropped nothing), and the
+    controller's count of symbols that arrived after their sample was decided (``late_symbols``, its
+    summary's ``late``).  Every other lost sample was sent (and forwarded) and did not arrive by the
+    loss deadline: the ``late_symbols`` that did arrive, later, are late, the rest the real network's
+    (a cut link, a stalled host).  The five add up to the samples lost."""
     lost = np.asarray(theta) != 0
     w = lost & np.asarray(withheld, dtype=bool)
     a = lost & ~w & (np.asarray(attacker, dtype=bool) | np.asarray(invalid, dtype=bool))
     sup = lost & ~w & ~a & np.asarray(superseded, dtype=bool)
-    rest = int(np.count_nonzero(lost & ~w & ~a & ~sup))
-    late = min(max(int(late_symbols or 0), 0), rest)
-    return {"attacker": int(a.sum()), "channel": rest - late, "late": late + int(sup.sum()), "withheld": int(w.sum())}
+    rest = lost & ~w & ~a & ~sup
+    ch = rest & (np.zeros(len(lost), dtype=bool) if channel_lost is None else np.asarray(channel_lost, dtype=bool))
+    others = int(np.count_nonzero(rest & ~ch))
+    late = min(max(int(late_symbols or 0), 0), others)
+    return {"attacker": int(a.sum()), "channel": int(ch.sum()), "network": others - late,
+            "late": late + int(sup.sum()), "withheld": int(w.sum())}
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -328,5 +343,5 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "loss_counts", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER",
-           "CHANNEL", "LATE", "WITHHELD"]
+           "payload_bits", "loss_cause", "loss_counts", "loss_text", "recorded_losses", "LOSS_KINDS", "RECEIVED",
+           "ATTACKER", "CHANNEL", "LATE", "WITHHELD", "NETWORK"]

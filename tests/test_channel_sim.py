@@ -86,7 +86,7 @@ def test_losses_told_apart_on_a_constructed_case():
     attack = sc.theta(N).astype(bool)
     link = channel.draws(sc.network, "symbol", N).lost
     assert loss_counts(res.loss_cause) == {"attacker": int(attack.sum()), "channel": int((link & ~attack).sum()),
-                                           "late": 0, "withheld": 0}
+                                           "network": 0, "late": 0, "withheld": 0}
     assert np.array_equal(np.flatnonzero(res.loss_cause == ATTACKER), np.flatnonzero(attack))
     assert np.array_equal(res.theta.astype(bool), attack | link)
     s = summarize(sc, res)
@@ -138,11 +138,21 @@ def test_recorded_losses_on_a_constructed_record():
         return m
 
     got = channel.recorded_losses(theta, withheld=at(1), attacker=at(2), invalid=at(3), superseded=at(4),
+                                  late_symbols=1, channel_lost=at(5))
+    # 5 the channel model lost (its own record); of 6 and 7, one arrived late, the other the real network lost
+    assert got == {"attacker": 2, "channel": 1, "network": 1, "late": 2, "withheld": 1}
+    assert sum(got.values()) == theta.sum() and tuple(got) == channel.LOSS_KINDS
+    # no channel model: a sent sample that never arrived is the real network's, never the channel's
+    got = channel.recorded_losses(theta, withheld=at(1), attacker=at(2), invalid=at(3), superseded=at(4),
                                   late_symbols=1)
-    assert got == {"attacker": 2, "channel": 2, "late": 2, "withheld": 1}
-    assert sum(got.values()) == theta.sum()
-    # a late count larger than the candidates cannot make the channel's negative
-    assert channel.recorded_losses(theta, withheld=z, attacker=z, invalid=z, superseded=z, late_symbols=99)["channel"] == 0
+    assert got == {"attacker": 2, "channel": 0, "network": 2, "late": 2, "withheld": 1}
+    # the model's record of a sample another cause lost first does not count twice
+    got = channel.recorded_losses(theta, withheld=at(1), attacker=at(2), invalid=at(3), superseded=at(4),
+                                  late_symbols=0, channel_lost=at(1, 2, 8))
+    assert got["channel"] == 0 and sum(got.values()) == theta.sum()
+    # a late count larger than the candidates cannot make the network's negative
+    got = channel.recorded_losses(theta, withheld=z, attacker=z, invalid=z, superseded=z, late_symbols=99)
+    assert got["network"] == 0 and got["late"] == int(theta.sum())
 
 
 def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
@@ -158,7 +168,7 @@ def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
                        "sensor": {"loss": 0.05}, "actuation": {"loss": 0.05, "delay": 0.004}}, timing="physical")
     res = simulate_scenario(sc)
     want = loss_counts(res.loss_cause)
-    assert all(want[k] > 0 for k in want)
+    assert all(want[k] > 0 for k in want if k != "network") and want["network"] == 0  # a simulation has no real network
     path = tmp_path / "net.mcap"
     record_simulation(str(path), sc, res)
     s = report(path, resimulate=None)   # every sample

@@ -18,6 +18,8 @@ import tomllib
 
 import numpy as np
 
+from ..channel import LOSS_KINDS
+
 
 def batch_key(sc, text: str, base_dir: str):
     """What a run shares with the runs it can share a kernel call with; None: the per-sample simulator."""
@@ -77,5 +79,5 @@ def run_group(scs: list) -> list[dict | None]:
             "settle_samples": settle_samples(b.x[j], xf, tol),
             "packets_dropped": lost, "encoder_decoder_agree": True, "plant_fault": None, "method_fault": None,
             # no channel, ideal timing, every ack delivered: each lost sample is the attacker's
-            "losses": {"attacker": lost, "channel": 0, "late": 0, "withheld": 0}}))
+            "losses": {**dict.fromkeys(LOSS_KINDS, 0), "attacker": lost}}))
     return out

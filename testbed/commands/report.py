@@ -69,8 +69,9 @@ def print_text(s: dict) -> None:
               f"|A(H)|/H = {d['realized']['duration_fraction']:.4g}")
     ls = s.get("losses")
     if ls:
-        print(f"  losses: attacker {ls['attacker']}, channel {ls['channel']}, late {ls['late']}, "
-              f"withheld {ls['withheld']} (the budget below counts the attacker's only)")
+        from ..channel import loss_text
+
+        print(f"  losses by cause: {loss_text(ls)} (the budget below counts the attacker's only)")
     ld = s.get("losses_as_dos") or {}
     if "frequency" in ld:
         th1 = ld.get("theorem1") or {}

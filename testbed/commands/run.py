@@ -106,8 +106,11 @@ def print_text(s: dict) -> None:
     if sec:
         print(f"  {sec['topology']} topology" + (f" (auto: {sec['topology_why']})" if sec.get("topology_auto") else "")
               + f", {sec['transport']}")
-    print(f"  {s.get('packets_dropped', 0)} samples lost (attacker dropped {s['attacker']['dropped']}, "
-          f"invalid {s.get('invalid_payloads')}, withheld {len(s['withheld_at'])}), "
+    from ..channel import loss_text
+
+    ls = s.get("losses")
+    print(f"  {s.get('packets_dropped', 0)} samples lost ("
+          + (loss_text(ls) if ls else f"attacker dropped {s['attacker']['dropped']}") + "), "
           f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "
           f"{s.get('encoder_decoder_agree_where_known')}" + ("" if s.get("encoder_decoder_agree") else
                                                               " (on the samples both recorded)"))

@@ -100,13 +100,16 @@ def main_simulate(args) -> int:
         if sc.model is not None and sc.model.explicit:
             print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
                   "(predictions, design)")
-        print(f"  {len(out['t'])} samples, {out['packets_dropped']} dropped in {len(out['dos_intervals'])} "
-              f"DoS intervals, {out['saturations']} saturations, encoder/decoder agree: "
-              f"{out['encoder_decoder_agree']}")
-        if sc.network is not None and out.get("losses"):
-            ls = out["losses"]
-            print(f"  losses: attacker {ls['attacker']}, channel {ls['channel']}, late {ls['late']}, "
-                  f"withheld {ls['withheld']} ([network] seed {sc.network.seed})")
+        ls = out.get("losses")
+        dos = f"{len(out['dos_intervals'])} DoS intervals"
+        print(f"  {len(out['t'])} samples, {out['packets_dropped']} lost ("
+              + (f"{ls['attacker']} by the attacker in {dos}" if ls else dos)
+              + f"), {out['saturations']} saturations, encoder/decoder agree: {out['encoder_decoder_agree']}")
+        if ls and out["packets_dropped"] != ls["attacker"]:
+            from ..channel import loss_text
+
+            print(f"  losses by cause: {loss_text(ls)}"
+                  + (f" ([network] seed {sc.network.seed})" if sc.network is not None else ""))
         print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}")
         if args.out:
             print(f"  recording: {args.out}")
