@@ -586,7 +586,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     self.faults.extend(col.telemetry_check())
                     self.publish_faults(session)
                 outcome = self.method_fault(col) or outcome  # one that arrived as the run ended
-                from ..record.summary import build_summary  # loaded meanwhile by ``_warm_summary``
+                from ..record.summary import LIVE_FIELDS, build_summary  # loaded meanwhile by ``_warm_summary``
 
                 plant = self.sc.make_model()
                 cb = self.sc.make_method().codebook(plant.n, self.sc.quantizer)
@@ -596,9 +596,11 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     nodes[r] = dict(self.exits.get(r) or self.exits.get(host, {}), colocated_in=host,
                                     log=str(self.run_dir / f"{host}.log"))
                 nodes = {r: nodes[r] for r in transport.ROLES}
-                summary = build_summary(self.sc, col.snapshot(self.sc), run_id=self.run_id,
+                # the spill read back a chunk at a time into the report's columns; the per-sample values stay
+                # numpy arrays (``testbed run --json`` streams them out: ``record.summary.write_json``)
+                summary = build_summary(self.sc, col.snapshot(self.sc, fields=LIVE_FIELDS), run_id=self.run_id,
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
-                                        faults=self.faults, codebook=cb)
+                                        faults=self.faults, codebook=cb, arrays=True)
                 if summary.get("plant_fault"):  # the true plant (an FMU) failed: say so, not "crashed"
                     outcome = f"plant fault at sample {summary.get('plant_fault_at')}"
                     for f in (*self.faults, *summary["faults"]):
