@@ -36,7 +36,7 @@ from pathlib import Path
 from .. import scenario
 from ..errors import BadInput
 from ..nodes.options import NodeConfig, RunConfig, load_scenario
-from ..nodes.process import parse_cpus
+from ..nodes.process import parse_cpus, peak_rss_mb
 from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
@@ -643,6 +643,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)
+        summary["launcher"]["peak_rss_mb"] = peak_rss_mb()  # the end of run included (benchmarks/bench_soak.py)
         summary["recording_complete"] = None if summary["recording"] is None else summary["recording"]["complete"]
         code = exit_code(self.signal, self.faults, summary, ridden=netns.RIDDEN_THROUGH)
         if code == 0 and self.own_dir:
