@@ -20,7 +20,7 @@ took longer (the realized delay is then max(real, model)). Held messages are del
 order of their due times by one thread per stage. The realized drops and delays go into the
 node's summary (``channel``: per link ``lost_at``, ``delay_s`` as [k, model, realized] rows, the
 first ``MAX_ROWS`` of them, the rest counted: ``delay_rows_dropped``); each drop is also an event
-``channel_lost`` (rate-limited like every event).  The draws are kept as numpy arrays (17 bytes a
+``channel_lost`` (rate-limited like every event).  The draws are kept as numpy arrays (9 bytes a
 sample, allocated at the start), so a long run does not grow the node.
 """
 
