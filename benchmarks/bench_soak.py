@@ -179,6 +179,7 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
         print(f"faults: {', '.join(rec['faults'])}")
     if not a.out:
         Path(out).unlink(missing_ok=True)
+        Path(out + ".reserve").unlink(missing_ok=True)  # the recorder's disk reserve, left by one it could not finish
     for f in (so_path, se_path):
         f.unlink(missing_ok=True)
     if not os.listdir(tmp):
