@@ -1,16 +1,21 @@
-"""Soak benchmark: a long live run, and every process's memory, open files and threads over time.
+"""Soak benchmark: long live runs, and every process's memory, open files and threads over time.
 
-Runs ``testbed run paper --T 0.01 --duration 60*M`` (the paper's plant and gain at T = 10 ms,
-recorded) and every ``--every`` seconds prints, for the launcher and each of its child processes
-(the nodes ``tb-plant``, ``tb-encoder``, ``tb-attacker``, ``tb-controller`` and the recorder), the
-resident memory (VmRSS), the open file descriptors and the threads, read from ``/proc``.  At the
-end it prints each process's memory growth after the warm-up (``--warmup`` s: a least-squares
-slope of RSS over time, in MB per hour) against the goal (less than 5 MB an hour), and the
+Runs ``testbed run paper --T T --duration S`` (the paper's plant and gain, recorded) for each
+length of ``--durations`` (or one of ``--minutes``) and every ``--every`` seconds prints, for the
+launcher and each of its child processes (the nodes ``tb-plant``, ``tb-encoder``, ``tb-attacker``,
+``tb-controller`` and the recorder), the resident memory (VmRSS), its peak so far (VmHWM), the
+open file descriptors and the threads, read from ``/proc``.  At the end of each run it prints each
+process's memory growth after the warm-up (``--warmup`` s: a least-squares slope of RSS over time,
+in MB per hour) against the goal (less than 5 MB an hour) and its peak (VmHWM: the launcher's as it
+reports it in its summary, ``launcher.peak_rss_mb``, so the end of the run is included), and the
 recording's completeness: ``recording_complete`` from the run's summary and the samples
-``testbed report`` reads back against the run's samples.
+``testbed report`` reads back against the run's samples.  With several durations it then prints
+the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
+flat, within 25 %).
 
-    python benchmarks/bench_soak.py --minutes 10          # what docs/benchmarks.md quotes for 10 min
+    python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
+    python benchmarks/bench_soak.py --rate 1000 --durations 60,180     # 1 kHz, 1 and 3 minutes
 """
 
 from __future__ import annotations
@@ -27,8 +32,12 @@ from pathlib import Path
 
 #: memory growth per hour after warm-up that counts as flat (the goal of docs/benchmarks.md)
 GOAL_MB_PER_H = 5.0
+#: the launcher's peak in a longer run against the shortest's that counts as flat
+GOAL_PEAK_RATIO = 1.25
 #: readings later than the run's length plus this (start-up) are after the loop: left out of the growth
 STARTUP_S = 5.0
+#: seconds between two readings once the loop is over (the end of the run, whose peak is measured)
+END_EVERY = 0.2
 
 
 def cmdline(pid: int) -> str:
@@ -39,7 +48,7 @@ def cmdline(pid: int) -> str:
 
 
 def proc_info(pid: int) -> dict | None:
-    """RSS (MB), open files and threads of one process, from /proc; None when it is gone."""
+    """RSS and peak RSS (MB), open files and threads of one process, from /proc; None when it is gone."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
         fds = len(os.listdir(f"/proc/{pid}/fd"))
@@ -49,7 +58,8 @@ def proc_info(pid: int) -> dict | None:
     f = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
     if "VmRSS" not in f:  # a zombie: exited, not yet reaped
         return None
-    return {"name": comm, "rss_mb": int(f["VmRSS"].split()[0]) / 1024, "fds": fds, "threads": int(f["Threads"])}
+    return {"name": comm, "rss_mb": int(f["VmRSS"].split()[0]) / 1024, "hwm_mb": int(f["VmHWM"].split()[0]) / 1024,
+            "fds": fds, "threads": int(f["Threads"])}
 
 
 def children(pid: int) -> list[int]:
@@ -79,40 +89,30 @@ def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
     return sum((t - mt) * (y - my) for t, y in zip(ts, ys)) / var * 3600
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--minutes", type=float, default=10.0, help="length of the live run (default %(default)s)")
-    ap.add_argument("--T", type=float, default=0.01, help="sample period, s (default %(default)s)")
-    ap.add_argument("--every", type=float, default=None, metavar="S",
-                    help="seconds between two readings (default: 30, or the run's length / 20 if shorter)")
-    ap.add_argument("--warmup", type=float, default=None, metavar="S",
-                    help="seconds left out of the growth figure (default: 60, or half the run if shorter)")
-    ap.add_argument("--out", help="the recording (default: a temporary file, removed)")
-    ap.add_argument("--json", metavar="FILE", help="also write every reading and the figures as JSON")
-    a = ap.parse_args(argv)
-    if not a.minutes > 0 or not a.T > 0:
-        print("bench_soak: --minutes and --T must be positive", file=sys.stderr)
-        return 2
-    dur = a.minutes * 60
-    every = a.every or min(30.0, max(1.0, dur / 20))
-    warmup = a.warmup if a.warmup is not None else min(60.0, dur / 2)
+def soak(dur: float, a, every: float, warmup: float) -> dict | None:
+    """One run of ``dur`` seconds: its readings, each process's growth and peak, the recording's completeness."""
     tmp = tempfile.mkdtemp(prefix="bench-soak-")
     out = a.out or os.path.join(tmp, "soak.mcap")
-    cmd = [sys.executable, "-m", "testbed.cli", "run", "paper", "--T", str(a.T), "--duration", str(dur),
+    cmd = [sys.executable, "-m", "testbed.cli", "run", "paper", "--T", str(a.T), "--duration", f"{dur:g}",
            "--json", "--out", out, "--force"]
-    print(f"bench_soak: {' '.join(cmd[2:])}", flush=True)
+    print(f"\nbench_soak: {' '.join(cmd[2:])}", flush=True)
     so_path, se_path = Path(tmp) / "summary.json", Path(tmp) / "stderr.txt"
     with open(so_path, "w") as so_f, open(se_path, "w") as se_f:  # a pipe would fill with the summary and block it
         p = subprocess.Popen(cmd, stdout=so_f, stderr=se_f, text=True, start_new_session=True)
     t_start = time.monotonic()
     readings: list[dict] = []
+    peak: dict[str, float] = {}
+    next_print = 0.0
     try:
-        print(f"{'t [s]':>7}  {'process':>13} {'RSS MB':>7} {'fds':>4} {'thr':>4}")
+        print(f"{'t [s]':>7}  {'process':>13} {'RSS MB':>7} {'peak MB':>8} {'fds':>4} {'thr':>4}")
         while p.poll() is None:
-            time.sleep(every if readings else min(every, 5.0))
+            t = time.monotonic() - t_start
+            over = t > dur + STARTUP_S
+            time.sleep(END_EVERY if over else (every if readings else min(every, 5.0)))
             t = time.monotonic() - t_start
             procs = {p.pid: proc_info(p.pid), **{c: proc_info(c) for c in children(p.pid)}}
             row = {"t_s": round(t, 1), "procs": {}, "running": t <= dur + STARTUP_S}
+            show = t >= next_print
             for pid, info in procs.items():
                 if info is None:
                     continue
@@ -120,20 +120,30 @@ def main(argv=None) -> int:
                 if pid != p.pid and not name.startswith("tb-"):
                     name = "recorder" if " record " in cmdline(pid) else name
                 row["procs"][name] = info
-                print(f"{t:7.0f}  {name:>13} {info['rss_mb']:7.1f} {info['fds']:4d} {info['threads']:4d}", flush=True)
-            readings.append(row)
+                peak[name] = max(peak.get(name, 0.0), info["hwm_mb"])
+                if show:
+                    print(f"{t:7.0f}  {name:>13} {info['rss_mb']:7.1f} {info['hwm_mb']:8.1f} {info['fds']:4d} "
+                          f"{info['threads']:4d}", flush=True)
+            if show:
+                next_print = t + every - 0.5
+            if row["running"] or show:
+                readings.append(row)
         p.wait()
     except KeyboardInterrupt:
         os.killpg(p.pid, signal.SIGINT)
         p.wait()
+        raise
     so, se = so_path.read_text(), se_path.read_text()
     try:
         summary = json.loads(so)
     except ValueError:
         print(f"bench_soak: the run printed no summary (exit {p.returncode}): {se[-1000:]}", file=sys.stderr)
-        return 1
+        return None
+    reported = (summary.get("launcher") or {}).get("peak_rss_mb")
+    if reported is not None:  # the launcher's own VmHWM, read after its summary (the last poll may be earlier)
+        peak["launcher"] = max(peak.get("launcher", 0.0), reported)
     figures = {}
-    print(f"\nmemory growth after {warmup:g} s of warm-up (goal < {GOAL_MB_PER_H:g} MB/h):")
+    print(f"memory growth after {warmup:g} s of warm-up (goal < {GOAL_MB_PER_H:g} MB/h) and peak (VmHWM):")
     names = sorted({n for r in readings for n in r["procs"]})
     for name in names:
         pts = [(r["t_s"], r["procs"][name]) for r in readings
@@ -142,13 +152,15 @@ def main(argv=None) -> int:
         first = pts[0][1] if pts else None
         last = pts[-1][1] if pts else None
         figures[name] = {"mb_per_hour": g, "rss_first_mb": first and first["rss_mb"], "rss_last_mb": last and last["rss_mb"],
+                         "peak_mb": peak.get(name),
                          "fds_first": first and first["fds"], "fds_last": last and last["fds"],
                          "threads_first": first and first["threads"], "threads_last": last and last["threads"],
                          "flat": None if g is None else g < GOAL_MB_PER_H}
         print(f"  {name:>13}: " + ("too few readings" if g is None else
                                    f"{g:+8.2f} MB/h ({first['rss_mb']:.1f} -> {last['rss_mb']:.1f} MB; fds "
                                    f"{first['fds']} -> {last['fds']}, threads {first['threads']} -> {last['threads']})"
-                                   f" {'ok' if g < GOAL_MB_PER_H else 'OVER THE GOAL'}"))
+                                   f" {'ok' if g < GOAL_MB_PER_H else 'OVER THE GOAL'}")
+              + f"; peak {peak.get(name, float('nan')):.1f} MB")
     rep = subprocess.run([sys.executable, "-m", "testbed.cli", "report", out, "--json", "--resimulate", "0"],
                          capture_output=True, text=True)
     try:
@@ -158,19 +170,72 @@ def main(argv=None) -> int:
     rec = {"recording_complete": summary.get("recording_complete"), "run_samples": summary.get("samples"),
            "n_steps": summary.get("n_steps"), "recorded_samples": rec_samples, "exit_code": p.returncode,
            "outcome": summary.get("outcome"), "deadline_misses": summary.get("timing", {}).get("deadline_misses"),
-           "timing_degraded": summary.get("timing_degraded")}
-    print(f"\nrun: {rec['outcome']}, exit {rec['exit_code']}, {rec['run_samples']}/{rec['n_steps']} samples, "
+           "timing_degraded": summary.get("timing_degraded"),
+           "faults": sorted({f"{f.get('node') or 'run'}: {f.get('kind')}" for f in summary.get("faults") or ()})}
+    print(f"run: {rec['outcome']}, exit {rec['exit_code']}, {rec['run_samples']}/{rec['n_steps']} samples, "
           f"{rec['deadline_misses']} deadline misses, timing degraded: {rec['timing_degraded']}")
     print(f"recording: complete {rec['recording_complete']}, {rec_samples} samples read back by testbed report")
-    if a.json:
-        Path(a.json).write_text(json.dumps({"minutes": a.minutes, "T": a.T, "warmup_s": warmup, "readings": readings,
-                                            "growth": figures, "recording": rec}, indent=1))
+    if rec["faults"]:
+        print(f"faults: {', '.join(rec['faults'])}")
     if not a.out:
         Path(out).unlink(missing_ok=True)
+        Path(out + ".reserve").unlink(missing_ok=True)  # the recorder's disk reserve, left by one it could not finish
     for f in (so_path, se_path):
         f.unlink(missing_ok=True)
     if not os.listdir(tmp):
         os.rmdir(tmp)
+    return {"duration_s": dur, "T": a.T, "warmup_s": warmup, "readings": readings, "growth": figures,
+            "peak_mb": peak, "recording": rec}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="length of the live run (default %(default)s)")
+    ap.add_argument("--durations", metavar="S,S,...",
+                    help="several runs, one after the other, of these lengths in seconds (instead of --minutes)")
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--T", type=float, default=0.01, help="sample period, s (default %(default)s)")
+    g.add_argument("--rate", type=float, metavar="HZ", help="sample rate (instead of --T: T = 1/HZ)")
+    ap.add_argument("--every", type=float, default=None, metavar="S",
+                    help="seconds between two readings (default: 30, or the run's length / 20 if shorter)")
+    ap.add_argument("--warmup", type=float, default=None, metavar="S",
+                    help="seconds left out of the growth figure (default: 60, or half the run if shorter)")
+    ap.add_argument("--out", help="the recording (default: a temporary file, removed)")
+    ap.add_argument("--json", metavar="FILE", help="also write every reading and the figures as JSON")
+    a = ap.parse_args(argv)
+    if a.rate is not None:
+        a.T = 1.0 / a.rate if a.rate > 0 else -1.0
+    try:
+        durs = [float(d) for d in a.durations.split(",")] if a.durations else [a.minutes * 60]
+    except ValueError:
+        print(f"bench_soak: --durations {a.durations!r}: seconds separated by commas", file=sys.stderr)
+        return 2
+    if not all(d > 0 for d in durs) or not a.T > 0:
+        print("bench_soak: the durations (--minutes, --durations) and --T or --rate must be positive", file=sys.stderr)
+        return 2
+    runs = []
+    for dur in durs:
+        every = a.every or min(30.0, max(1.0, dur / 20))
+        warmup = a.warmup if a.warmup is not None else min(60.0, dur / 2)
+        r = soak(dur, a, every, warmup)
+        if r is None:
+            return 1
+        runs.append(r)
+    if len(runs) > 1:
+        base = min(runs, key=lambda r: r["duration_s"])
+        b = base["peak_mb"].get("launcher")
+        print(f"\nthe launcher's peak (VmHWM, the end of the run included) against the run's length "
+              f"(T = {a.T:g} s; goal: within {GOAL_PEAK_RATIO:g}x the shortest run's):")
+        print(f"{'duration':>9} {'samples':>9} {'recorded':>9} {'peak MB':>8} {'ratio':>6}")
+        for r in runs:
+            pk = r["peak_mb"].get("launcher")
+            ratio = pk / b if pk and b else None
+            r["launcher_peak_ratio"] = ratio
+            print(f"{r['duration_s']:8g}s {r['recording']['run_samples'] or 0:9d} "
+                  f"{r['recording']['recorded_samples'] or 0:9d} {pk or float('nan'):8.1f} "
+                  + ("     ?" if ratio is None else f"{ratio:6.2f}"))
+    if a.json:
+        Path(a.json).write_text(json.dumps(runs[0] if len(runs) == 1 else {"runs": runs}, indent=1))
     return 0
 
 

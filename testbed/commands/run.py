@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 
@@ -156,7 +155,9 @@ def main_run(args) -> int:
         raise
     launcher.phase("closed")
     if cfg.json:
-        json.dump(summary, sys.stdout)
+        from ..record.summary import write_json
+
+        write_json(summary, sys.stdout)  # streamed: no list of every sample in memory
         sys.stdout.write("\n")
     else:
         print_text(summary)

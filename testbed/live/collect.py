@@ -6,19 +6,62 @@ its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
 
 With a ``spill`` file (the launcher's: ``telemetry.bin`` in the run folder) the records are
 appended there as they arrive and only the last ``RECENT`` of each node stay in memory, so that
-the launcher's memory stays flat however long the run; the whole is read back once, at the end.
+the launcher's memory stays flat however long the run.  At the end the file is read back in
+chunks of ``Spill.CHUNK`` bytes (``Spill.records``): straight into numpy columns for the summary
+(``snapshot``) and through each node's digest (``telemetry_check``), never as one object per record.
 """
 
 from __future__ import annotations
 
+import hashlib
 import struct
 import threading
 import time
+from pathlib import Path
 
 from ..wire import messages as msg
 from ..wire import transport
 
 PT = msg.PlantTelemetry
+
+
+class Spill:
+    """The collector's telemetry file: ``(role index u8, length u32 LE, record)`` appended as records arrive."""
+
+    HEAD = struct.Struct("<BI")
+    #: bytes read at a time at the end of the run (a record longer than this is read whole)
+    CHUNK = 1 << 20
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.f = open(self.path, "w+b", buffering=1 << 20)
+
+    def write(self, ri: int, b: bytes) -> None:
+        self.f.write(self.HEAD.pack(ri, len(b)) + b)
+
+    def records(self, chunk: int | None = None):
+        """Every ``(role index, record bytes)`` in the order written, read ``chunk`` bytes at a time."""
+        chunk = int(chunk or self.CHUNK)
+        head = self.HEAD
+        self.f.flush()
+        with open(self.path, "rb") as f:  # its own handle: the writer's position stays at the end
+            buf = b""
+            while True:
+                more = f.read(chunk)
+                buf = buf + more if buf else more
+                off = 0
+                while off + head.size <= len(buf):
+                    ri, n = head.unpack_from(buf, off)
+                    if off + head.size + n > len(buf):
+                        break
+                    yield ri, buf[off + head.size:off + head.size + n]
+                    off += head.size + n
+                buf = buf[off:]
+                if not more:
+                    return
+
+    def close(self) -> None:
+        self.f.close()
 
 
 class Collector:
@@ -28,7 +71,6 @@ class Collector:
     MAX_EVENTS = 10_000
     #: records of each node kept in memory when they are spilled to a file (the stall watch reads them)
     RECENT = 1024
-    _SPILL_HEAD = struct.Struct("<BI")  # role index, record length
 
     def __init__(self, session, keys: transport.Keys, n_steps: int, spill=None):
         import zenoh
@@ -41,7 +83,7 @@ class Collector:
         self.lock = threading.Lock()
         self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}  # all, or the recent ones
         self._seen = {r: bytearray(self.n_steps // 8 + 1) for r in transport.ROLES}  # one bit per sample
-        self._spill = None if spill is None else open(spill, "w+b", buffering=1 << 20)
+        self._spill = None if spill is None else Spill(spill)
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
@@ -95,8 +137,7 @@ class Collector:
                     if t.k > self.top[role]:
                         self.top[role] = t.k
                     if self._spill is not None:
-                        b = bytes(b)
-                        self._spill.write(self._SPILL_HEAD.pack(ri, len(b)) + b)
+                        self._spill.write(ri, bytes(b))
             if self._spill is not None and len(d) > 2 * self.RECENT:
                 keep = self.top[role] - self.RECENT
                 for k in [k for k in d if k < keep]:
@@ -207,58 +248,97 @@ class Collector:
         with self.lock:
             return any(s.origin == "plant" for s in self.stops)
 
-    def _all_telemetry(self) -> dict[str, dict[int, object]]:
-        """Every record by role and k: from the spill file when there is one (call with the lock held)."""
+    def _records(self):
+        """Every accepted ``(role index, record)`` (call with the lock held): from the spill file, a chunk at
+        a time, when there is one; each role's in the order they arrived."""
         if self._spill is None:
-            return {r: dict(d) for r, d in self.tele.items()}
-        out: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}
-        f = self._spill
-        f.flush()
-        f.seek(0)
-        head = self._SPILL_HEAD
-        data = f.read()
-        f.seek(0, 2)
-        off = 0
-        while off + head.size <= len(data):
-            ri, n = head.unpack_from(data, off)
-            off += head.size
-            role = transport.ROLES[ri]
-            t = msg.TELEMETRY_TYPES[role].decode(data[off:off + n])
-            off += n
-            out[role][t.k] = t
-        return out
+            for ri, role in enumerate(transport.ROLES):
+                for t in list(self.tele[role].values()):
+                    yield ri, t
+            return
+        types = [msg.TELEMETRY_TYPES[r] for r in transport.ROLES]
+        for ri, b in self._spill.records():
+            yield ri, types[ri].decode(b)
 
     def telemetry_check(self) -> list[dict]:
         """Each node's own account of its telemetry (records and digest, in its summary) against what
-        arrived here: a difference means records were lost, forged or altered on the way."""
-        import hashlib
+        arrived here: a difference means records were lost, forged or altered on the way.
 
+        The digest is over the records in the order of k (and the plant's final record last); records
+        arrive in that order, so it is computed in one streaming pass, and again, from the k order of
+        the role's records, for a role whose records came out of order."""
         out = []
         with self.lock:
-            tele = None
-            for role in transport.ROLES:
-                s = self.summaries.get(role) or {}
-                if "telemetry_sha256" not in s:
+            roles = [r for r in transport.ROLES if "telemetry_sha256" in (self.summaries.get(r) or {})]
+            if not roles:
+                return out
+            want = {transport.ROLES.index(r) for r in roles}
+            h = {ri: hashlib.sha256() for ri in want}
+            count = dict.fromkeys(want, 0)
+            last = dict.fromkeys(want, -1)
+            unordered: set[int] = set()
+            for ri, t in self._records():
+                if ri not in want:
                     continue
-                tele = tele or self._all_telemetry()
-                recs = [tele[role][k] for k in sorted(tele[role])]
+                count[ri] += 1
+                if t.k < last[ri]:
+                    unordered.add(ri)
+                last[ri] = t.k
+                if ri not in unordered:
+                    h[ri].update(t.encode())
+            for ri in unordered:
+                h[ri] = self._digest_by_k(ri)
+            for ri in sorted(want):
+                role = transport.ROLES[ri]
+                s = self.summaries[role]
                 if role == "plant" and self.plant_final is not None:
-                    recs.append(self.plant_final)
-                h = hashlib.sha256()
-                for r in recs:
-                    h.update(r.encode())
-                if len(recs) != s.get("telemetry_records") or h.hexdigest() != s["telemetry_sha256"]:
+                    h[ri].update(self.plant_final.encode())
+                    count[ri] += 1
+                n = count[ri]
+                if n != s.get("telemetry_records") or h[ri].hexdigest() != s["telemetry_sha256"]:
                     out.append({"node": role, "kind": "telemetry_mismatch",
-                                "why": f"{len(recs)} records collected, the node published {s.get('telemetry_records')}"
-                                       + ("" if len(recs) != s.get("telemetry_records") else "; digests differ")})
+                                "why": f"{n} records collected, the node published {s.get('telemetry_records')}"
+                                       + ("" if n != s.get("telemetry_records") else "; digests differ")})
         return out
 
-    def snapshot(self, sc):
-        """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``)."""
-        from ..record.columns import from_records
+    def _digest_by_k(self, ri: int):
+        """sha256 of role ``ri``'s records in the order of k (they arrived out of order: rare)."""
+        import numpy as np
+
+        h = hashlib.sha256()
+        if self._spill is None:
+            d = self.tele[transport.ROLES[ri]]
+            for k in sorted(d):
+                h.update(d[k].encode())
+            return h
+        ks = np.array([t.k for r, t in self._records() if r == ri], dtype=np.int64)  # 8 bytes a record
+        order = np.argsort(ks, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        # the records again, a window of ranks at a time: held at most CHUNK records
+        win = max(1, Spill.CHUNK // 64)
+        for lo in range(0, len(order), win):
+            got: dict[int, bytes] = {}
+            i = 0
+            for r, t in self._records():
+                if r != ri:
+                    continue
+                if lo <= rank[i] < lo + win:
+                    got[int(rank[i])] = t.encode()
+                i += 1
+            for j in range(lo, min(lo + win, len(order))):
+                h.update(got[j])
+        return h
+
+    def snapshot(self, sc, fields=None):
+        """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``).
+
+        ``fields``: the ``"role.field"`` names to decode (``columns.layout``; default all)."""
+        from ..record.columns import ColumnBuilder
 
         with self.lock:
-            tele = self._all_telemetry()
-            final, events, status, summaries = self.plant_final, list(self.events), list(self.status), \
-                dict(self.summaries)
-        return from_records(sc, tele, plant_final=final, events=events, status=status, summaries=summaries)
+            top = max(self.top.values())
+            b = ColumnBuilder(sc, top + 1, fields, events=self.events, status=self.status, summaries=self.summaries)
+            for ri, t in self._records():
+                b.add(ri, t)
+            return b.finish(self.plant_final)

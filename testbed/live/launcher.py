@@ -36,7 +36,7 @@ from pathlib import Path
 from .. import scenario
 from ..errors import BadInput
 from ..nodes.options import NodeConfig, RunConfig, load_scenario
-from ..nodes.process import parse_cpus
+from ..nodes.process import parse_cpus, peak_rss_mb
 from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
@@ -586,7 +586,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     self.faults.extend(col.telemetry_check())
                     self.publish_faults(session)
                 outcome = self.method_fault(col) or outcome  # one that arrived as the run ended
-                from ..record.summary import build_summary  # loaded meanwhile by ``_warm_summary``
+                from ..record.summary import LIVE_FIELDS, build_summary  # loaded meanwhile by ``_warm_summary``
 
                 plant = self.sc.make_model()
                 cb = self.sc.make_method().codebook(plant.n, self.sc.quantizer)
@@ -596,9 +596,11 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     nodes[r] = dict(self.exits.get(r) or self.exits.get(host, {}), colocated_in=host,
                                     log=str(self.run_dir / f"{host}.log"))
                 nodes = {r: nodes[r] for r in transport.ROLES}
-                summary = build_summary(self.sc, col.snapshot(self.sc), run_id=self.run_id,
+                # the spill read back a chunk at a time into the report's columns; the per-sample values stay
+                # numpy arrays (``testbed run --json`` streams them out: ``record.summary.write_json``)
+                summary = build_summary(self.sc, col.snapshot(self.sc, fields=LIVE_FIELDS), run_id=self.run_id,
                                         ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
-                                        faults=self.faults, codebook=cb)
+                                        faults=self.faults, codebook=cb, arrays=True)
                 if summary.get("plant_fault"):  # the true plant (an FMU) failed: say so, not "crashed"
                     outcome = f"plant fault at sample {summary.get('plant_fault_at')}"
                     for f in (*self.faults, *summary["faults"]):
@@ -641,6 +643,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             for s, h in old.items():
                 signal.signal(s, h)
         summary["run_dir"] = str(self.run_dir)
+        summary["launcher"]["peak_rss_mb"] = peak_rss_mb()  # the end of run included (benchmarks/bench_soak.py)
         summary["recording_complete"] = None if summary["recording"] is None else summary["recording"]["complete"]
         code = exit_code(self.signal, self.faults, summary, ridden=netns.RIDDEN_THROUGH)
         if code == 0 and self.own_dir:

@@ -18,8 +18,10 @@ charges, ``channel.payload_bits``); otherwise it is handed to the node at
 its send time (the header's stamp, run clock) plus ``delay[k]``, or at once if the real network
 took longer (the realized delay is then max(real, model)). Held messages are delivered in
 order of their due times by one thread per stage. The realized drops and delays go into the
-node's summary (``channel``: per link ``lost_at``, ``delay_s`` as [k, model, realized] rows);
-each drop is also an event ``channel_lost`` (rate-limited like every event).
+node's summary (``channel``: per link ``lost_at``, ``delay_s`` as [k, model, realized] rows, the
+first ``MAX_ROWS`` of them, the rest counted: ``delay_rows_dropped``); each drop is also an event
+``channel_lost`` (rate-limited like every event).  The draws are kept as numpy arrays (9 bytes a
+sample, allocated at the start), so a long run does not grow the node.
 """
 
 from __future__ import annotations
@@ -51,17 +53,20 @@ def _bits(node, link: str, model: channel.NetworkModel) -> int:
 
 
 class ChannelStage:
+    #: rows of realized delays kept for the node's summary (the run's first ones; the rest are counted)
+    MAX_ROWS = 100_000
+
     def __init__(self, node, link: str, model: channel.NetworkModel, fn):
         self.node = node
         self.link = link
         self.fn = fn
         n = node.ctx.n_steps + 2  # prefix-stable: a few samples more than the run has change nothing
         d = channel.draws(model, link, n, _bits(node, link, model))
-        self.lost = d.lost.tolist()
-        self.delay_ns = [int(round(v * 1e9)) for v in d.delay.tolist()]
-        self.delay_s = d.delay.tolist()
+        self.lost = d.lost                     # numpy: a byte a sample, not a Python object
+        self.delay_s = d.delay
         self.lost_at: list[int] = []
-        self.delays: list[list] = []           # [k, model delay s, realized delay s]
+        self.delays: list[list] = []           # [k, model delay s, realized delay s], the first MAX_ROWS
+        self.delay_rows_dropped = 0
         self._heap: list = []
         self._seq = itertools.count()
         self._cond = threading.Condition()
@@ -80,10 +85,10 @@ class ChannelStage:
             self.lost_at.append(k)
             ctx.event("channel_lost", k=k, detail=f"{self.link}: lost by the channel model", level=20)
             return None
-        due = h.stamp_ns + self.delay_ns[k]
+        due = h.stamp_ns + int(round(float(self.delay_s[k]) * 1e9))
         now = ctx.clock.now()
         if due <= now:
-            self.delays.append([k, self.delay_s[k], (now - h.stamp_ns) / 1e9])
+            self._delayed(k, (now - h.stamp_ns) / 1e9)
             return self.fn(sample)
         with self._cond:
             heapq.heappush(self._heap, (due, next(self._seq), k, h.stamp_ns, sample))
@@ -107,11 +112,20 @@ class ChannelStage:
                     self._cond.wait(min(rem / 1e9, 0.05))
                     continue
                 _, _, k, stamp, sample = heapq.heappop(self._heap)
-            self.delays.append([k, self.delay_s[k], (clock.now() - stamp) / 1e9])
+            self._delayed(k, (clock.now() - stamp) / 1e9)
             self.fn(sample)
 
+    def _delayed(self, k: int, realized_s: float) -> None:
+        if len(self.delays) < self.MAX_ROWS:
+            self.delays.append([k, float(self.delay_s[k]), realized_s])
+        else:
+            self.delay_rows_dropped += 1
+
     def summary(self) -> dict:
-        return {"lost_at": list(self.lost_at), "delay_s": [list(r) for r in self.delays]}
+        out = {"lost_at": list(self.lost_at), "delay_s": [list(r) for r in self.delays]}
+        if self.delay_rows_dropped:
+            out["delay_rows_dropped"] = self.delay_rows_dropped
+        return out
 
 
 class InProcessLink:
@@ -122,7 +136,7 @@ class InProcessLink:
     def __init__(self, node, link: str, model: channel.NetworkModel):
         self.node = node
         self.link = link
-        self.lost = channel.draws(model, link, node.ctx.n_steps + 2).lost.tolist()
+        self.lost = channel.draws(model, link, node.ctx.n_steps + 2).lost
         self.lost_at: list[int] = []
 
     def drops(self, k: int) -> bool:

@@ -175,6 +175,18 @@ def process_age() -> float:
         return float("nan")
 
 
+def peak_rss_mb() -> float | None:
+    """This process's peak resident memory so far (``VmHWM``), in MB; None where /proc has none."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def phase(who: str, name: str) -> None:
     """A start-up or shut-down milestone in the log (``-v``): ``benchmarks/bench_startup.py`` reads them."""
     if log.isEnabledFor(logging.INFO):

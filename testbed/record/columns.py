@@ -513,54 +513,68 @@ def read_columns(path: str | Path, *, fields: set[str] | None = None, sc=None) -
     return r.run()
 
 
+class ColumnBuilder:
+    """Columns filled one telemetry dataclass at a time (the live collector's), same rules as a file.
+
+    ``rows``: the samples to hold (the caller's highest accepted k + 1, at most the scenario's N);
+    a record of a k outside them is rejected and counted, one whose vector has the wrong width is
+    malformed.  ``add`` keeps no reference to the record: the columns are the only per-sample state.
+    """
+
+    def __init__(self, sc, rows: int, fields: set[str] | None = None, *, events=(), status=(), summaries=None):
+        plant = sc.make_model()
+        L = layout(plant.n, plant.m, fields)
+        rows = max(0, min(int(sc.n_steps), int(rows)))
+        self.c = Columns(path="", n=plant.n, m=plant.m, N=int(sc.n_steps), rows=rows, lay=L,
+                         tables=_tables(L, rows), present=np.zeros((rows, len(ROLES)), dtype=np.uint8),
+                         events=list(events), status=list(status), summaries=dict(summaries or {}))
+        self._mine = [[(key[1], col) for key, col in L.cols.items() if key[0] == role] for role in ROLES]
+
+    def add(self, r: int, t) -> None:
+        """Record ``t`` (a telemetry dataclass) of role index ``r`` into row ``t.k``."""
+        c = self.c
+        k = t.k
+        if not 0 <= k < c.rows:
+            c.rejected[ROLES[r]] = c.rejected.get(ROLES[r], 0) + 1
+            return
+        vals = []
+        for name, col in self._mine[r]:
+            v = getattr(t, name, None)
+            if v is None:  # a field the wire dataclass does not carry (derived: log10_E)
+                continue
+            if col.group == G_VEC:
+                v = v if len(v) else (col.default,) * col.width
+                if len(v) != col.width:
+                    c.malformed += 1
+                    return
+            vals.append((col, v))
+        for col, v in vals:
+            tab = c.tables[_TABLE[col.group]]
+            if col.group == G_VEC:
+                tab[k, col.col:col.col + col.width] = v
+            else:
+                tab[k, col.col] = v
+        c.present[k, r] = 1
+
+    def finish(self, plant_final=None) -> Columns:
+        c = self.c
+        if plant_final is not None:
+            c.final = {"k": int(plant_final.k), "x": np.array(plant_final.x, dtype=float),
+                       "flow_status": int(plant_final.flow_status)}
+        normalize(c)
+        return c
+
+
 def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, events=(), status=(),
                  summaries=None, fields: set[str] | None = None) -> Columns:
     """Columns from telemetry dataclasses by role and k (the live launcher's collector), same rules as a file."""
-    plant = sc.make_model()
-    L = layout(plant.n, plant.m, fields)
-    N = int(sc.n_steps)
     ks = [k for d in tele.values() for k in d]
-    rows = min(N, max(ks) + 1) if ks else 0
-    rows = max(rows, 0)
-    tables = _tables(L, rows)
-    c = Columns(path="", n=plant.n, m=plant.m, N=N, rows=rows, lay=L, tables=tables,
-                present=np.zeros((rows, len(ROLES)), dtype=np.uint8), events=list(events), status=list(status),
-                summaries=dict(summaries or {}))
+    b = ColumnBuilder(sc, max(ks) + 1 if ks else 0, fields, events=events, status=status, summaries=summaries)
     for r, role in enumerate(ROLES):
-        mine = [(key, col) for key, col in L.cols.items() if key[0] == role]
-        bad = 0
-        for k, t in (tele.get(role) or {}).items():
-            if not 0 <= k < rows:
-                bad += 1
-                continue
-            vals = []
-            for (_, name), col in mine:
-                v = getattr(t, name, None)
-                if v is None:  # a field the wire dataclass does not carry (derived: log10_E)
-                    continue
-                if col.group == G_VEC:
-                    v = v if len(v) else (col.default,) * col.width
-                    if len(v) != col.width:
-                        break
-                vals.append((col, v))
-            else:
-                for col, v in vals:
-                    tab = tables[_TABLE[col.group]]
-                    if col.group == G_VEC:
-                        tab[k, col.col:col.col + col.width] = v
-                    else:
-                        tab[k, col.col] = v
-                c.present[k, r] = 1
-                continue
-            c.malformed += 1
-        if bad:
-            c.rejected[role] = bad
-    if plant_final is not None:
-        c.final = {"k": int(plant_final.k), "x": np.array(plant_final.x, dtype=float),
-                   "flow_status": int(plant_final.flow_status)}
-    normalize(c)
-    return c
+        for t in (tele.get(role) or {}).values():
+            b.add(r, t)
+    return b.finish(plant_final)
 
 
-__all__ = ["Columns", "read_columns", "read_metadata", "from_records", "scenario_of", "layout",
+__all__ = ["Columns", "ColumnBuilder", "read_columns", "read_metadata", "from_records", "scenario_of", "layout",
            "CorruptRecording", "rows_for"]

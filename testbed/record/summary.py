@@ -416,9 +416,13 @@ REPLAY_FIELDS = {"plant.delay_ns", "plant.x_meas", "encoder.q", "encoder.xi", "e
                  "controller.xi", "controller.u", "plant.u"}
 
 
+#: what a live run's summary decodes (the launcher's, and ``testbed report`` of a live recording)
+LIVE_FIELDS = SUMMARY_FIELDS | REPLAY_FIELDS
+
+
 def _fields(meta: dict) -> set[str]:
     live = meta.get("testbed.run", {}).get("source") == "live"
-    return (SUMMARY_FIELDS if live else SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
+    return LIVE_FIELDS if live else (SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
 
 
 def load(path: str | Path, *, fields=_fields, trust_code: bool = False, note: bool = True):
