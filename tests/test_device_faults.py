@@ -124,3 +124,35 @@ def test_a_device_fault_is_a_fault_on_record_one_line_and_exit_1(case, run_id, t
     assert plant_ks == list(range(len(plant_ks))) and plant_ks[-1] >= min(k, 29), plant_ks  # complete up to it
     if kind == "lost":
         assert plant_ks[-1] == k
+
+
+def test_every_device_fault_breaks_a_conformance_requirement():
+    from testbed.live.conformance import DEVICE_FAULT_BREAKS, REQUIREMENTS
+
+    assert set(DEVICE_FAULT_BREAKS) == set(DEVICE_FAULTS)
+    assert set(DEVICE_FAULT_BREAKS.values()) <= set(REQUIREMENTS)
+
+
+def test_the_encoder_names_what_is_wrong_with_an_x_k():
+    from testbed.nodes.encoder import state_fault
+
+    assert state_fault((1.0, -2.0), 2) is None
+    assert state_fault((1.0, float("nan")), 2)[0] == "state_nonfinite"
+    assert state_fault((float("-inf"), 0.0), 2)[0] == "state_nonfinite"
+    assert state_fault((1.0,), 2) == ("state_wrong_length", "x has 1 entries, plant has n = 2")
+    assert state_fault((1.0, 2.0, float("nan")), 2)[0] == "state_wrong_length"
+
+
+@pytest.mark.process
+def test_conformance_names_the_requirement_a_device_fault_breaks(tmp_path):
+    cmd = tb_cmd("conformance", "plant", "paper", "--json", "--duration", "3", "--no-adverse", "--",
+                 PY, DEVICE, "nan-x", "10")
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    try:
+        res = json.loads(p.stdout)
+    except json.JSONDecodeError:
+        pytest.fail(f"no JSON (exit {p.returncode}): {p.stdout[-1000:]} {p.stderr[-2000:]}")
+    q = {r["name"]: r for r in res["requirements"]}
+    assert p.returncode == 1 and not res["passed"], res
+    assert q["messages_well_formed"]["status"] == "fail", q["messages_well_formed"]
+    assert q["messages_well_formed"]["detail"].startswith("device fault state_nonfinite at sample 10: "), q

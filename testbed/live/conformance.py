@@ -330,9 +330,10 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         ns = (s.get("node_summaries") or {}).get(role) or {}
         out += adverse.verdicts(r.fed, r.feed_error, first, stall_again,
                                 node_counts={c: ns.get(c) for c in COUNTERS if isinstance(ns.get(c), int)})
-    for f in s.get("faults", []):  # a device fault of the node fails the requirement it breaks, naming it
+    for f in s.get("faults", []):  # a device fault of the node fails the requirement it breaks, naming it (one the
+        # run's stall left inconclusive stays so: a stalled machine makes a device late too)
         q = next((q for q in out if f.get("node") == role and q["name"] == DEVICE_FAULT_BREAKS.get(f.get("kind"))), None)
-        if q is not None and q["status"] != FAIL:
+        if q is not None and q["status"] == PASS:
             q.update(_verdict(q["name"], FAIL, f"device fault {f['kind']} at sample {f.get('at_sample')}: {f.get('why')}"))
     return out
 
