@@ -134,7 +134,7 @@ def test_every_device_fault_breaks_a_conformance_requirement():
 
 
 def test_the_encoder_names_what_is_wrong_with_an_x_k():
-    from testbed.nodes.encoder import state_fault
+    from testbed.wire.messages import state_fault
 
     assert state_fault((1.0, -2.0), 2) is None
     assert state_fault((1.0, float("nan")), 2)[0] == "state_nonfinite"

@@ -5,7 +5,7 @@ is judged by what it sends.  ``DeviceWatch.tick`` turns each of these into one f
 sample ``at_sample``, its time ``t_s`` after t0, ``why``), once:
 
 * ``state_nonfinite``, ``state_wrong_length``: an x_k on ``loop/sensor`` with a non-finite entry or a length
-  other than the plant's n (the encoder's event of that kind: ``testbed.nodes.encoder.state_fault``); the
+  other than the plant's n (the encoder's event of that kind: ``testbed.wire.messages.state_fault``); the
   encoder never encodes it, and the run ends at that sample.  Of any plant, the testbed's own included;
 * ``sample_late``: a sample taken (its telemetry's ``t_ns``) more than the deadline d T after its instant
   k T; the loop treats it as it treats any late sample, and the run goes on;
@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import sys
 
-from ..nodes.encoder import STATE_NONFINITE, STATE_WRONG_LENGTH
 from ..wire import messages as msg
+from ..wire.messages import STATE_NONFINITE, STATE_WRONG_LENGTH
 
 #: the plant's Stop is due this long after the run's last sample at the latest (the other nodes wait 5 s)
 NO_STOP_GRACE_S = 2.0

@@ -23,7 +23,6 @@ the plant.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 
@@ -46,20 +45,6 @@ def warm_kernels(sc, model) -> None:
     skip_sample(e)
 
 
-#: the kinds of a wrong x_k from the plant (events of the encoder; faults of the run: ``testbed.live.devicefaults``)
-STATE_NONFINITE, STATE_WRONG_LENGTH = "state_nonfinite", "state_wrong_length"
-
-
-def state_fault(x, n: int) -> tuple[str, str] | None:
-    """What is wrong with an x_k the plant sent, as (kind, why), or None: its length is not the plant's n,
-    or an entry is not finite (NaN, inf)."""
-    if len(x) != n:
-        return STATE_WRONG_LENGTH, f"x has {len(x)} entries, plant has n = {n}"
-    if not all(math.isfinite(v) for v in x):
-        return STATE_NONFINITE, f"x has a non-finite entry: {list(x)}"
-    return None
-
-
 class EncoderNode(Node):
     role = "encoder"
     embedded = False   # run inside the plant's process (``--colocate encoder``)
@@ -76,7 +61,7 @@ class EncoderNode(Node):
         self.ack_latency = Timings()  # fixed memory however long the run
         self.encode_time = Timings()  # fixed memory however long the run
         self.future_sensor = 0
-        self.state_faults = 0  # x_k with a wrong length or a non-finite entry (``state_fault``)
+        self.state_faults = 0  # x_k with a wrong length or a non-finite entry (``msg.state_fault``)
         self.dead = False
         self.killed = False
         self.ack_grace_ns = int(self.cfg.ack_grace * ctx.T_ns) if self.cfg.ack_grace is not None \
@@ -110,10 +95,10 @@ class EncoderNode(Node):
             return None
         if s.k == msg.WARMUP_K:
             return None
-        bad = state_fault(s.x, self.model.n)
+        bad = msg.state_fault(s.x, self.model.n)
         if bad is not None:  # a plant (a device) that sent a wrong x_k: never encoded; the launcher ends the run
             kind, why = bad
-            if kind == STATE_WRONG_LENGTH:
+            if kind == msg.STATE_WRONG_LENGTH:
                 self.bad_message("sensor", msg.MessageError(why), k=s.k)
             self.state_faults += 1
             if self.state_faults <= 20:
