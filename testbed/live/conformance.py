@@ -38,6 +38,9 @@ PER_SAMPLE = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u")
 COUNTERS = ("malformed", "late_u", "stale_sensor", "stale_acks", "late", "future")
 #: the requirements a stall of the testbed's own nodes can break (inconclusive after two stalled runs)
 TIMING = ("equals_simulator", "acks_and_deadlines")
+#: the requirement a device fault of the node breaks (``testbed.live.devicefaults``; the fault's kind -> requirement)
+DEVICE_FAULT_BREAKS = {"state_nonfinite": "messages_well_formed", "state_wrong_length": "messages_well_formed",
+                       "sample_late": "acks_and_deadlines", "no_stop": "clean_stop", "lost": "clean_stop"}
 #: the control-path keys (after the prefix) each role publishes
 PUBLISHES = {"plant": ("loop/sensor",), "encoder": ("loop/symbol/tx",), "attacker": ("loop/symbol/rx", "loop/ack/rx"),
              "controller": ("loop/actuation", "loop/ack/tx")}
@@ -327,6 +330,11 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         ns = (s.get("node_summaries") or {}).get(role) or {}
         out += adverse.verdicts(r.fed, r.feed_error, first, stall_again,
                                 node_counts={c: ns.get(c) for c in COUNTERS if isinstance(ns.get(c), int)})
+    for f in s.get("faults", []):  # a device fault of the node fails the requirement it breaks, naming it (one the
+        # run's stall left inconclusive stays so: a stalled machine makes a device late too)
+        q = next((q for q in out if f.get("node") == role and q["name"] == DEVICE_FAULT_BREAKS.get(f.get("kind"))), None)
+        if q is not None and q["status"] == PASS:
+            q.update(_verdict(q["name"], FAIL, f"device fault {f['kind']} at sample {f.get('at_sample')}: {f.get('why')}"))
     return out
 
 

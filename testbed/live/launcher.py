@@ -41,6 +41,7 @@ from ..wire import messages as msg
 from ..wire import transport
 from . import external, netns
 from .credentials import RunCredentials, choose_topology
+from .devicefaults import DEVICE_FAULTS, DeviceWatch
 from .recorder import RecorderControl, exit_code
 from .spawn import Forked, _forked_node
 from .stalls import Stalls
@@ -119,6 +120,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self.recorder_exit: dict | None = None
         self._faults_published = 0
         self._method_fault: str | None = None       # the outcome once a node reported a method fault
+        self.device_watch: DeviceWatch | None = None  # what the plant (a device) does wrong (``devicefaults``)
         self._events_seen = 0
         self._collector_ready = False
         self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
@@ -399,7 +401,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         """When each dead node's liveliness token went away (it may trail the process exit)."""
         for f in self.faults:
             role = f.get("node")
-            if role is None or f["kind"] in ("stalled", "lost"):  # it went on; its token goes at the end
+            if role is None or f["kind"] in ("stalled", *DEVICE_FAULTS):  # it went on; its token goes at the end
                 continue
             lost = col.lost_at(role)
             f["liveliness_lost"] = lost is not None
@@ -433,6 +435,14 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self.faults.append(f)
         summary["faults"] = self.faults
         print(f"testbed run: {line}", file=sys.stderr)
+
+    def device_faults(self, col, now: int, t0_mono: int, *, final: bool = False) -> str | None:
+        """The plant's device faults (``DeviceWatch``; its loss: ``lost``): the outcome if one ends the run."""
+        if self.device_watch is None:
+            self.device_watch = DeviceWatch(col.start, self.sc.run.deadline, self.external == "plant")
+        self.faults.extend(self.device_watch.tick(col, now - t0_mono, final=final))
+        f = self.device_watch.ends_run() or (self._lost.get("plant") if self.external == "plant" else None)
+        return None if f is None else f"plant {f['kind']} at sample {f['at_sample']}"
 
     def watch(self, session, col) -> str:
         a = self.cfg
@@ -494,6 +504,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 if self.netns is not None:
                     self.netns.tick(self.faults, now, t0_mono)  # --cut
                 self.stalls_tick(col, now, t0_mono)
+                if (ended := self.device_faults(col, now, t0_mono)) is not None:
+                    return ended
                 if now > end_mono:
                     self.faults.append({"node": None, "kind": "timeout",
                                         "why": "nodes still running 10 s after the end of the run"})
@@ -577,6 +589,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                         if guest not in self.exits:
                             self.check_guest(guest, col, self.t0_mono, final=True)
                     self.stalls_end(col)
+                    if self.t0_mono is not None:  # what arrived as the run ended
+                        outcome = self.device_faults(col, time.monotonic_ns(), self.t0_mono, final=True) or outcome
                     self.add_liveliness(col)
                     self.check_recorder(col, None)
                     if self.netns is not None:

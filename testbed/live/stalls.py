@@ -201,18 +201,26 @@ class Stalls:
         a link down): its peers have dropped it, as if it had died; a fault ``lost``, once."""
         if col.plant_done():
             return
-        for role, p in self.procs.items():
+        nodes = dict(self.procs)
+        if self.external is not None:  # a node from outside (a device): its liveliness is all the launcher sees
+            nodes[self.external] = None
+        for role, p in nodes.items():
             lost = col.lost_at(role)
             if role in self._lost or role in self.exits or lost is None or now - lost < self.LOST_GRACE_NS \
-                    or p.poll() is not None:
+                    or (p is not None and p.poll() is not None):
                 continue
+            why = ("its liveliness token went away while its process ran on (frozen for longer than Zenoh's "
+                   "lease, or its link down): its peers dropped it") if p is not None else \
+                  (f"the external {role} disconnected: its liveliness token went away before the run's end (it "
+                   "closed its session, or its link was down for longer than Zenoh's lease)")
             f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": col.last_k(role),
-                 "injected": role in self.stall_inject.stopped,
-                 "why": "its liveliness token went away while its process ran on (frozen for longer than Zenoh's "
-                        "lease, or its link down): its peers dropped it"}
+                 "injected": role in self.stall_inject.stopped, "why": why}
+            if p is None:
+                f["external"] = True
             self._lost[role] = f
             self.faults.append(f)
-            print(f"testbed run: node {role} lost at {f['t_s']:g} s ({f['why']})", file=sys.stderr, flush=True)
+            print(f"testbed run: node {role} lost at {f['t_s']:g} s, after sample {f['at_sample']} ({f['why']})",
+                  file=sys.stderr, flush=True)
 
     def lost_back(self, col) -> None:
         """When each lost node's liveliness came back, if it did (``back_s``)."""

@@ -61,6 +61,7 @@ class EncoderNode(Node):
         self.ack_latency = Timings()  # fixed memory however long the run
         self.encode_time = Timings()  # fixed memory however long the run
         self.future_sensor = 0
+        self.state_faults = 0  # x_k with a wrong length or a non-finite entry (``msg.state_fault``)
         self.dead = False
         self.killed = False
         self.ack_grace_ns = int(self.cfg.ack_grace * ctx.T_ns) if self.cfg.ack_grace is not None \
@@ -89,12 +90,19 @@ class EncoderNode(Node):
     def _on_sensor(self, sample):
         try:
             s = msg.Sensor.decode(sample.payload, sample.attachment)
-            if len(s.x) != self.model.n:
-                raise msg.MessageError(f"x has {len(s.x)} entries, plant has n = {self.model.n}")
         except msg.MessageError as e:
             self.bad_message("sensor", e)
             return None
         if s.k == msg.WARMUP_K:
+            return None
+        bad = msg.state_fault(s.x, self.model.n)
+        if bad is not None:  # a plant (a device) that sent a wrong x_k: never encoded; the launcher ends the run
+            kind, why = bad
+            if kind == msg.STATE_WRONG_LENGTH:
+                self.bad_message("sensor", msg.MessageError(why), k=s.k)
+            self.state_faults += 1
+            if self.state_faults <= 20:
+                self.ctx.event(kind, k=s.k, detail=f"x_{s.k} from the plant: {why}", level=logging.ERROR)
             return None
         clock = self.ctx.wait_clock()
         if clock is None:

@@ -27,6 +27,7 @@ Every ``decode`` raises ``MessageError`` (a ``ValueError``) on a malformed input
 from __future__ import annotations
 
 import json
+import math
 import struct
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
@@ -36,6 +37,7 @@ __all__ = [
     "PlantTelemetry", "EncoderTelemetry", "ControllerTelemetry", "AttackerTelemetry",
     "Start", "Stop", "Event", "AttackerStatus", "NodeSummary", "TELEMETRY_TYPES",
     "NO_TIME", "THETA_NONE", "pack_batch", "unpack_batch", "PROTOCOL_VERSION", "ProtocolMismatch",
+    "STATE_NONFINITE", "STATE_WRONG_LENGTH", "state_fault",
 ]
 
 
@@ -122,6 +124,20 @@ class Sensor:
         if not x:
             raise MessageError("sensor: empty state")
         return cls(h.k, h.stamp_ns, x)
+
+
+#: the kinds of a wrong x_k from the plant (the encoder's events; the run's faults: ``testbed.live.devicefaults``)
+STATE_NONFINITE, STATE_WRONG_LENGTH = "state_nonfinite", "state_wrong_length"
+
+
+def state_fault(x, n: int) -> tuple[str, str] | None:
+    """What is wrong with an x_k the plant sent, as (kind, why), or None: its length is not the plant's n,
+    or an entry is not finite (NaN, inf)."""
+    if len(x) != n:
+        return STATE_WRONG_LENGTH, f"x has {len(x)} entries, plant has n = {n}"
+    if not all(math.isfinite(v) for v in x):
+        return STATE_NONFINITE, f"x has a non-finite entry: {list(x)}"
+    return None
 
 
 @dataclass(frozen=True, slots=True)
