@@ -284,3 +284,12 @@ def test_rerun_decodes_the_protobuf_channels(tmp_path):
     assert r.returncode == 0
     for name in ("PlantSample", "EncoderSample", "ControllerSample", "AttackerSample"):
         assert f"testbed.{name}:message" in r.stdout, name
+
+
+def test_the_launcher_waits_longer_for_the_recorder_than_it_drains():
+    """A recorder behind on a long run drains its queue within its own grace after the SIGINT; the launcher
+    waits longer than that before it kills it, so the file is closed by the recorder, never cut."""
+    from testbed.live.recorder import STOP_WAIT_S
+    from testbed.nodes.recorder import RECORDER_STOP_GRACE_S
+
+    assert STOP_WAIT_S > RECORDER_STOP_GRACE_S

@@ -60,6 +60,11 @@ def exit_code(sig: int | None, faults: list, summary: dict, ridden: tuple = ()) 
     return 0
 
 
+#: how long the launcher waits for the recorder after its SIGINT: more than the recorder's own drain time
+#: (``testbed.nodes.recorder.RECORDER_STOP_GRACE_S``, 60 s), which then ends the file itself
+STOP_WAIT_S = 65.0
+
+
 class RecorderControl:
     """The launcher's recorder process (a mixin of ``Launcher``: it uses the launcher's configuration, keys,
     credentials, faults and run folder)."""
@@ -115,7 +120,10 @@ class RecorderControl:
         return {"path": str(self.record_path), "complete": ok, "error": err, "recorder_exit": self.recorder_exit,
                 "log": str(self.run_dir / f"{transport.RECORDER}.log")}
 
-    def stop_recorder(self, grace: float = 15.0) -> None:
+    def stop_recorder(self, grace: float | None = None) -> None:
+        """SIGINT the recorder and wait for it to drain its queue and close the file (``STOP_WAIT_S``:
+        longer than the recorder gives itself, so a recorder behind on a long run is never killed mid-file)."""
+        grace = STOP_WAIT_S if grace is None else grace
         p = self.recorder
         if p is None or p.poll() is not None:
             return
