@@ -17,6 +17,7 @@ from helpers import BIT_EXACT_KEYS, LOGS, PY, mismatch, reap, run_cli, simulate,
 
 from testbed.live.external import ANNOUNCE
 from testbed.wire import join
+from testbed.wire.messages import PlantTelemetry
 
 BROKEN = str(Path(__file__).resolve().parent / "nodes" / "broken_node.py")
 BIN = os.path.dirname(sys.executable)  # where the testbed command is installed beside the Python
@@ -109,19 +110,47 @@ def test_conformance_bad_input_is_one_line_and_exit_2(args, why):
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_adverse_verdicts_name_the_case_fed_last_before_the_run_left_the_simulator():
+FED = {c: {"k": k - 3 if c == "late" else k, "after_genuine_k": k, "key": "testbed/r/loop/actuation",
+          "as": "controller"} for c, k in (("duplicate", 5), ("late", 9), ("invalid", 13))}
+
+
+def _statuses(judge, fed=FED):
     from testbed.live import adverse
 
-    fed = {c: {"k": k, "after_genuine_k": k, "key": "testbed/r/loop/actuation", "as": "controller"}
-           for c, k in (("duplicate", 5), ("late", 9), ("invalid", 13))}
-    status = lambda first, stall=None, f=fed: [v["status"] for v in adverse.verdicts(f, None, first, stall,  # noqa: E731
-                                                                                     node_counts={})]
-    assert status(None) == ["pass"] * 3
-    assert status(11) == ["pass", "fail", "inconclusive"]
-    assert status(13) == ["pass", "pass", "fail"]
-    assert status(2) == ["inconclusive"] * 3                       # it left before anything was fed
-    assert status(11, {"deadline_misses": 1}) == ["pass", "inconclusive", "inconclusive"]
-    assert status(None, f={"duplicate": fed["duplicate"]}) == ["pass", "inconclusive", "inconclusive"]  # not fed
+    return [v["status"] for v in adverse.verdicts(fed, None, judge, node_counts={})]
+
+
+def test_a_plants_adverse_cases_are_judged_by_the_u_that_acted():
+    """The u that acted at the targeted samples (the one the copy followed and the next) is the controller's
+    genuine u_k, whatever the plant's integrator: no equality with the simulator enters."""
+    from testbed.live import adverse
+
+    sent = {k: (0.5 * k,) for k in range(30)}
+    acted = {k: (u, 0) for k, u in sent.items()}
+    judge = lambda a: adverse.plant_judge(a, sent, 30, 1e6)  # noqa: E731
+    assert _statuses(judge(acted)) == ["pass"] * 3
+    took_late = {**acted, 10: (sent[6], 0)}  # sample 6's u (the late copy) acted at sample 10
+    assert _statuses(judge(took_late)) == ["pass", "fail", "pass"]
+    v = adverse.verdicts(FED, None, judge(took_late), node_counts={})[1]
+    assert "at sample 10 u = [3.0] acted, the controller's u_10 is [5.0]" in v["detail"], v
+    assert _statuses(judge({**acted, 6: (sent[5], 0)})) == ["fail", "pass", "pass"]  # the duplicate kept for 6
+    no_u = PlantTelemetry.FLAG_NO_U
+    assert _statuses(judge({**acted, 14: ((0.0,), no_u)})) == ["pass"] * 3  # u_14 missing: 0 acted, no copy taken
+    assert _statuses(judge({**acted, 14: ((6.5,), no_u)})) == ["pass", "pass", "fail"]
+    assert _statuses(judge(acted), {"duplicate": FED["duplicate"]}) == ["pass", "inconclusive", "inconclusive"]
+    # the saturation at u_max is the plant's: a device may record the u it applied, saturated
+    big = {k: (10.0 * k,) for k in range(30)}
+    assert _statuses(adverse.plant_judge({k: ((min(u[0], 50.0),), 0) for k, u in big.items()}, big, 30, 50.0)) \
+        == ["pass"] * 3
+
+
+def test_the_loops_nodes_adverse_cases_are_judged_by_the_replay_at_the_targeted_samples():
+    from testbed.live import adverse
+
+    assert _statuses(adverse.loop_judge(None, [], {}, "u")) == ["pass"] * 3
+    assert _statuses(adverse.loop_judge(10, ["u"], {}, "u")) == ["pass", "fail", "inconclusive"]
+    assert _statuses(adverse.loop_judge(2, ["u"], {}, "u")) == ["inconclusive"] * 3  # differs before any was fed
+    assert _statuses(adverse.loop_judge(None, [], {6: "it sent 2 messages"}, "u")) == ["fail", "pass", "pass"]
 
 
 def test_a_stalled_run_is_what_the_testbeds_own_nodes_report():
@@ -248,11 +277,14 @@ def test_conformance_passes_the_bundled_node(role):
 
     rc, _, (res, err) = rerun_while_stalled(run, f"conformance {role}")
     assert rc == 0 and res["passed"] is True, json.dumps(res, indent=1)
+    device = ["loop_equals_replay", "plant_follows_model"] if role == "plant" else []
     assert [q["name"] for q in res["requirements"]] == ["joined_in_time", "messages_well_formed", "sample_indices",
                                                         "telemetry_agrees_with_messages", "equals_simulator",
-                                                        "acks_and_deadlines", "clean_stop", "adverse_duplicate",
-                                                        "adverse_late", "adverse_invalid"]
+                                                        *device, "acks_and_deadlines", "clean_stop",
+                                                        "adverse_duplicate", "adverse_late", "adverse_invalid"]
     assert all(q["passed"] and q["status"] == "pass" and q["detail"] for q in res["requirements"])
+    # a plant is judged as a device: equals_simulator reported, required only with --bit-exact
+    assert [q["name"] for q in res["requirements"] if not q["required"]] == (["equals_simulator"] if device else [])
     fed = res["runs"][-1]["fed"]  # each case was fed once, after a genuine message of its sample or later
     assert fed["duplicate"]["k"] >= 5 and fed["late"]["k"] == fed["late"]["after_genuine_k"] - 3 >= 6, fed
     assert fed["invalid"]["k"] >= 13, fed
@@ -272,19 +304,20 @@ def test_conformance_fails_a_plant_that_sends_its_state_big_endian():
 
 @pytest.mark.process
 def test_conformance_fails_a_plant_that_takes_a_past_samples_actuation():
-    """The broken plant keeps an actuation of a past sample for the next one: the duplicated copy (when it
-    comes after the plant moved on) or the late one makes it leave the simulator, and conformance names
-    the case fed last before that sample."""
+    """The broken plant keeps an actuation of a past sample for the next one: the u that acted there is not
+    the controller's u_k, and conformance names the case (the duplicated copy when it comes after the plant
+    moved on, or the late one), whatever else the run did.  Its telemetry tells the u it applied, so the
+    loop's replay and its steps against the model hold: only the adverse cases catch it."""
     rc, res, err = _conformance("plant", PY, BROKEN, "takes-late")
     assert rc == 1 and res["passed"] is False
     verdict = {q["name"]: q for q in res["requirements"]}
     cases = [verdict[f"adverse_{c}"] for c in ("duplicate", "late", "invalid")]
-    assert not all(v["passed"] for v in cases), cases
-    if res["runs"][-1]["stalled"] is None:  # a run that did not stall names the case
-        failed = [v for v in cases if v["status"] == "fail"]
-        assert len(failed) == 1 and "left the simulator at sample" in failed[0]["detail"], cases
-        assert failed[0]["name"] in ("adverse_duplicate", "adverse_late"), cases
+    failed = [v for v in cases if v["status"] == "fail"]
+    assert failed and all("taken: at sample" in v["detail"] for v in failed), cases
+    assert {v["name"] for v in failed} <= {"adverse_duplicate", "adverse_late"}, cases
+    assert verdict["adverse_invalid"]["status"] == "pass", cases
     assert not verdict["equals_simulator"]["passed"]
+    assert verdict["loop_equals_replay"]["passed"] and verdict["plant_follows_model"]["passed"], verdict
     assert verdict["sample_indices"]["passed"] and verdict["clean_stop"]["passed"], verdict
 
 
