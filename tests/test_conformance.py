@@ -8,12 +8,11 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 from failclosed import rerun_while_stalled
-from helpers import BIT_EXACT_KEYS, LOGS, PY, mismatch, reap, run_cli, simulate, tb_cmd
+from helpers import BIT_EXACT_KEYS, LOGS, PY, JoinAnnounce, mismatch, reap, run_cli, simulate, tb_cmd
 
 from testbed.live.external import ANNOUNCE
 from testbed.wire import join
@@ -182,23 +181,11 @@ def _external_run(run_id: str, role: str, *args):
     p = subprocess.Popen(tb_cmd("run", "paper", "--external", role, "--json", "--no-record", "--run-id", run_id,
                                 "--run-dir", os.path.join(LOGS, run_id), *args),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    lines, seen = [], threading.Event()
-    prefix = ANNOUNCE.format(role=role, path="")
-
-    def read_err():
-        for line in p.stderr:
-            lines.append(line)
-            if line.startswith(prefix):
-                seen.set()
-        seen.set()
-
-    t = threading.Thread(target=read_err, daemon=True)
-    t.start()
+    err = JoinAnnounce(p, role)
     node = None
     facts = {}
     try:
-        assert seen.wait(120), "".join(lines)
-        path = next(ln for ln in lines if ln.startswith(prefix))[len(prefix):].strip()
+        path = err.wait(120)
         facts["mode"] = os.stat(path).st_mode & 0o777
         facts["data"] = json.loads(Path(path).read_text())
         with open(os.path.join(LOGS, f"{run_id}-external-{role}.log"), "wb") as log:
@@ -212,8 +199,8 @@ def _external_run(run_id: str, role: str, *args):
             if proc is not None and proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
-    t.join(5)
-    return p.returncode, json.loads(out), "".join(lines), facts
+    err.join()
+    return p.returncode, json.loads(out), err.text(), facts
 
 
 @pytest.mark.process
