@@ -12,13 +12,14 @@ from pathlib import Path
 
 import pytest
 from failclosed import rerun_while_stalled
-from helpers import BIT_EXACT_KEYS, LOGS, PY, JoinAnnounce, mismatch, reap, run_cli, simulate, tb_cmd
+from helpers import BIT_EXACT_KEYS, LOGS, PY, JoinAnnounce, mismatch, reap, run_cli, sim_recording, simulate, tb_cmd
 
 from testbed.live.external import ANNOUNCE
 from testbed.wire import join
 from testbed.wire.messages import PlantTelemetry
 
 BROKEN = str(Path(__file__).resolve().parent / "nodes" / "broken_node.py")
+OTHER = str(Path(__file__).resolve().parent / "nodes" / "other_integrator.py")  # a healthy plant, not bit-exact
 BIN = os.path.dirname(sys.executable)  # where the testbed command is installed beside the Python
 
 
@@ -103,7 +104,11 @@ def test_run_external_without_the_node_gives_up_after_the_startup_timeout(run_id
 
 @pytest.mark.parametrize("args, why", [(("plant", "paper"), "no COMMAND"),
                                        (("plant", "nosuchscenario", "--", "true"), "nosuchscenario"),
-                                       (("plant", "paper", "--", "/no/such/cmd"), "no such command")])
+                                       (("plant", "paper", "--", "/no/such/cmd"), "no such command"),
+                                       (("plant", "paper", "--secret-file", "s", "--", "true"), "--secret-file"),
+                                       (("plant", "paper", "--listen", "tcp/127.0.0.1:1", "--", "true"), "--listen"),
+                                       (("plant", "paper", "--plant-tolerance", "-1", "--", "true"),
+                                        "--plant-tolerance")])
 def test_conformance_bad_input_is_one_line_and_exit_2(args, why):
     rc, out, err = run_cli(tb_cmd("conformance", *args), timeout=60)
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
@@ -150,6 +155,51 @@ def test_the_loops_nodes_adverse_cases_are_judged_by_the_replay_at_the_targeted_
     assert _statuses(adverse.loop_judge(10, ["u"], {}, "u")) == ["pass", "fail", "inconclusive"]
     assert _statuses(adverse.loop_judge(2, ["u"], {}, "u")) == ["inconclusive"] * 3  # differs before any was fed
     assert _statuses(adverse.loop_judge(None, [], {6: "it sent 2 messages"}, "u")) == ["fail", "pass", "pass"]
+
+
+def test_a_plant_whose_physics_differ_from_the_model_fails_plant_follows_model_only(tmp_path):
+    """paper-mismatch recorded by the simulator (the true plant's b = 0.03, the model's 0.02): the loop did
+    what the method says with the plant's numbers (loop_equals_replay passes), the plant is not the model
+    (plant_follows_model fails, its detail the max, its sample and the tolerance); the testbed's own plant
+    passes both; a controller that breaks the law fails loop_equals_replay at its sample."""
+    import testbed
+    from testbed.live.conformance import PLANT_TOLERANCE, device_verdicts
+    from testbed.record import recording
+    from testbed.runs.resimulate import resimulation
+
+    def verdicts(path, tol=PLANT_TOLERANCE):
+        rep = resimulation(testbed.open(path), plant="recorded")
+        return rep, {v["name"]: v for v in device_verdicts(rep, tol)}
+
+    _sc, _res, path = sim_recording(tmp_path, "paper-mismatch")
+    rep, v = verdicts(path)
+    pm = rep["plant_model_error"]
+    assert v["loop_equals_replay"]["status"] == "pass" and v["loop_equals_replay"]["required"], v
+    assert v["plant_follows_model"]["status"] == "fail" and pm["max"] > PLANT_TOLERANCE, v
+    assert f"= {pm['max']:.3g} at sample {pm['at']} > tolerance 1e-06" in v["plant_follows_model"]["detail"], v
+    assert verdicts(path, tol=pm["max"])[1]["plant_follows_model"]["status"] == "pass"  # max <= tolerance passes
+    _sc, _res, path = sim_recording(tmp_path, "paper")
+    assert [q["status"] for q in verdicts(path)[1].values()] == ["pass", "pass"]
+    sc, res = _sc, _res
+    res.u = res.u.copy()
+    res.u[40] += 0.05  # the controller sent (and the plant applied) a u_40 the law does not give
+    bad = tmp_path / "law.mcap"
+    recording.record_simulation(bad, sc, res)
+    _rep, v = verdicts(bad)
+    assert v["loop_equals_replay"]["status"] == "fail", v
+    assert "differ from the run at sample 40 (u)" in v["loop_equals_replay"]["detail"], v
+    assert [q["status"] for q in device_verdicts(None, 1e-6, error="unreadable")] == ["fail", "fail"]
+
+
+def test_equals_simulator_names_the_first_sample_where_any_quantity_differs():
+    from testbed.live.conformance import first_difference
+
+    sim = {"symbols": [1, 2, 3, 4], "x": [[0.0], [1.0], [2.0], [3.0]], "u": [[0.0]] * 4, "x_final": [4.0]}
+    assert first_difference(sim, sim) == (None, [])
+    live = {**sim, "x": [[0.0], [1.0], [2.0 + 1e-15], [3.1]], "symbols": [1, 2, 3, 5], "u": [[0.0]] * 3 + [[1.0]]}
+    assert first_difference(live, sim) == (2, ["x"])  # the state first, not the first symbol that differs
+    assert first_difference({**live, "x": sim["x"]}, sim) == (3, ["symbols", "u"])
+    assert first_difference({**sim, "x_final": [4.5]}, sim) == (None, ["x_final"])
 
 
 def test_a_stalled_run_is_what_the_testbeds_own_nodes_report():
@@ -275,6 +325,31 @@ def test_conformance_passes_the_bundled_node(role):
     fed = res["runs"][-1]["fed"]  # each case was fed once, after a genuine message of its sample or later
     assert fed["duplicate"]["k"] >= 5 and fed["late"]["k"] == fed["late"]["after_genuine_k"] - 3 >= 6, fed
     assert fed["invalid"]["k"] >= 13, fed
+
+
+@pytest.mark.process
+def test_conformance_passes_a_healthy_plant_that_is_not_bit_exact():
+    """A plant with another integrator (scipy's RK45 at rtol 1e-12): its states leave the simulator at the
+    first step, yet it passes as a device (the loop equals its replay, its steps follow the model within
+    1e-6) with every adverse case pass, not inconclusive; with --bit-exact it does not pass."""
+    def run(attempt):
+        rc, res, err = _conformance("plant", PY, OTHER)
+        return rc, res["runs"][-1]["report"] or {}, (res, err)
+
+    rc, _, (res, err) = rerun_while_stalled(run, "conformance of a plant with another integrator")
+    verdict = {q["name"]: q for q in res["requirements"]}
+    assert rc == 0 and res["passed"] is True, json.dumps(res["requirements"], indent=1)
+    assert all(verdict[f"adverse_{c}"]["status"] == "pass" for c in ("duplicate", "late", "invalid")), verdict
+    eq = verdict["equals_simulator"]
+    assert eq["required"] is False and eq["status"] == "fail", eq
+    assert eq["detail"].startswith("first differs at sample 1, in x"), eq  # the first sample any quantity differs
+    assert verdict["loop_equals_replay"]["status"] == "pass", verdict["loop_equals_replay"]
+    pm = verdict["plant_follows_model"]
+    assert pm["status"] == "pass" and "<= tolerance 1e-06" in pm["detail"] and "= 0 at" not in pm["detail"], pm
+    rc, res, err = _conformance("plant", PY, OTHER, extra=("--bit-exact", "--no-adverse"))
+    verdict = {q["name"]: q for q in res["requirements"]}
+    assert rc == 1 and res["passed"] is False and verdict["equals_simulator"]["required"] is True, verdict
+    assert not verdict["loop_equals_replay"]["required"] and verdict["loop_equals_replay"]["passed"], verdict
 
 
 @pytest.mark.process
