@@ -178,6 +178,8 @@ def test_a_plant_whose_physics_differ_from_the_model_fails_plant_follows_model_o
     assert v["plant_follows_model"]["status"] == "fail" and pm["max"] > PLANT_TOLERANCE, v
     assert f"= {pm['max']:.3g} at sample {pm['at']} > tolerance 1e-06" in v["plant_follows_model"]["detail"], v
     assert verdicts(path, tol=pm["max"])[1]["plant_follows_model"]["status"] == "pass"  # max <= tolerance passes
+    stalled_twice = device_verdicts(rep, PLANT_TOLERANCE, stall_again={"deadline_misses": 3})
+    assert [q["status"] for q in stalled_twice] == ["pass", "inconclusive"], stalled_twice
     _sc, _res, path = sim_recording(tmp_path, "paper")
     assert [q["status"] for q in verdicts(path)[1].values()] == ["pass", "pass"]
     sc, res = _sc, _res

@@ -44,7 +44,7 @@ PER_SAMPLE = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u")
 #: a node's counters (its NodeSummary) shown as the adverse cases' evidence
 COUNTERS = ("malformed", "late_u", "stale_sensor", "stale_acks", "late", "future")
 #: the requirements a stall of the testbed's own nodes can break (inconclusive after two stalled runs)
-TIMING = ("equals_simulator", "acks_and_deadlines")
+TIMING = ("equals_simulator", "acks_and_deadlines", "plant_follows_model")
 #: the control-path keys (after the prefix) each role publishes
 PUBLISHES = {"plant": ("loop/sensor",), "encoder": ("loop/symbol/tx",), "attacker": ("loop/symbol/rx", "loop/ack/rx"),
              "controller": ("loop/actuation", "loop/ack/tx")}
@@ -309,11 +309,13 @@ def _at(v, k):
 
 
 def device_verdicts(replay: dict | None, tolerance: float, *, required: bool = True,
-                    error: str | None = None) -> list[dict]:
+                    error: str | None = None, stall_again: dict | None = None) -> list[dict]:
     """ROLE plant's ``loop_equals_replay`` and ``plant_follows_model`` from ``replay``, the recording's re-run on
     the recorded plant (``testbed.runs.resimulate.resimulation(run, plant="recorded")``: its ``loop_identical``,
     ``loop_first_divergence``, ``loop_differs_in`` and ``plant_model_error`` as they are); ``error``: why there
-    is none."""
+    is none.  ``stall_again`` (the run stalled twice): a plant that does not follow the model is inconclusive
+    (a stalled loop may have driven it where no healthy run goes: an escaped state, a clamped input); the
+    replay replays the recorded timing faults, so ``loop_equals_replay`` is judged as usual."""
     if replay is None:
         why = f"no re-run of the recording: {error or 'none made'}"
         return [_verdict(n, FAIL, why, required) for n in DEVICE]
@@ -334,9 +336,10 @@ def device_verdicts(replay: dict | None, tolerance: float, *, required: bool = T
                                                       "--bit-exact judges such a plant)", required)
     else:
         ok = pm["max"] <= tolerance
-        model = _verdict("plant_follows_model", PASS if ok else FAIL,
+        model = _verdict("plant_follows_model", PASS if ok else INCONCLUSIVE if stall_again else FAIL,
                          f"max_k ||x_k+1 - phi_T(x_k, u_k)||_inf = {pm['max']:.3g} at sample {pm['at']} "
-                         f"{'<=' if ok else '>'} tolerance {tolerance:g} (mean {pm['mean']:.3g})", required)
+                         f"{'<=' if ok else '>'} tolerance {tolerance:g} (mean {pm['mean']:.3g})"
+                         + (f" (the run stalled twice: {stall_again})" if stall_again and not ok else ""), required)
     return [loop, model]
 
 
@@ -439,7 +442,7 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         except Exception as e:  # noqa: BLE001 - reported as the requirement's detail
             rep_error = f"{type(e).__name__}: {e}"
     if role == "plant":
-        out += device_verdicts(rep, plant_tolerance, required=not bit_exact,
+        out += device_verdicts(rep, plant_tolerance, required=not bit_exact, stall_again=stall_again,
                                error=rep_error or (None if replay else "no replay given"))
     # 6. acks and deadlines
     out.append(_acks(role, rec, s, N, T, sc.run.deadline, stall_again))
