@@ -19,10 +19,10 @@ its own integrator) gets pass or fail:
 
 - **plant**: the u that acted there (its telemetry's ``u``) is the genuine u_k of the controller's
   actuation record (its telemetry), bit for bit (``plant_judge``);
-- **encoder**: it sent one symbol for each of those samples, and the symbols (and xi_k, E_k, q_k) equal
+- **encoder**: it sent at most one symbol for each of those samples, and the symbols (and xi_k, E_k, q_k) equal
   the testbed's nodes re-run on the plant's reported states (the replay, ``testbed resimulate --plant
   recorded``), which encodes the genuine x_k;
-- **controller**: it sent one actuation for each, and theta_k, u_k (and its E_k, xi_k, q_k) equal the
+- **controller**: it sent at most one actuation for each, and theta_k, u_k (and its E_k, xi_k, q_k) equal the
   replay, which decodes the genuine symbol;
 - **attacker**: what reached the controller there equals the replay, which forwards the genuine symbol
   as the attacker's recorded decisions say (an attacker may forward repeats: no count).
