@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import numpy as np
@@ -100,6 +101,40 @@ def tb_run(*args, cwd=None, env: dict | None = None, timeout: float = TIMEOUT) -
 
 #: node logs of the live runs (kept when a test failed)
 LOGS = tempfile.mkdtemp(prefix="testbed-live-tests-")
+
+
+class JoinAnnounce:
+    """Reads a ``testbed run --external ROLE`` process's stderr in a thread: every line (``lines``), and the
+    join file's path once the run announces it (``wait``)."""
+
+    def __init__(self, p: subprocess.Popen, role: str):
+        from testbed.live.external import ANNOUNCE
+
+        self.lines: list[str] = []
+        self._prefix = ANNOUNCE.format(role=role, path="")
+        self._seen = threading.Event()
+        self._thread = threading.Thread(target=self._read, args=(p.stderr,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream) -> None:
+        for line in stream:
+            self.lines.append(line)
+            if line.startswith(self._prefix):
+                self._seen.set()
+        self._seen.set()
+
+    def wait(self, timeout: float) -> str:
+        """The join file's path (the test fails when the run ends or ``timeout`` passes before it says one)."""
+        assert self._seen.wait(timeout), self.text()
+        path = next((ln for ln in self.lines if ln.startswith(self._prefix)), None)
+        assert path is not None, self.text()
+        return path[len(self._prefix):].strip()
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def join(self, timeout: float = 5.0) -> None:
+        self._thread.join(timeout)
 
 
 def mismatch(s: dict, sim: dict, key: str) -> str:

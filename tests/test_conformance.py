@@ -8,17 +8,18 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 from failclosed import rerun_while_stalled
-from helpers import BIT_EXACT_KEYS, LOGS, PY, mismatch, reap, run_cli, simulate, tb_cmd
+from helpers import BIT_EXACT_KEYS, LOGS, PY, JoinAnnounce, mismatch, reap, run_cli, sim_recording, simulate, tb_cmd
 
 from testbed.live.external import ANNOUNCE
 from testbed.wire import join
+from testbed.wire.messages import PlantTelemetry
 
 BROKEN = str(Path(__file__).resolve().parent / "nodes" / "broken_node.py")
+OTHER = str(Path(__file__).resolve().parent / "nodes" / "other_integrator.py")  # a healthy plant, not bit-exact
 BIN = os.path.dirname(sys.executable)  # where the testbed command is installed beside the Python
 
 
@@ -103,25 +104,104 @@ def test_run_external_without_the_node_gives_up_after_the_startup_timeout(run_id
 
 @pytest.mark.parametrize("args, why", [(("plant", "paper"), "no COMMAND"),
                                        (("plant", "nosuchscenario", "--", "true"), "nosuchscenario"),
-                                       (("plant", "paper", "--", "/no/such/cmd"), "no such command")])
+                                       (("plant", "paper", "--", "/no/such/cmd"), "no such command"),
+                                       (("plant", "paper", "--secret-file", "s", "--", "true"), "--secret-file"),
+                                       (("plant", "paper", "--listen", "tcp/127.0.0.1:1", "--", "true"), "--listen"),
+                                       (("plant", "paper", "--plant-tolerance", "-1", "--", "true"),
+                                        "--plant-tolerance")])
 def test_conformance_bad_input_is_one_line_and_exit_2(args, why):
     rc, out, err = run_cli(tb_cmd("conformance", *args), timeout=60)
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_adverse_verdicts_name_the_case_fed_last_before_the_run_left_the_simulator():
+FED = {c: {"k": k - 3 if c == "late" else k, "after_genuine_k": k, "key": "testbed/r/loop/actuation",
+          "as": "controller"} for c, k in (("duplicate", 5), ("late", 9), ("invalid", 13))}
+
+
+def _statuses(judge, fed=FED):
     from testbed.live import adverse
 
-    fed = {c: {"k": k, "after_genuine_k": k, "key": "testbed/r/loop/actuation", "as": "controller"}
-           for c, k in (("duplicate", 5), ("late", 9), ("invalid", 13))}
-    status = lambda first, stall=None, f=fed: [v["status"] for v in adverse.verdicts(f, None, first, stall,  # noqa: E731
-                                                                                     node_counts={})]
-    assert status(None) == ["pass"] * 3
-    assert status(11) == ["pass", "fail", "inconclusive"]
-    assert status(13) == ["pass", "pass", "fail"]
-    assert status(2) == ["inconclusive"] * 3                       # it left before anything was fed
-    assert status(11, {"deadline_misses": 1}) == ["pass", "inconclusive", "inconclusive"]
-    assert status(None, f={"duplicate": fed["duplicate"]}) == ["pass", "inconclusive", "inconclusive"]  # not fed
+    return [v["status"] for v in adverse.verdicts(fed, None, judge, node_counts={})]
+
+
+def test_a_plants_adverse_cases_are_judged_by_the_u_that_acted():
+    """The u that acted at the targeted samples (the one the copy followed and the next) is the controller's
+    genuine u_k, whatever the plant's integrator: no equality with the simulator enters."""
+    from testbed.live import adverse
+
+    sent = {k: (0.5 * k,) for k in range(30)}
+    acted = {k: (u, 0) for k, u in sent.items()}
+    judge = lambda a: adverse.plant_judge(a, sent, 30, 1e6)  # noqa: E731
+    assert _statuses(judge(acted)) == ["pass"] * 3
+    took_late = {**acted, 10: (sent[6], 0)}  # sample 6's u (the late copy) acted at sample 10
+    assert _statuses(judge(took_late)) == ["pass", "fail", "pass"]
+    v = adverse.verdicts(FED, None, judge(took_late), node_counts={})[1]
+    assert "at sample 10 u = [3.0] acted, the controller's u_10 is [5.0]" in v["detail"], v
+    assert _statuses(judge({**acted, 6: (sent[5], 0)})) == ["fail", "pass", "pass"]  # the duplicate kept for 6
+    no_u = PlantTelemetry.FLAG_NO_U
+    assert _statuses(judge({**acted, 14: ((0.0,), no_u)})) == ["pass"] * 3  # u_14 missing: 0 acted, no copy taken
+    assert _statuses(judge({**acted, 14: ((6.5,), no_u)})) == ["pass", "pass", "fail"]
+    assert _statuses(judge(acted), {"duplicate": FED["duplicate"]}) == ["pass", "inconclusive", "inconclusive"]
+    # the saturation at u_max is the plant's: a device may record the u it applied, saturated
+    big = {k: (10.0 * k,) for k in range(30)}
+    assert _statuses(adverse.plant_judge({k: ((min(u[0], 50.0),), 0) for k, u in big.items()}, big, 30, 50.0)) \
+        == ["pass"] * 3
+
+
+def test_the_loops_nodes_adverse_cases_are_judged_by_the_replay_at_the_targeted_samples():
+    from testbed.live import adverse
+
+    assert _statuses(adverse.loop_judge(None, [], {}, "u")) == ["pass"] * 3
+    assert _statuses(adverse.loop_judge(10, ["u"], {}, "u")) == ["pass", "fail", "inconclusive"]
+    assert _statuses(adverse.loop_judge(2, ["u"], {}, "u")) == ["inconclusive"] * 3  # differs before any was fed
+    assert _statuses(adverse.loop_judge(None, [], {6: "it sent 2 messages"}, "u")) == ["fail", "pass", "pass"]
+
+
+def test_a_plant_whose_physics_differ_from_the_model_fails_plant_follows_model_only(tmp_path):
+    """paper-mismatch recorded by the simulator (the true plant's b = 0.03, the model's 0.02): the loop did
+    what the method says with the plant's numbers (loop_equals_replay passes), the plant is not the model
+    (plant_follows_model fails, its detail the max, its sample and the tolerance); the testbed's own plant
+    passes both; a controller that breaks the law fails loop_equals_replay at its sample."""
+    import testbed
+    from testbed.live.conformance import PLANT_TOLERANCE, device_verdicts
+    from testbed.record import recording
+    from testbed.runs.resimulate import resimulation
+
+    def verdicts(path, tol=PLANT_TOLERANCE):
+        rep = resimulation(testbed.open(path), plant="recorded")
+        return rep, {v["name"]: v for v in device_verdicts(rep, tol)}
+
+    _sc, _res, path = sim_recording(tmp_path, "paper-mismatch")
+    rep, v = verdicts(path)
+    pm = rep["plant_model_error"]
+    assert v["loop_equals_replay"]["status"] == "pass" and v["loop_equals_replay"]["required"], v
+    assert v["plant_follows_model"]["status"] == "fail" and pm["max"] > PLANT_TOLERANCE, v
+    assert f"= {pm['max']:.3g} at sample {pm['at']} > tolerance 1e-06" in v["plant_follows_model"]["detail"], v
+    assert verdicts(path, tol=pm["max"])[1]["plant_follows_model"]["status"] == "pass"  # max <= tolerance passes
+    stalled_twice = device_verdicts(rep, PLANT_TOLERANCE, stall_again={"deadline_misses": 3})
+    assert [q["status"] for q in stalled_twice] == ["pass", "inconclusive"], stalled_twice
+    _sc, _res, path = sim_recording(tmp_path, "paper")
+    assert [q["status"] for q in verdicts(path)[1].values()] == ["pass", "pass"]
+    sc, res = _sc, _res
+    res.u = res.u.copy()
+    res.u[40] += 0.05  # the controller sent (and the plant applied) a u_40 the law does not give
+    bad = tmp_path / "law.mcap"
+    recording.record_simulation(bad, sc, res)
+    _rep, v = verdicts(bad)
+    assert v["loop_equals_replay"]["status"] == "fail", v
+    assert "differ from the run at sample 40 (u)" in v["loop_equals_replay"]["detail"], v
+    assert [q["status"] for q in device_verdicts(None, 1e-6, error="unreadable")] == ["fail", "fail"]
+
+
+def test_equals_simulator_names_the_first_sample_where_any_quantity_differs():
+    from testbed.live.conformance import first_difference
+
+    sim = {"symbols": [1, 2, 3, 4], "x": [[0.0], [1.0], [2.0], [3.0]], "u": [[0.0]] * 4, "x_final": [4.0]}
+    assert first_difference(sim, sim) == (None, [])
+    live = {**sim, "x": [[0.0], [1.0], [2.0 + 1e-15], [3.1]], "symbols": [1, 2, 3, 5], "u": [[0.0]] * 3 + [[1.0]]}
+    assert first_difference(live, sim) == (2, ["x"])  # the state first, not the first symbol that differs
+    assert first_difference({**live, "x": sim["x"]}, sim) == (3, ["symbols", "u"])
+    assert first_difference({**sim, "x_final": [4.5]}, sim) == (None, ["x_final"])
 
 
 def test_a_stalled_run_is_what_the_testbeds_own_nodes_report():
@@ -153,23 +233,11 @@ def _external_run(run_id: str, role: str, *args):
     p = subprocess.Popen(tb_cmd("run", "paper", "--external", role, "--json", "--no-record", "--run-id", run_id,
                                 "--run-dir", os.path.join(LOGS, run_id), *args),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    lines, seen = [], threading.Event()
-    prefix = ANNOUNCE.format(role=role, path="")
-
-    def read_err():
-        for line in p.stderr:
-            lines.append(line)
-            if line.startswith(prefix):
-                seen.set()
-        seen.set()
-
-    t = threading.Thread(target=read_err, daemon=True)
-    t.start()
+    err = JoinAnnounce(p, role)
     node = None
     facts = {}
     try:
-        assert seen.wait(120), "".join(lines)
-        path = next(ln for ln in lines if ln.startswith(prefix))[len(prefix):].strip()
+        path = err.wait(120)
         facts["mode"] = os.stat(path).st_mode & 0o777
         facts["data"] = json.loads(Path(path).read_text())
         with open(os.path.join(LOGS, f"{run_id}-external-{role}.log"), "wb") as log:
@@ -183,8 +251,8 @@ def _external_run(run_id: str, role: str, *args):
             if proc is not None and proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
-    t.join(5)
-    return p.returncode, json.loads(out), "".join(lines), facts
+    err.join()
+    return p.returncode, json.loads(out), err.text(), facts
 
 
 @pytest.mark.process
@@ -248,14 +316,42 @@ def test_conformance_passes_the_bundled_node(role):
 
     rc, _, (res, err) = rerun_while_stalled(run, f"conformance {role}")
     assert rc == 0 and res["passed"] is True, json.dumps(res, indent=1)
+    device = ["loop_equals_replay", "plant_follows_model"] if role == "plant" else []
     assert [q["name"] for q in res["requirements"]] == ["joined_in_time", "messages_well_formed", "sample_indices",
                                                         "telemetry_agrees_with_messages", "equals_simulator",
-                                                        "acks_and_deadlines", "clean_stop", "adverse_duplicate",
-                                                        "adverse_late", "adverse_invalid"]
+                                                        *device, "acks_and_deadlines", "clean_stop",
+                                                        "adverse_duplicate", "adverse_late", "adverse_invalid"]
     assert all(q["passed"] and q["status"] == "pass" and q["detail"] for q in res["requirements"])
+    # a plant is judged as a device: equals_simulator reported, required only with --bit-exact
+    assert [q["name"] for q in res["requirements"] if not q["required"]] == (["equals_simulator"] if device else [])
     fed = res["runs"][-1]["fed"]  # each case was fed once, after a genuine message of its sample or later
     assert fed["duplicate"]["k"] >= 5 and fed["late"]["k"] == fed["late"]["after_genuine_k"] - 3 >= 6, fed
     assert fed["invalid"]["k"] >= 13, fed
+
+
+@pytest.mark.process
+def test_conformance_passes_a_healthy_plant_that_is_not_bit_exact():
+    """A plant with another integrator (scipy's RK45 at rtol 1e-12): its states leave the simulator at the
+    first step, yet it passes as a device (the loop equals its replay, its steps follow the model within
+    1e-6) with every adverse case pass, not inconclusive; with --bit-exact it does not pass."""
+    def run(attempt):
+        rc, res, err = _conformance("plant", PY, OTHER)
+        return rc, res["runs"][-1]["report"] or {}, (res, err)
+
+    rc, _, (res, err) = rerun_while_stalled(run, "conformance of a plant with another integrator")
+    verdict = {q["name"]: q for q in res["requirements"]}
+    assert rc == 0 and res["passed"] is True, json.dumps(res["requirements"], indent=1)
+    assert all(verdict[f"adverse_{c}"]["status"] == "pass" for c in ("duplicate", "late", "invalid")), verdict
+    eq = verdict["equals_simulator"]
+    assert eq["required"] is False and eq["status"] == "fail", eq
+    assert eq["detail"].startswith("first differs at sample 1, in x"), eq  # the first sample any quantity differs
+    assert verdict["loop_equals_replay"]["status"] == "pass", verdict["loop_equals_replay"]
+    pm = verdict["plant_follows_model"]
+    assert pm["status"] == "pass" and "<= tolerance 1e-06" in pm["detail"] and "= 0 at" not in pm["detail"], pm
+    rc, res, err = _conformance("plant", PY, OTHER, extra=("--bit-exact", "--no-adverse"))
+    verdict = {q["name"]: q for q in res["requirements"]}
+    assert rc == 1 and res["passed"] is False and verdict["equals_simulator"]["required"] is True, verdict
+    assert not verdict["loop_equals_replay"]["required"] and verdict["loop_equals_replay"]["passed"], verdict
 
 
 @pytest.mark.process
@@ -272,19 +368,20 @@ def test_conformance_fails_a_plant_that_sends_its_state_big_endian():
 
 @pytest.mark.process
 def test_conformance_fails_a_plant_that_takes_a_past_samples_actuation():
-    """The broken plant keeps an actuation of a past sample for the next one: the duplicated copy (when it
-    comes after the plant moved on) or the late one makes it leave the simulator, and conformance names
-    the case fed last before that sample."""
+    """The broken plant keeps an actuation of a past sample for the next one: the u that acted there is not
+    the controller's u_k, and conformance names the case (the duplicated copy when it comes after the plant
+    moved on, or the late one), whatever else the run did.  Its telemetry tells the u it applied, so the
+    loop's replay and its steps against the model hold: only the adverse cases catch it."""
     rc, res, err = _conformance("plant", PY, BROKEN, "takes-late")
     assert rc == 1 and res["passed"] is False
     verdict = {q["name"]: q for q in res["requirements"]}
     cases = [verdict[f"adverse_{c}"] for c in ("duplicate", "late", "invalid")]
-    assert not all(v["passed"] for v in cases), cases
-    if res["runs"][-1]["stalled"] is None:  # a run that did not stall names the case
-        failed = [v for v in cases if v["status"] == "fail"]
-        assert len(failed) == 1 and "left the simulator at sample" in failed[0]["detail"], cases
-        assert failed[0]["name"] in ("adverse_duplicate", "adverse_late"), cases
+    failed = [v for v in cases if v["status"] == "fail"]
+    assert failed and all("taken: at sample" in v["detail"] for v in failed), cases
+    assert {v["name"] for v in failed} <= {"adverse_duplicate", "adverse_late"}, cases
+    assert verdict["adverse_invalid"]["status"] == "pass", cases
     assert not verdict["equals_simulator"]["passed"]
+    assert verdict["loop_equals_replay"]["passed"] and verdict["plant_follows_model"]["passed"], verdict
     assert verdict["sample_indices"]["passed"] and verdict["clean_stop"]["passed"], verdict
 
 

@@ -12,16 +12,14 @@ import shutil
 import signal
 import stat
 import subprocess
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from failclosed import require, rerun_while_stalled
-from helpers import LOGS, PY, reap, run_cli, tb_cmd
+from helpers import LOGS, PY, JoinAnnounce, reap, run_cli, tb_cmd
 
-from testbed.live.external import ANNOUNCE
 from testbed.wire import join
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -137,23 +135,11 @@ def _live_with_device(device: str, run_id: str, tls: str, out: Path, *args: str,
                                 "--json", "--out", str(out), "--run-id", run_id,
                                 "--run-dir", os.path.join(LOGS, run_id), *(("--netns",) if netns else ()), *args),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    lines, seen = [], threading.Event()
-    prefix = ANNOUNCE.format(role="plant", path="")
-
-    def read_err():
-        for line in p.stderr:
-            lines.append(line)
-            if line.startswith(prefix):
-                seen.set()
-        seen.set()
-
-    t = threading.Thread(target=read_err, daemon=True)
-    t.start()
+    err = JoinAnnounce(p, "plant")
     dev = None
     facts = {}
     try:
-        assert seen.wait(300), "".join(lines)
-        path = next(ln for ln in lines if ln.startswith(prefix))[len(prefix):].strip()
+        path = err.wait(300)
         facts["join"] = json.loads(Path(path).read_text())
         cmd = [device]
         if netns:  # the run's namespaces are made after the join file is written: wait for the plant's
@@ -174,12 +160,12 @@ def _live_with_device(device: str, run_id: str, tls: str, out: Path, *args: str,
             if proc is not None and proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
-    t.join(5)
+    err.join()
     try:
         s = json.loads(so)
     except json.JSONDecodeError:
-        pytest.fail(f"no JSON summary (exit {p.returncode}): {''.join(lines)[-3000:]}")
-    return p.returncode, s, "".join(lines), facts
+        pytest.fail(f"no JSON summary (exit {p.returncode}): {err.text()[-3000:]}")
+    return p.returncode, s, err.text(), facts
 
 
 def plant_model_error(rec: Path) -> tuple[float, int]:
@@ -275,3 +261,33 @@ def test_the_device_in_its_own_network_namespace(device, run_id, tmp_path):
     assert s["node_summaries"]["plant"]["implementation"].startswith("tb-pico-plant")
     err_max, at = plant_model_error(rec)
     assert err_max <= 1e-9, (err_max, at)
+
+
+@pytest.mark.process
+def test_the_device_passes_conformance_as_a_device(device, tmp_path):
+    """`testbed conformance plant paper --topology router --tls-dir DIR --json -- DEVICE`: the device joins the
+    router topology over mutual TLS and passes every required requirement, the adverse cases included (the u
+    that acted at each targeted sample is the controller's); equals_simulator is reported but not required
+    (its own integrator is not the testbed's bit for bit)."""
+    tls = str(tmp_path / "tls")
+    assert subprocess.run(tb_cmd("secret", "--tls", tls), capture_output=True).returncode == 0
+
+    def run(attempt):
+        p = subprocess.run(tb_cmd("conformance", "plant", "paper", "--topology", "router", "--tls-dir", tls, "--json",
+                                  "--duration", "3", "--", device), capture_output=True, text=True, timeout=900)
+        try:
+            res = json.loads(p.stdout)
+        except json.JSONDecodeError:
+            pytest.fail(f"no JSON (exit {p.returncode}): {p.stdout[-1000:]} {p.stderr[-2000:]}")
+        return p.returncode, res["runs"][-1]["report"] or {}, (res, p.stderr)
+
+    rc, _, (res, err) = rerun_while_stalled(run, "conformance of the pico plant")
+    verdict = {q["name"]: q for q in res["requirements"]}
+    assert rc == 0 and res["passed"] is True, json.dumps(res["requirements"], indent=1)
+    assert all(q["status"] == "pass" for q in res["requirements"] if q["required"]), verdict
+    assert [q["name"] for q in res["requirements"] if not q["required"]] == ["equals_simulator"], verdict
+    assert all(verdict[f"adverse_{c}"]["status"] == "pass" for c in ("duplicate", "late", "invalid")), verdict
+    assert "is the controller's genuine u_k" in verdict["adverse_late"]["detail"], verdict["adverse_late"]
+    assert "tolerance 1e-06" in verdict["plant_follows_model"]["detail"], verdict["plant_follows_model"]
+    fed = res["runs"][-1]["fed"]
+    assert fed["late"]["as"] == "controller" and fed["invalid"]["k"] >= 13, fed

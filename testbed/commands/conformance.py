@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import secrets
 import shutil
@@ -13,8 +14,10 @@ import tempfile
 from pathlib import Path
 
 from .. import cliargs
+from ..live.conformance import PLANT_TOLERANCE
 from ..nodes.options import add_run_option_arguments
 from ..wire import transport
+from ..wire.session import add_network_arguments
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,10 +29,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _add_options(p: argparse.ArgumentParser) -> None:
-    cliargs.add_json(p, "the verdict: passed, and requirements (name, passed, status, detail)")
+    cliargs.add_json(p, "the verdict: passed (over the required requirements), and requirements (name, required, "
+                        "passed, status, detail)")
     add_run_option_arguments(p)
+    add_network_arguments(p.add_argument_group("network (as testbed run's)"), launcher=True)
     g = p.add_argument_group("conformance")
-    g.add_argument("--run-id", help="the run's id (default: unique)")
+    g.add_argument("--bit-exact", action="store_true",
+                   help="ROLE plant: require equals_simulator (the plant equals the testbed's own bit for bit) "
+                        "instead of loop_equals_replay and plant_follows_model (a device's judgement, the default)")
+    g.add_argument("--plant-tolerance", type=float, default=PLANT_TOLERANCE, metavar="E",
+                   help="ROLE plant: plant_follows_model passes when max_k ||x_k+1 - phi_T(x_k, u_k)||_inf <= E "
+                        "(default %(default)g)")
     g.add_argument("--keep", metavar="DIR", help="keep the recordings and logs in DIR (default: a temporary folder, "
                                                 "kept when a requirement is not met)")
     g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
@@ -40,9 +50,19 @@ def _add_options(p: argparse.ArgumentParser) -> None:
                                                                               "(default %(default)s)")
 
 
+def replay_on_recorded_plant(path: str) -> dict:
+    """The conformance run's recording re-run on the recorded plant (``testbed resimulate --plant recorded
+    --json``): what ``loop_equals_replay``, ``plant_follows_model`` and the loop's nodes' adverse cases read.
+    The recording is the one this command just made of the user's scenario: its code is trusted."""
+    from ..runs.resimulate import resimulation
+    from ..runs.run import open as open_run
+
+    return resimulation(open_run(path, trust_code=True), plant="recorded")
+
+
 def main(args) -> int:
     from ..errors import BadInput
-    from ..live.conformance import ADVERSE, REQUIREMENTS, conformance
+    from ..live.conformance import ADVERSE, DEVICE, REQUIREMENTS, Network, conformance
     from .liveconfig import run_options
 
     # the options after SCENARIO, then -- COMMAND [ARGS...] (argparse drops a -- that directly follows SCENARIO)
@@ -64,10 +84,19 @@ def main(args) -> int:
     opts = run_options(args)
     if opts.colocate:
         raise BadInput("--colocate: an external node runs alone in its process")
+    net = Network(listen=args.listen, zenoh_config=args.zenoh_config, topology=args.topology,
+                  secret_file=args.secret_file, tls_dir=args.tls_dir, insecure=args.insecure,
+                  low_latency=args.low_latency)
+    if not args.no_adverse and net.feedable():
+        raise BadInput(net.feedable())
+    if not (args.plant_tolerance >= 0 and math.isfinite(args.plant_tolerance)):
+        raise BadInput(f"--plant-tolerance {args.plant_tolerance!r}: not a finite number >= 0")
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="testbed-conformance-"))
     run_id = args.run_id or f"conformance-{args.role}-{os.getpid()}-{secrets.token_hex(3)}"
     res = conformance(args.role, args.scenario, command, folder=folder, run_id=run_id, flags=opts.cli(),
-                      timeout=args.timeout, startup_timeout=args.startup_timeout, feed=not args.no_adverse)
+                      timeout=args.timeout, startup_timeout=args.startup_timeout, feed=not args.no_adverse,
+                      network=net, bit_exact=args.bit_exact, plant_tolerance=args.plant_tolerance,
+                      replay=replay_on_recorded_plant)
     if not args.keep and res["passed"]:
         shutil.rmtree(folder, ignore_errors=True)
     else:
@@ -76,11 +105,12 @@ def main(args) -> int:
         json.dump(res, sys.stdout)
         sys.stdout.write("\n")
     else:
-        width = max(len(n) for n in (*REQUIREMENTS, *ADVERSE))
+        width = max(len(n) for n in (*REQUIREMENTS, *DEVICE, *ADVERSE))
         print(f"conformance of the {args.role} {' '.join(command)!r} on {args.scenario}: "
               + ("PASSED" if res["passed"] else "NOT PASSED"))
         for q in res["requirements"]:
-            print(f"  {q['status'].upper():12s} {q['name']:{width}s}  {q['detail']}")
+            print(f"  {q['status'].upper():12s} {q['name']:{width}s}  "
+                  + ("" if q["required"] else "(not required) ") + q["detail"])
         if res.get("folder"):
             print(f"  recordings and logs: {res['folder']}")
     return 0 if res["passed"] else 1

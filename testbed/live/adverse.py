@@ -12,8 +12,23 @@ input key and, once each, right after the genuine message of a sample at or afte
 - **invalid**: puts the genuine payload with an 11-byte header (malformed: dropped, counted, nothing
   else changes).
 
-A node that does what the spec says ignores all three, so the run still equals the simulator bit for
-bit; the first sample where it does not names the case that broke it (``verdicts``).
+A node that does what the spec says ignores all three.  Each case is judged from what the node did with
+the message at the samples it targets (``targets``: the sample whose genuine message the copy followed,
+and the next), never from equality with the simulator, so a node that is not bit-exact (a device with
+its own integrator) gets pass or fail:
+
+- **plant**: the u that acted there (its telemetry's ``u``) is the genuine u_k of the controller's
+  actuation record (its telemetry), bit for bit (``plant_judge``);
+- **encoder**: it sent at most one symbol for each of those samples, and the symbols (and xi_k, E_k, q_k) equal
+  the testbed's nodes re-run on the plant's reported states (the replay, ``testbed resimulate --plant
+  recorded``), which encodes the genuine x_k;
+- **controller**: it sent at most one actuation for each, and theta_k, u_k (and its E_k, xi_k, q_k) equal the
+  replay, which decodes the genuine symbol;
+- **attacker**: what reached the controller there equals the replay, which forwards the genuine symbol
+  as the attacker's recorded decisions say (an attacker may forward repeats: no count).
+
+For the loop's nodes (``loop_judge``) a replay that differs before the targeted samples leaves the case
+inconclusive; the plant's judgement needs no replay.
 """
 
 from __future__ import annotations
@@ -35,8 +50,12 @@ LATE_BY = 3
 class Feeder:
     """The peer that feeds the adverse cases (``start`` once the run listens, ``close`` after it)."""
 
-    def __init__(self, role: str, run_id: str, tls_dir: str, port: int):
-        self.role, self.tls_dir, self.port = role, tls_dir, port
+    def __init__(self, role: str, run_id: str, tls_dir: str | None, endpoint: str, *, mode: str = "peer",
+                 low_latency: bool = False):
+        """``tls_dir`` None: an unauthenticated run (``--insecure``); ``endpoint``: the run's (the launcher's);
+        ``mode``: "client" in the router topology."""
+        self.role, self.tls_dir, self.endpoint = role, tls_dir, endpoint
+        self.mode, self.low_latency = mode, low_latency
         self.keys = transport.Keys.for_run(run_id)
         self.user, attr = FEEDER[role]
         self.key = getattr(self.keys, attr)
@@ -52,8 +71,9 @@ class Feeder:
         import zenoh
 
         try:
-            conf = transport.make_config(connect=[f"tls/127.0.0.1:{self.port}"], mode="peer",
-                                         tls=transport.TlsCredentials(self.tls_dir).zenoh(self.user))
+            tls = None if self.tls_dir is None else transport.TlsCredentials(self.tls_dir).zenoh(self.user)
+            conf = transport.make_config(connect=[self.endpoint], mode=self.mode, tls=tls,
+                                         low_latency=self.low_latency)
             self._session = zenoh.open(conf)
             self._session.declare_subscriber(self.key, self._on)
         except Exception as e:  # noqa: BLE001 - reported as the adverse cases' evidence
@@ -102,17 +122,71 @@ class Feeder:
                 pass
 
 
-def verdicts(fed: dict, error: str | None, first_diff: int | None, stall_again, *, node_counts: dict) -> list[dict]:
-    """One verdict per case: pass when it was fed and the run equals the simulator at and after it.
+def targets(f: dict) -> tuple[int, int]:
+    """The samples a fed case is judged at: the one whose genuine message it followed, and the next (a node
+    that wrongly takes the copy acts on it at the sample it waits for then)."""
+    k = int(f["after_genuine_k"])
+    return k, k + 1
 
-    ``first_diff``: the first sample where the run left the simulator (None: it never did)."""
+
+def plant_judge(acted: dict, sent: dict, n_steps: int, u_max: float):
+    """A plant's judge (``verdicts``): at each targeted sample, the u that acted (its telemetry: ``acted``,
+    k -> (u, flags)) is the controller's genuine u_k (its actuation record: ``sent``, k -> u), compared bit for
+    bit after the plant's saturation at ``u_max``; where the plant reports u_k missing (flags bit 1) it acted
+    u = 0 and took no copy for it."""
+    from ..wire.messages import PlantTelemetry
+
+    def clip(u):
+        return tuple(min(max(float(v), -u_max), u_max) for v in u)
+
+    def judge(case: str, f: dict) -> tuple[str, str]:
+        ks = [j for j in targets(f) if j < n_steps]
+        for j in ks:
+            if j not in acted:
+                return "fail", f"the plant recorded no telemetry for sample {j}"
+            u, flags = acted[j]
+            if flags & PlantTelemetry.FLAG_NO_U:
+                if any(v != 0 for v in u):
+                    return "fail", f"at sample {j} the plant reports u_k missing but u = {list(u)} acted, not 0"
+                continue
+            if j not in sent:
+                return "inconclusive", f"the controller recorded no u for sample {j}"
+            if clip(u) != clip(sent[j]):
+                return "fail", (f"taken: at sample {j} u = {list(u)} acted, the controller's u_{j} is "
+                                f"{list(sent[j])}")
+        return "pass", (f"ignored: the u that acted at sample{'s' if len(ks) > 1 else ''} "
+                        f"{' and '.join(map(str, ks))} is the controller's genuine u_k")
+
+    return judge
+
+
+def loop_judge(first: int | None, differs_in: list, repeated: dict, what: str):
+    """The judge (``verdicts``) of a node of the loop (an encoder, a controller, an attacker): at the targeted
+    samples, what the loop computed (``what``: the node's observable) equals the testbed's nodes re-run on
+    the plant's reported states from the genuine messages (``first``: that replay's first differing sample,
+    None: none; ``differs_in``: the quantities there), and the node sent one message per sample there
+    (``repeated``: k -> why, where it sent more)."""
+
+    def judge(case: str, f: dict) -> tuple[str, str]:
+        ks = targets(f)
+        bad = [repeated[j] for j in ks if j in repeated]
+        if bad:
+            return "fail", f"taken: {bad[0]}"
+        if first is None or first > ks[-1]:
+            return "pass", f"ignored: at samples {ks[0]} and {ks[1]} {what} equal the loop's replay on the genuine messages"
+        where = f"the loop's replay on the genuine messages differs at sample {first} ({', '.join(differs_in)})"
+        if first >= ks[0]:
+            return "fail", f"taken: {where}"
+        return "inconclusive", f"{where}, before it"
+
+    return judge
+
+
+def verdicts(fed: dict, error: str | None, judge, *, node_counts: dict) -> list[dict]:
+    """One verdict per case, from what the node did with the copy at the samples it targets (``targets``):
+    ``judge(case, fed[case])`` -> (status, why) (``plant_judge``, ``loop_judge``); a case not fed is
+    inconclusive."""
     out = []
-    order = [(case, fed[case]["after_genuine_k"]) for case, _ in CASES if case in fed]
-    culprit = None
-    if first_diff is not None:
-        before = [c for c, k in order if k <= first_diff]
-        culprit = before[-1] if before else None
-    names = [c for c, _ in order]
     for case, k0 in CASES:
         name = f"adverse_{case}"
         f = fed.get(case)
@@ -125,24 +199,11 @@ def verdicts(fed: dict, error: str | None, first_diff: int | None, stall_again, 
                 "invalid": f"sample {f['k']}'s payload with an 11-byte header"}[case]
         evidence = f"fed {what} on {f['key'].split('/', 2)[-1]} (as the {f['as']})"
         counts = ", ".join(f"{k} {v}" for k, v in node_counts.items() if v)
-        if first_diff is None:
-            out.append(_v(name, "pass", f"{evidence}: ignored, the run still equals the simulator"
-                                        + (f" (the node counted: {counts})" if counts else "")))
-        elif culprit is None:
-            out.append(_v(name, "inconclusive", f"{evidence}; the run had left the simulator at sample "
-                                                f"{first_diff}, before any case was fed"))
-        elif case == culprit:
-            out.append(_v(name, "inconclusive" if stall_again else "fail",
-                          f"{evidence}: the run left the simulator at sample {first_diff}, after it"
-                          + (f" (the run stalled twice: {stall_again})" if stall_again else "")))
-        elif names.index(case) < names.index(culprit):
-            out.append(_v(name, "pass", f"{evidence}: ignored, the run equals the simulator up to sample "
-                                        f"{first_diff - 1}"))
-        else:
-            out.append(_v(name, "inconclusive", f"{evidence}; the run had left the simulator at sample "
-                                                f"{first_diff}, before"))
+        status, why = judge(case, f)
+        out.append(_v(name, status, f"{evidence}: {why}"
+                                    + (f" (the node counted: {counts})" if counts and status == "pass" else "")))
     return out
 
 
 def _v(name: str, status: str, detail: str) -> dict:
-    return {"name": name, "passed": status == "pass", "status": status, "detail": detail}
+    return {"name": name, "required": True, "passed": status == "pass", "status": status, "detail": detail}

@@ -11,6 +11,7 @@ stalls again the requirements that depend on timing are ``inconclusive``, not fa
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -30,6 +31,12 @@ BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "satura
 #: the requirements, in the order they are reported
 REQUIREMENTS = ("joined_in_time", "messages_well_formed", "sample_indices", "telemetry_agrees_with_messages",
                 "equals_simulator", "acks_and_deadlines", "clean_stop")
+#: ROLE plant: a device's judgement, reported after equals_simulator and required unless --bit-exact (then
+#: equals_simulator is required instead): the loop re-run on the plant's reported states equals the run bit
+#: for bit, and the plant's steps follow the scenario's model within --plant-tolerance
+DEVICE = ("loop_equals_replay", "plant_follows_model")
+#: ``--plant-tolerance``'s default: the largest max_k ||x_k+1 - phi_T(x_k, u_k)||_inf plant_follows_model passes
+PLANT_TOLERANCE = 1e-6
 #: ... and, unless --no-adverse, the adverse cases (``testbed.live.adverse``)
 ADVERSE = tuple(f"adverse_{case}" for case, _ in adverse.CASES)
 #: per-sample keys: where the run first left the simulator
@@ -37,7 +44,7 @@ PER_SAMPLE = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u")
 #: a node's counters (its NodeSummary) shown as the adverse cases' evidence
 COUNTERS = ("malformed", "late_u", "stale_sensor", "stale_acks", "late", "future")
 #: the requirements a stall of the testbed's own nodes can break (inconclusive after two stalled runs)
-TIMING = ("equals_simulator", "acks_and_deadlines")
+TIMING = ("equals_simulator", "acks_and_deadlines", "plant_follows_model")
 #: the requirement a device fault of the node breaks (``testbed.live.devicefaults``; the fault's kind -> requirement)
 DEVICE_FAULT_BREAKS = {"state_nonfinite": "messages_well_formed", "state_wrong_length": "messages_well_formed",
                        "sample_late": "acks_and_deadlines", "no_stop": "clean_stop", "lost": "clean_stop"}
@@ -92,18 +99,57 @@ def _stop_group(p: subprocess.Popen) -> None:
             pass
 
 
+@dataclass(frozen=True)
+class Network:
+    """The network and security options of the run (``testbed run``'s flags of the same names)."""
+
+    listen: str | None = None
+    zenoh_config: str | None = None
+    topology: str = "auto"
+    secret_file: str | None = None
+    tls_dir: str | None = None
+    insecure: bool = False
+    low_latency: bool = False
+
+    def flags(self) -> list[str]:
+        out = ["--topology", self.topology]
+        for name in ("listen", "zenoh_config", "secret_file", "tls_dir"):
+            if getattr(self, name):
+                out += ["--" + name.replace("_", "-"), str(getattr(self, name))]
+        return out + [f for f, on in (("--insecure", self.insecure), ("--low-latency", self.low_latency)) if on]
+
+    def feedable(self) -> str | None:
+        """Why the adverse cases cannot be fed in this network (None: they can): the feeding peer joins with
+        a role's certificate (``--tls-dir``, or one made for the run), or unauthenticated (``--insecure``)."""
+        if self.secret_file and not self.insecure:
+            return ("--secret-file: the adverse cases are fed by a peer holding a role's certificate; give "
+                    "--tls-dir DIR instead, or --no-adverse")
+        if self.listen and not self.listen.startswith("tls/" if not self.insecure else "tcp/"):
+            return (f"--listen {self.listen}: the adverse cases' feeding peer connects to a "
+                    f"{'tcp' if self.insecure else 'tls'}/HOST:PORT endpoint; give one, or --no-adverse")
+        return None
+
+
 def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path, flags=(),
-                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False) -> ExternalRun:
-    """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end;
-    ``feed``: the adverse cases fed to it (the run's own TLS folder and endpoint, for the feeding peer)."""
+                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False,
+                 network: Network = Network()) -> ExternalRun:
+    """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end,
+    in ``network``; ``feed``: the adverse cases fed to it (through the run's endpoint, with its TLS folder: one
+    made for the run when ``network`` names none)."""
     folder.mkdir(parents=True, exist_ok=True)
     out = ExternalRun(recording=str(folder / f"{run_id}.mcap"))
     feeder = None
     if feed:
-        tls = transport.TlsCredentials.new(folder / f"{run_id}-tls").folder
-        port = transport.free_port()
-        flags = (*flags, "--tls-dir", str(tls), "--listen", f"tls/127.0.0.1:{port}")
-        feeder = adverse.Feeder(role, run_id, str(tls), port)
+        why = network.feedable()
+        if why:
+            raise ValueError(why)
+        tls = None if network.insecure else (network.tls_dir or
+                                             str(transport.TlsCredentials.new(folder / f"{run_id}-tls").folder))
+        listen = network.listen or f"{'tcp' if tls is None else 'tls'}/127.0.0.1:{transport.free_port()}"
+        network = dataclasses.replace(network, tls_dir=tls, listen=listen)
+        feeder = adverse.Feeder(role, run_id, tls, listen, mode="client" if network.topology == "router" else "peer",
+                                low_latency=network.low_latency)
+    flags = (*flags, *network.flags())
     cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json", "--run-id", run_id,
            "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
            "--startup-timeout", str(startup_timeout), *flags]
@@ -229,8 +275,75 @@ def own_report(summary: dict | None, external: str) -> dict | None:
 
 
 # ============================================================================ the checks
-def _verdict(name: str, status: str, detail: str) -> dict:
-    return {"name": name, "passed": status == PASS, "status": status, "detail": detail}
+def _verdict(name: str, status: str, detail: str, required: bool = True) -> dict:
+    return {"name": name, "required": required, "passed": status == PASS, "status": status, "detail": detail}
+
+
+def names(role: str, adverse_cases: bool) -> tuple[str, ...]:
+    """The requirements reported for ``role``, in order (``adverse_cases``: the cases were fed)."""
+    i = REQUIREMENTS.index("equals_simulator") + 1
+    own = REQUIREMENTS[:i] + (DEVICE if role == "plant" else ()) + REQUIREMENTS[i:]
+    return own + (ADVERSE if adverse_cases else ())
+
+
+def first_difference(live: dict, sim: dict) -> tuple[int | None, list[str]]:
+    """Where a run's summary first differs from the simulator's (the keys of ``BIT_EXACT_KEYS``): the first
+    sample at which any per-sample quantity differs and which do there; (None, the keys that differ) when no
+    per-sample one does (saturated_at, x_final); (None, []) when nothing does."""
+    firsts = {}
+    for c in PER_SAMPLE:
+        a, b = live.get(c), sim.get(c)
+        if isinstance(a, list) and isinstance(b, list):
+            k = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), None)
+            if k is None and len(a) != len(b):
+                k = min(len(a), len(b))
+            if k is not None:
+                firsts[c] = k
+        elif a != b:
+            firsts[c] = 0
+    if firsts:
+        k = min(firsts.values())
+        return k, [c for c in PER_SAMPLE if firsts.get(c) == k]
+    return None, [c for c in BIT_EXACT_KEYS if live.get(c) != sim.get(c)]
+
+
+def _at(v, k):
+    return v[k] if isinstance(v, list) and k < len(v) else None
+
+
+def device_verdicts(replay: dict | None, tolerance: float, *, required: bool = True,
+                    error: str | None = None, stall_again: dict | None = None) -> list[dict]:
+    """ROLE plant's ``loop_equals_replay`` and ``plant_follows_model`` from ``replay``, the recording's re-run on
+    the recorded plant (``testbed.runs.resimulate.resimulation(run, plant="recorded")``: its ``loop_identical``,
+    ``loop_first_divergence``, ``loop_differs_in`` and ``plant_model_error`` as they are); ``error``: why there
+    is none.  ``stall_again`` (the run stalled twice): a plant that does not follow the model is inconclusive
+    (a stalled loop may have driven it where no healthy run goes: an escaped state, a clamped input); the
+    replay replays the recorded timing faults, so ``loop_equals_replay`` is judged as usual."""
+    if replay is None:
+        why = f"no re-run of the recording: {error or 'none made'}"
+        return [_verdict(n, FAIL, why, required) for n in DEVICE]
+    n = replay.get("resimulated")
+    if replay["loop_identical"]:
+        loop = _verdict("loop_equals_replay", PASS, f"the testbed's nodes re-run on the plant's reported states equal "
+                                                    f"the run bit for bit ({n} samples): the loop trusted the plant's "
+                                                    "numbers and did what the method says", required)
+    else:
+        which = ", ".join(replay.get("loop_differs_in") or []) or "the re-run stopped"
+        loop = _verdict("loop_equals_replay", FAIL, f"the testbed's nodes re-run on the plant's reported states differ "
+                                                    f"from the run at sample {replay['loop_first_divergence']} "
+                                                    f"({which})", required)
+    pm = replay.get("plant_model_error")
+    if pm is None:
+        model = _verdict("plant_follows_model", FAIL, "no step of the plant to compare with the model (no two "
+                                                      "consecutive records, or a model without equations: an FMU; "
+                                                      "--bit-exact judges such a plant)", required)
+    else:
+        ok = pm["max"] <= tolerance
+        model = _verdict("plant_follows_model", PASS if ok else INCONCLUSIVE if stall_again else FAIL,
+                         f"max_k ||x_k+1 - phi_T(x_k, u_k)||_inf = {pm['max']:.3g} at sample {pm['at']} "
+                         f"{'<=' if ok else '>'} tolerance {tolerance:g} (mean {pm['mean']:.3g})"
+                         + (f" (the run stalled twice: {stall_again})" if stall_again and not ok else ""), required)
+    return [loop, model]
 
 
 def run_scenario(jd: dict):
@@ -251,8 +364,14 @@ def simulated(sc) -> dict:
     return json.loads(json.dumps(summarize(sc, simulate_scenario(sc))))
 
 
-def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | None = None) -> list[dict]:
-    """Every requirement of ``REQUIREMENTS`` judged on run ``r`` (``stall_again``: the run stalled twice)."""
+def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | None = None, bit_exact: bool = False,
+              plant_tolerance: float = PLANT_TOLERANCE, replay=None) -> list[dict]:
+    """Every requirement of ``names(role, ...)`` judged on run ``r`` (``stall_again``: the run stalled twice).
+
+    ``replay(path) -> dict``: the recording's re-run on the recorded plant (``resimulation(run,
+    plant="recorded")``, which the commands' layer supplies); ROLE plant's ``DEVICE`` requirements and the
+    loop's nodes' adverse cases read it.  ROLE plant: ``equals_simulator`` is required only with ``bit_exact``,
+    the ``DEVICE`` requirements only without it (``plant_tolerance``: plant_follows_model's)."""
     out = []
     s = r.summary or {}
     rec = None
@@ -275,8 +394,8 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         out.append(_verdict("joined_in_time", PASS, f"the external {role} joined and the run started "
                                                    f"(join file mode {r.join_mode:o})"))
     if not started:
-        for name in (*REQUIREMENTS[1:], *(ADVERSE if r.fed is not None else ())):
-            out.append(_verdict(name, FAIL, "the run never started"))
+        for name in names(role, r.fed is not None)[1:]:
+            out.append(_verdict(name, FAIL, "the run never started", _required(role, name, bit_exact)))
         return out
     N, T = rec.start.n_steps, rec.start.T_ns
     mine = {"/" + k for k in PUBLISHES[role]}
@@ -304,38 +423,83 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
     # 5. equal to the simulator
     sc = run_scenario(r.join_data)
     sim = simulated(sc)
-    diff = next((k for k in BIT_EXACT_KEYS if s.get(k) != sim.get(k)), None)
-    if diff is None:
+    first, which = first_difference(s, sim)
+    req = _required(role, "equals_simulator", bit_exact)
+    if not which:
         out.append(_verdict("equals_simulator", PASS, f"{', '.join(BIT_EXACT_KEYS)} equal to testbed simulate "
-                                                      f"bit for bit ({s.get('samples')} samples)"))
+                                                      f"bit for bit ({s.get('samples')} samples)", req))
     else:
-        a, b = s.get(diff), sim.get(diff)
-        k = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), None) if isinstance(a, list) and \
-            isinstance(b, list) else None
-        where = f" at sample {k}: live {a[k]!r}, simulator {b[k]!r}" if k is not None else f": {a!r} != {b!r}"
+        if first is None:
+            where = f"{', '.join(which)} differ" + "".join(f"; {c}: live {s.get(c)!r}, simulator {sim.get(c)!r}"
+                                                             for c in which[:2])
+        else:
+            where = f"first differs at sample {first}, in {', '.join(which)}" + "".join(
+                f"; {c}: live {_at(s.get(c), first)!r}, simulator {_at(sim.get(c), first)!r}" for c in which[:3])
         out.append(_verdict("equals_simulator", INCONCLUSIVE if stall_again else FAIL,
-                            f"{diff} differs{where}" + (f" (the run stalled twice: {stall_again})" if stall_again else "")))
+                            where + (f" (the run stalled twice: {stall_again})" if stall_again else ""), req))
+    # 5b. a plant as a device: the loop on its reported states, and its steps against the model
+    rep, rep_error = None, None
+    if replay is not None and (role == "plant" or r.fed is not None):
+        try:
+            rep = replay(r.recording)
+        except Exception as e:  # noqa: BLE001 - reported as the requirement's detail
+            rep_error = f"{type(e).__name__}: {e}"
+    if role == "plant":
+        out += device_verdicts(rep, plant_tolerance, required=not bit_exact, stall_again=stall_again,
+                               error=rep_error or (None if replay else "no replay given"))
     # 6. acks and deadlines
     out.append(_acks(role, rec, s, N, T, sc.run.deadline, stall_again))
     # 7. clean stop
     out.append(_stop(role, rec, r, s))
-    # 8. the adverse cases
+    # 8. the adverse cases, each from what the node did with the message (``testbed.live.adverse``)
     if r.fed is not None:
-        first = None
-        if diff is not None:
-            ks = [next((i for i, (x, y) in enumerate(zip(s.get(c), sim.get(c))) if x != y), None)
-                  for c in PER_SAMPLE if isinstance(s.get(c), list) and isinstance(sim.get(c), list)]
-            ks = [k for k in ks if k is not None]
-            first = min(ks) if ks else N - 1
         ns = (s.get("node_summaries") or {}).get(role) or {}
-        out += adverse.verdicts(r.fed, r.feed_error, first, stall_again,
-                                node_counts={c: ns.get(c) for c in COUNTERS if isinstance(ns.get(c), int)})
+        counts = {c: ns.get(c) for c in COUNTERS if isinstance(ns.get(c), int)}
+        if role == "plant":
+            acted = {k: (tuple(t.u), t.flags) for k, t in rec.telemetry.get("plant", {}).items()}
+            sent = {k: tuple(t.u) for k, t in rec.telemetry.get("controller", {}).items()}
+            judge = adverse.plant_judge(acted, sent, N, sc.controller.u_max)
+        elif rep is None:
+            def judge(case, f, why=rep_error or "none made"):
+                return INCONCLUSIVE, f"no replay of the recording to judge it by: {why}"
+        else:
+            judge = adverse.loop_judge(rep["loop_first_divergence"], rep.get("loop_differs_in") or [],
+                                       _repeated(role, rec), OBSERVED[role])
+        out += adverse.verdicts(r.fed, r.feed_error, judge, node_counts=counts)
     for f in s.get("faults", []):  # a device fault of the node fails the requirement it breaks, naming it (one the
         # run's stall left inconclusive stays so: a stalled machine makes a device late too)
         q = next((q for q in out if f.get("node") == role and q["name"] == DEVICE_FAULT_BREAKS.get(f.get("kind"))), None)
         if q is not None and q["status"] == PASS:
-            q.update(_verdict(q["name"], FAIL, f"device fault {f['kind']} at sample {f.get('at_sample')}: {f.get('why')}"))
+            q.update(_verdict(q["name"], FAIL, f"device fault {f['kind']} at sample {f.get('at_sample')}: {f.get('why')}",
+                              q["required"]))
     return out
+
+
+#: what each node of the loop is judged by in the adverse cases (``adverse.loop_judge``)
+OBSERVED = {"encoder": "the symbol it sent (and its xi_k, E_k, q_k)",
+            "controller": "the theta_k and u_k it sent (and its E_k, xi_k, q_k)",
+            "attacker": "what the controller received through it"}
+
+
+def _repeated(role: str, rec) -> dict:
+    """The samples for which the node sent its control message more than once (the encoder's symbol, the
+    controller's actuation; an attacker may forward repeats): k -> what."""
+    topic = {"encoder": "/loop/symbol/tx", "controller": "/loop/actuation"}.get(role)
+    if topic is None:
+        return {}
+    seen: dict = {}
+    for m in rec.loop.get(topic, []):
+        seen[m.k] = seen.get(m.k, 0) + 1
+    return {k: f"it sent {n} messages on {topic[1:]} for sample {k}" for k, n in seen.items() if n > 1}
+
+
+def _required(role: str, name: str, bit_exact: bool) -> bool:
+    """ROLE plant: equals_simulator only with --bit-exact, the device's requirements only without it."""
+    if role != "plant":
+        return True
+    if name == "equals_simulator":
+        return bit_exact
+    return not (bit_exact and name in DEVICE)
 
 
 def _last(text: str) -> str:
@@ -464,21 +628,26 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
 
 
 def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
-                timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True) -> dict:
-    """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``."""
+                timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True,
+                network: Network = Network(), bit_exact: bool = False, plant_tolerance: float = PLANT_TOLERANCE,
+                replay=None) -> dict:
+    """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``; ``passed`` is over
+    the required requirements (``check_run``: ``bit_exact``, ``plant_tolerance``, ``replay``)."""
     runs = []
     stall_again = None
     for attempt in range(2):
         r = run_external(role, scenario, command, run_id=run_id + "r" * attempt, folder=folder, flags=flags,
-                         timeout=timeout, startup_timeout=startup_timeout, feed=feed)
+                         timeout=timeout, startup_timeout=startup_timeout, feed=feed, network=network)
         runs.append(r)
         st = stalled(r.summary, role) if r.summary else None
         if not st:
             break
         if attempt:
             stall_again = st
-    reqs = check_run(role, scenario, runs[-1], stall_again=stall_again)
-    return {"passed": all(q["passed"] for q in reqs), "role": role, "scenario": scenario, "command": command,
+    reqs = check_run(role, scenario, runs[-1], stall_again=stall_again, bit_exact=bit_exact,
+                     plant_tolerance=plant_tolerance, replay=replay)
+    return {"passed": all(q["passed"] for q in reqs if q["required"]), "role": role, "scenario": scenario,
+            "command": command, "bit_exact": bit_exact,
             "requirements": reqs,
             "runs": [{"run_id": run_id + "r" * i, "rc": r.rc, "outcome": (r.summary or {}).get("outcome"),
                       "stalled": stalled(r.summary, role) if r.summary else None, "command_rc": r.command_rc,
