@@ -43,7 +43,7 @@ from . import external, netns
 from .credentials import RunCredentials, choose_topology
 from .recorder import RecorderControl, exit_code
 from .spawn import Forked, _forked_node
-from .stalls import Stalls
+from .stalls import Stalls, check_fault_times
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
@@ -66,6 +66,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             self.opts = dataclasses.replace(self.opts, seed=over["seed"])
             print(f"testbed run: the random attack has no seed; drew seed = {self.opts.seed} (recorded; "
                   f"--seed {self.opts.seed} repeats it)", file=sys.stderr)
+        check_fault_times(cfg, self.sc.n_steps, self.sc.T)  # a fault past the run's end: refused
         ref = cfg.scenario
         self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
         self.run_id = cfg.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"

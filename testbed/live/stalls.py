@@ -56,6 +56,23 @@ def parse_stalls(items, colocated=()) -> dict[str, tuple[float, float]]:
     return out
 
 
+def check_fault_times(cfg, n_steps: int, T: float) -> None:
+    """Refuse a fault injected where the run never gets (one line, BadInput): ``--kill``, ``--stall`` or
+    ``--cut`` at SECONDS at or after the run's end (N T after t0), ``--crash`` at a sample K >= N."""
+    end = n_steps * T
+    timed = [("--kill", f"{r}@{s:g}", s) for r, s in cfg.kill.items()]
+    timed += [(flag, it, parse_role_interval(it, flag)[1]) for flag, items in (("--stall", cfg.stall), ("--cut", cfg.cut))
+              for it in items]
+    for flag, it, s in timed:
+        if s >= end:
+            raise BadInput(f"{flag} {it}: {s:g} s is past the run's end ({n_steps} samples, {end:g} s): the fault "
+                           f"would never happen (give SECONDS < {end:g}, or a longer --duration)")
+    for r, k in cfg.crash.items():
+        if k >= n_steps:
+            raise BadInput(f"--crash {r}@{k}: sample {k} is past the run's last sample ({n_steps - 1}): the fault "
+                           f"would never happen (give K < {n_steps}, or a longer --duration)")
+
+
 class StallInjector:
     """SIGSTOP to a node's process group at t0 + SECONDS, SIGCONT at t0 + SECONDS + DURATION."""
 
@@ -245,4 +262,4 @@ class Stalls:
             self.lost_back(col)
 
 
-__all__ = ["parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]
+__all__ = ["check_fault_times", "parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]
