@@ -7,7 +7,7 @@ import json
 import shutil
 import sys
 
-from .. import cliargs
+from .. import cliargs, rulesofthumb
 from ..live.external import add_external_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
@@ -145,6 +145,8 @@ def main_run(args) -> int:
         raise BadInput("which scenario? (a .toml file or a bundled name; testbed scenarios lists them)")
     cfg = run_config(args)  # the run's typed configuration, built once: the launcher and the nodes get it
     launcher = Launcher(cfg)
+    for line in rulesofthumb.warnings(launcher.sc):  # a documented rule of thumb broken: said before the run
+        print(f"testbed run: warning: {line}", file=sys.stderr)
     try:
         code, summary = launcher.run()
     except BadInput:  # refused before any node ran (certificates, ...): no run folder left behind

@@ -33,7 +33,7 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 
 
 def main_simulate(args) -> int:
-    from .. import scenario
+    from .. import rulesofthumb, scenario
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
     from ..sim.batch import outcome_text, summarize
@@ -61,6 +61,8 @@ def main_simulate(args) -> int:
         latency = recorded_latency(args.latency_from, sc)
     if sc.method_note:
         print(f"testbed simulate: {sc.method_note}", file=sys.stderr)
+    for line in rulesofthumb.warnings(sc):  # a documented rule of thumb broken: said before the run
+        print(f"testbed simulate: warning: {line}", file=sys.stderr)
     try:
         res = simulate_scenario(sc, network=net, latency=latency, simulator=args.simulator)
     except ValueError as e:
