@@ -14,6 +14,7 @@ from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
 from ..live.recorder import add_record_error_argument
 from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
+from ..record.faulttext import fault_line
 from ..stats import fmt_percentiles
 from ..view.rerun import add_rerun_run_arguments
 from ..wire.session import add_network_arguments
@@ -91,8 +92,7 @@ def print_text(s: dict) -> None:
     if not s.get("samples"):  # nothing ran: no loop figures to show, only why
         print(f"run {s['run_id']}: scenario {s.get('scenario')}: the run NEVER STARTED (outcome: {s['outcome']})")
         for f in s["faults"]:
-            print(f"  FAULT {f.get('node') or 'run'}: {f['kind']} ({f['why']})"
-                  + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+            print(f"  {fault_line(f)}")
         if s.get("run_dir"):
             print(f"  node logs: {s['run_dir']}")
         return
@@ -124,9 +124,7 @@ def print_text(s: dict) -> None:
     if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
         print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
     for f in s["faults"]:
-        print(f"  FAULT {f.get('node') or 'run'}: {f['kind']} ({f['why']})"
-              + (f" at sample {f['at_sample']}" if f.get("at_sample") is not None else "")
-              + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+        print(f"  {fault_line(f)}")
     rec = s.get("recording")
     if rec:
         print(f"  recording: {rec['path']}" + ("" if rec["complete"] else " (INCOMPLETE: the recorder did not "

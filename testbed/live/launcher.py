@@ -402,6 +402,9 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             role = f.get("node")
             if role is None or f["kind"] in ("stalled", "lost"):  # it went on; its token goes at the end
                 continue
+            if f["kind"] == "link_cut":  # the session ended only if the token went during the cut
+                f["liveliness_lost"] = self.lost_during(col, role, f["down_s"], f["up_s"])
+                continue
             lost = col.lost_at(role)
             f["liveliness_lost"] = lost is not None
             if lost is not None and role in self.kill_sent:

@@ -223,13 +223,18 @@ class Stalls:
             if role in self._lost or role in self.exits or lost is None or now - lost < self.LOST_GRACE_NS \
                     or p.poll() is not None:
                 continue
-            f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": col.last_k(role),
-                 "injected": role in self.stall_inject.stopped,
+            st = col.start
+            # one sample and one time: the run's sample at the loss (the plant's controller_lost_at), and
+            # separately the last sample the node itself had handled
+            k = min(max((lost - t0_mono) // st.T_ns, 0), st.n_steps - 1)
+            f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": int(k),
+                 "last_sample_before": col.last_k(role), "injected": role in self.stall_inject.stopped,
                  "why": "its liveliness token went away while its process ran on (frozen for longer than Zenoh's "
                         "lease, or its link down): its peers dropped it"}
             self._lost[role] = f
             self.faults.append(f)
-            print(f"testbed run: node {role} lost at {f['t_s']:g} s ({f['why']})", file=sys.stderr, flush=True)
+            print(f"testbed run: node {role} lost at sample {k} ({f['t_s']:g} s): {f['why']}", file=sys.stderr,
+                  flush=True)
 
     def lost_back(self, col) -> None:
         """When each lost node's liveliness came back, if it did (``back_s``)."""
@@ -239,6 +244,17 @@ class Stalls:
             t_lost = self.t0_mono + int(f["t_s"] * 1e9)
             back = next((t for t, n, alive in events if n == role and alive and t > t_lost), None)
             f["back_s"] = None if back is None else round((back - self.t0_mono) / 1e9, 4)
+
+    def lost_during(self, col, role: str, from_s: float, to_s: float) -> bool:
+        """Whether ``role``'s liveliness token went away between ``from_s`` and ``to_s`` (s after t0) or within
+        ``LOST_GRACE_NS`` after: a fault that ended a session (a link cut longer than Zenoh's lease), not a
+        token that went at the run's end (docs/live.md, ``liveliness_lost``)."""
+        if self.t0_mono is None:
+            return False
+        lo = self.t0_mono + int(from_s * 1e9)
+        hi = self.t0_mono + int(to_s * 1e9) + self.LOST_GRACE_NS
+        with col.lock:
+            return any(n == role and not alive and lo <= t <= hi for t, n, alive in col.liveliness)
 
     def stalls_tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
         if not final:
