@@ -75,6 +75,9 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--spin-us", type=float, help="plant busy-wait before each sample instant (us)")
     g.add_argument("--ack-grace", type=float, help="encoder grace for a late ack, fraction of T")
     g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
+    g.add_argument("--progress", action="store_true",
+                   help="the status line (sample k of N, losses by cause, deadline misses, E_k at both ends, about "
+                        "once a second) on stderr even when it is not a terminal (on a terminal it is always shown)")
     g = p.add_argument_group("fault injection")
     g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
                    help="SIGKILL a node (or the recorder) SECONDS after t0 (repeatable)")

@@ -39,7 +39,7 @@ from ..nodes.options import NodeConfig, RunConfig, load_scenario
 from ..nodes.process import parse_cpus
 from ..wire import messages as msg
 from ..wire import transport
-from . import external, netns
+from . import external, netns, status
 from .credentials import RunCredentials, choose_topology
 from .recorder import RecorderControl, exit_code
 from .spawn import Forked, _forked_node
@@ -125,6 +125,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
         self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
         self._tokens: list = []
+        self.status = None                            # the live status line (``status``): a terminal or --progress
         self.rerun = None                                              # testbed run --rerun / --rrd
         if cfg.rerun or cfg.rrd:
             from ..view.rerun import LiveRerun
@@ -498,6 +499,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 if self.netns is not None:
                     self.netns.tick(self.faults, now, t0_mono)  # --cut
                 self.stalls_tick(col, now, t0_mono)
+                if self.status is not None:
+                    self.status.tick(col)
                 if now > end_mono:
                     self.faults.append({"node": None, "kind": "timeout",
                                         "why": "nodes still running 10 s after the end of the run"})
@@ -551,6 +554,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             with session_cm as session:
                 self.phase("router")
                 col = Collector(session, self.keys, self.sc.n_steps, spill=self.run_dir / "telemetry.bin")
+                self.status = status.start(self.cfg.progress, self.sc.n_steps, self.sc.T)  # the live status line
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
                 self._tokens = tokens
                 try:
@@ -569,6 +573,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     outcome = self.watch(session, col)
                     self.phase("watched")
                 finally:
+                    status.stop(self.status, col)
                     self.router_realtime(False)
                     self.stall_inject.release(self.procs)  # a node still frozen by --stall
                     self.stop_all(session, outcome)
