@@ -257,6 +257,12 @@ def loss_counts(cause: np.ndarray) -> dict:
             "withheld": int(c[WITHHELD])}
 
 
+def losses_text(losses: dict) -> str:
+    """``attacker a, channel c, late l, withheld w``: a ``loss_counts`` or ``recorded_losses`` dict as the console
+    prints it (``testbed run``, ``testbed simulate``, the live status line), every cause, so that they add up."""
+    return ", ".join(f"{c} {losses.get(c, 0)}" for c in ("attacker", "channel", "late", "withheld"))
+
+
 def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None) -> dict:
     """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
     ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
@@ -328,5 +334,5 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "loss_counts", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER",
+           "payload_bits", "loss_cause", "loss_counts", "losses_text", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER",
            "CHANNEL", "LATE", "WITHHELD"]

@@ -8,6 +8,7 @@ import shutil
 import sys
 
 from .. import cliargs, rulesofthumb
+from ..channel import losses_text
 from ..live.external import add_external_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
@@ -109,9 +110,9 @@ def print_text(s: dict) -> None:
     if sec:
         print(f"  {sec['topology']} topology" + (f" (auto: {sec['topology_why']})" if sec.get("topology_auto") else "")
               + f", {sec['transport']}")
-    print(f"  {s.get('packets_dropped', 0)} samples lost (attacker dropped {s['attacker']['dropped']}, "
-          f"invalid {s.get('invalid_payloads')}, withheld {len(s['withheld_at'])}), "
-          f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "
+    # every lost sample under its one cause (``losses``, ``channel.recorded_losses``): the causes add up
+    print(f"  {s.get('packets_dropped', 0)} samples lost ({losses_text(s['losses'])}; invalid payloads "
+          f"{s.get('invalid_payloads')}), {s.get('saturations', 0)} saturations, encoder/decoder agree: "
           f"{s.get('encoder_decoder_agree_where_known')}" + ("" if s.get("encoder_decoder_agree") else
                                                               " (on the samples both recorded)"))
     fn = s.get("final_norm")

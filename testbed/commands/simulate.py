@@ -34,6 +34,7 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 
 def main_simulate(args) -> int:
     from .. import rulesofthumb, scenario
+    from ..channel import losses_text
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
     from ..sim.batch import outcome_text, summarize
@@ -102,13 +103,13 @@ def main_simulate(args) -> int:
         if sc.model is not None and sc.model.explicit:
             print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
                   "(predictions, design)")
-        print(f"  {len(out['t'])} samples, {out['packets_dropped']} dropped in {len(out['dos_intervals'])} "
-              f"DoS intervals, {out['saturations']} saturations, encoder/decoder agree: "
+        # every lost sample under its one cause (without a [network] every loss is the attacker's)
+        ls = out.get("losses") or {"attacker": out["packets_dropped"]}
+        print(f"  {len(out['t'])} samples, {out['packets_dropped']} lost ({losses_text(ls)}), "
+              f"{len(out['dos_intervals'])} DoS intervals, {out['saturations']} saturations, encoder/decoder agree: "
               f"{out['encoder_decoder_agree']}")
         if sc.network is not None and out.get("losses"):
-            ls = out["losses"]
-            print(f"  losses: attacker {ls['attacker']}, channel {ls['channel']}, late {ls['late']}, "
-                  f"withheld {ls['withheld']} ([network] seed {sc.network.seed})")
+            print(f"  [network]: the channels' draws from seed {sc.network.seed}")
         print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}")
         if args.out:
             print(f"  recording: {args.out}")

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from ..channel import recorded_losses
+from ..channel import losses_text, recorded_losses
 from ..wire import messages as msg
 
 PT = msg.PlantTelemetry
@@ -29,7 +29,7 @@ def status_text(k: int, N: int, losses: dict, misses: int, E_enc: float | None, 
     """``sample k/N | lost L (attacker a, channel c, late l, withheld w) | deadline misses m | E_k enc e, dec d``:
     ``k`` the plant's latest sample (1-based count of samples taken), ``losses`` a ``recorded_losses`` dict."""
     lost = sum(losses.values())
-    causes = ", ".join(f"{c} {n}" for c, n in losses.items())
+    causes = losses_text(losses)
 
     def e(v):
         return "-" if v is None else f"{v:.3g}"
