@@ -39,12 +39,12 @@ def status_text(k: int, N: int, losses: dict, misses: int, E_enc: float | None, 
 
 
 class LiveStatus:
-    """The status line of one run: ``tick(col)`` as often as the launcher likes (it reads only the records
+    """The status line of one run: ``tick(col)`` as often as the launcher watches (it reads only the records
     that came since the last call), a redraw at most every ``INTERVAL_S``; ``close()`` at the end."""
 
     #: a sample's cause is decided once the plant is this many periods past it (its encoder's, attacker's
     #: and controller's records have come by then), or at the end
-    LAG_S = 0.2
+    LAG_S = 0.1
 
     def __init__(self, n_steps: int, T_s: float, stream=None, *, tty: bool | None = None):
         self.N = int(n_steps)
@@ -109,11 +109,13 @@ class LiveStatus:
             self._shown = False
 
     def tick(self, col, now: float | None = None) -> None:
+        """Count what came since the last call (every call: the collector keeps only its last ``RECENT``
+        records of a node, so a fast loop is counted as it goes), and redraw once ``INTERVAL_S`` has passed."""
+        self._count(col, final=False)
         now = time.monotonic() if now is None else now
         if now - self._last < INTERVAL_S:
             return
         self._last = now
-        self._count(col, final=False)
         self._draw()
 
     def close(self, col=None) -> None:
