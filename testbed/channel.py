@@ -263,6 +263,13 @@ def losses_text(losses: dict) -> str:
     return ", ".join(f"{c} {losses.get(c, 0)}" for c in ("attacker", "channel", "late", "withheld"))
 
 
+def late_of_rest(rest: int, late_symbols: int | None) -> int:
+    """Of ``rest`` lost samples that were sent, forwarded and not received by the loss deadline, how many
+    were late rather than the channel's: the controller's count of symbols that arrived after their sample
+    was decided (``late_symbols``), at most ``rest`` (``recorded_losses``; the live status line at its end)."""
+    return min(max(int(late_symbols or 0), 0), int(rest))
+
+
 def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None) -> dict:
     """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
     ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
@@ -277,7 +284,7 @@ def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symb
     a = lost & ~w & (np.asarray(attacker, dtype=bool) | np.asarray(invalid, dtype=bool))
     sup = lost & ~w & ~a & np.asarray(superseded, dtype=bool)
     rest = int(np.count_nonzero(lost & ~w & ~a & ~sup))
-    late = min(max(int(late_symbols or 0), 0), rest)
+    late = late_of_rest(rest, late_symbols)
     return {"attacker": int(a.sum()), "channel": rest - late, "late": late + int(sup.sum()), "withheld": int(w.sum())}
 
 
@@ -334,5 +341,5 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "loss_counts", "losses_text", "recorded_losses", "LOSS_KINDS", "RECEIVED", "ATTACKER",
-           "CHANNEL", "LATE", "WITHHELD"]
+           "payload_bits", "loss_cause", "late_of_rest", "loss_counts", "losses_text", "recorded_losses", "LOSS_KINDS",
+           "RECEIVED", "ATTACKER", "CHANNEL", "LATE", "WITHHELD"]

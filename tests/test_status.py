@@ -18,12 +18,16 @@ class Records:
 
     def __init__(self):
         self.d = {r: {} for r in ("plant", "encoder", "attacker", "controller")}
+        self.summaries = {}
 
     def last_k(self, role):
         return max(self.d[role], default=-1)
 
     def record(self, role, k):
         return self.d[role].get(k)
+
+    def snapshot_summaries(self):
+        return self.summaries
 
 
 def test_status_text():
@@ -59,12 +63,14 @@ def test_the_counts_are_those_of_the_run_and_each_record_is_read_once():
         if k % 7 == 0:
             st.tick(col, now=float(k))   # every 7th sample, and twice at the same k: nothing counted twice
             st.tick(col, now=float(k) + 1.5)
+    col.summaries = {"controller": {"late": 4}}   # 4 symbols came after their sample was decided: late
     st.close(col)
     lines = out.getvalue().splitlines()
     assert len(lines) > 20 and "\r" not in out.getvalue()
     want = recorded_losses(theta, withheld=silent, attacker=dropped,
                            invalid=theta & (reason == msg.ControllerTelemetry.INVALID),
-                           superseded=np.zeros(N, dtype=bool), late_symbols=0)
+                           superseded=np.zeros(N, dtype=bool), late_symbols=4)
+    assert want["late"] == 4 and want["channel"] > 0
     assert lines[-1] == status_text(N, N, want, int(miss.sum()), float(N - 1), (N - 1) / 2)
     assert sum(want.values()) == int(theta.sum())
 

@@ -35,8 +35,9 @@ def _check_last(st: re.Match, s: dict) -> None:
     function, ``recorded_losses``, counts both)."""
     k, N, lost, att, ch, late, wh, misses = (int(v) for v in st.groups()[:8])
     assert k == N == s["n_steps"], st.group(0)
-    assert lost == sum(s["losses"].values()) and att == s["losses"]["attacker"], (st.group(0), s["losses"])
-    assert wh == s["losses"]["withheld"] and misses == s["timing"]["deadline_misses"], (st.group(0), s["timing"])
+    assert lost == sum(s["losses"].values()) == s["packets_dropped"], (st.group(0), s["losses"])
+    assert {"attacker": att, "channel": ch, "late": late, "withheld": wh} == s["losses"], (st.group(0), s["losses"])
+    assert misses == s["timing"]["deadline_misses"], (st.group(0), s["timing"])
 
 
 def test_the_status_line_on_a_terminal(run_id):

@@ -573,7 +573,6 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                     outcome = self.watch(session, col)
                     self.phase("watched")
                 finally:
-                    status.stop(self.status, col)
                     self.router_realtime(False)
                     self.stall_inject.release(self.procs)  # a node still frozen by --stall
                     self.stop_all(session, outcome)
@@ -582,6 +581,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                             self.record_exit(r, p.returncode, col, None)
                     self.phase("stopped")
                     self.wait_summaries(col)  # late telemetry and summaries
+                    status.stop(self.status, col)  # the status line's last state, the run's losses
                     for guest in self.colocated:  # one that died alone just before the end
                         if guest not in self.exits:
                             self.check_guest(guest, col, self.t0_mono, final=True)

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from ..channel import losses_text, recorded_losses
+from ..channel import late_of_rest, losses_text, recorded_losses
 from ..wire import messages as msg
 
 PT = msg.PlantTelemetry
@@ -119,9 +119,15 @@ class LiveStatus:
         self._draw()
 
     def close(self, col=None) -> None:
-        """The last state, counted to the end, as a line of its own (the terminal's line ends there)."""
+        """The last state, counted to the end, as a line of its own (the terminal's line ends there).  Its
+        losses are the run's ``losses``: the controller's count of late symbols (its summary) moves that many
+        of the channel's to late, as ``recorded_losses`` does."""
         if col is not None:
             self._count(col, final=True)
+            late = (col.snapshot_summaries().get("controller") or {}).get("late")
+            m = late_of_rest(self.losses["channel"], late)
+            self.losses["channel"] -= m
+            self.losses["late"] += m
             self._draw()
         if self._shown:
             self.stream.write("\n")
