@@ -31,7 +31,7 @@ from .schedule import Schedule
 if TYPE_CHECKING:  # numba: imported only where the online attacker is built (make_greedy)
     from .greedy import GreedyAttacker
 
-__all__ = ["GENERATORS", "ONLINE_KINDS", "make_schedule", "make_greedy", "is_online"]
+__all__ = ["GENERATORS", "ONLINE_KINDS", "PARAMS", "make_schedule", "make_greedy", "is_online"]
 
 
 # ---------------------------------------------------------------- validation
@@ -85,19 +85,30 @@ def _check_keys(kind: str, params: Mapping, required: tuple[str, ...], optional:
 
 
 # ---------------------------------------------------------------- generators
+#: Each kind's parameters, (required, optional): the one declaration the generators check and the
+#: scenario reader (``testbed.scenario``) names an unknown key against.
+PARAMS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "none": ((), ()),
+    "intervals": (("intervals",), ()),
+    "periodic": (("period", "length"), ("offset",)),
+    "random": (("kappa_F", "rho_F", "kappa_D", "rho_D"), ("seed", "p_impulsive", "gap_scale", "fill_min")),
+    "greedy": (("kappa_F", "rho_F", "kappa_D", "rho_D"), ("threshold",)),
+    "trace": (("samples", "T", "n_samples"), ("source",)),
+}
+
 #: Safety cap on the number of attacks the random generator produces.
 _MAX_RANDOM_ATTACKS = 10_000_000
 
 def gen_none(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     """No DoS attack: ``N(t) = |A(t)| = 0``."""
-    _check_keys("none", params, (), ())
+    _check_keys("none", params, *PARAMS["none"])
     return Schedule(())
 
 
 def gen_intervals(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     """Explicit attacks ``intervals = [[a_i, tau_i], ...]`` (start, length)."""
     kind = "intervals"
-    _check_keys(kind, params, ("intervals",), ())
+    _check_keys(kind, params, *PARAMS[kind])
     raw = params["intervals"]
     if isinstance(raw, (str, bytes, Mapping)):
         raise ValueError(f"attack kind {kind!r}: parameter 'intervals' must be a list of [start, length] pairs")
@@ -127,7 +138,7 @@ def gen_periodic(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     ``rho_D = length/period`` (``kappa_D = length``).
     """
     kind = "periodic"
-    _check_keys(kind, params, ("period", "length"), ("offset",))
+    _check_keys(kind, params, *PARAMS[kind])
     period = _num(kind, "period", params["period"])
     length = _nonneg(kind, "length", params["length"])
     offset = _nonneg(kind, "offset", params.get("offset", 0.0))
@@ -175,12 +186,7 @@ def gen_random(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     clipped to end by ``horizon``.
     """
     kind = "random"
-    _check_keys(
-        kind,
-        params,
-        ("kappa_F", "rho_F", "kappa_D", "rho_D"),
-        ("seed", "p_impulsive", "gap_scale", "fill_min"),
-    )
+    _check_keys(kind, params, *PARAMS[kind])
     kappa_F = _nonneg(kind, "kappa_F", params["kappa_F"])
     rho_F = _nonneg(kind, "rho_F", params["rho_F"])
     kappa_D = _nonneg(kind, "kappa_D", params["kappa_D"])
@@ -264,7 +270,7 @@ def gen_trace(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     period) and ``n_samples`` (its length); ``source`` names where it came from.  The trace must
     have the run's T and cover the run (``n_samples * T >= horizon``)."""
     kind = "trace"
-    _check_keys(kind, params, ("samples", "T", "n_samples"), ("source",))
+    _check_keys(kind, params, *PARAMS[kind])
     Tt = _num(kind, "T", params["T"])
     n = int(_nonneg(kind, "n_samples", params["n_samples"]))
     src = params.get("source") or "the trace"
@@ -358,7 +364,7 @@ def make_greedy(params: Mapping | None, *, T: float) -> GreedyAttacker:
     """
     kind = "greedy"
     params = _check_params(kind, params)
-    _check_keys(kind, params, ("kappa_F", "rho_F", "kappa_D", "rho_D"), ("threshold",))
+    _check_keys(kind, params, *PARAMS[kind])
     vals = [_nonneg(kind, k, params[k]) for k in ("kappa_F", "rho_F", "kappa_D")]
     rho_D = _rho_D(kind, params["rho_D"])
     threshold = _unit(kind, "threshold", params.get("threshold", 0.0))

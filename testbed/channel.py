@@ -266,6 +266,25 @@ def loss_counts(cause: np.ndarray) -> dict:
             "late": int(c[LATE]), "withheld": int(c[WITHHELD])}
 
 
+def late_of_rest(rest: int, late_symbols: int | None) -> int:
+    """Of ``rest`` lost samples that were sent, forwarded, not lost by the channel model and not received by
+    the loss deadline, how many were late rather than the real network's: the controller's count of symbols
+    that arrived after their sample was decided (``late_symbols``), at most ``rest`` (``recorded_losses``;
+    the live status line at its end)."""
+    return min(max(int(late_symbols or 0), 0), int(rest))
+
+
+def model_lost(model: NetworkModel | None, n: int) -> np.ndarray:
+    """Per sample 0 .. n - 1: the channel model loses x_k on the sensor link or the symbol on the symbol link
+    (``draws``: the decisions the live channel stages make, known ahead; all False without a model)."""
+    out = np.zeros(int(n), dtype=bool)
+    if model is not None:
+        for link in ("sensor", "symbol"):
+            if model.link(link).loss > 0:
+                out |= draws(model, link, n).lost
+    return out
+
+
 def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None,
                     channel_lost=None) -> dict:
     """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
@@ -285,7 +304,7 @@ def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symb
     rest = lost & ~w & ~a & ~sup
     ch = rest & (np.zeros(len(lost), dtype=bool) if channel_lost is None else np.asarray(channel_lost, dtype=bool))
     others = int(np.count_nonzero(rest & ~ch))
-    late = min(max(int(late_symbols or 0), 0), others)
+    late = late_of_rest(others, late_symbols)
     return {"attacker": int(a.sum()), "channel": int(ch.sum()), "network": others - late,
             "late": late + int(sup.sum()), "withheld": int(w.sum())}
 
@@ -343,5 +362,5 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "loss_counts", "loss_text", "recorded_losses", "LOSS_KINDS", "RECEIVED",
-           "ATTACKER", "CHANNEL", "LATE", "WITHHELD", "NETWORK"]
+           "payload_bits", "loss_cause", "late_of_rest", "loss_counts", "loss_text", "model_lost", "recorded_losses",
+           "LOSS_KINDS", "RECEIVED", "ATTACKER", "CHANNEL", "LATE", "WITHHELD", "NETWORK"]

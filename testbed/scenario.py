@@ -409,6 +409,8 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         raise ctx.err("attack.kind", f"missing; one of {sorted(attack_generators.GENERATORS)}")
     kind = _str(ctx, "attack.kind", kind, sorted(attack_generators.GENERATORS))
     aparams = {k: v for k, v in at.items() if k not in ("kind", "budget")}
+    req, opt = attack_generators.PARAMS[kind]   # a misspelled key is named as one, whatever its value
+    _unknown(ctx, "attack", aparams, {*req, *opt, *(("score",) if kind == "greedy" else ())})
     budget = None
     if "budget" in at:
         bt = _table(ctx, "attack.budget", at["budget"])
@@ -425,7 +427,6 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     if budget is not None and not budget[3] < 1:
         raise ctx.err("attack.rho_D", f"must be < 1 (Assumption 4), got {budget[3]}")
     if kind == "greedy":
-        _unknown(ctx, "attack", aparams, {"kappa_F", "rho_F", "kappa_D", "rho_D", "threshold", "score"})
         thr = _num(ctx, "attack.threshold", aparams.get("threshold", 0.0), nonneg=True)
         if thr > 1:
             raise ctx.err("attack.threshold", f"must be in [0, 1], got {thr}")

@@ -95,8 +95,8 @@ def test_a_device_fault_is_a_fault_on_record_one_line_and_exit_1(case, run_id, t
     f = mine[0]
     # nothing else went wrong (but what a stalled machine does to a device: a stall, a late sample)
     assert all(x["kind"] in ("stalled", "sample_late") for x in s["faults"] if x is not f), s["faults"]
-    if k is None:  # lost: the last sample the device sent before it went silent
-        assert 0 < f["at_sample"] < 10, f
+    if k is None:  # lost: the run's sample when the loss was seen; the device's own last sample before it
+        assert 0 < f["last_sample_before"] < 10 <= f["at_sample"], f
     else:
         assert f["at_sample"] == k, f
     k = f["at_sample"]
@@ -121,9 +121,10 @@ def test_a_device_fault_is_a_fault_on_record_one_line_and_exit_1(case, run_id, t
     if kind.startswith("state_"):  # the encoder's own event, at the sample it refused
         assert [e.k for e in r.events if e.node == "encoder" and e.kind == kind] == [k]
     plant_ks = sorted(r.telemetry.get("plant", {}))
-    assert plant_ks == list(range(len(plant_ks))) and plant_ks[-1] >= min(k, 29), plant_ks  # complete up to it
+    assert plant_ks == list(range(len(plant_ks))), plant_ks  # complete up to it
+    assert plant_ks[-1] >= (f["last_sample_before"] if kind == "lost" else min(k, 29)), plant_ks
     if kind == "lost":
-        assert plant_ks[-1] == k
+        assert plant_ks[-1] == f["last_sample_before"]
 
 
 def test_every_device_fault_breaks_a_conformance_requirement():

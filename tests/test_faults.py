@@ -147,3 +147,47 @@ def test_timings_in_fixed_memory_match_the_exact_percentiles():
         lo, hi = np.quantile(big, [p - 0.003, p + 0.003]) / 1e3
         assert lo <= est[q] <= hi, (q, est[q], exact[q])
     assert t.values().nbytes == 65536 * 8
+
+
+def test_a_fault_line_has_one_sample_one_time_and_when_the_node_came_back():
+    """``testbed run`` and ``testbed report`` print a fault with ``fault_line``: its sample and its time (a lost
+    node's sample is the run's at its time, not the last sample the node had handled), and when it came back."""
+    from testbed.record.faulttext import fault_line
+
+    lost = {"node": "controller", "kind": "lost", "t_s": 10.9259, "at_sample": 109, "last_sample_before": 9,
+            "why": "its peers dropped it", "back_s": 13.027}
+    line = fault_line(lost)
+    assert line == ("FAULT controller: lost (its peers dropped it) at sample 109 (10.9259 s); back at 13.027 s")
+    assert "sample 9" not in line
+    assert fault_line(dict(lost, back_s=None)).endswith("; not back by the end of the run")
+    stalled = {"node": "plant", "kind": "stalled", "from_s": 1.0, "to_s": 2.1, "at_sample": 21, "why": "no samples"}
+    assert fault_line(stalled) == "FAULT plant: stalled (no samples) at sample 21 (2.1 s)"
+    cut = {"node": "controller", "kind": "link_cut", "t_s": 1.5, "down_s": 1.5, "up_s": 2.5, "why": "link down"}
+    assert fault_line(cut) == "FAULT controller: link_cut (link down) at 1.5 s"
+    killed = {"node": "encoder", "kind": "killed", "why": "killed by SIGKILL", "at_sample": 10, "t_s": 1.06,
+              "last_log_line": "bye"}
+    assert fault_line(killed) == "FAULT encoder: killed (killed by SIGKILL) at sample 10 (1.06 s); bye"
+    assert fault_line({"node": None, "kind": "timeout", "why": "late"}) == "FAULT run: timeout (late)"
+
+
+def test_liveliness_lost_means_a_token_that_went_during_the_fault():
+    """A link cut's ``liveliness_lost``: the token went between the cut and its end (plus the grace), not
+    at the run's end when every node closes its session (docs/live.md: a cut shorter than the lease does not
+    end a session)."""
+    import threading
+
+    from testbed.live.stalls import Stalls
+
+    class Liveliness:  # the collector's liveliness log: (monotonic ns, node, alive)
+        lock = threading.Lock()
+        liveliness = [(0, "controller", True), (9_000_000_000, "controller", False)]   # the run's end
+
+    st = Stalls()
+    st.t0_mono = 0
+    assert not st.lost_during(Liveliness, "controller", 1.5, 2.5)
+    Liveliness.liveliness = [(0, "controller", True), (2_200_000_000, "controller", False),
+                             (2_700_000_000, "controller", True), (9_000_000_000, "controller", False)]
+    assert st.lost_during(Liveliness, "controller", 1.5, 2.5)
+    assert not st.lost_during(Liveliness, "plant", 1.5, 2.5)
+    st.t0_mono = None
+    assert not st.lost_during(Liveliness, "controller", 1.5, 2.5)

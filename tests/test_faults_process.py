@@ -3,6 +3,8 @@ under the recorder, an overloaded host."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 
 import pytest
@@ -166,5 +168,17 @@ def test_a_stall_longer_than_the_lease_is_a_peer_loss(run_id, tmp_path):
     assert f["node"] == "controller" and f["injected"] and 10.5 <= f["t_s"] <= 12.5, f
     assert "back_s" in f and (f["back_s"] is None or f["back_s"] >= 12.4), f  # its session back, if it came by the end
     assert 100 <= s["controller_lost_at"] <= 125
+    # one sample and one time: the run's sample at t_s (the plant's controller_lost_at, give or take the one
+    # sample between the two processes seeing the token go), not the last sample the frozen node handled
+    assert f["at_sample"] == int(f["t_s"] / s["T"]) and abs(f["at_sample"] - s["controller_lost_at"]) <= 1, f
+    assert f["last_sample_before"] <= 11, f
+    assert f"node controller lost at sample {f['at_sample']} ({f['t_s']:g} s)" in err
+    from testbed.commands.run import print_text
+
+    with contextlib.redirect_stdout(io.StringIO()) as text:
+        print_text(s)
+    line = next(ln for ln in text.getvalue().splitlines() if "FAULT controller: lost" in ln)
+    assert f"at sample {f['at_sample']} ({f['t_s']:g} s)" in line, line
+    assert ("; back at" if f["back_s"] is not None else "; not back by the end of the run") in line, line
     rc, o, e = run_cli(tb_cmd("resimulate", str(out), "--json"))
     assert rc == 0 and json.loads(o)["first_divergence"] is None, (o[-2000:], e[-2000:])

@@ -79,6 +79,7 @@ def test_netns_link_cut_rides_through():
     assert len(cut) == 1 and cut[0]["node"] == "controller", s["faults"]
     down, up = cut[0]["down_s"], cut[0]["up_s"]
     assert 1.5 <= down < 2.5 and 0.99 <= up - down < 1.5, cut
+    assert cut[0]["liveliness_lost"] is False, cut  # a cut shorter than the lease does not end a session
     T = s["T"]
     during = set(range(int(down / T) + 1, int(up / T)))   # samples wholly inside the outage
     lost = set(s["deadline_missed_at"]) | set(s["attacker_dropped_at"]) | set(s["withheld_at"])

@@ -96,6 +96,12 @@ def test_the_launcher_gives_each_process_its_part_of_the_run_config():
     (["--crash", "controller@-3"], "--crash: '-3' is not a finite number >= 0"),
     (["--crash", "plant"], "--crash must be ROLE@VALUE"),
     (["--cpu", "nobody=1"], "--cpu must be ROLE=VALUE"),
+    # a fault the 3 s run never reaches is refused, not silently skipped
+    (["--duration", "3", "--stall", "controller@20:1"], "--stall controller@20:1: 20 s is past the run's end"),
+    (["--duration", "3", "--stall", "controller@3:1"], "--stall controller@3:1: 3 s is past the run's end"),
+    (["--duration", "3", "--kill", "plant@7.5"], "--kill plant@7.5: 7.5 s is past the run's end"),
+    (["--duration", "3", "--cut", "plant@4:1"], "--cut plant@4:1: 4 s is past the run's end"),
+    (["--duration", "3", "--crash", "encoder@30"], "--crash encoder@30: sample 30 is past the run's last sample (29)"),
 ])
 def test_a_malformed_run_flag_is_one_line_and_exit_2(flags, says):
     r = subprocess.run([sys.executable, "-m", "testbed.cli", "run", "paper", "--no-record", *flags],

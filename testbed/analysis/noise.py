@@ -36,19 +36,8 @@ import numpy as np
 
 from ..control import c2d, closed_loop
 from ..device import DeviceSpec, SensorSpec
+from ..rulesofthumb import e_min_guarantee, growth  # the one definition (the warnings of run/simulate)
 from ..sim.trajectory import simulate_scenario
-
-
-def e_min_guarantee(b: float, Lambda: float, M: int, w: float = 0.0) -> float:
-    """((1 + Lambda) b + w) / (1 - Lambda / M): the E_min that keeps every measured state in its box
-    (worst case over the Lipschitz bound Lambda; inf when M <= Lambda)."""
-    return np.inf if M <= Lambda else ((1.0 + Lambda) * b + w) / (1.0 - Lambda / M)
-
-
-def growth(model, T: float) -> float:
-    """a = ||e^{A T}||_inf: how much the linearized flow over one period stretches an error."""
-    Ad, _ = c2d(model.A, model.B, T)
-    return float(np.max(np.sum(np.abs(Ad), axis=1)))
 
 
 def e_min_estimate(model, T: float, M: int, b: float, w: float = 0.0) -> float:

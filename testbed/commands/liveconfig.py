@@ -79,5 +79,6 @@ def run_config(args) -> RunConfig:
         startup_timeout=args.startup_timeout, run_dir=args.run_dir, spawn=args.spawn, realtime=args.realtime,
         cpu=pairs(args.cpu, "=", "--cpu", (*transport.ROLES, transport.RECORDER, transport.LAUNCHER)),
         rx=args.rx, rx_spin_us=args.rx_spin_us, spin_us=args.spin_us, ack_grace=args.ack_grace, verbose=args.verbose,
+        progress=getattr(args, "progress", False),
         kill={r: _number(float, v, "--kill") for r, v in kills.items()}, stall=tuple(args.stall),
         crash={r: _number(int, v, "--crash") for r, v in crashes.items()}, corrupt=args.corrupt, cut=tuple(args.cut))

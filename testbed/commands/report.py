@@ -9,6 +9,7 @@ import argparse
 import sys
 
 from .. import cliargs
+from ..record.faulttext import fault_line
 from ..record.summary import write_json
 from ..runs import report as reports
 from ..runs.report import plot, report_of_run, run_of
@@ -121,7 +122,7 @@ def print_text(s: dict) -> None:
     if s.get("timing_degraded"):
         print(f"  TIMING DEGRADED: {s['timing_degraded_why']}")
     for f in s.get("faults") or []:
-        print(f"  FAULT {f.get('node') or 'run'}: {f.get('kind')} ({f.get('why')})")
+        print(f"  {fault_line(f)}")
     if s.get("events"):
         print("  events: " + ", ".join(f"{k} x{v}" for k, v in sorted(s["events"].items())))
 

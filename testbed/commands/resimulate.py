@@ -31,6 +31,8 @@ def main(args) -> int:
 
     try:
         out = resimulate(args.recording, trust_code=args.trust_code, plant=args.plant)
+    except BadInput:
+        raise  # it names the file already
     except (OSError, ValueError) as e:
         raise BadInput(f"{args.recording}: {e}") from None
     if args.json:

@@ -6,13 +6,15 @@ import argparse
 import shutil
 import sys
 
-from .. import cliargs
+from .. import cliargs, rulesofthumb
+from ..channel import loss_text
 from ..live.external import add_external_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
 from ..live.recorder import add_record_error_argument
 from ..nodes.inlet import RX_MODES
 from ..nodes.options import add_run_option_arguments
+from ..record.faulttext import fault_line
 from ..stats import fmt_percentiles
 from ..view.rerun import add_rerun_run_arguments
 from ..wire.session import add_network_arguments
@@ -73,6 +75,9 @@ def add_arguments_run(p: argparse.ArgumentParser) -> None:
     g.add_argument("--spin-us", type=float, help="plant busy-wait before each sample instant (us)")
     g.add_argument("--ack-grace", type=float, help="encoder grace for a late ack, fraction of T")
     g.add_argument("-v", "--verbose", action="store_true", help="nodes log at INFO")
+    g.add_argument("--progress", action="store_true",
+                   help="the status line (sample k of N, losses by cause, deadline misses, E_k at both ends, about "
+                        "once a second) on stderr even when it is not a terminal (on a terminal it is always shown)")
     g = p.add_argument_group("fault injection")
     g.add_argument("--kill", action="append", default=[], metavar="ROLE@SECONDS",
                    help="SIGKILL a node (or the recorder) SECONDS after t0 (repeatable)")
@@ -90,8 +95,7 @@ def print_text(s: dict) -> None:
     if not s.get("samples"):  # nothing ran: no loop figures to show, only why
         print(f"run {s['run_id']}: scenario {s.get('scenario')}: the run NEVER STARTED (outcome: {s['outcome']})")
         for f in s["faults"]:
-            print(f"  FAULT {f.get('node') or 'run'}: {f['kind']} ({f['why']})"
-                  + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+            print(f"  {fault_line(f)}")
         if s.get("run_dir"):
             print(f"  node logs: {s['run_dir']}")
         return
@@ -105,12 +109,9 @@ def print_text(s: dict) -> None:
     if sec:
         print(f"  {sec['topology']} topology" + (f" (auto: {sec['topology_why']})" if sec.get("topology_auto") else "")
               + f", {sec['transport']}")
-    from ..channel import loss_text
-
-    ls = s.get("losses")
-    print(f"  {s.get('packets_dropped', 0)} samples lost ("
-          + (loss_text(ls) if ls else f"attacker dropped {s['attacker']['dropped']}") + "), "
-          f"{s.get('saturations', 0)} saturations, encoder/decoder agree: "
+    # every lost sample under its one cause (``losses``, ``channel.recorded_losses``): the causes add up
+    print(f"  {s.get('packets_dropped', 0)} samples lost ({loss_text(s['losses'])}; invalid payloads "
+          f"{s.get('invalid_payloads')}), {s.get('saturations', 0)} saturations, encoder/decoder agree: "
           f"{s.get('encoder_decoder_agree_where_known')}" + ("" if s.get("encoder_decoder_agree") else
                                                               " (on the samples both recorded)"))
     fn = s.get("final_norm")
@@ -126,9 +127,7 @@ def print_text(s: dict) -> None:
     if s["controller_lost_at"] is not None and s["controller_lost_at"] >= 0:
         print(f"  controller lost at sample {s['controller_lost_at']}: plant ran on with u = 0")
     for f in s["faults"]:
-        print(f"  FAULT {f.get('node') or 'run'}: {f['kind']} ({f['why']})"
-              + (f" at sample {f['at_sample']}" if f.get("at_sample") is not None else "")
-              + (f"; {f['last_log_line']}" if f.get("last_log_line") else ""))
+        print(f"  {fault_line(f)}")
     rec = s.get("recording")
     if rec:
         print(f"  recording: {rec['path']}" + ("" if rec["complete"] else " (INCOMPLETE: the recorder did not "
@@ -147,6 +146,8 @@ def main_run(args) -> int:
         raise BadInput("which scenario? (a .toml file or a bundled name; testbed scenarios lists them)")
     cfg = run_config(args)  # the run's typed configuration, built once: the launcher and the nodes get it
     launcher = Launcher(cfg)
+    for line in rulesofthumb.warnings(launcher.sc):  # a documented rule of thumb broken: said before the run
+        print(f"testbed run: warning: {line}", file=sys.stderr)
     try:
         code, summary = launcher.run()
     except BadInput:  # refused before any node ran (certificates, ...): no run folder left behind

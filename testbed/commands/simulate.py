@@ -33,7 +33,8 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 
 
 def main_simulate(args) -> int:
-    from .. import scenario
+    from .. import rulesofthumb, scenario
+    from ..channel import loss_text
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
     from ..sim.batch import outcome_text, summarize
@@ -61,6 +62,8 @@ def main_simulate(args) -> int:
         latency = recorded_latency(args.latency_from, sc)
     if sc.method_note:
         print(f"testbed simulate: {sc.method_note}", file=sys.stderr)
+    for line in rulesofthumb.warnings(sc):  # a documented rule of thumb broken: said before the run
+        print(f"testbed simulate: warning: {line}", file=sys.stderr)
     try:
         res = simulate_scenario(sc, network=net, latency=latency, simulator=args.simulator)
     except ValueError as e:
@@ -100,16 +103,13 @@ def main_simulate(args) -> int:
         if sc.model is not None and sc.model.explicit:
             print(f"  true plant {out['plant']} {out['plant_params']}; model {out['model']} {out['model_params']} "
                   "(predictions, design)")
-        ls = out.get("losses")
-        dos = f"{len(out['dos_intervals'])} DoS intervals"
-        print(f"  {len(out['t'])} samples, {out['packets_dropped']} lost ("
-              + (f"{ls['attacker']} by the attacker in {dos}" if ls else dos)
-              + f"), {out['saturations']} saturations, encoder/decoder agree: {out['encoder_decoder_agree']}")
-        if ls and out["packets_dropped"] != ls["attacker"]:
-            from ..channel import loss_text
-
-            print(f"  losses by cause: {loss_text(ls)}"
-                  + (f" ([network] seed {sc.network.seed})" if sc.network is not None else ""))
+        # every lost sample under its one cause (without a [network] every loss is the attacker's)
+        ls = out.get("losses") or {"attacker": out["packets_dropped"]}
+        print(f"  {len(out['t'])} samples, {out['packets_dropped']} lost ({loss_text(ls)}), "
+              f"{len(out['dos_intervals'])} DoS intervals (the attacker's), {out['saturations']} saturations, "
+              f"encoder/decoder agree: {out['encoder_decoder_agree']}")
+        if sc.network is not None and out.get("losses"):
+            print(f"  [network]: the channels' draws from seed {sc.network.seed}")
         print(f"  final ||x||_inf = {out['final_norm']:.3e} -> {verdict}")
         if args.out:
             print(f"  recording: {args.out}")

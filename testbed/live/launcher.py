@@ -39,12 +39,12 @@ from ..nodes.options import NodeConfig, RunConfig, load_scenario
 from ..nodes.process import parse_cpus, peak_rss_mb
 from ..wire import messages as msg
 from ..wire import transport
-from . import external, netns
+from . import external, netns, status
 from .credentials import RunCredentials, choose_topology
 from .devicefaults import DEVICE_FAULTS, DeviceWatch
 from .recorder import RecorderControl, exit_code
 from .spawn import Forked, _forked_node
-from .stalls import Stalls
+from .stalls import Stalls, check_fault_times
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
@@ -67,6 +67,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             self.opts = dataclasses.replace(self.opts, seed=over["seed"])
             print(f"testbed run: the random attack has no seed; drew seed = {self.opts.seed} (recorded; "
                   f"--seed {self.opts.seed} repeats it)", file=sys.stderr)
+        check_fault_times(cfg, self.sc.n_steps, self.sc.T)  # a fault past the run's end: refused
         ref = cfg.scenario
         self.scenario_ref = str(Path(ref).resolve()) if (Path(ref).suffix == ".toml" or Path(ref).exists()) else ref
         self.run_id = cfg.run_id or f"{self.sc.name}-{os.getpid()}-{secrets.token_hex(3)}"
@@ -126,6 +127,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
         self._router_rt = False                       # SCHED_FIFO now (``router_realtime``)
         self.router_fifo = False                      # ... at some point of the run (the summary's ``launcher``)
         self._tokens: list = []
+        self.status = None                            # the live status line (``status``): a terminal or --progress
         self.rerun = None                                              # testbed run --rerun / --rrd
         if cfg.rerun or cfg.rrd:
             from ..view.rerun import LiveRerun
@@ -403,6 +405,9 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             role = f.get("node")
             if role is None or f["kind"] in ("stalled", *DEVICE_FAULTS):  # it went on; its token goes at the end
                 continue
+            if f["kind"] == "link_cut":  # the session ended only if the token went during the cut
+                f["liveliness_lost"] = self.lost_during(col, role, f["down_s"], f["up_s"])
+                continue
             lost = col.lost_at(role)
             f["liveliness_lost"] = lost is not None
             if lost is not None and role in self.kill_sent:
@@ -504,6 +509,8 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                 if self.netns is not None:
                     self.netns.tick(self.faults, now, t0_mono)  # --cut
                 self.stalls_tick(col, now, t0_mono)
+                if self.status is not None:
+                    self.status.tick(col)
                 if (ended := self.device_faults(col, now, t0_mono)) is not None:
                     return ended
                 if now > end_mono:
@@ -559,6 +566,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             with session_cm as session:
                 self.phase("router")
                 col = Collector(session, self.keys, self.sc.n_steps, spill=self.run_dir / "telemetry.bin")
+                self.status = status.start(self.cfg.progress, self.sc.n_steps, self.sc.T, self.sc.network)  # the live status line
                 tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
                 self._tokens = tokens
                 try:
@@ -585,6 +593,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
                             self.record_exit(r, p.returncode, col, None)
                     self.phase("stopped")
                     self.wait_summaries(col)  # late telemetry and summaries
+                    status.stop(self.status, col)  # the status line's last state, the run's losses
                     for guest in self.colocated:  # one that died alone just before the end
                         if guest not in self.exits:
                             self.check_guest(guest, col, self.t0_mono, final=True)

@@ -56,6 +56,23 @@ def parse_stalls(items, colocated=()) -> dict[str, tuple[float, float]]:
     return out
 
 
+def check_fault_times(cfg, n_steps: int, T: float) -> None:
+    """Refuse a fault injected where the run never gets (one line, BadInput): ``--kill``, ``--stall`` or
+    ``--cut`` at SECONDS at or after the run's end (N T after t0), ``--crash`` at a sample K >= N."""
+    end = n_steps * T
+    timed = [("--kill", f"{r}@{s:g}", s) for r, s in cfg.kill.items()]
+    timed += [(flag, it, parse_role_interval(it, flag)[1]) for flag, items in (("--stall", cfg.stall), ("--cut", cfg.cut))
+              for it in items]
+    for flag, it, s in timed:
+        if s >= end:
+            raise BadInput(f"{flag} {it}: {s:g} s is past the run's end ({n_steps} samples, {end:g} s): the fault "
+                           f"would never happen (give SECONDS < {end:g}, or a longer --duration)")
+    for r, k in cfg.crash.items():
+        if k >= n_steps:
+            raise BadInput(f"--crash {r}@{k}: sample {k} is past the run's last sample ({n_steps - 1}): the fault "
+                           f"would never happen (give K < {n_steps}, or a longer --duration)")
+
+
 class StallInjector:
     """SIGSTOP to a node's process group at t0 + SECONDS, SIGCONT at t0 + SECONDS + DURATION."""
 
@@ -209,18 +226,22 @@ class Stalls:
             if role in self._lost or role in self.exits or lost is None or now - lost < self.LOST_GRACE_NS \
                     or (p is not None and p.poll() is not None):
                 continue
+            st = col.start
+            # one sample and one time: the run's sample at the loss (the plant's controller_lost_at), and
+            # separately the last sample the node itself had handled
+            k = min(max((lost - t0_mono) // st.T_ns, 0), st.n_steps - 1)
             why = ("its liveliness token went away while its process ran on (frozen for longer than Zenoh's "
                    "lease, or its link down): its peers dropped it") if p is not None else \
                   (f"the external {role} disconnected: its liveliness token went away before the run's end (it "
                    "closed its session, or its link was down for longer than Zenoh's lease)")
-            f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": col.last_k(role),
-                 "injected": role in self.stall_inject.stopped, "why": why}
+            f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": int(k),
+                 "last_sample_before": col.last_k(role), "injected": role in self.stall_inject.stopped, "why": why}
             if p is None:
                 f["external"] = True
             self._lost[role] = f
             self.faults.append(f)
-            print(f"testbed run: node {role} lost at {f['t_s']:g} s, after sample {f['at_sample']} ({f['why']})",
-                  file=sys.stderr, flush=True)
+            print(f"testbed run: node {role} lost at sample {k} ({f['t_s']:g} s), after its sample "
+                  f"{f['last_sample_before']}: {f['why']}", file=sys.stderr, flush=True)
 
     def lost_back(self, col) -> None:
         """When each lost node's liveliness came back, if it did (``back_s``)."""
@@ -230,6 +251,17 @@ class Stalls:
             t_lost = self.t0_mono + int(f["t_s"] * 1e9)
             back = next((t for t, n, alive in events if n == role and alive and t > t_lost), None)
             f["back_s"] = None if back is None else round((back - self.t0_mono) / 1e9, 4)
+
+    def lost_during(self, col, role: str, from_s: float, to_s: float) -> bool:
+        """Whether ``role``'s liveliness token went away between ``from_s`` and ``to_s`` (s after t0) or within
+        ``LOST_GRACE_NS`` after: a fault that ended a session (a link cut longer than Zenoh's lease), not a
+        token that went at the run's end (docs/live.md, ``liveliness_lost``)."""
+        if self.t0_mono is None:
+            return False
+        lo = self.t0_mono + int(from_s * 1e9)
+        hi = self.t0_mono + int(to_s * 1e9) + self.LOST_GRACE_NS
+        with col.lock:
+            return any(n == role and not alive and lo <= t <= hi for t, n, alive in col.liveliness)
 
     def stalls_tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
         if not final:
@@ -253,4 +285,4 @@ class Stalls:
             self.lost_back(col)
 
 
-__all__ = ["parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]
+__all__ = ["check_fault_times", "parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]

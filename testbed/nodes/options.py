@@ -213,6 +213,7 @@ class RunConfig:
     spin_us: float | None = None
     ack_grace: float | None = None
     verbose: bool = False
+    progress: bool = False                               # the status line on stderr on a pipe too (``live.status``)
     # fault injection
     kill: dict = field(default_factory=dict)             # role or recorder -> seconds after t0
     stall: tuple[str, ...] = ()                          # ROLE@SECONDS:DURATION (``testbed.live.stalls``)

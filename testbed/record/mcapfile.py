@@ -40,7 +40,10 @@ class _File:
         self.path = path
         if path.is_dir():
             raise BadInput(f"{path}: is a directory, not a recording")
-        self.f = open(path, "rb")
+        try:
+            self.f = open(path, "rb")
+        except OSError as e:  # missing, unreadable: bad input (one line), as a file that is not MCAP
+            raise BadInput(f"{path}: {e.strerror or e}") from None
         self.size = self.f.seek(0, 2)
         self.f.seek(0)
         head = self.f.read(len(MAGIC))

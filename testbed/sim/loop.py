@@ -19,7 +19,7 @@ import numpy as np
 from attackers.greedy import greedy_init, greedy_step
 from plants.base import PlantFault
 
-from ..channel import LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
+from ..channel import ATTACKER, LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..methods.base import symbol_code
 from ..methods.bundled import PaperMethod
@@ -106,10 +106,13 @@ class SimResult:
                     and np.array_equal(self.E_enc[known], self.E_dec[known]))
 
     def intervals(self):
-        """The realized DoS schedule (runs of lost samples) as (start, length) pairs."""
+        """The realized DoS schedule as (start, length) pairs: the runs of samples the attacker dropped
+        (``loss_cause``; a loss of another cause, a ``[network]`` link's, a late or withheld sample, is not an
+        attack; without ``loss_cause``, every lost sample)."""
         from attackers.schedule import Schedule
 
-        return Schedule.from_theta(self.theta, self.T)
+        th = self.theta if self.loss_cause is None else (np.asarray(self.loss_cause) == ATTACKER).astype(np.int64)
+        return Schedule.from_theta(th, self.T)
 
 
 class OnlineAttacker:
