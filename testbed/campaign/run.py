@@ -316,7 +316,7 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
     for r in live:
         rec = folder / r["recording"]
         try:
-            from ..runs.resimulate import resimulate
+            from ..runs.run import resimulate
 
             d = resimulate(str(rec), trust_code=trust_code)
             if not d.get("reproduced"):

@@ -10,7 +10,8 @@ import json
 import sys
 
 from .. import cliargs
-from ..runs.resimulate import PLANTS, resimulate
+from ..runs.resimulate import PLANTS
+from ..runs.run import resimulate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .run import run_of_recording
-
 #: physical timing: the largest state error that still counts as reproduced (on the model)
 PHYSICAL_TOLERANCE = 1e-9
 
@@ -365,12 +363,3 @@ def resimulation(run, *, plant: str = "auto", limit: int | None = None) -> dict:
     mode, why = plant_choice(rr, plant)
     return compare(rr, limit=limit, plant=mode, why=why)
 
-
-def resimulate(path, *, trust_code: bool = False, plant: str = "auto") -> dict:
-    """``testbed resimulate PATH [--plant P] --json`` as a dict (``resimulation``).  ``trust_code``: run a
-    plant's or method's source stored in the recording (``testbed.runs.run.open``); without it, when that
-    code is needed, ``plants.refs.CodeNotTrusted`` (one line naming ``--trust-code``) and nothing is run."""
-    from ..record.summary import load
-
-    run = run_of_recording(*load(path, trust_code=trust_code, note=False))  # the error below is the line
-    return resimulation(run, plant=plant)

@@ -326,5 +326,16 @@ def simulate(scenario, **overrides) -> Run:
     return run_of_simulation(sc, simulate_scenario(sc), {k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["Run", "open", "simulate", "flat_columns", "run_of_simulation", "run_of_recording", "MissingExtra",
+__all__ = ["Run", "open", "simulate", "resimulate", "flat_columns", "run_of_simulation", "run_of_recording", "MissingExtra",
            "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]
+
+
+def resimulate(path, *, trust_code: bool = False, plant: str = "auto") -> dict:
+    """``testbed resimulate PATH [--plant P] --json`` as a dict (``testbed.runs.resimulate.resimulation``).
+    ``trust_code``: run a plant's or method's source stored in the recording (``open``); without it, when
+    that code is needed, ``plants.refs.CodeNotTrusted`` (one line naming ``--trust-code``) and nothing is run."""
+    from ..record.summary import load
+    from .resimulate import resimulation
+
+    run = run_of_recording(*load(path, trust_code=trust_code, note=False))  # the error below is the line
+    return resimulation(run, plant=plant)
