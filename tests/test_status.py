@@ -33,7 +33,8 @@ class Records:
 def test_status_text():
     losses = {"attacker": 3, "channel": 1, "late": 0, "withheld": 2}
     assert status_text(28, 40, losses, 10, 0.679, 6.79e-4) == \
-        "sample 28/40 | lost 6 (attacker 3, channel 1, late 0, withheld 2) | deadline misses 10 | E_k enc 0.679, dec 0.000679"
+        ("sample 28/40 | lost 6 (attacker 3, channel 1, network 0, late 0, withheld 2) | deadline misses 10 | "
+         "E_k enc 0.679, dec 0.000679")
     assert status_text(0, 40, dict.fromkeys(losses, 0), 0, None, None).endswith("E_k enc -, dec -")
 
 
