@@ -22,7 +22,8 @@ pytestmark = pytest.mark.process
 NOISY = (Path(__file__).resolve().parents[1] / "docs" / "examples" / "paper-noisy.toml").read_text() \
     .replace("E0 = 0.12\n", "E0 = 0.1\n").replace("E_min = 3e-5\n", "").replace("duration = 45.0", "duration = 1.0")
 
-STATUS = re.compile(r"sample (\d+)/(\d+) \| lost (\d+) \(attacker (\d+), channel (\d+), late (\d+), withheld (\d+)\) "
+STATUS = re.compile(r"sample (\d+)/(\d+) \| lost (\d+) \(attacker (\d+), channel (\d+), network (\d+), late (\d+), "
+                    r"withheld (\d+)\) "
                     r"\| deadline misses (\d+) \| E_k enc (\S+), dec (\S+)")
 
 
@@ -33,10 +34,11 @@ def _statuses(text: str) -> list[re.Match]:
 def _check_last(st: re.Match, s: dict) -> None:
     """The last status line is the run's end: every sample, and its losses those of the summary (the same
     function, ``recorded_losses``, counts both)."""
-    k, N, lost, att, ch, late, wh, misses = (int(v) for v in st.groups()[:8])
+    k, N, lost, att, ch, net, late, wh, misses = (int(v) for v in st.groups()[:9])
     assert k == N == s["n_steps"], st.group(0)
     assert lost == sum(s["losses"].values()) == s["packets_dropped"], (st.group(0), s["losses"])
-    assert {"attacker": att, "channel": ch, "late": late, "withheld": wh} == s["losses"], (st.group(0), s["losses"])
+    got = {"attacker": att, "channel": ch, "network": net, "late": late, "withheld": wh}
+    assert got == s["losses"], (st.group(0), s["losses"])
     assert misses == s["timing"]["deadline_misses"], (st.group(0), s["timing"])
 
 
