@@ -84,9 +84,7 @@ def main(args) -> int:
     opts = run_options(args)
     if opts.colocate:
         raise BadInput("--colocate: an external node runs alone in its process")
-    net = Network(listen=args.listen, zenoh_config=args.zenoh_config, topology=args.topology,
-                  secret_file=args.secret_file, tls_dir=args.tls_dir, insecure=args.insecure,
-                  low_latency=args.low_latency)
+    net = Network.of(args)
     if not args.no_adverse and net.feedable():
         raise BadInput(net.feedable())
     if not (args.plant_tolerance >= 0 and math.isfinite(args.plant_tolerance)):

@@ -19,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from ..wire import join, transport
@@ -110,6 +110,12 @@ class Network:
     tls_dir: str | None = None
     insecure: bool = False
     low_latency: bool = False
+
+    @classmethod
+    def of(cls, args) -> Network:
+        """From parsed arguments (``testbed run``'s network options, ``add_network_arguments``): each field
+        from the argument of its name."""
+        return cls(**{f.name: getattr(args, f.name) for f in fields(cls)})
 
     def flags(self) -> list[str]:
         out = ["--topology", self.topology]
