@@ -210,3 +210,38 @@ def test_netns_bursty_symbol_channel_equals_the_simulator(tmp_path):
     runs = [j - i for i, j in zip(lost, lost[1:]) if j - i == 1]
     assert len(runs) >= 3, lost  # consecutive samples lost by the channel: bursts
     assert not _left(run_id)
+
+
+@pytest.mark.process
+def test_netns_a_cut_next_to_a_channel_model_tells_the_causes_apart(tmp_path):
+    """A lossy symbol link (the [network] model) and a 1 s --cut of the controller's link in one run: the
+    samples the model dropped are the channel's, those the cut took the real network's (never the
+    channel's), and the five causes add up to the samples lost in the JSON and in the report's text."""
+    from testbed import scenario
+    from testbed.record import reader
+
+    _require_netns()
+    path = tmp_path / "paper-lossy.toml"
+    path.write_text(scenario.load("paper").source + "\n[network]\nseed = 5\n[network.symbol]\nloss = 0.1\n")
+    run_id = f"t{os.getpid()}nscause{secrets.token_hex(3)}"
+    # the cut between the paper's two attacks ([1.0, 2.2] s and [4.0, 4.8] s)
+    rc, s, err = live(run_id, str(path), "--netns", "--duration", "5", "--cut", "controller@2.6:1")
+    assert rc == 0, (s["faults"], err[-3000:])
+    ls = s["losses"]
+    assert sum(ls.values()) == s["packets_dropped"], ls
+    cut = [f for f in s["faults"] if f["kind"] == "link_cut"][0]
+    T = s["T"]
+    during = set(range(int(cut["down_s"] / T) + 1, int(cut["up_s"] / T)))   # samples wholly inside the outage
+    rec = reader.read(s["recording"]["path"])
+    model = set(rec.summaries["controller"]["channel"]["symbol"]["lost_at"])
+    other = set(s["attacker_dropped_at"]) | set(s["withheld_at"])
+    # what the cut took and the model did not decide: the real network's (or late, when it came after all)
+    taken = during - model - other
+    assert taken and ls["network"] + ls["late"] >= len(taken), (sorted(taken), ls)
+    # the channel's: only samples the model's own record says it dropped
+    assert 0 < ls["channel"] <= len(model), (ls, sorted(model))
+    rc, out, err2 = run_cli(tb_cmd("report", s["recording"]["path"]))
+    assert rc in (0, 1), err2
+    assert (f"losses by cause: attacker {ls['attacker']}, channel {ls['channel']}, network {ls['network']}, "
+            f"late {ls['late']}, withheld {ls['withheld']}") in out, out
+    assert not _left(run_id)
