@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..channel import recorded_losses
+from ..channel import model_lost, recorded_losses
 from ..sim.batch import json_clean as _clean
 from ..stats import percentiles
 from ..wire import messages as msg
@@ -257,7 +257,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     out["losses"] = recorded_losses(  # one cause per lost sample (channel.LOSS_KINDS; docs/recording-format.md)
         theta, withheld=EN & silent, attacker=A & (g("attacker", "dropped")[:N] != 0),
         invalid=C & (reason == CT.INVALID), superseded=C & (reason == CT.SUPERSEDED), late_symbols=cs.get("late"),
-        channel_lost=channel_model_lost(summaries, N))
+        channel_lost=channel_model_lost(summaries, N) | model_lost(getattr(sc, "network", None), N))
     out["attacker"] = {"dropped": ats.get("dropped"), "forwarded": ats.get("forwarded"),
                        "corrupted": ats.get("corrupted"), "acks_dropped": ats.get("acks_dropped")}
     out.update(timing_degraded(out))  # by the criterion of ``testbed.record.degraded``
