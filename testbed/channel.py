@@ -291,12 +291,11 @@ def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symb
     ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
     invalid counts as the attacker's too: only the attacker corrupts), the controller's reason
     (``superseded``: decided only after a later sample came: late), the samples the ``[network]``
-    channel model lost on the sensor or the symbol link (``channel_lost``, from the receiving nodes'
-    ``channel`` summaries: the model's own record of what it dropped; None: it dropped nothing), and the
-    controller's count of symbols that arrived after their sample was decided (``late_symbols``, its
-    summary's ``late``).  Every other lost sample was sent (and forwarded) and did not arrive by the
-    loss deadline: the ``late_symbols`` that did arrive, later, are late, the rest the real network's
-    (a cut link, a stalled host).  The five add up to the samples lost."""
+    channel model loses on the sensor or the symbol link (``channel_lost``: ``model_lost``, the draws the
+    live channel stages decide by; None: no model), and the controller's count of symbols that arrived
+    after their sample was decided (``late_symbols``, its summary's ``late``).  Every other lost sample
+    was sent (and forwarded) and did not arrive by the loss deadline: the ``late_symbols`` that did
+    arrive, later, are late, the rest the real network's (a cut link, a stalled host).  The five add up to the samples lost."""
     lost = np.asarray(theta) != 0
     w = lost & np.asarray(withheld, dtype=bool)
     a = lost & ~w & (np.asarray(attacker, dtype=bool) | np.asarray(invalid, dtype=bool))

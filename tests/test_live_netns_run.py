@@ -12,6 +12,7 @@ import signal
 import subprocess
 import time
 
+import numpy as np
 import pytest
 from failclosed import require
 from helpers import BIT_EXACT_KEYS, LOGS, TIMEOUT, live, live_exact, mismatch, reap, run_cli, simulate, tb_cmd
@@ -233,12 +234,16 @@ def test_netns_a_cut_next_to_a_channel_model_tells_the_causes_apart(tmp_path):
     T = s["T"]
     during = set(range(int(cut["down_s"] / T) + 1, int(cut["up_s"] / T)))   # samples wholly inside the outage
     rec = reader.read(s["recording"]["path"])
-    model = set(rec.summaries["controller"]["channel"]["symbol"]["lost_at"])
+    from testbed.channel import model_lost
+
+    recorded = set(rec.summaries["controller"]["channel"]["symbol"]["lost_at"])   # the stage's own record
+    model = {int(k) for k in np.flatnonzero(model_lost(scenario.load(str(path)).network, s["n_steps"]))}
+    assert recorded <= model   # the stage dropped what the model's draws say, nothing else
     other = set(s["attacker_dropped_at"]) | set(s["withheld_at"])
     # what the cut took and the model did not decide: the real network's (or late, when it came after all)
     taken = during - model - other
     assert taken and ls["network"] + ls["late"] >= len(taken), (sorted(taken), ls)
-    # the channel's: only samples the model's own record says it dropped
+    # the channel's: only samples the model's draws lose
     assert 0 < ls["channel"] <= len(model), (ls, sorted(model))
     rc, out, err2 = run_cli(tb_cmd("report", s["recording"]["path"]))
     assert rc in (0, 1), err2

@@ -447,14 +447,9 @@ def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = Non
         stop = msg.Stop(reason="end of run" if fault is None and mfault is None else
                         f"plant fault at sample {res.plant_fault_at}: {fault}" if fault is not None else
                         f"method fault at sample {res.method_fault_at}: {mfault}", origin="simulator")
-        if sc.network is not None:  # the controller's counters: its late symbols (the summary's losses.late),
-            # and what the channel model lost, as the live nodes' channel stages record it (losses.channel)
-            ctl = dict(res.counters.get("controller", {}))
-            if res.loss_cause is not None:
-                by_chan = np.asarray(res.loss_cause) == CHANNEL
-                ctl["channel"] = {"sensor": {"lost_at": np.flatnonzero(by_chan & unsensed).tolist()},
-                                  "symbol": {"lost_at": np.flatnonzero(by_chan & ~unsensed).tolist()}}
-            w.write("/summary/controller", {"node": "controller", "json": json.dumps(ctl)}, t0 + tN, name="NodeSummary")
+        if sc.network is not None:  # the controller's counters: its late symbols (the summary's losses.late)
+            w.write("/summary/controller", {"node": "controller", "json": json.dumps(res.counters.get("controller", {}))},
+                    t0 + tN, name="NodeSummary")
         w.write("/control/stop", stop, t0 + tN)
         tap(fox.stop(stop, t0 + tN))
     finally:

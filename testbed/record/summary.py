@@ -28,22 +28,6 @@ CT = msg.ControllerTelemetry
 
 
 
-def channel_model_lost(summaries: dict, N: int) -> np.ndarray:
-    """Per sample 0 .. N - 1: the ``[network]`` channel model lost its x_k or its symbol (the ``sensor`` and
-    ``symbol`` links' ``lost_at`` in the receiving nodes' summaries, ``testbed.nodes.channelstage``); a
-    malformed entry counts nothing."""
-    out = np.zeros(N, dtype=bool)
-    for node in (summaries or {}).values():
-        chan = node.get("channel") if isinstance(node, dict) else None
-        if not isinstance(chan, dict):
-            continue
-        for link in ("sensor", "symbol"):
-            ks = (chan.get(link) or {}).get("lost_at") if isinstance(chan.get(link), dict) else None
-            for k in ks if isinstance(ks, list) else ():
-                if isinstance(k, int) and not isinstance(k, bool) and 0 <= k < N:
-                    out[k] = True
-    return out
-
 def _agree_where_known(xi_e, E_e, xi_d, E_d) -> bool:
     """xi_k, E_k identical at both ends on every sample where both were recorded."""
     known = np.isfinite(E_e) & np.isfinite(E_d)
@@ -257,7 +241,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     out["losses"] = recorded_losses(  # one cause per lost sample (channel.LOSS_KINDS; docs/recording-format.md)
         theta, withheld=EN & silent, attacker=A & (g("attacker", "dropped")[:N] != 0),
         invalid=C & (reason == CT.INVALID), superseded=C & (reason == CT.SUPERSEDED), late_symbols=cs.get("late"),
-        channel_lost=channel_model_lost(summaries, N) | model_lost(getattr(sc, "network", None), N))
+        channel_lost=model_lost(getattr(sc, "network", None), N))
     out["attacker"] = {"dropped": ats.get("dropped"), "forwarded": ats.get("forwarded"),
                        "corrupted": ats.get("corrupted"), "acks_dropped": ats.get("acks_dropped")}
     out.update(timing_degraded(out))  # by the criterion of ``testbed.record.degraded``
