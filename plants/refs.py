@@ -298,6 +298,7 @@ def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, 
     path = Path(d) / f"{module.rsplit('.', 1)[-1]}.py"
     path.write_text(source, encoding="utf-8")
     spec = importlib.util.spec_from_file_location(module, path)
+    assert spec is not None and spec.loader is not None  # a .py file path always has both
     mod = importlib.util.module_from_spec(spec)
     old = sys.modules.get(module)
     sys.modules[module] = mod

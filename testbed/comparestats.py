@@ -93,10 +93,11 @@ def newcombe_paired(both: int, a_only: int, b_only: int, neither: int,
     if n == 0:
         return None
     pa, pb = (a + b) / n, (a + c) / n
-    la, ua = wilson(a + b, n, confidence)
-    lb, ub = wilson(a + c, n, confidence)
+    wa, wb = wilson(a + b, n, confidence), wilson(a + c, n, confidence)
+    assert wa is not None and wb is not None  # n > 0
+    (la, ua), (lb, ub) = wa, wb
     margins = (a + b) * (c + d) * (a + c) * (b + d)
-    num = a * d - b * c
+    num: float = a * d - b * c
     if margins == 0:
         phi = 0.0
     else:

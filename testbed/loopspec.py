@@ -79,6 +79,9 @@ class SymbolPacking:
     """A symbol 0 .. n_codes - 1 on the wire: big-endian in ``nbytes`` bytes; anything else is an
     :class:`InvalidSymbol` (the paper's codebook and a method's plain integer codes alike)."""
 
+    n_codes: int
+    nbytes: int
+
     def pack(self, i: int) -> bytes:
         i = int(i)
         if not 0 <= i < self.n_codes:
@@ -127,7 +130,7 @@ class Codebook(SymbolPacking):
         return self.n_boxes if self.resilient else -1
 
     @property
-    def n_codes(self) -> int:
+    def n_codes(self) -> int:  # type: ignore[override]  # derived here, an attribute of IntCodebook
         return self.n_boxes + (1 if self.resilient else 0)
 
     @property
@@ -136,7 +139,7 @@ class Codebook(SymbolPacking):
         return max(1, (self.n_codes - 1).bit_length())
 
     @property
-    def nbytes(self) -> int:
+    def nbytes(self) -> int:  # type: ignore[override]
         return (self.bits + 7) // 8
 
 

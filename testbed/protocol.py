@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -40,6 +41,11 @@ from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
 from .loopspec import corrupt_payload
 from .methods.base import DecoderEnd, EncoderEnd, symbol_code
 from .quantizer import Codebook, InvalidSymbol
+
+if TYPE_CHECKING:
+    from plants.base import PlantProcess
+
+    from .device import Device
 
 
 def _state(end):
@@ -80,7 +86,7 @@ class Send:
     """The encoder sends ``symbol`` for sample k (xi, E: the state it was encoded with)."""
 
     k: int
-    symbol: int
+    symbol: int | bytes | bytearray   # a code, or a method's own bytes
     saturated: bool
     xi: np.ndarray
     E: float
@@ -368,7 +374,7 @@ class PlantProtocol:
     falls back to 0.  Delays are whole nanoseconds (as the live plant measures them).
     """
 
-    process: object
+    process: PlantProcess
     T: float
     timing: str = "ideal"
     actuation: str = "scheduled"
@@ -376,11 +382,11 @@ class PlantProtocol:
     deadline_ns: int = 0            # d T
     loss_ns: int = 0                # the controller's loss deadline (a lost sample's u_k leaves then)
     u_max: float = math.inf         # actuator limit: |u| is clamped to it
-    u_held: np.ndarray = field(default=None)
+    u_held: np.ndarray = field(default=None)  # type: ignore[arg-type]  # zeros(m), set after init
     rejected_nonfinite: int = 0
     clamped: int = 0
-    device: object = None           # the sensor, actuator and disturbance (``testbed.device.Device``), or None
-    u_applied: np.ndarray = field(default=None)  # the input that acted last (after the actuator)
+    device: Device | None = None    # the sensor, actuator and disturbance (``testbed.device.Device``), or None
+    u_applied: np.ndarray | None = None  # the input that acted last (after the actuator)
 
     def __post_init__(self):
         if self.u_held is None:
@@ -438,7 +444,7 @@ class PlantProtocol:
         if dev is not None and st == FLOW_OK:
             w = dev.disturbance()
             if w is not None:  # x_k+1 = phi_T(x_k, u_k) + w_k
-                proc.perturb(w)
+                cast(OdeProcess, proc).perturb(w)  # a plant of equations (a scenario refuses one for an FMU)
         return st
 
 

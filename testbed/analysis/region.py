@@ -42,9 +42,9 @@ class Region:
     c: np.ndarray
     P0: list
     P1: list
-    rho_D: np.ndarray = None
-    rho_F: np.ndarray = None
-    arg: np.ndarray = None   # flat (i, j) index achieving each boundary point
+    rho_D: np.ndarray = None  # type: ignore[assignment]  # None: 201 points up to rho_D_max (__post_init__)
+    rho_F: np.ndarray = None  # type: ignore[assignment]  # computed in __post_init__
+    arg: np.ndarray = None   # type: ignore[assignment]  # flat (i, j) index achieving each boundary point
 
     def __post_init__(self):
         if self.rho_D is None:
@@ -96,24 +96,25 @@ class Region:
                                 rule=self.rule)
 
     def _ij(self, flat: int) -> tuple[int, int]:
-        return tuple(int(v) for v in np.unravel_index(flat, self.a.shape))
+        i, j = np.unravel_index(flat, self.a.shape)
+        return int(i), int(j)
 
     def best_for(self, rho_F: float, rho_D: float) -> Certificate:
         """The certificate with the most negative (stability) left-hand side at (rho_F, rho_D)."""
         rs = rho_D + rho_F * self.loop.T
         v = rho_F * self.loop.T * self.a - (1.0 - rs) * self.b + rs * self.c
         v = np.where(np.isfinite(v), v, np.inf)
-        return self.certificate(*np.unravel_index(int(np.argmin(v)), v.shape))
+        return self.certificate(*self._ij(int(np.argmin(v))))
 
     def best_area(self) -> Certificate:
         """The single certificate whose own triangle has the largest area."""
         tri = self.b / (self.b + self.c) * self.b / (self.loop.T * (self.a + self.b + self.c))
         tri = np.where(np.isfinite(tri), tri, -np.inf)
-        return self.certificate(*np.unravel_index(int(np.argmax(tri)), tri.shape))
+        return self.certificate(*self._ij(int(np.argmax(tri))))
 
     def argmax_rho_F(self) -> Certificate:
         v = self.b / (self.loop.T * (self.a + self.b + self.c))
-        return self.certificate(*np.unravel_index(int(np.nanargmax(v)), v.shape))
+        return self.certificate(*self._ij(int(np.nanargmax(v))))
 
     def to_dict(self, n_points: int = 41) -> dict:
         idx = np.unique(np.linspace(0, len(self.rho_D) - 1, n_points).round().astype(int))

@@ -90,8 +90,8 @@ class Loop:
     T: float
     M: int
     Lambda: float
-    Ad: np.ndarray = field(repr=False, default=None)
-    Bd: np.ndarray = field(repr=False, default=None)
+    Ad: np.ndarray = field(repr=False, default=None)  # type: ignore[arg-type]  # computed in __post_init__
+    Bd: np.ndarray = field(repr=False, default=None)  # type: ignore[arg-type]
 
     def __post_init__(self):
         A = np.atleast_2d(np.asarray(self.A, dtype=float))

@@ -192,7 +192,7 @@ class AttackerNode(Node):
                 payload = self._corrupt(payload, kind)
                 corrupted = 1
                 self.corrupted += 1
-            tx = ctx.clock.now()
+            tx = ctx.now()
             self.pub_fwd.put(payload, attachment=sample.attachment)
             self.forwarded += 1
         ctx.telemetry.put(msg.AttackerTelemetry(k=k, rx_ns=rx, tx_ns=tx, dropped=int(drop), corrupted=corrupted,

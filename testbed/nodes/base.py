@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 from ..wire import messages as msg
 from ..wire import transport
 from .context import NodeContext
 from .inlet import Inlet
 from .options import NodeConfig
+
+if TYPE_CHECKING:
+    from ..protocol import MethodFault
 
 log = logging.getLogger("testbed.nodes")
 
@@ -27,7 +31,7 @@ class Node:
         self.crash_at = cfg.crash_at
         self.malformed = 0
         self.error: BaseException | None = None
-        self.method_fault = None  # the method's end raised (``protocol.MethodFault``): the node goes passive
+        self.method_fault: MethodFault | None = None  # the method's end raised (``protocol.MethodFault``): the node goes passive
         self._pubs: list = []
         self.rx_mode = cfg.rx or "thread"
         spin_us = cfg.rx_spin_us
@@ -110,7 +114,7 @@ class Node:
         return {"channel": {k: s.summary() for k, s in self.channel_stages.items()}} if self.channel_stages else {}
 
     def rx_summary(self) -> dict:
-        d = {"rx": self.rx_mode}
+        d: dict = {"rx": self.rx_mode}
         if self.inlet is not None:
             d["rx_inlet"] = self.inlet.stats()
         return d

@@ -48,11 +48,12 @@ class RunClock:
 
 def realtime_minus_monotonic() -> int:
     """CLOCK_REALTIME - CLOCK_MONOTONIC in ns (best of a few reads, error ~1 us)."""
-    best = None
+    best: tuple[int, int] | None = None
     for _ in range(7):
         a = time.monotonic_ns()
         r = time.time_ns()
         b = time.monotonic_ns()
         if best is None or b - a < best[0]:
             best = (b - a, r - (a + b) // 2)
+    assert best is not None
     return best[1]

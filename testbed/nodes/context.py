@@ -6,6 +6,7 @@ import hashlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from ..wire import messages as msg
 from ..wire import transport
@@ -56,7 +57,7 @@ class NodeContext:
             session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive, history=True),
             session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True),
         ]
-        self._tokens = []
+        self._tokens: list = []
         self.watch_collector = False  # launched by ``testbed run``: stop when the launcher goes away
 
     # ---- liveliness
@@ -247,7 +248,8 @@ class TelemetryOut:
         self.n = int(max(1, min(64, max_delay_ns // max(T_ns, 1))))
         self.buf: list[bytes] = []
         self.lock = threading.Lock()
-        self.tap = None  # testbed run --rerun: a deque's append (testbed.nodes.rerun_tap), nothing more
+        # testbed run --rerun: a deque's append (testbed.nodes.rerun_tap), nothing more
+        self.tap: Callable[[bytes], None] | None = None
         self._digest = hashlib.sha256()  # of every record, in order: the launcher checks what it received
         self.records = 0
         self.immediate = not background

@@ -84,6 +84,7 @@ class ControllerNode(Node):
     def _publish(self, d: Decision, rx: int, stamp: int) -> None:
         self.maybe_crash(d.k)
         clock = self.ctx.clock
+        assert clock is not None  # set by the Start before any sample is handled
         tx = clock.now()
         ut = tuple(d.u.tolist())
         p, a = msg.Actuation(d.k, tx, d.theta, ut, d.last_rx).encode()
@@ -134,6 +135,7 @@ class ControllerNode(Node):
     def run(self) -> None:
         ctx = self.ctx
         clock = ctx.clock
+        assert clock is not None  # set by the Start before the loop runs
         N, T_ns = ctx.n_steps, ctx.T_ns
         proto = self.proto
         try:

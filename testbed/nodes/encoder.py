@@ -116,6 +116,7 @@ class EncoderNode(Node):
             return
         ctx = self.ctx
         clock = ctx.clock
+        assert clock is not None  # set by the Start before any sample is handled
         if k > ctx.newest_k(rx):
             self.future_sensor += 1
             ctx.event("future_sensor", k=k, detail=f"x for sample {k} before its instant: rejected")
@@ -193,7 +194,7 @@ class EncoderNode(Node):
                 return
             if what == "resolved" and self.ctx.clock is not None:
                 self.ack_latency.append(rx_mono - self.ctx.clock.t0_mono_ns - self.pending_tx)
-            elif what == "resync":
+            elif what == "resync" and p is not None:
                 self.ctx.event("ack_resync", k=p, detail=f"theta_{p} recovered from the ack of sample {k}; "
                                                          f"{silent} samples withheld", level=20)
             self._cond.notify_all()

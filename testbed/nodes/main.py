@@ -25,6 +25,7 @@ import resource
 import signal
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from ..wire import transport
 from ..wire.session import zenoh_config
@@ -38,6 +39,9 @@ from .process import (
     setup_logging,
     tune_process,
 )
+
+if TYPE_CHECKING:
+    from . import rerun_tap
 
 log = logging.getLogger("testbed.nodes")
 
@@ -130,7 +134,8 @@ def run_node(cfg: NodeConfig) -> int:
         cfg = dataclasses.replace(cfg, wait_collector=cfg.wait_collector or cfg.launched)
         node = _node_class(role)(ctx, cfg)
         holder["node"] = node
-        tap = guest_tap = None
+        tap: rerun_tap.RerunTap | None = None
+        guest_tap: rerun_tap.RerunTap | None = None
         try:
             if cfg.rerun_url or cfg.rerun_save:  # rerun's view (numpy, rerun) only when asked for
                 from . import rerun_tap
@@ -143,7 +148,8 @@ def run_node(cfg: NodeConfig) -> int:
             if tap is not None and guest is not None:  # the colocated encoder's own stream (its part file)
                 save = cfg.rerun_save and os.path.join(os.path.dirname(cfg.rerun_save), "encoder.rrd")
                 guest_tap = rerun_tap.of(dataclasses.replace(cfg, rerun_save=save), "encoder", sc)
-                guest.ctx.telemetry.tap = guest_tap.put
+                if guest_tap is not None:
+                    guest.ctx.telemetry.tap = guest_tap.put
             node.warmup()
             phase(role, "warm")
             # no cyclic-GC pauses in the loop (the loop makes no reference cycles worth collecting);

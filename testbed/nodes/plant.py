@@ -224,6 +224,7 @@ class PlantNode(Node):
     # ---- the loop
     def run(self) -> None:
         ctx, sc, clock = self.ctx, self.sc, self.ctx.clock
+        assert clock is not None  # set by the Start before any sample is handled
         T_ns, N = ctx.T_ns, ctx.n_steps
         d_ns = int(sc.run.deadline * T_ns)
         physical = self.timing == "physical"
@@ -273,6 +274,7 @@ class PlantNode(Node):
                     break
                 w = inlet.window(now) if inlet is not None else None
                 if w is not None and w[0] <= now < w[1]:  # rx "spin": u_k is due, poll for it
+                    assert inlet is not None  # a window comes from the inlet
                     if not inlet.spin(min(w[1], deadline)) and clock.now() >= w[1]:
                         inlet.last_k = max(inlet.last_k, k)  # not this window: wait as usual
                     continue
@@ -295,6 +297,7 @@ class PlantNode(Node):
                 elif refused == "clamped":
                     ctx.event("input_clamped", k=k, detail=f"|u_k| above u_max = {sc.controller.u_max:g}: clamped")
             if u is not None:
+                assert a is not None  # u is the checked a.u
                 theta = a.theta
                 u_rx = rx_mono - clock.t0_mono_ns
                 self.latency.append(u_rx - t_act)
@@ -323,7 +326,8 @@ class PlantNode(Node):
                 st = pp.step(u, delay)
             except PlantFault as e:  # the run ends at this sample, as in testbed simulate
                 fault, st = e, FLOW_OK
-            u_applied = (np.zeros(proc.m) if u is None else u) if pp.device is None else pp.u_applied
+            applied = pp.u_applied
+            u_applied = (np.zeros(proc.m) if u is None else u) if pp.device is None or applied is None else applied
             tel.put(PT(k=k, t_ns=t_act, sensor_tx_ns=sensor_tx, u_rx_ns=u_rx, delay_ns=delay, theta=theta,
                        flags=flags, flow_status=st, x=tuple(x.tolist()), u=tuple(u_applied.tolist()),
                        x_meas=() if xm is x else tuple(xm.tolist())).encode())

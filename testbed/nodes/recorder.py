@@ -29,6 +29,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from ..record import recording, topics
 from ..wire import messages as msg
@@ -41,9 +42,9 @@ log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
 RECORDER_STOP_GRACE_S = 60.0  # time to drain the queue and close the file after a signal
 
-_LOOP_TYPES = {"loop/sensor": msg.Sensor, "loop/symbol/tx": msg.Symbol, "loop/symbol/rx": msg.Symbol,
+_LOOP_TYPES: dict[str, Any] = {"loop/sensor": msg.Sensor, "loop/symbol/tx": msg.Symbol, "loop/symbol/rx": msg.Symbol,
                "loop/actuation": msg.Actuation, "loop/ack/tx": msg.Ack, "loop/ack/rx": msg.Ack}
-_JSON_TYPES = {"attacker/status": msg.AttackerStatus, "control/start": msg.Start, "control/stop": msg.Stop}
+_JSON_TYPES: dict[str, Any] = {"attacker/status": msg.AttackerStatus, "control/start": msg.Start, "control/stop": msg.Stop}
 
 
 def _stamp(t) -> int:

@@ -15,6 +15,7 @@ import collections
 import logging
 import os
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -23,8 +24,7 @@ from ..wire import messages as msg
 
 log = logging.getLogger("testbed.nodes")
 
-_DECODE = {"plant": msg.PlantTelemetry, "encoder": msg.EncoderTelemetry, "controller": msg.ControllerTelemetry,
-           "attacker": msg.AttackerTelemetry}
+_DECODE = msg.TELEMETRY_TYPES
 
 
 NICE = 10  # the logging thread's (and Rerun's threads') nice value: the loop's threads stay at 0
@@ -39,7 +39,7 @@ class RerunTap:
         plant = sc.make_model()
         self.n, self.m = plant.n, plant.m
         self._target = (recording_id, url, save)
-        self.rec = None
+        self.rec: Any = None  # the rerun RecordingStream, made in the tap's thread
         self.q: collections.deque = collections.deque()
         self.put = self.q.append  # the hook on the control path: one deque append
         self.x_prev = None

@@ -123,8 +123,8 @@ def _specialized(kernel, bindings: dict):
         def run(*args):
             return jitted(*[a for i, a in enumerate(args) if i not in drop])
 
-        run.dispatcher = jitted
-        run.path = mod.__file__
+        run.dispatcher = jitted  # type: ignore[attr-defined]  # the compiled kernel, for numba's signatures
+        run.path = mod.__file__  # type: ignore[attr-defined]  # its cached source file
         _built[digest] = run
         return run
 
@@ -306,15 +306,16 @@ def _load(digest: str, src: str, refs: dict):
     path = d / f"{stem}.py"
     if not path.exists() or path.read_text() != src:
         # write once, atomically, never over an existing file (its mtime keys numba's cache)
-        fd, tmp = tempfile.mkstemp(dir=d, prefix=f".{stem}.", suffix=".tmp")
+        fd, tmp_ = tempfile.mkstemp(dir=d, prefix=f".{stem}.", suffix=".tmp")
+        tmp: str | None = tmp_
         try:
             with os.fdopen(fd, "w") as f:
                 f.write(src)
             try:
-                os.link(tmp, path)
+                os.link(tmp_, path)
             except FileExistsError:
                 if path.read_text() != src:
-                    os.replace(tmp, path)
+                    os.replace(tmp_, path)
                     tmp = None
         finally:
             if tmp is not None and os.path.exists(tmp):
@@ -324,6 +325,7 @@ def _load(digest: str, src: str, refs: dict):
     if mod is not None:
         return mod
     spec = importlib.util.spec_from_file_location(modname, path)
+    assert spec is not None and spec.loader is not None  # a .py file path always has both
     mod = importlib.util.module_from_spec(spec)
     sys.modules[modname] = mod
     try:

@@ -40,6 +40,7 @@ import math
 import struct
 from functools import cache
 from importlib import resources
+from typing import Any
 
 from ..wire import messages as msg
 from .phase import PHASE_DIMS, phase_bounds, roa_outline
@@ -304,7 +305,8 @@ class FoxgloveTopics:
         self.roa_wanted = roa and self.n == 2 and sc.T >= ROA_MIN_T
         self.roa = None
         self.roa_sent = False
-        self._roa_thread = None
+        # None: computed on the caller's thread when first asked; a Thread: computing; False: computed
+        self._roa_thread: Any = None
         if self.roa_wanted and background:
             import threading
 
@@ -419,6 +421,7 @@ class FoxgloveTopics:
                 self.done.discard(old)
             del self.done_order[:2 * self.pending_max]
         self._ensure_scene()
+        assert self.scene is not None
         x = p.x if p is not None else ()
         xi = E = None
         if e is not None and not e.silent and e.xi:
@@ -430,7 +433,7 @@ def telemetry_extra(name: str, t, t0_ns: int | None, T_ns: int) -> dict | None:
     """The derived fields of a telemetry message: ``header`` (its stamp t0 + k T, absolute), ``log10_E``."""
     if t0_ns is None:
         return None
-    out = {"header": t0_ns + int(t.k) * T_ns}
+    out: dict[str, float] = {"header": t0_ns + int(t.k) * T_ns}
     E = getattr(t, "E", None)
     if E is not None and name in ("EncoderSample", "ControllerSample") and E > 0 and math.isfinite(E):
         out["log10_E"] = math.log10(E)

@@ -52,7 +52,7 @@ def _roa_for(key, sc, grid) -> RoaOutline:
     window = ((float(r.xs[0]), float(r.xs[-1])), (float(r.ys[0]), float(r.ys[-1])))
     if r.inside.all():
         (x0, x1), (y0, y1) = window
-        lines = (np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]),)
+        lines: tuple[np.ndarray, ...] = (np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]),)
         note = "the whole gridded window is inside the nominal region"
     else:
         gen = contourpy.contour_generator(r.xs, r.ys, r.inside.astype(float))

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 
@@ -159,7 +160,7 @@ def log_styles(rec, n: int, m: int, roles=("plant", "encoder", "controller", "at
 
     names_x = [f"x{i + 1}" for i in range(n)]
     cols_x = [COLOR_X[i % len(COLOR_X)] for i in range(n)]
-    st = {
+    st: dict[str, dict] = {
         "plant": {"plant/x": rr.SeriesLines(names=names_x, colors=cols_x),
                   "plant/u": rr.SeriesLines(names=[f"u{i + 1}" for i in range(m)]),
                   "phase/trajectory": rr.LineStrips2D.from_fields(colors=[(60, 60, 60)], radii=[-1.5]),
@@ -282,7 +283,7 @@ def run_to_rrd(path, run, *, recording_id: str | None = None, roa: bool = True, 
     out = roa_outline(sc) if roa else None
     x, u = np.asarray(run.arrays["x"]), np.asarray(run.arrays["u"])
     bp = blueprint(sc, phase_bounds(sc, x, out))
-    sinks = []
+    sinks: list = []
     if path is not None:
         sinks.append(rr.FileSink(str(path)))
     if spawn:
@@ -394,8 +395,8 @@ class LiveRerun:
 
     def __init__(self, mode: str, target: str | None, sc, recording_id: str, roa: bool = True):
         self.mode, self.target, self.sc, self.recording_id, self.roa = mode, target, sc, recording_id, roa
-        self.rec = None
-        self.parts_dir = None
+        self.rec: Any = None                  # the launcher's rerun RecordingStream, from start()
+        self.parts_dir: str | None = None
         self.merge_error: str | None = None
 
     @classmethod
@@ -421,11 +422,12 @@ class LiveRerun:
 
     @property
     def url(self) -> str:
-        return self.target if self.mode == "connect" else DEFAULT_URL
+        return self.target if self.mode == "connect" and self.target is not None else DEFAULT_URL
 
     def part(self, who: str) -> str:
         from pathlib import Path
 
+        assert self.parts_dir is not None  # prepare() made it
         return str(Path(self.parts_dir) / f"{who}.rrd")
 
     def prepare(self) -> None:
@@ -434,7 +436,7 @@ class LiveRerun:
         import tempfile
         from pathlib import Path
 
-        if self.mode == "save" and self.parts_dir is None:
+        if self.mode == "save" and self.parts_dir is None and self.target is not None:
             out = Path(self.target).resolve()
             out.parent.mkdir(parents=True, exist_ok=True)
             self.parts_dir = tempfile.mkdtemp(prefix=f".{out.name}.parts-", dir=out.parent)
@@ -470,7 +472,7 @@ class LiveRerun:
             self.rec.flush()
             self.rec.disconnect()
             self.rec = None
-        if self.mode != "save" or self.parts_dir is None:
+        if self.mode != "save" or self.parts_dir is None or self.target is None:
             return
         parts = sorted(str(p) for p in Path(self.parts_dir).glob("*.rrd"))
         env = dict(os.environ, RERUN_ANALYTICS="0")

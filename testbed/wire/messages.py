@@ -292,7 +292,7 @@ class _Telemetry:
         return cls(**vals)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return asdict(self)  # type: ignore[call-overload]  # every subclass is a dataclass
 
 
 @dataclass(frozen=True, slots=True)
@@ -430,15 +430,15 @@ def unpack_batch(payload) -> list[bytes]:
     return out
 
 
-TELEMETRY_TYPES = {"plant": PlantTelemetry, "encoder": EncoderTelemetry,
+TELEMETRY_TYPES: dict[str, type[_Telemetry]] = {"plant": PlantTelemetry, "encoder": EncoderTelemetry,
                    "controller": ControllerTelemetry, "attacker": AttackerTelemetry}
 
 
 # ============================================================================ bookkeeping (JSON)
 class _Json:
     def encode(self) -> bytes:
-        return json.dumps(asdict(self), separators=(",", ":"), allow_nan=False,
-                          default=_json_default).encode()
+        d = asdict(self)  # type: ignore[call-overload]  # every subclass is a dataclass
+        return json.dumps(d, separators=(",", ":"), allow_nan=False, default=_json_default).encode()
 
     @classmethod
     def decode(cls, payload):

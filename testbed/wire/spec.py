@@ -201,7 +201,8 @@ def layouts() -> str:
 def telemetry_layouts() -> str:
     out = []
     for role, cls in msg.TELEMETRY_TYPES.items():
-        rows, off = _struct_rows(cls.__name__, cls._scalars, cls._scalar_fields)
+        rows, off_n = _struct_rows(cls.__name__, cls._scalars, cls._scalar_fields)
+        off: int | str = off_n
         for f in cls._vector_fields + ((cls._optional_vector,) if cls._optional_vector else ()):
             unit, meaning = FIELD_DOC[(cls.__name__, f)]
             rows.append(f"| {off if isinstance(off, int) else off} | 1 + 8 len | uint8 len, float64[len] | `{f}` | "
@@ -271,7 +272,7 @@ def example_messages() -> dict:
     """Sample 0 of the bundled ``paper`` scenario, by the nodes' own state machines: every
     message of the sample as (key, payload bytes, attachment bytes), and the numbers behind them."""
     from .. import scenario
-    from ..protocol import ControllerProtocol, EncoderProtocol
+    from ..protocol import ControllerProtocol, EncoderProtocol, Send
 
     sc = scenario.load("paper")
     model = sc.make_model()
@@ -282,6 +283,7 @@ def example_messages() -> dict:
     keys = transport.Keys.for_run("demo")
     x0 = tuple(float(v) for v in sc.x0)
     send = ep.sensor(0, x0)
+    assert isinstance(send, Send)  # sample 0 of a fresh encoder is sent
     data = enc.codebook.pack(send.symbol)
     (d,) = cp.symbol(0, data)
     t = EXAMPLE_TIMES

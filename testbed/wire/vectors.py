@@ -81,6 +81,7 @@ def loop_vectors(sc, samples: int = LOOP_SAMPLES) -> list[dict]:
                 rec["attacker"] = {"forwarded": False}
                 decisions = [cp.deadline(k)]
             (d,) = decisions
+            assert d is not None  # sample k is the next: decided by its symbol or its deadline
             u = _f(d.u)
             act = msg.Actuation(k, 0, d.theta, tuple(u), d.last_rx).encode()[0]
             rec["controller"] = {"symbol": int(d.symbol), "xi": _f(d.xi), "E": float(d.E), "q": _f(d.q),
