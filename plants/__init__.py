@@ -13,6 +13,7 @@ of an installed entry point (group ``dos_testbed.plants``) or
 from __future__ import annotations
 
 from dataclasses import fields
+from typing import Any
 
 from .base import Plant, PlantFault, PlantProcess
 from .cartpole import CartPole
@@ -97,7 +98,7 @@ def available() -> list[dict]:
 
 
 def _row(name: str, cls: type[Plant], source: str, ref: str) -> dict:
-    row = {"name": name, "source": source, "ref": ref, "n": None, "m": None,
+    row: dict[str, Any] = {"name": name, "source": source, "ref": ref, "n": None, "m": None,
            "description": cls.description or (cls.__doc__ or "").strip().split("\n")[0], "error": None}
     try:
         p = cls.from_params() if cls is Linear else cls()

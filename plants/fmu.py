@@ -166,7 +166,7 @@ def describe(path: str | Path, *, inputs, states, params: dict | None = None) ->
 #: the log buffer of each open FMUPlant, by the key its FMU passes back as componentEnvironment
 _LOGS: dict[int, list] = {}
 _LOG_KEYS = itertools.count(1)
-_LOGGER = []
+_LOGGER: list = []
 
 
 def _process_logger():
@@ -319,6 +319,8 @@ class FMUPlant:
         if u.shape != (self.m,):
             raise ValueError(f"u must have {self.m} entries, got {u.tolist()}")
         f = self._fmu
+        if f is None:
+            raise PlantFault("the FMU was closed")
         try:
             f.setReal(self._vr_u, [float(v) for v in u])
             f.doStep(currentCommunicationPoint=self.t, communicationStepSize=dt)
@@ -339,7 +341,9 @@ class FMUPlant:
         return self._x.copy()
 
     def close(self) -> None:
-        _LOGS.pop(getattr(self, "_log_key", None), None)
+        key = getattr(self, "_log_key", None)
+        if key is not None:
+            _LOGS.pop(key, None)
         f, self._fmu = self._fmu, None
         self._ready = False
         if f is not None:

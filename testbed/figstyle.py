@@ -219,6 +219,7 @@ def save(fig, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     digest = data_digest(fig)
     ext = path.suffix.lower()
+    meta: dict[str, str | None]
     if ext == ".png":
         meta = {METADATA_KEY: digest, "Software": "testbed (matplotlib)"}
     elif ext == ".pdf":
@@ -240,7 +241,7 @@ def read_digest(path) -> str | None:
         from PIL import Image
 
         with Image.open(path) as im:
-            return im.text.get(METADATA_KEY)
+            return getattr(im, "text", {}).get(METADATA_KEY)  # a PNG's text chunks
     data = path.read_bytes()
     key = METADATA_KEY.encode() + b" "
     i = data.find(key)
