@@ -31,6 +31,7 @@ loop cannot recover from (the paper's example escapes with E_min = 4e-4, see the
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -93,7 +94,7 @@ def sweep(sc, scales, ratios, *, distribution: str = "uniform", seed: int = 1, s
     for s in scales:
         sensor = SensorSpec(distribution=distribution, scale=float(s), seed=int(seed))
         b = sensor.bound()
-        entry = {"scale": float(s), "b": b, "E_min_guarantee": e_min_guarantee(b, qp.Lambda, qp.M),
+        entry: dict[str, Any] = {"scale": float(s), "b": b, "E_min_guarantee": e_min_guarantee(b, qp.Lambda, qp.M),
                  "E_min_estimate": e_min_guarantee(b, a, qp.M), "runs": []}
         for r in ratios:
             e = float(r) * b

@@ -36,7 +36,8 @@ def scenario_budget(sc, horizon: float | None = None) -> tuple[tuple[float, floa
       smallest kappas over the run (a finite attack is all initial energy).
     """
     if sc.attack.budget is not None:
-        return tuple(float(v) for v in sc.attack.budget), "scenario"
+        kF, rF, kD, rD = (float(v) for v in sc.attack.budget)
+        return (kF, rF, kD, rD), "scenario"
     H = sc.run.duration if horizon is None else horizon
     sch = sc.attack.schedule(sc.T, H)
     if sc.attack.kind == "periodic":

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
@@ -239,14 +240,14 @@ class Theorem2Result:
     holds: bool
     omega_nu: float = math.nan   # Theorem 1's rate with the certificate's mu, nu
     share: float = 0.5
-    cert: Certificate = field(repr=False, default=None)
+    cert: Certificate = field(repr=False, default=None)  # type: ignore[assignment]  # set by the search
 
     @property
     def delta(self) -> float:
         return self.lemma.delta
 
     def to_dict(self) -> dict:
-        d = {"gamma": self.lemma.gamma}
+        d: dict[str, Any] = {"gamma": self.lemma.gamma}
         d.update(self.lemma.to_dict())
         d["budget"] = dict(zip(("kappa_F", "rho_F", "kappa_D", "rho_D"), self.budget))
         for k in ("phi0", "phi1", "s", "eps", "eta0", "eta1", "phi0_hat", "phi0_tilde", "vartheta", "phi1_hat",

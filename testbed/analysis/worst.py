@@ -60,7 +60,10 @@ from math import comb
 
 import numpy as np
 
+from plants.base import Plant
+
 from ..flow import DEFAULT_FLOW, FlowOptions
+from ..loopspec import QuantizerParams
 from ..sim.batch import EscapeCriterion
 from .parallel import Stages, n_chunks, run_batch
 from .sweep import classify
@@ -86,13 +89,13 @@ class Loop:
     decides escape (default ``EscapeCriterion.for_loop(model, qp, tol)``).
     """
 
-    plant: object
+    plant: Plant
     K: np.ndarray
-    qp: object            # QuantizerParams (E_0 per initial state is given separately)
+    qp: QuantizerParams   # E_0 per initial state is given separately
     n_steps: int
     tol: float = 1e-4
     flow: FlowOptions = DEFAULT_FLOW
-    model: object = None
+    model: Plant | None = None
     criterion: EscapeCriterion | None = None
 
     @property

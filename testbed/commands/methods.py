@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
 from .. import cliargs
 
@@ -105,7 +106,7 @@ def main_versus(args) -> int:
         done = engine.run_points(points, keep=bool(args.plot))
         rows = [d[0] for d in done] if args.plot else done
         series = [(d[0], d[2]) for d in done] if args.plot else []
-    out = {"scenario": sc.name, "methods": names, "rows": [{k: r[k] for k in engine.ROW_KEYS} for r in rows]}
+    out: dict[str, Any] = {"scenario": sc.name, "methods": names, "rows": [{k: r[k] for k in engine.ROW_KEYS} for r in rows]}
     if args.live:
         for o, r in zip(out["rows"], rows):
             o["recording"] = r.get("recording")
