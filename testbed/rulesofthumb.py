@@ -92,7 +92,7 @@ def _allow_x0_outside(sc) -> bool:
     import tomllib
 
     try:
-        return bool(tomllib.loads(sc.source).get("quantizer", {}).get("allow_x0_outside", False))
+        return bool(sc.document().get("quantizer", {}).get("allow_x0_outside", False))
     except (tomllib.TOMLDecodeError, AttributeError):
         return False
 

@@ -5,6 +5,7 @@ wrong.  The full schema is documented in docs/scenarios.md."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import tomllib
@@ -158,7 +159,7 @@ def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>"
 
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
               base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
-              method_note: str = "") -> Scenario:
+              method_note: str = "", document: dict | None = None) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
@@ -167,7 +168,10 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     ``method_note``: the line of a method swapped into ``data`` (:func:`swap_method`), kept on the Scenario.
     ``check_design=False`` skips the Schur check of a given K (scipy's expm): for the
     nodes of a run whose launcher checked the same text and overrides already.
+    ``document``: what ``source`` parses to, when ``data`` is that with overrides applied (default ``data``);
+    kept on the Scenario (``Scenario.document``), so that nothing parses ``source`` again.
     """
+    doc = copy.deepcopy(document if document is not None else data) if source else {}
     base_dir = str(Path(base_dir).resolve()) if base_dir else ""
     ctx = _Ctx(where)
     if not isinstance(data, dict):
@@ -451,7 +455,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
                   description=description, model=model, L_u=L_u, base_dir=base_dir, method=mspec,
-                  method_note=f"note: {method_note}" if method_note else "", network=network)
+                  method_note=f"note: {method_note}" if method_note else "", network=network, doc=doc)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
@@ -533,8 +537,9 @@ def bundled_names() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
 
 
-def load(ref: str | Path, *, check_design: bool = True) -> Scenario:
-    """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...)."""
+def load(ref: str | Path, *, check_design: bool = True, overrides: dict | None = None) -> Scenario:
+    """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...), with run-time
+    ``overrides`` applied as in :func:`with_overrides` (the text parsed and the Scenario built once)."""
     p = Path(ref)
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
@@ -556,18 +561,31 @@ def load(ref: str | Path, *, check_design: bool = True) -> Scenario:
                                 f"(bundled: {', '.join(bundled_names())})")
         text = res.read_text()
         name, where, base_dir = str(ref), f"bundled:{ref}", None
-    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design)
+    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design, overrides=overrides)
 
 
 def loads(text: str, *, name: str = "scenario", where: str = "<string>",
-          base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True) -> Scenario:
-    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design`` as in ``from_dict``."""
+          base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
+          overrides: dict | None = None) -> Scenario:
+    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design`` as in ``from_dict``;
+    ``overrides`` as in :func:`with_overrides`, applied to the parsed document before the one build."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
-    return from_dict(data, name=name, where=where, source=text, base_dir=base_dir, check_fmu=check_fmu,
-                     check_design=check_design)
+    over = _checked_overrides(overrides, name)
+    build = dict(name=name, source=text, base_dir=base_dir, check_fmu=check_fmu, check_design=check_design)
+    if not over:
+        return from_dict(data, where=where, **build)
+    where_o = f"{where} (with run overrides)"
+    try:
+        edited, note = _apply_overrides(copy.deepcopy(data), over,
+                                        str(Path(base_dir).resolve()) if base_dir else None, where_o)
+        sc = from_dict(edited, where=where_o, method_note=note, document=data, **build)
+    except ScenarioError as e:  # the file's own error first (raised here), else the overrides' fault
+        base = from_dict(data, where=where, **build)
+        raise BadInput(_override_hint(str(e), base, over)) from None
+    return dataclasses.replace(sc, path=where)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
@@ -594,25 +612,46 @@ def with_seed(sc: Scenario, overrides: dict) -> tuple[Scenario, dict]:
     import secrets
 
     over = dict(overrides, seed=secrets.randbelow(2**31))
-    return with_overrides(sc, {"seed": over["seed"]}), over
+    return with_overrides(sc, over), over  # all of them: with_overrides starts from the file
 
 
 def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool = True) -> Scenario:
     """``sc`` with run-time overrides applied and validated as if written in its file.
 
-    ``sc.source`` stays the original text; recordings store the overrides beside it.
+    They apply to the file (``sc.source``, parsed once: ``sc.document()``), not on top of overrides
+    applied before: pass all of them.  ``sc.source`` stays the original text; recordings store the
+    overrides beside it.
     A bad override raises ``BadInput`` (not ``ScenarioError``: the file is fine) whose message
     names the overrides and says what to change (:func:`_override_hint`).
     """
-    over = {k: v for k, v in (overrides or {}).items() if v is not None}
+    over = _checked_overrides(overrides, sc.name)
     if not over:
         return sc
+    where = f"{sc.path} (with run overrides)"
+    try:
+        data, note = _apply_overrides(sc.document(), over, sc.base_dir or None, where)
+        sc2 = from_dict(data, name=sc.name, where=where, source=sc.source, document=sc.doc or None,
+                        base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
+                        check_design=check_design, method_note=note)
+    except ScenarioError as e:
+        raise BadInput(_override_hint(str(e), sc, over)) from None
+    return dataclasses.replace(sc2, path=sc.path)
+
+
+def _checked_overrides(overrides: dict | None, name: str) -> dict:
+    """The overrides that are set (None values left out); an unknown one is a ``BadInput``."""
+    over = {k: v for k, v in (overrides or {}).items() if v is not None}
     unknown = set(over) - set(OVERRIDES)
     if unknown:
         raise BadInput(f"unknown override(s): {', '.join(sorted(unknown))}; the overrides are "
                        f"{', '.join(OVERRIDES)} (any other key: write it in a copy of the scenario, "
-                       f"testbed scenarios --show {sc.name} > my.toml)")
-    data = tomllib.loads(sc.source)
+                       f"testbed scenarios --show {name} > my.toml)")
+    return over
+
+
+def _apply_overrides(data: dict, over: dict, base_dir: str | None, where: str) -> tuple[dict, str]:
+    """``over`` written into the parsed document ``data`` (edited in place) as if in the file; a method
+    swapped in last (``methodswap``).  Returns the document and the swap's note."""
     for k, v in over.items():
         table, key = OVERRIDES[k]
         if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swapped in last, below
@@ -630,17 +669,10 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
             v = v.tolist()
         as_float = isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES
         data.setdefault(table, {})[key] = float(v) if as_float else v
-    where = f"{sc.path} (with run overrides)"
-    try:
-        note = ""
-        if "method" in over:
-            data, note = swap_method(data, over["method"], sc.base_dir or None, where)
-        sc2 = from_dict(data, name=sc.name, where=where, source=sc.source,
-                        base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                        check_design=check_design, method_note=note)
-    except ScenarioError as e:
-        raise BadInput(_override_hint(str(e), sc, over)) from None
-    return dataclasses.replace(sc2, path=sc.path)
+    note = ""
+    if "method" in over:
+        data, note = swap_method(data, over["method"], base_dir, where)
+    return data, note
 
 
 def _override_hint(msg: str, sc: Scenario, over: dict) -> str:

@@ -4,7 +4,7 @@ them.  ``testbed.scenario`` reads and validates the TOML into them."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -234,6 +234,19 @@ class Scenario:
     method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
     method_note: str = ""  # a swapped method (``--method``): what it leaves out, one line (testbed.methodswap)
     network: NetworkModel | None = None   # [network]: the emulated channels (None: ideal links)
+    # the TOML document of ``source`` as it was parsed, once (``document``)
+    doc: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def document(self) -> dict:
+        """The parsed TOML of ``source``, a copy to edit: the text is parsed once, when the scenario is read
+        (``testbed.scenario.loads``); overrides, method swaps and campaign points edit this copy."""
+        import copy
+
+        if self.doc or not self.source:
+            return copy.deepcopy(self.doc)
+        import tomllib
+
+        return tomllib.loads(self.source)
 
     def make_method(self):
         """The coding-and-control method ([method]; ``testbed.methods.Method``)."""

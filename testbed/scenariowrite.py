@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import tomllib
 from pathlib import Path
 
 import plants.refs
@@ -56,7 +55,7 @@ def with_attack(sc: Scenario, *, x0, E0: float, intervals, duration: float, name
     anywhere; a ``module:Class`` plant module found only in the scenario's folder cannot be
     named from elsewhere: ``ScenarioError`` unless ``out_dir`` is that folder.
     """
-    data = tomllib.loads(sc.source)
+    data = sc.document()
     data["name"] = name
     data["description"] = description
     base = Path(sc.base_dir or ".").resolve()

@@ -137,3 +137,44 @@ def test_the_one_method_swap_rule():
     assert swapped["quantizer"] == {"T": 0.1, "foo": 1} and "ignores [quantizer] M of" in note
     with pytest.raises(ScenarioError, match=r"unknown key\(s\) \['foo'\]"):
         scenario.from_dict(swapped)
+
+
+def test_a_run_parses_its_scenario_once(monkeypatch, tmp_path):
+    """A process of a live run reads its scenario text once: the run options are applied to the parsed
+    document (not by parsing ``source`` again), and a drawn seed, the start digest, the rules of thumb,
+    a rewrite of the scenario and a later override all work from that one parse."""
+    from testbed import rulesofthumb, scenariowrite
+    from testbed.nodes.options import RunOptions, load_scenario, run_digest
+
+    path = tmp_path / "s.toml"
+    path.write_text(scenario.load("paper").source.replace('kind = "intervals"', 'kind = "random"\nkappa_F = 2.0\nrho_F = 0.1\nkappa_D = 1.0\nrho_D = 0.1')
+                    .replace("intervals = [[", "# intervals = [["), encoding="utf-8")
+    parses = []
+    real = tomllib.loads
+    monkeypatch.setattr(tomllib, "loads", lambda text, **kw: parses.append(len(text)) or real(text, **kw))
+    sc = load_scenario(str(path), RunOptions(duration=3.0, method="zoom", deadline=0.6))
+    assert len(parses) == 1
+    assert (sc.run.duration, sc.method.name, sc.run.deadline, sc.source) == (3.0, "zoom", 0.6, path.read_text())
+    sc2, over = scenario.with_seed(sc, RunOptions(duration=3.0, method="zoom", deadline=0.6).overrides())
+    run_digest(sc2, RunOptions())
+    rulesofthumb.warnings(sc2)
+    scenariowrite.with_attack(sc2, x0=sc2.x0, E0=sc2.quantizer.E0, intervals=[], duration=1.0, name="copy",
+                              description="", out_dir=tmp_path)
+    assert sc2.run.duration == 3.0 and sc2.attack.params_dict["seed"] == over["seed"], "a drawn seed kept the rest"
+    sc3 = scenario.with_overrides(sc2, dict(over, T=0.05))
+    assert len(parses) == 1, "the scenario text was parsed again"
+    assert sc3.T == 0.05 and sc3.attack.params_dict["seed"] == over["seed"] and sc3.run.duration == 3.0
+    assert sc3.document() == real(path.read_text()), "the document is the file's, overrides apart"
+
+
+def test_overrides_in_one_parse_equal_load_then_override():
+    """``load(ref, overrides=...)`` builds what ``with_overrides(load(ref), ...)`` builds, and blames the same input."""
+    for over in ({"duration": 2.5, "method": "zoom"}, {"T": 0.05, "E0": 3.0}, {"attack": {"kind": "none"}}):
+        a, b = scenario.load("paper", overrides=over), scenario.with_overrides(scenario.load("paper"), over)
+        assert a == b and a.path == b.path and a.method_note == b.method_note
+    for bad in ({"M": 2}, {"T": -1.0}, {"bogus": 1}):
+        with pytest.raises(scenario.BadInput) as one:
+            scenario.load("paper", overrides=bad)
+        with pytest.raises(scenario.BadInput) as two:
+            scenario.with_overrides(scenario.load("paper"), bad)
+        assert str(one.value) == str(two.value) and not isinstance(one.value, ScenarioError)

@@ -261,9 +261,9 @@ def load_scenario(ref, opts: RunOptions, *, check_design: bool = True):
     """
     from .. import scenario
 
-    base = scenario.load(ref, check_design=check_design) if isinstance(ref, str) else ref
-    return scenario.with_overrides(base, opts.overrides(),
-                                   check_design=check_design)
+    if isinstance(ref, str):  # parsed and built once, the overrides applied to the parsed text
+        return scenario.load(ref, check_design=check_design, overrides=opts.overrides())
+    return scenario.with_overrides(ref, opts.overrides(), check_design=check_design)
 
 
 def T_ns(sc) -> int:
