@@ -147,7 +147,8 @@ def test_a_run_parses_its_scenario_once(monkeypatch, tmp_path):
     from testbed.nodes.options import RunOptions, load_scenario, run_digest
 
     path = tmp_path / "s.toml"
-    path.write_text(scenario.load("paper").source.replace('kind = "intervals"', 'kind = "random"\nkappa_F = 2.0\nrho_F = 0.1\nkappa_D = 1.0\nrho_D = 0.1')
+    random = 'kind = "random"\nkappa_F = 2.0\nrho_F = 0.1\nkappa_D = 1.0\nrho_D = 0.1'  # no seed: one is drawn
+    path.write_text(scenario.load("paper").source.replace('kind = "intervals"', random)
                     .replace("intervals = [[", "# intervals = [["), encoding="utf-8")
     parses = []
     real = tomllib.loads
