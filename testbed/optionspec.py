@@ -165,30 +165,37 @@ def argv(cfg, command: str) -> list[str]:
 
 
 def _cell(v) -> str:
-    if v is None or v == () or v == [] or v is False:
+    if v is None or v in ((), [], {}) or v is False:
         return ""
     return f"`{v}`"
 
 
+def _md(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
 def table(classes, commands: tuple[str, ...] = ("run", "node", "record", "conformance")) -> str:
-    """The options table of docs/cli.md: one row per option of ``classes`` and the commands that take it, with
-    each command's default where it differs."""
+    """The options table of docs/cli.md: a row per option of ``classes`` and per form of it (the commands that take
+    it alike: flag, default and help), and whether it enters the run's start digest."""
     rows = ["| option | commands | default | run digest | what it does |", "|---|---|---|---|---|"]
     for cls in classes:
         for f, o in options(cls):
             if o.hidden:
                 continue
-            takes = [c for c in commands if c in o.commands]
-            if not takes:
-                continue
-            first = o.on(takes[0])
-            flag = flag_of(f, first) + ("" if first.switch else f" {first.metavar or f.name.upper()}")
-            defaults = {c: default_of(f, o.on(c)) for c in takes}
-            if len({repr(d) for d in defaults.values()}) == 1:
-                dflt = _cell(defaults[takes[0]])
-            else:
-                dflt = ", ".join(f"{c}: {_cell(d) or 'none'}" for c, d in defaults.items())
-            text = first.help.replace("|", "\\|").replace("%(default)s", str(defaults[takes[0]])).replace(
-                "%(default)g", f"{defaults[takes[0]]:g}" if isinstance(defaults[takes[0]], float) else "")
-            rows.append(f"| `{flag}` | {', '.join(takes)} | {dflt} | {'yes' if o.digest else ''} | {text} |")
+            forms: dict[tuple, list[str]] = {}
+            for c in commands:
+                if c not in o.commands:
+                    continue
+                oc = o.on(c)
+                value = "" if oc.switch else " " + (oc.metavar or ("|".join(oc.choices) if oc.choices
+                                                                   else f.name.upper()))
+                flag = ", ".join(n for n in (oc.short, flag_of(f, oc)) if n) + value + (
+                    " (repeatable)" if oc.repeat else "")
+                d = default_of(f, oc)
+                text = oc.help.replace("%(default)s", str(d)).replace("%(default)g", f"{d:g}" if isinstance(
+                    d, float) else str(d))
+                forms.setdefault((flag, _cell(d), text), []).append(c)
+            for (flag, d, text), takes in forms.items():
+                rows.append(f"| `{_md(flag)}` | {', '.join(takes)} | {_md(d)} | {'yes' if o.digest else ''} | "
+                            f"{_md(text)} |")
     return "\n".join(rows) + "\n"

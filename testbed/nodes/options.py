@@ -30,9 +30,9 @@ FOXGLOVE_PORT = 8765
 SHARED = ("run", "node", "record", "conformance", "simulate")
 
 
-def _shared(default=None, help="", **kw):
-    """A run option: every process of a run takes it, and it enters the start digest."""
-    return option(default, help, commands=SHARED, digest=True, **kw)
+def _shared(default=None, help="", digest=True, **kw):
+    """A run option: every process of a run takes it, and (unless said) it enters the start digest."""
+    return option(default, help, commands=SHARED, digest=digest, **kw)
 
 
 @dataclass(frozen=True)
@@ -59,7 +59,7 @@ class RunOptions:
     rule: str | None = _shared(help="override [quantizer] rule (the prediction rule)", choices=("paper", "delay-aware"))
     seed: int | None = _shared(
         help="override [attack] seed (a random attack without one draws one, prints it and records it)", kind=int,
-        metavar="S")
+        metavar="S", digest=False)  # the attack is not in run_digest: only the attacker draws from it
     method: str | None = _shared(
         help="override [method] name: the coding-and-control method (testbed methods lists them; [quantizer] keys it "
              "does not use are ignored with a note)", metavar="NAME")
