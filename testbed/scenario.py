@@ -60,8 +60,9 @@ _KEYS = {
 
 
 class _Ctx:
-    def __init__(self, where: str):
+    def __init__(self, where: str, read_recording_trace: traces.RecordingTraceReader | None = None):
         self.where = where
+        self.read_recording_trace = read_recording_trace  # how a recording named as a trace is read
 
     def err(self, key: str, msg: str) -> ScenarioError:
         return ScenarioError(f"{self.where}: [{key}] {msg}")
@@ -158,7 +159,7 @@ def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>"
 
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
               base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
-              method_note: str = "") -> Scenario:
+              method_note: str = "", read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
@@ -169,7 +170,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     nodes of a run whose launcher checked the same text and overrides already.
     """
     base_dir = str(Path(base_dir).resolve()) if base_dir else ""
-    ctx = _Ctx(where)
+    ctx = _Ctx(where, read_recording_trace)
     if not isinstance(data, dict):
         raise ctx.err("", "scenario must be a TOML table")
     _unknown(ctx, "top level", data, _SECTIONS)
@@ -499,7 +500,7 @@ def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
         raise ctx.err("attack.source", "missing: a recording (.mcap) or a file of dropped sample indices")
     path = Path(src) if Path(src).is_absolute() else Path(base_dir or ".") / src
     try:
-        return traces.read_trace(path)
+        return traces.read_trace(path, ctx.read_recording_trace)
     except (OSError, ValueError, BadInput) as e:
         raise ctx.err("attack.source", f"{src}: {e}") from None
 
@@ -533,8 +534,10 @@ def bundled_names() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
 
 
-def load(ref: str | Path, *, check_design: bool = True) -> Scenario:
-    """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...)."""
+def load(ref: str | Path, *, check_design: bool = True,
+         read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
+    """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...);
+    ``read_recording_trace``: how a recording named as an ``[attack]`` trace is read (``testbed.traces``)."""
     p = Path(ref)
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
@@ -556,18 +559,21 @@ def load(ref: str | Path, *, check_design: bool = True) -> Scenario:
                                 f"(bundled: {', '.join(bundled_names())})")
         text = res.read_text()
         name, where, base_dir = str(ref), f"bundled:{ref}", None
-    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design)
+    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design,
+                 read_recording_trace=read_recording_trace)
 
 
 def loads(text: str, *, name: str = "scenario", where: str = "<string>",
-          base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True) -> Scenario:
-    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design`` as in ``from_dict``."""
+          base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
+          read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
+    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design``, ``read_recording_trace`` as in
+    ``from_dict``."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
     return from_dict(data, name=name, where=where, source=text, base_dir=base_dir, check_fmu=check_fmu,
-                     check_design=check_design)
+                     check_design=check_design, read_recording_trace=read_recording_trace)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
@@ -597,10 +603,12 @@ def with_seed(sc: Scenario, overrides: dict) -> tuple[Scenario, dict]:
     return with_overrides(sc, {"seed": over["seed"]}), over
 
 
-def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool = True) -> Scenario:
+def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool = True,
+                   read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """``sc`` with run-time overrides applied and validated as if written in its file.
 
-    ``sc.source`` stays the original text; recordings store the overrides beside it.
+    ``sc.source`` stays the original text; recordings store the overrides beside it.  A trace the
+    scenario read is kept as read (``read_recording_trace``: for an ``attack`` override naming another).
     A bad override raises ``BadInput`` (not ``ScenarioError``: the file is fine) whose message
     names the overrides and says what to change (:func:`_override_hint`).
     """
@@ -613,6 +621,9 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
                        f"{', '.join(OVERRIDES)} (any other key: write it in a copy of the scenario, "
                        f"testbed scenarios --show {sc.name} > my.toml)")
     data = tomllib.loads(sc.source)
+    if sc.attack.kind == "trace" and "attack" not in over:  # the trace as read, not its source read again
+        data["attack"] = {**data["attack"], **{k: list(v) if isinstance(v, tuple) else v
+                                               for k, v in sc.attack.params_dict.items()}}
     for k, v in over.items():
         table, key = OVERRIDES[k]
         if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swapped in last, below
@@ -637,7 +648,7 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
             data, note = swap_method(data, over["method"], sc.base_dir or None, where)
         sc2 = from_dict(data, name=sc.name, where=where, source=sc.source,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                        check_design=check_design, method_note=note)
+                        check_design=check_design, method_note=note, read_recording_trace=read_recording_trace)
     except ScenarioError as e:
         raise BadInput(_override_hint(str(e), sc, over)) from None
     return dataclasses.replace(sc2, path=sc.path)

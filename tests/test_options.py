@@ -9,6 +9,7 @@ import argparse
 import ast
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -215,3 +216,55 @@ def test_the_testbed_starts_only_testbed_subcommands():
         assert isinstance(module, ast.Constant) and module.value == "testbed.cli", f"{where}:{line}"
         assert (isinstance(nxt, ast.Constant) and nxt.value in cli.COMMANDS) or isinstance(nxt, ast.Starred), \
             f"{where}:{line}: not a testbed subcommand"
+
+
+# ---------------------------------------------------------------------------- no module global patched at run time
+def _module_names(tree) -> set[str]:
+    """The names a module binds to the testbed's modules (``import testbed.x as y``, ``from . import x``)."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {(a.asname or a.name).split(".")[0] for a in node.names if a.name.startswith("testbed")}
+        elif isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("testbed")):
+            names |= {a.asname or a.name for a in node.names if a.name[:1].islower()}
+    return names
+
+
+def test_no_module_sets_another_modules_global():
+    """A dependency is passed, never patched into another of the testbed's modules (``traces.recording_trace_reader``
+    was): no ``module.NAME = ...`` anywhere in testbed/."""
+    found = []
+    for path in sorted(ROOT.rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        mods = _module_names(tree)
+        for node in ast.walk(tree):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(
+                node, (ast.AugAssign, ast.AnnAssign)) else []
+            for t in targets:
+                if isinstance(t, ast.Attribute) and isinstance(t.value, ast.Name) and t.value.id in mods:
+                    found.append(f"{path.relative_to(ROOT.parent)}:{node.lineno}: {t.value.id}.{t.attr}")
+    assert found == []
+
+
+def test_a_recording_trace_is_read_by_the_reader_the_caller_passes(tmp_path):
+    """``testbed.scenario`` reads a recording named as a trace with the reader it is given, and says what to pass
+    when none is; a plain trace file needs none."""
+    from testbed import scenario, traces
+    from testbed.errors import BadInput
+
+    assert not hasattr(traces, "recording_trace_reader")
+    seen = []
+
+    def reader(p):
+        seen.append(Path(p).name)
+        return {"samples": [2, 3], "T": 0.1, "n_samples": 300, "source": str(p)}
+
+    base = scenario.load("paper").source
+    text = re.sub(r'kind = "intervals"\nintervals = .*\n', 'kind = "trace"\nsource = "other.mcap"\n', base)
+    assert 'source = "other.mcap"' in text
+    with pytest.raises((BadInput, ValueError), match="read_recording_trace"):
+        scenario.loads(text, base_dir=tmp_path)
+    sc = scenario.loads(text, base_dir=tmp_path, read_recording_trace=reader)
+    assert seen == ["other.mcap"] and list(sc.attack.params_dict["samples"]) == [2, 3]
+    again = scenario.with_overrides(sc, {"duration": 12.0})  # the trace as read: not read a second time
+    assert seen == ["other.mcap"] and list(again.attack.params_dict["samples"]) == [2, 3] and again.n_steps == 120

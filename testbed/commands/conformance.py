@@ -16,6 +16,7 @@ from pathlib import Path
 from .. import cliargs, optionspec
 from ..live.conformance import PLANT_TOLERANCE
 from ..nodes.options import RunConfig, add_run_option_arguments
+from ..record.tracereader import read_recording_trace
 from ..wire import transport
 from ..wire.session import add_network_arguments
 
@@ -79,7 +80,8 @@ def main(args) -> int:
         raise BadInput(f"{command[0]}: no such command")
     from .. import scenario
 
-    scenario.load(args.scenario)  # a bad scenario: one line, exit 2, before anything runs
+    # a bad scenario: one line, exit 2, before anything runs
+    scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     opts = run_options(args, "conformance")
     if opts.colocate:
         raise BadInput("--colocate: an external node runs alone in its process")

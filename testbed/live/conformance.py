@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..record.tracereader import read_recording_trace
 from ..wire import join, transport
 from ..wire.session import SessionOptions
 from . import adverse
@@ -339,7 +340,8 @@ def run_scenario(jd: dict):
 
     opts = RunOptions.of_join(jd["run_options"])
     s = jd["scenario"]
-    return scn.with_overrides(scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"]), opts.overrides())
+    sc = scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"], read_recording_trace=read_recording_trace)
+    return scn.with_overrides(sc, opts.overrides())
 
 
 def simulated(sc) -> dict:

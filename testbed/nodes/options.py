@@ -342,8 +342,10 @@ def load_scenario(ref, opts: RunOptions, *, check_design: bool = True):
     overrides): skip the Schur check of a given K, so that the node needs no scipy.
     """
     from .. import scenario
+    from ..record.tracereader import read_recording_trace
 
-    base = scenario.load(ref, check_design=check_design) if isinstance(ref, str) else ref
+    base = scenario.load(ref, check_design=check_design, read_recording_trace=read_recording_trace) \
+        if isinstance(ref, str) else ref
     return scenario.with_overrides(base, opts.overrides(),
                                    check_design=check_design)
 
