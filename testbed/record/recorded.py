@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 from .topics import FORMAT_VERSION
-from .tracereader import read_recording_trace
 
 
 def software_versions() -> dict[str, str]:
@@ -132,8 +131,7 @@ def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, tru
             toml = to_toml(data)
         design = not stand.used
         sc = loads(toml, name=str(meta.get("name", "recorded"))[:200], where=f"{path} (recorded scenario)",
-                   base_dir=base_dir, check_fmu=False, check_design=design,
-                   read_recording_trace=read_recording_trace)
+                   base_dir=base_dir, check_fmu=False, check_design=design)
         over = metadata.get("testbed.run", {}).get("scenario_overrides")
         try:
             sc = with_overrides(sc, json.loads(over), check_design=design) if over else sc
