@@ -299,9 +299,9 @@ class _executor:
     """``with _executor(args) as ex``: the executor of --workers / --scheduler, closed afterwards."""
 
     def __init__(self, args):
-        from ..analysis.parallel import from_args
+        from ..analysis.parallel import Executor
 
-        self.ex = from_args(args)
+        self.ex = Executor(getattr(args, "workers", None), getattr(args, "scheduler", None))
 
     def __enter__(self):
         return self.ex
