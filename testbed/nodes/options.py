@@ -85,10 +85,15 @@ class RunOptions:
         """The node processes of the run (the four roles, less the colocated ones)."""
         return tuple(r for r in transport.ROLES if r not in self.colocate)
 
+    @staticmethod
+    def override_flags() -> dict[str, str]:
+        """The options that override a scenario key (``testbed.scenario.OVERRIDES``) -> their flag."""
+        return {f.name: optionspec.flag_of(f, o) for f, o in optionspec.options(RunOptions)
+                if not o.switch and f.name != "colocate"}
+
     def overrides(self) -> dict:
         """The scenario overrides (``testbed.scenario.with_overrides``): the valued options, None left out."""
-        return {f.name: getattr(self, f.name) for f, o in optionspec.options(RunOptions)
-                if not o.switch and f.name != "colocate" and getattr(self, f.name) is not None}
+        return {k: getattr(self, k) for k in self.override_flags() if getattr(self, k) is not None}
 
     def cli(self) -> list[str]:
         """The same options as command-line flags (for the launcher)."""
