@@ -15,7 +15,6 @@ import importlib
 import os
 import sys
 
-from . import traces
 from .entry import CHILD_COMMANDS, EPILOG, QUIET_START, add_command_arguments, run_command, run_guarded, runner_of
 
 __all__ = ["COMMANDS", "QUIET_START", "build_parser", "main", "run_guarded"]
@@ -115,16 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     return _main(argv)
 
 
-def _recording_trace(*args, **kwargs):
-    """``testbed.runs.run.recording_trace``, imported when a command first reads a recording as a trace (numpy and
-    the readers are not loaded by every command: ``testbed run`` forks its nodes before it needs them)."""
-    from .runs.run import recording_trace
-
-    return recording_trace(*args, **kwargs)
-
-
 def _main(argv: list[str]) -> int:
-    traces.recording_trace_reader = _recording_trace  # a command reads a recording as a trace like the API
     # build only the parser of the requested command when possible (fast start)
     if argv and argv[0] in ("--version", "-V"):
         print(_version())

@@ -17,7 +17,7 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
-from . import device, methodswap, traces
+from . import device, methodswap, scenariooverrides, traces
 from .channel import ChannelError, parse_network
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
@@ -61,8 +61,9 @@ _KEYS = {
 
 
 class _Ctx:
-    def __init__(self, where: str):
+    def __init__(self, where: str, read_recording_trace: traces.RecordingTraceReader | None = None):
         self.where = where
+        self.read_recording_trace = read_recording_trace  # how a recording named as a trace is read
 
     def err(self, key: str, msg: str) -> ScenarioError:
         return ScenarioError(f"{self.where}: [{key}] {msg}")
@@ -159,7 +160,8 @@ def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>"
 
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
               base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
-              method_note: str = "", document: dict | None = None) -> Scenario:
+              method_note: str = "", document: dict | None = None,
+              read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
@@ -173,7 +175,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     """
     doc = copy.deepcopy(document if document is not None else data) if source else {}
     base_dir = str(Path(base_dir).resolve()) if base_dir else ""
-    ctx = _Ctx(where)
+    ctx = _Ctx(where, read_recording_trace)
     if not isinstance(data, dict):
         raise ctx.err("", "scenario must be a TOML table")
     _unknown(ctx, "top level", data, _SECTIONS)
@@ -503,7 +505,7 @@ def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
         raise ctx.err("attack.source", "missing: a recording (.mcap) or a file of dropped sample indices")
     path = Path(src) if Path(src).is_absolute() else Path(base_dir or ".") / src
     try:
-        return traces.read_trace(path)
+        return traces.read_trace(path, ctx.read_recording_trace)
     except (OSError, ValueError, BadInput) as e:
         raise ctx.err("attack.source", f"{src}: {e}") from None
 
@@ -537,9 +539,11 @@ def bundled_names() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
 
 
-def load(ref: str | Path, *, check_design: bool = True, overrides: dict | None = None) -> Scenario:
+def load(ref: str | Path, *, check_design: bool = True, overrides: dict | None = None,
+         read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...), with run-time
-    ``overrides`` applied as in :func:`with_overrides` (the text parsed and the Scenario built once)."""
+    ``overrides`` applied as in :func:`with_overrides` (the text parsed and the Scenario built once);
+    ``read_recording_trace``: how a recording named as an ``[attack]`` trace is read (``testbed.traces``)."""
     p = Path(ref)
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
@@ -561,42 +565,40 @@ def load(ref: str | Path, *, check_design: bool = True, overrides: dict | None =
                                 f"(bundled: {', '.join(bundled_names())})")
         text = res.read_text()
         name, where, base_dir = str(ref), f"bundled:{ref}", None
-    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design, overrides=overrides)
+    return loads(text, name=name, where=where, base_dir=base_dir, check_design=check_design, overrides=overrides,
+                 read_recording_trace=read_recording_trace)
 
 
 def loads(text: str, *, name: str = "scenario", where: str = "<string>",
           base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
-          overrides: dict | None = None) -> Scenario:
-    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design`` as in ``from_dict``;
+          overrides: dict | None = None,
+          read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
+    """A scenario from TOML text; ``base_dir``, ``check_fmu``, ``check_design``, ``read_recording_trace`` as in
+    ``from_dict``;
     ``overrides`` as in :func:`with_overrides`, applied to the parsed document before the one build."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
-    over = _checked_overrides(overrides, name)
-    build = dict(name=name, source=text, base_dir=base_dir, check_fmu=check_fmu, check_design=check_design)
+    over = scenariooverrides.checked(overrides, name)
+    build = dict(name=name, source=text, base_dir=base_dir, check_fmu=check_fmu, check_design=check_design,
+                 read_recording_trace=read_recording_trace)
     if not over:
         return from_dict(data, where=where, **build)
     where_o = f"{where} (with run overrides)"
     try:
-        edited, note = _apply_overrides(copy.deepcopy(data), over,
-                                        str(Path(base_dir).resolve()) if base_dir else None, where_o)
+        bd = str(Path(base_dir).resolve()) if base_dir else None
+        edited, note = scenariooverrides.apply(copy.deepcopy(data), over,
+                                               lambda d, m: swap_method(d, m, bd, where_o))
         sc = from_dict(edited, where=where_o, method_note=note, document=data, **build)
     except ScenarioError as e:  # the file's own error first (raised here), else the overrides' fault
         base = from_dict(data, where=where, **build)
-        raise BadInput(_override_hint(str(e), base, over)) from None
+        raise BadInput(scenariooverrides.hint(str(e), base.name, base.x0, over)) from None
     return dataclasses.replace(sc, path=where)
 
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
-OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
-             "mode": ("quantizer", "mode"), "T": ("quantizer", "T"), "loss_fraction": ("run", "loss_fraction"),
-             "actuation": ("run", "actuation"), "rule": ("quantizer", "rule"), "seed": ("attack", "seed"),
-             "x0": ("plant", "x0"), "E0": ("quantizer", "E0"), "M": ("quantizer", "M"), "method": ("method", None),
-             "attack": ("attack", None)}
-
-
-_INT_OVERRIDES = {"seed", "M"}
+OVERRIDES = scenariooverrides.OVERRIDES
 
 
 def unseeded(sc: Scenario) -> bool:
@@ -615,80 +617,31 @@ def with_seed(sc: Scenario, overrides: dict) -> tuple[Scenario, dict]:
     return with_overrides(sc, over), over  # all of them: with_overrides starts from the file
 
 
-def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool = True) -> Scenario:
+def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool = True,
+                   read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """``sc`` with run-time overrides applied and validated as if written in its file.
 
     They apply to the file (``sc.source``, parsed once: ``sc.document()``), not on top of overrides
     applied before: pass all of them.  ``sc.source`` stays the original text; recordings store the
-    overrides beside it.
+    overrides beside it.  A trace the scenario read is kept as read (``read_recording_trace``: for an
+    ``attack`` override naming another).
     A bad override raises ``BadInput`` (not ``ScenarioError``: the file is fine) whose message
-    names the overrides and says what to change (:func:`_override_hint`).
+    names the overrides and says what to change (:func:`testbed.scenariooverrides.hint`).
     """
-    over = _checked_overrides(overrides, sc.name)
+    over = scenariooverrides.checked(overrides, sc.name)
     if not over:
         return sc
     where = f"{sc.path} (with run overrides)"
+    data = sc.document()
+    if sc.attack.kind == "trace" and "attack" not in over:  # the trace as read, not its source read again
+        data["attack"] = {**data["attack"], **{k: list(v) if isinstance(v, tuple) else v
+                                               for k, v in sc.attack.params_dict.items()}}
     try:
-        data, note = _apply_overrides(sc.document(), over, sc.base_dir or None, where)
+        data, note = scenariooverrides.apply(data, over,
+                                             lambda d, m: swap_method(d, m, sc.base_dir or None, where))
         sc2 = from_dict(data, name=sc.name, where=where, source=sc.source, document=sc.doc or None,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                        check_design=check_design, method_note=note)
+                        check_design=check_design, method_note=note, read_recording_trace=read_recording_trace)
     except ScenarioError as e:
-        raise BadInput(_override_hint(str(e), sc, over)) from None
+        raise BadInput(scenariooverrides.hint(str(e), sc.name, sc.x0, over)) from None
     return dataclasses.replace(sc2, path=sc.path)
-
-
-def _checked_overrides(overrides: dict | None, name: str) -> dict:
-    """The overrides that are set (None values left out); an unknown one is a ``BadInput``."""
-    over = {k: v for k, v in (overrides or {}).items() if v is not None}
-    unknown = set(over) - set(OVERRIDES)
-    if unknown:
-        raise BadInput(f"unknown override(s): {', '.join(sorted(unknown))}; the overrides are "
-                       f"{', '.join(OVERRIDES)} (any other key: write it in a copy of the scenario, "
-                       f"testbed scenarios --show {name} > my.toml)")
-    return over
-
-
-def _apply_overrides(data: dict, over: dict, base_dir: str | None, where: str) -> tuple[dict, str]:
-    """``over`` written into the parsed document ``data`` (edited in place) as if in the file; a method
-    swapped in last (``methodswap``).  Returns the document and the swap's note."""
-    for k, v in over.items():
-        table, key = OVERRIDES[k]
-        if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swapped in last, below
-            if not isinstance(v, (str, dict)):
-                raise BadInput(f"override method must be a method name, got {v!r}")
-            continue
-        if key is None:  # attack: a table merged into [attack] (a new kind replaces it)
-            if not isinstance(v, dict):
-                raise BadInput(f"override {k} must be a dict of [{table}] keys (e.g. attack={{\"intervals\": "
-                               f"[[1.0, 0.5]]}} or attack={{\"kind\": \"none\"}}), got {v!r}")
-            old = data.get(table, {})
-            data[table] = {**({} if "kind" in v and v["kind"] != old.get("kind") else old), **v}
-            continue
-        if isinstance(v, np.ndarray):
-            v = v.tolist()
-        as_float = isinstance(v, int) and not isinstance(v, bool) and k not in _INT_OVERRIDES
-        data.setdefault(table, {})[key] = float(v) if as_float else v
-    note = ""
-    if "method" in over:
-        data, note = swap_method(data, over["method"], base_dir, where)
-    return data, note
-
-
-def _override_hint(msg: str, sc: Scenario, over: dict) -> str:
-    """A scenario error caused by overrides, reworded so that a caller of overrides can act on it."""
-    names = ", ".join(f"{k}={v!r}" for k, v in over.items())
-    x0 = over.get("x0", sc.x0)
-    try:
-        nx = max(abs(float(v)) for v in np.ravel(x0))
-    except (TypeError, ValueError):
-        nx = None
-    if "allow_x0_outside" in msg and nx is not None:
-        msg = msg.replace("(set allow_x0_outside = true to run it anyway)",
-                          f"(pass E0={nx:g} or larger with it; or, to run it anyway, set allow_x0_outside = true in "
-                          f"[quantizer] of a copy of the scenario: testbed scenarios --show {sc.name})")
-    if "allow_M_le_Lambda" in msg:
-        msg = msg.replace("(set allow_M_le_Lambda = true to run it anyway)",
-                          "(pass a larger M or a smaller T; or, to run it anyway, set allow_M_le_Lambda = true in "
-                          f"[quantizer] of a copy of the scenario: testbed scenarios --show {sc.name})")
-    return f"override(s) {names}: {msg}"

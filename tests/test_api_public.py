@@ -119,7 +119,7 @@ def test_the_overrides_of_the_api_and_the_command_line_are_the_documented_sets()
     rows = re.findall(r"^\| `([A-Za-z0-9_]+)` \| ([^|]+) \|", section, re.M)
     documented = {name: flag.strip() for name, flag in rows}
     assert set(documented) == set(scenario.OVERRIDES)
-    flags = dict(RunOptions._OVERRIDES)
+    flags = RunOptions.override_flags()
     for name, flag in documented.items():
         if name in flags:
             assert flag == f"`{flags[name]}`", name

@@ -169,11 +169,6 @@ class Executor:
             self._client = None
 
 
-def from_args(args) -> Executor:
-    """The executor of a command's ``--workers`` / ``--scheduler`` options."""
-    return Executor(getattr(args, "workers", None), getattr(args, "scheduler", None))
-
-
 # ---------------------------------------------------------------------------- local processes
 _pools: dict = {}
 _pool_lock = threading.Lock()

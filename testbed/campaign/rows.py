@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import scenario as scenario_mod
+from ..record.tracereader import read_recording_trace
 from . import engine
 from .spec import OUTCOME_KEYS, Run
 
@@ -31,7 +32,8 @@ def simulate_runs(items: list, batch: bool = True) -> list[dict]:
     for rid, text, name, base_dir in items:
         t0 = time.perf_counter()
         try:
-            sc = scenario_mod.loads(text, name=name, where=f"run {rid}", base_dir=base_dir or None)
+            sc = scenario_mod.loads(text, name=name, where=f"run {rid}", base_dir=base_dir or None,
+                                     read_recording_trace=read_recording_trace)
             key = batch_key(sc, text, base_dir) if batch else None
         except Exception as e:  # noqa: BLE001 - a crashed run is a row of its own (exit 1), the campaign goes on
             rows[rid] = _failed(rid, e, t0)

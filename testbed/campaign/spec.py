@@ -30,6 +30,7 @@ from pathlib import Path
 from .. import methodswap
 from .. import scenario as scenario_mod
 from ..errors import BadInput
+from ..record.tracereader import read_recording_trace
 from ..scenariospec import ScenarioError
 from ..scenariowrite import to_toml
 from . import engine
@@ -162,7 +163,8 @@ class Run:
         return hashlib.sha256(self.text.encode()).hexdigest()
 
     def scenario(self):
-        return scenario_mod.loads(self.text, name=self.name, where=f"run {self.id}", base_dir=self.base_dir or None)
+        return scenario_mod.loads(self.text, name=self.name, where=f"run {self.id}", base_dir=self.base_dir or None,
+                                  read_recording_trace=read_recording_trace)
 
 
 def derived_seed(campaign_seed: int, choice: str, axes: dict, repeat: int) -> int:
@@ -182,7 +184,7 @@ def base_scenario(c: Campaign):
         p = c.path.resolve().parent / p
         ref = str(p)
     try:
-        return scenario_mod.load(ref)
+        return scenario_mod.load(ref, read_recording_trace=read_recording_trace)
     except ScenarioError as e:
         raise BadInput(f"{c.path}: scenario: {e}") from None
 
@@ -309,7 +311,8 @@ def _hint(c: Campaign, e: Exception) -> str:
 def _valid(base, axes: dict, methods: dict | None = None) -> bool:
     try:
         data, _, _ = _resolve(base, axes, lambda _choice: None, methods)
-        scenario_mod.from_dict(data, name=base.name, where="scenario", base_dir=base.base_dir or None)
+        scenario_mod.from_dict(data, name=base.name, where="scenario", base_dir=base.base_dir or None,
+                               read_recording_trace=read_recording_trace)
     except (BadInput, TypeError, ValueError):
         return False
     return True

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import cliargs
+from ..record.tracereader import read_recording_trace
 
 
 # ============================================================================ progress bar
@@ -198,7 +199,7 @@ def main_analyze(args) -> int:
     from .. import scenario
     from ..analysis.summary import analyze, to_json
 
-    sc = scenario.load(args.scenario)
+    sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     note_not_modelled(sc, "testbed analyze")
     if args.full or args.plot:
         true_plant(sc, "testbed analyze --full / --plot")
@@ -298,9 +299,9 @@ class _executor:
     """``with _executor(args) as ex``: the executor of --workers / --scheduler, closed afterwards."""
 
     def __init__(self, args):
-        from ..analysis.parallel import from_args
+        from ..analysis.parallel import Executor
 
-        self.ex = from_args(args)
+        self.ex = Executor(getattr(args, "workers", None), getattr(args, "scheduler", None))
 
     def __enter__(self):
         return self.ex
@@ -530,7 +531,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
 def main_roa(args) -> int:
     from .. import scenario
 
-    sc = _with_method(scenario.load(args.scenario), args, "testbed roa")
+    sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed roa")
     if args.vulnerable:
         true_plant(sc, "testbed roa --vulnerable")
     plant = sc.make_model()

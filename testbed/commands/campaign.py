@@ -63,7 +63,7 @@ def main(args) -> int:
         if c.runs == "simulated" or args.scheduler:
             from ..analysis import parallel
 
-            executor = parallel.from_args(args)
+            executor = parallel.Executor(args.workers, args.scheduler)
         parallel_desc = executor.describe() if executor is not None else {"kind": "serial", "workers": 1}
         out = campaignrun.run(c, folder, executor=executor, progress=not args.no_progress,
                               live_timeout=args.live_timeout, planned=(base, runs, notes))
@@ -166,7 +166,7 @@ def _verify(args) -> int:
     if args.workers or args.scheduler:
         from ..analysis import parallel
 
-        executor = parallel.from_args(args)
+        executor = parallel.Executor(args.workers, args.scheduler)
     try:
         d = campaignrun.verify(Path(args.verify), sample=args.sample, seed=args.seed or 0,
                                     executor=executor, trust_code=args.trust_code)

@@ -13,9 +13,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .. import cliargs
+from .. import cliargs, optionspec
 from ..live.conformance import PLANT_TOLERANCE
-from ..nodes.options import add_run_option_arguments
+from ..nodes.options import RunConfig, add_run_option_arguments
+from ..record.tracereader import read_recording_trace
 from ..wire import transport
 from ..wire.session import add_network_arguments
 
@@ -32,7 +33,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the verdict: passed (over the required requirements), and requirements (name, required, "
                         "passed, status, detail)")
     add_run_option_arguments(p)
-    add_network_arguments(p.add_argument_group("network (as testbed run's)"), launcher=True)
+    add_network_arguments(p.add_argument_group("network (as testbed run's)"), command="conformance")
     g = p.add_argument_group("conformance")
     g.add_argument("--bit-exact", action="store_true",
                    help="ROLE plant: require equals_simulator (the plant equals the testbed's own bit for bit) "
@@ -42,8 +43,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
                         "(default %(default)g)")
     g.add_argument("--keep", metavar="DIR", help="keep the recordings and logs in DIR (default: a temporary folder, "
                                                 "kept when a requirement is not met)")
-    g.add_argument("--startup-timeout", type=float, default=120.0, metavar="S",
-                   help="the node must have joined and the run started within S seconds (default %(default)s)")
+    optionspec.add_arguments(p, RunConfig, "conformance", group=g, names=("startup_timeout",))
     g.add_argument("--no-adverse", action="store_true",
                    help="do not feed the node a late, a duplicated and an invalid message (the adverse cases)")
     g.add_argument("--timeout", type=float, default=300.0, metavar="S", help="give up on a run after S seconds "
@@ -62,8 +62,8 @@ def replay_on_recorded_plant(path: str) -> dict:
 
 def main(args) -> int:
     from ..errors import BadInput
-    from ..live.conformance import ADVERSE, DEVICE, REQUIREMENTS, Network, conformance
-    from .liveconfig import run_options
+    from ..live.conformance import ADVERSE, DEVICE, REQUIREMENTS, conformance, feedable
+    from .liveconfig import run_options, session_options
 
     # the options after SCENARIO, then -- COMMAND [ARGS...] (argparse drops a -- that directly follows SCENARIO)
     rest = list(args.command)
@@ -80,13 +80,14 @@ def main(args) -> int:
         raise BadInput(f"{command[0]}: no such command")
     from .. import scenario
 
-    scenario.load(args.scenario)  # a bad scenario: one line, exit 2, before anything runs
-    opts = run_options(args)
+    # a bad scenario: one line, exit 2, before anything runs
+    scenario.load(args.scenario, read_recording_trace=read_recording_trace)
+    opts = run_options(args, "conformance")
     if opts.colocate:
         raise BadInput("--colocate: an external node runs alone in its process")
-    net = Network.of(args)
-    if not args.no_adverse and net.feedable():
-        raise BadInput(net.feedable())
+    net = session_options(args, "conformance")  # testbed run's session, as the launcher takes it
+    if not args.no_adverse and feedable(net):
+        raise BadInput(feedable(net))
     if not (args.plant_tolerance >= 0 and math.isfinite(args.plant_tolerance)):
         raise BadInput(f"--plant-tolerance {args.plant_tolerance!r}: not a finite number >= 0")
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="testbed-conformance-"))

@@ -8,6 +8,7 @@ import sys
 from typing import Any
 
 from .. import cliargs
+from ..record.tracereader import read_recording_trace
 
 
 # ============================================================================ methods
@@ -85,7 +86,7 @@ def main_versus(args) -> int:
     names = _methods_arg(args.methods)
     if args.seeds is not None and args.seeds < 1:
         raise BadInput(f"--seeds must be >= 1, got {args.seeds}")
-    sc = scenario.load(args.scenario)
+    sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     if args.seeds is None:  # with --seeds the rows use seeds S..S+N-1: nothing is drawn
         sc, over = scenario.with_seed(sc, {})
         if over:

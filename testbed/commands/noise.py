@@ -13,6 +13,7 @@ import math
 import sys
 
 from .. import cliargs
+from ..record.tracereader import read_recording_trace
 
 SCALES = (1e-6, 1e-5, 1e-4)
 RATIOS = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 8.0, 12.0, 20.0)
@@ -59,7 +60,7 @@ def main(args) -> int:
     from ..errors import BadInput
     from .analyze import Progress
 
-    sc = scenario.load(args.scenario)
+    sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     if args.method:
         sc = scenario.with_overrides(sc, {"method": args.method})
     if args.settle is not None and args.settle >= sc.run.duration:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from .. import cliargs
 from ..errors import BadInput
+from ..record.tracereader import read_recording_trace
 
 
 def add_arguments_plants(p: argparse.ArgumentParser) -> None:
@@ -92,7 +93,7 @@ def main_check_plant(args) -> int:
     if args.scenario:
         from .. import scenario
 
-        sc = scenario.load(args.scenario)
+        sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
         base_dir = sc.base_dir or base_dir
         if args.ref is None:
             if sc.plant.fmu is not None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import cliargs
+from ..record.tracereader import read_recording_trace
 from .analyze import (
     Progress,
     _add_method,
@@ -58,7 +59,7 @@ def main_sweep(args) -> int:
     from ..analysis.sweep import sweep
     from ..analysis.theorem1 import Loop, plain_certificate
 
-    sc = _with_method(scenario.load(args.scenario), args, "testbed sweep")
+    sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed sweep")
     model, plant = sc.make_model(), true_plant(sc, "testbed sweep")
     kF0, kD0 = sweep_kappas(sc)
     kF = kF0 if args.kappa_F is None else args.kappa_F
@@ -180,7 +181,7 @@ def main_worst_attack(args) -> int:
     from ..analysis.worst import Loop, worst_attack
     from ..errors import BadInput
 
-    sc = _with_method(scenario.load(args.scenario), args, "testbed worst-attack")
+    sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed worst-attack")
     kw = _search_args(args, sc)
     plant = true_plant(sc, "testbed worst-attack")
     x0 = sc.x0 if args.x0 is None else np.asarray(args.x0, dtype=float)
@@ -295,7 +296,7 @@ def main_vulnerability(args) -> int:
     from ..analysis.worst import Loop
     from ..errors import BadInput
 
-    sc = _with_method(scenario.load(args.scenario), args, "testbed vulnerability")
+    sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed vulnerability")
     kw = _search_args(args, sc)
     if not 2 <= args.grid <= 1001:
         raise BadInput(f"--grid must be in 2..1001, got {args.grid}")

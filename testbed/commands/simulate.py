@@ -37,6 +37,7 @@ def main_simulate(args) -> int:
     from ..channel import loss_text
     from ..errors import BadInput
     from ..nodes.attacker import parse_corrupt
+    from ..record.tracereader import read_recording_trace
     from ..sim.batch import outcome_text, summarize
     from ..sim.loop import Network
     from ..sim.trajectory import simulate_scenario
@@ -44,7 +45,7 @@ def main_simulate(args) -> int:
 
     opts = run_options(args)
     overrides = opts.overrides()
-    sc = scenario.with_overrides(scenario.load(args.scenario), overrides)
+    sc = scenario.load(args.scenario, overrides=overrides, read_recording_trace=read_recording_trace)
     sc, over = scenario.with_seed(sc, overrides)
     if over != overrides:
         overrides = over

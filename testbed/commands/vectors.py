@@ -9,6 +9,7 @@ import argparse
 import json
 
 from .. import cliargs
+from ..record.tracereader import read_recording_trace
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,7 +24,7 @@ def main(args) -> int:
     from .. import scenario
     from ..wire.vectors import vectors
 
-    out = vectors(scenario.load(args.scenario), n=args.n)
+    out = vectors(scenario.load(args.scenario, read_recording_trace=read_recording_trace), n=args.n)
     if args.json:
         print(json.dumps(out))
         return 0

@@ -19,10 +19,12 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..record.tracereader import read_recording_trace
 from ..wire import join, transport
+from ..wire.session import SessionOptions
 from . import adverse
 from .external import ANNOUNCE
 
@@ -99,64 +101,43 @@ def _stop_group(p: subprocess.Popen) -> None:
             pass
 
 
-@dataclass(frozen=True)
-class Network:
-    """The network and security options of the run (``testbed run``'s flags of the same names)."""
-
-    listen: str | None = None
-    zenoh_config: str | None = None
-    topology: str = "auto"
-    secret_file: str | None = None
-    tls_dir: str | None = None
-    insecure: bool = False
-    low_latency: bool = False
-
-    @classmethod
-    def of(cls, args) -> Network:
-        """From parsed arguments (``testbed run``'s network options, ``add_network_arguments``): each field
-        from the argument of its name."""
-        return cls(**{f.name: getattr(args, f.name) for f in fields(cls)})
-
-    def flags(self) -> list[str]:
-        out = ["--topology", self.topology]
-        for name in ("listen", "zenoh_config", "secret_file", "tls_dir"):
-            if getattr(self, name):
-                out += ["--" + name.replace("_", "-"), str(getattr(self, name))]
-        return out + [f for f, on in (("--insecure", self.insecure), ("--low-latency", self.low_latency)) if on]
-
-    def feedable(self) -> str | None:
-        """Why the adverse cases cannot be fed in this network (None: they can): the feeding peer joins with
-        a role's certificate (``--tls-dir``, or one made for the run), or unauthenticated (``--insecure``)."""
-        if self.secret_file and not self.insecure:
-            return ("--secret-file: the adverse cases are fed by a peer holding a role's certificate; give "
-                    "--tls-dir DIR instead, or --no-adverse")
-        if self.listen and not self.listen.startswith("tls/" if not self.insecure else "tcp/"):
-            return (f"--listen {self.listen}: the adverse cases' feeding peer connects to a "
-                    f"{'tcp' if self.insecure else 'tls'}/HOST:PORT endpoint; give one, or --no-adverse")
-        return None
+def feedable(network: SessionOptions) -> str | None:
+    """Why the adverse cases cannot be fed in the run's network (``testbed run``'s session: ``SessionOptions.of("run")``;
+    None: they can): the feeding peer joins with a role's certificate (``--tls-dir``, or one made for the run), or
+    unauthenticated (``--insecure``)."""
+    listen = network.listen[0] if network.listen else None
+    if network.secret_file and not network.insecure:
+        return ("--secret-file: the adverse cases are fed by a peer holding a role's certificate; give "
+                "--tls-dir DIR instead, or --no-adverse")
+    if listen and not listen.startswith("tls/" if not network.insecure else "tcp/"):
+        return (f"--listen {listen}: the adverse cases' feeding peer connects to a "
+                f"{'tcp' if network.insecure else 'tls'}/HOST:PORT endpoint; give one, or --no-adverse")
+    return None
 
 
 def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path, flags=(),
                  timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False,
-                 network: Network = Network()) -> ExternalRun:
+                 network: SessionOptions | None = None) -> ExternalRun:
     """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end,
     in ``network``; ``feed``: the adverse cases fed to it (through the run's endpoint, with its TLS folder: one
     made for the run when ``network`` names none)."""
+    network = dataclasses.replace(network or SessionOptions.of("run"), run_id=run_id)
     folder.mkdir(parents=True, exist_ok=True)
     out = ExternalRun(recording=str(folder / f"{run_id}.mcap"))
     feeder = None
     if feed:
-        why = network.feedable()
+        why = feedable(network)
         if why:
             raise ValueError(why)
         tls = None if network.insecure else (network.tls_dir or
                                              str(transport.TlsCredentials.new(folder / f"{run_id}-tls").folder))
-        listen = network.listen or f"{'tcp' if tls is None else 'tls'}/127.0.0.1:{transport.free_port()}"
-        network = dataclasses.replace(network, tls_dir=tls, listen=listen)
+        listen = network.listen[0] if network.listen else \
+            f"{'tcp' if tls is None else 'tls'}/127.0.0.1:{transport.free_port()}"
+        network = dataclasses.replace(network, tls_dir=tls, listen=(listen,))
         feeder = adverse.Feeder(role, run_id, tls, listen, mode="client" if network.topology == "router" else "peer",
                                 low_latency=network.low_latency)
-    flags = (*flags, *network.flags())
-    cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json", "--run-id", run_id,
+    flags = (*flags, *network.argv("run"))  # testbed run's own flags: the session as the launcher takes it
+    cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json",
            "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
            "--startup-timeout", str(startup_timeout), *flags]
     p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -357,9 +338,10 @@ def run_scenario(jd: dict):
     from .. import scenario as scn
     from ..nodes.options import RunOptions
 
-    opts = RunOptions(**{**jd["run_options"], "colocate": tuple(jd["run_options"].get("colocate") or ())})
+    opts = RunOptions.of_join(jd["run_options"])
     s = jd["scenario"]
-    return scn.with_overrides(scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"]), opts.overrides())
+    sc = scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"], read_recording_trace=read_recording_trace)
+    return scn.with_overrides(sc, opts.overrides())
 
 
 def simulated(sc) -> dict:
@@ -635,7 +617,7 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
 
 def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True,
-                network: Network = Network(), bit_exact: bool = False, plant_tolerance: float = PLANT_TOLERANCE,
+                network: SessionOptions | None = None, bit_exact: bool = False, plant_tolerance: float = PLANT_TOLERANCE,
                 replay=None) -> dict:
     """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``; ``passed`` is over
     the required requirements (``check_run``: ``bit_exact``, ``plant_tolerance``, ``replay``)."""

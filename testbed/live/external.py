@@ -7,7 +7,6 @@ from ``TESTBED_JOIN``; the file goes with the run's other credentials at the end
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -58,8 +57,7 @@ def join_data(launcher) -> dict:
     ack = la.keys.ack_for_encoder(opts.ack_via_attacker, opts.ack_on_actuation)
     ref = Path(la.cfg.scenario)
     base_dir = str(ref.resolve().parent) if (ref.suffix == ".toml" or ref.exists()) else None
-    options = dataclasses.asdict(opts)
-    options["colocate"] = list(opts.colocate)
+    options = opts.join_fields()  # every run option a node takes (testbed.optionspec)
     return {"join_version": join.JOIN_VERSION, "protocol": join.PROTOCOL_VERSION, "role": role,
             "run_id": la.run_id, "key_prefix": la.keys.prefix, "ack_key": ack[len(la.keys.prefix) + 1:],
             "topology": la.topology, "mode": "peer" if peer else "client", "connect": [la.node_connect],

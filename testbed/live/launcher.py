@@ -163,7 +163,7 @@ class Launcher(RunCredentials, Stalls, RecorderControl):
             {"rerun_save": self.rerun.part(role)} if self.rerun.mode == "save" else {"rerun_url": self.rerun.url})}
         return NodeConfig(
             role=role, scenario=self.scenario_ref, opts=self.opts, session=self.session_options(role),
-            ready_timeout=c.startup_timeout, launched=True, rx=c.rx or "thread", rx_spin_us=c.rx_spin_us,
+            ready_timeout=c.startup_timeout, launched=True, **({"rx": c.rx} if c.rx else {}), rx_spin_us=c.rx_spin_us,
             cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=c.realtime,
             verbose=c.verbose, crash_at=self.crashes.get(role), **guest_crash, **rerun,
             spin_us=c.spin_us if role == "plant" else None,

@@ -33,16 +33,10 @@ def apply(cfg: NodeConfig) -> tuple:
     session = dataclasses.replace(cfg.session, run_id=jf.run_id, connect=tuple(jf.connect), listen=tuple(jf.listen),
                                   topology=jf.topology, low_latency=jf.low_latency, insecure=cred["kind"] == "none",
                                   tls_dir=tls_dir, secret_file=secret_file)
-    known = {f.name for f in dataclasses.fields(RunOptions)}
-    options = {}
-    for k, v in jf.run_options.items():
-        if k == "colocate":
-            v = tuple(v or ())
-            if v:
-                raise BadInput(f"join file {jf.path}: an external node with --colocate is not supported")
-        if k not in known:
-            raise BadInput(f"join file {jf.path}: unknown run option {k!r}")
-        options[k] = v
+    opts = RunOptions.of_join(jf.run_options, f"join file {jf.path}")
+    if opts.colocate:
+        raise BadInput(f"join file {jf.path}: an external node with --colocate is not supported")
+    options = {f.name: getattr(opts, f.name) for f in dataclasses.fields(RunOptions) if f.name in jf.run_options}
     # a node of a testbed run: it waits for the collector and stops when it goes
     return jf, dataclasses.replace(cfg, opts=dataclasses.replace(cfg.opts, **options), session=session,
                                    ready_timeout=float(jf.ready_timeout_s), start_lead=jf.start_lead_ns / 1e9,
@@ -52,7 +46,8 @@ def apply(cfg: NodeConfig) -> tuple:
 def scenario(jf):
     """The scenario the join file embeds (its text, as the run read it: the same digest)."""
     from .. import scenario as scn
+    from ..record.tracereader import read_recording_trace
 
     s = jf.scenario
     return scn.loads(s["toml"], name=s["name"], where=f"{jf.path} (scenario {s['name']})", base_dir=s["base_dir"],
-                     check_design=False)
+                     check_design=False, read_recording_trace=read_recording_trace)

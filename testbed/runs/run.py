@@ -30,18 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import traces
 from ..errors import BadInput
-
-
-def recording_trace(path) -> dict:
-    """A recording read as an attack trace (``testbed.traces``); the readers load on first use."""
-    from ..record.trace import read_recording_trace
-
-    return read_recording_trace(path)
-
-
-traces.recording_trace_reader = recording_trace
+from ..record.tracereader import read_recording_trace
 
 #: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
 #: docs/api.md explains each)
@@ -304,7 +294,7 @@ def resolve_scenario(scenario, overrides: dict | None = None):
     """A scenario object, bundled name or .toml path, with overrides applied (``BadInput`` if unusable)."""
     from .. import scenario as scen
 
-    sc = scenario if isinstance(scenario, scen.Scenario) else scen.load(str(scenario))
+    sc = scenario if isinstance(scenario, scen.Scenario) else scen.load(str(scenario), read_recording_trace=read_recording_trace)
     return scen.with_overrides(sc, overrides or {})
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 
+from .. import optionspec
+from ..optionspec import option
 from . import transport
 
 # ============================================================================ zenoh options
@@ -12,81 +14,67 @@ from . import transport
 AUTO = "auto"
 
 
-def add_security_arguments(g, launcher: bool = False) -> None:
-    """``--topology``, ``--secret-file``, ``--tls-dir``, ``--insecure``, ``--low-latency``: every process of a run
-    (``testbed run``, ``testbed node``, ``testbed record``) takes the same flags.  The launcher (``testbed run``)
-    also takes ``--topology auto``, its default: it decides for the run and passes the topology on."""
-    if launcher:
-        g.add_argument("--topology", choices=(AUTO, *transport.TOPOLOGIES), default=AUTO,
-                       help="auto (default): peer when every node runs on this host, router otherwise (a "
-                            "--node-prefix, a --zenoh-config, a non-loopback or plain TCP endpoint, or a "
-                            "--secret-file; docs/live.md); router: the launcher routes and checks every message; "
-                            "peer: direct links between the processes, each mutual TLS (certificates made for the "
-                            "run, or --tls-dir), and every process checks what it receives")
-    else:
-        g.add_argument("--topology", choices=transport.TOPOLOGIES, default="router",
-                       help="router: one process (under testbed run, the launcher) routes and checks every message "
-                            "(default); peer: direct links between the processes, each mutual TLS (--tls-dir), and "
-                            "every process checks what it receives")
-    g.add_argument("--secret-file", metavar="PATH",
-                   help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed "
-                        "secret PATH'); testbed run makes new ones for each run unless given one, which nodes on "
-                        "other hosts need at the same path")
-    g.add_argument("--tls-dir", metavar="DIR",
-                   help="--topology peer: the run's TLS folder (ca.pem, NAME.pem, NAME.key; make one with "
-                        "'testbed secret --tls DIR'); testbed run makes certificates for each run unless given one. "
-                        "--topology router with --tls-dir and no --secret-file: the router topology over mutual TLS, "
-                        "the router checking by certificate name (docs/protocol.md)")
-    g.add_argument("--insecure", action="store_true",
-                   help="no authentication and no access control: any local process can join, stop or steer "
-                        "the run (recorded as such)")
-    g.add_argument("--low-latency", action="store_true",
-                   help="Zenoh's low-latency transport (no batching, no priority queues); every process of a run "
-                        "must use it or none (testbed run: all of them)")
+#: the commands that start a run (the launcher's form of the network flags: one endpoint, ``--topology auto``)
+LAUNCHERS = ("run", "conformance")
+#: the commands of every process of a run
+PROCESSES = ("run", "node", "record", "conformance")
 
 
-def add_network_arguments(g, launcher: bool = False) -> None:
-    """The network flags of every process of a run: ``--run-id``, ``--listen``, ``--zenoh-config`` and the security
-    flags (``add_security_arguments``); a node and the recorder (``launcher=False``) also take ``--connect``.  The
-    launcher (``testbed run``) listens on one endpoint and makes a run id unless given one."""
-    if launcher:
-        g.add_argument("--run-id", help="key prefix testbed/RUN_ID/... (default: unique per run)")
-        g.add_argument("--listen", metavar="ENDPOINT",
-                       help="the launcher's endpoint (default tcp/127.0.0.1:<free port>); nodes connect to it")
-    else:
-        g.add_argument("--run-id", default=transport.DEFAULT_RUN_ID,
-                       help="key prefix testbed/RUN_ID/... (default %(default)s)")
-        g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to listen on, e.g. tcp/10.0.0.2:7447 (repeatable)")
-        g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)")
-    g.add_argument("--zenoh-config", metavar="FILE",
-                   help="Zenoh JSON5 config for every session (e.g. TLS certificates); flags override it" if launcher
-                   else "Zenoh JSON5 config read first (e.g. TLS certificates); flags override it")
-    add_security_arguments(g, launcher=launcher)
-
-
-def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
-    """The ``zenoh`` group of ``testbed node`` and ``testbed record``."""
-    add_network_arguments(p.add_argument_group("zenoh"))
+def _session(default=None, help="", *, launcher=None, commands=PROCESSES, **kw):
+    """A session option; ``launcher``: how ``testbed run`` (and ``testbed conformance``, which starts one) takes it."""
+    return option(default, help, commands=commands, per={c: launcher for c in LAUNCHERS} if launcher else {}, **kw)
 
 
 @dataclass(frozen=True)
 class SessionOptions:
-    """One process's session: run id, endpoints, topology and credentials (the flags of ``add_network_arguments``).
+    """One process's session: run id, endpoints, topology and credentials (the flags of ``add_network_arguments``;
+    each field the one definition of its flag, ``testbed.optionspec``).
 
     ``testbed node`` and ``testbed record`` build it from their flags; the launcher builds one for each process it
-    starts (``testbed.live.credentials``) and for its own session, and passes it on as flags (``argv``)."""
+    starts (``testbed.live.credentials``) and for its own session, and passes it on as flags (``argv``).  In the
+    launcher's configuration (``RunConfig.session``) ``run_id`` None makes one, ``listen`` holds at most one
+    endpoint, and ``topology`` may be ``auto``."""
 
-    run_id: str = transport.DEFAULT_RUN_ID
-    listen: tuple[str, ...] = ()
-    connect: tuple[str, ...] = ()
-    zenoh_config: str | None = None
-    topology: str = "router"
-    secret_file: str | None = None
-    tls_dir: str | None = None
-    insecure: bool = False
-    low_latency: bool = False
+    run_id: str | None = _session(transport.DEFAULT_RUN_ID, "key prefix testbed/RUN_ID/... (default %(default)s)",
+                                  launcher={"default": None,
+                                            "help": "key prefix testbed/RUN_ID/... (default: unique per run)"})
+    listen: tuple[str, ...] = _session(
+        (), "endpoint to listen on, e.g. tcp/10.0.0.2:7447 (repeatable)", metavar="ENDPOINT", repeat=True,
+        launcher={"repeat": False, "help": "the launcher's endpoint (default tcp/127.0.0.1:<free port>); nodes "
+                                           "connect to it"})
+    connect: tuple[str, ...] = _session((), "endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable)",
+                                        metavar="ENDPOINT", repeat=True, commands=("node", "record"))
+    zenoh_config: str | None = _session(
+        help="Zenoh JSON5 config read first (e.g. TLS certificates); flags override it", metavar="FILE",
+        launcher={"help": "Zenoh JSON5 config for every session (e.g. TLS certificates); flags override it"})
+    topology: str = _session(
+        "router", "router: one process (under testbed run, the launcher) routes and checks every message (default); "
+                  "peer: direct links between the processes, each mutual TLS (--tls-dir), and every process checks "
+                  "what it receives", choices=transport.TOPOLOGIES, group="security",
+        launcher={"default": AUTO, "choices": (AUTO, *transport.TOPOLOGIES),
+                  "help": "auto (default): peer when every node runs on this host, router otherwise (a --node-prefix, "
+                          "a --zenoh-config, a non-loopback or plain TCP endpoint, or a --secret-file; docs/live.md); "
+                          "router: the launcher routes and checks every message; peer: direct links between the "
+                          "processes, each mutual TLS (certificates made for the run, or --tls-dir), and every process "
+                          "checks what it receives"})
+    secret_file: str | None = _session(
+        help="the run's credentials (a 0600 file of user:password lines; make one with 'testbed secret PATH'); testbed "
+             "run makes new ones for each run unless given one, which nodes on other hosts need at the same path",
+        metavar="PATH", group="security")
+    tls_dir: str | None = _session(
+        help="--topology peer: the run's TLS folder (ca.pem, NAME.pem, NAME.key; make one with 'testbed secret --tls "
+             "DIR'); testbed run makes certificates for each run unless given one. --topology router with --tls-dir "
+             "and no --secret-file: the router topology over mutual TLS, the router checking by certificate name "
+             "(docs/protocol.md)", metavar="DIR", group="security")
+    insecure: bool = _session(False, "no authentication and no access control: any local process can join, stop or "
+                                     "steer the run (recorded as such)", group="security")
+    low_latency: bool = _session(False, "Zenoh's low-latency transport (no batching, no priority queues); every process "
+                                        "of a run must use it or none (testbed run: all of them)", group="security")
+
+    @classmethod
+    def of(cls, command: str) -> SessionOptions:
+        """The session ``command``'s flags make when none is given (``testbed run``'s: ``topology`` auto)."""
+        return cls(**optionspec.defaults(cls, command))
 
     @property
     def router_tls(self) -> bool:
@@ -95,24 +83,30 @@ class SessionOptions:
         zenoh-pico device, joins this way; docs/protocol.md)."""
         return self.topology == "router" and bool(self.tls_dir) and not self.secret_file and not self.insecure
 
-    def argv(self) -> list[str]:
-        """The same session as flags of ``testbed node`` / ``testbed record`` (credentials by path, never the secret)."""
-        out = ["--run-id", self.run_id, "--topology", self.topology]
-        for ep in self.connect:
-            out += ["--connect", ep]
-        for ep in self.listen:
-            out += ["--listen", ep]
-        if self.tls_dir:
-            out += ["--tls-dir", str(self.tls_dir)]
-        if self.secret_file:
-            out += ["--secret-file", str(self.secret_file)]
-        if self.insecure:
-            out.append("--insecure")
-        if self.low_latency:
-            out.append("--low-latency")
-        if self.zenoh_config:
-            out += ["--zenoh-config", str(self.zenoh_config)]
-        return out
+    def argv(self, command: str = "node") -> list[str]:
+        """The same session as flags of ``command`` (``testbed node`` / ``testbed record``, or ``testbed run`` for the
+        launcher's form; credentials by path, never the secret)."""
+        return optionspec.argv(self, command)
+
+
+def add_security_arguments(g, launcher: bool = False) -> None:
+    """``--topology``, ``--secret-file``, ``--tls-dir``, ``--insecure``, ``--low-latency``: every process of a run
+    (``testbed run``, ``testbed node``, ``testbed record``) takes the same flags.  The launcher (``testbed run``)
+    also takes ``--topology auto``, its default: it decides for the run and passes the topology on."""
+    optionspec.add_arguments(g, SessionOptions, "run" if launcher else "node", group=g, section="security")
+
+
+def add_network_arguments(g, launcher: bool = False, command: str | None = None) -> None:
+    """The network flags of every process of a run (``SessionOptions``): ``--run-id``, ``--listen``, ``--zenoh-config``
+    and the security flags; a node and the recorder (``launcher=False``) also take ``--connect``.  The launcher
+    (``testbed run``, and ``testbed conformance``: ``command``) listens on one endpoint and makes a run id unless
+    given one."""
+    optionspec.add_arguments(g, SessionOptions, command or ("run" if launcher else "node"), group=g)
+
+
+def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``zenoh`` group of ``testbed node`` and ``testbed record``."""
+    add_network_arguments(p.add_argument_group("zenoh"))
 
 
 PEER_NEEDS_TLS = ("--topology peer: no --tls-dir: its links are mutual TLS; make the folder with "
