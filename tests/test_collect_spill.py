@@ -101,7 +101,7 @@ def test_the_streamed_end_of_run_equals_the_whole_file_read(tmp_path, monkeypatc
         assert col.telemetry_check() == []
         col.summaries["encoder"] = dict(summaries["encoder"], telemetry_sha256="0" * 64)
         col.summaries["attacker"] = dict(summaries["attacker"], telemetry_records=31)
-        bad = {f["node"]: f["why"] for f in col.telemetry_check()}
+        bad = {f.role: f.detail for f in col.telemetry_check()}  # a Fault each
         assert bad == {"encoder": f"{len(tele['encoder'])} records collected, the node published "
                                   f"{len(tele['encoder'])}; digests differ",
                        "attacker": "30 records collected, the node published 31"}

@@ -14,13 +14,17 @@ from testbed.wire import transport
 
 
 class _Run(RunCredentials):
-    """The credentials part of a launcher of the peer topology with no --tls-dir: it makes the run's own."""
+    """The credentials of a launcher of the peer topology with no --tls-dir: it makes the run's own."""
 
     def __init__(self, run_dir: Path):
-        self.secure = self.tls = True
-        self.cfg = types.SimpleNamespace(tls_dir=None, secret_file=None)
+        cfg = types.SimpleNamespace(topology="peer", tls_dir=None, secret_file=None, insecure=False, listen=None,
+                                    node_connect=None, node_listen={})
+        super().__init__(cfg, "test-run", transport.Keys.for_run("test-run"))
+        assert self.secure and self.tls
         self.run_dir = run_dir
-        self.secret_dir = self.tls_dir = self.secret_path = None
+
+    def make_secrets(self) -> None:
+        super().make_secrets(self.run_dir)
 
 
 def _usable(folder: Path) -> None:

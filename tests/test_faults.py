@@ -66,7 +66,8 @@ def test_stall_watch_finds_a_frozen_plant_and_not_the_encoder_it_starved():
         t = int(3.5e9) + (k - 21) * 1000
         col.d["plant"][k] = _plant(k, t)
         col.d["encoder"][k] = _enc(k, t + 1000, t + 2000)
-    (f,) = w.tick(int(3.6e9), t0, col, {"plant", "encoder", "attacker", "controller"})
+    (fault,) = w.tick(int(3.6e9), t0, col, {"plant", "encoder", "attacker", "controller"})
+    f = fault.to_dict()  # the summary's and the recording's form
     assert f["node"] == "plant" and f["kind"] == "stalled" and (f["from_s"], f["to_s"]) == (2.0, 3.5)
     assert f["last_sample_before"] == 20 and f["at_sample"] == 21 and not f["injected"]
     assert w.tick(int(3.7e9), t0, col, {"plant", "encoder", "attacker", "controller"}, final=True) == []
@@ -176,18 +177,62 @@ def test_liveliness_lost_means_a_token_that_went_during_the_fault():
     end a session)."""
     import threading
 
-    from testbed.live.stalls import Stalls
+    from testbed.live.stalls import lost_during
 
     class Liveliness:  # the collector's liveliness log: (monotonic ns, node, alive)
         lock = threading.Lock()
         liveliness = [(0, "controller", True), (9_000_000_000, "controller", False)]   # the run's end
 
-    st = Stalls()
-    st.t0_mono = 0
-    assert not st.lost_during(Liveliness, "controller", 1.5, 2.5)
+    assert not lost_during(Liveliness, "controller", 1.5, 2.5, 0)
     Liveliness.liveliness = [(0, "controller", True), (2_200_000_000, "controller", False),
                              (2_700_000_000, "controller", True), (9_000_000_000, "controller", False)]
-    assert st.lost_during(Liveliness, "controller", 1.5, 2.5)
-    assert not st.lost_during(Liveliness, "plant", 1.5, 2.5)
-    st.t0_mono = None
-    assert not st.lost_during(Liveliness, "controller", 1.5, 2.5)
+    assert lost_during(Liveliness, "controller", 1.5, 2.5, 0)
+    assert not lost_during(Liveliness, "plant", 1.5, 2.5, 0)
+    assert not lost_during(Liveliness, "controller", 1.5, 2.5, None)
+
+
+def test_a_fault_is_written_one_way_and_read_back_as_written():
+    """``Fault.to_dict`` writes exactly the keys a fault has (an unset field is absent, a None one is null);
+    ``Fault.from_dict`` reads the written form back, keys it does not know included (an older or newer
+    recording), so that reading and writing again changes nothing."""
+    from testbed.record.faults import UNSET, Fault
+
+    lost = Fault(role="controller", kind="lost", detail="gone", sample=12, time=1.2, last_sample_before=11,
+                 injected=True)
+    assert lost.to_dict() == {"node": "controller", "kind": "lost", "why": "gone", "at_sample": 12, "t_s": 1.2,
+                              "injected": True, "last_sample_before": 11}
+    lost.back_s = None  # not back by the end: written as null, not left out
+    assert lost.to_dict()["back_s"] is None and lost.has_back
+    run = Fault(role=None, kind="timeout", detail="late")
+    assert run.to_dict() == {"node": None, "kind": "timeout", "why": "late"}
+    for d in (lost.to_dict(), run.to_dict(), {"node": "plant", "kind": "new_kind", "why": "x", "future_key": [1]},
+              {"kind": "old", "at_sample": 3}):
+        assert Fault.from_dict(d).to_dict() == d
+    assert Fault.from_dict({"kind": "old"}).sample is UNSET and Fault.from_dict({"kind": "k", "x": 1}).extra == {"x": 1}
+
+
+def test_every_fault_site_writes_the_keys_of_its_kind():
+    """The recorder's, the device watch's and a link cut's faults keep their written keys (the summary's
+    ``faults`` entries are a user interface)."""
+    import types
+
+    from testbed.live.devicefaults import DeviceWatch
+    from testbed.live.netns import NetnsRun
+    from testbed.live.recorder import recorder_fault
+    from testbed.record.faulttext import fault_line
+
+    f, _ = recorder_fault(-9, {"t_s": 2.5, "signal": "SIGKILL"}, "a\nbye", True)
+    assert f.to_dict() == {"node": "recorder", "kind": "killed", "why": "killed by SIGKILL", "t_s": 2.5,
+                           "injected": True, "last_log_line": "bye"}
+    assert fault_line(f) == fault_line(f.to_dict()) == "FAULT recorder: killed (killed by SIGKILL) at 2.5 s; bye"
+    w = DeviceWatch(types.SimpleNamespace(T_ns=10_000_000, n_steps=10), 0.5, True)  # the plant's Start
+    d = w._fault("sample_late", 4, 45_000_000, "late").to_dict()
+    assert d == {"node": "plant", "kind": "sample_late", "why": "late", "at_sample": 4, "t_s": 0.045,
+                 "external": True, "ends_run": False}
+    cut = NetnsRun.__new__(NetnsRun)
+    cut.cuts, cut.cut_state = [("controller", 1.0, 0.5)], {0: {"down_ns": 1_000_000_000}}
+    cut._link = lambda role, state: None
+    faults = []
+    cut.tick(faults, None, 0)
+    assert set(faults[0].to_dict()) == {"node", "kind", "why", "t_s", "injected", "down_s", "up_s"}
+    assert faults[0].to_dict()["down_s"] == 1.0 and faults[0].to_dict()["up_s"] > 1.0

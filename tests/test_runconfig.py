@@ -76,8 +76,8 @@ def test_the_launcher_gives_each_process_its_part_of_the_run_config():
         for n in nodes.values():
             assert n.opts == la.opts and n.opts.duration == 2.0 and n.launched and n.realtime
             assert n.ready_timeout == 40.0 and n.rx == "spin" and n.rx_spin_us == 80.0
-            assert n.session.run_id == la.run_id and n.session.connect == (la.node_connect,)
-            assert n.session.topology == la.topology and n.session.low_latency
+            assert n.session.run_id == la.run_id and n.session.connect == (la.creds.node_connect,)
+            assert n.session.topology == la.creds.topology and n.session.low_latency
             assert n.scenario == la.scenario_ref
         assert nodes["plant"].spin_us == 50.0 and nodes["plant"].encoder_crash_at == 4
         assert nodes["plant"].ack_grace == 0.3  # the encoder's grace goes to the process that runs it

@@ -19,6 +19,7 @@ import threading
 import time
 from pathlib import Path
 
+from ..record.faults import Fault
 from ..wire import messages as msg
 from ..wire import transport
 
@@ -260,7 +261,7 @@ class Collector:
         for ri, b in self._spill.records():
             yield ri, types[ri].decode(b)
 
-    def telemetry_check(self) -> list[dict]:
+    def telemetry_check(self) -> list[Fault]:
         """Each node's own account of its telemetry (records and digest, in its summary) against what
         arrived here: a difference means records were lost, forged or altered on the way.
 
@@ -296,9 +297,9 @@ class Collector:
                     count[ri] += 1
                 n = count[ri]
                 if n != s.get("telemetry_records") or h[ri].hexdigest() != s["telemetry_sha256"]:
-                    out.append({"node": role, "kind": "telemetry_mismatch",
-                                "why": f"{n} records collected, the node published {s.get('telemetry_records')}"
-                                       + ("" if n != s.get("telemetry_records") else "; digests differ")})
+                    out.append(Fault(role=role, kind="telemetry_mismatch",
+                                     detail=f"{n} records collected, the node published {s.get('telemetry_records')}"
+                                            + ("" if n != s.get("telemetry_records") else "; digests differ")))
         return out
 
     def _digest_by_k(self, ri: int):

@@ -9,6 +9,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from ..errors import BadInput
 from ..wire import transport
 from ..wire.session import AUTO, SessionOptions, zenoh_config
 
@@ -85,11 +86,38 @@ def _start_tls_maker(folder: Path) -> int:
 
 
 class RunCredentials:
-    """The launcher's part that makes and hands out the run's credentials (a base of ``Launcher``)."""
+    """The run's sessions: its topology, its endpoints, and the credentials made for the run or given
+    (``cfg``: the run's ``RunConfig``, its endpoints as ``--netns`` set them; ``keys``: the run's key
+    space; ``colocated``: the roles that run inside another node's process)."""
 
-    _tls_maker: int | None = None  # the child making the run's certificates (``make_secrets``)
+    def __init__(self, cfg, run_id: str, keys: transport.Keys, colocated: tuple[str, ...] = ()):
+        self.cfg = cfg
+        self.run_id = run_id
+        self.keys = keys
+        self.colocated = colocated
+        self.topology, self.topology_why = choose_topology(cfg)  # --topology auto: peer on one host
+        self.secure = not cfg.insecure
+        # mutual TLS links (``TlsCredentials``): the peer topology, or the router topology given --tls-dir
+        self.tls = self.secure and (self.topology == "peer" or (bool(cfg.tls_dir) and not cfg.secret_file))
+        self.listen = cfg.listen or f"{'tls' if self.tls else 'tcp'}/127.0.0.1:{transport.free_port()}"
+        self.node_connect = cfg.node_connect or self.listen
+        self.node_listen = cfg.node_listen
+        self.secret_dir: Path | None = None
+        self.secret_path: Path | None = None
+        self.tls_dir: Path | None = None              # the peer topology's TLS folder (``make_secrets``)
+        self._tls_maker: int | None = None            # the child making the run's certificates
 
-    def make_secrets(self) -> None:
+    def check(self) -> None:
+        """One clear line (``BadInput``) for credentials that do not fit the topology."""
+        if self.tls:
+            if self.cfg.secret_file:
+                raise BadInput("--secret-file: the peer topology's credentials are TLS certificates (--tls-dir DIR, "
+                               "made with 'testbed secret --tls DIR'; by default made for the run)")
+            transport.require_tls((self.listen, self.node_connect, *self.node_listen.values()))
+        elif self.cfg.tls_dir:
+            raise BadInput("--tls-dir with --secret-file: the router topology authenticates by one of them")
+
+    def make_secrets(self, run_dir: Path) -> None:
         """The run's credentials: one password per process, in 0600 files under a 0700 folder; or, for
         mutual TLS, the run's certificates, made by a child process while the launcher goes on
         (``secrets_ready`` waits for them).
@@ -104,7 +132,7 @@ class RunCredentials:
                 self.tls_dir = Path(self.cfg.tls_dir).resolve()
                 transport.TlsCredentials(self.tls_dir).zenoh(transport.LAUNCHER)  # checked now: one clear line
             else:
-                self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
+                self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=run_dir))
                 self.tls_dir = self.secret_dir / "tls"
                 self._tls_maker = _start_tls_maker(self.tls_dir)
             return
@@ -112,7 +140,7 @@ class RunCredentials:
             self.secret_path = Path(self.cfg.secret_file).resolve()
             transport.Credentials.read(self.secret_path)  # checked now: one clear line if unusable
             return
-        self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=self.run_dir))
+        self.secret_dir = Path(tempfile.mkdtemp(prefix="secrets-", dir=run_dir))
         cred = transport.Credentials.new()
         self.secret_path = cred.write(self.secret_dir / "run.secret")
         for u in (*transport.ROLES, transport.RECORDER):

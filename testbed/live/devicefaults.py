@@ -12,7 +12,7 @@ sample ``at_sample``, its time ``t_s`` after t0, ``why``), once:
 * ``no_stop``: no ``Stop`` from the plant ``NO_STOP_GRACE_S`` after the run's last sample was due; the
   launcher stops the run.
 * A device that disconnects (its liveliness token goes before its Stop: it closed its session, or its link
-  was down for longer than Zenoh's lease) is the fault ``lost`` (``Stalls.check_lost``); the run ends.
+  was down for longer than Zenoh's lease) is the fault ``lost`` (``StallControl.check_lost``); the run ends.
 
 Each is a fault of the launcher's summary, an event of node ``launcher`` in the recording (kind
 ``plant_<kind>``), one line on stderr, and makes ``testbed run`` exit 1 (``recorder.exit_code``).
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import sys
 
+from ..record.faults import Fault
 from ..wire import messages as msg
 from ..wire.messages import STATE_NONFINITE, STATE_WRONG_LENGTH
 
@@ -39,20 +40,20 @@ class DeviceWatch:
         self.T_ns, self.N = int(start.T_ns), int(start.n_steps)
         self.deadline_ns = int(deadline * self.T_ns)
         self.external = external
-        self.faults: list[dict] = []
+        self.faults: list[Fault] = []
         self._events_seen = 0
         self._k_checked = -1
         self._late = False
         self._no_stop = False
 
-    def _fault(self, kind: str, k: int, t_ns: int | None, why: str) -> dict:
-        f = {"node": "plant", "kind": kind, "at_sample": int(k), "t_s": None if t_ns is None else round(t_ns / 1e9, 4),
-             "external": self.external, "ends_run": kind in ENDS_RUN, "why": why}
+    def _fault(self, kind: str, k: int, t_ns: int | None, why: str) -> Fault:
+        f = Fault(role="plant", kind=kind, sample=int(k), time=None if t_ns is None else round(t_ns / 1e9, 4),
+                  external=self.external, ends_run=kind in ENDS_RUN, detail=why)
         self.faults.append(f)
         print(f"testbed run: plant fault {kind} at sample {k}: {why}", file=sys.stderr, flush=True)
         return f
 
-    def tick(self, col, now_ns: int, *, final: bool = False) -> list[dict]:
+    def tick(self, col, now_ns: int, *, final: bool = False) -> list[Fault]:
         """The new faults (``now_ns``: ns since t0 on the launcher's clock)."""
         n0 = len(self.faults)
         with col.lock:
@@ -60,7 +61,7 @@ class DeviceWatch:
         self._events_seen += len(evs)
         for e in evs:
             if e.node == "encoder" and e.kind in (STATE_NONFINITE, STATE_WRONG_LENGTH) \
-                    and not any(f["kind"] in ENDS_RUN for f in self.faults):
+                    and not any(f.kind in ENDS_RUN for f in self.faults):
                 self._fault(e.kind, e.k, e.k * self.T_ns, e.detail)
         if not self.external:
             return self.faults[n0:]
@@ -83,9 +84,9 @@ class DeviceWatch:
                                               f"sample was due: the launcher stops the run")
         return self.faults[n0:]
 
-    def ends_run(self) -> dict | None:
+    def ends_run(self) -> Fault | None:
         """The first fault that ends the run, or None."""
-        return next((f for f in self.faults if f["ends_run"]), None)
+        return next((f for f in self.faults if f.ends_run), None)
 
 
 __all__ = ["DeviceWatch", "DEVICE_FAULTS", "ENDS_RUN", "NO_STOP_GRACE_S"]

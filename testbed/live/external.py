@@ -12,7 +12,9 @@ from pathlib import Path
 
 from ..errors import BadInput
 from ..nodes.options import T_ns, run_digest
+from ..record import faults as faultrec
 from ..wire import join, transport
+from .credentials import RunCredentials
 
 #: what ``testbed run`` prints on stderr (one line; ``testbed conformance`` reads it)
 ANNOUNCE = "testbed run: join file for the external {role}: {path}"
@@ -26,23 +28,24 @@ def add_external_arguments(p) -> None:
                         "(docs/protocol.md#joining-a-run-from-outside)")
 
 
-def check(launcher) -> str | None:
-    """The external role of the run (None: none), refused with one line where the run cannot have it."""
-    role = launcher.cfg.external
+def check(cfg, colocated: tuple[str, ...]) -> str | None:
+    """The external role of the run (None: none), refused with one line where the run cannot have it
+    (``cfg``: the run's ``RunConfig``)."""
+    role = cfg.external
     if role is None:
         return None
-    if launcher.colocated:
+    if colocated:
         raise BadInput("--external with --colocate: an external node runs alone in its process")
-    for flag, given in (("--kill", launcher.kills), ("--crash", launcher.crashes), ("--node-prefix", launcher.node_prefix),
-                        ("--cpu", launcher.cpus)):
+    for flag, given in (("--kill", cfg.kill), ("--crash", cfg.crash), ("--node-prefix", cfg.node_prefix),
+                        ("--cpu", cfg.cpu)):
         if role in given:
             raise BadInput(f"{flag} {role}: the {role} is external (--external {role}): the testbed does not start it")
     return role
 
 
-def join_data(launcher) -> dict:
-    """The join file's fields (``join.FIELDS``) for the launcher's external role."""
-    la, role, sc, opts = launcher, launcher.external, launcher.sc, launcher.opts
+def join_data(role: str, la: RunCredentials, sc, opts, cfg) -> dict:
+    """The join file's fields (``join.FIELDS``) for the external ``role`` of the run whose sessions are ``la``
+    (``opts``: its ``RunOptions``; ``cfg``: its ``RunConfig``)."""
     if not la.secure:
         cred = {"kind": "none"}
     elif la.tls:
@@ -55,26 +58,26 @@ def join_data(launcher) -> dict:
                 "secret_file": str(path)}
     peer = la.topology == "peer"
     ack = la.keys.ack_for_encoder(opts.ack_via_attacker, opts.ack_on_actuation)
-    ref = Path(la.cfg.scenario)
+    ref = Path(cfg.scenario)
     base_dir = str(ref.resolve().parent) if (ref.suffix == ".toml" or ref.exists()) else None
     options = opts.join_fields()  # every run option a node takes (testbed.optionspec)
     return {"join_version": join.JOIN_VERSION, "protocol": join.PROTOCOL_VERSION, "role": role,
             "run_id": la.run_id, "key_prefix": la.keys.prefix, "ack_key": ack[len(la.keys.prefix) + 1:],
             "topology": la.topology, "mode": "peer" if peer else "client", "connect": [la.node_connect],
             "listen": [la.node_listen.get(role) or la.own_listener(role)] if peer else [],
-            "low_latency": la.cfg.low_latency, "credentials": cred, "T_ns": T_ns(sc), "n_steps": sc.n_steps,
+            "low_latency": cfg.low_latency, "credentials": cred, "T_ns": T_ns(sc), "n_steps": sc.n_steps,
             "timing": sc.run.timing, "ack_via_attacker": opts.ack_via_attacker, "digest": run_digest(sc, opts),
             "t0_ns": None, "start_lead_ns": 200_000_000, "wait_ready": [*transport.ROLES, transport.COLLECTOR],
-            "ready_timeout_s": float(la.cfg.startup_timeout), "run_options": options,
+            "ready_timeout_s": float(cfg.startup_timeout), "run_options": options,
             "scenario": {"name": sc.name, "toml": sc.source, "base_dir": base_dir}}
 
 
-def write_join(launcher) -> Path | None:
+def write_join(role: str | None, run_dir: Path, la: RunCredentials, sc, opts, cfg) -> Path | None:
     """Write the join file of the external role (after the run's credentials are made) and say where, on stderr."""
-    if launcher.external is None:
+    if role is None:
         return None
-    path = join.write(launcher.run_dir / f"join-{launcher.external}.json", join_data(launcher))
-    print(ANNOUNCE.format(role=launcher.external, path=path), file=sys.stderr, flush=True)
+    path = join.write(run_dir / f"join-{role}.json", join_data(role, la, sc, opts, cfg))
+    print(ANNOUNCE.format(role=role, path=path), file=sys.stderr, flush=True)
     return path
 
 
@@ -83,11 +86,12 @@ def remove_join(path: Path | None) -> None:
     join.remove(path)
 
 
-def annotate(summary: dict, role: str | None) -> None:
-    """The summary says which role came from outside (``external``); that node has no exit or log of ours."""
+def annotate(summary: dict, role: str | None, faults) -> None:
+    """The summary says which role came from outside (``external``); that node has no exit or log of ours;
+    a start-up timeout of the run's ``faults`` says when it never joined."""
     summary["external"] = role
     if role is not None:
         summary["nodes"][role] = {"external": True, "exit_code": None, "log": None}
-        for f in summary.get("faults", []):
-            if f.get("kind") == "startup_timeout" and role not in (f.get("alive") or ()):
-                f["why"] += f"; the external {role} never joined (its join file: TESTBED_JOIN)"
+        for f in faults:
+            if f.kind == "startup_timeout" and role not in (faultrec.given(f.alive) or ()):
+                f.detail += f"; the external {role} never joined (its join file: TESTBED_JOIN)"

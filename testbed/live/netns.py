@@ -31,6 +31,7 @@ import sys
 import time
 
 from ..errors import BadInput
+from ..record.faults import Fault
 from .stalls import parse_role_interval
 
 PREFIX = "tbn-"
@@ -213,7 +214,7 @@ class NetnsRun:
     def _link(self, role: str, state: str) -> None:
         _ip("-n", self.names["switch"], "link", "set", self.ports[role], state, check=False)
 
-    def tick(self, faults: list[dict], now: int | None, t0_mono: int | None) -> None:
+    def tick(self, faults: list[Fault], now: int | None, t0_mono: int | None) -> None:
         """Start and end the cuts that are due (``now`` None: the run is over, restore every open cut).
         A finished cut is a fault event ``link_cut`` with its interval (s after t0)."""
         if t0_mono is None and now is not None:
@@ -228,12 +229,12 @@ class NetnsRun:
                 self._link(role, "up")
                 st["up_ns"] = time.monotonic_ns()
                 base = t0_mono if t0_mono is not None else st["down_ns"] - int(sec * 1e9)
-                faults.append({"node": role, "kind": "link_cut", "injected": True,
-                               "why": f"link down for {dur:g} s (--cut {role}@{sec:g}:{dur:g})"
-                                      + (" and restored at the end of the run" if now is None else ""),
-                               "t_s": round((st["down_ns"] - base) / 1e9, 4),
-                               "down_s": round((st["down_ns"] - base) / 1e9, 4),
-                               "up_s": round((st["up_ns"] - base) / 1e9, 4)})
+                faults.append(Fault(role=role, kind="link_cut", injected=True,
+                                    detail=f"link down for {dur:g} s (--cut {role}@{sec:g}:{dur:g})"
+                                           + (" and restored at the end of the run" if now is None else ""),
+                                    time=round((st["down_ns"] - base) / 1e9, 4),
+                                    down_s=round((st["down_ns"] - base) / 1e9, 4),
+                                    up_s=round((st["up_ns"] - base) / 1e9, 4)))
 
 
 def plan(cfg, run_id: str, opts) -> NetnsRun | None:

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 
 class Forked:
@@ -35,6 +36,24 @@ class Forked:
                 raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
             time.sleep(0.005)
         return self.returncode
+
+
+def popen_logged(cmd: list[str], log: Path) -> subprocess.Popen:
+    """A child in its own session and process group, its output in ``log``."""
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    with open(log, "wb") as out:
+        return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True, env=env)
+
+
+def log_tail(log: Path, lines: int = 6) -> str:
+    """The last ``lines`` lines of a process's log ("" if it cannot be read)."""
+    try:
+        text = log.read_text(errors="replace")
+    except OSError:
+        return ""
+    return "\n".join(text.rstrip().splitlines()[-lines:])
 
 
 def _forked_node(argv: list[str], log_fd: int) -> None:

@@ -19,10 +19,16 @@ import os
 import signal
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from ..errors import BadInput
+from ..record.faults import Fault
 from ..wire import messages as msg
 from ..wire import transport
+
+if TYPE_CHECKING:
+    from .faultlog import FaultLog
+    from .processes import NodeProcesses
 
 #: the shortest stall the watch reports (a gap of at least 3 periods, and at least this long)
 MIN_GAP_NS = 300_000_000
@@ -158,7 +164,7 @@ class StallWatch:
             return min(self.N - 1, (now - t0_mono) // self.T_ns)
         return col.last_k(up)
 
-    def tick(self, now: int, t0_mono: int, col, alive: set[str], injected=frozenset(), final: bool = False) -> list[dict]:
+    def tick(self, now: int, t0_mono: int, col, alive: set[str], injected=frozenset(), final: bool = False) -> list[Fault]:
         out = []
         for role in transport.ROLES:
             k = col.last_k(role)
@@ -191,39 +197,59 @@ class StallWatch:
             ta, tb = own_stamp(role, a), own_stamp(role, b)
             if msg.NO_TIME in (ta, tb):
                 continue
-            f = {"node": role, "kind": "stalled", "from_s": round(ta / 1e9, 4), "to_s": round(tb / 1e9, 4),
-                 "duration_s": round((tb - ta) / 1e9, 4), "at_sample": b.k, "last_sample_before": a.k,
-                 "injected": role in injected,
-                 "why": f"no samples for {(tb - ta) / 1e9:.3f} s (samples {a.k} -> {b.k}), then on as before"}
+            f = Fault(role=role, kind="stalled", from_s=round(ta / 1e9, 4), to_s=round(tb / 1e9, 4),
+                      duration_s=round((tb - ta) / 1e9, 4), sample=b.k, last_sample_before=a.k,
+                      injected=role in injected,
+                      detail=f"no samples for {(tb - ta) / 1e9:.3f} s (samples {a.k} -> {b.k}), then on as before")
             if role == "plant" and "encoder" in self.colocated:
-                f["colocated"] = ["encoder"]
+                f.colocated = ["encoder"]
             out.append(f)
         return out
 
 
-class Stalls:
-    """The launcher's part (a mixin of ``Launcher``): inject ``--stall``, watch for stalls, record them as faults."""
+#: a node process whose liveliness token has been gone this long while it runs is lost
+LOST_GRACE_NS = 500_000_000
 
-    #: a node process whose liveliness token has been gone this long while it runs is lost
-    LOST_GRACE_NS = 500_000_000
 
-    def init_stalls(self, stalls) -> None:
-        """``stalls``: the ``--stall ROLE@SECONDS:DURATION`` items."""
-        self.stall_inject = StallInjector(parse_stalls(stalls, self.opts.colocate))
-        self.stall_watch: StallWatch | None = None
-        self._lost: dict[str, dict] = {}  # role -> its fault ``lost``
+def lost_during(col, role: str, from_s: float, to_s: float, t0_mono: int | None) -> bool:
+    """Whether ``role``'s liveliness token went away between ``from_s`` and ``to_s`` (s after t0) or within
+    ``LOST_GRACE_NS`` after: a fault that ended a session (a link cut longer than Zenoh's lease), not a
+    token that went at the run's end (docs/live.md, ``liveliness_lost``)."""
+    if t0_mono is None:
+        return False
+    lo = t0_mono + int(from_s * 1e9)
+    hi = t0_mono + int(to_s * 1e9) + LOST_GRACE_NS
+    with col.lock:
+        return any(n == role and not alive and lo <= t <= hi for t, n, alive in col.liveliness)
+
+
+class StallControl:
+    """Inject ``--stall``, watch for stalls and for lost nodes (a node whose liveliness token went while its
+    process runs), record them in ``faults``.  ``nodes``: the node processes (their ``procs`` and ``exits``);
+    ``external``: the role of a node from outside (the launcher sees only its liveliness)."""
+
+    def __init__(self, stalls: dict[str, tuple[float, float]], colocated: tuple[str, ...], external: str | None,
+                 nodes: NodeProcesses, faults: FaultLog):
+        """``stalls``: the ``--stall`` items, parsed (``parse_stalls``)."""
+        self.inject = StallInjector(stalls)
+        self.colocated = colocated
+        self.external = external
+        self.nodes = nodes
+        self.faults = faults
+        self.watch: StallWatch | None = None
+        self.lost: dict[str, Fault] = {}  # role -> its fault ``lost``
 
     def check_lost(self, col, now: int, t0_mono: int) -> None:
         """A node whose liveliness token went while its process runs on (a stall longer than Zenoh's lease,
         a link down): its peers have dropped it, as if it had died; a fault ``lost``, once."""
         if col.plant_done():
             return
-        nodes = dict(self.procs)
+        nodes = dict(self.nodes.procs)
         if self.external is not None:  # a node from outside (a device): its liveliness is all the launcher sees
             nodes[self.external] = None
         for role, p in nodes.items():
             lost = col.lost_at(role)
-            if role in self._lost or role in self.exits or lost is None or now - lost < self.LOST_GRACE_NS \
+            if role in self.lost or role in self.nodes.exits or lost is None or now - lost < LOST_GRACE_NS \
                     or (p is not None and p.poll() is not None):
                 continue
             st = col.start
@@ -234,55 +260,49 @@ class Stalls:
                    "lease, or its link down): its peers dropped it") if p is not None else \
                   (f"the external {role} disconnected: its liveliness token went away before the run's end (it "
                    "closed its session, or its link was down for longer than Zenoh's lease)")
-            f = {"node": role, "kind": "lost", "t_s": round((lost - t0_mono) / 1e9, 4), "at_sample": int(k),
-                 "last_sample_before": col.last_k(role), "injected": role in self.stall_inject.stopped, "why": why}
+            f = Fault(role=role, kind="lost", time=round((lost - t0_mono) / 1e9, 4), sample=int(k),
+                      last_sample_before=col.last_k(role), injected=role in self.inject.stopped, detail=why)
             if p is None:
-                f["external"] = True
-            self._lost[role] = f
+                f.external = True
+            self.lost[role] = f
             self.faults.append(f)
-            print(f"testbed run: node {role} lost at sample {k} ({f['t_s']:g} s), after its sample "
-                  f"{f['last_sample_before']}: {f['why']}", file=sys.stderr, flush=True)
+            print(f"testbed run: node {role} lost at sample {k} ({f.time:g} s), after its sample "
+                  f"{f.last_sample_before}: {f.detail}", file=sys.stderr, flush=True)
 
-    def lost_back(self, col) -> None:
+    def lost_back(self, col, t0_mono: int) -> None:
         """When each lost node's liveliness came back, if it did (``back_s``)."""
         with col.lock:
             events = list(col.liveliness)
-        for role, f in self._lost.items():
-            t_lost = self.t0_mono + int(f["t_s"] * 1e9)
+        for role, f in self.lost.items():
+            t_lost = t0_mono + int(f.time * 1e9)
             back = next((t for t, n, alive in events if n == role and alive and t > t_lost), None)
-            f["back_s"] = None if back is None else round((back - self.t0_mono) / 1e9, 4)
+            f.back_s = None if back is None else round((back - t0_mono) / 1e9, 4)
 
-    def lost_during(self, col, role: str, from_s: float, to_s: float) -> bool:
-        """Whether ``role``'s liveliness token went away between ``from_s`` and ``to_s`` (s after t0) or within
-        ``LOST_GRACE_NS`` after: a fault that ended a session (a link cut longer than Zenoh's lease), not a
-        token that went at the run's end (docs/live.md, ``liveliness_lost``)."""
-        if self.t0_mono is None:
-            return False
-        lo = self.t0_mono + int(from_s * 1e9)
-        hi = self.t0_mono + int(to_s * 1e9) + self.LOST_GRACE_NS
-        with col.lock:
-            return any(n == role and not alive and lo <= t <= hi for t, n, alive in col.liveliness)
-
-    def stalls_tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
+    def tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
         if not final:
-            self.stall_inject.tick(now, t0_mono, self.procs)
+            self.inject.tick(now, t0_mono, self.nodes.procs)
             self.check_lost(col, now, t0_mono)
-        if self.stall_watch is None:
+        if self.watch is None:
             if col.start is None:
                 return
-            self.stall_watch = StallWatch(col.start.T_ns, col.start.n_steps, self.opts.colocate)
-        alive = {r for r in transport.ROLES if r not in self.exits}
-        for f in self.stall_watch.tick(now, t0_mono, col, alive, set(self.stall_inject.stopped), final=final):
+            self.watch = StallWatch(col.start.T_ns, col.start.n_steps, self.colocated)
+        alive = {r for r in transport.ROLES if r not in self.nodes.exits}
+        for f in self.watch.tick(now, t0_mono, col, alive, set(self.inject.stopped), final=final):
             self.faults.append(f)
-            print(f"testbed run: node {f['node']} stalled from {f['from_s']:g} s to {f['to_s']:g} s "
-                  f"({'injected' if f['injected'] else 'not injected'}); the run went on", file=sys.stderr, flush=True)
+            print(f"testbed run: node {f.role} stalled from {f.from_s:g} s to {f.to_s:g} s "
+                  f"({'injected' if f.injected else 'not injected'}); the run went on", file=sys.stderr, flush=True)
 
-    def stalls_end(self, col) -> None:
+    def release(self) -> None:
+        """SIGCONT to every node still stopped by ``--stall``."""
+        self.inject.release(self.nodes.procs)
+
+    def end(self, col, t0_mono: int | None) -> None:
         """At the run's end: resume a node still stopped, and close the stalls that ended."""
-        self.stall_inject.release(self.procs)
-        if self.t0_mono is not None:
-            self.stalls_tick(col, time.monotonic_ns(), self.t0_mono, final=True)
-            self.lost_back(col)
+        self.release()
+        if t0_mono is not None:
+            self.tick(col, time.monotonic_ns(), t0_mono, final=True)
+            self.lost_back(col, t0_mono)
 
 
-__all__ = ["check_fault_times", "parse_stalls", "StallInjector", "StallWatch", "Stalls", "MIN_GAP_NS", "own_stamp"]
+__all__ = ["check_fault_times", "parse_stalls", "StallInjector", "StallWatch", "StallControl", "lost_during",
+           "LOST_GRACE_NS", "MIN_GAP_NS", "own_stamp"]

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..record.faults import Fault
 from ..record.summary import load, to_lists
 from ..wire import messages as msg
 from ..wire import transport
@@ -124,10 +125,10 @@ def telemetry_check(cols, N: int) -> list[dict]:
             continue
         held = int(np.count_nonzero(cols.has(role)[:N])) + (1 if role == "plant" and cols.final is not None else 0)
         if held != s["telemetry_records"] or cols.rejected.get(role):
-            out.append({"node": role, "kind": "telemetry_mismatch",
-                        "why": f"the recording holds {held} records, the node published {s['telemetry_records']}"
-                               + (f"; {cols.rejected[role]} rejected (k outside [0, N))"
-                                  if cols.rejected.get(role) else "")})
+            out.append(Fault(role=role, kind="telemetry_mismatch",
+                             detail=f"the recording holds {held} records, the node published {s['telemetry_records']}"
+                                    + (f"; {cols.rejected[role]} rejected (k outside [0, N))"
+                                       if cols.rejected.get(role) else "")).to_dict())
     return out
 
 
