@@ -19,15 +19,15 @@ import tomllib
 import numpy as np
 
 from ..channel import LOSS_KINDS
+from ..sim.trajectory import kernel_refusal
 
 
 def batch_key(sc, text: str, base_dir: str):
     """What a run shares with the runs it can share a kernel call with; None: the per-sample simulator."""
-    if (sc.plant.fmu is not None or sc.plant.device is not None or sc.run.timing != "ideal" or sc.attack.online
-            or sc.network is not None):
-        return None  # (a device: only the per-sample loop models it; a [network] channel: testbed simulate's kernel applies it)
-    if sc.make_method().kernel_code(sc.quantizer) is None:
-        return None
+    if kernel_refusal(sc) is not None:
+        return None  # the kernel cannot run it (the one predicate of testbed simulate's kernel)
+    if sc.run.timing != "ideal" or sc.attack.online or sc.network is not None:
+        return None  # the kernel runs these one at a time with their latencies, attacker or channel (testbed simulate)
     data = tomllib.loads(text)
     data.get("plant", {}).pop("x0", None)
     data.pop("attack", None)
