@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .distributions import draw, names
 from .errors import BadInput
 
 LINKS = ("sensor", "symbol", "actuation", "ack")
-DISTRIBUTIONS = ("uniform", "normal")
+DISTRIBUTIONS = names("uniform")  # the jitter's distributions (testbed.distributions), its default first
 _LINK_KEYS = ("delay", "jitter", "distribution", "loss", "loss_burst", "rate")
 
 
@@ -140,8 +141,7 @@ def draws(model: NetworkModel | None, link: str, n: int, bits: int = 0) -> LinkD
     delay = np.full(n, lm.delay, dtype=np.float64)
     if lm.jitter > 0:
         g = _rng(model.seed, link, 1)
-        j = g.uniform(-1.0, 1.0, n) * lm.jitter if lm.distribution == "uniform" else g.standard_normal(n) * lm.jitter
-        delay = np.maximum(delay + j, 0.0)
+        delay = np.maximum(delay + draw(g, lm.distribution, lm.jitter, n), 0.0)
     if bits and math.isfinite(lm.rate):
         delay = delay + bits / lm.rate
     return LinkDraws(lost=lost, delay=delay)

@@ -27,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DISTRIBUTIONS = ("normal", "uniform")
+from .distributions import draw, names
+
+DISTRIBUTIONS = names("normal")  # the noise's distributions (testbed.distributions), its default first
 SENSOR_STREAM = 1
 DISTURBANCE_STREAM = 2
 
@@ -94,12 +96,6 @@ def _stream(seed: int, stream: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), stream])))
 
 
-def _draw(rng: np.random.Generator, distribution: str, scale: float, n: int) -> np.ndarray:
-    if distribution == "uniform":
-        return scale * (2.0 * rng.random(n) - 1.0)
-    return scale * rng.standard_normal(n)
-
-
 def _grid(v: np.ndarray, step: float) -> np.ndarray:
     return step * np.round(v / step) if step > 0.0 else v
 
@@ -135,7 +131,7 @@ class Device:
         self._next_k += 1
         y = np.array(x, dtype=np.float64)
         if self._sensor_rng is not None:
-            y = y + _draw(self._sensor_rng, s.distribution, s.scale, self.n)
+            y = y + draw(self._sensor_rng, s.distribution, s.scale, self.n)
         return _grid(y, s.resolution)
 
     def actuate(self, u: np.ndarray) -> np.ndarray:
@@ -163,7 +159,7 @@ class Device:
             return None
         w = np.zeros(self.n) if not d.constant else np.array(d.constant, dtype=np.float64)
         if self._dist_rng is not None:
-            w = w + _draw(self._dist_rng, d.distribution, d.scale, self.n)
+            w = w + draw(self._dist_rng, d.distribution, d.scale, self.n)
         return w
 
     def counters(self) -> dict:
