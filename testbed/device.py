@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import validate
 from .distributions import draw, names
 
 DISTRIBUTIONS = names("normal")  # the noise's distributions (testbed.distributions), its default first
@@ -183,24 +184,20 @@ def parse(pt: dict, n: int, m: int, err, fmu: bool = False) -> DeviceSpec | None
             raise err(f"plant.{name}", f"unknown key(s) {bad}; allowed: {sorted(allowed)}")
         return t
 
+    def checked(key, check, v, *args, **kw):
+        try:
+            return check(v, *args, **kw)
+        except validate.Invalid as e:
+            raise err(key, str(e)) from None
+
     def num(key, v, *, positive=False, allow_inf=False):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise err(key, f"must be a number, got {v!r}")
-        if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
-            raise err(key, f"must be finite, got {v!r}")
-        if v < 0 or (positive and v == 0):
-            raise err(key, f"must be {'> 0' if positive else '>= 0'}, got {v!r}")
-        return float(v)
+        return checked(key, validate.number, v, lo=0, lo_open=positive, allow_inf=allow_inf)
 
     def seed(key, v):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise err(key, f"must be an integer >= 0, got {v!r}")
-        return int(v)
+        return checked(key, validate.count, v, 0)
 
     def dist(key, v):
-        if v not in DISTRIBUTIONS:
-            raise err(key, f"must be one of {', '.join(repr(d) for d in DISTRIBUTIONS)}, got {v!r}")
-        return v
+        return checked(key, validate.choice, v, DISTRIBUTIONS)
 
     sensor = actuator = disturbance = None
     st = table("sensor", SENSOR_KEYS)

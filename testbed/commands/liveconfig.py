@@ -4,8 +4,7 @@ argparse namespace."""
 
 from __future__ import annotations
 
-import math
-
+from .. import validate
 from ..errors import BadInput
 from ..nodes.options import NodeConfig, RecorderConfig, RunConfig, RunOptions
 from ..wire import transport
@@ -53,12 +52,9 @@ def pairs(items, sep: str, what: str, roles=transport.ROLES) -> dict[str, str]:
 def _number(kind, value: str, flag: str):
     """A time (``float``, seconds) or a sample index (``int``) of ``ROLE@VALUE``: finite and >= 0."""
     try:
-        v = kind(value)
-    except ValueError:
-        raise BadInput(f"{flag}: {value!r} is not a number") from None
-    if not (math.isfinite(v) and v >= 0):
-        raise BadInput(f"{flag}: {value!r} is not a finite number >= 0")
-    return v
+        return validate.text_number(value, kind)
+    except validate.Invalid as e:
+        raise BadInput(f"{flag}: {e}") from None
 
 
 def run_config(args) -> RunConfig:
