@@ -57,7 +57,7 @@ def main(args) -> int:
     from .. import scenario
     from ..analysis import noise
     from ..errors import BadInput
-    from .analyze import Progress
+    from ..progress import Progress
 
     sc = scenario.load(args.scenario)
     if args.method:

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import cliargs
+from ..progress import Progress
 from .analyze import (
-    Progress,
     _add_method,
     _add_scenario,
     _executor,
