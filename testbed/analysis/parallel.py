@@ -93,6 +93,12 @@ class Executor:
             self.workers = max(1, _dask_nthreads(self._client))
 
     @property
+    def client(self):
+        """The ``distributed.Client`` of the Dask cluster (None off Dask), for work the executor's maps do
+        not cover (a campaign's live runs, one per host)."""
+        return self._client
+
+    @property
     def kind(self) -> str:
         return "dask" if self._client is not None else ("local" if self.workers > 1 else "serial")
 

@@ -113,7 +113,7 @@ def _live_on_dask(executor, todo: list, folder: Path, timeout, copies: list = ()
     lost mid-run has its run retried elsewhere by the scheduler (``retries=1``)."""
     import distributed
 
-    client = executor._client
+    client = executor.client
     by_host: dict = {}
     for addr, w in sorted(client.scheduler_info().get("workers", {}).items()):
         by_host.setdefault(w.get("host", addr), addr)
