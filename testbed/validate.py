@@ -15,6 +15,8 @@ import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from .errors import BadInput
+
 
 class Invalid(ValueError):
     """What is wrong with a value, as a phrase that follows the field's name ("must be finite, got nan")."""
@@ -71,4 +73,13 @@ def text_number(text: str, kind: Callable[[str], Any] = float) -> Any:
     return v
 
 
-__all__ = ["Invalid", "number", "positive", "count", "choice", "text_number"]
+def flag(name: str, v: Any, check: Callable[..., Any] = number, *args: Any, **kw: Any) -> Any:
+    """``check(v, *args, **kw)`` of a command's flag ``name`` ("--beam"): ``BadInput`` "NAME PHRASE" (one
+    line, exit 2) where it fails."""
+    try:
+        return check(v, *args, **kw)
+    except Invalid as e:
+        raise BadInput(f"{name} {e}") from None
+
+
+__all__ = ["Invalid", "number", "positive", "count", "choice", "text_number", "flag"]

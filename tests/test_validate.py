@@ -75,3 +75,15 @@ def test_campaign_method_and_flag_parsers_give_the_phrase():
     from testbed.methods import MethodError, make
     with pytest.raises(MethodError, match=r"^method 'static': parameter range must be a positive number, got -1$"):
         make("static", params={"range": -1})
+
+
+def test_command_flags_give_the_phrase(capsys):
+    """A command's flag checked by ``validate.flag``: one line naming the flag, exit 2."""
+    from testbed import cli
+
+    for argv, line in [(["check-plant", "pendulum", "--M", "1"], "--M must be an integer >= 2, got 1"),
+                       (["check-plant", "pendulum", "--T", "-0.5"], "--T must be a positive number, got -0.5"),
+                       (["worst-attack", "paper", "--beam", "0"], "--beam must be >= 1, got 0")]:
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert line in err and len(err.strip().splitlines()) == 1, err
