@@ -26,10 +26,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import validate
+from .distributions import draw, names
 from .errors import BadInput
 
 LINKS = ("sensor", "symbol", "actuation", "ack")
-DISTRIBUTIONS = ("uniform", "normal")
+DISTRIBUTIONS = names("uniform")  # the jitter's distributions (testbed.distributions), its default first
 _LINK_KEYS = ("delay", "jitter", "distribution", "loss", "loss_burst", "rate")
 
 
@@ -140,8 +142,7 @@ def draws(model: NetworkModel | None, link: str, n: int, bits: int = 0) -> LinkD
     delay = np.full(n, lm.delay, dtype=np.float64)
     if lm.jitter > 0:
         g = _rng(model.seed, link, 1)
-        j = g.uniform(-1.0, 1.0, n) * lm.jitter if lm.distribution == "uniform" else g.standard_normal(n) * lm.jitter
-        delay = np.maximum(delay + j, 0.0)
+        delay = np.maximum(delay + draw(g, lm.distribution, lm.jitter, n), 0.0)
     if bits and math.isfinite(lm.rate):
         delay = delay + bits / lm.rate
     return LinkDraws(lost=lost, delay=delay)
@@ -309,19 +310,11 @@ def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symb
 
 
 # ----------------------------------------------------------------------------- parsing
-def _num(key: str, v, *, lo: float | None = None, lo_open: bool = False, hi: float | None = None,
-         hi_open: bool = False, integer: bool = False, allow_inf: bool = False) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ChannelError(f"[{key}] must be a number, got {v!r}")
-    if math.isnan(v) or (math.isinf(v) and not allow_inf):
-        raise ChannelError(f"[{key}] must be finite, got {v!r}")
-    if integer and not float(v).is_integer():
-        raise ChannelError(f"[{key}] must be an integer, got {v!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise ChannelError(f"[{key}] must be {'>' if lo_open else '>='} {lo:g}, got {v!r}")
-    if hi is not None and (v >= hi if hi_open else v > hi):
-        raise ChannelError(f"[{key}] must be {'<' if hi_open else '<='} {hi:g}, got {v!r}")
-    return int(v) if integer else float(v)
+def _num(key: str, v, **bounds) -> float:
+    try:
+        return validate.number(v, **bounds)
+    except validate.Invalid as e:
+        raise ChannelError(f"[{key}] {e}") from None
 
 
 def parse_link(name: str, table) -> LinkModel:
@@ -336,8 +329,10 @@ def parse_link(name: str, table) -> LinkModel:
     delay = _num(f"{key}.delay", table.get("delay", d.delay), lo=0)
     jitter = _num(f"{key}.jitter", table.get("jitter", d.jitter), lo=0)
     dist = table.get("distribution", d.distribution)
-    if dist not in DISTRIBUTIONS:
-        raise ChannelError(f"[{key}.distribution] must be one of {', '.join(map(repr, DISTRIBUTIONS))}, got {dist!r}")
+    try:
+        validate.choice(dist, DISTRIBUTIONS)
+    except validate.Invalid as e:
+        raise ChannelError(f"[{key}.distribution] {e}") from None
     loss = _num(f"{key}.loss", table.get("loss", d.loss), lo=0, hi=1, hi_open=True)
     burst = _num(f"{key}.loss_burst", table.get("loss_burst", d.loss_burst), lo=1)
     if burst > 1 and loss > 0 and burst < loss / (1 - loss):

@@ -27,7 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DISTRIBUTIONS = ("normal", "uniform")
+from . import validate
+from .distributions import draw, names
+
+DISTRIBUTIONS = names("normal")  # the noise's distributions (testbed.distributions), its default first
 SENSOR_STREAM = 1
 DISTURBANCE_STREAM = 2
 
@@ -94,12 +97,6 @@ def _stream(seed: int, stream: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), stream])))
 
 
-def _draw(rng: np.random.Generator, distribution: str, scale: float, n: int) -> np.ndarray:
-    if distribution == "uniform":
-        return scale * (2.0 * rng.random(n) - 1.0)
-    return scale * rng.standard_normal(n)
-
-
 def _grid(v: np.ndarray, step: float) -> np.ndarray:
     return step * np.round(v / step) if step > 0.0 else v
 
@@ -135,7 +132,7 @@ class Device:
         self._next_k += 1
         y = np.array(x, dtype=np.float64)
         if self._sensor_rng is not None:
-            y = y + _draw(self._sensor_rng, s.distribution, s.scale, self.n)
+            y = y + draw(self._sensor_rng, s.distribution, s.scale, self.n)
         return _grid(y, s.resolution)
 
     def actuate(self, u: np.ndarray) -> np.ndarray:
@@ -163,7 +160,7 @@ class Device:
             return None
         w = np.zeros(self.n) if not d.constant else np.array(d.constant, dtype=np.float64)
         if self._dist_rng is not None:
-            w = w + _draw(self._dist_rng, d.distribution, d.scale, self.n)
+            w = w + draw(self._dist_rng, d.distribution, d.scale, self.n)
         return w
 
     def counters(self) -> dict:
@@ -187,24 +184,20 @@ def parse(pt: dict, n: int, m: int, err, fmu: bool = False) -> DeviceSpec | None
             raise err(f"plant.{name}", f"unknown key(s) {bad}; allowed: {sorted(allowed)}")
         return t
 
+    def checked(key, check, v, *args, **kw):
+        try:
+            return check(v, *args, **kw)
+        except validate.Invalid as e:
+            raise err(key, str(e)) from None
+
     def num(key, v, *, positive=False, allow_inf=False):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise err(key, f"must be a number, got {v!r}")
-        if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
-            raise err(key, f"must be finite, got {v!r}")
-        if v < 0 or (positive and v == 0):
-            raise err(key, f"must be {'> 0' if positive else '>= 0'}, got {v!r}")
-        return float(v)
+        return checked(key, validate.number, v, lo=0, lo_open=positive, allow_inf=allow_inf)
 
     def seed(key, v):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise err(key, f"must be an integer >= 0, got {v!r}")
-        return int(v)
+        return checked(key, validate.count, v, 0)
 
     def dist(key, v):
-        if v not in DISTRIBUTIONS:
-            raise err(key, f"must be one of {', '.join(repr(d) for d in DISTRIBUTIONS)}, got {v!r}")
-        return v
+        return checked(key, validate.choice, v, DISTRIBUTIONS)
 
     sensor = actuator = disturbance = None
     st = table("sensor", SENSOR_KEYS)

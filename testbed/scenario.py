@@ -17,7 +17,7 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
-from . import device, methodswap, scenariooverrides, traces
+from . import device, methodswap, scenariooverrides, traces, validate
 from .channel import ChannelError, parse_network
 from .control import c2d, closed_loop, dlqr, spectral_radius
 from .errors import BadInput
@@ -70,17 +70,10 @@ class _Ctx:
 
 
 def _num(ctx, key, v, *, positive=False, nonneg=False, integer=False) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ctx.err(key, f"must be a number, got {v!r}")
-    if not math.isfinite(v):
-        raise ctx.err(key, f"must be finite, got {v!r}")
-    if integer and (not float(v).is_integer()):
-        raise ctx.err(key, f"must be an integer, got {v!r}")
-    if positive and not v > 0:
-        raise ctx.err(key, f"must be > 0, got {v!r}")
-    if nonneg and not v >= 0:
-        raise ctx.err(key, f"must be >= 0, got {v!r}")
-    return int(v) if integer else float(v)
+    try:
+        return validate.number(v, integer=integer, lo=0 if positive or nonneg else None, lo_open=positive)
+    except validate.Invalid as e:
+        raise ctx.err(key, str(e)) from None
 
 
 def _matrix(ctx, key, v, shape) -> tuple[tuple[float, ...], ...]:
@@ -106,8 +99,11 @@ def _unknown(ctx, section, table, allowed):
 def _str(ctx, key, v, choices=None) -> str:
     if not isinstance(v, str):
         raise ctx.err(key, f"must be a string, got {v!r}")
-    if choices is not None and v not in choices:
-        raise ctx.err(key, f"must be one of {', '.join(repr(c) for c in choices)}, got {v!r}")
+    if choices is not None:
+        try:
+            validate.choice(v, choices)
+        except validate.Invalid as e:
+            raise ctx.err(key, str(e)) from None
     return v
 
 

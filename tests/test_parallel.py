@@ -229,7 +229,7 @@ def test_dask_cluster_matches_one_worker(paper):
         ex = Executor(scheduler=cluster.scheduler_address)
         try:
             assert ex.kind == "dask" and ex.workers == 2
-            pids = _worker_pids(ex._client)
+            pids = _worker_pids(ex.client)
             b = nominal_roa(plant, paper.K, paper.T, grid=31, horizon=20.0, executor=ex, chunk=97)
             sb = _sweep(paper, ex)
         finally:
@@ -248,7 +248,7 @@ def test_killed_dask_worker_chunks_are_retried(paper):
     with _local_cluster() as cluster:
         ex = Executor(scheduler=cluster.scheduler_address)
         try:
-            pids = _worker_pids(ex._client)
+            pids = _worker_pids(ex.client)
             sched = cluster.scheduler
 
             def kill_one(done, total):
@@ -266,7 +266,7 @@ def test_killed_dask_worker_chunks_are_retried(paper):
 
             b = nominal_roa(plant, paper.K, paper.T, grid=41, horizon=30.0, executor=ex, chunk=60,
                             progress=kill_one)
-            pids = _worker_pids(ex._client) | pids  # the nanny's replacement too
+            pids = _worker_pids(ex.client) | pids  # the nanny's replacement too
         finally:
             ex.close()
     assert killed, "no worker was running a chunk when the first one finished"

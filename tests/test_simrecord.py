@@ -119,6 +119,14 @@ def test_every_reader_reads_a_decimated_recording(tmp_path):
 def test_the_fast_adder_writes_the_file_mcaps_add_message_writes(chunk_size):
     """The same messages through mcap's ``add_message`` and through ``fast_adder`` (mixed with ``add_message``,
     chunks closed on the way): the two files are the same bytes."""
+    # fast_adder writes into mcap's private Writer state (``_Writer__chunk_builder``, its
+    # ``record_writer._buffer``, ``_Writer__statistics``, ...): mcap 1.6 has no public way to append an
+    # encoded message more cheaply than ``add_message``.  Why it pays: 200,000 messages of 60 bytes on 3
+    # channels into ZSTD chunks of 1 MiB took 8.7-9.3 us each through add_message and 3.5-4.0 us each
+    # through fast_adder (2.2-2.7 times less; mcap 1.6.0, Python 3.11, this project's shared 2-core
+    # machine, two runs of each, timed with time.perf_counter around the loop of adds).  This test is what
+    # fails when mcap's internals change: the fast path must be taken (not the fallback) and write the
+    # same bytes.
     import io
 
     from mcap.writer import CompressionType, Writer

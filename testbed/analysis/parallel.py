@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .. import validate
 from ..errors import BadInput
 from ..flow import DEFAULT_FLOW, FlowOptions
 
@@ -82,8 +83,8 @@ class Executor:
     """
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None):
-        if workers is not None and int(workers) < 1:
-            raise BadInput(f"--workers must be >= 1, got {workers}")
+        if workers is not None:
+            validate.flag("--workers", int(workers), integer=True, lo=1)
         self.scheduler = scheduler
         self.workers = default_workers() if workers is None else int(workers)
         self._client = None
@@ -91,6 +92,12 @@ class Executor:
         if scheduler:
             self._client = _dask_client(scheduler)
             self.workers = max(1, _dask_nthreads(self._client))
+
+    @property
+    def client(self):
+        """The ``distributed.Client`` of the Dask cluster (None off Dask), for work the executor's maps do
+        not cover (a campaign's live runs, one per host)."""
+        return self._client
 
     @property
     def kind(self) -> str:

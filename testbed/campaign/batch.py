@@ -19,15 +19,15 @@ import tomllib
 import numpy as np
 
 from ..channel import LOSS_KINDS
+from ..sim.trajectory import kernel_refusal
 
 
 def batch_key(sc, text: str, base_dir: str):
     """What a run shares with the runs it can share a kernel call with; None: the per-sample simulator."""
-    if (sc.plant.fmu is not None or sc.plant.device is not None or sc.run.timing != "ideal" or sc.attack.online
-            or sc.network is not None):
-        return None  # (a device: only the per-sample loop models it; a [network] channel: testbed simulate's kernel applies it)
-    if sc.make_method().kernel_code(sc.quantizer) is None:
-        return None
+    if kernel_refusal(sc) is not None:
+        return None  # the kernel cannot run it (the one predicate of testbed simulate's kernel)
+    if sc.run.timing != "ideal" or sc.attack.online or sc.network is not None:
+        return None  # the kernel runs these one at a time with their latencies, attacker or channel (testbed simulate)
     data = tomllib.loads(text)
     data.get("plant", {}).pop("x0", None)
     data.pop("attack", None)
@@ -39,7 +39,7 @@ def batch_key(sc, text: str, base_dir: str):
 def run_group(scs: list) -> list[dict | None]:
     """The outcome of each scenario of one group (one ``batch_key``) from one kernel call; None for a run
     whose flow diverged (the per-sample simulator runs it)."""
-    from ..sim.batch import FLOW_OK, EscapeCriterion, json_clean, judge_escape, simulate_batch
+    from ..sim.batch import FLOW_OK, EscapeCriterion, json_clean, judge_escape, run_outcome, simulate_batch
     from .engine import settle_samples
 
     sc0 = scs[0]
@@ -69,15 +69,12 @@ def run_group(scs: list) -> list[dict | None]:
         if b.status[j] != FLOW_OK or b.mismatch[j] != 0:
             out.append(None)
             continue
-        xf = b.x_final[j]
-        fn = float(np.max(np.abs(xf)))
         lost = int(b.theta[j].sum())
         out.append(json_clean({
-            "method": sc.method.name, "bits": bits, "converged": bool(fn < tol), "escaped": bool(esc[j]),
-            "diverged": False, "final_norm": fn, "max_norm": float(max(np.max(np.abs(b.x[j])) if N else 0.0, fn)),
-            "x_final": xf.tolist(), "saturations": int(b.saturations[j]), "samples_lost": lost,
-            "settle_samples": settle_samples(b.x[j], xf, tol),
-            "packets_dropped": lost, "encoder_decoder_agree": True, "plant_fault": None, "method_fault": None,
-            # no channel, ideal timing, every ack delivered: each lost sample is the attacker's
-            "losses": {**dict.fromkeys(LOSS_KINDS, 0), "attacker": lost}}))
+            # testbed simulate --json's outcome of the same run (one function), from the kernel's arrays
+            **run_outcome(sc, b.x[j], b.x_final[j], b.theta[j], bits=bits, saturations=int(b.saturations[j]),
+                          agree=True, diverged=False, escaped=esc[j],
+                          # no channel, ideal timing, every ack delivered: each lost sample is the attacker's
+                          losses={**dict.fromkeys(LOSS_KINDS, 0), "attacker": lost}),
+            "settle_samples": settle_samples(b.x[j], b.x_final[j], tol)}))
     return out

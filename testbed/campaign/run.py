@@ -9,75 +9,14 @@ import hashlib
 import json
 import math
 import sys
-import time
 from pathlib import Path
 
 from ..errors import BadInput
+from ..progress import RunsProgress as Progress
 from . import code
 from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
 from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
-
-
-class Progress:
-    """What a campaign does, on stderr: the setup's steps (:meth:`say`), then runs done, failed and left
-    and an estimate of the time left.  The estimate starts at the first run's end (that run loads or
-    compiles the simulator, which the others do not pay) and is shown once a run more has ended."""
-
-    def __init__(self, total: int, done: int, enabled: bool = True):
-        self.total, self.done0, self.enabled = total, done, enabled
-        self.t0 = time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self.last = 0.0
-        self.shown = None
-        self.clock = None  # (time, runs done) at the end of the first run: where the estimate starts
-        self.open_line = False
-
-    def say(self, text: str) -> None:
-        """One line of what the campaign is doing (the setup), on stderr."""
-        if self.enabled:
-            self.end_line()
-            sys.stderr.write(f"campaign: {text}\n")
-            sys.stderr.flush()
-
-    def end_line(self) -> None:
-        """End a progress line drawn in place (a terminal), before other output."""
-        if self.open_line:
-            sys.stderr.write("\n")
-            self.open_line = False
-
-    def eta(self, done: int, now: float) -> float | None:
-        """Seconds left, from the rate of the runs that ended after the first one (None: not known yet)."""
-        if self.clock is None:
-            return None
-        t1, d1 = self.clock
-        if done <= d1 or now <= t1:
-            return None
-        return (now - t1) / (done - d1) * (self.total - done)
-
-    def __call__(self, done: int, failed: int, final: bool = False) -> None:
-        now = time.perf_counter()
-        if self.clock is None and done > self.done0:
-            self.clock = (now, done)
-        if not self.enabled:
-            return
-        if (not final and now - self.last < (0.2 if self.tty else 5.0)) or (final and self.shown == (done, failed)):
-            if final:
-                self.end_line()
-            return
-        self.last = now
-        self.shown = (done, failed)
-        left = self.total - done
-        el = now - self.t0
-        eta = self.eta(done, now) if left else None
-        line = (f"campaign: {done}/{self.total} runs done, {failed} failed, {left} left, {el:.1f} s"
-                + (f", about {eta:.0f} s left" if eta is not None else ""))
-        if self.tty:
-            sys.stderr.write("\r" + line + ("\n" if final else ""))
-            self.open_line = not final
-        else:
-            sys.stderr.write(line + "\n")
-        sys.stderr.flush()
 
 
 def chunks(items: list, workers: int, dask: bool) -> list[list]:
@@ -174,7 +113,7 @@ def _live_on_dask(executor, todo: list, folder: Path, timeout, copies: list = ()
     lost mid-run has its run retried elsewhere by the scheduler (``retries=1``)."""
     import distributed
 
-    client = executor._client
+    client = executor.client
     by_host: dict = {}
     for addr, w in sorted(client.scheduler_info().get("workers", {}).items()):
         by_host.setdefault(w.get("host", addr), addr)

@@ -27,7 +27,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .. import methodswap
+from .. import methodswap, validate
 from .. import scenario as scenario_mod
 from ..errors import BadInput
 from ..record.tracereader import read_recording_trace
@@ -98,12 +98,14 @@ def loads(text: str, path: Path) -> Campaign:
     runs = d.get("runs", "simulated")
     if runs not in ("simulated", "live"):
         raise BadInput(f"{where}: runs must be \"simulated\" or \"live\", got {runs!r}")
-    repeat = d.get("repeat", 1)
-    if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
-        raise BadInput(f"{where}: repeat must be an integer >= 1, got {repeat!r}")
-    seed = d.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise BadInput(f"{where}: seed must be an integer >= 0, got {seed!r}")
+    try:
+        repeat = validate.count(d.get("repeat", 1), 1)
+    except validate.Invalid as e:
+        raise BadInput(f"{where}: repeat {e}") from None
+    try:
+        seed = validate.count(d.get("seed", 0), 0)
+    except validate.Invalid as e:
+        raise BadInput(f"{where}: seed {e}") from None
     axes = d.get("axes", {})
     if not isinstance(axes, dict):
         raise BadInput(f"{where}: [axes] must be a table of dotted scenario keys")

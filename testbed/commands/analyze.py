@@ -18,45 +18,13 @@ import argparse
 import json
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from .. import cliargs
+from ..progress import Progress
 from ..record.tracereader import read_recording_trace
-
-
-# ============================================================================ progress bar
-class Progress:
-    """A one-line progress bar on stderr (``\\r`` updates on a terminal, a few lines otherwise)."""
-
-    def __init__(self, label: str, enabled: bool = True, width: int = 30):
-        self.label = label
-        self.enabled = enabled
-        self.width = width
-        self.t0 = time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self._last_pct = -1
-
-    def __call__(self, done: int, total: int) -> None:
-        if not self.enabled or total <= 0:
-            return
-        frac = done / total
-        el = time.perf_counter() - self.t0
-        eta = el / frac * (1 - frac) if frac > 0 else math.nan
-        bar = "#" * int(round(frac * self.width))
-        line = (f"{self.label} [{bar:<{self.width}}] {done}/{total} {el:6.1f} s"
-                + (f", ETA {eta:5.1f} s" if done < total else ""))
-        if self.tty:
-            sys.stderr.write("\r" + line + ("\n" if done >= total else ""))
-            sys.stderr.flush()
-        else:
-            pct = int(frac * 10)
-            if pct != self._last_pct or done >= total:
-                self._last_pct = pct
-                sys.stderr.write(line + "\n")
-                sys.stderr.flush()
 
 
 # ============================================================================ shared options

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .. import cliargs
+from .. import cliargs, validate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -158,10 +158,9 @@ def _interrupted(args, folder: Path) -> None:
 
 def _verify(args) -> int:
     from ..campaign import run as campaignrun
-    from ..errors import BadInput
 
-    if args.sample is not None and args.sample < 1:
-        raise BadInput(f"--sample must be >= 1, got {args.sample}")
+    if args.sample is not None:
+        validate.flag("--sample", args.sample, integer=True, lo=1)
     executor = None
     if args.workers or args.scheduler:
         from ..analysis import parallel

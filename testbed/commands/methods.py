@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any
 
-from .. import cliargs
+from .. import cliargs, validate
 from ..record.tracereader import read_recording_trace
 
 
@@ -81,11 +81,10 @@ def _methods_arg(v: str) -> list[str]:
 def main_versus(args) -> int:
     from .. import scenario
     from ..campaign import engine
-    from ..errors import BadInput
 
     names = _methods_arg(args.methods)
-    if args.seeds is not None and args.seeds < 1:
-        raise BadInput(f"--seeds must be >= 1, got {args.seeds}")
+    if args.seeds is not None:
+        validate.flag("--seeds", args.seeds, integer=True, lo=1)
     sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     if args.seeds is None:  # with --seeds the rows use seeds S..S+N-1: nothing is drawn
         sc, over = scenario.with_seed(sc, {})

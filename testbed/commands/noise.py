@@ -58,7 +58,7 @@ def main(args) -> int:
     from .. import scenario
     from ..analysis import noise
     from ..errors import BadInput
-    from .analyze import Progress
+    from ..progress import Progress
 
     sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     if args.method:

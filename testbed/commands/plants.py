@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
-from .. import cliargs
+from .. import cliargs, validate
 from ..errors import BadInput
 from ..record.tracereader import read_recording_trace
 
@@ -83,10 +82,10 @@ def main_check_plant(args) -> int:
 
     for name in ("L", "T", "region", "u_bound"):
         v = getattr(args, name)
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise BadInput(f"--{name.replace('_', '-')} must be a positive number, got {v}")
-    if args.M is not None and args.M < 2:
-        raise BadInput(f"--M must be an integer >= 2, got {args.M}")
+        if v is not None:
+            validate.flag(f"--{name.replace('_', '-')}", v, validate.positive)
+    if args.M is not None:
+        validate.flag("--M", args.M, validate.count, 2)
     sc = None
     base_dir = str(Path.cwd())
     params: dict = {}

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import cliargs
+from .. import cliargs, validate
+from ..progress import Progress
 from ..record.tracereader import read_recording_trace
 from .analyze import (
-    Progress,
     _add_method,
     _add_scenario,
     _executor,
@@ -143,12 +143,9 @@ def _add_search(p) -> None:
 def _search_args(args, sc) -> dict:
     from ..errors import BadInput
 
-    if args.attacks < 1:
-        raise BadInput(f"--attacks must be >= 1, got {args.attacks}")
-    if args.beam < 1:
-        raise BadInput(f"--beam must be >= 1, got {args.beam}")
-    if args.exhaustive_limit < 0:
-        raise BadInput(f"--exhaustive-limit must be >= 0, got {args.exhaustive_limit}")
+    validate.flag("--attacks", args.attacks, integer=True, lo=1)
+    validate.flag("--beam", args.beam, integer=True, lo=1)
+    validate.flag("--exhaustive-limit", args.exhaustive_limit, integer=True, lo=0)
     max_len = None
     if args.max_length is not None:
         if not (math.isfinite(args.max_length) and args.max_length >= 0):

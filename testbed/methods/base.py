@@ -31,11 +31,11 @@ flow map ``phi_T``): :class:`End`.  Every bundled method, the paper's included
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import validate
 from ..loopspec import DEFAULT_FLOW, ROUNDOFF, Codebook, InvalidSymbol, QuantizerParams, SymbolPacking
 
 
@@ -383,9 +383,10 @@ class MethodQuantizerParams(QuantizerParams):
 
 def finite_params(method: Method, *names: str) -> None:
     for k in names:
-        v = method.params[k]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise MethodError(f"method {method.display_name()!r}: parameter {k} must be a positive number, got {v!r}")
+        try:
+            validate.positive(method.params[k])
+        except validate.Invalid as e:
+            raise MethodError(f"method {method.display_name()!r}: parameter {k} {e}") from None
 
 
 __all__ = ["Method", "End", "EncoderEnd", "DecoderEnd", "MethodError", "IntCodebook", "FloatCodebook", "Codebook",

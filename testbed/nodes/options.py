@@ -12,7 +12,6 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import math
 from dataclasses import dataclass, field
 
 from .. import optionspec
@@ -228,15 +227,13 @@ def pairs(items, sep: str, what: str, roles=transport.ROLES) -> dict[str, str]:
 
 def _number(kind, value: str, flag: str):
     """A time (``float``, seconds) or a sample index (``int``) of ``ROLE@VALUE``: finite and >= 0."""
+    from .. import validate
     from ..errors import BadInput
 
     try:
-        v = kind(value)
-    except ValueError:
-        raise BadInput(f"{flag}: {value!r} is not a number") from None
-    if not (math.isfinite(v) and v >= 0):
-        raise BadInput(f"{flag}: {value!r} is not a finite number >= 0")
-    return v
+        return validate.text_number(value, kind)
+    except validate.Invalid as e:
+        raise BadInput(f"{flag}: {e}") from None
 
 
 def _roles(sep: str, flag: str, who=transport.ROLES, number=None):

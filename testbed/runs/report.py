@@ -170,7 +170,7 @@ def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
     report's own sections (module docstring); per-sample values as numpy arrays."""
     if resimulate == "default":
         resimulate = RESIMULATE_SAMPLES
-    cols, sc, s = run._columns, run.scenario, run._details
+    cols, sc, s = run.recorded_columns, run.scenario, run.recorded_summary
     path = cols.path
     runmeta = cols.metadata.get("testbed.run", {})
     start = cols.start

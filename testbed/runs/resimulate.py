@@ -45,7 +45,7 @@ def recorded_run(run) -> dict:
     from ..sim.loop import Replay
     from ..wire import messages as msg
 
-    cols, sc, a = run._columns, run.scenario, run.arrays
+    cols, sc, a = run.recorded_columns, run.scenario, run.arrays
     N = min(run.N, sc.n_steps)
     hp, he, hc = cols.has("plant")[:N], cols.has("encoder")[:N], cols.has("controller")[:N]
     silent = he & (cols.get("encoder", "silent")[:N] != 0)

@@ -71,6 +71,17 @@ class Run:
     _details: dict | None = field(default=None, repr=False)  # a recording's whole summary (``recording_summary``)
 
     @property
+    def recorded_columns(self):
+        """A recording's columns as read (``testbed.record.columns``; None for a simulated run): what
+        ``testbed report`` and the resimulation read beyond the arrays."""
+        return self._columns
+
+    @property
+    def recorded_summary(self) -> dict | None:
+        """A recording's whole summary (``recording_summary``; None for a simulated run)."""
+        return self._details
+
+    @property
     def N(self) -> int:
         """The number of samples."""
         return len(self.arrays["k"])

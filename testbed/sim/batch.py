@@ -415,16 +415,18 @@ def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
     tol = sc.run.converge_tol
     flow_diverged = res.flow_status != FLOW_OK
     diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
-    converged = (not diverged) and res.final_norm < tol
     crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
     # a recording's plant or method whose stored code was not run (no --trust-code): not judged
     escaped = None if sc.code_not_run() else escaped_run(sc, res, crit, replay)
     sch = res.intervals()
     cb = sc.make_method().codebook(model.n, sc.quantizer)
+    o = run_outcome(sc, res.x, res.x_final, res.theta, bits=cb.bits, saturations=res.saturations, agree=res.agree,
+                    diverged=diverged, escaped=escaped, plant_fault=res.plant_fault, method_fault=res.method_fault,
+                    losses=None if res.loss_cause is None else loss_counts(res.loss_cause))  # channel.loss_cause
     return json_clean({
         "scenario": sc.name,
         **plant_and_model(sc),
-        "method": sc.method.name,
+        "method": o["method"],
         "method_params": dict(sc.method.params),
         "n": model.n,
         "m": model.m,
@@ -432,7 +434,7 @@ def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
         "M": sc.quantizer.M,
         "Lambda": sc.quantizer.Lambda,
         "mode": sc.quantizer.mode,
-        "bits": cb.bits,
+        "bits": o["bits"],
         "K": res.K.tolist(),
         "t": L(res.t),
         "x": L(res.x),
@@ -444,29 +446,44 @@ def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
         "E_dec": L(res.E_dec),
         "theta": res.theta if arrays else res.theta.astype(int).tolist(),
         "symbols": L(res.symbols),
-        "saturations": res.saturations,
+        "saturations": o["saturations"],
         "saturated_at": L(np.nonzero(res.saturated)[0]),
         "dos_intervals": [list(iv) for iv in sch.intervals],
-        "packets_dropped": int(res.theta.sum()),
-        "encoder_decoder_agree": res.agree,
-        "x_final": res.x_final.tolist(),
-        "final_norm": res.final_norm,
-        "converged": bool(converged),
-        "escaped": None if escaped is None else bool(escaped),
+        "packets_dropped": o["packets_dropped"],
+        "encoder_decoder_agree": o["encoder_decoder_agree"],
+        "x_final": o["x_final"],
+        "final_norm": o["final_norm"],
+        "converged": o["converged"],
+        "escaped": o["escaped"],
         "escape_criterion": crit.to_dict(),
-        "diverged": bool(diverged),
+        "diverged": o["diverged"],
         "diverged_at": (res.method_fault_at if res.method_fault is not None else
                         res.diverged_at if res.plant_fault is None else res.plant_fault_at),
-        "plant_fault": res.plant_fault,
+        "plant_fault": o["plant_fault"],
         "plant_fault_at": res.plant_fault_at,
-        "method_fault": res.method_fault,
+        "method_fault": o["method_fault"],
         "method_fault_at": res.method_fault_at,
         "lockstep_breaks": list(res.lockstep_breaks),
-        "max_norm": float(max(np.max(np.abs(res.x)) if len(res.x) else 0.0, res.final_norm)),
-        "samples_lost": int(res.theta.sum()),
+        "max_norm": o["max_norm"],
+        "samples_lost": o["samples_lost"],
         "timing_mode": sc.run.timing,
         "simulator": res.simulator,
         "rule": sc.quantizer.rule,
         "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),
-        "losses": None if res.loss_cause is None else loss_counts(res.loss_cause),  # channel.loss_cause
+        "losses": o["losses"],
     })
+
+
+def run_outcome(sc, x, x_final, theta, *, bits: int, saturations: int, agree: bool, diverged: bool, escaped,
+                plant_fault=None, method_fault=None, losses: dict | None = None) -> dict:
+    """How a run ended, as ``testbed simulate --json`` states it (:func:`summarize`) and a campaign's row
+    of a batch-kernel run (``testbed.campaign.batch``): method, bits, converged (not diverged and
+    max |x_final| < converge_tol), escaped, diverged, final_norm, max_norm, x_final, saturations,
+    samples_lost = packets_dropped (theta's lost samples), losses by cause, encoder_decoder_agree, the faults."""
+    final_norm = float(np.max(np.abs(x_final)))
+    lost = int(np.asarray(theta).sum())
+    return {"method": sc.method.name, "bits": bits, "converged": bool(not diverged and final_norm < sc.run.converge_tol),
+            "escaped": None if escaped is None else bool(escaped), "diverged": bool(diverged), "final_norm": final_norm,
+            "max_norm": float(max(np.max(np.abs(x)) if len(x) else 0.0, final_norm)), "x_final": x_final.tolist(),
+            "saturations": int(saturations), "samples_lost": lost, "packets_dropped": lost, "losses": losses,
+            "encoder_decoder_agree": agree, "plant_fault": plant_fault, "method_fault": method_fault}
