@@ -418,44 +418,21 @@ class _Reader:
             pos += 9 + ln
 
     def run(self) -> Columns:
-        """Read the file: a worker thread decompresses (and CRC-checks) the next chunks while this one's
-        records are parsed (zstd, zlib and the parser release the GIL); chunks are parsed in file order,
-        and an error is raised where reading the file in order would meet it first."""
-        from collections import deque
-        from concurrent.futures import ThreadPoolExecutor
-
         fh = _File(self.path)
         c = self.cols
         crc = [0]
         data_crc = None
-        pending: deque = deque()     # (offset, future of its decompressed records), in file order
-
-        def drain(keep: int) -> None:
-            while len(pending) > keep:
-                at, fut = pending.popleft()
-                self.records(fut.result()[0], at)
-
-        ex = ThreadPoolExecutor(1, thread_name_prefix="chunks")
-        it = _records(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_DATA_END, OP_FOOTER}, crc=crc)
         try:
-            while True:
-                try:
-                    off, op, body = next(it)
-                except StopIteration:
-                    break
-                except BaseException:
-                    drain(0)   # what came before first, as a reader in file order would
-                    raise
-                if op == OP_CHUNK:
-                    pending.append((off, ex.submit(_decompress, fh, off, body)))
-                    drain(2)
-                    continue
-                drain(0)
+            for off, op, body in _records(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE,
+                                                      OP_DATA_END, OP_FOOTER}, crc=crc):
                 if op is None:
                     if body is not None:
                         c.truncated, c.read_error = True, body
                     break
-                if op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
+                if op == OP_CHUNK:
+                    inner, _ = _decompress(fh, off, body)
+                    self.records(inner, off)
+                elif op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
                     self.records(REC.pack(op, len(body)) + body, off)
                 elif op == OP_DATA_END:
                     data_crc = struct.unpack_from("<I", body, 0)[0] if len(body) >= 4 else 0
@@ -466,11 +443,7 @@ class _Reader:
                 elif op == OP_FOOTER:
                     self.check_summary(fh, off, body)
                     break
-            drain(0)
         finally:
-            for _at, fut in pending:
-                fut.cancel()
-            ex.shutdown(wait=True)
             fh.close()
         self.finish()
         return c
