@@ -34,8 +34,9 @@
    (its chunk index, ``Chunk.read``, ``get_chunk_data_stream`` with the CRC checked: no message decoded),
    then ``testbed report RUN``, ``testbed report RUN --json``, ``testbed.open(RUN)`` and ``testbed export RUN
    --format parquet``: wall time and peak RSS, the median of the repetitions, and each time as a ratio to the
-   floor's median measured in the same run (interpreter start-up included on both sides).  The load average
-   is printed beside them: on a busy machine the times, not the memory, swing.
+   floor's median measured in the same run (interpreter start-up included on both sides); beside them the CPU
+   seconds (user + system) and their ratio, which a busy machine moves less.  The load average is printed
+   too: on a busy machine the wall times swing, the memory does not.
 
 Figures depend on the machine; they are printed, not asserted.
 """
@@ -249,9 +250,10 @@ def recorder_phase(tmp: Path, rate: float, seconds: float, batch: int) -> dict:
 GNU_TIME = "/usr/bin/time" if os.access("/usr/bin/time", os.X_OK) else None
 
 
-def _measure(cmd: list[str], *, output: bool = True) -> tuple[float, float, str]:
+def _measure(cmd: list[str], *, output: bool = True, cpu: list | None = None) -> tuple[float, float, str]:
     """Run ``cmd``; its wall time (s), peak RSS (MB: GNU time's, else ``os.wait4``'s) and stdout (in a temporary
-    file; ``output=False``: discarded)."""
+    file; ``output=False``: discarded).  ``cpu``: a list its CPU seconds (user + system, its children's
+    included) are appended to."""
     with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe, \
             tempfile.NamedTemporaryFile("w+", suffix=".rss") as fr:
         if GNU_TIME:
@@ -264,6 +266,8 @@ def _measure(cmd: list[str], *, output: bool = True) -> tuple[float, float, str]
         if os.waitstatus_to_exitcode(status):
             raise RuntimeError(fe.read()[-2000:])
         rss = ru.ru_maxrss / 1024
+        if cpu is not None:
+            cpu.append(ru.ru_utime + ru.ru_stime)
         if GNU_TIME:
             fr.seek(0)
             rss = float(fr.read().split()[-1]) / 1024
@@ -323,28 +327,32 @@ def postmortem_timing(tmp: Path, path: Path, repeat: int = 3) -> dict:
         "testbed export --format parquet": cli + ["export", str(path), "--format", "parquet",
                                                   "-o", str(tmp / "export.parquet")],
     }
-    runs: dict[str, list[tuple[float, float]]] = {k: [] for k in cases}
+    runs: dict[str, list[tuple[float, float, float]]] = {k: [] for k in cases}
     load = [os.getloadavg()[0]]
     for _ in range(repeat):  # in turn, so that a busy spell hits every case alike
         for name, cmd in cases.items():
-            wall, rss, _ = _measure(cmd, output=False)
-            runs[name].append((wall, rss))
+            cpu: list = []
+            wall, rss, _ = _measure(cmd, output=False, cpu=cpu)
+            runs[name].append((wall, rss, cpu[0]))
         load.append(os.getloadavg()[0])
-    med = {k: (float(np.median([w for w, _ in v])), float(np.median([r for _, r in v])),
-               float(min(w for w, _ in v)), float(max(w for w, _ in v))) for k, v in runs.items()}
-    floor = med["chunks (mcap's reader + zstd)"][0]
+    med = {k: (float(np.median([w for w, _, _ in v])), float(np.median([r for _, r, _ in v])),
+               float(min(w for w, _, _ in v)), float(max(w for w, _, _ in v)), float(np.median([c for _, _, c in v])))
+           for k, v in runs.items()}
+    floor, floor_cpu = med["chunks (mcap's reader + zstd)"][0], med["chunks (mcap's reader + zstd)"][4]
     return {"path": str(path), "file_mb": path.stat().st_size / 1e6, "repeat": repeat, "load_avg_1min": load,
             "cases": [{"what": k, "wall_s": w, "wall_min_s": lo, "wall_max_s": hi, "peak_rss_mb": r,
-                       "vs_chunks": w / floor} for k, (w, r, lo, hi) in med.items()]}
+                       "vs_chunks": w / floor, "cpu_s": c, "cpu_vs_chunks": c / floor_cpu}
+                      for k, (w, r, lo, hi, c) in med.items()]}
 
 
 def _print_postmortem(pm: dict) -> None:
     print(f"post-mortems of {pm['path']} ({pm['file_mb']:.0f} MB), median of {pm['repeat']} runs each, "
           f"load average {', '.join(f'{x:.1f}' for x in pm['load_avg_1min'])}:\n"
-          f"  {'what':34} {'wall s':>7} {'(min-max)':>13} {'peak MB':>8} {'x chunks':>9}")
+          f"  {'what':34} {'wall s':>7} {'(min-max)':>13} {'peak MB':>8} {'x chunks':>9} {'CPU s':>6} "
+          f"{'x chunks':>9}")
     for c in pm["cases"]:
         print(f"  {c['what']:34} {c['wall_s']:7.2f} {c['wall_min_s']:6.2f}-{c['wall_max_s']:<6.2f} "
-              f"{c['peak_rss_mb']:8.0f} {c['vs_chunks']:9.2f}", flush=True)
+              f"{c['peak_rss_mb']:8.0f} {c['vs_chunks']:9.2f} {c['cpu_s']:6.2f} {c['cpu_vs_chunks']:9.2f}", flush=True)
 
 
 def _print_report(rr: dict) -> None:
