@@ -1,6 +1,7 @@
 """Recording benchmarks: simulations recorded, recorder throughput over Zenoh, ``testbed report`` on long runs.
 
-    python benchmarks/bench_recording.py [--report-only] [--minutes 10,60] [--recording RUN.mcap ...]
+    python benchmarks/bench_recording.py [--report-only | --postmortem [--repeat 3]] [--minutes 10,60]
+                                         [--recording RUN.mcap ...]
                                          [--reference short|all|none] [--rates 2000,10000,40000,0] [--seconds 3]
                                          [--simulate-only] [--sim-duration 60] [--sim-T 0.001]
 
@@ -26,6 +27,16 @@
    reference reader (``testbed.record.reader.read``, protobuf classes and one dataclass a
    message: the reader ``testbed report`` was built on before) on the same file.  Making the
    hour's recording takes about half an hour (``--recording`` reuses one).
+
+4. Post-mortems against the disk (``--postmortem``): on a 10-minute 1 kHz recording (``--minutes``; made by
+   ``testbed simulate --out`` unless ``--recording`` gives one), each in a fresh process, ``--repeat`` times
+   (default 3) in turn: the floor, mcap's own reader reading every chunk of the file and decompressing it
+   (its chunk index, ``Chunk.read``, ``get_chunk_data_stream`` with the CRC checked: no message decoded),
+   then ``testbed report RUN``, ``testbed report RUN --json``, ``testbed.open(RUN)`` and ``testbed export RUN
+   --format parquet``: wall time and peak RSS, the median of the repetitions, and each time as a ratio to the
+   floor's median measured in the same run (interpreter start-up included on both sides); beside them the CPU
+   seconds (user + system) and their ratio, which a busy machine moves less.  The load average is printed
+   too: on a busy machine the wall times swing, the memory does not.
 
 Figures depend on the machine; they are printed, not asserted.
 """
@@ -234,17 +245,33 @@ def recorder_phase(tmp: Path, rate: float, seconds: float, batch: int) -> dict:
             "file_mb": out.stat().st_size / 1e6}
 
 
-def _measure(cmd: list[str]) -> tuple[float, float, str]:
-    """Run ``cmd``; its wall time (s), peak RSS (MB, ``os.wait4``) and stdout (in a temporary file)."""
-    with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
+#: GNU time, when installed: a child's peak RSS measured from a small parent (``os.wait4``'s figure for a child of
+#: this process starts at this process's own size, which the JSON read back from ``testbed report`` makes large)
+GNU_TIME = "/usr/bin/time" if os.access("/usr/bin/time", os.X_OK) else None
+
+
+def _measure(cmd: list[str], *, output: bool = True, cpu: list | None = None) -> tuple[float, float, str]:
+    """Run ``cmd``; its wall time (s), peak RSS (MB: GNU time's, else ``os.wait4``'s) and stdout (in a temporary
+    file; ``output=False``: discarded).  ``cpu``: a list its CPU seconds (user + system, its children's
+    included) are appended to."""
+    with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe, \
+            tempfile.NamedTemporaryFile("w+", suffix=".rss") as fr:
+        if GNU_TIME:
+            cmd = [GNU_TIME, "-f", "%M", "-o", fr.name] + cmd
         t = time.perf_counter()
-        p = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True)
+        p = subprocess.Popen(cmd, stdout=fo if output else subprocess.DEVNULL, stderr=fe, text=True)
         _, status, ru = os.wait4(p.pid, 0)  # reaps it, with its resource usage (peak RSS)
         wall = time.perf_counter() - t
         fo.seek(0), fe.seek(0)
         if os.waitstatus_to_exitcode(status):
             raise RuntimeError(fe.read()[-2000:])
-        return wall, ru.ru_maxrss / 1024, fo.read()
+        rss = ru.ru_maxrss / 1024
+        if cpu is not None:
+            cpu.append(ru.ru_utime + ru.ru_stime)
+        if GNU_TIME:
+            fr.seek(0)
+            rss = float(fr.read().split()[-1]) / 1024
+        return wall, rss, fo.read() if output else ""
 
 
 def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, reference: bool = True) -> dict:
@@ -271,6 +298,61 @@ def report_timing(tmp: Path, minutes: float, *, path: Path | None = None, refere
         wall, rss, _ = _measure([sys.executable, "-P", "-c", code])
         out.update(reference_read_s=wall, reference_read_peak_rss_mb=rss)
     return out
+
+
+#: the floor of the post-mortems: mcap's reader reading and decompressing every chunk (CRC checked), nothing decoded
+CHUNK_FLOOR = """
+import sys
+from mcap.data_stream import ReadDataStream
+from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import get_chunk_data_stream
+with open(sys.argv[1], "rb") as f:
+    total = 0
+    for ci in make_reader(f).get_summary().chunk_indexes:
+        f.seek(ci.chunk_start_offset + 1 + 8)
+        total += get_chunk_data_stream(Chunk.read(ReadDataStream(f)), validate_crc=True)[1]
+print(total)
+"""
+
+
+def postmortem_timing(tmp: Path, path: Path, repeat: int = 3) -> dict:
+    """The post-mortem commands on ``path`` against the chunk floor (module docstring, part 4)."""
+    cli = [sys.executable, "-P", "-m", "testbed.cli"]
+    cases = {
+        "chunks (mcap's reader + zstd)": [sys.executable, "-P", "-c", CHUNK_FLOOR, str(path)],
+        "testbed report": cli + ["report", str(path)],
+        "testbed report --json": cli + ["report", str(path), "--json"],
+        "testbed.open": [sys.executable, "-P", "-c", f"import testbed; testbed.open({str(path)!r})"],
+        "testbed export --format parquet": cli + ["export", str(path), "--format", "parquet",
+                                                  "-o", str(tmp / "export.parquet")],
+    }
+    runs: dict[str, list[tuple[float, float, float]]] = {k: [] for k in cases}
+    load = [os.getloadavg()[0]]
+    for _ in range(repeat):  # in turn, so that a busy spell hits every case alike
+        for name, cmd in cases.items():
+            cpu: list = []
+            wall, rss, _ = _measure(cmd, output=False, cpu=cpu)
+            runs[name].append((wall, rss, cpu[0]))
+        load.append(os.getloadavg()[0])
+    med = {k: (float(np.median([w for w, _, _ in v])), float(np.median([r for _, r, _ in v])),
+               float(min(w for w, _, _ in v)), float(max(w for w, _, _ in v)), float(np.median([c for _, _, c in v])))
+           for k, v in runs.items()}
+    floor, floor_cpu = med["chunks (mcap's reader + zstd)"][0], med["chunks (mcap's reader + zstd)"][4]
+    return {"path": str(path), "file_mb": path.stat().st_size / 1e6, "repeat": repeat, "load_avg_1min": load,
+            "cases": [{"what": k, "wall_s": w, "wall_min_s": lo, "wall_max_s": hi, "peak_rss_mb": r,
+                       "vs_chunks": w / floor, "cpu_s": c, "cpu_vs_chunks": c / floor_cpu}
+                      for k, (w, r, lo, hi, c) in med.items()]}
+
+
+def _print_postmortem(pm: dict) -> None:
+    print(f"post-mortems of {pm['path']} ({pm['file_mb']:.0f} MB), median of {pm['repeat']} runs each, "
+          f"load average {', '.join(f'{x:.1f}' for x in pm['load_avg_1min'])}:\n"
+          f"  {'what':34} {'wall s':>7} {'(min-max)':>13} {'peak MB':>8} {'x chunks':>9} {'CPU s':>6} "
+          f"{'x chunks':>9}")
+    for c in pm["cases"]:
+        print(f"  {c['what']:34} {c['wall_s']:7.2f} {c['wall_min_s']:6.2f}-{c['wall_max_s']:<6.2f} "
+              f"{c['peak_rss_mb']:8.0f} {c['vs_chunks']:9.2f} {c['cpu_s']:6.2f} {c['cpu_vs_chunks']:9.2f}", flush=True)
 
 
 def _print_report(rr: dict) -> None:
@@ -300,11 +382,27 @@ def main() -> int:
     ap.add_argument("--simulate-only", action="store_true", help="only the simulation part (0.)")
     ap.add_argument("--sim-duration", type=float, default=60.0, help="seconds simulated in part 0 (default 60)")
     ap.add_argument("--sim-T", type=float, default=0.001, help="sampling period of part 0 (default 0.001)")
+    ap.add_argument("--postmortem", action="store_true",
+                    help="only the post-mortems against the chunk floor (4.), on the first of --minutes")
+    ap.add_argument("--repeat", type=int, default=3, help="repetitions of each post-mortem (default 3)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     out: dict = {"cpus": os.cpu_count()}
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as d:
         tmp = Path(d)
+        if a.postmortem:
+            minutes = float(a.minutes.split(",")[0])
+            path = Path(a.recording[0]) if a.recording else tmp / f"run-{minutes:g}min.mcap"
+            if not a.recording:
+                print(f"recording {minutes:g} minutes at 1 kHz ...", flush=True)
+                subprocess.run([sys.executable, "-P", "-m", "testbed.cli", "simulate", "paper", "--T", "0.001",
+                                "--duration", str(60 * minutes), "--out", str(path)], check=True,
+                               stdout=subprocess.DEVNULL)
+            out["postmortem"] = postmortem_timing(tmp, path, a.repeat)
+            _print_postmortem(out["postmortem"])
+            if a.json:
+                print(json.dumps(out))
+            return 0
         if not a.report_only:
             out["simulate"] = simulate_timing(tmp, a.sim_duration, a.sim_T)
             _print_simulate(out["simulate"])

@@ -52,3 +52,25 @@ def test_resimulation_reads_the_runs_arrays(tmp_path):
     run.arrays["E"][57] *= 2
     bad = compare(recorded_run(run))
     assert not bad["reproduced"] and bad["first_divergence"] == 57 and not bad["E_identical"]
+
+
+@pytest.mark.parametrize("plant", ["model", "recorded"])
+def test_a_limited_resimulation_keeps_only_what_it_checks_and_says_the_same(tmp_path, plant):
+    """``recorded_run(run, limit)`` keeps the compared values of samples 0 .. limit only (a report of a long
+    recording holds a dozen per-sample columns fewer), and ``compare`` says exactly what it says from the
+    whole record: a divergence inside the limit found at its sample, one past it unseen, the replay's counts
+    the whole run's."""
+    _sc, _res, path = sim_recording(tmp_path, "paper")
+    run = testbed.open(path)
+    limit = 40
+    short = recorded_run(run, limit)
+    assert all(v is None or len(v) == limit + 1 for v in short["live"].values())
+    assert short["N"] == run.N and len(short["replay"].reason) == run.N
+    assert compare(short, limit=limit, plant=plant) == compare(recorded_run(run), limit=limit, plant=plant)
+    for k, found in ((limit - 3, True), (limit + 5, False)):
+        run.arrays["E"] = run.arrays["E"].copy()
+        run.arrays["E"][k] *= 2
+        got = compare(recorded_run(run, limit), limit=limit, plant=plant)
+        assert got == compare(recorded_run(run), limit=limit, plant=plant)
+        assert got["reproduced"] is not found and (got["first_divergence"] == k) is found
+        run.arrays["E"][k] /= 2

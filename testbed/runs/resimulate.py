@@ -38,44 +38,53 @@ PHYSICAL_TOLERANCE = 1e-9
 PLANTS = ("auto", "model", "recorded")
 
 
-def recorded_run(run) -> dict:
+def recorded_run(run, limit: int | None = None) -> dict:
     """The per-sample record a resimulation needs, from a recording's ``testbed.Run``
     (``testbed.runs.run.run_of_recording``): the values from its arrays, which samples each node recorded
-    and what the controller and the plant said happened from its columns."""
+    and what the controller and the plant said happened from its columns.
+
+    ``limit``: ``compare(..., limit=limit)`` checks samples 0 .. limit - 1 only, so the values it compares
+    (``live``) are kept for those and the one after (``plant_model_error`` reads x_k+1), not for the whole
+    run: a report of a long recording holds a dozen per-sample columns fewer.  ``N`` and ``replay`` (its
+    counts are the whole run's) stay whole.
+    """
     from ..sim.loop import Replay
     from ..wire import messages as msg
 
     cols, sc, a = run.recorded_columns, run.scenario, run.arrays
     N = min(run.N, sc.n_steps)
-    hp, he, hc = cols.has("plant")[:N], cols.has("encoder")[:N], cols.has("controller")[:N]
+    L = N if limit is None else max(0, min(N, int(limit) + 1))   # the rows of ``live``
+    he = cols.has("encoder")[:N]
     silent = he & (cols.get("encoder", "silent")[:N] != 0)
-    have_sym = he & ~silent
+    hp_all, hc_all = cols.has("plant")[:N], cols.has("controller")[:N]
+    reason = np.where(hc_all, cols.get("controller", "reason")[:N], -1).astype(np.int64)
+    u_missing = hp_all & ((cols.get("plant", "flags")[:N].astype(np.int64) & msg.PlantTelemetry.FLAG_NO_U) != 0)
+    physical = sc.run.timing == "physical"
+    delays = np.where(hp_all, cols.get("plant", "delay_ns")[:N], 0).astype(np.int64) if physical else None
+    replay = Replay(reason=reason, sensed=he.copy(), withheld=silent, u_missing=u_missing, delays=delays)
+    hp, hc = hp_all[:L], hc_all[:L]
+    have_sym = he[:L] & ~silent[:L]
     live = {
-        "x": np.where(hp[:, None], a["x"][:N], np.nan),
-        "symbols": np.where(have_sym, a["symbols"][:N], -1).astype(np.int64),
-        "E": np.where(have_sym, a["E"][:N], np.nan),
-        "E_dec": np.where(hc, a["E_dec"][:N], np.nan),
-        "theta": np.where(hc, a["theta"][:N], -1).astype(np.int64),  # the controller's where it recorded
+        "x": np.where(hp[:, None], a["x"][:L], np.nan),
+        "symbols": np.where(have_sym, a["symbols"][:L], -1).astype(np.int64),
+        "E": np.where(have_sym, a["E"][:L], np.nan),
+        "E_dec": np.where(hc, a["E_dec"][:L], np.nan),
+        "theta": np.where(hc, a["theta"][:L], -1).astype(np.int64),  # the controller's where it recorded
         "have_x": hp.copy(), "have_sym": have_sym, "have_dec": hc.copy(),
     }
-    reason = np.where(hc, cols.get("controller", "reason")[:N], -1).astype(np.int64)
-    u_missing = hp & ((cols.get("plant", "flags")[:N].astype(np.int64) & msg.PlantTelemetry.FLAG_NO_U) != 0)
-    delays = np.where(hp, cols.get("plant", "delay_ns")[:N], 0).astype(np.int64)
-    physical = sc.run.timing == "physical"
-    replay = Replay(reason=reason, sensed=he.copy(), withheld=silent, u_missing=u_missing,
-                    delays=delays if physical else None)
     g = cols.get
     live.update({  # what the loop computed, each where its node recorded it (NaN elsewhere)
-        "xi": np.where(have_sym[:, None], g("encoder", "xi")[:N], np.nan),
-        "q_enc": np.where(have_sym[:, None], g("encoder", "q")[:N], np.nan),
-        "saturated": have_sym & (g("encoder", "saturated")[:N] != 0),
-        "xi_dec": np.where(hc[:, None], g("controller", "xi")[:N], np.nan),
-        "q": np.where(hc[:, None], g("controller", "q")[:N], np.nan),
-        "u": np.where(hc[:, None], g("controller", "u")[:N], np.nan),
-        "u_acted": np.where(hp[:, None], g("plant", "u")[:N], np.nan),  # the input the plant applied
+        "xi": np.where(have_sym[:, None], g("encoder", "xi")[:L], np.nan),
+        "q_enc": np.where(have_sym[:, None], g("encoder", "q")[:L], np.nan),
+        "saturated": have_sym & (g("encoder", "saturated")[:L] != 0),
+        "xi_dec": np.where(hc[:, None], g("controller", "xi")[:L], np.nan),
+        "q": np.where(hc[:, None], g("controller", "q")[:L], np.nan),
+        "u": np.where(hc[:, None], g("controller", "u")[:L], np.nan),
+        "u_acted": np.where(hp[:, None], g("plant", "u")[:L], np.nan),  # the input the plant applied
     })
     xm = g("plant", "x_meas")[:N] if ("plant", "x_meas") in cols.lay.cols else None
-    live["x_meas"] = None if xm is None or not np.isfinite(xm).any() else np.where(np.isfinite(xm), xm, live["x"])
+    live["x_meas"] = None if xm is None or not np.isfinite(xm).any() else \
+        np.where(np.isfinite(xm[:L]), xm[:L], live["x"])
     final = cols.final
     x_final = None if final is None else np.asarray(final["x"], dtype=float)
     fault_at = run.summary.get("method_fault_at")
@@ -359,7 +368,7 @@ def resimulation(run, *, plant: str = "auto", limit: int | None = None) -> dict:
     not_run = run.scenario.code_not_run()
     if not_run:
         raise CodeNotTrusted(f"{not_run[0]}: re-simulation needs it")
-    rr = recorded_run(run)
+    rr = recorded_run(run, limit)
     mode, why = plant_choice(rr, plant)
     return compare(rr, limit=limit, plant=mode, why=why)
 
