@@ -11,11 +11,15 @@ reports it in its summary, ``launcher.peak_rss_mb``, so the end of the run is in
 recording's completeness: ``recording_complete`` from the run's summary and the samples
 ``testbed report`` reads back against the run's samples.  With several durations it then prints
 the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
-flat, within 25 %).
+flat, within 25 %).  ``--synthetic N,N,...`` runs no live run: it writes spills of N samples of the
+four nodes' telemetry with the collector's writer and builds the launcher's end-of-run summary from
+each in-process (``synthetic_summary_peak``: the columns, ``build_summary``, the ``--json`` output to
+a sink), printing its peak memory (tracemalloc) against N.
 
     python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
     python benchmarks/bench_soak.py --rate 1000 --durations 60,180     # 1 kHz, 1 and 3 minutes
+    python benchmarks/bench_soak.py --synthetic 200000,1200000         # the end of run alone, in-process
 """
 
 from __future__ import annotations
@@ -264,6 +268,31 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
             "summary_samples": s["samples"]}
 
 
+def synthetic_main(spec: str, json_out: str | None) -> int:
+    try:
+        ns = [int(v) for v in spec.split(",")]
+    except ValueError:
+        print(f"bench_soak: --synthetic {spec!r}: sample counts separated by commas", file=sys.stderr)
+        return 2
+    if not all(n > 0 for n in ns):
+        print("bench_soak: --synthetic: the sample counts must be positive", file=sys.stderr)
+        return 2
+    print("the launcher's end of run on a synthetic spill (in-process; tracemalloc's peak: Python objects "
+          "and numpy arrays)")
+    print(f"{'samples':>9} {'peak MB':>8} {'ratio':>6} {'seconds':>8}")
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        synthetic_summary_peak(min(ns), tmp)  # the modules' and kernels' first use, out of the figures
+        for n in ns:
+            r = synthetic_summary_peak(n, tmp)
+            out.append(r)
+            r["ratio"] = r["peak_mb"] / out[0]["peak_mb"]
+            print(f"{n:9d} {r['peak_mb']:8.1f} {r['ratio']:6.2f} {r['seconds']:8.1f}", flush=True)
+    if json_out:
+        Path(json_out).write_text(json.dumps({"synthetic": out}, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="length of the live run (default %(default)s)")
@@ -278,7 +307,12 @@ def main(argv=None) -> int:
                     help="seconds left out of the growth figure (default: 60, or half the run if shorter)")
     ap.add_argument("--out", help="the recording (default: a temporary file, removed)")
     ap.add_argument("--json", metavar="FILE", help="also write every reading and the figures as JSON")
+    ap.add_argument("--synthetic", metavar="N,N,...",
+                    help="no live run: the launcher's end of run in-process on synthetic spills of these many "
+                         "samples at 1 kHz, its peak memory (tracemalloc) and the ratio to the smallest's")
     a = ap.parse_args(argv)
+    if a.synthetic:
+        return synthetic_main(a.synthetic, a.json)
     if a.rate is not None:
         a.T = 1.0 / a.rate if a.rate > 0 else -1.0
     try:
