@@ -11,11 +11,15 @@ reports it in its summary, ``launcher.peak_rss_mb``, so the end of the run is in
 recording's completeness: ``recording_complete`` from the run's summary and the samples
 ``testbed report`` reads back against the run's samples.  With several durations it then prints
 the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
-flat, within 25 %).
+flat, within 25 %).  ``--synthetic N,N,...`` runs no live run: it writes spills of N samples of the
+four nodes' telemetry with the collector's writer and builds the launcher's end-of-run summary from
+each in-process (``synthetic_summary_peak``: the columns, ``build_summary``, the ``--json`` output to
+a sink), printing its peak memory (tracemalloc) against N.
 
     python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
     python benchmarks/bench_soak.py --rate 1000 --durations 60,180     # 1 kHz, 1 and 3 minutes
+    python benchmarks/bench_soak.py --synthetic 200000,1200000         # the end of run alone, in-process
 """
 
 from __future__ import annotations
@@ -188,6 +192,107 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
             "peak_mb": peak, "recording": rec}
 
 
+def synthetic_spill(path, sc, n: int) -> None:
+    """``n`` samples of the four nodes' telemetry (and the plant's final record) written with the collector's
+    own writer (``testbed.live.collect.Spill``) as a run at ``sc.T`` would leave them, times jittered."""
+    import numpy as np
+
+    from testbed.live.collect import Spill
+    from testbed.wire import messages as msg
+
+    Tn = int(round(sc.T * 1e9))
+    recs = [msg.PlantTelemetry(k=0, t_ns=0, sensor_tx_ns=0, u_rx_ns=0, delay_ns=0, theta=0, flags=0, flow_status=0,
+                               x=(0.1, 0.1), u=(0.2,)),
+            msg.EncoderTelemetry(k=0, sensor_tx_ns=0, rx_ns=0, tx_ns=0, symbol=5, saturated=0, silent=0, E=0.1,
+                                 xi=(0.1, 0.1), q=(0.1, 0.1)),
+            msg.AttackerTelemetry(k=0, rx_ns=0, tx_ns=0, dropped=0, corrupted=0, attack_on=0, dropped_total=0,
+                                  forwarded_total=0),
+            msg.ControllerTelemetry(k=0, sym_stamp_ns=0, rx_ns=0, tx_ns=0, symbol=5, theta=0, reason=0, E=0.1,
+                                    xi=(0.1, 0.1), q=(0.1, 0.1), u=(0.2,))]
+    # the byte offsets of k and of each record's first time stamps (the structs of testbed.wire.messages)
+    times = [(4, 12, 20), (4, 12, 20), (4, 12), (4, 12, 20)]  # transport.ROLES' order
+    tmpl = [bytearray(r.encode()) for r in recs]
+    jit = np.random.default_rng(0).integers(0, 200_000, size=(4096, 3)).tolist()
+    sp = Spill(path)
+    for k in range(n):
+        t0 = k * Tn
+        j = jit[k & 4095]
+        for ri, b in enumerate(tmpl):
+            b[0:4] = k.to_bytes(4, "little")
+            for i, off in enumerate(times[ri]):
+                b[off:off + 8] = (t0 + (j[i] if ri == 0 else j[i] * (ri + 1))).to_bytes(8, "little", signed=True)
+            sp.write(ri, bytes(b))
+    final = msg.PlantTelemetry(k=n, t_ns=n * Tn, sensor_tx_ns=0, u_rx_ns=msg.NO_TIME, delay_ns=0, theta=0,
+                               flags=msg.PlantTelemetry.FLAG_FINAL, flow_status=0, x=(0.1, 0.1), u=())
+    sp.close()
+    return final
+
+
+def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
+    """The launcher's end of run in-process on a synthetic spill of ``n`` samples at 1 kHz: the summary
+    built from the spill and written as ``testbed run --json`` writes it (to a sink), its peak memory
+    (tracemalloc: Python objects and numpy arrays) and its time."""
+    import tracemalloc
+
+    from testbed import scenario
+    from testbed.live.collect import Spill, spill_columns
+    from testbed.quantizer import Codebook
+    from testbed.record.summary import LIVE_FIELDS, build_summary, write_json
+
+    sc = scenario.with_overrides(scenario.load("paper"), {"T": 0.001, "duration": n * 0.001})
+    path = Path(tmp) / f"telemetry-{n}.bin"
+    final = synthetic_spill(path, sc, n)
+
+    class Sink:
+        chars = 0
+
+        def write(self, s):
+            Sink.chars += len(s)
+
+    sp = Spill.__new__(Spill)
+    sp.path, sp.f = path, open(path, "ab")
+    t = time.perf_counter()
+    tracemalloc.start()
+    try:
+        cols = spill_columns(sc, sp.decoded(), n, LIVE_FIELDS, plant_final=final)
+        s = build_summary(sc, cols, run_id="synthetic", ack_via_attacker=False, nodes={}, faults=[],
+                          codebook=Codebook(2, 6, True), arrays=True)
+        del cols
+        write_json(s, Sink())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+        sp.close()
+        path.unlink()
+    return {"samples": n, "peak_mb": peak / 2**20, "seconds": time.perf_counter() - t, "json_chars": Sink.chars,
+            "summary_samples": s["samples"]}
+
+
+def synthetic_main(spec: str, json_out: str | None) -> int:
+    try:
+        ns = [int(v) for v in spec.split(",")]
+    except ValueError:
+        print(f"bench_soak: --synthetic {spec!r}: sample counts separated by commas", file=sys.stderr)
+        return 2
+    if not all(n > 0 for n in ns):
+        print("bench_soak: --synthetic: the sample counts must be positive", file=sys.stderr)
+        return 2
+    print("the launcher's end of run on a synthetic spill (in-process; tracemalloc's peak: Python objects "
+          "and numpy arrays)")
+    print(f"{'samples':>9} {'peak MB':>8} {'ratio':>6} {'seconds':>8}")
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        synthetic_summary_peak(min(ns), tmp)  # the modules' and kernels' first use, out of the figures
+        for n in ns:
+            r = synthetic_summary_peak(n, tmp)
+            out.append(r)
+            r["ratio"] = r["peak_mb"] / out[0]["peak_mb"]
+            print(f"{n:9d} {r['peak_mb']:8.1f} {r['ratio']:6.2f} {r['seconds']:8.1f}", flush=True)
+    if json_out:
+        Path(json_out).write_text(json.dumps({"synthetic": out}, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="length of the live run (default %(default)s)")
@@ -202,7 +307,12 @@ def main(argv=None) -> int:
                     help="seconds left out of the growth figure (default: 60, or half the run if shorter)")
     ap.add_argument("--out", help="the recording (default: a temporary file, removed)")
     ap.add_argument("--json", metavar="FILE", help="also write every reading and the figures as JSON")
+    ap.add_argument("--synthetic", metavar="N,N,...",
+                    help="no live run: the launcher's end of run in-process on synthetic spills of these many "
+                         "samples at 1 kHz, its peak memory (tracemalloc) and the ratio to the smallest's")
     a = ap.parse_args(argv)
+    if a.synthetic:
+        return synthetic_main(a.synthetic, a.json)
     if a.rate is not None:
         a.T = 1.0 / a.rate if a.rate > 0 else -1.0
     try:

@@ -47,8 +47,114 @@ class Timings:
         return self._a[:min(self.n, len(self._a))]
 
 
+class Spool:
+    """ns values appended a block at a time and kept in an unnamed temporary file, not in memory.
+
+    Its percentiles (``percentiles``) are exact, the same numbers ``np.percentile`` gives on all the
+    values at once, found by a few passes over the file in windows of ``WINDOW`` values
+    (``order_stat``): memory is bounded however many values (a run's end-of-run summary).
+    ``NO_TIME`` values are left out, as ``percentiles`` leaves them out of an array.
+    """
+
+    #: values read at a time
+    WINDOW = 1 << 16
+    #: bins of a pass of the selection; values gathered and sorted once a bin holds at most this many
+    BINS = 1 << 12
+    GATHER = 1 << 16
+
+    def __init__(self):
+        self._f = None
+        self.n = 0
+        self.min: int | None = None
+        self.max: int | None = None
+
+    def extend(self, values: np.ndarray) -> None:
+        a = np.ascontiguousarray(values, dtype=np.int64)
+        a = a[a != NO_TIME]
+        if not a.size:
+            return
+        if self._f is None:
+            import tempfile
+
+            self._f = tempfile.TemporaryFile()
+        self._f.seek(0, 2)
+        self._f.write(a.tobytes())
+        lo, hi = int(a.min()), int(a.max())
+        self.min = lo if self.min is None else min(self.min, lo)
+        self.max = hi if self.max is None else max(self.max, hi)
+        self.n += int(a.size)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def windows(self):
+        """The values in the order appended, ``WINDOW`` at a time."""
+        if self._f is None:
+            return
+        self._f.seek(0)
+        while True:
+            b = self._f.read(8 * self.WINDOW)
+            if not b:
+                return
+            yield np.frombuffer(b, dtype=np.int64)
+
+    def order_stat(self, r: int) -> int:
+        """The ``r``-th smallest value (0-based): a histogram of the values in [lo, hi] per pass narrows the
+        range holding it until few enough are left to sort."""
+        if not 0 <= r < self.n:
+            raise IndexError(r)
+        lo, hi, below = self.min, self.max, 0  # below: values < lo
+        while True:
+            if hi == lo:
+                return lo
+            width = (hi - lo) // self.BINS + 1  # a Python int: the range may exceed int64's
+            counts = np.zeros(self.BINS, dtype=np.int64)
+            inside, kept, n_below = [], 0, 0
+            lo64, hi64 = np.int64(lo), np.int64(hi)
+            for a in self.windows():
+                n_below += int(np.count_nonzero(a < lo64))
+                v = a[(a >= lo64) & (a <= hi64)]
+                off = (v - lo64).view(np.uint64)  # v - lo, exact as unsigned (wraps as signed)
+                counts += np.bincount((off // np.uint64(width)).astype(np.intp), minlength=self.BINS)
+                kept += len(v)
+                if kept <= self.GATHER:  # few enough so far: gathered (used if the range holds no more)
+                    inside.append(v.copy())
+            below = n_below
+            if kept <= self.GATHER:  # every value of [lo, hi] gathered: sort them
+                v = np.sort(np.concatenate(inside)) if inside else np.empty(0, dtype=np.int64)
+                return int(v[r - below])
+            cum = np.cumsum(counts)
+            j = int(np.searchsorted(cum, r - below, side="right"))
+            lo, hi = lo + j * width, min(hi, lo + (j + 1) * width - 1)
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+
+def _percentile_of(stat, n: int, p: float) -> float:
+    """``np.percentile`` (linear) of ``n`` values from their order statistics ``stat(r)``, bit for bit:
+    numpy's virtual index (n - 1) q, its neighbours and its interpolation (``_lerp``)."""
+    q = float(np.true_divide(p, 100))
+    virtual = (n - 1) * q
+    if virtual >= n - 1:
+        return float(stat(n - 1))
+    prev = float(np.floor(virtual))
+    a, b = float(stat(int(prev))), float(stat(int(prev) + 1))
+    t = virtual - prev
+    d = b - a
+    return b - d * (1 - t) if t >= 0.5 else a + d * t
+
+
 def percentiles(values, unit: float = 1e3) -> dict:
     """p50 / p99 / max / count of ns values, in microseconds by default (None when empty)."""
+    if isinstance(values, Spool):
+        if values.n == 0:
+            return {"p50": None, "p99": None, "max": None, "n": 0}
+        n, stat = values.n, values.order_stat
+        return {"p50": _percentile_of(stat, n, 50) / unit, "p99": _percentile_of(stat, n, 99) / unit,
+                "max": float(values.max) / unit, "n": int(n)}
     if isinstance(values, Timings):
         if values.n == 0:
             return {"p50": None, "p99": None, "max": None, "n": 0}

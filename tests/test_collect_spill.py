@@ -151,3 +151,45 @@ def test_a_spill_cut_mid_record_reads_up_to_its_last_whole_record(tmp_path, cut)
     got = [b for _, b in Spill.records(sp, chunk=16)]
     assert len(got) == (9 if cut <= 35 else 8) and all(b == bytes([i]) * 30 for i, b in enumerate(got))
     assert np.all([len(b) == 30 for b in got])
+
+
+def test_the_timing_section_in_windows_equals_the_whole_arrays(tmp_path, monkeypatch):
+    """The end of run's timing percentiles, computed a window of samples at a time into ``stats.Spool`` files
+    (windows, bins and the sorted set made small: several passes), equal numpy's on the whole columns,
+    as the summary computed them before: a synthetic 1 kHz spill written with the collector's writer."""
+    import sys
+    from pathlib import Path
+
+    from testbed import scenario
+    from testbed.live.collect import spill_columns
+    from testbed.record import summary as summary_mod
+    from testbed.stats import Spool, percentiles
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import bench_soak
+
+    n = 5000
+    sc = scenario.with_overrides(scenario.load("paper"), {"T": 0.001, "duration": n * 0.001})
+    final = bench_soak.synthetic_spill(tmp_path / "telemetry.bin", sc, n)
+    sp = Spill.__new__(Spill)
+    sp.path, sp.f = tmp_path / "telemetry.bin", open(tmp_path / "telemetry.bin", "ab")
+    cols = spill_columns(sc, sp.decoded(), n, LIVE_FIELDS, plant_final=final)
+    sp.close()
+    monkeypatch.setattr(summary_mod, "TIMING_WINDOW", 777)
+    monkeypatch.setattr(Spool, "WINDOW", 500)
+    monkeypatch.setattr(Spool, "GATHER", 200)
+    monkeypatch.setattr(Spool, "BINS", 8)
+    tm = _summary(sc, cols, arrays=True)["timing"]
+    g, NT = cols.get, msg.NO_TIME
+    t, urx, etx, ctx, atx = (g(r, f)[:n] for r, f in (("plant", "t_ns"), ("plant", "u_rx_ns"), ("encoder", "tx_ns"),
+                                                      ("controller", "tx_ns"), ("attacker", "tx_ns")))
+
+    def d(a, b):
+        ok = (a != NT) & (b != NT)
+        return a[ok] - b[ok]
+
+    assert tm["sampling_jitter_us"] == percentiles(t - np.arange(n) * 1_000_000)
+    assert tm["sensor_to_actuator_us"] == percentiles(d(urx, t))
+    assert tm["stages_us"] == {"encoder": percentiles(d(etx, t)), "proxy": percentiles(d(atx, etx)),
+                               "controller": percentiles(d(ctx, atx)), "plant": percentiles(d(urx, ctx))}
+    assert tm["sampling_jitter_us"]["n"] == n and tm["sampling_jitter_us"]["p50"] > 0

@@ -61,6 +61,12 @@ class Spill:
                 if not more:
                     return
 
+    def decoded(self):
+        """Every ``(role index, telemetry dataclass)``, as ``records`` reads them."""
+        types = [msg.TELEMETRY_TYPES[r] for r in transport.ROLES]
+        for ri, b in self.records():
+            yield ri, types[ri].decode(b)
+
     def close(self) -> None:
         self.f.close()
 
@@ -257,9 +263,7 @@ class Collector:
                 for t in list(self.tele[role].values()):
                     yield ri, t
             return
-        types = [msg.TELEMETRY_TYPES[r] for r in transport.ROLES]
-        for ri, b in self._spill.records():
-            yield ri, types[ri].decode(b)
+        yield from self._spill.decoded()
 
     def telemetry_check(self) -> list[Fault]:
         """Each node's own account of its telemetry (records and digest, in its summary) against what
@@ -335,11 +339,17 @@ class Collector:
         """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``).
 
         ``fields``: the ``"role.field"`` names to decode (``columns.layout``; default all)."""
-        from ..record.columns import ColumnBuilder
-
         with self.lock:
-            top = max(self.top.values())
-            b = ColumnBuilder(sc, top + 1, fields, events=self.events, status=self.status, summaries=self.summaries)
-            for ri, t in self._records():
-                b.add(ri, t)
-            return b.finish(self.plant_final)
+            return spill_columns(sc, self._records(), max(self.top.values()) + 1, fields, events=self.events,
+                                 status=self.status, summaries=self.summaries, plant_final=self.plant_final)
+
+
+def spill_columns(sc, records, rows: int, fields=None, *, events=(), status=(), summaries=None, plant_final=None):
+    """Columns (``testbed.record.columns.ColumnBuilder``) of ``rows`` samples from ``(role index, record)`` pairs
+    (``Collector._records``, or ``Spill.decoded``): what ``Collector.snapshot`` hands the summary."""
+    from ..record.columns import ColumnBuilder
+
+    b = ColumnBuilder(sc, rows, fields, events=events, status=status, summaries=summaries)
+    for ri, t in records:
+        b.add(ri, t)
+    return b.finish(plant_final)

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..channel import model_lost, recorded_losses
 from ..sim.batch import json_clean as _clean
-from ..stats import percentiles
+from ..stats import Spool, percentiles
 from ..wire import messages as msg
 from ..wire import transport
 from .degraded import timing_degraded
@@ -53,6 +53,10 @@ SUMMARY_FIELDS = {
     "controller.u",
     "attacker.tx_ns", "attacker.dropped", "attacker.attack_on",
 }
+
+
+#: samples of the timing section's differences computed at a time (their percentiles: ``stats.Spool``)
+TIMING_WINDOW = 1 << 16
 
 
 def _diffs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -136,18 +140,28 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     c_tx = g("controller", "tx_ns")[:N]
     a_tx = g("attacker", "tx_ns")[:N]
     reason = g("controller", "reason")[:N]
-    d_ns = int(sc.run.deadline * Tn)
     has_t = P & (t_ns != msg.NO_TIME)
-    jitter = t_ns[has_t] - np.flatnonzero(has_t) * Tn
-    overruns = int(np.count_nonzero(jitter > d_ns))
-    s2a = _diffs(u_rx, t_ns, P & (p_theta == 0))
-    late_sched = late_for_schedule(sc, s2a)
+    # the timing section's ns differences go to files a window of samples at a time (``stats.Spool``: exact
+    # percentiles in bounded memory)
+    spools = {name: Spool() for name in ("jitter", "s2a", "encoder", "plant", "proxy", "controller")}
+    d_ns = int(sc.run.deadline * Tn)
+    overruns = late_sched = 0
+    for a in range(0, N, TIMING_WINDOW):
+        w = slice(a, min(N, a + TIMING_WINDOW))
+        jitter = t_ns[w][has_t[w]] - (np.flatnonzero(has_t[w]) + a) * Tn
+        overruns += int(np.count_nonzero(jitter > d_ns))
+        s2a = _diffs(u_rx[w], t_ns[w], P[w] & (p_theta[w] == 0))
+        late_sched += late_for_schedule(sc, s2a)
+        for name, v in (("jitter", jitter), ("s2a", s2a), ("encoder", _diffs(e_tx[w], t_ns[w], E_ok[w] & P[w])),
+                        ("plant", _diffs(u_rx[w], c_tx[w], C[w] & P[w])),
+                        ("proxy", _diffs(a_tx[w], e_tx[w], A[w] & EN[w])),
+                        ("controller", _diffs(c_tx[w], a_tx[w], A[w] & C[w] & (reason[w] == CT.RECEIVED)))):
+            spools[name].extend(v)
+    timing = {name: percentiles(sp) for name, sp in spools.items()}
+    for sp in spools.values():
+        sp.close()
     misses = int(np.count_nonzero(P & (flags & PT.FLAG_MISS != 0)))
     no_u = int(np.count_nonzero(P & (flags & PT.FLAG_NO_U != 0)))
-    st_enc = _diffs(e_tx, t_ns, E_ok & P)
-    st_plant = _diffs(u_rx, c_tx, C & P)
-    st_proxy = _diffs(a_tx, e_tx, A & EN)
-    st_ctl = _diffs(c_tx, a_tx, A & C & (reason == CT.RECEIVED))
     n_reason = np.bincount(reason[C], minlength=4) if N else np.zeros(4, dtype=np.int64)
     if x_fault is not None:  # x_k at the method's fault (the plant may have run on until the Stop)
         x_final, flow_status = x_fault, FLOW_OK
@@ -221,10 +235,10 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
                   "header_overhead_per_symbol": msg.HEADER_SIZE / codebook.nbytes if codebook.nbytes else None},
         "timing": {
             "T_us": Tn / 1e3,
-            "sampling_jitter_us": percentiles(jitter),
-            "sensor_to_actuator_us": percentiles(s2a),
-            "stages_us": {"encoder": percentiles(st_enc), "proxy": percentiles(st_proxy),
-                          "controller": percentiles(st_ctl), "plant": percentiles(st_plant)},
+            "sampling_jitter_us": timing["jitter"],
+            "sensor_to_actuator_us": timing["s2a"],
+            "stages_us": {"encoder": timing["encoder"], "proxy": timing["proxy"],
+                          "controller": timing["controller"], "plant": timing["plant"]},
             "deadline_misses": misses,
             "u_missing": no_u,
             "overruns": overruns,
