@@ -81,7 +81,7 @@ class RunsProgress:
         self.t0 = time.perf_counter()
         self.tty = is_tty()
         self.last = 0.0
-        self.shown = None
+        self.shown: tuple[int, int] | None = None
         self.clock = None  # (time, runs done) at the end of the first run: where the estimate starts
         self._bar: tqdm | None = None
 
