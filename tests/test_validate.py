@@ -69,7 +69,7 @@ def test_every_scenario_parser_gives_the_phrase_behind_its_field():
 def test_campaign_method_and_flag_parsers_give_the_phrase():
     with pytest.raises(BadInput, match=r"c\.toml: seed must be an integer >= 0, got -1$"):
         spec.loads('scenario = "paper"\nseed = -1\n', Path("c.toml"))
-    from testbed.commands.liveconfig import _number
+    from testbed.nodes.options import _number
     with pytest.raises(BadInput, match=r"^--kill: 'x' is not a number$"):
         _number(float, "x", "--kill")
     from testbed.methods import MethodError, make
