@@ -18,7 +18,7 @@ from helpers import paper_loop_toml, tb_cmd, tb_run
 
 from testbed.campaign import folder as cmp_folder
 from testbed.campaign import rows as cmp_rows
-from testbed.campaign import run as campaignrun
+from testbed.campaign import runner as campaignrun
 from testbed.campaign import spec as cmp
 from testbed.channel import LOSS_KINDS
 

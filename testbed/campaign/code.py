@@ -56,7 +56,7 @@ def _registry(kind: str):
 
 
 def collect(runs) -> list[dict]:
-    """The user code of ``runs`` (``spec.Run``): one entry per (kind, reference) with ``kind``, ``ref``,
+    """The user code of ``runs`` (``spec.PlannedRun``): one entry per (kind, reference) with ``kind``, ``ref``,
     ``module``, ``class``, ``sha256``, ``source`` and ``copy`` (the copy's path in the folder, or None)."""
     out: dict = {}
     for r in runs:

@@ -18,7 +18,7 @@ from .. import comparestats
 from ..errors import BadInput
 from . import code
 from .engine import outcome_counts, wilson
-from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, Run
+from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, PlannedRun
 
 JOURNAL = "journal.jsonl"
 
@@ -69,7 +69,7 @@ def default_dir(c: Campaign) -> Path:
     return Path("recordings") / f"campaign-{c.stem}"
 
 
-def prepare(c: Campaign, runs: list[Run], folder: Path, base) -> None:
+def prepare(c: Campaign, runs: list[PlannedRun], folder: Path, base) -> None:
     """Create ``folder`` (campaign copy, scenarios, manifest) or check that it holds this campaign."""
     cp = folder / "campaign.toml"
     man = folder / "manifest.json"
@@ -143,7 +143,7 @@ def source_hash() -> str:
     return "sha256:" + h.hexdigest()
 
 
-def manifest(c: Campaign, runs: list[Run], base, stored: list[dict] | None = None) -> dict:
+def manifest(c: Campaign, runs: list[PlannedRun], base, stored: list[dict] | None = None) -> dict:
     """What the folder holds and what made it; ``code``: the user code of the runs (``code.collect``:
     each method's and plant's reference, module, class, source text, sha256 and its copy's path)."""
     __version__ = sys.modules["testbed"].__version__  # the package's face is a layer above: read, not imported
@@ -162,7 +162,7 @@ def manifest(c: Campaign, runs: list[Run], base, stored: list[dict] | None = Non
 
 
 # ============================================================================ the table and summaries
-def ordered_rows(runs: list[Run], done: dict) -> list[dict]:
+def ordered_rows(runs: list[PlannedRun], done: dict) -> list[dict]:
     """The journal's rows in the campaign's order, each with its axes and seeds (one per run, at most)."""
     out = []
     for r in runs:
@@ -237,7 +237,7 @@ def summarize_group(rows: list[dict]) -> dict:
             "median_wall_s": _median([r.get("wall_s") for r in ok])}
 
 
-def summarize(c: Campaign, runs: list[Run], rows: list[dict]) -> dict:
+def summarize(c: Campaign, runs: list[PlannedRun], rows: list[dict]) -> dict:
     """Per point and per value of each axis: the success rate (success = converged) with its 95 %
     Wilson score interval, how the runs ended (converged, bounded, escaped) and medians; the totals; the
     paired comparisons of each axis's values with its first (``tables.comparisons``)."""
@@ -306,7 +306,7 @@ def summary_md(s: dict) -> str:
     return "\n".join(lines)
 
 
-def write_results(folder: Path, c: Campaign, runs: list[Run], done: dict) -> tuple[list[dict], dict]:
+def write_results(folder: Path, c: Campaign, runs: list[PlannedRun], done: dict) -> tuple[list[dict], dict]:
     """runs.parquet, summary.json, summary.md from the journal's rows."""
     rows = ordered_rows(runs, done)
     write_parquet(folder / "runs.parquet", rows, list(c.axes))

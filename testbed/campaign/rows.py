@@ -16,7 +16,7 @@ import numpy as np
 from .. import scenario as scenario_mod
 from ..record.tracereader import read_recording_trace
 from . import engine
-from .spec import OUTCOME_KEYS, Run
+from .spec import OUTCOME_KEYS, PlannedRun
 
 
 def simulate_runs(items: list, batch: bool = True) -> list[dict]:
@@ -77,7 +77,7 @@ def _failed(rid, e, t0) -> dict:
             "simulator": None, "wall_s": time.perf_counter() - t0}
 
 
-def live_run(run: Run, folder: Path, *, timeout: float | None = None) -> dict:
+def live_run(run: PlannedRun, folder: Path, *, timeout: float | None = None) -> dict:
     """One live run (``testbed run`` of the run's scenario, recorded in ``folder``); its row."""
     import subprocess
 

@@ -148,7 +148,7 @@ def _flatten(d: dict, prefix: str = ""):
 
 # ============================================================================ runs
 @dataclass(frozen=True)
-class Run:
+class PlannedRun:
     """One run: point ``point`` (its axis values ``axes``), repeat ``repeat``, its resolved scenario."""
 
     id: str
@@ -256,7 +256,7 @@ def _resolve(base, axes: dict, seeds_from, methods: dict | None = None) -> tuple
     return data, seeds, note
 
 
-def plan(c: Campaign, base=None) -> tuple[list[Run], list[str]]:
+def plan(c: Campaign, base=None) -> tuple[list[PlannedRun], list[str]]:
     """Every run of campaign ``c``, resolved and validated (``BadInput`` naming the axis, the value and
     the reason for a bad one), and the notes (once per campaign)."""
     base = base_scenario(c) if base is None else base
@@ -274,7 +274,7 @@ def plan(c: Campaign, base=None) -> tuple[list[Run], list[str]]:
             try:
                 data, seeds, note = _resolve(base, axes, seeds_from, c.methods)
                 text = to_toml(data)
-                run = Run(f"p{p:05d}r{r}", p, r, axes, seeds, text, base.name, base.base_dir or "")
+                run = PlannedRun(f"p{p:05d}r{r}", p, r, axes, seeds, text, base.name, base.base_dir or "")
                 run.scenario()
             except (BadInput, TypeError, ValueError) as e:
                 raise BadInput(f"{c.path}: {_culprit(base, axes, c.methods)}: {_reason(e)}{_hint(c, e)}") from None

@@ -44,7 +44,7 @@ def main(args) -> int:
         raise BadInput("--sample and --seed apply to --verify (a campaign's seed is its file's 'seed')")
     if args.trust_code:
         raise BadInput("--trust-code applies to --verify (a campaign runs the code its file names)")
-    from ..campaign import run as campaignrun
+    from ..campaign import runner as campaignrun
     from ..campaign.folder import default_dir
     from ..campaign.spec import base_scenario, parse, plan
 
@@ -157,7 +157,7 @@ def _interrupted(args, folder: Path) -> None:
 
 
 def _verify(args) -> int:
-    from ..campaign import run as campaignrun
+    from ..campaign import runner as campaignrun
 
     if args.sample is not None:
         validate.flag("--sample", args.sample, integer=True, lo=1)

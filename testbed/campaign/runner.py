@@ -16,7 +16,7 @@ from ..progress import RunsProgress as Progress
 from . import code
 from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
-from .spec import OUTCOME_KEYS, Campaign, Run, base_scenario, plan
+from .spec import OUTCOME_KEYS, Campaign, PlannedRun, base_scenario, plan
 
 
 def chunks(items: list, workers: int, dask: bool) -> list[list]:
@@ -158,7 +158,7 @@ def _remote_live(rid, text, timeout, copies=()):
             (d / rel).parent.mkdir(parents=True, exist_ok=True)
             (d / rel).write_text(src)
         (d / "scenarios" / f"{rid}.toml").write_text(text)
-        run = Run(rid, 0, 0, {}, {}, text, "scenario", "")
+        run = PlannedRun(rid, 0, 0, {}, {}, text, "scenario", "")
         row = live_run(run, d / "recordings", timeout=timeout)
         rec = d / row["recording"]
         return row, (rec.read_bytes() if rec.exists() else None)
