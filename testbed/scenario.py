@@ -144,7 +144,7 @@ def _method_section(ctx, data: dict, base_dir: str):
     if unused:
         raise ctx.err(f"quantizer.{unused[0]}", f"is not used by the method {name!r} (it uses "
                       f"{', '.join(['T', *obj.uses])}); remove it")
-    return MethodSpec(name, _freeze(params), base_dir), obj
+    return MethodSpec(name, _freeze(params), base_dir).with_built(obj), obj
 
 
 def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>") -> tuple[dict, str]:

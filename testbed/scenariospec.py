@@ -78,12 +78,26 @@ class MethodSpec:
     name: str = "paper"            # a bundled or registered name, an entry point or "module.path:ClassName"
     params: tuple[tuple[str, Any], ...] = ()
     base_dir: str = ""             # the scenario file's folder ("module:Class" methods are imported from it)
+    # the method object, built once per process (by the scenario's check or the first ``make``); not compared,
+    # not copied by ``dataclasses.replace`` (init=False), not pickled (a worker builds its own)
+    built: Any = field(default=None, init=False, repr=False, compare=False)
 
     def make(self):
-        """The method object (``testbed.methods.Method``)."""
-        from . import methods
+        """The method object (``testbed.methods.Method``: its params, a factory of ends), built once and kept:
+        a run's state lives in its ends, never in the method."""
+        if self.built is None:
+            from . import methods
 
-        return methods.make(self.name, self.base_dir or None, _thaw(self.params))
+            object.__setattr__(self, "built", methods.make(self.name, self.base_dir or None, _thaw(self.params)))
+        return self.built
+
+    def with_built(self, obj) -> MethodSpec:
+        """This spec holding ``obj``, the method object the scenario's check built from it."""
+        object.__setattr__(self, "built", obj)
+        return self
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "built": None}
 
     def source_info(self) -> dict[str, str]:
         """The method module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (as for plants)."""

@@ -168,6 +168,28 @@ def test_a_run_parses_its_scenario_once(monkeypatch, tmp_path):
     assert sc3.document() == real(path.read_text()), "the document is the file's, overrides apart"
 
 
+def test_a_process_builds_its_method_once(monkeypatch):
+    """The method object the scenario's check built is the one every later ``make_method`` returns (an
+    encoder node asks three times); a copy through pickle (a campaign's worker) builds its own, and a
+    spec changed by ``dataclasses.replace`` never keeps another's object."""
+    import dataclasses
+    import pickle
+
+    from testbed import methods
+
+    built = []
+    real = methods.make
+    monkeypatch.setattr(methods, "make", lambda *a, **kw: built.append(a[0]) or real(*a, **kw))
+    sc = scenario.load("paper")
+    assert built == ["paper"]
+    m = sc.make_method()
+    assert sc.make_method() is m and sc.make_method().make_encoder is not None and built == ["paper"]
+    sc2 = pickle.loads(pickle.dumps(sc))
+    assert sc2 == sc and sc2.make_method() is not m and built == ["paper", "paper"]
+    other = dataclasses.replace(sc.method, name="zoom")
+    assert other.make().display_name() != m.display_name() and built[-1] == "zoom"
+
+
 def test_overrides_in_one_parse_equal_load_then_override():
     """``load(ref, overrides=...)`` builds what ``with_overrides(load(ref), ...)`` builds, and blames the same input."""
     for over in ({"duration": 2.5, "method": "zoom"}, {"T": 0.05, "E0": 3.0}, {"attack": {"kind": "none"}}):
