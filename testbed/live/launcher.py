@@ -103,7 +103,9 @@ class Launcher:
         self.keys = transport.Keys.for_run(self.run_id)
         self.netns = netns.plan(cfg, self.run_id, self.opts)  # testbed run --netns: its namespaces and endpoints
         if self.netns is not None:
-            cfg = self.cfg = dataclasses.replace(cfg, **self.netns.endpoints(cfg))
+            eps = self.netns.endpoints(cfg)  # the launcher's listener is its session's; the nodes' are by role
+            cfg = self.cfg = dataclasses.replace(cfg, session=dataclasses.replace(cfg.session, listen=(eps.pop("listen"),)),
+                                                 **eps)
         self.colocated = self.opts.colocate           # roles run inside another node's process
         self.creds = RunCredentials(cfg, self.run_id, self.keys, self.colocated)  # topology, endpoints, secrets
         self.processes = self.opts.processes          # the node processes
