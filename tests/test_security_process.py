@@ -286,7 +286,9 @@ def test_an_insider_within_its_keys_is_checked_counted_and_logged(run_id, tmp_pa
             ctl.put(keys.actuation, b"\x00", attachment=b"\x00" * 12)                       # malformed
             att.put(keys.symbol_rx, b"\x00", attachment=msg.Header(59, 0).encode())         # from the future
             att.put(keys.symbol_rx, b"\x01", attachment=b"\x00" * 5)                        # bad header
-            plant.put(keys.stop, msg.Stop(reason="forged", origin="encoder").encode())     # not from the plant
+            for _ in range(3):  # not from the plant; three times: a new peer's links to the mesh form under load
+                plant.put(keys.stop, msg.Stop(reason="forged", origin="encoder").encode())
+                time.sleep(0.2)
             fake = msg.PlantTelemetry(k=2**32 - 2, t_ns=0, sensor_tx_ns=0, u_rx_ns=0, delay_ns=0, theta=0,
                                       flags=0, flow_status=0, x=(1e-9, 1e-9), u=(0.0,))
             for _ in range(3):  # k outside [0, N); three times: a new peer's links to the mesh form under load
