@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 from .. import optionspec
-from ..nodes.options import NodeConfig, RecorderConfig, RunConfig, RunOptions, pairs  # noqa: F401 - pairs: re-exported
+from ..nodes.options import NodeConfig, RecorderConfig, RunConfig, RunOptions
 from ..wire.session import SessionOptions
 
 

@@ -340,8 +340,8 @@ def run_scenario(jd: dict):
 
     opts = RunOptions.of_join(jd["run_options"])
     s = jd["scenario"]
-    sc = scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"], read_recording_trace=read_recording_trace)
-    return scn.with_overrides(sc, opts.overrides())
+    return scn.loads(s["toml"], name=s["name"], base_dir=s["base_dir"], overrides=opts.overrides(),
+                     read_recording_trace=read_recording_trace)
 
 
 def simulated(sc) -> dict:

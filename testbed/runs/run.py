@@ -305,8 +305,9 @@ def resolve_scenario(scenario, overrides: dict | None = None):
     """A scenario object, bundled name or .toml path, with overrides applied (``BadInput`` if unusable)."""
     from .. import scenario as scen
 
-    sc = scenario if isinstance(scenario, scen.Scenario) else scen.load(str(scenario), read_recording_trace=read_recording_trace)
-    return scen.with_overrides(sc, overrides or {})
+    if isinstance(scenario, scen.Scenario):
+        return scen.with_overrides(scenario, overrides or {})
+    return scen.load(str(scenario), overrides=overrides, read_recording_trace=read_recording_trace)  # built once
 
 
 def simulate(scenario, **overrides) -> Run:
