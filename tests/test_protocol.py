@@ -26,7 +26,7 @@ from testbed.protocol import (
 )
 from testbed.quantizer import delay_margin_gain
 from testbed.sim.batch import simulate_batch, simulate_scenario
-from testbed.sim.loop import Network, OnlineAttacker, simulate_loop
+from testbed.sim.loop import LinkEffects, OnlineAttacker, simulate_loop
 
 
 def physical(name: str, **run) -> scenario.Scenario:
@@ -262,7 +262,7 @@ def test_encoder_and_decoder_stay_in_lockstep_under_random_delays_losses_and_ack
     corrupt = tuple((int(k), "length") for k in rng.choice(N, 3, replace=False))
     res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, OnlineAttacker(theta=theta, T=sc.T), sc.flow,
                         model=sc.make_model(), process=sc.make_process(), timing=sc.timing_params,
-                        latency=sc.sim_latency(), network=Network(ack_via_attacker=via, corrupt=corrupt))
+                        latency=sc.sim_latency(), effects=LinkEffects(ack_via_attacker=via, corrupt=corrupt))
     known = np.isfinite(res.E_enc)
     assert np.array_equal(res.E_enc[known], res.E_dec[known])
     assert np.array_equal(res.xi_enc[known], res.xi_dec[known])

@@ -9,7 +9,7 @@ import pytest
 from helpers import assert_simulators_identical, both_simulators
 
 from testbed import cli, scenario
-from testbed.sim.loop import Network
+from testbed.sim.loop import LinkEffects
 from testbed.sim.trajectory import kernel_refusal, simulate_scenario
 
 
@@ -83,12 +83,12 @@ def test_a_diverging_run_stops_at_the_same_sample():
 
 def test_what_the_kernel_refuses_runs_per_sample():
     sc = scenario.load("paper")
-    assert kernel_refusal(sc, Network(ack_via_attacker=True)) is not None
-    assert kernel_refusal(sc, Network(corrupt=((5, "range"),))) is not None
-    res = simulate_scenario(sc, network=Network(corrupt=((5, "range"),)))
+    assert kernel_refusal(sc, LinkEffects(ack_via_attacker=True)) is not None
+    assert kernel_refusal(sc, LinkEffects(corrupt=((5, "range"),))) is not None
+    res = simulate_scenario(sc, effects=LinkEffects(corrupt=((5, "range"),)))
     assert res.simulator == "per-sample"
     with pytest.raises(ValueError, match="cannot run"):
-        simulate_scenario(sc, network=Network(ack_via_attacker=True), simulator="batch")
+        simulate_scenario(sc, effects=LinkEffects(ack_via_attacker=True), simulator="batch")
     assert simulate_scenario(sc).simulator == "batch"
 
 

@@ -10,7 +10,7 @@ from mcap.reader import make_reader
 from testbed import scenario
 from testbed.record import recording, simrecord
 from testbed.record.schema import to_pb
-from testbed.sim.loop import Network
+from testbed.sim.loop import LinkEffects
 from testbed.sim.trajectory import simulate_scenario
 
 T0 = 1_700_000_000_123_456_789
@@ -33,13 +33,13 @@ def _sc(name, **over):
 CASES = [("paper", {}, None), ("paper-greedy", {}, None), ("paper-escape", {"mode": "ideal"}, None),
          ("paper", {"timing": "physical"}, None), ("paper", {"method": "unquantized-hold"}, None),
          ("paper", {"method": "static"}, None),
-         ("paper", {}, Network(ack_via_attacker=True, corrupt=((7, "range"), (40, "length"))))]
+         ("paper", {}, LinkEffects(ack_via_attacker=True, corrupt=((7, "range"), (40, "length"))))]
 
 
 @pytest.mark.parametrize("name,over,net", CASES)
 def test_bulk_recording_is_the_per_message_recording_byte_for_byte(tmp_path, name, over, net):
     sc = _sc(name, **over)
-    res = simulate_scenario(sc, network=net)
+    res = simulate_scenario(sc, effects=net)
     a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
     ca = recording.record_simulation(a, sc, res, t0_ns=T0, bulk=False)
     cb = recording.record_simulation(b, sc, res, t0_ns=T0)

@@ -94,7 +94,7 @@ def main(args) -> int:
     run_id = args.run_id or f"conformance-{args.role}-{os.getpid()}-{secrets.token_hex(3)}"
     res = conformance(args.role, args.scenario, command, folder=folder, run_id=run_id, flags=opts.cli(),
                       timeout=args.timeout, startup_timeout=args.startup_timeout, feed=not args.no_adverse,
-                      network=net, bit_exact=args.bit_exact, plant_tolerance=args.plant_tolerance,
+                      session=net, bit_exact=args.bit_exact, plant_tolerance=args.plant_tolerance,
                       replay=replay_on_recorded_plant)
     if not args.keep and res["passed"]:
         shutil.rmtree(folder, ignore_errors=True)

@@ -39,7 +39,7 @@ def main_simulate(args) -> int:
     from ..nodes.attacker import parse_corrupt
     from ..record.tracereader import read_recording_trace
     from ..sim.batch import outcome_text, summarize
-    from ..sim.loop import Network
+    from ..sim.loop import LinkEffects
     from ..sim.trajectory import simulate_scenario
     from .liveconfig import run_options
 
@@ -55,7 +55,7 @@ def main_simulate(args) -> int:
         corrupt = parse_corrupt(args.corrupt)
     except ValueError as e:
         raise BadInput(str(e)) from None
-    net = Network(ack_via_attacker=opts.ack_via_attacker, corrupt=tuple(sorted(corrupt.items())))
+    effects = LinkEffects(ack_via_attacker=opts.ack_via_attacker, corrupt=tuple(sorted(corrupt.items())))
     latency = None
     if args.latency_from:
         if sc.run.timing != "physical":
@@ -66,7 +66,7 @@ def main_simulate(args) -> int:
     for line in rulesofthumb.warnings(sc):  # a documented rule of thumb broken: said before the run
         print(f"testbed simulate: warning: {line}", file=sys.stderr)
     try:
-        res = simulate_scenario(sc, network=net, latency=latency, simulator=args.simulator)
+        res = simulate_scenario(sc, effects=effects, latency=latency, simulator=args.simulator)
     except ValueError as e:
         if args.simulator != "batch":
             raise

@@ -101,42 +101,42 @@ def _stop_group(p: subprocess.Popen) -> None:
             pass
 
 
-def feedable(network: SessionOptions) -> str | None:
-    """Why the adverse cases cannot be fed in the run's network (``testbed run``'s session: ``SessionOptions.of("run")``;
+def feedable(session: SessionOptions) -> str | None:
+    """Why the adverse cases cannot be fed in the run's session (``testbed run``'s session: ``SessionOptions.of("run")``;
     None: they can): the feeding peer joins with a role's certificate (``--tls-dir``, or one made for the run), or
     unauthenticated (``--insecure``)."""
-    listen = network.listen[0] if network.listen else None
-    if network.secret_file and not network.insecure:
+    listen = session.listen[0] if session.listen else None
+    if session.secret_file and not session.insecure:
         return ("--secret-file: the adverse cases are fed by a peer holding a role's certificate; give "
                 "--tls-dir DIR instead, or --no-adverse")
-    if listen and not listen.startswith("tls/" if not network.insecure else "tcp/"):
+    if listen and not listen.startswith("tls/" if not session.insecure else "tcp/"):
         return (f"--listen {listen}: the adverse cases' feeding peer connects to a "
-                f"{'tcp' if network.insecure else 'tls'}/HOST:PORT endpoint; give one, or --no-adverse")
+                f"{'tcp' if session.insecure else 'tls'}/HOST:PORT endpoint; give one, or --no-adverse")
     return None
 
 
 def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path, flags=(),
                  timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False,
-                 network: SessionOptions | None = None) -> ExternalRun:
+                 session: SessionOptions | None = None) -> ExternalRun:
     """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end,
-    in ``network``; ``feed``: the adverse cases fed to it (through the run's endpoint, with its TLS folder: one
-    made for the run when ``network`` names none)."""
-    network = dataclasses.replace(network or SessionOptions.of("run"), run_id=run_id)
+    in ``session``; ``feed``: the adverse cases fed to it (through the run's endpoint, with its TLS folder: one
+    made for the run when ``session`` names none)."""
+    session = dataclasses.replace(session or SessionOptions.of("run"), run_id=run_id)
     folder.mkdir(parents=True, exist_ok=True)
     out = ExternalRun(recording=str(folder / f"{run_id}.mcap"))
     feeder = None
     if feed:
-        why = feedable(network)
+        why = feedable(session)
         if why:
             raise ValueError(why)
-        tls = None if network.insecure else (network.tls_dir or
+        tls = None if session.insecure else (session.tls_dir or
                                              str(transport.TlsCredentials.new(folder / f"{run_id}-tls").folder))
-        listen = network.listen[0] if network.listen else \
+        listen = session.listen[0] if session.listen else \
             f"{'tcp' if tls is None else 'tls'}/127.0.0.1:{transport.free_port()}"
-        network = dataclasses.replace(network, tls_dir=tls, listen=(listen,))
-        feeder = adverse.Feeder(role, run_id, tls, listen, mode="client" if network.topology == "router" else "peer",
-                                low_latency=network.low_latency)
-    flags = (*flags, *network.argv("run"))  # testbed run's own flags: the session as the launcher takes it
+        session = dataclasses.replace(session, tls_dir=tls, listen=(listen,))
+        feeder = adverse.Feeder(role, run_id, tls, listen, mode="client" if session.topology == "router" else "peer",
+                                low_latency=session.low_latency)
+    flags = (*flags, *session.argv("run"))  # testbed run's own flags: the session as the launcher takes it
     cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json",
            "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
            "--startup-timeout", str(startup_timeout), *flags]
@@ -617,7 +617,7 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
 
 def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True,
-                network: SessionOptions | None = None, bit_exact: bool = False, plant_tolerance: float = PLANT_TOLERANCE,
+                session: SessionOptions | None = None, bit_exact: bool = False, plant_tolerance: float = PLANT_TOLERANCE,
                 replay=None) -> dict:
     """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``; ``passed`` is over
     the required requirements (``check_run``: ``bit_exact``, ``plant_tolerance``, ``replay``)."""
@@ -625,7 +625,7 @@ def conformance(role: str, scenario: str, command: list[str], *, folder: Path, r
     stall_again = None
     for attempt in range(2):
         r = run_external(role, scenario, command, run_id=run_id + "r" * attempt, folder=folder, flags=flags,
-                         timeout=timeout, startup_timeout=startup_timeout, feed=feed, network=network)
+                         timeout=timeout, startup_timeout=startup_timeout, feed=feed, session=session)
         runs.append(r)
         st = stalled(r.summary, role) if r.summary else None
         if not st:

@@ -32,9 +32,9 @@ from ..quantizer import (
     QuantizerParams,
 )
 from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width
-from .loop import (  # noqa: F401 - Network, OnlineAttacker, simulate_loop: re-exported
+from .loop import (  # noqa: F401 - LinkEffects, OnlineAttacker, simulate_loop: re-exported
     SCORES,
-    Network,
+    LinkEffects,
     OnlineAttacker,
     SimResult,
     continue_ends,

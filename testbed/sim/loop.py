@@ -135,8 +135,9 @@ class OnlineAttacker:
 
 
 @dataclass(frozen=True)
-class Network:
-    """What happens between the nodes of a simulated run, beyond the attacker's drops.
+class LinkEffects:
+    """What the links between the nodes of a simulated run do, beyond the attacker's drops (the scenario's
+    ``[network]`` model is one part of it: ``channel``, a ``testbed.channel.NetworkModel``).
 
     ack_via_attacker : the ack of sample k crosses the attacker too, and is dropped iff
         the attacker dropped sample k (``testbed run --ack-via-attacker``).
@@ -182,7 +183,7 @@ class Replay:
 
 def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
                   flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
-                  u_max: float = math.inf, network: Network | None = None,
+                  u_max: float = math.inf, effects: LinkEffects | None = None,
                   replay: Replay | None = None, method=None, device=None, states=None,
                   measured=None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
@@ -223,7 +224,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     n, m = model.n, model.m
     K = np.asarray(K, dtype=np.float64).reshape(m, n)
     N = int(n_steps)
-    net = network or Network()
+    net = effects or LinkEffects()
     corrupt = dict(net.corrupt)
     if process is None:
         process = OdeProcess(plant, flow)

@@ -12,7 +12,7 @@ The kernel runs a scenario when (:func:`kernel_refusal` says why not otherwise):
 * the true plant and the model are bundled plants (``plants/``; not an FMU, not a user's class);
 * the method is a bundled one with a kernel mode (``paper`` in both quantizer modes, ``zoom``,
   ``static``, ``unquantized``, ``unquantized-hold``; a user's method has none);
-* the network is the plain one: no ``--ack-via-attacker``, no ``--corrupt`` (with those an ack
+* the links are plain: no ``--ack-via-attacker``, no ``--corrupt`` (with those an ack
   can be lost and the encoder withholds samples, which only the protocol objects model);
 * ideal or physical timing, an offline schedule or the online greedy attacker (all it has);
 * a ``[network]`` channel (``testbed.channel``): its draws are made ahead and given to the kernel per sample
@@ -35,7 +35,7 @@ from attackers.greedy import greedy_init
 from ..channel import LATE, loss_cause
 from ..flow import FLOW_OK
 from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
-from .loop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
+from .loop import SCORES, LinkEffects, OnlineAttacker, SimResult, simulate_loop
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
 #: error), "per-sample" (the loop always)
@@ -48,7 +48,7 @@ def _bundled(plant) -> bool:
     return type(plant).__module__.split(".")[0] == "plants" and hasattr(type(plant).rhs, "cfunc")
 
 
-def kernel_refusal(sc, network: Network | None = None) -> str | None:
+def kernel_refusal(sc, effects: LinkEffects | None = None) -> str | None:
     """Why the batch kernel cannot run scenario ``sc`` (one phrase), or None when it can."""
     if sc.plant.fmu is not None:
         return "the true plant is an FMU"
@@ -62,11 +62,11 @@ def kernel_refusal(sc, network: Network | None = None) -> str | None:
     method = sc.make_method()
     if method.kernel_code(sc.quantizer) is None:
         return f"method {method.display_name()!r} has no batch kernel (a user's method)"
-    if network is not None and (network.ack_via_attacker or network.corrupt):
+    if effects is not None and (effects.ack_via_attacker or effects.corrupt):
         return "acks via the attacker or corrupted payloads (only the protocol objects model them)"
     if sc.attack.online and sc.attack.kind != "greedy":
         return f"the online attacker {sc.attack.kind!r}"
-    if network is not None and network.channel is not None and network.channel != sc.network:
+    if effects is not None and effects.channel is not None and effects.channel != sc.network:
         return "a channel other than the scenario's [network] (the kernel applies the scenario's)"
     if sc.network is not None and sc.attack.online and sc.attack.score == "E" and sc.network.link("ack").loss > 0:
         return "the greedy attacker scoring E with a lossy ack link (it reads the encoder's E while it withholds)"
@@ -135,7 +135,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
         latency = sc.sim_latency(N)
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     cb = method.codebook(n, qp)
-    chan = Network(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
+    chan = LinkEffects(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
     ctab = np.zeros((4, N), dtype=np.int64)
     if chan is not None:
         ctab[0] = chan.forced
@@ -198,7 +198,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
                      simulator=BATCH)
 
 
-def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
+def simulate_scenario(sc, *, n_steps: int | None = None, effects: LinkEffects | None = None,
                       latency=None, simulator: str = "auto") -> SimResult:
     """Run a scenario (see ``testbed.scenario``): on the batch kernel where it can run, else per sample.
 
@@ -213,9 +213,9 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
         raise ValueError(f"simulator must be one of {', '.join(SIMULATORS)}, got {simulator!r}")
     N = sc.n_steps if n_steps is None else int(n_steps)
     if sc.network is not None:  # [network]: the emulated channels, applied by both simulators
-        network = dataclasses.replace(network or Network(), channel=sc.network)
+        effects = dataclasses.replace(effects or LinkEffects(), channel=sc.network)
     if simulator != PER_SAMPLE:
-        why = kernel_refusal(sc, network)
+        why = kernel_refusal(sc, effects)
         if why is None:
             return simulate_kernel(sc, N, latency)
         if simulator == BATCH:
@@ -230,7 +230,7 @@ def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None
     try:
         return simulate_loop(None, sc.K, sc.quantizer, sc.x0, N, att, sc.flow, model=sc.make_model(),
                              process=process, timing=sc.timing_params, latency=latency,
-                             u_max=sc.controller.u_max, network=network, method=sc.make_method(),
+                             u_max=sc.controller.u_max, effects=effects, method=sc.make_method(),
                              device=sc.plant.device)
     finally:
         process.close()
