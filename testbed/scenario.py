@@ -226,10 +226,10 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
         if (model_obj.n, model_obj.m) != (n, m):
             raise ctx.err("model", f"{model_obj.name} has n = {model_obj.n}, m = {model_obj.m}; the plant "
                                    f"{plant_name} has n = {n}, m = {m}")
-        model = ModelSpec(mname, _freeze(mparams), explicit=True, base_dir=base_dir)
+        model = ModelSpec(mname, _freeze(mparams), explicit=True, base_dir=base_dir).with_built(model_obj)
     else:
         model_obj = plant
-        model = ModelSpec(pt["name"], _freeze(params), base_dir=base_dir)
+        model = ModelSpec(pt["name"], _freeze(params), base_dir=base_dir).with_built(plant)
 
     # [run] (its timing decides the quantizer's default rule)
     rt = data["run"]
@@ -449,7 +449,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     except ChannelError as e:
         raise ScenarioError(f"{where}: {e}") from None
     spec = PlantSpec(plant_name, _freeze(params), x0, ref=pt.get("name", ""), base_dir=base_dir, fmu=fmu,
-                     device=device.parse(pt, n, m, ctx.err, fmu=fmu is not None))
+                     device=device.parse(pt, n, m, ctx.err, fmu=fmu is not None)).with_built(plant)
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
                   description=description, model=model, L_u=L_u, base_dir=base_dir, method=mspec,

@@ -39,7 +39,32 @@ class ScenarioError(BadInput):
 
 # ----------------------------------------------------------------------------- dataclasses
 @dataclass(frozen=True)
-class PlantSpec:
+class BuiltOnce:
+    """A spec that builds its object (a plant, a model, a method) once per process and keeps it in ``built``:
+    not compared, not copied by ``dataclasses.replace`` (init=False: the copy builds its own), not pickled
+    (a worker builds its own).  The objects are immutable (a run's state lives in the ends and processes)."""
+
+    built: Any = field(default=None, init=False, repr=False, compare=False)
+
+    def _build(self) -> Any:  # pragma: no cover - each spec says how
+        raise NotImplementedError
+
+    def make(self) -> Any:
+        """The object, built on the first call (or handed over by the scenario's check) and kept."""
+        if self.built is None:
+            object.__setattr__(self, "built", self._build())
+        return self.built
+
+    def with_built(self, obj):
+        """This spec holding ``obj``, the object the scenario's check built from it."""
+        object.__setattr__(self, "built", obj)
+        return self
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "built": None}
+
+@dataclass(frozen=True)
+class PlantSpec(BuiltOnce):
     name: str                      # the plant's display name (its class's ``name``; "fmu:FILE" for an FMU)
     params: tuple[tuple[str, Any], ...]
     x0: tuple[float, ...]
@@ -48,7 +73,7 @@ class PlantSpec:
     fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
     device: DeviceSpec | None = None  # [plant.sensor], [plant.actuator], [plant.disturbance] (``testbed.device``)
 
-    def make(self) -> plants.Plant:
+    def _build(self) -> plants.Plant:
         if self.fmu is not None:
             raise ScenarioError(f"the plant is the FMU {self.fmu.path}: it has no equation (1) object "
                                 "(the [model] section gives one)")
@@ -72,32 +97,19 @@ class PlantSpec:
 
 
 @dataclass(frozen=True)
-class MethodSpec:
+class MethodSpec(BuiltOnce):
     """``[method] name = "...", params = {...}``: the coding-and-control method (default the paper's)."""
 
     name: str = "paper"            # a bundled or registered name, an entry point or "module.path:ClassName"
     params: tuple[tuple[str, Any], ...] = ()
     base_dir: str = ""             # the scenario file's folder ("module:Class" methods are imported from it)
-    # the method object, built once per process (by the scenario's check or the first ``make``); not compared,
-    # not copied by ``dataclasses.replace`` (init=False), not pickled (a worker builds its own)
-    built: Any = field(default=None, init=False, repr=False, compare=False)
 
-    def make(self):
-        """The method object (``testbed.methods.Method``: its params, a factory of ends), built once and kept:
-        a run's state lives in its ends, never in the method."""
-        if self.built is None:
-            from . import methods
+    def _build(self):
+        """The method object (``testbed.methods.Method``: its params, a factory of ends): a run's state lives in
+        its ends, never in the method."""
+        from . import methods
 
-            object.__setattr__(self, "built", methods.make(self.name, self.base_dir or None, _thaw(self.params)))
-        return self.built
-
-    def with_built(self, obj) -> MethodSpec:
-        """This spec holding ``obj``, the method object the scenario's check built from it."""
-        object.__setattr__(self, "built", obj)
-        return self
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "built": None}
+        return methods.make(self.name, self.base_dir or None, _thaw(self.params))
 
     def source_info(self) -> dict[str, str]:
         """The method module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (as for plants)."""
@@ -123,7 +135,7 @@ class FMUSpec:
 
 
 @dataclass(frozen=True)
-class ModelSpec:
+class ModelSpec(BuiltOnce):
     """``[model]``: the plant model of the predictions (rule (xi)), the LQR design and the analysis."""
 
     name: str                  # a plant reference, resolved as [plant] name is
@@ -131,7 +143,7 @@ class ModelSpec:
     explicit: bool = False     # the scenario has a [model] section
     base_dir: str = ""         # the scenario file's folder
 
-    def make(self) -> plants.Plant:
+    def _build(self) -> plants.Plant:
         return plants.make(self.name, self.base_dir or None, **dict(self.params))
 
 
@@ -303,7 +315,9 @@ class Scenario:
         return self.plant.make()
 
     def make_model(self) -> plants.Plant:
-        """The plant model ([model], default [plant]): the predictions, the LQR design, the analysis."""
+        """The plant model ([model], default [plant]: then the plant object itself)."""
+        if (self.model is None or not self.model.explicit) and self.plant.fmu is None:
+            return self.plant.make()
         return (self.model or ModelSpec(self.plant.ref or self.plant.name, self.plant.params,
                                         base_dir=self.plant.base_dir)).make()
 

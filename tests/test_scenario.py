@@ -190,6 +190,40 @@ def test_a_process_builds_its_method_once(monkeypatch):
     assert other.make().display_name() != m.display_name() and built[-1] == "zoom"
 
 
+def test_a_process_parses_the_scenario_once_and_builds_each_object_once(monkeypatch, capsys):
+    """A command reads the scenario's TOML once and builds the plant, the model and the method once (the
+    per-sample simulator, the kernel's check and the summary all ask for them again); a node's scenario from a
+    join file, with the run's overrides, likewise.  Counted at the three builders."""
+    import plants
+    from testbed import cli, methods
+    from testbed.nodes import joined
+
+    counts: dict = {}
+
+    def counting(mod, name):
+        real = getattr(mod, name)
+        monkeypatch.setattr(mod, name, lambda *a, **kw: counts.__setitem__(name, counts.get(name, 0) + 1)
+                            or real(*a, **kw))
+
+    counting(tomllib, "loads")
+    counting(plants, "instantiate")
+    counting(methods, "make")
+    for ref, per_sample, objects in (("paper", [], 1), ("paper-mismatch", ["--simulator", "per-sample"], 2)):
+        counts.clear()
+        assert cli.main(["simulate", ref, "--duration", "1", *per_sample]) == 0
+        assert counts == {"loads": 1, "instantiate": objects, "make": 1}, (ref, counts)
+    capsys.readouterr()
+    sc = scenario.load("paper")
+    jf = type("JoinFile", (), {"path": "join.json", "scenario": {"toml": sc.source, "name": "paper", "base_dir": ""}})
+    counts.clear()
+    node_sc = joined.scenario(jf, {"duration": 2.0, "E0": 3.0})
+    assert counts == {"loads": 1, "instantiate": 1, "make": 1}
+    import dataclasses
+
+    assert dataclasses.replace(node_sc, path=sc.path) == scenario.with_overrides(sc, {"duration": 2.0, "E0": 3.0})
+    assert node_sc.make_plant() is node_sc.make_model() is node_sc.make_plant()
+
+
 def test_overrides_in_one_parse_equal_load_then_override():
     """``load(ref, overrides=...)`` builds what ``with_overrides(load(ref), ...)`` builds, and blames the same input."""
     for over in ({"duration": 2.5, "method": "zoom"}, {"T": 0.05, "E0": 3.0}, {"attack": {"kind": "none"}}):

@@ -43,11 +43,12 @@ def apply(cfg: NodeConfig) -> tuple:
                                    launched=True)
 
 
-def scenario(jf):
-    """The scenario the join file embeds (its text, as the run read it: the same digest)."""
+def scenario(jf, overrides: dict | None = None):
+    """The scenario the join file embeds (its text, as the run read it: the same digest), with the run's
+    ``overrides`` applied in the one parse."""
     from .. import scenario as scn
     from ..record.tracereader import read_recording_trace
 
     s = jf.scenario
     return scn.loads(s["toml"], name=s["name"], where=f"{jf.path} (scenario {s['name']})", base_dir=s["base_dir"],
-                     check_design=False, read_recording_trace=read_recording_trace)
+                     check_design=False, read_recording_trace=read_recording_trace, overrides=overrides)
