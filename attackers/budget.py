@@ -14,12 +14,12 @@ inside an attack, ``-rho_D`` outside).  No time grid is used.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
+from .checks import RHO_D_WHY, field
 from .schedule import Schedule
 
 __all__ = ["BudgetReport", "RealizedRates", "check", "satisfies", "realized_rates"]
@@ -32,17 +32,9 @@ def _coerce_schedule(schedule) -> Schedule:
 
 
 def _check_nonneg(name: str, value, *, upper_open: float | None = None) -> float:
-    if isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be a real number, got bool {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0.0:
-        raise ValueError(f"{name}={value!r} must be finite and >= 0")
-    if upper_open is not None and v >= upper_open:
-        raise ValueError(f"{name}={value!r} must be < {upper_open} (paper: rho_D in [0, 1))")
-    return v
+    if upper_open is not None:
+        return field(name, value, RHO_D_WHY, lo=0.0, hi=upper_open, hi_open=True)
+    return field(name, value, lo=0.0)
 
 
 def _check_horizon(horizon) -> float | None:

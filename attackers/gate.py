@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from .checks import field
 from .schedule import Schedule, sample_eps
 
 if TYPE_CHECKING:  # numba: imported only for an online (greedy) gate
@@ -53,9 +54,7 @@ class Gate:
                 f"Gate source must be a Schedule or a GreedyAttacker, got {type(source).__name__}"
             )
         if T is not None:
-            T = float(T)
-            if not (math.isfinite(T) and T > 0.0):
-                raise ValueError(f"Gate: sampling period T={T!r} must be finite and > 0")
+            T = field("Gate: sampling period T", T, lo=0.0, lo_open=True)
         self.source = source
         self.T = T
         self._eps = sample_eps(T) if T is not None else None

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .checks import RHO_D, RHO_D_WHY, field
 from .schedule import Schedule
 
 if TYPE_CHECKING:  # numba: imported only where the online attacker is built (make_greedy)
@@ -36,39 +37,19 @@ __all__ = ["GENERATORS", "ONLINE_KINDS", "PARAMS", "make_schedule", "make_greedy
 
 # ---------------------------------------------------------------- validation
 def _num(kind: str, name: str, value: Any) -> float:
-    if isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"attack kind {kind!r}: parameter {name!r} must be a number, got bool {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"attack kind {kind!r}: parameter {name!r} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"attack kind {kind!r}: parameter {name!r}={value!r} must be finite")
-    return v
+    return field(f"attack kind {kind!r}: parameter {name!r}", value)
 
 
 def _nonneg(kind: str, name: str, value: Any) -> float:
-    v = _num(kind, name, value)
-    if v < 0.0:
-        raise ValueError(f"attack kind {kind!r}: parameter {name!r}={value!r} must be >= 0")
-    return v
+    return field(f"attack kind {kind!r}: parameter {name!r}", value, lo=0.0)
 
 
 def _rho_D(kind: str, value: Any) -> float:
-    v = _nonneg(kind, "rho_D", value)
-    if v >= 1.0:
-        raise ValueError(
-            f"attack kind {kind!r}: parameter 'rho_D'={value!r} must be < 1 "
-            "(Assumption 4: rho_D in [0, 1))"
-        )
-    return v
+    return field(f"attack kind {kind!r}: parameter 'rho_D'", value, RHO_D_WHY, **RHO_D)
 
 
 def _unit(kind: str, name: str, value: Any) -> float:
-    v = _nonneg(kind, name, value)
-    if v > 1.0:
-        raise ValueError(f"attack kind {kind!r}: parameter {name!r}={value!r} must be in [0, 1]")
-    return v
+    return field(f"attack kind {kind!r}: parameter {name!r}", value, lo=0.0, hi=1.0)
 
 
 def _check_keys(kind: str, params: Mapping, required: tuple[str, ...], optional: tuple[str, ...]) -> None:

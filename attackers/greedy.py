@@ -28,7 +28,7 @@ import math
 import numba
 import numpy as np
 
-from .budget import _check_nonneg
+from .checks import RHO_D, RHO_D_WHY, field
 
 __all__ = [
     "GREEDY_STATE_SIZE",
@@ -79,21 +79,10 @@ def greedy_params(kappa_F, rho_F, kappa_D, rho_D, threshold=0.0) -> np.ndarray:
     ``kappa_F, kappa_D, rho_F >= 0`` (Assumptions 3 and 4), ``rho_D in [0, 1)``
     (Assumption 4), ``threshold in [0, 1]``; raises ``ValueError`` otherwise.
     """
-    vals = {}
-    for name, v in (
-        ("kappa_F", kappa_F),
-        ("rho_F", rho_F),
-        ("kappa_D", kappa_D),
-        ("rho_D", rho_D),
-        ("threshold", threshold),
-    ):
-        vals[name] = _check_nonneg(f"greedy attacker: {name}", v)
-    if vals["rho_D"] >= 1.0:
-        raise ValueError(
-            f"greedy attacker: rho_D={rho_D!r} must be < 1 (Assumption 4: rho_D in [0, 1))"
-        )
-    if vals["threshold"] > 1.0:
-        raise ValueError(f"greedy attacker: threshold={threshold!r} must be in [0, 1]")
+    vals = {name: field(f"greedy attacker: {name}", v, lo=0.0)
+            for name, v in (("kappa_F", kappa_F), ("rho_F", rho_F), ("kappa_D", kappa_D))}
+    vals["rho_D"] = field("greedy attacker: rho_D", rho_D, RHO_D_WHY, **RHO_D)
+    vals["threshold"] = field("greedy attacker: threshold", threshold, lo=0.0, hi=1.0)
     return np.array(
         [vals["kappa_F"], vals["rho_F"], vals["kappa_D"], vals["rho_D"], vals["threshold"]],
         dtype=np.float64,

@@ -4,9 +4,9 @@ the flags of ``testbed run``).
 
 Each check returns the value (an ``int`` where it asks for an integer) or raises :class:`Invalid` with
 the phrase of what is wrong ("must be > 0, got -1"); the parser puts its field's name before it in its
-own error type (``ScenarioError``: "paper.toml: [quantizer.T] must be > 0, got -1").  ``attackers/``
-cannot import ``testbed/`` (it sits below it) and keeps its parameter checks in
-``attackers/generators.py``.
+own error type (``ScenarioError``: "paper.toml: [quantizer.T] must be > 0, got -1").  :func:`number` and
+:class:`Invalid` are ``attackers.checks``' (the lowest package that checks numbers: an attack's
+parameters are checked by the same function).
 """
 
 from __future__ import annotations
@@ -15,28 +15,9 @@ import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from attackers.checks import Invalid, number
+
 from .errors import BadInput
-
-
-class Invalid(ValueError):
-    """What is wrong with a value, as a phrase that follows the field's name ("must be finite, got nan")."""
-
-
-def number(v: Any, *, integer: bool = False, lo: float | None = None, lo_open: bool = False,
-           hi: float | None = None, hi_open: bool = False, allow_inf: bool = False) -> Any:
-    """A real number (not a bool), finite (``allow_inf``: +inf too), an integral value if ``integer``
-    (returned as an ``int``), in the range ``lo``..``hi`` (each bound open or closed)."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise Invalid(f"must be a number, got {v!r}")
-    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
-        raise Invalid(f"must be finite, got {v!r}")
-    if integer and not float(v).is_integer():
-        raise Invalid(f"must be an integer, got {v!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise Invalid(f"must be {'>' if lo_open else '>='} {lo:g}, got {v!r}")
-    if hi is not None and (v >= hi if hi_open else v > hi):
-        raise Invalid(f"must be {'<' if hi_open else '<='} {hi:g}, got {v!r}")
-    return int(v) if integer else float(v)
 
 
 def positive(v: Any) -> float:
