@@ -135,13 +135,14 @@ def draws(model: NetworkModel | None, link: str, n: int, bits: int = 0) -> LinkD
         raise ValueError(f"unknown link {link!r}; the links are {', '.join(LINKS)}")
     n = int(n)
     lm = model.link(link) if model is not None else LinkModel()
+    seed = model.seed if model is not None else 0  # no model: a perfect link, nothing drawn
     if lm.loss > 0:
-        lost = loss_chain(lm, _rng(model.seed, link, 0).random(n))
+        lost = loss_chain(lm, _rng(seed, link, 0).random(n))
     else:
         lost = np.zeros(n, dtype=bool)
     delay = np.full(n, lm.delay, dtype=np.float64)
     if lm.jitter > 0:
-        g = _rng(model.seed, link, 1)
+        g = _rng(seed, link, 1)
         delay = np.maximum(delay + draw(g, lm.distribution, lm.jitter, n), 0.0)
     if bits and math.isfinite(lm.rate):
         delay = delay + bits / lm.rate

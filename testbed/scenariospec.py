@@ -275,7 +275,7 @@ class Scenario:
 
         from . import methods
 
-        classes = [methods.resolve(self.method.name, self.method.base_dir or None)]
+        classes: list[type] = [methods.resolve(self.method.name, self.method.base_dir or None)]
         if self.plant.fmu is None:
             classes.append(plants.resolve(self.plant.ref or self.plant.name, self.plant.base_dir or None))
         if self.model is not None:
@@ -328,6 +328,7 @@ class Scenario:
         N = self.n_steps if n_steps is None else n_steps
         if self.network is not None and self.run.sim_delay is None:
             return np.zeros(N, dtype=np.int64)   # the [network] links' delays are u_k's latency
+        assert self.run.delay is not None  # physical timing: parsed with its bound
         spec = self.run.sim_delay or SimDelaySpec(
             "constant", value=self.run.delay.nominal if self.run.actuation == "arrival" else 0.0)
         return spec.draw(N)

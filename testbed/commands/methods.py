@@ -22,7 +22,7 @@ def method_table() -> list[dict]:
     from .. import methods, scenario
 
     sc = scenario.load("paper")
-    out = []
+    out: list[dict[str, Any]] = []
     refs = list(methods.names()) + [n for n in methods.entry_points() if n not in methods.names()]
     for ref in refs:
         try:

@@ -96,6 +96,7 @@ def main_check_plant(args) -> int:
         base_dir = sc.base_dir or base_dir
         if args.ref is None:
             if sc.plant.fmu is not None:
+                assert sc.model is not None  # an FMU plant has a [model] (the scenario's check)
                 raise BadInput(f"the plant of {args.scenario} is the FMU {sc.plant.fmu.path}: check-plant checks "
                                f"equation (1) plants; check its [model] with testbed check-plant {sc.model.name} "
                                f"--scenario {args.scenario}")

@@ -31,6 +31,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from .. import scenario
 from ..errors import BadInput
@@ -167,14 +168,15 @@ class Launcher:
     def node_config(self, role: str) -> NodeConfig:
         """What the node process ``role`` runs: the run's options, its session and its own settings."""
         c = self.cfg
-        guest_crash = {f"{g}_crash_at": c.crash[g] for g in self.colocated
+        guest_crash: dict[str, Any] = {f"{g}_crash_at": c.crash[g] for g in self.colocated
                        if self.opts.process_of(g) == role and g in c.crash}  # --encoder-crash-at
         here = role not in c.node_prefix or c.node_prefix[role].startswith("ip netns exec")
-        rerun = {} if self.rerun is None else {"recording_id": self.rerun.recording_id, **(
+        rx: dict[str, Any] = {"rx": c.rx} if c.rx else {}
+        rerun: dict[str, Any] = {} if self.rerun is None else {"recording_id": self.rerun.recording_id, **(
             {"rerun_save": self.rerun.part(role)} if self.rerun.mode == "save" else {"rerun_url": self.rerun.url})}
         return NodeConfig(
             role=role, scenario=self.scenario_ref, opts=self.opts, session=self.creds.session_options(role),
-            ready_timeout=c.startup_timeout, launched=True, **({"rx": c.rx} if c.rx else {}), rx_spin_us=c.rx_spin_us,
+            ready_timeout=c.startup_timeout, launched=True, **rx, rx_spin_us=c.rx_spin_us,
             cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=c.realtime,
             verbose=c.verbose, crash_at=c.crash.get(role), **guest_crash, **rerun,
             spin_us=c.spin_us if role == "plant" else None,
@@ -296,8 +298,8 @@ class Launcher:
         while True:
             if self.signal is not None:
                 return f"interrupted by {signal.Signals(self.signal).name}"
-            if self.method_fault(col):
-                return self._method_fault
+            if (fault := self.method_fault(col)) is not None:
+                return fault
             if self.t0_mono is None and col.start is not None:
                 end_mono = self.started(col.start)
             t0_mono = self.t0_mono
@@ -323,6 +325,7 @@ class Launcher:
             else:
                 if (ended := self.tick(col, now, t0_mono)) is not None:
                     return ended
+                assert end_mono is not None  # set with t0 (started)
                 if now > end_mono:
                     self.faults.append(Fault(role=None, kind="timeout",
                                              detail="nodes still running 10 s after the end of the run"))
@@ -371,8 +374,8 @@ class Launcher:
         self.stalls.release()  # a node still frozen by --stall
         self.nodes.stop_all(session, self.keys.stop, outcome)
         for r, p in self.nodes.procs.items():
-            if r not in self.nodes.exits and p.poll() is not None:
-                self.nodes.record_exit(r, p.returncode, col, None, interrupted=self.signal is not None)
+            if r not in self.nodes.exits and (rc := p.poll()) is not None:
+                self.nodes.record_exit(r, rc, col, None, interrupted=self.signal is not None)
         self.phase("stopped")
         self.nodes.wait_summaries(col)  # late telemetry and summaries
         status.stop(self.status, col)  # the status line's last state, the run's losses

@@ -95,7 +95,7 @@ class RecorderProcess:
 
     def kill(self) -> None:
         """``--kill recorder@S``: SIGKILL to its process group."""
-        if self.running():
+        if self.proc is not None and self.proc.poll() is None:  # running()
             os.killpg(self.proc.pid, signal.SIGKILL)
 
     def startup(self, col) -> str:
@@ -103,6 +103,7 @@ class RecorderProcess:
         first: a fault ``startup_failed``)."""
         if transport.RECORDER in col.ready_nodes():
             return "ready"
+        assert self.proc is not None  # started
         rc = self.proc.poll()
         if rc is None:
             return "waiting"

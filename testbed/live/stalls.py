@@ -27,8 +27,11 @@ from ..wire import messages as msg
 from ..wire import transport
 
 if TYPE_CHECKING:
+    import subprocess
+
     from .faultlog import FaultLog
     from .processes import NodeProcesses
+    from .spawn import Forked
 
 #: the shortest stall the watch reports (a gap of at least 3 periods, and at least this long)
 MIN_GAP_NS = 300_000_000
@@ -244,7 +247,7 @@ class StallControl:
         a link down): its peers have dropped it, as if it had died; a fault ``lost``, once."""
         if col.plant_done():
             return
-        nodes = dict(self.nodes.procs)
+        nodes: dict[str, subprocess.Popen | Forked | None] = dict(self.nodes.procs)
         if self.external is not None:  # a node from outside (a device): its liveliness is all the launcher sees
             nodes[self.external] = None
         for role, p in nodes.items():

@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from ..loopspec import Codebook
 from .base import FloatCodebook, Method, MethodError, finite_params
 
@@ -34,7 +36,7 @@ class _LazyEnd:
     def __init__(self, name: str):
         self.name = name
 
-    def __get__(self, obj, owner=None):
+    def __get__(self, obj: object, owner: type | None = None) -> Any:
         from . import ends
 
         return getattr(ends, self.name)

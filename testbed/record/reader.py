@@ -12,6 +12,7 @@ from collections import Counter, defaultdict
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ..wire import messages as msg
 from . import schema
@@ -42,7 +43,7 @@ class Recording:
     metadata: dict[str, dict] = field(default_factory=dict)
     start: msg.Start | None = None
     stops: list[msg.Stop] = field(default_factory=list)
-    telemetry: dict[str, dict[int, object]] = field(default_factory=lambda: {r: {} for r in TELEMETRY_TOPICS})
+    telemetry: dict[str, dict[int, Any]] = field(default_factory=lambda: {r: {} for r in TELEMETRY_TOPICS})
     plant_final: msg.PlantTelemetry | None = None
     events: list[msg.Event] = field(default_factory=list)
     status: list[msg.AttackerStatus] = field(default_factory=list)

@@ -325,6 +325,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
             if replay.u_missing[k]:
                 u_k = None
             if physical:
+                assert replay.delays is not None  # physical timing: the replay carries the recorded delays
                 dns = int(replay.delays[k])
         else:
             if chan is not None and chan.actuation_lost[k]:
@@ -339,7 +340,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                     dns = pp.delay_ns(arr, d.theta)
         if u_k is None:
             u_missing[k] = True
-        if physical:
+        if delays is not None:  # physical timing
             delays[k] = dns
         try:
             st = pp.step(u_k, dns)

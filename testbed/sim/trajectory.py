@@ -27,6 +27,7 @@ Everything else runs the per-sample loop.  ``simulator="per-sample"`` forces the
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -36,6 +37,9 @@ from ..channel import LATE, loss_cause
 from ..flow import FLOW_OK
 from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
 from .loop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
+
+if TYPE_CHECKING:
+    from ..methods.base import EncoderEnd
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
 #: error), "per-sample" (the loop always)
@@ -92,7 +96,7 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
     protocol object driven as ``loop.simulate_loop`` drives it (acks before the next sensor sample)."""
     from ..protocol import EncoderProtocol
 
-    encp = EncoderProtocol(_Ledger(), len(chan.sensed))
+    encp = EncoderProtocol(cast("EncoderEnd", _Ledger()), len(chan.sensed))  # a stand-in: the members it reads
     acks: list = []
     last_rx = -1
     for k in range(last):
@@ -163,7 +167,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
          "xi_dec": col(tf[:, 3 * n:4 * n])}
     U, ED = col(tf[:, 4 * n:4 * n + m]), col(tf[:, 4 * n + m])
     SYM, SAT, UMISS, DEL = col(ti[:, 0]), ti[:, 1].astype(bool), ti[:, 2].astype(bool), col(ti[:, 3])
-    last, status = int(stop_k[0]), int(status[0])
+    last, code = int(stop_k[0]), int(status[0])
     nrej, nclamp, novf = (int(v) for v in counts[0])
     sl = slice(0, last)
     theta = TH[sl].copy()
@@ -192,7 +196,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=a["x"][sl], u=U[sl], q=a["q"][sl], q_enc=a["q_enc"][sl],
                      xi_enc=a["xi_enc"][sl], E_enc=EE[sl], xi_dec=a["xi_dec"][sl], E_dec=ED[sl], theta=theta,
                      symbols=SYM[sl], saturated=sat, x_final=x_final,
-                     flow_status=FLOW_OK if status == 0 else status, diverged_at=-1 if status == 0 else last - 1, K=K,
+                     flow_status=FLOW_OK if code == 0 else code, diverged_at=-1 if code == 0 else last - 1, K=K,
                      reason=theta.astype(np.int64), withheld=withheld, u_missing=UMISS[sl], loss_cause=cause,
                      delays=DEL[sl].copy() if physical else None, counters=counters, loop_state=state_final,
                      simulator=BATCH)
