@@ -12,7 +12,7 @@ from collections import Counter, defaultdict
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..wire import messages as msg
 from . import schema
@@ -30,6 +30,9 @@ from .mcapfile import (
 )
 from .recorded import recorded_scenario
 from .topics import TELEMETRY_TOPICS
+
+if TYPE_CHECKING:
+    from google.protobuf.message import Message
 
 
 # ============================================================================ reading
@@ -188,9 +191,9 @@ def _read(path: Path, loop: bool) -> Recording:
     data = path.read_bytes()
     if not data.startswith(MAGIC):
         raise ValueError(f"{path}: not an MCAP file")
-    schemas: dict[int, dict[str, type]] = {}
+    schemas: dict[int, dict[str, type[Message]]] = {}
     schema_names: dict[int, str] = {}
-    channels: dict[int, tuple[str, str, type | None]] = {}
+    channels: dict[int, tuple[str, str, type[Message] | None]] = {}
     seen_footer = False
     it = _records(data)
     while True:

@@ -279,7 +279,8 @@ def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - 
 
     compilenotice.install()
     # every field (q_k at the encoder, the stage times)
-    return run_of_recording(*load(path, fields=None, trust_code=trust_code), path)
+    cols, sc = load(path, fields=None, trust_code=trust_code)
+    return run_of_recording(cols, sc, path)
 
 
 # ============================================================================ from the simulator
