@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from . import validate
 from .distributions import draw, names
@@ -241,7 +242,9 @@ def sample_channel(model: NetworkModel, N: int, *, physical: bool, loss_ns: int,
                          withheld=withheld_pattern(sensed, d["ack"].lost))
 
 
-def loss_cause(theta, *, withheld=None, sensed=None, attacker=None, symbol_lost=None, late=None) -> np.ndarray:
+def loss_cause(theta: npt.ArrayLike, *, withheld: npt.ArrayLike | None = None, sensed: npt.ArrayLike | None = None,
+               attacker: npt.ArrayLike | None = None, symbol_lost: npt.ArrayLike | None = None,
+               late: npt.ArrayLike | None = None) -> np.ndarray:
     """Why each lost sample (theta_k = 1) was lost, the first cause on the symbol's way: the encoder
     withheld it (WITHHELD), the sensor link lost x_k (CHANNEL), the attacker dropped or corrupted it
     (ATTACKER), the symbol link lost it (CHANNEL), it came after the loss deadline (LATE).  A loss with
@@ -287,8 +290,9 @@ def model_lost(model: NetworkModel | None, n: int) -> np.ndarray:
     return out
 
 
-def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None,
-                    channel_lost=None) -> dict:
+def recorded_losses(theta: npt.ArrayLike, *, withheld: npt.ArrayLike, attacker: npt.ArrayLike,
+                    invalid: npt.ArrayLike, superseded: npt.ArrayLike, late_symbols: int | None,
+                    channel_lost: npt.ArrayLike | None = None) -> dict:
     """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
     ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
     invalid counts as the attacker's too: only the attacker corrupts), the controller's reason
@@ -318,7 +322,7 @@ def _num(key: str, v, **bounds) -> float:
         raise ChannelError(f"[{key}] {e}") from None
 
 
-def parse_link(name: str, table) -> LinkModel:
+def parse_link(name: str, table: object) -> LinkModel:
     """One ``[network.<name>]`` table -> ``LinkModel`` (``ChannelError`` naming the key)."""
     key = f"network.{name}"
     if not isinstance(table, dict):
@@ -343,7 +347,7 @@ def parse_link(name: str, table) -> LinkModel:
     return LinkModel(delay=delay, jitter=jitter, distribution=str(dist), loss=loss, loss_burst=burst, rate=rate)
 
 
-def parse_network(table) -> NetworkModel:
+def parse_network(table: object) -> NetworkModel:
     """The ``[network]`` table -> ``NetworkModel``: ``seed`` (an integer >= 0, default 0) and one
     table per link of ``LINKS``.  Raises ``ChannelError`` (one line naming the key)."""
     if not isinstance(table, dict):

@@ -23,6 +23,7 @@ simulator, the live plant node and ``testbed resimulate``, whatever happens late
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -167,7 +168,7 @@ class Device:
         return {"actuator_saturated": self.saturated, "actuator_rate_limited": self.rate_limited}
 
 
-def parse(pt: dict, n: int, m: int, err, fmu: bool = False) -> DeviceSpec | None:
+def parse(pt: dict, n: int, m: int, err: Callable[[str, str], Exception], fmu: bool = False) -> DeviceSpec | None:
     """The ``[plant.sensor]``, ``[plant.actuator]`` and ``[plant.disturbance]`` tables of a [plant]
     table ``pt`` (None when it has none).  ``err(key, message)`` makes the scenario's error."""
     if not any(t in pt for t in TABLES):

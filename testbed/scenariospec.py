@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,6 +17,13 @@ from .channel import NetworkModel
 from .device import DeviceSpec
 from .errors import BadInput
 from .loopspec import FlowOptions, QuantizerParams
+
+if TYPE_CHECKING:
+    from attackers.schedule import Schedule
+    from plants.base import PlantProcess
+    from plants.fmu import FMUPlant
+
+    from .methods.base import Method
 
 
 def _freeze(v):
@@ -80,18 +87,20 @@ class MethodSpec:
     base_dir: str = ""             # the scenario file's folder ("module:Class" methods are imported from it)
     # the method object, built once per process (by the scenario's check or the first ``make``); not compared,
     # not copied by ``dataclasses.replace`` (init=False), not pickled (a worker builds its own)
-    built: Any = field(default=None, init=False, repr=False, compare=False)
+    built: Method | None = field(default=None, init=False, repr=False, compare=False)
 
-    def make(self):
+    def make(self) -> Method:
         """The method object (``testbed.methods.Method``: its params, a factory of ends), built once and kept:
         a run's state lives in its ends, never in the method."""
-        if self.built is None:
+        built = self.built
+        if built is None:
             from . import methods
 
-            object.__setattr__(self, "built", methods.make(self.name, self.base_dir or None, _thaw(self.params)))
-        return self.built
+            built = methods.make(self.name, self.base_dir or None, _thaw(self.params))
+            object.__setattr__(self, "built", built)
+        return built
 
-    def with_built(self, obj) -> MethodSpec:
+    def with_built(self, obj: Method) -> MethodSpec:
         """This spec holding ``obj``, the method object the scenario's check built from it."""
         object.__setattr__(self, "built", obj)
         return self
@@ -115,7 +124,7 @@ class FMUSpec:
     params: tuple[tuple[str, Any], ...] = ()
     checked: bool = True                       # False: read from a recording, the file not looked at
 
-    def open(self):
+    def open(self) -> FMUPlant:
         """The FMU as a ``plants.PlantProcess`` (``plants.fmu.FMUPlant``)."""
         from plants.fmu import FMUPlant
 
@@ -170,7 +179,7 @@ class AttackSpec:
     def score(self) -> str:
         return self.params_dict.get("score", "state")
 
-    def schedule(self, T: float, horizon: float):
+    def schedule(self, T: float, horizon: float) -> Schedule | None:
         """The offline schedule (None for the online greedy attacker)."""
         if self.online:
             return None
@@ -262,7 +271,7 @@ class Scenario:
 
         return tomllib.loads(self.source)
 
-    def make_method(self):
+    def make_method(self) -> Method:
         """The coding-and-control method ([method]; ``testbed.methods.Method``)."""
         return self.method.make()
 
@@ -307,7 +316,7 @@ class Scenario:
         return (self.model or ModelSpec(self.plant.ref or self.plant.name, self.plant.params,
                                         base_dir=self.plant.base_dir)).make()
 
-    def make_process(self):
+    def make_process(self) -> PlantProcess:
         """The true plant as it advances in time (``plants.base.PlantProcess``): an ODE plant or an FMU."""
         if self.plant.fmu is not None:
             return self.plant.fmu.open()

@@ -30,6 +30,7 @@ import dataclasses
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from attackers.greedy import greedy_init
 
@@ -40,6 +41,7 @@ from .loop import SCORES, Network, OnlineAttacker, SimResult, simulate_loop
 
 if TYPE_CHECKING:
     from ..methods.base import EncoderEnd
+    from ..scenariospec import Scenario
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
 #: error), "per-sample" (the loop always)
@@ -52,7 +54,7 @@ def _bundled(plant) -> bool:
     return type(plant).__module__.split(".")[0] == "plants" and hasattr(type(plant).rhs, "cfunc")
 
 
-def kernel_refusal(sc, network: Network | None = None) -> str | None:
+def kernel_refusal(sc: Scenario, network: Network | None = None) -> str | None:
     """Why the batch kernel cannot run scenario ``sc`` (one phrase), or None when it can."""
     if sc.plant.fmu is not None:
         return "the true plant is an FMU"
@@ -104,7 +106,7 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
             encp.ack(*a)
         acks.clear()
         if chan.sensed[k]:
-            encp.sensor(k, None)
+            encp.sensor(k, ())  # the ledger encodes nothing: no state
         if theta[k] == 0:
             last_rx = k
         if not chan.ack_lost[k]:
@@ -116,13 +118,16 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
     return out
 
 
-def simulate_kernel(sc, N: int, latency=None) -> SimResult:
+def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) -> SimResult:
     """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None)."""
     plant, model = sc.make_plant(), sc.make_model()
     n, m = model.n, model.m
     qp = sc.quantizer
     method = sc.make_method()
-    mode = int(method.kernel_code(qp))
+    code = method.kernel_code(qp)
+    if code is None:  # kernel_refusal(sc) says so first
+        raise ValueError(f"method {method.display_name()!r} has no batch kernel")
+    mode = int(code)
     E0 = float(method.kernel_E0(qp))
     dpar = np.zeros(4) if mode == 4 else np.ascontiguousarray(qp.dpar, dtype=np.float64)
     K = np.ascontiguousarray(np.asarray(sc.K, dtype=np.float64).reshape(m, n))
@@ -202,8 +207,8 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
                      simulator=BATCH)
 
 
-def simulate_scenario(sc, *, n_steps: int | None = None, network: Network | None = None,
-                      latency=None, simulator: str = "auto") -> SimResult:
+def simulate_scenario(sc: Scenario, *, n_steps: int | None = None, network: Network | None = None,
+                      latency: npt.ArrayLike | None = None, simulator: str = "auto") -> SimResult:
     """Run a scenario (see ``testbed.scenario``): on the batch kernel where it can run, else per sample.
 
     The true plant is ``[plant]`` (``sc.make_process()``), the predictions use ``[model]``;
