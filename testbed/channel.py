@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -73,13 +74,13 @@ class NetworkModel:
     seed: int = 0
     links: Mapping[str, LinkModel] = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "links", dict(self.links))   # a plain dict: the model pickles (campaign workers)
 
-    def __hash__(self):
+    def __hash__(self) -> int:
         return hash((self.seed, tuple(sorted(self.links.items()))))
 
-    def __eq__(self, other):
+    def __eq__(self, other: object) -> bool:
         return (isinstance(other, NetworkModel) and self.seed == other.seed
                 and dict(self.links) == dict(other.links))
 
@@ -229,7 +230,7 @@ def sample_channel(model: NetworkModel, N: int, *, physical: bool, loss_ns: int,
     symbol delay exceeds the loss deadline ``loss_ns`` is late, and the delays add to u_k's latency."""
     d = {k: draws(model, k, N, payload_bits(k, n, m, symbol_bytes)) for k in LINKS}
 
-    def ns(a):
+    def ns(a: np.ndarray) -> np.ndarray:
         return np.round(a * 1e9).astype(np.int64)
 
     sensed = ~d["sensor"].lost
@@ -315,7 +316,7 @@ def recorded_losses(theta: npt.ArrayLike, *, withheld: npt.ArrayLike, attacker: 
 
 
 # ----------------------------------------------------------------------------- parsing
-def _num(key: str, v, **bounds) -> float:
+def _num(key: str, v: object, **bounds: Any) -> float:
     try:
         return validate.number(v, **bounds)
     except validate.Invalid as e:

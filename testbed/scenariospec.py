@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from .methods.base import Method
 
 
-def _freeze(v):
+def _freeze(v: Any) -> Any:
     if isinstance(v, list):
         return tuple(_freeze(x) for x in v)
     if isinstance(v, dict):
@@ -34,7 +34,7 @@ def _freeze(v):
     return v
 
 
-def _thaw(v):
+def _thaw(v: Any) -> Any:
     if isinstance(v, tuple):
         return [_thaw(x) for x in v]
     return v
