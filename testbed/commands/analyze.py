@@ -164,7 +164,7 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_analyze(args) -> int:
+def main_analyze(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.summary import analyze, to_json
 
@@ -497,7 +497,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_roa(args) -> int:
+def main_roa(args: argparse.Namespace) -> int:
     from .. import scenario
 
     sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed roa")

@@ -25,7 +25,7 @@ def add_arguments_plants(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the list (name, source, ref, n, m, description, dist, error)")
 
 
-def main_plants(args) -> int:
+def main_plants(args: argparse.Namespace) -> int:
     import plants
 
     rows = plants.available()
@@ -75,7 +75,7 @@ def _param(text: str) -> tuple[str, float]:
         raise BadInput(f"--param must be NAME=NUMBER, got {text!r}") from None
 
 
-def main_check_plant(args) -> int:
+def main_check_plant(args: argparse.Namespace) -> int:
     import plants
 
     from .. import plantcheck

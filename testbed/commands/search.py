@@ -52,7 +52,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_sweep(args) -> int:
+def main_sweep(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis import figures
     from ..analysis.region import allowable_region
@@ -174,7 +174,7 @@ def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_worst_attack(args) -> int:
+def main_worst_attack(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.worst import Loop, worst_attack
     from ..errors import BadInput
@@ -286,7 +286,7 @@ def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_vulnerability(args) -> int:
+def main_vulnerability(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.roa import nominal_roa
     from ..analysis.summary import analyze

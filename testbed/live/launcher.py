@@ -31,7 +31,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .. import scenario
 from ..errors import BadInput
@@ -47,6 +47,11 @@ from .faultlog import FaultLog
 from .processes import NodeProcesses
 from .recorder import RecorderProcess, exit_code
 from .stalls import StallControl, check_fault_times, lost_during, parse_stalls
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from .collect import Collector
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
@@ -149,7 +154,7 @@ class Launcher:
         self.router = RouterPriority(cfg.realtime)
         self.signal: int | None = None
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
-        self.status = None                            # the live status line (``status``): a terminal or --progress
+        self.status: status.LiveStatus | None = None  # the live status line (``status``): a terminal or --progress
         self.device_watch: DeviceWatch | None = None  # what the plant (a device) does wrong (``devicefaults``)
         self._method_fault: str | None = None         # the outcome once a node reported a method fault
         self._events_seen = 0
@@ -251,7 +256,7 @@ class Launcher:
             self.creds.secrets_ready()
             self.nodes.spawn(forked=True)
 
-    def open_session(self, cleanup: contextlib.ExitStack):
+    def open_session(self, cleanup: contextlib.ExitStack) -> zenoh.Session:
         """The launcher's session, the run's router (closed first at the end); a forked node is killed if it
         cannot open."""
         import zenoh
@@ -266,7 +271,7 @@ class Launcher:
         self.phase("router")
         return session
 
-    def collect(self, session):
+    def collect(self, session: zenoh.Session) -> Collector:
         """The collector of the nodes' telemetry, the live status line and the collector's liveliness."""
         from .collect import Collector
 
@@ -275,7 +280,7 @@ class Launcher:
         self._tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
         return col
 
-    def start(self, session) -> None:
+    def start(self, session: zenoh.Session) -> None:
         """The recorder and the nodes start together; the plant starts the run once the collector is ready,
         which it declares once the recorder is (``loop``)."""
         if self.recorder is not None:
@@ -289,7 +294,7 @@ class Launcher:
         self.nodes.spawn(forked=False)
         self.phase("spawned")
 
-    def loop(self, session, col) -> str:
+    def loop(self, session: zenoh.Session, col: Collector) -> str:
         """Watch the run until it ends; its outcome."""
         a = self.cfg
         t_launch = time.monotonic()
@@ -349,7 +354,7 @@ class Launcher:
         self.router.set(True)
         return self.t0_mono + st.n_steps * st.T_ns + int(10e9)
 
-    def tick(self, col, now: int, t0_mono: int) -> str | None:
+    def tick(self, col: Collector, now: int, t0_mono: int) -> str | None:
         """One look during the loop: the faults to inject (``--kill``, ``--cut``, ``--stall``), the stalls and
         losses, the status line, the device's faults (the outcome if one ends the run)."""
         for role, sec in self.cfg.kill.items():
@@ -367,7 +372,7 @@ class Launcher:
             self.status.tick(col)
         return self.device_faults(col, now, t0_mono)
 
-    def stop(self, session, col, outcome: str) -> str:
+    def stop(self, session: zenoh.Session, col: Collector, outcome: str) -> str:
         """Stop every node, then gather what the run's end shows: late exits and summaries, stalls, losses,
         device faults, liveliness, the recorder, an open cut; the outcome (a device fault may change it)."""
         self.router.set(False)
@@ -390,7 +395,7 @@ class Launcher:
         self.publish_faults(session)
         return outcome
 
-    def summarize(self, session, col, outcome: str) -> dict:
+    def summarize(self, session: zenoh.Session, col: Collector, outcome: str) -> dict:
         """The run's summary (``record.summary.build_summary``) with the launcher's view: faults, nodes,
         outcome, security, the external node, the launcher itself."""
         if self.signal is None:  # every node's own account of its telemetry against what arrived
@@ -422,7 +427,7 @@ class Launcher:
                                "spawn": "fork" if self.nodes.any_forked() else "exec"}
         return summary
 
-    def close(self, session, summary: dict) -> None:
+    def close(self, session: zenoh.Session, summary: dict) -> None:
         """The launcher's own view into the recording, the recorder stopped, the live taps finished."""
         try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
             launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
@@ -459,13 +464,13 @@ class Launcher:
         return code, summary
 
     # ---- helpers of the phases
-    def declare_collector_ready(self, session) -> None:
+    def declare_collector_ready(self, session: zenoh.Session) -> None:
         """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
         if not self._collector_ready:
             self._collector_ready = True
             self._tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
 
-    def recorder_started(self, session, col) -> bool:
+    def recorder_started(self, session: zenoh.Session, col: Collector) -> bool:
         """During start-up: declare the collector ready once the recorder is (False: it died first)."""
         if self._collector_ready or self.recorder is None:
             return True
@@ -479,7 +484,7 @@ class Launcher:
             self.recorder.check(t0_mono, stopping=self.nodes.stopping,
                                 injected=transport.RECORDER in self.nodes.kill_sent)
 
-    def publish_faults(self, session) -> None:
+    def publish_faults(self, session: zenoh.Session) -> None:
         """Each new fault as an ``Event`` of node ``launcher`` (so the recording has it)."""
         self.faults.publish(session, self.keys.events("launcher"))
 
@@ -521,7 +526,7 @@ class Launcher:
         if sc.plant.fmu is None:  # an FMU is opened by the plant node alone
             plant.warm_process(sc)
 
-    def add_liveliness(self, col) -> None:
+    def add_liveliness(self, col: Collector) -> None:
         """When each dead node's liveliness token went away (it may trail the process exit)."""
         kill_sent = self.nodes.kill_sent
         for f in self.faults:
@@ -536,7 +541,7 @@ class Launcher:
             if lost is not None and role in kill_sent:
                 f.liveliness_detect_ms = round((lost - kill_sent[role]) / 1e6, 3)
 
-    def method_fault(self, col) -> str | None:
+    def method_fault(self, col: Collector) -> str | None:
         """A node's ``method_fault`` event (its method's end raised at sample k): one fault, one stderr line
         (the line ``testbed simulate`` prints), and the outcome that ends the run; None without one."""
         if self._method_fault is None:
@@ -562,9 +567,10 @@ class Launcher:
         self.faults.append(Fault(role=None, kind="lockstep_break", detail=line, sample=int(br[0])))
         print(f"testbed run: {line}", file=sys.stderr)
 
-    def device_faults(self, col, now: int, t0_mono: int, *, final: bool = False) -> str | None:
+    def device_faults(self, col: Collector, now: int, t0_mono: int, *, final: bool = False) -> str | None:
         """The plant's device faults (``DeviceWatch``; its loss: ``lost``): the outcome if one ends the run."""
         if self.device_watch is None:
+            assert col.start is not None  # called from the start on (t0_mono)
             self.device_watch = DeviceWatch(col.start, self.sc.run.deadline, self.external == "plant")
         self.faults.extend(self.device_watch.tick(col, now - t0_mono, final=final))
         f = self.device_watch.ends_run() or (self.stalls.lost.get("plant") if self.external == "plant" else None)
