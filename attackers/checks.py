@@ -24,15 +24,18 @@ def number(v: Any, *, integer: bool = False, lo: float | None = None, lo_open: b
     if ``integer`` (returned as an ``int``), in the range ``lo``..``hi`` (each bound open or closed)."""
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
         raise Invalid(f"must be a number, got {v!r}")
-    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
+    x = float(v)
+    if math.isnan(x) or (math.isinf(x) and not (allow_inf and x > 0)):
         raise Invalid(f"must be finite, got {v!r}")
-    if integer and not float(v).is_integer():
+    if integer and not x.is_integer():
         raise Invalid(f"must be an integer, got {v!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
+    if lo is not None and (x <= lo if lo_open else x < lo):
         raise Invalid(f"must be {'>' if lo_open else '>='} {lo:g}, got {v!r}")
-    if hi is not None and (v >= hi if hi_open else v > hi):
+    if hi is not None and (x >= hi if hi_open else x > hi):
         raise Invalid(f"must be {'<' if hi_open else '<='} {hi:g}, got {v!r}")
-    return int(v) if integer else float(v)
+    if integer:
+        return int(v) if isinstance(v, (int, np.integer)) else int(x)  # an int exactly, however large
+    return x
 
 
 def field(what: str, v: Any, why: str = "", **bounds: Any) -> Any:

@@ -242,7 +242,7 @@ def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def source_info(cls: type[Plant]) -> dict[str, str]:
+def source_info(cls: type) -> dict[str, str]:
     """Where ``cls`` comes from and its module's source: ``module``, ``class``, ``file``, ``source``, ``sha256``.
 
     ``source`` is empty (and ``sha256`` too) when the file cannot be read or is

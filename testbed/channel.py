@@ -23,8 +23,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from . import validate
 from .distributions import draw, names
@@ -72,13 +74,13 @@ class NetworkModel:
     seed: int = 0
     links: Mapping[str, LinkModel] = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "links", dict(self.links))   # a plain dict: the model pickles (campaign workers)
 
-    def __hash__(self):
+    def __hash__(self) -> int:
         return hash((self.seed, tuple(sorted(self.links.items()))))
 
-    def __eq__(self, other):
+    def __eq__(self, other: object) -> bool:
         return (isinstance(other, NetworkModel) and self.seed == other.seed
                 and dict(self.links) == dict(other.links))
 
@@ -135,13 +137,14 @@ def draws(model: NetworkModel | None, link: str, n: int, bits: int = 0) -> LinkD
         raise ValueError(f"unknown link {link!r}; the links are {', '.join(LINKS)}")
     n = int(n)
     lm = model.link(link) if model is not None else LinkModel()
+    seed = model.seed if model is not None else 0  # no model: a perfect link, nothing drawn
     if lm.loss > 0:
-        lost = loss_chain(lm, _rng(model.seed, link, 0).random(n))
+        lost = loss_chain(lm, _rng(seed, link, 0).random(n))
     else:
         lost = np.zeros(n, dtype=bool)
     delay = np.full(n, lm.delay, dtype=np.float64)
     if lm.jitter > 0:
-        g = _rng(model.seed, link, 1)
+        g = _rng(seed, link, 1)
         delay = np.maximum(delay + draw(g, lm.distribution, lm.jitter, n), 0.0)
     if bits and math.isfinite(lm.rate):
         delay = delay + bits / lm.rate
@@ -227,7 +230,7 @@ def sample_channel(model: NetworkModel, N: int, *, physical: bool, loss_ns: int,
     symbol delay exceeds the loss deadline ``loss_ns`` is late, and the delays add to u_k's latency."""
     d = {k: draws(model, k, N, payload_bits(k, n, m, symbol_bytes)) for k in LINKS}
 
-    def ns(a):
+    def ns(a: np.ndarray) -> np.ndarray:
         return np.round(a * 1e9).astype(np.int64)
 
     sensed = ~d["sensor"].lost
@@ -240,7 +243,9 @@ def sample_channel(model: NetworkModel, N: int, *, physical: bool, loss_ns: int,
                          withheld=withheld_pattern(sensed, d["ack"].lost))
 
 
-def loss_cause(theta, *, withheld=None, sensed=None, attacker=None, symbol_lost=None, late=None) -> np.ndarray:
+def loss_cause(theta: npt.ArrayLike, *, withheld: npt.ArrayLike | None = None, sensed: npt.ArrayLike | None = None,
+               attacker: npt.ArrayLike | None = None, symbol_lost: npt.ArrayLike | None = None,
+               late: npt.ArrayLike | None = None) -> np.ndarray:
     """Why each lost sample (theta_k = 1) was lost, the first cause on the symbol's way: the encoder
     withheld it (WITHHELD), the sensor link lost x_k (CHANNEL), the attacker dropped or corrupted it
     (ATTACKER), the symbol link lost it (CHANNEL), it came after the loss deadline (LATE).  A loss with
@@ -286,8 +291,9 @@ def model_lost(model: NetworkModel | None, n: int) -> np.ndarray:
     return out
 
 
-def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symbols: int | None,
-                    channel_lost=None) -> dict:
+def recorded_losses(theta: npt.ArrayLike, *, withheld: npt.ArrayLike, attacker: npt.ArrayLike,
+                    invalid: npt.ArrayLike, superseded: npt.ArrayLike, late_symbols: int | None,
+                    channel_lost: npt.ArrayLike | None = None) -> dict:
     """``losses`` of a recording, from what its telemetry holds: per sample theta_k, the encoder's
     ``silent`` (withheld), the attacker's ``dropped`` (attacker; a payload the controller found
     invalid counts as the attacker's too: only the attacker corrupts), the controller's reason
@@ -310,14 +316,14 @@ def recorded_losses(theta, *, withheld, attacker, invalid, superseded, late_symb
 
 
 # ----------------------------------------------------------------------------- parsing
-def _num(key: str, v, **bounds) -> float:
+def _num(key: str, v: object, **bounds: Any) -> float:
     try:
         return validate.number(v, **bounds)
     except validate.Invalid as e:
         raise ChannelError(f"[{key}] {e}") from None
 
 
-def parse_link(name: str, table) -> LinkModel:
+def parse_link(name: str, table: object) -> LinkModel:
     """One ``[network.<name>]`` table -> ``LinkModel`` (``ChannelError`` naming the key)."""
     key = f"network.{name}"
     if not isinstance(table, dict):
@@ -342,7 +348,7 @@ def parse_link(name: str, table) -> LinkModel:
     return LinkModel(delay=delay, jitter=jitter, distribution=str(dist), loss=loss, loss_burst=burst, rate=rate)
 
 
-def parse_network(table) -> NetworkModel:
+def parse_network(table: object) -> NetworkModel:
     """The ``[network]`` table -> ``NetworkModel``: ``seed`` (an integer >= 0, default 0) and one
     table per link of ``LINKS``.  Raises ``ChannelError`` (one line naming the key)."""
     if not isinstance(table, dict):

@@ -23,7 +23,9 @@ simulator, the live plant node and ``testbed resimulate``, whatever happens late
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -167,13 +169,13 @@ class Device:
         return {"actuator_saturated": self.saturated, "actuator_rate_limited": self.rate_limited}
 
 
-def parse(pt: dict, n: int, m: int, err, fmu: bool = False) -> DeviceSpec | None:
+def parse(pt: dict, n: int, m: int, err: Callable[[str, str], Exception], fmu: bool = False) -> DeviceSpec | None:
     """The ``[plant.sensor]``, ``[plant.actuator]`` and ``[plant.disturbance]`` tables of a [plant]
     table ``pt`` (None when it has none).  ``err(key, message)`` makes the scenario's error."""
     if not any(t in pt for t in TABLES):
         return None
 
-    def table(name, allowed):
+    def table(name: str, allowed: frozenset[str] | set[str]) -> dict | None:
         t = pt.get(name)
         if t is None:
             return None
@@ -184,19 +186,19 @@ def parse(pt: dict, n: int, m: int, err, fmu: bool = False) -> DeviceSpec | None
             raise err(f"plant.{name}", f"unknown key(s) {bad}; allowed: {sorted(allowed)}")
         return t
 
-    def checked(key, check, v, *args, **kw):
+    def checked(key: str, check: Callable[..., Any], v: object, *args: Any, **kw: Any) -> Any:
         try:
             return check(v, *args, **kw)
         except validate.Invalid as e:
             raise err(key, str(e)) from None
 
-    def num(key, v, *, positive=False, allow_inf=False):
+    def num(key: str, v: object, *, positive: bool = False, allow_inf: bool = False) -> float:
         return checked(key, validate.number, v, lo=0, lo_open=positive, allow_inf=allow_inf)
 
-    def seed(key, v):
+    def seed(key: str, v: object) -> int:
         return checked(key, validate.count, v, 0)
 
-    def dist(key, v):
+    def dist(key: str, v: object) -> str:
         return checked(key, validate.choice, v, DISTRIBUTIONS)
 
     sensor = actuator = disturbance = None

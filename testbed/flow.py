@@ -19,6 +19,9 @@ method); divergence is reported as a status code, never as NaN:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
 import numba as nb
 import numpy as np
 
@@ -26,6 +29,9 @@ from plants.base import broadcast_xu
 
 from ._dop853 import dop853_step
 from .loopspec import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401 - flow.py names them for its callers
+
+if TYPE_CHECKING:
+    from plants.base import Plant
 
 
 @nb.njit(cache=True)
@@ -88,7 +94,7 @@ def flow_batch_kernel(rhs, X, U, p, T, opts, out, status):
         status[b] = flow_into(rhs, X[b], U[b], p, T, opts, K, ytmp, out[b])
 
 
-def compiled_for(dispatcher, args):
+def compiled_for(dispatcher: Any, args: tuple) -> Callable[..., Any]:
     """The compiled overload of a numba ``dispatcher`` for the types of ``args`` (call it once first).
 
     Calling it skips numba's type dispatch of every call, which costs about 20 us when an
@@ -102,7 +108,8 @@ def compiled_for(dispatcher, args):
         return dispatcher
 
 
-def phi_T(plant, x, u, T: float, opts: FlowOptions = DEFAULT_FLOW):
+def phi_T(plant: Plant, x: np.ndarray, u: np.ndarray, T: float,
+          opts: FlowOptions = DEFAULT_FLOW) -> tuple[np.ndarray, np.ndarray]:
     """Flow map phi_T(x, u) over a batch.
 
     Parameters

@@ -113,7 +113,7 @@ class Codebook(SymbolPacking):
     M: int
     resilient: bool = True
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.n < 1 or self.M < 1:
             raise ValueError(f"codebook needs n >= 1 and M >= 1, got n={self.n}, M={self.M}")
         if self.n_codes > MAX_CODES:
@@ -161,7 +161,7 @@ class QuantizerParams:
     delay_hat_lost: float = 0.0    # the same for a sample decided lost (u_k = 0 sent at the loss deadline)
     margin_gain_lost: float = 0.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"quantizer mode must be one of {sorted(MODES)}, got {self.mode!r}")
         if self.rule not in RULES:

@@ -15,15 +15,22 @@ The note is one line (``note(...)``), printed once on stderr by the command that
 
 from __future__ import annotations
 
+from collections.abc import Collection
+from typing import Any
+
 from .scenariospec import ScenarioError
 
 
-def own_method(data: dict) -> tuple[str, dict]:
+def own_method(data: dict[str, Any]) -> tuple[str, dict[str, Any]]:
     """The ``[method] name`` (default ``paper``) and ``params`` of a parsed scenario document."""
     from . import methods
 
-    mt = data.get("method") if isinstance(data.get("method"), dict) else {}
-    params = mt.get("params") if isinstance(mt.get("params"), dict) else {}
+    mt = data.get("method")
+    if not isinstance(mt, dict):
+        mt = {}
+    params = mt.get("params")
+    if not isinstance(params, dict):
+        params = {}
     return mt.get("name", methods.DEFAULT), dict(params)
 
 
@@ -40,7 +47,7 @@ def same_method(a: str, b: str, base_dir: str | None) -> bool:
         return False
 
 
-def note(name: str, old: str, ignored: list, dropped: list) -> str:
+def note(name: str, old: str, ignored: list[str], dropped: list[str]) -> str:
     """The swap's one line (empty when it leaves nothing out)."""
     parts = []
     if ignored:
@@ -50,7 +57,8 @@ def note(name: str, old: str, ignored: list, dropped: list) -> str:
     return f"method {name!r} " + " and ".join(parts) if parts else ""
 
 
-def swap(data: dict, new, base_dir: str | None, *, known_quantizer_keys=None, where: str = "<scenario>"):
+def swap(data: dict[str, Any], new: str | dict[str, Any], base_dir: str | None, *,
+         known_quantizer_keys: Collection[str] | None = None, where: str = "<scenario>") -> tuple[dict[str, Any], str]:
     """``data`` (a parsed scenario document; not changed) with the method ``new`` swapped in by the rule
     of the module docstring: (the new document, the note).
 
@@ -83,6 +91,6 @@ def swap(data: dict, new, base_dir: str | None, *, known_quantizer_keys=None, wh
     ignored = [k for k in qt if k not in used and (known_quantizer_keys is None or k in known_quantizer_keys)] \
         if isinstance(qt, dict) else []
     out = {**data, "method": {"name": name, **({"params": params} if params else {})}}
-    if ignored:
+    if ignored and isinstance(qt, dict):
         out["quantizer"] = {k: v for k, v in qt.items() if k not in ignored}
     return out, note(name, old, ignored, dropped)

@@ -76,7 +76,9 @@ def default_of(f: dataclasses.Field, o: Option) -> Any:
     """The value a command's flag has when it is not given (the field's default unless the command has its own)."""
     if o.default is not _UNSET:
         return o.default
-    return f.default_factory() if f.default is dataclasses.MISSING else f.default
+    if f.default is dataclasses.MISSING and f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return f.default
 
 
 def defaults(cls, command: str) -> dict:
@@ -96,7 +98,7 @@ def add_arguments(p, cls, command: str, *, group=None, section: str | None = Non
         target = group
         if target is None and o.group is None:
             target = p
-        elif target is None:
+        elif target is None and o.group is not None:
             if o.group not in groups:
                 groups[o.group] = p.add_argument_group(o.group)
             target = groups[o.group]

@@ -20,11 +20,16 @@ and by ``testbed check-plant REF`` on a user's plant:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .control import c2d
+
+if TYPE_CHECKING:
+    from plants.base import Plant
 
 #: defaults when no scenario is given: the paper's T and M
 DEFAULT_T = 0.1
@@ -43,7 +48,7 @@ class Check:
         return asdict(self)
 
 
-def _pbh_ok(A: np.ndarray, B: np.ndarray, unstable) -> tuple[bool, list]:
+def _pbh_ok(A: np.ndarray, B: np.ndarray, unstable: Callable[[complex], bool]) -> tuple[bool, list]:
     """PBH: rank [A - lambda I, B] = n for every eigenvalue lambda with ``unstable(lambda)``."""
     n = A.shape[0]
     bad = []
@@ -62,7 +67,7 @@ def _fmt_l(lam: complex) -> str:
     return f"{lam.real:.4g}" if abs(lam.imag) < 1e-12 else f"{lam.real:.4g}{lam.imag:+.4g}j"
 
 
-def check_plant(plant, *, L: float | None = None, T: float = DEFAULT_T, M: int = DEFAULT_M,
+def check_plant(plant: Plant, *, L: float | None = None, T: float = DEFAULT_T, M: int = DEFAULT_M,
                 region: float | None = None, u_bound: float = DEFAULT_U_BOUND, grid: int = 41,
                 seed: int = 0) -> list[Check]:
     """Every check of the module docstring on one plant instance, in order.

@@ -82,7 +82,7 @@ class RunsProgress:
         self.tty = is_tty()
         self.last = 0.0
         self.shown: tuple[int, int] | None = None
-        self.clock = None  # (time, runs done) at the end of the first run: where the estimate starts
+        self.clock: tuple[float, int] | None = None  # (time, runs done) at the end of the first run: where the estimate starts
         self._bar: tqdm | None = None
 
     def say(self, text: str) -> None:

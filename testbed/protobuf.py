@@ -3,8 +3,13 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 
-def classes_from(fds_bytes: bytes) -> dict[str, type]:
+if TYPE_CHECKING:
+    from google.protobuf.message import Message
+
+
+def classes_from(fds_bytes: bytes) -> dict[str, type[Message]]:
     """Message classes (full name -> class) built from a serialized ``FileDescriptorSet``."""
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 

@@ -32,10 +32,12 @@ decides can be reproduced in-process (``testbed resimulate``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
 from .loopspec import corrupt_payload
@@ -43,7 +45,7 @@ from .methods.base import DecoderEnd, EncoderEnd, symbol_code
 from .quantizer import Codebook, InvalidSymbol
 
 if TYPE_CHECKING:
-    from plants.base import PlantProcess
+    from plants.base import Plant, PlantProcess
 
     from .device import Device
 
@@ -145,7 +147,7 @@ class EncoderProtocol:
             skip_sample(self.enc)
         self.silent.clear()
 
-    def sensor(self, k: int, x) -> Send | Withhold | None:
+    def sensor(self, k: int, x: npt.ArrayLike) -> Send | Withhold | None:
         """x_k arrived (after the shell's grace for a late ack, if one was pending).
 
         Returns what to send, or None for a stale or out-of-range sample (counted).
@@ -316,17 +318,17 @@ class ControllerProtocol:
 class OdeProcess:
     """A true plant given by its right-hand side: x advanced by the flow map phi_dt(x, u)."""
 
-    def __init__(self, plant, flow: FlowOptions = DEFAULT_FLOW):
+    def __init__(self, plant: Plant, flow: FlowOptions = DEFAULT_FLOW):
         self.plant = plant
         self.flow = flow
         self.n, self.m = plant.n, plant.m
         self._x = np.zeros(plant.n)
-        self._call = None   # the flow map phi_dt of one state (``flow_into``), set on the first advance
+        self._call: Callable[..., int] | None = None  # the flow map phi_dt of one state (``flow_into``), set on the first advance
 
-    def reset(self, x0) -> None:
+    def reset(self, x0: npt.ArrayLike) -> None:
         self._x = np.array(x0, dtype=np.float64)
 
-    def advance(self, u, dt: float) -> int:
+    def advance(self, u: npt.ArrayLike, dt: float) -> int:
         """Hold u for dt seconds; returns the FLOW_* status (x stays finite).
 
         phi_dt(x, u) by ``flow_into``, the kernel ``phi_T`` runs for each state of a batch, called
@@ -353,7 +355,7 @@ class OdeProcess:
     def x(self) -> np.ndarray:
         return self._x.copy()
 
-    def perturb(self, w) -> None:
+    def perturb(self, w: npt.ArrayLike) -> None:
         """x <- x + w (a process disturbance, ``[plant.disturbance]``)."""
         self._x = self._x + np.asarray(w, dtype=np.float64)
 
@@ -388,12 +390,12 @@ class PlantProtocol:
     device: Device | None = None    # the sensor, actuator and disturbance (``testbed.device.Device``), or None
     u_applied: np.ndarray | None = None  # the input that acted last (after the actuator)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.u_held is None:
             self.u_held = np.zeros(self.process.m)
 
     @classmethod
-    def for_scenario(cls, sc, process) -> "PlantProtocol":
+    def for_scenario(cls, sc, process: PlantProcess) -> PlantProtocol:  # sc: a Scenario (a layer above)
         phys, sched, s_ns, d_ns, loss_ns = (int(v) for v in sc.timing_params)
         dev = sc.plant.device
         return cls(process, sc.T, timing=sc.run.timing, actuation=sc.run.actuation, sched_ns=s_ns,
@@ -404,7 +406,7 @@ class PlantProtocol:
         """x_meas,k: what the sensor reads of x_k (``[plant.sensor]``; x_k itself without one)."""
         return x if self.device is None else self.device.measure(k, x)
 
-    def check_input(self, u) -> tuple[np.ndarray | None, str | None]:
+    def check_input(self, u: npt.ArrayLike) -> tuple[np.ndarray | None, str | None]:
         """u_k past the safety check (``[controller] u_max``, before the actuator's own limits):
         (u, None), (clamped u, "clamped") or (None, "nonfinite")."""
         u = np.asarray(u, dtype=np.float64)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Generic, Self, TypeVar
 
 import numpy as np
 
@@ -18,8 +18,15 @@ from .device import DeviceSpec
 from .errors import BadInput
 from .loopspec import FlowOptions, QuantizerParams
 
+if TYPE_CHECKING:
+    from attackers.schedule import Schedule
+    from plants.base import PlantProcess
+    from plants.fmu import FMUPlant
 
-def _freeze(v):
+    from .methods.base import Method
+
+
+def _freeze(v: Any) -> Any:
     if isinstance(v, list):
         return tuple(_freeze(x) for x in v)
     if isinstance(v, dict):
@@ -27,7 +34,7 @@ def _freeze(v):
     return v
 
 
-def _thaw(v):
+def _thaw(v: Any) -> Any:
     if isinstance(v, tuple):
         return [_thaw(x) for x in v]
     return v
@@ -38,24 +45,29 @@ class ScenarioError(BadInput):
 
 
 # ----------------------------------------------------------------------------- dataclasses
+B = TypeVar("B")
+
+
 @dataclass(frozen=True)
-class BuiltOnce:
+class BuiltOnce(Generic[B]):
     """A spec that builds its object (a plant, a model, a method) once per process and keeps it in ``built``:
     not compared, not copied by ``dataclasses.replace`` (init=False: the copy builds its own), not pickled
     (a worker builds its own).  The objects are immutable (a run's state lives in the ends and processes)."""
 
-    built: Any = field(default=None, init=False, repr=False, compare=False)
+    built: B | None = field(default=None, init=False, repr=False, compare=False)
 
-    def _build(self) -> Any:  # pragma: no cover - each spec says how
+    def _build(self) -> B:  # pragma: no cover - each spec says how
         raise NotImplementedError
 
-    def make(self) -> Any:
+    def make(self) -> B:
         """The object, built on the first call (or handed over by the scenario's check) and kept."""
-        if self.built is None:
-            object.__setattr__(self, "built", self._build())
-        return self.built
+        built = self.built
+        if built is None:
+            built = self._build()
+            object.__setattr__(self, "built", built)
+        return built
 
-    def with_built(self, obj):
+    def with_built(self, obj: B | None) -> Self:
         """This spec holding ``obj``, the object the scenario's check built from it."""
         object.__setattr__(self, "built", obj)
         return self
@@ -63,8 +75,9 @@ class BuiltOnce:
     def __getstate__(self) -> dict:
         return {**self.__dict__, "built": None}
 
+
 @dataclass(frozen=True)
-class PlantSpec(BuiltOnce):
+class PlantSpec(BuiltOnce["plants.Plant"]):
     name: str                      # the plant's display name (its class's ``name``; "fmu:FILE" for an FMU)
     params: tuple[tuple[str, Any], ...]
     x0: tuple[float, ...]
@@ -97,14 +110,14 @@ class PlantSpec(BuiltOnce):
 
 
 @dataclass(frozen=True)
-class MethodSpec(BuiltOnce):
+class MethodSpec(BuiltOnce["Method"]):
     """``[method] name = "...", params = {...}``: the coding-and-control method (default the paper's)."""
 
     name: str = "paper"            # a bundled or registered name, an entry point or "module.path:ClassName"
     params: tuple[tuple[str, Any], ...] = ()
     base_dir: str = ""             # the scenario file's folder ("module:Class" methods are imported from it)
 
-    def _build(self):
+    def _build(self) -> Method:
         """The method object (``testbed.methods.Method``: its params, a factory of ends): a run's state lives in
         its ends, never in the method."""
         from . import methods
@@ -127,7 +140,7 @@ class FMUSpec:
     params: tuple[tuple[str, Any], ...] = ()
     checked: bool = True                       # False: read from a recording, the file not looked at
 
-    def open(self):
+    def open(self) -> FMUPlant:
         """The FMU as a ``plants.PlantProcess`` (``plants.fmu.FMUPlant``)."""
         from plants.fmu import FMUPlant
 
@@ -135,7 +148,7 @@ class FMUSpec:
 
 
 @dataclass(frozen=True)
-class ModelSpec(BuiltOnce):
+class ModelSpec(BuiltOnce["plants.Plant"]):
     """``[model]``: the plant model of the predictions (rule (xi)), the LQR design and the analysis."""
 
     name: str                  # a plant reference, resolved as [plant] name is
@@ -182,7 +195,7 @@ class AttackSpec:
     def score(self) -> str:
         return self.params_dict.get("score", "state")
 
-    def schedule(self, T: float, horizon: float):
+    def schedule(self, T: float, horizon: float) -> Schedule | None:
         """The offline schedule (None for the online greedy attacker)."""
         if self.online:
             return None
@@ -274,7 +287,7 @@ class Scenario:
 
         return tomllib.loads(self.source)
 
-    def make_method(self):
+    def make_method(self) -> Method:
         """The coding-and-control method ([method]; ``testbed.methods.Method``)."""
         return self.method.make()
 
@@ -287,7 +300,7 @@ class Scenario:
 
         from . import methods
 
-        classes = [methods.resolve(self.method.name, self.method.base_dir or None)]
+        classes: list[type] = [methods.resolve(self.method.name, self.method.base_dir or None)]
         if self.plant.fmu is None:
             classes.append(plants.resolve(self.plant.ref or self.plant.name, self.plant.base_dir or None))
         if self.model is not None:
@@ -321,7 +334,7 @@ class Scenario:
         return (self.model or ModelSpec(self.plant.ref or self.plant.name, self.plant.params,
                                         base_dir=self.plant.base_dir)).make()
 
-    def make_process(self):
+    def make_process(self) -> PlantProcess:
         """The true plant as it advances in time (``plants.base.PlantProcess``): an ODE plant or an FMU."""
         if self.plant.fmu is not None:
             return self.plant.fmu.open()
@@ -342,6 +355,7 @@ class Scenario:
         N = self.n_steps if n_steps is None else n_steps
         if self.network is not None and self.run.sim_delay is None:
             return np.zeros(N, dtype=np.int64)   # the [network] links' delays are u_k's latency
+        assert self.run.delay is not None  # physical timing: parsed with its bound
         spec = self.run.sim_delay or SimDelaySpec(
             "constant", value=self.run.delay.nominal if self.run.actuation == "arrival" else 0.0)
         return spec.draw(N)

@@ -73,7 +73,8 @@ def with_attack(sc: Scenario, *, x0, E0: float, intervals, duration: float, name
             if (base / f"{mod}.py").exists() or (base / mod).is_dir():
                 raise ScenarioError(f"[{sec}] name = {ref!r} is a module in {base}: write the scenario there "
                                     "(a module reference cannot name a folder)")
-    mt = data.get("method") if isinstance(data.get("method"), dict) else {}
+    mt = data.get("method")
+    mt = mt if isinstance(mt, dict) else {}
     params = dict(_thaw(sc.method.params))
     if sc.method.name != mt.get("name", "paper") or params != mt.get("params", {}):  # swapped (--method)
         if plants.refs.is_module_ref(sc.method.name) and not same_dir:

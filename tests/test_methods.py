@@ -81,6 +81,21 @@ def test_registry_and_bits():
         methods.resolve("no_such_mod_xyz:M")
 
 
+def test_a_registered_method_resolves_by_its_name(monkeypatch):
+    """``methods.register`` keys the registry by the class's ``name`` (it once keyed it by the class: the
+    name did not resolve and ``names()`` held a class)."""
+    from testbed.methods import registry
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+
+    class Mine(registry.BUNDLED["paper"]):
+        name = "mine-registered"
+
+    assert methods.register(Mine) is Mine
+    assert methods.resolve("mine-registered") is Mine
+    assert methods.names()[-1] == "mine-registered"
+
+
 def test_unused_key_is_an_error_for_the_own_method_and_a_note_when_swapped():
     text = scenario.load("paper").source
     with pytest.raises(scenario.ScenarioError, match=r"\[quantizer.L\] is not used by the method 'static'"):

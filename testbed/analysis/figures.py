@@ -18,10 +18,14 @@
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .. import figstyle
+
+if TYPE_CHECKING:
+    from matplotlib.artist import Artist
 
 
 def _plt():
@@ -125,7 +129,7 @@ def plot_phase_portrait(roa, path, *, trajectories=(), vulnerable=None, baseline
         axs = axs.ravel()
         ext = [roa.xs[0], roa.xs[-1], roa.ys[0], roa.ys[-1]]
         d0, d1 = roa.dims
-        handles = []
+        handles: list[Artist] = []
         for k, ax in enumerate(axs):
             ax.imshow(roa.inside.astype(float), origin="lower", extent=ext, aspect="auto",
                       cmap=ListedColormap(["white", "0.8"]), vmin=0, vmax=1, interpolation="nearest")
@@ -256,13 +260,14 @@ def plot_allowable_region(path, *, regions=None, plain=None, sweep=None, budget=
                 if k == 1:
                     ax.set_title("zoom on Theorem 1's region" + (", finer sweep" if sweep_zoom else ""))
             else:
+                assert ext is not None  # the first panel of a sweep: its background's extent
                 ax.set_xlim(ext[0], ext[1])
                 ax.set_ylim(ext[2], ext[3])
         if title and n_panels > 1:
             fig.suptitle(title)
         elif title:
             axs[0].set_title(title)
-        handles = []
+        handles: list[Artist] = []
         seen = set()
         for ax in axs:
             for h, lab in zip(*ax.get_legend_handles_labels()):
@@ -349,8 +354,9 @@ def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2
         d0, d1 = roa.dims
         ax.contour(roa.xs, roa.ys, roa.inside.astype(float), levels=[0.5], colors="0.2", linewidths=1.0)
         c = roa.center
-        handles = [Patch(facecolor="none", edgecolor="0.2", label="nominal region of attraction (outline)"),
-                   Patch(color="black", label="escapes without any attack (quantization)")]
+        handles: list[Artist] = [
+            Patch(facecolor="none", edgecolor="0.2", label="nominal region of attraction (outline)"),
+            Patch(color="black", label="escapes without any attack (quantization)")]
         if np.any(vm.samples == -1):
             handles.append(Patch(color=figstyle.SKY, label=f"no escape with attacks up to {vm.max_len} samples"))
         if vm.delta is not None and np.isfinite(vm.delta) and vm.delta > 0:
@@ -411,7 +417,7 @@ def plot_compare(a_run, b_run, path, *, names=("A", "B"), title: str = "", size:
                                      height_ratios=[2.2, 1.4, 0.8])
         axs = axs[:, 0]
         xa, xb = np.asarray(a_run.arrays["x"], float), np.asarray(b_run.arrays["x"], float)
-        handles = []
+        handles: list[Artist] = []
         for i in range(xa.shape[1]):
             c = figstyle.CYCLE[i % len(figstyle.CYCLE)]
             axs[0].plot(ta, xa[:, i], color=c, ls=figstyle.AB_STYLES[0])

@@ -34,12 +34,17 @@ import signal
 import sys
 import threading
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .. import validate
 from ..errors import BadInput
 from ..flow import DEFAULT_FLOW, FlowOptions
+from ..loopspec import QuantizerParams
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 #: environment of every worker process: one thread for numba and the BLAS libraries
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -87,7 +92,7 @@ class Executor:
             validate.flag("--workers", int(workers), integer=True, lo=1)
         self.scheduler = scheduler
         self.workers = default_workers() if workers is None else int(workers)
-        self._client = None
+        self._client: Client | None = None
         self._warm: set = set()
         if scheduler:
             self._client = _dask_client(scheduler)
@@ -160,15 +165,17 @@ class Executor:
                     f.cancel()
             return
         distributed = _import_distributed()
+        client = self._client
+        assert client is not None  # kind "dask"
         if warm is not None:
-            _dask_warm(self._client, fn, warm, self._warm)
-        futs = [self._client.submit(fn, it, pure=False, retries=2) for it in items]
-        index = {f.key: i for i, f in enumerate(futs)}
+            _dask_warm(client, fn, warm, self._warm)
+        dfuts = [client.submit(fn, it, pure=False, retries=2) for it in items]
+        index = {f.key: i for i, f in enumerate(dfuts)}
         try:
-            for f in distributed.as_completed(futs, loop=self._client.loop):
+            for f in distributed.as_completed(dfuts, loop=client.loop):
                 yield index[f.key], f.result()
         finally:
-            self._client.cancel(futs)
+            client.cancel(dfuts)
 
     def close(self) -> None:
         if self._client is not None:
@@ -303,7 +310,7 @@ class BatchChunk:
 
     plant: object
     K: np.ndarray
-    qp: object
+    qp: QuantizerParams
     X0: np.ndarray
     E0: np.ndarray
     n_steps: int
@@ -334,8 +341,9 @@ def run_chunk(c: BatchChunk) -> dict:
     out: dict = {}
     for e in np.unique(c.E0):
         sel = np.flatnonzero(c.E0 == e)
-        kw = {}
+        kw: dict[str, Any] = {}
         if c.theta is not None:
+            assert c.sched_idx is not None  # made with theta (run_batch)
             kw["theta"] = c.theta
             kw["sched_idx"] = c.sched_idx[sel]
         if c.greedy_params is not None:

@@ -158,6 +158,7 @@ def allowable_region(loop: Loop, rule: str = "paper", *, n_phi0: int | None = No
     n_phi1 = n_phi1 or (8 if rule == "paper" else 4)
     g0 = phi0_grid(loop, n_phi0)
     g1 = phi1_grid(loop, n_phi1)
+    grid = {} if rho_D is None else {"rho_D": rho_D}  # none given: Region's own grid up to rho_D_max
     Lam2M2 = loop.Lambda ** 2 / loop.M ** 2
     b = -np.log(np.maximum(g0, Lam2M2))[:, None] * np.ones((1, len(g1)))
     c = np.ones((len(g0), 1)) * np.log(np.maximum(g1, loop.Lambda ** 2))[None, :]
@@ -165,7 +166,7 @@ def allowable_region(loop: Loop, rule: str = "paper", *, n_phi0: int | None = No
         P0s, k0 = zip(*(min_condition_P(loop.Phi0, p) for p in g0))
         P1s, k1 = zip(*(min_condition_P(loop.Phi1, p) for p in g1))
         a = np.log(np.array(k0))[:, None] + np.log(np.array(k1))[None, :]
-        return Region(loop, rule, g0, g1, a, b, c, list(P0s), list(P1s), rho_D=rho_D)
+        return Region(loop, rule, g0, g1, a, b, c, list(P0s), list(P1s), **grid)
     # tight: a(phi_0, phi_1) = min ln(mu_0 mu_1) is nonincreasing in both phis (larger
     # phi, larger feasible sets), so a pair found at (i, j - 1) is admissible at (i, j)
     # (upper bound) and a(i + 1, j) is a lower bound: rows are done from large phi_0 down
@@ -204,7 +205,7 @@ def allowable_region(loop: Loop, rule: str = "paper", *, n_phi0: int | None = No
                                                     lower=lo)
             P0s[i][j], P1s[i][j] = Q0, Q1
             a[i, j] = math.log(mu)
-    return Region(loop, rule, g0, g1, a, b, c, P0s, P1s, rho_D=rho_D)
+    return Region(loop, rule, g0, g1, a, b, c, P0s, P1s, **grid)
 
 
 # ============================================================================ summary

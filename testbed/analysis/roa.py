@@ -36,7 +36,7 @@ def default_dims(plant) -> tuple[int, int]:
 
 def state_grid(plant, grid: int | tuple[int, int], window, dims, center=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """States of a grid over coordinates ``dims``: (xs, ys, X) with X of shape (ny * nx, n), row-major in y."""
-    nx, ny = (grid, grid) if np.isscalar(grid) else grid
+    nx, ny = (grid, grid) if isinstance(grid, (int, float, np.number)) else grid
     wx, wy = window
     c = np.zeros(plant.n) if center is None else np.asarray(center, dtype=float)
     xs = c[dims[0]] + np.linspace(-wx, wx, int(nx))

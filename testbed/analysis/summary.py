@@ -111,6 +111,7 @@ def trajectory(sc, x0, *, E0: float | None = None):
                          greedy_params=gp, score=sc.attack.score if sc.attack.online else "state", record=True,
                          flow=sc.flow, model=model)
     k = int(res.stop_k[0])
+    assert res.x is not None  # record=True
     return np.vstack([res.x[0, :k], res.x_final[0][None, :]])
 
 

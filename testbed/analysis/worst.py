@@ -529,7 +529,7 @@ def worst_attack(loop: Loop, x0, *, attacks: int = 1, E0: float | None = None, m
         steps += len(cands) * N
         return esc, peak
 
-    best = ((k1, L1),) if L1 > 0 else None          # the answer for n attacks so far (runs)
+    best: tuple[tuple[int, int], ...] | None = ((k1, L1),) if L1 > 0 else None  # the answer for n attacks so far (runs)
     proven = L1 if L1 > 0 else Lmax + 1              # every schedule of <= n attacks below this fails
     enumerated = 0
     single = _entry(1, best, best is not None, L1 > 0 or Lmax == N, T)
@@ -649,6 +649,7 @@ def _greedy(loop: Loop, x0, e0: float, attacks: int, executor) -> dict:
                          record=True, flow=loop.flow, model=loop.nominal)
     from attackers.schedule import Schedule
 
+    assert res.theta is not None  # record=True
     sch = Schedule.from_theta(res.theta[0], T)
     return {"escaped": True, "kappa_F": attacks, "kappa_D": round(d * T, 12), "threshold": th, "score": sc,
             "intervals": [[round(a, 12), round(t, 12)] for a, t in sch.intervals],

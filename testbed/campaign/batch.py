@@ -57,6 +57,7 @@ def run_group(scs: list) -> list[dict | None]:
                        u_max=sc0.controller.u_max, flow=sc0.flow, record=True, method=method, specialize=True)
     tol = sc0.run.converge_tol
     crit = EscapeCriterion.for_loop(model, sc0.quantizer, tol)
+    assert b.x is not None and b.theta is not None and b.state_final is not None  # record=True
     ok = np.flatnonzero(b.status == FLOW_OK)
     esc = np.zeros(len(scs), dtype=bool)
     if ok.size:
@@ -64,7 +65,7 @@ def run_group(scs: list) -> list[dict | None]:
         esc[ok] = judge_escape(plant, sc0.K, sc0.quantizer, b.x_final[ok], b.state_final[ok],
                                np.full(ok.size, FLOW_OK), crit, model=model, flow=sc0.flow, **kw)
     bits = method.codebook(model.n, sc0.quantizer).bits
-    out = []
+    out: list[dict | None] = []
     for j, sc in enumerate(scs):
         if b.status[j] != FLOW_OK or b.mismatch[j] != 0:
             out.append(None)

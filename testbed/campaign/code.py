@@ -34,7 +34,9 @@ def _refs(data: dict):
     """(kind, reference) of the method, plant and model a resolved scenario names."""
     from .. import methods
 
-    mt = data.get("method") if isinstance(data.get("method"), dict) else {}
+    mt = data.get("method")
+
+    mt = mt if isinstance(mt, dict) else {}
     yield "method", mt.get("name", methods.DEFAULT)
     for sec in ("plant", "model"):
         t = data.get(sec)
@@ -49,10 +51,10 @@ def _registry(kind: str):
 
         return r.resolve, r.source_info, r.pin, r.check_method_class, r.MethodError, r.bundled
     import plants
-    from plants import refs as r
+    from plants import refs as pr
 
-    return (r.resolve, r.source_info, r.pin, r.check_plant_class, r.PlantRefError,
-            lambda ref: not r.is_module_ref(ref) and ref in plants.names())
+    return (pr.resolve, pr.source_info, pr.pin, pr.check_plant_class, pr.PlantRefError,
+            lambda ref: not pr.is_module_ref(ref) and ref in plants.names())
 
 
 def collect(runs) -> list[dict]:

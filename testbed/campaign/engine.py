@@ -112,7 +112,7 @@ def wilson(successes: int, n: int) -> tuple[float, float] | None:
     return comparestats.wilson(successes, n)
 
 
-def paired_difference(a: list[bool], b: list[bool]) -> dict:
+def paired_difference(a: list[bool | None], b: list[bool | None]) -> dict:
     """Success of ``a`` minus success of ``b`` over the same seeds (paired): ``difference``, its 95 %
     Newcombe hybrid score interval ``ci95``, the exact McNemar ``mcnemar_p``, the discordant pairs
     (``a_only``, ``b_only``), ``both``, ``neither`` and ``n`` (``testbed.comparestats.paired_binary``)."""

@@ -121,7 +121,7 @@ def versions() -> dict:
     """Installed versions of the packages a result may depend on (None: not installed)."""
     from importlib import metadata
 
-    out = {}
+    out: dict[str, str | None] = {}
     for p in PACKAGES:
         try:
             out[p] = metadata.version(p)
@@ -195,7 +195,7 @@ def write_parquet(path: Path, rows: list[dict], axes: list[str]) -> None:
         vals = [r.get(k) for r in rows]
         if k in axes and len({type(v) for v in vals if v is not None}) > 1:
             if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals):
-                vals = [float(v) for v in vals]
+                vals = [float(v) for v in vals if isinstance(v, (int, float))]  # all are (the test above)
             else:
                 vals = [json.dumps(v) for v in vals]
         try:
@@ -253,7 +253,7 @@ def summarize(c: Campaign, runs: list[PlannedRun], rows: list[dict]) -> dict:
             continue
         seen.add(run.point)
         points.append({"point": run.point, "axes": run.axes, **summarize_group(by_point.get(run.point, []))})
-    by_axis = {}
+    by_axis: dict[str, list] = {}
     for k in keys:
         by_axis[k] = []
         for v in c.axes[k]:

@@ -10,6 +10,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -91,7 +92,7 @@ def live_run(run: PlannedRun, folder: Path, *, timeout: float | None = None) -> 
         partial.append(str(aside.relative_to(folder.parent)))
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "testbed.cli", "run", str(sc_path), "--out", str(rec)]
-    row = {"run": run.id, "recording": str(rec.relative_to(folder.parent)),
+    row: dict[str, Any] = {"run": run.id, "recording": str(rec.relative_to(folder.parent)),
            "partial_recordings": json.dumps(partial) if partial else None}
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)

@@ -9,6 +9,7 @@ import hashlib
 import json
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import BadInput
@@ -107,7 +108,7 @@ def _copies(folder: Path) -> list:
     return [(e["copy"], e["source"]) for e in stored if e.get("copy")]
 
 
-def _live_on_dask(executor, todo: list, folder: Path, timeout, copies: list = ()):
+def _live_on_dask(executor, todo: list, folder: Path, timeout, copies: Sequence = ()):
     """Live runs on a Dask cluster, one at a time per host (a live run needs the host's cores): each on a
     worker of a free host, its recording brought back into ``folder``; the rows as the runs end.  A worker
     lost mid-run has its run retried elsewhere by the scheduler (``retries=1``)."""
@@ -203,7 +204,7 @@ def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=N
         raise BadInput(f"{folder}: {e}") from None
     differences, problems = [], []
     planned = {p["run"]: p for p in man.get("runs", [])}
-    ids = [r.get("run") for r in rows]
+    ids = [str(r.get("run")) for r in rows]
     dup = sorted({i for i in ids if ids.count(i) > 1})
     if dup:
         problems.append(f"duplicate rows: {', '.join(dup[:5])}")
@@ -339,7 +340,7 @@ def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
     xs = c.axes[x_axis] if x_axis else [None]
     numeric = len(xs) > 1 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
     series = c.axes[series_axis] if series_axis else [None]
-    pos = [float(v) for v in xs] if numeric else list(range(len(xs)))
+    pos = [float(v) for v in xs if isinstance(v, (int, float))] if numeric else list(range(len(xs)))
     # side by side: a series' points are shifted by a fraction of the smallest gap between x positions
     gap = min((b - a for a, b in zip(sorted(pos), sorted(pos)[1:])), default=1.0) or 1.0
     width = 0.6 * gap

@@ -240,7 +240,8 @@ def _resolve(base, axes: dict, seeds_from, methods: dict | None = None) -> tuple
         except ScenarioError as e:
             raise BadInput(str(e)) from None
     seeds = {}
-    att = data.get("attack") if isinstance(data.get("attack"), dict) else {}
+    att = data.get("attack")
+    att = att if isinstance(att, dict) else {}
     if "attack.seed" in axes and att.get("kind") != "random":
         raise BadInput(f"varies nothing: the attack's kind {att.get('kind')!r} draws no random numbers "
                        "(only kind = 'random' does)")

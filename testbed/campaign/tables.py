@@ -40,7 +40,7 @@ def comparisons(axes: dict, rows: list[dict]) -> dict:
     out = {}
     for axis in compared_axes(axes):
         ref = axes[axis][0]
-        refs = {}
+        refs: dict[str, dict] = {}
         for r in ok:
             if _same(r.get(axis), ref):
                 refs.setdefault(_key(r, axis, axes), r)

@@ -19,6 +19,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -163,7 +164,7 @@ def add_arguments_analyze(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_analyze(args) -> int:
+def main_analyze(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.summary import analyze, to_json
 
@@ -286,7 +287,7 @@ def _full(sc, res, args, ex=None) -> dict:
     from ..analysis.sweep import sweep, vulnerable_states
 
     model, plant = sc.make_model(), true_plant(sc, "testbed analyze --full")
-    out = {}
+    out: dict[str, Any] = {}
     roa = nominal_roa(model, sc.K, sc.T, grid=201, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                       progress=Progress("region of attraction", not args.no_progress), executor=ex)
     out["_roa"] = roa
@@ -496,7 +497,7 @@ def add_arguments_roa(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_roa(args) -> int:
+def main_roa(args: argparse.Namespace) -> int:
     from .. import scenario
 
     sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed roa")
@@ -548,8 +549,8 @@ def _roa(sc, plant, args, ex) -> int:
         r = out["roa"]
         print(f"scenario {sc.name}: nominal region of attraction on a {r['grid'][0]} x {r['grid'][1]} grid, "
               f"window {r['window']}, horizon {r['horizon']:g} s")
-        if _mismatch_line(out):
-            print(_mismatch_line(out) + ": the region is the model's nominal loop"
+        if (mismatch := _mismatch_line(out)):
+            print(mismatch + ": the region is the model's nominal loop"
                   + ("; --vulnerable runs the true plant" if vu is not None else ""))
         print(f"  inside: {r['fraction_inside']:.4f} of the grid, area {r['area']:.4g}")
         print(f"  {r['traj_steps']} trajectory-steps in {r['wall_s']:.2f} s = {r['traj_steps_per_s']:.3g} per s")

@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--live-timeout", type=float, metavar="S", help=argparse.SUPPRESS)
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     from ..errors import BadInput
 
     if args.verify:

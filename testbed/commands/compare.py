@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_trust_code(p, "a recording")
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     ra, rb = load_pair(args.a, args.b, trust_code=args.trust_code)
     c = compare(ra, rb)
     c["a"]["ref"], c["b"]["ref"] = str(args.a), str(args.b)

@@ -60,7 +60,7 @@ def replay_on_recorded_plant(path: str) -> dict:
     return resimulation(open_run(path, trust_code=True), plant="recorded")
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     from ..errors import BadInput
     from ..live.conformance import ADVERSE, DEVICE, REQUIREMENTS, conformance, feedable
     from .liveconfig import run_options, session_options

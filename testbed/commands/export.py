@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_trust_code(p)
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     from ..runs.run import open as open_run
 
     fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")

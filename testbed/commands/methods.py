@@ -22,7 +22,7 @@ def method_table() -> list[dict]:
     from .. import methods, scenario
 
     sc = scenario.load("paper")
-    out = []
+    out: list[dict[str, Any]] = []
     refs = list(methods.names()) + [n for n in methods.entry_points() if n not in methods.names()]
     for ref in refs:
         try:
@@ -37,7 +37,7 @@ def method_table() -> list[dict]:
     return out
 
 
-def main_methods(args) -> int:
+def main_methods(args: argparse.Namespace) -> int:
     rows = method_table()
     if args.json:
         print(json.dumps({"methods": rows, "bits_for": "the paper's example (n = 2, M = 6)"}))
@@ -78,7 +78,7 @@ def _methods_arg(v: str) -> list[str]:
     return ms
 
 
-def main_versus(args) -> int:
+def main_versus(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..campaign import engine
 

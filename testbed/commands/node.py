@@ -24,7 +24,7 @@ def add_arguments_node(p: argparse.ArgumentParser) -> None:
     optionspec.add_arguments(p, NodeConfig, "node")
 
 
-def main_node(args) -> int:
+def main_node(args: argparse.Namespace) -> int:
     from ..nodes.main import run_node
 
     return run_node(node_config(args))

@@ -54,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_no_progress(p)
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis import noise
     from ..errors import BadInput

@@ -25,7 +25,7 @@ def add_arguments_plants(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the list (name, source, ref, n, m, description, dist, error)")
 
 
-def main_plants(args) -> int:
+def main_plants(args: argparse.Namespace) -> int:
     import plants
 
     rows = plants.available()
@@ -75,7 +75,7 @@ def _param(text: str) -> tuple[str, float]:
         raise BadInput(f"--param must be NAME=NUMBER, got {text!r}") from None
 
 
-def main_check_plant(args) -> int:
+def main_check_plant(args: argparse.Namespace) -> int:
     import plants
 
     from .. import plantcheck
@@ -96,6 +96,7 @@ def main_check_plant(args) -> int:
         base_dir = sc.base_dir or base_dir
         if args.ref is None:
             if sc.plant.fmu is not None:
+                assert sc.model is not None  # an FMU plant has a [model] (the scenario's check)
                 raise BadInput(f"the plant of {args.scenario} is the FMU {sc.plant.fmu.path}: check-plant checks "
                                f"equation (1) plants; check its [model] with testbed check-plant {sc.model.name} "
                                f"--scenario {args.scenario}")

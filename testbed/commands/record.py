@@ -19,7 +19,7 @@ def add_arguments_record(p: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(p)
 
 
-def main_record(args) -> int:
+def main_record(args: argparse.Namespace) -> int:
     from ..nodes.recorder import run_recorder
 
     return run_recorder(recorder_config(args))

@@ -19,7 +19,7 @@ def add_arguments_replay(p: argparse.ArgumentParser) -> None:
     cliargs.add_trust_code(p)
 
 
-def main_replay(args) -> int:
+def main_replay(args: argparse.Namespace) -> int:
     run = open_run(args.recording, trust_code=args.trust_code)
     s, sc = run.summary, run.scenario
     spawn = args.spawn or not args.rrd

@@ -138,7 +138,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.add_trust_code(p)
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     run = run_of(args.recording, trust_code=args.trust_code)
     s = report_of_run(run, resimulate=args.resimulate)
     if args.plot:

@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "device, else model")
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     from ..errors import BadInput
 
     try:

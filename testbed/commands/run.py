@@ -91,7 +91,7 @@ def print_text(s: dict) -> None:
         print(f"  node logs: {s['run_dir']}")
 
 
-def main_run(args) -> int:
+def main_run(args: argparse.Namespace) -> int:
     from ..errors import BadInput
 
     if args.netns_clean:  # only that

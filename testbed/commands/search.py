@@ -7,6 +7,7 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,7 @@ def add_arguments_sweep(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_sweep(args) -> int:
+def main_sweep(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis import figures
     from ..analysis.region import allowable_region
@@ -67,12 +68,12 @@ def main_sweep(args) -> int:
     if not 0 <= args.rho_D_max < 1:
         print("testbed sweep: --rho-D-max must be in [0, 1)", file=sys.stderr)
         return 2
-    X0 = [sc.x0]
+    states = [sc.x0]
     if args.states > 0:
         r = args.state_radius or 3.0 * float(np.max(np.abs(sc.x0)))
         rng = np.random.default_rng(args.seed)
-        X0.extend(rng.uniform(-r, r, (args.states, plant.n)))
-    X0 = np.array(X0)
+        states.extend(rng.uniform(-r, r, (args.states, plant.n)))
+    X0 = np.array(states)
     rF = np.linspace(0.0, args.rho_F_max, args.grid[0])
     rD = np.linspace(0.0, args.rho_D_max, args.grid[1])
     with _executor(args) as ex:
@@ -84,7 +85,7 @@ def main_sweep(args) -> int:
     loop = Loop.from_scenario(sc)
     regions = {rule: allowable_region(loop, rule) for rule in ("paper", "tight")}
     plain = plain_certificate(loop)
-    theory = {"rho_D_max": regions["paper"].rho_D_max, "rho_F_max": regions["paper"].rho_F_max,
+    theory: dict[str, Any] = {"rho_D_max": regions["paper"].rho_D_max, "rho_F_max": regions["paper"].rho_F_max,
               "tight": {"rho_D_max": regions["tight"].rho_D_max, "rho_F_max": regions["tight"].rho_F_max},
               "plain": {"rho_D_max": plain.rho_D_max, "rho_F_max": plain.rho_F_max}}
     d = sw.to_dict()
@@ -107,8 +108,8 @@ def main_sweep(args) -> int:
         print(f"scenario {sc.name}: {len(rF)} x {len(rD)} budgets (rho_F <= {args.rho_F_max:g}, rho_D <= "
               f"{args.rho_D_max:g}), kappa_F={kF:g}, kappa_D={kD:g}, {len(X0)} initial state(s), "
               f"kinds {', '.join(sw.kinds)}, {args.seeds} random seeds, horizon {args.horizon:g} s")
-        if _mismatch_line(d):
-            print(_mismatch_line(d) + ": the runs integrate the true plant, the quantizer predicts with the model")
+        if (mismatch := _mismatch_line(d)):
+            print(mismatch + ": the runs integrate the true plant, the quantizer predicts with the model")
         print(f"  {sw.runs} runs, {sw.traj_steps} trajectory-steps in {sw.wall:.2f} s = {sw.rate:.3g} per s")
         w = sw.worst()
         print(f"  budget points where every run converged: {int(np.sum(sw.all_converged()))} of {w.size}")
@@ -173,7 +174,7 @@ def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_worst_attack(args) -> int:
+def main_worst_attack(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.worst import Loop, worst_attack
     from ..errors import BadInput
@@ -208,8 +209,8 @@ def main_worst_attack(args) -> int:
         return code
     print(f"scenario {sc.name}: x0 = {out['x0']}, E0 = {out['E0']:g}, {out['n_steps']} samples of "
           f"T = {out['T']:g} s, at most {out['attacks']} attack(s)")
-    if _mismatch_line(out):
-        print(_mismatch_line(out) + ": the runs integrate the true plant, the quantizer predicts with the model")
+    if (mismatch := _mismatch_line(out)):
+        print(mismatch + ": the runs integrate the true plant, the quantizer predicts with the model")
     if out["unattacked_escapes"]:
         print("  the quantized loop escapes without any attack")
     else:
@@ -285,7 +286,7 @@ def add_arguments_vulnerability(p: argparse.ArgumentParser) -> None:
     cliargs.add_batch_options(p)
 
 
-def main_vulnerability(args) -> int:
+def main_vulnerability(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.roa import nominal_roa
     from ..analysis.summary import analyze
@@ -325,8 +326,8 @@ def main_vulnerability(args) -> int:
         return 0
     print(f"scenario {sc.name}: {out['states_in_region']} states of the nominal region of attraction on a "
           f"{args.grid} x {args.grid} grid, at most {out['attacks']} attack(s), {out['n_steps']} samples")
-    if _mismatch_line(out):
-        print(_mismatch_line(out) + ": the region is the model's, the attacks run on the true plant")
+    if (mismatch := _mismatch_line(out)):
+        print(mismatch + ": the region is the model's, the attacks run on the true plant")
     print(f"  {out['escape_unattacked']} escape without any attack; {out['no_escape_found']} resist every "
           "schedule tried")
     ex_note = 'exact' if out['all_exact'] else f"{out['states_exact']} of {out['states_in_region']} proven minimal"

@@ -21,7 +21,7 @@ def add_arguments_secret(p: argparse.ArgumentParser) -> None:
     cliargs.add_json(p, "the file's path and the user names in it")
 
 
-def main_secret(args) -> int:
+def main_secret(args: argparse.Namespace) -> int:
     from ..errors import BadInput
     from ..wire import transport
 

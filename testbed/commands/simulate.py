@@ -32,7 +32,7 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
     cliargs.add_no_roa(p)
 
 
-def main_simulate(args) -> int:
+def main_simulate(args: argparse.Namespace) -> int:
     from .. import rulesofthumb, scenario
     from ..channel import loss_text
     from ..errors import BadInput
@@ -165,7 +165,7 @@ def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
                         "testbed scenarios --show paper > my.toml)")
 
 
-def main_scenarios(args) -> int:
+def main_scenarios(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..errors import BadInput
 

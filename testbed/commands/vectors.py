@@ -20,7 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "attacker, controller, encoder_ack and plant numbers and payloads)")
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..wire.vectors import vectors
 

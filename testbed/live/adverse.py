@@ -35,9 +35,13 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import TYPE_CHECKING
 
 from ..wire import messages as msg
 from ..wire import transport
+
+if TYPE_CHECKING:
+    import zenoh
 
 #: the role whose certificate feeds the external ROLE, and the key (a ``Keys`` attribute) it feeds it on
 FEEDER = {"plant": ("controller", "actuation"), "encoder": ("plant", "sensor"),
@@ -64,7 +68,7 @@ class Feeder:
         self._seen: dict[int, tuple[bytes, bytes]] = {}  # the last genuine messages by k (the late case's)
         self._sent: set[tuple[bytes, bytes]] = set()     # (payload, attachment) of the copies put here
         self._lock = threading.Lock()
-        self._session = None
+        self._session: zenoh.Session | None = None
         self.error: str | None = None
 
     def start(self) -> None:
@@ -74,24 +78,27 @@ class Feeder:
             tls = None if self.tls_dir is None else transport.TlsCredentials(self.tls_dir).zenoh(self.user)
             conf = transport.make_config(connect=[self.endpoint], mode=self.mode, tls=tls,
                                          low_latency=self.low_latency)
-            self._session = zenoh.open(conf)
-            self._session.declare_subscriber(self.key, self._on)
+            self._session = session = zenoh.open(conf)
+            session.declare_subscriber(self.key, self._on)
         except Exception as e:  # noqa: BLE001 - reported as the adverse cases' evidence
             self.error = f"{type(e).__name__}: {e}"
 
-    def _on(self, sample) -> None:
+    def _on(self, sample: zenoh.Sample) -> None:
+        session = self._session
+        assert session is not None  # subscribed to after the session opened
         att = sample.attachment
+        raw = att.to_bytes() if att is not None else b""
         try:
-            h = msg.Header.decode(att.to_bytes() if att is not None else b"")
+            h = msg.Header.decode(raw)
         except msg.MessageError:
             return  # our own invalid copy
         if h.warmup:
             return
         payload = sample.payload.to_bytes()
         with self._lock:
-            if self._next >= len(CASES) or (payload, att.to_bytes()) in self._sent:
+            if self._next >= len(CASES) or (payload, raw) in self._sent:
                 return  # done, or a copy this peer put (its own subscriber gets it too)
-            self._seen.setdefault(h.k, (payload, att.to_bytes()))
+            self._seen.setdefault(h.k, (payload, raw))
             self._seen = {k: v for k, v in self._seen.items() if k > h.k - 2 * LATE_BY}
             case, k0 = CASES[self._next]
             if h.k < k0 or (case == "late" and h.k - LATE_BY not in self._seen):
@@ -99,18 +106,20 @@ class Feeder:
             self._next += 1
             old = self._seen.get(h.k - LATE_BY)
             if case == "duplicate":
-                self._sent.add((payload, att.to_bytes()))
+                self._sent.add((payload, raw))
             elif case == "late":
+                assert old is not None  # the guard above returned unless sample k - LATE_BY was seen
                 self._sent.add(old)
         if case == "duplicate":
-            self._session.put(self.key, payload, attachment=att.to_bytes())
+            session.put(self.key, payload, attachment=raw)
             k = h.k
         elif case == "late":
             k = h.k - LATE_BY
-            self._session.put(self.key, old[0], attachment=old[1])
+            assert old is not None
+            session.put(self.key, old[0], attachment=old[1])
         else:
             k = h.k
-            self._session.put(self.key, payload, attachment=att.to_bytes()[:msg.HEADER_SIZE - 1])
+            session.put(self.key, payload, attachment=raw[:msg.HEADER_SIZE - 1])
         self.fed[case] = {"k": k, "after_genuine_k": h.k, "key": self.key, "as": self.user,
                           "t_wall_ns": time.time_ns()}
 

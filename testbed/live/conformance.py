@@ -149,7 +149,9 @@ def run_external(role: str, scenario: str, command: list[str], *, run_id: str, f
     t_err = threading.Thread(target=_reader, args=(p.stderr, err, found, announced, prefix), daemon=True)
     t_err.start()
     stdout: list[str] = []
-    t_out = threading.Thread(target=lambda: stdout.append(p.stdout.read()), daemon=True)
+    assert p.stdout is not None  # a pipe (Popen above)
+    out_pipe = p.stdout
+    t_out = threading.Thread(target=lambda: stdout.append(out_pipe.read()), daemon=True)
     t_out.start()
     node = None
     log_path = folder / f"{run_id}-{role}.log"
@@ -385,6 +387,7 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         for name in names(role, r.fed is not None)[1:]:
             out.append(_verdict(name, FAIL, "the run never started", _required(role, name, bit_exact)))
         return out
+    assert rec is not None and rec.start is not None and r.join_data is not None  # started
     N, T = rec.start.n_steps, rec.start.T_ns
     mine = {"/" + k for k in PUBLISHES[role]}
     # 2. well formed
@@ -397,9 +400,9 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
         out.append(_verdict("messages_well_formed", FAIL, f"{len(bad)} malformed; the first: {bad[0]['key']}: "
                                                           f"{bad[0]['error']}"))
     elif rejected:
-        e = rejected[0]
-        out.append(_verdict("messages_well_formed", FAIL, f"the {e.node} rejected a message ({e.kind}) at sample "
-                                                          f"{e.k}: {e.detail}"))
+        ev = rejected[0]
+        out.append(_verdict("messages_well_formed", FAIL, f"the {ev.node} rejected a message ({ev.kind}) at sample "
+                                                          f"{ev.k}: {ev.detail}"))
     else:
         n = sum(len(rec.loop.get(t, [])) for t in mine)
         out.append(_verdict("messages_well_formed", PASS, f"{n} control messages and {len(rec.telemetry.get(role, {}))} "

@@ -152,6 +152,7 @@ class RunCredentials:
         pid, self._tls_maker = self._tls_maker, None
         if pid is None:
             return
+        assert self.tls_dir is not None  # set with the maker (make_secrets)
         _, status = os.waitpid(pid, 0)
         if os.waitstatus_to_exitcode(status) != 0:
             shutil.rmtree(self.tls_dir, ignore_errors=True)
@@ -171,6 +172,8 @@ class RunCredentials:
     def secret_for(self, who: str) -> Path:
         if self.secret_dir is not None:
             return self.secret_dir / f"{who}.secret"
+        if self.secret_path is None:
+            raise RuntimeError("secret_for() before make_secrets() of a run with passwords")
         return self.secret_path
 
     def session_options(self, who: str) -> SessionOptions:

@@ -21,10 +21,14 @@ Each is a fault of the launcher's summary, an event of node ``launcher`` in the 
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
 
 from ..record.faults import Fault
 from ..wire import messages as msg
 from ..wire.messages import STATE_NONFINITE, STATE_WRONG_LENGTH
+
+if TYPE_CHECKING:
+    from .collect import Collector
 
 #: the plant's Stop is due this long after the run's last sample at the latest (the other nodes wait 5 s)
 NO_STOP_GRACE_S = 2.0
@@ -53,7 +57,7 @@ class DeviceWatch:
         print(f"testbed run: plant fault {kind} at sample {k}: {why}", file=sys.stderr, flush=True)
         return f
 
-    def tick(self, col, now_ns: int, *, final: bool = False) -> list[Fault]:
+    def tick(self, col: Collector, now_ns: int, *, final: bool = False) -> list[Fault]:
         """The new faults (``now_ns``: ns since t0 on the launcher's clock)."""
         n0 = len(self.faults)
         with col.lock:

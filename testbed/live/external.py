@@ -49,6 +49,7 @@ def join_data(role: str, la: RunCredentials, sc, opts, cfg) -> dict:
     if not la.secure:
         cred = {"kind": "none"}
     elif la.tls:
+        assert la.tls_dir is not None  # made or given (make_secrets) before a join file is written
         d = Path(la.tls_dir)
         cred = {"kind": "mutual_tls", "ca": str(d / "ca.pem"), "cert": str(d / f"{role}.pem"),
                 "key": str(d / f"{role}.key")}

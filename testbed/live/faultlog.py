@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 from ..record.faults import Fault, given
 from ..wire import messages as msg
+
+if TYPE_CHECKING:
+    import zenoh
 
 
 class FaultLog:
@@ -36,7 +40,7 @@ class FaultLog:
         """The written form (the summary's ``faults``)."""
         return [f.to_dict() for f in self._faults]
 
-    def publish(self, session, key: str) -> None:
+    def publish(self, session: zenoh.Session, key: str) -> None:
         """Each new fault as an ``Event`` of node ``launcher`` on ``key``: kind ``<node>_<kind>``, its sample
         (-1 without one), its written form as JSON in ``detail``."""
         while self._published < len(self._faults):

@@ -19,12 +19,16 @@ import logging
 import os
 import threading
 import time
+from typing import TYPE_CHECKING
 
 from ..errors import BadInput
 from ..record import schema, topics
 from ..view.foxglove import TOPICS as FOXGLOVE_TOPICS
 from ..view.foxglove import FoxgloveTopics, descriptor_set, telemetry_extra
 from ..wire import messages as msg
+
+if TYPE_CHECKING:
+    import foxglove
 
 log = logging.getLogger("testbed.launcher")
 NICE = 10
@@ -43,8 +47,8 @@ class FoxgloveLive:
         self.T_ns = int(round(sc.T * 1e9))
         self.tap = FoxgloveTopics(sc, background=True)
         self.q: collections.deque = collections.deque()
-        self.server = None
-        self.channels: dict[str, object] = {}
+        self.server: foxglove.WebSocketServer | None = None
+        self.channels: dict[str, foxglove.Channel] = {}
         self.logged = 0
         self.errors = 0
         self._subs: list = []
@@ -69,10 +73,10 @@ class FoxgloveLive:
         for topic, name in table.items():
             self.channels[topic] = self._fg.Channel(topic, message_encoding="protobuf", schema=self._schema(name))
         try:
-            self.server = self._fg.start_server(name=f"testbed {self.run_id}", host=self.host, port=self.port)
+            self.server = server = self._fg.start_server(name=f"testbed {self.run_id}", host=self.host, port=self.port)
         except Exception as e:  # noqa: BLE001 - a port in use, mostly
             raise BadInput(f"--foxglove {self.port}: cannot serve on {self.host}:{self.port} ({e})") from None
-        self.port = self.server.port
+        self.port = server.port
         p = keys.prefix
         self._plen = len(p) + 1
         for k in (f"{p}/telemetry/*", f"{p}/events/*", keys.attacker_status, keys.start, keys.stop):

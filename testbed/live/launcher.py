@@ -31,6 +31,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from .. import scenario
 from ..errors import BadInput
@@ -46,6 +47,11 @@ from .faultlog import FaultLog
 from .processes import NodeProcesses
 from .recorder import RecorderProcess, exit_code
 from .stalls import StallControl, check_fault_times, lost_during, parse_stalls
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from .collect import Collector
 
 
 def recording_default_path(name: str, run_id: str) -> Path:
@@ -148,7 +154,7 @@ class Launcher:
         self.router = RouterPriority(cfg.realtime)
         self.signal: int | None = None
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
-        self.status = None                            # the live status line (``status``): a terminal or --progress
+        self.status: status.LiveStatus | None = None  # the live status line (``status``): a terminal or --progress
         self.device_watch: DeviceWatch | None = None  # what the plant (a device) does wrong (``devicefaults``)
         self._method_fault: str | None = None         # the outcome once a node reported a method fault
         self._events_seen = 0
@@ -167,14 +173,15 @@ class Launcher:
     def node_config(self, role: str) -> NodeConfig:
         """What the node process ``role`` runs: the run's options, its session and its own settings."""
         c = self.cfg
-        guest_crash = {f"{g}_crash_at": c.crash[g] for g in self.colocated
+        guest_crash: dict[str, Any] = {f"{g}_crash_at": c.crash[g] for g in self.colocated
                        if self.opts.process_of(g) == role and g in c.crash}  # --encoder-crash-at
         here = role not in c.node_prefix or c.node_prefix[role].startswith("ip netns exec")
-        rerun = {} if self.rerun is None else {"recording_id": self.rerun.recording_id, **(
+        rx: dict[str, Any] = {"rx": c.rx} if c.rx else {}
+        rerun: dict[str, Any] = {} if self.rerun is None else {"recording_id": self.rerun.recording_id, **(
             {"rerun_save": self.rerun.part(role)} if self.rerun.mode == "save" else {"rerun_url": self.rerun.url})}
         return NodeConfig(
             role=role, scenario=self.scenario_ref, opts=self.opts, session=self.creds.session_options(role),
-            ready_timeout=c.startup_timeout, launched=True, **({"rx": c.rx} if c.rx else {}), rx_spin_us=c.rx_spin_us,
+            ready_timeout=c.startup_timeout, launched=True, **rx, rx_spin_us=c.rx_spin_us,
             cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=c.realtime,
             verbose=c.verbose, crash_at=c.crash.get(role), **guest_crash, **rerun,
             spin_us=c.spin_us if role == "plant" else None,
@@ -249,7 +256,7 @@ class Launcher:
             self.creds.secrets_ready()
             self.nodes.spawn(forked=True)
 
-    def open_session(self, cleanup: contextlib.ExitStack):
+    def open_session(self, cleanup: contextlib.ExitStack) -> zenoh.Session:
         """The launcher's session, the run's router (closed first at the end); a forked node is killed if it
         cannot open."""
         import zenoh
@@ -264,7 +271,7 @@ class Launcher:
         self.phase("router")
         return session
 
-    def collect(self, session):
+    def collect(self, session: zenoh.Session) -> Collector:
         """The collector of the nodes' telemetry, the live status line and the collector's liveliness."""
         from .collect import Collector
 
@@ -273,7 +280,7 @@ class Launcher:
         self._tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
         return col
 
-    def start(self, session) -> None:
+    def start(self, session: zenoh.Session) -> None:
         """The recorder and the nodes start together; the plant starts the run once the collector is ready,
         which it declares once the recorder is (``loop``)."""
         if self.recorder is not None:
@@ -287,7 +294,7 @@ class Launcher:
         self.nodes.spawn(forked=False)
         self.phase("spawned")
 
-    def loop(self, session, col) -> str:
+    def loop(self, session: zenoh.Session, col: Collector) -> str:
         """Watch the run until it ends; its outcome."""
         a = self.cfg
         t_launch = time.monotonic()
@@ -296,8 +303,8 @@ class Launcher:
         while True:
             if self.signal is not None:
                 return f"interrupted by {signal.Signals(self.signal).name}"
-            if self.method_fault(col):
-                return self._method_fault
+            if (fault := self.method_fault(col)) is not None:
+                return fault
             if self.t0_mono is None and col.start is not None:
                 end_mono = self.started(col.start)
             t0_mono = self.t0_mono
@@ -323,6 +330,7 @@ class Launcher:
             else:
                 if (ended := self.tick(col, now, t0_mono)) is not None:
                     return ended
+                assert end_mono is not None  # set with t0 (started)
                 if now > end_mono:
                     self.faults.append(Fault(role=None, kind="timeout",
                                              detail="nodes still running 10 s after the end of the run"))
@@ -346,7 +354,7 @@ class Launcher:
         self.router.set(True)
         return self.t0_mono + st.n_steps * st.T_ns + int(10e9)
 
-    def tick(self, col, now: int, t0_mono: int) -> str | None:
+    def tick(self, col: Collector, now: int, t0_mono: int) -> str | None:
         """One look during the loop: the faults to inject (``--kill``, ``--cut``, ``--stall``), the stalls and
         losses, the status line, the device's faults (the outcome if one ends the run)."""
         for role, sec in self.cfg.kill.items():
@@ -364,15 +372,15 @@ class Launcher:
             self.status.tick(col)
         return self.device_faults(col, now, t0_mono)
 
-    def stop(self, session, col, outcome: str) -> str:
+    def stop(self, session: zenoh.Session, col: Collector, outcome: str) -> str:
         """Stop every node, then gather what the run's end shows: late exits and summaries, stalls, losses,
         device faults, liveliness, the recorder, an open cut; the outcome (a device fault may change it)."""
         self.router.set(False)
         self.stalls.release()  # a node still frozen by --stall
         self.nodes.stop_all(session, self.keys.stop, outcome)
         for r, p in self.nodes.procs.items():
-            if r not in self.nodes.exits and p.poll() is not None:
-                self.nodes.record_exit(r, p.returncode, col, None, interrupted=self.signal is not None)
+            if r not in self.nodes.exits and (rc := p.poll()) is not None:
+                self.nodes.record_exit(r, rc, col, None, interrupted=self.signal is not None)
         self.phase("stopped")
         self.nodes.wait_summaries(col)  # late telemetry and summaries
         status.stop(self.status, col)  # the status line's last state, the run's losses
@@ -387,7 +395,7 @@ class Launcher:
         self.publish_faults(session)
         return outcome
 
-    def summarize(self, session, col, outcome: str) -> dict:
+    def summarize(self, session: zenoh.Session, col: Collector, outcome: str) -> dict:
         """The run's summary (``record.summary.build_summary``) with the launcher's view: faults, nodes,
         outcome, security, the external node, the launcher itself."""
         if self.signal is None:  # every node's own account of its telemetry against what arrived
@@ -419,7 +427,7 @@ class Launcher:
                                "spawn": "fork" if self.nodes.any_forked() else "exec"}
         return summary
 
-    def close(self, session, summary: dict) -> None:
+    def close(self, session: zenoh.Session, summary: dict) -> None:
         """The launcher's own view into the recording, the recorder stopped, the live taps finished."""
         try:  # the launcher's own view (exits, faults, outcome) goes into the recording too
             launcher_view = {k: summary.get(k) for k in ("outcome", "faults", "nodes", "complete", "samples")}
@@ -456,13 +464,13 @@ class Launcher:
         return code, summary
 
     # ---- helpers of the phases
-    def declare_collector_ready(self, session) -> None:
+    def declare_collector_ready(self, session: zenoh.Session) -> None:
         """The plant starts the run once the collector is ready (with a recorder: once it is ready too)."""
         if not self._collector_ready:
             self._collector_ready = True
             self._tokens.append(session.liveliness().declare_token(self.keys.ready(transport.COLLECTOR)))
 
-    def recorder_started(self, session, col) -> bool:
+    def recorder_started(self, session: zenoh.Session, col: Collector) -> bool:
         """During start-up: declare the collector ready once the recorder is (False: it died first)."""
         if self._collector_ready or self.recorder is None:
             return True
@@ -476,7 +484,7 @@ class Launcher:
             self.recorder.check(t0_mono, stopping=self.nodes.stopping,
                                 injected=transport.RECORDER in self.nodes.kill_sent)
 
-    def publish_faults(self, session) -> None:
+    def publish_faults(self, session: zenoh.Session) -> None:
         """Each new fault as an ``Event`` of node ``launcher`` (so the recording has it)."""
         self.faults.publish(session, self.keys.events("launcher"))
 
@@ -518,7 +526,7 @@ class Launcher:
         if sc.plant.fmu is None:  # an FMU is opened by the plant node alone
             plant.warm_process(sc)
 
-    def add_liveliness(self, col) -> None:
+    def add_liveliness(self, col: Collector) -> None:
         """When each dead node's liveliness token went away (it may trail the process exit)."""
         kill_sent = self.nodes.kill_sent
         for f in self.faults:
@@ -533,7 +541,7 @@ class Launcher:
             if lost is not None and role in kill_sent:
                 f.liveliness_detect_ms = round((lost - kill_sent[role]) / 1e6, 3)
 
-    def method_fault(self, col) -> str | None:
+    def method_fault(self, col: Collector) -> str | None:
         """A node's ``method_fault`` event (its method's end raised at sample k): one fault, one stderr line
         (the line ``testbed simulate`` prints), and the outcome that ends the run; None without one."""
         if self._method_fault is None:
@@ -559,9 +567,10 @@ class Launcher:
         self.faults.append(Fault(role=None, kind="lockstep_break", detail=line, sample=int(br[0])))
         print(f"testbed run: {line}", file=sys.stderr)
 
-    def device_faults(self, col, now: int, t0_mono: int, *, final: bool = False) -> str | None:
+    def device_faults(self, col: Collector, now: int, t0_mono: int, *, final: bool = False) -> str | None:
         """The plant's device faults (``DeviceWatch``; its loss: ``lost``): the outcome if one ends the run."""
         if self.device_watch is None:
+            assert col.start is not None  # called from the start on (t0_mono)
             self.device_watch = DeviceWatch(col.start, self.sc.run.deadline, self.external == "plant")
         self.faults.extend(self.device_watch.tick(col, now - t0_mono, final=final))
         f = self.device_watch.ends_run() or (self.stalls.lost.get("plant") if self.external == "plant" else None)

@@ -29,10 +29,14 @@ import signal
 import subprocess
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from ..errors import BadInput
 from ..record.faults import Fault
 from .stalls import parse_role_interval
+
+if TYPE_CHECKING:
+    from .faultlog import FaultLog
 
 PREFIX = "tbn-"
 NET = "10.77.0"
@@ -214,18 +218,19 @@ class NetnsRun:
     def _link(self, role: str, state: str) -> None:
         _ip("-n", self.names["switch"], "link", "set", self.ports[role], state, check=False)
 
-    def tick(self, faults: list[Fault], now: int | None, t0_mono: int | None) -> None:
+    def tick(self, faults: FaultLog, now: int | None, t0_mono: int | None) -> None:
         """Start and end the cuts that are due (``now`` None: the run is over, restore every open cut).
         A finished cut is a fault event ``link_cut`` with its interval (s after t0)."""
         if t0_mono is None and now is not None:
             return
+        t0 = 0 if t0_mono is None else t0_mono  # read only when ``now`` is given, and then t0_mono is
         for i, (role, sec, dur) in enumerate(self.cuts):
             st = self.cut_state.get(i)
-            if now is not None and st is None and now >= t0_mono + int(sec * 1e9):
+            if now is not None and st is None and now >= t0 + int(sec * 1e9):
                 self._link(role, "down")
                 self.cut_state[i] = {"down_ns": time.monotonic_ns()}
                 print(f"testbed run: link of the {role} cut at {sec:g} s for {dur:g} s", file=sys.stderr)
-            elif st is not None and "up_ns" not in st and (now is None or now >= t0_mono + int((sec + dur) * 1e9)):
+            elif st is not None and "up_ns" not in st and (now is None or now >= t0 + int((sec + dur) * 1e9)):
                 self._link(role, "up")
                 st["up_ns"] = time.monotonic_ns()
                 base = t0_mono if t0_mono is not None else st["down_ns"] - int(sec * 1e9)

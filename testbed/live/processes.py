@@ -10,11 +10,17 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..record.faults import Fault
 from ..wire import messages as msg
 from .faultlog import FaultLog
 from .spawn import Forked, _forked_node, log_tail, popen_logged
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from .collect import Collector
 
 
 class NodeProcesses:
@@ -104,7 +110,7 @@ class NodeProcesses:
         else:
             self.signal_group(role, signal.SIGKILL)
 
-    def stop_all(self, session, stop_key: str, reason: str, grace: float = 3.0) -> None:
+    def stop_all(self, session: zenoh.Session, stop_key: str, reason: str, grace: float = 3.0) -> None:
         """``Stop`` on ``stop_key``, then SIGINT to each live group after ``grace`` s, then SIGKILL."""
         self.stopping = True
         alive = [r for r, p in self.procs.items() if p.poll() is None]
@@ -134,17 +140,17 @@ class NodeProcesses:
     def all_exited(self) -> bool:
         return all(r in self.exits for r in self.procs)
 
-    def plant_ok(self, col) -> bool:
+    def plant_ok(self, col: Collector) -> bool:
         return col.plant_done() or self.exits.get("plant", {}).get("exit_code") == 0
 
-    def poll(self, col, t0_mono: int | None, *, interrupted: bool) -> None:
+    def poll(self, col: Collector, t0_mono: int | None, *, interrupted: bool) -> None:
         """Record each process that exited since the last poll (``interrupted``: the run got a signal)."""
         for role, p in self.procs.items():
             rc = p.poll()
             if rc is not None and role not in self.exits:
                 self.record_exit(role, rc, col, t0_mono, interrupted=interrupted)
 
-    def record_exit(self, role: str, rc: int, col, t0_mono: int | None, *, interrupted: bool) -> None:
+    def record_exit(self, role: str, rc: int, col: Collector, t0_mono: int | None, *, interrupted: bool) -> None:
         now = time.monotonic_ns()
         info = {"exit_code": rc, "signal": signal.Signals(-rc).name if rc < 0 else None,
                 "at_sample": col.last_k(role),
@@ -164,7 +170,7 @@ class NodeProcesses:
             print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}"
                   + (f": {last}" if last else ""), file=sys.stderr)
 
-    def check_guest(self, role: str, col, t0_mono: int | None, *, final: bool = False) -> None:
+    def check_guest(self, role: str, col: Collector, t0_mono: int | None, *, final: bool = False) -> None:
         """A colocated role whose liveliness went while its host runs on: it died alone (killed or crashed).
 
         At the run's end its host closes it as well, after its summary and the plant's Stop, which
@@ -204,11 +210,11 @@ class NodeProcesses:
                                  time=info["t_s"], injected=injected, colocated_in=host))
         print(f"testbed run: node {role} died ({why}) at sample {info['at_sample']}", file=sys.stderr)
 
-    def check_guests(self, col, t0_mono: int | None, *, final: bool = False) -> None:
+    def check_guests(self, col: Collector, t0_mono: int | None, *, final: bool = False) -> None:
         for guest in self.colocated:
             self.check_guest(guest, col, t0_mono, final=final)
 
-    def wait_summaries(self, col, timeout: float = 0.3) -> None:
+    def wait_summaries(self, col: Collector, timeout: float = 0.3) -> None:
         """Until every node that exited cleanly has its summary in (they publish it before they exit)."""
         want = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
         want |= {g for g in self.colocated if self.process_of(g) in want and g not in self.exits}

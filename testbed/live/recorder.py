@@ -16,6 +16,7 @@ import sys
 import time
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import EXIT_RECORDING_INCOMPLETE
 from ..nodes.options import RECORD_FAILED, RecorderConfig
@@ -23,6 +24,9 @@ from ..record.faults import Fault
 from ..wire import transport
 from .faultlog import FaultLog
 from .spawn import log_tail, popen_logged
+
+if TYPE_CHECKING:
+    from .collect import Collector
 
 #: ``testbed run``'s exit code when the run itself was clean but its recording is incomplete
 RECORDING_INCOMPLETE = EXIT_RECORDING_INCOMPLETE
@@ -95,14 +99,15 @@ class RecorderProcess:
 
     def kill(self) -> None:
         """``--kill recorder@S``: SIGKILL to its process group."""
-        if self.running():
+        if self.proc is not None and self.proc.poll() is None:  # running()
             os.killpg(self.proc.pid, signal.SIGKILL)
 
-    def startup(self, col) -> str:
+    def startup(self, col: Collector) -> str:
         """During start-up: ``ready`` (in the collector's ready nodes), ``waiting``, or ``failed`` (it died
         first: a fault ``startup_failed``)."""
         if transport.RECORDER in col.ready_nodes():
             return "ready"
+        assert self.proc is not None  # started
         rc = self.proc.poll()
         if rc is None:
             return "waiting"

@@ -31,11 +31,11 @@ class Forked:
 
     def wait(self, timeout: float | None = None) -> int:
         end = None if timeout is None else time.monotonic() + timeout
-        while self.poll() is None:
-            if end is not None and time.monotonic() > end:
+        while (rc := self.poll()) is None:
+            if end is not None and timeout is not None and time.monotonic() > end:
                 raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
             time.sleep(0.005)
-        return self.returncode
+        return rc
 
 
 def popen_logged(cmd: list[str], log: Path) -> subprocess.Popen:
@@ -77,7 +77,7 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
             ctypes.CDLL(None).prctl(15, ctypes.c_char_p(f"tb-{argv[1]}"[:15].encode()), 0, 0, 0)  # PR_SET_NAME
         except (OSError, AttributeError, IndexError):
             pass
-        sys.stdout.reconfigure(line_buffering=True)
+        sys.stdout.reconfigure(line_buffering=True)  # type: ignore[union-attr]  # a TextIOWrapper here; typeshed: TextIO
         logging.root.handlers.clear()
         from ..entry import run_child
 

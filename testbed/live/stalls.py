@@ -19,6 +19,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Set
 from typing import TYPE_CHECKING
 
 from ..errors import BadInput
@@ -27,8 +28,12 @@ from ..wire import messages as msg
 from ..wire import transport
 
 if TYPE_CHECKING:
+    import subprocess
+
+    from .collect import Collector
     from .faultlog import FaultLog
     from .processes import NodeProcesses
+    from .spawn import Forked
 
 #: the shortest stall the watch reports (a gap of at least 3 periods, and at least this long)
 MIN_GAP_NS = 300_000_000
@@ -126,7 +131,7 @@ def own_stamp(role: str, t) -> int:
     return t.rx_ns  # attacker
 
 
-def lateness(role: str, a, t, col, T_ns: int) -> int | None:
+def lateness(role: str, a, t, col: Collector, T_ns: int) -> int | None:
     """How late the node handled sample ``t.k`` (ns), or None: against when it was due (the plant takes
     x_k at t_k; the controller decides it by t_k + c d T < t_k+1), or for the encoder and the attacker
     against when the oldest input it had not handled since its record ``a`` was sent to it (the plant's
@@ -158,13 +163,14 @@ class StallWatch:
         self.colocated = set(colocated)
         self.open: dict[str, tuple] = {}    # role -> (last k before it fell behind, its record)
 
-    def _ref_k(self, role: str, now: int, t0_mono: int, col) -> int:
+    def _ref_k(self, role: str, now: int, t0_mono: int, col: Collector) -> int:
         up = self.UPSTREAM[role]
         if up is None:
             return min(self.N - 1, (now - t0_mono) // self.T_ns)
         return col.last_k(up)
 
-    def tick(self, now: int, t0_mono: int, col, alive: set[str], injected=frozenset(), final: bool = False) -> list[Fault]:
+    def tick(self, now: int, t0_mono: int, col: Collector, alive: set[str], injected: Set[str] = frozenset(),
+             final: bool = False) -> list[Fault]:
         out = []
         for role in transport.ROLES:
             k = col.last_k(role)
@@ -211,7 +217,7 @@ class StallWatch:
 LOST_GRACE_NS = 500_000_000
 
 
-def lost_during(col, role: str, from_s: float, to_s: float, t0_mono: int | None) -> bool:
+def lost_during(col: Collector, role: str, from_s: float, to_s: float, t0_mono: int | None) -> bool:
     """Whether ``role``'s liveliness token went away between ``from_s`` and ``to_s`` (s after t0) or within
     ``LOST_GRACE_NS`` after: a fault that ended a session (a link cut longer than Zenoh's lease), not a
     token that went at the run's end (docs/live.md, ``liveliness_lost``)."""
@@ -239,12 +245,12 @@ class StallControl:
         self.watch: StallWatch | None = None
         self.lost: dict[str, Fault] = {}  # role -> its fault ``lost``
 
-    def check_lost(self, col, now: int, t0_mono: int) -> None:
+    def check_lost(self, col: Collector, now: int, t0_mono: int) -> None:
         """A node whose liveliness token went while its process runs on (a stall longer than Zenoh's lease,
         a link down): its peers have dropped it, as if it had died; a fault ``lost``, once."""
         if col.plant_done():
             return
-        nodes = dict(self.nodes.procs)
+        nodes: dict[str, subprocess.Popen | Forked | None] = dict(self.nodes.procs)
         if self.external is not None:  # a node from outside (a device): its liveliness is all the launcher sees
             nodes[self.external] = None
         for role, p in nodes.items():
@@ -253,6 +259,7 @@ class StallControl:
                     or (p is not None and p.poll() is not None):
                 continue
             st = col.start
+            assert st is not None  # watched from the start on (t0_mono)
             # one sample and one time: the run's sample at the loss (the plant's controller_lost_at), and
             # separately the last sample the node itself had handled
             k = min(max((lost - t0_mono) // st.T_ns, 0), st.n_steps - 1)
@@ -269,7 +276,7 @@ class StallControl:
             print(f"testbed run: node {role} lost at sample {k} ({f.time:g} s), after its sample "
                   f"{f.last_sample_before}: {f.detail}", file=sys.stderr, flush=True)
 
-    def lost_back(self, col, t0_mono: int) -> None:
+    def lost_back(self, col: Collector, t0_mono: int) -> None:
         """When each lost node's liveliness came back, if it did (``back_s``)."""
         with col.lock:
             events = list(col.liveliness)
@@ -278,7 +285,7 @@ class StallControl:
             back = next((t for t, n, alive in events if n == role and alive and t > t_lost), None)
             f.back_s = None if back is None else round((back - t0_mono) / 1e9, 4)
 
-    def tick(self, col, now: int, t0_mono: int, *, final: bool = False) -> None:
+    def tick(self, col: Collector, now: int, t0_mono: int, *, final: bool = False) -> None:
         if not final:
             self.inject.tick(now, t0_mono, self.nodes.procs)
             self.check_lost(col, now, t0_mono)
@@ -296,7 +303,7 @@ class StallControl:
         """SIGCONT to every node still stopped by ``--stall``."""
         self.inject.release(self.nodes.procs)
 
-    def end(self, col, t0_mono: int | None) -> None:
+    def end(self, col: Collector, t0_mono: int | None) -> None:
         """At the run's end: resume a node still stopped, and close the stalls that ended."""
         self.release()
         if t0_mono is not None:

@@ -12,11 +12,15 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..channel import LOSS_KINDS, late_of_rest, loss_text, model_lost, recorded_losses
 from ..wire import messages as msg
+
+if TYPE_CHECKING:
+    from .collect import Collector
 
 PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
@@ -63,7 +67,7 @@ class LiveStatus:
         self._shown = False
 
     # ---- counting
-    def _count(self, col, final: bool) -> None:
+    def _count(self, col: Collector, final: bool) -> None:
         top = col.last_k("plant")
         for j in range(self.next_plant, top + 1):
             r = col.record("plant", j)
@@ -110,7 +114,7 @@ class LiveStatus:
             self.stream.flush()
             self._shown = False
 
-    def tick(self, col, now: float | None = None) -> None:
+    def tick(self, col: Collector, now: float | None = None) -> None:
         """Count what came since the last call (every call: the collector keeps only its last ``RECENT``
         records of a node, so a fast loop is counted as it goes), and redraw once ``INTERVAL_S`` has passed."""
         self._count(col, final=False)
@@ -169,7 +173,7 @@ def start(progress: bool, n_steps: int, T_s: float, network=None) -> LiveStatus 
     return st
 
 
-def stop(st: LiveStatus | None, col) -> None:
+def stop(st: LiveStatus | None, col: Collector) -> None:
     """The last status line (counted to the end), and stderr back as it was."""
     if st is None:
         return

@@ -31,12 +31,20 @@ flow map ``phi_T``): :class:`End`.  Every bundled method, the paper's included
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from .. import validate
-from ..loopspec import DEFAULT_FLOW, ROUNDOFF, Codebook, InvalidSymbol, QuantizerParams, SymbolPacking
+from ..loopspec import DEFAULT_FLOW, ROUNDOFF, Codebook, FlowOptions, InvalidSymbol, QuantizerParams, SymbolPacking
+
+if TYPE_CHECKING:
+    from plants.base import Plant
+
+# a symbol: a code number (an int in 0 .. 2**bits - 1), the bytes of an unquantized state, or None (lost)
+Symbol = Any
 
 
 class MethodError(ValueError):
@@ -69,12 +77,12 @@ class FloatCodebook:
         self.nbytes = 8 * self.n
         self.n_codes = 256 ** self.nbytes   # every payload of the right length is a code
 
-    def pack(self, s) -> bytes:
+    def pack(self, s: object) -> bytes:
         if not isinstance(s, (bytes, bytearray)) or len(s) != self.nbytes:
             raise InvalidSymbol(f"symbol must be {self.nbytes} bytes")
         return bytes(s)
 
-    def unpack(self, data) -> bytes:
+    def unpack(self, data: object) -> bytes:
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise InvalidSymbol(f"payload must be bytes, got {type(data).__name__}")
         data = bytes(data)
@@ -83,15 +91,15 @@ class FloatCodebook:
         return data
 
     @staticmethod
-    def encode_state(x) -> bytes:
+    def encode_state(x: np.ndarray) -> bytes:
         return np.asarray(x, dtype=">f8").tobytes()
 
     @staticmethod
-    def decode_state(s) -> np.ndarray:
+    def decode_state(s: bytes) -> np.ndarray:
         return np.frombuffer(s, dtype=">f8").astype(np.float64)
 
 
-def symbol_code(symbol) -> int:
+def symbol_code(symbol: Symbol) -> int:
     """The integer a record keeps for a symbol (-1: none; 0 for a symbol that is not a code
     number, such as the exact state of an unquantized method)."""
     if symbol is None:
@@ -101,7 +109,7 @@ def symbol_code(symbol) -> int:
     return int(symbol)
 
 
-def valid_symbol(codebook, symbol) -> bool:
+def valid_symbol(codebook: SymbolPacking | FloatCodebook, symbol: Symbol) -> bool:
     """Whether ``symbol`` is a code of ``codebook`` (an out-of-range code is treated as a loss)."""
     if isinstance(codebook, FloatCodebook):
         return isinstance(symbol, (bytes, bytearray)) and len(symbol) == codebook.nbytes
@@ -139,7 +147,8 @@ class End:
     :meth:`floor_E` (the floor of rule (E)).
     """
 
-    def __init__(self, method: "Method", model, K, qp, flow=DEFAULT_FLOW):
+    def __init__(self, method: Method, model: Plant, K: np.ndarray, qp: QuantizerParams,
+                 flow: FlowOptions = DEFAULT_FLOW):
         self.method = method
         self.plant = model
         self.K = np.ascontiguousarray(np.asarray(K, dtype=np.float64).reshape(model.m, model.n))
@@ -151,13 +160,13 @@ class End:
         self.E = 0.0
         self.u_prev = np.zeros(model.m)
         self.flow_status = 0
-        self._phi = None
+        self._phi: Callable[..., int] | None = None
 
     def state(self) -> np.ndarray:
         """The state both ends must share (lockstep), checked by the testbed: xi_k and E_k by default."""
         return np.concatenate([self.xi, [self.E]])
 
-    def phi_T(self, x, u) -> np.ndarray:
+    def phi_T(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """phi_T(x, u): the model's state one period T after x under the held input u (a new array).
 
         The flow map of ``testbed.flow`` (``flow_into``, adaptive Dormand-Prince 8(5,3)) with the
@@ -184,7 +193,7 @@ class End:
         self.flow_status = int(st)
         return out
 
-    def feedback(self, q) -> np.ndarray:
+    def feedback(self, q: np.ndarray) -> np.ndarray:
         """u = K q, the state feedback of control law (2), summed in the order the paper's ends sum it."""
         q = np.asarray(q, dtype=np.float64).reshape(self.plant.n)
         u = np.empty(self.plant.m)
@@ -195,7 +204,7 @@ class End:
             u[r] = acc
         return u
 
-    def floor_E(self, E: float, xi_next) -> float:
+    def floor_E(self, E: float, xi_next: np.ndarray) -> float:
         """E_{k+1} as rule (E) of the paper's ends floors it: never below the round-off of the box
         arithmetic around xi_{k+1} (``ROUNDOFF`` ||xi_{k+1}||_inf, 16 ulp), nor below ``qp.E_min``."""
         big = 0.0
@@ -217,20 +226,20 @@ class EncoderEnd(End):
     ``q`` (q_k of this sample, readable in ``update``) and ``saturations`` (counted from ``symbol``).
     """
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any):
         super().__init__(*a, **kw)
         self.saturations = 0
-        self._last = None
+        self._last: tuple[Symbol, np.ndarray] | None = None
 
-    def symbol(self, x: np.ndarray):
+    def symbol(self, x: np.ndarray) -> tuple[Symbol, bool, np.ndarray]:
         """(symbol, saturated, q_k) for x_k."""
         raise NotImplementedError
 
-    def update(self, theta: int, symbol) -> None:
+    def update(self, theta: int, symbol: Symbol) -> None:
         """theta_k is known (1: lost): update the encoder's state for sample k + 1."""
 
     # --- what the protocol calls
-    def encode(self, x):
+    def encode(self, x: np.ndarray) -> tuple[Symbol, bool]:
         """The symbol for x_k and whether x_k was outside the range (``symbol``; a saturation is counted)."""
         x = np.asarray(x, dtype=np.float64)
         s, sat, q = self.symbol(x)
@@ -242,6 +251,8 @@ class EncoderEnd(End):
     @property
     def q(self) -> np.ndarray:
         """q_k as the decoder will reconstruct it (from ``encode`` until ``update`` returns)."""
+        if self._last is None:
+            raise RuntimeError("q read outside encode() .. update()")
         return self._last[1]
 
     def ack(self, theta: int) -> None:
@@ -266,21 +277,21 @@ class DecoderEnd(End):
     counts the ones it received).
     """
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any):
         super().__init__(*a, **kw)
         self.overflows = 0
         self.invalid = 0
-        self._pending = None
+        self._pending: tuple[int, Symbol] | None = None
 
-    def control(self, symbol):
+    def control(self, symbol: Symbol) -> tuple[np.ndarray, np.ndarray]:
         """(u_k, q_k) for a received symbol, or for a loss (``symbol is None``)."""
         raise NotImplementedError
 
-    def update(self, theta: int, symbol) -> None:
+    def update(self, theta: int, symbol: Symbol) -> None:
         """After sample k (theta_k known): the decoder's state for sample k + 1."""
 
     # --- what the protocol calls
-    def decide(self, symbol):
+    def decide(self, symbol: Symbol) -> tuple[np.ndarray, np.ndarray, int]:
         """(u_k, q_k, theta_k) for the symbol received at t_k (None: lost), without ``update``.
 
         A live controller sends u_k between ``decide`` and ``commit``: the decoder's update (a
@@ -307,7 +318,7 @@ class DecoderEnd(End):
         self.update(theta, symbol)
         self.k += 1
 
-    def step(self, symbol):
+    def step(self, symbol: Symbol) -> tuple[np.ndarray, np.ndarray, int]:
         """``decide`` then ``commit``: (u_k, q_k, theta_k)."""
         out = self.decide(symbol)
         self.commit()
@@ -328,12 +339,12 @@ class Method:
     description: str = ""
     source: str = ""
     uses: tuple[str, ...] = ()
-    defaults: dict = {}
+    defaults: ClassVar[dict[str, Any]] = {}
     kernel_mode: int | None = None
-    encoder_class: type | None = None
-    decoder_class: type | None = None
+    encoder_class: type[EncoderEnd] | None = None
+    decoder_class: type[DecoderEnd] | None = None
 
-    def __init__(self, **params):
+    def __init__(self, **params: Any):
         unknown = sorted(set(params) - set(self.defaults))
         if unknown:
             allowed = ", ".join(sorted(self.defaults)) or "none"
@@ -348,27 +359,33 @@ class Method:
     def check_params(self) -> None:
         """Validate ``self.params`` (raise :class:`MethodError` with one line)."""
 
-    def bits(self, n: int, qp) -> int:
+    def bits(self, n: int, qp: QuantizerParams) -> int:
         """Bits per sample for a state of n coordinates (``qp``: the scenario's ``[quantizer]``)."""
         return int(self.codebook(n, qp).bits)
 
-    def codebook(self, n: int, qp):
+    def codebook(self, n: int, qp: QuantizerParams) -> Any:
         """The codebook (``pack``, ``unpack``, ``bits``, ``nbytes``, ``n_codes``, ``overflow``)."""
         raise NotImplementedError
 
-    def make_encoder(self, model, K, qp, flow=DEFAULT_FLOW) -> EncoderEnd:
+    def make_encoder(self, model: Plant, K: np.ndarray, qp: QuantizerParams,
+                     flow: FlowOptions = DEFAULT_FLOW) -> EncoderEnd:
         """The encoder end: ``encoder_class(self, model, K, qp, flow)``."""
+        if self.encoder_class is None:
+            raise MethodError(f"method {self.display_name()!r} has no encoder_class")
         return self.encoder_class(self, model, K, qp, flow)
 
-    def make_decoder(self, model, K, qp, flow=DEFAULT_FLOW) -> DecoderEnd:
+    def make_decoder(self, model: Plant, K: np.ndarray, qp: QuantizerParams,
+                     flow: FlowOptions = DEFAULT_FLOW) -> DecoderEnd:
         """The decoder end: ``decoder_class(self, model, K, qp, flow)``."""
+        if self.decoder_class is None:
+            raise MethodError(f"method {self.display_name()!r} has no decoder_class")
         return self.decoder_class(self, model, K, qp, flow)
 
-    def kernel_code(self, qp) -> int | None:
+    def kernel_code(self, qp: QuantizerParams) -> int | None:
         """The batch kernel's mode for this method under ``qp`` (None: no kernel)."""
         return self.kernel_mode
 
-    def kernel_E0(self, qp) -> float:
+    def kernel_E0(self, qp: QuantizerParams) -> float:
         """The E0 the batch kernel starts from (the method's own range where it has one)."""
         return float(qp.E0)
 

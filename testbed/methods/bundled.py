@@ -15,7 +15,9 @@
 
 from __future__ import annotations
 
-from ..loopspec import Codebook
+from typing import Any
+
+from ..loopspec import Codebook, QuantizerParams
 from .base import FloatCodebook, Method, MethodError, finite_params
 
 #: batch kernel codes (``sim.kernel._batch_kernel`` ``mode``); 0, 1 are the paper's ideal and resilient
@@ -34,7 +36,7 @@ class _LazyEnd:
     def __init__(self, name: str):
         self.name = name
 
-    def __get__(self, obj, owner=None):
+    def __get__(self, obj: object, owner: type | None = None) -> Any:
         from . import ends
 
         return getattr(ends, self.name)
@@ -48,10 +50,10 @@ class PaperMethod(Method):
     encoder_class = _LazyEnd("PaperEncoder")
     decoder_class = _LazyEnd("PaperDecoder")
 
-    def codebook(self, n, qp):
+    def codebook(self, n: int, qp: QuantizerParams) -> Codebook:
         return Codebook(n, qp.M, resilient=(qp.mode == "resilient"))
 
-    def kernel_code(self, qp) -> int:
+    def kernel_code(self, qp: QuantizerParams) -> int:
         return 1 if qp.mode == "resilient" else 0
 
 
@@ -65,7 +67,7 @@ class ZoomMethod(Method):
     encoder_class = _LazyEnd("ZoomEncoder")
     decoder_class = _LazyEnd("ZoomDecoder")
 
-    def codebook(self, n, qp):
+    def codebook(self, n: int, qp: QuantizerParams) -> Codebook:
         return Codebook(n, qp.M, resilient=True)
 
 
@@ -79,13 +81,13 @@ class StaticMethod(Method):
     encoder_class = _LazyEnd("StaticEncoder")
     decoder_class = _LazyEnd("StaticDecoder")
 
-    def check_params(self):
+    def check_params(self) -> None:
         finite_params(self, "range")
 
-    def codebook(self, n, qp):
+    def codebook(self, n: int, qp: QuantizerParams) -> Codebook:
         return Codebook(n, qp.M, resilient=False)
 
-    def kernel_E0(self, qp):
+    def kernel_E0(self, qp: QuantizerParams) -> float:
         return float(self.params["range"])
 
 
@@ -97,10 +99,10 @@ class UnquantizedMethod(Method):
     encoder_class = _LazyEnd("ExactEncoderZero")
     decoder_class = _LazyEnd("ExactDecoder")
 
-    def codebook(self, n, qp):
+    def codebook(self, n: int, qp: QuantizerParams) -> FloatCodebook:
         return FloatCodebook(n)
 
-    def kernel_E0(self, qp):
+    def kernel_E0(self, qp: QuantizerParams) -> float:
         return 0.0
 
 

@@ -7,14 +7,18 @@ the paper's are in ``paper`` (re-exported here, where ``bundled`` finds every en
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numba as nb
 import numpy as np
 
-from ..loopspec import DEFAULT_FLOW
+from ..loopspec import DEFAULT_FLOW, FlowOptions, QuantizerParams
 from ..quantizer import box_center, control_input, floor_E, quantize_index, zoom_update
-from .base import DecoderEnd, EncoderEnd, FloatCodebook
+from .base import DecoderEnd, EncoderEnd, FloatCodebook, Method, Symbol
 from .paper import PaperDecoder, PaperEncoder, ZoomRule
+
+if TYPE_CHECKING:
+    from plants.base import Plant
 
 
 @nb.njit(cache=True)
@@ -33,7 +37,8 @@ def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, La
 class ZoomEncoder(PaperEncoder):
     """The paper's encoder under ``unaware_update`` (always the resilient mode, no delay-aware rule)."""
 
-    def __init__(self, method, model, K, qp, flow=DEFAULT_FLOW):
+    def __init__(self, method: Method, model: Plant, K: np.ndarray, qp: QuantizerParams,
+                 flow: FlowOptions = DEFAULT_FLOW):
         super().__init__(method, model, K, replace(qp, mode="resilient", rule="paper"), flow)
         self.zoom = ZoomRule(unaware_update, self.plant, self.K, self.qp, self.flow, dpar=np.zeros(4))
 
@@ -41,13 +46,14 @@ class ZoomEncoder(PaperEncoder):
 class ZoomDecoder(PaperDecoder):
     """The paper's decoder under ``unaware_update``."""
 
-    def __init__(self, method, model, K, qp, flow=DEFAULT_FLOW):
+    def __init__(self, method: Method, model: Plant, K: np.ndarray, qp: QuantizerParams,
+                 flow: FlowOptions = DEFAULT_FLOW):
         super().__init__(method, model, K, replace(qp, mode="resilient", rule="paper"), flow)
         self.zoom = ZoomRule(unaware_update, self.plant, self.K, self.qp, self.flow, dpar=np.zeros(4))
 
 
 class StaticEncoder(EncoderEnd):
-    def symbol(self, x):
+    def symbol(self, x: np.ndarray) -> tuple[Symbol, bool, np.ndarray]:
         R, M = float(self.method.params["range"]), int(self.qp.M)
         zero = np.zeros(self.plant.n)
         i, sat = quantize_index(x, zero, R, M)
@@ -57,7 +63,7 @@ class StaticEncoder(EncoderEnd):
 
 
 class StaticDecoder(DecoderEnd):
-    def control(self, symbol):
+    def control(self, symbol: Symbol) -> tuple[np.ndarray, np.ndarray]:
         n, m = self.plant.n, self.plant.m
         q = np.zeros(n)
         u = np.empty(m)
@@ -69,16 +75,16 @@ class StaticDecoder(DecoderEnd):
         self._u = u
         return u, q
 
-    def update(self, theta, symbol):
+    def update(self, theta: int, symbol: Symbol) -> None:
         self.u_prev = self._u
 
 
 class ExactEncoder(EncoderEnd):
-    def symbol(self, x):
+    def symbol(self, x: np.ndarray) -> tuple[Symbol, bool, np.ndarray]:
         self._x = np.array(x, dtype=np.float64)
         return FloatCodebook.encode_state(x), False, self._x
 
-    def update(self, theta, symbol):
+    def update(self, theta: int, symbol: Symbol) -> None:
         if theta == 0:
             u = np.empty(self.plant.m)
             control_input(self.K, self._x, 0, False, u)
@@ -88,7 +94,7 @@ class ExactEncoder(EncoderEnd):
 class ExactDecoder(DecoderEnd):
     hold = False
 
-    def control(self, symbol):
+    def control(self, symbol: Symbol) -> tuple[np.ndarray, np.ndarray]:
         n, m = self.plant.n, self.plant.m
         u = np.empty(m)
         if symbol is None:
@@ -103,7 +109,7 @@ class ExactDecoder(DecoderEnd):
         self._u = u
         return u, q
 
-    def update(self, theta, symbol):
+    def update(self, theta: int, symbol: Symbol) -> None:
         if theta == 0 or self.hold:
             self.u_prev = self._u
         else:
@@ -115,7 +121,7 @@ class HoldDecoder(ExactDecoder):
 
 
 class ExactEncoderZero(ExactEncoder):
-    def update(self, theta, symbol):
+    def update(self, theta: int, symbol: Symbol) -> None:
         if theta == 0:
             super().update(theta, symbol)
         else:

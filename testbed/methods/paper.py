@@ -22,11 +22,18 @@ Python with those three and configured like this one computes the same numbers
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from ..flow import compiled_for
+from ..loopspec import FlowOptions, QuantizerParams
 from ..quantizer import box_center, control_input, quantize_index, zoom_update
-from .base import DecoderEnd, EncoderEnd
+from .base import DecoderEnd, EncoderEnd, Symbol
+
+if TYPE_CHECKING:
+    from plants.base import Plant
 
 
 class ZoomRule:
@@ -34,7 +41,8 @@ class ZoomRule:
     function with ``quantizer.zoom_update``'s arguments, over the model, K and ``[quantizer]`` of
     an end.  ``dpar``: the delay-aware rule's parameters (default ``qp.dpar``)."""
 
-    def __init__(self, rule, model, K, qp, flow, dpar=None):
+    def __init__(self, rule: Callable[..., tuple[float, int]], model: Plant, K: np.ndarray, qp: QuantizerParams,
+                 flow: FlowOptions, dpar: np.ndarray | None = None):
         self.rule = rule
         self.model, self.K, self.qp = model, K, qp
         self._rhs = type(model).rhs.cfunc
@@ -43,9 +51,10 @@ class ZoomRule:
         self._Ks = np.empty((13, model.n))
         self._ytmp = np.empty(model.n)
         self._dpar = qp.dpar if dpar is None else np.asarray(dpar, dtype=np.float64)
-        self._call = None
+        self._call: Callable[..., tuple[float, int]] | None = None
 
-    def __call__(self, theta: int, overflow: bool, q, xi, E: float, u_prev):
+    def __call__(self, theta: int, overflow: bool, q: np.ndarray, xi: np.ndarray, E: float,
+                 u_prev: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, int]:
         """(xi_{k+1}, E_{k+1}, u_k, the flow map's status) after sample k."""
         xi_next = np.empty(self.model.n)
         u_k = np.empty(self.model.m)
@@ -65,12 +74,12 @@ class PaperEncoder(EncoderEnd):
     nearest box when x_k is outside: a saturation, sent as OVERFLOW in the resilient mode);
     ``update`` applies (xi), (E) once the ack brings theta_k."""
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any):
         super().__init__(*a, **kw)
         self.E = float(self.qp.E0)  # xi_0 = 0, E_0 = E0
         self.zoom = ZoomRule(zoom_update, self.plant, self.K, self.qp, self.flow)
 
-    def symbol(self, x):
+    def symbol(self, x: np.ndarray) -> tuple[Symbol, bool, np.ndarray]:
         i, sat = quantize_index(x, self.xi, self.E, self.qp.M)
         q = np.empty(self.plant.n)
         box_center(i, self.xi, self.E, self.qp.M, q)
@@ -78,7 +87,7 @@ class PaperEncoder(EncoderEnd):
             i = self.codebook.overflow
         return int(i), bool(sat), q
 
-    def update(self, theta, symbol):
+    def update(self, theta: int, symbol: Symbol) -> None:
         overflow = symbol == self.codebook.overflow
         self.xi, self.E, self.u_prev, self.flow_status = self.zoom(theta, overflow, self.q, self.xi, self.E,
                                                                    self.u_prev)
@@ -89,14 +98,14 @@ class PaperDecoder(DecoderEnd):
     symbol names, and u_k = K q_k (u_k = 0 and q_k = 0 for a loss or an OVERFLOW); ``update``
     applies (xi), (E)."""
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any):
         super().__init__(*a, **kw)
         self.E = float(self.qp.E0)  # xi_0 = 0, E_0 = E0
         self.zoom = ZoomRule(zoom_update, self.plant, self.K, self.qp, self.flow)
         self._q = np.zeros(self.plant.n)
         self._overflow = False
 
-    def control(self, symbol):
+    def control(self, symbol: Symbol) -> tuple[np.ndarray, np.ndarray]:
         n = self.plant.n
         theta = 1 if symbol is None else 0
         overflow = theta == 0 and int(symbol) == self.codebook.overflow
@@ -110,7 +119,7 @@ class PaperDecoder(DecoderEnd):
         self._q, self._overflow = q, overflow
         return u, q
 
-    def update(self, theta, symbol):
+    def update(self, theta: int, symbol: Symbol) -> None:
         self.xi, self.E, self.u_prev, self.flow_status = self.zoom(theta, self._overflow, self._q, self.xi, self.E,
                                                                    self.u_prev)
 

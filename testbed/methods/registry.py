@@ -27,7 +27,7 @@ _RESOLVED: dict[tuple[str, str], type[Method]] = {}
 
 def register(cls: type[Method]) -> type[Method]:
     """Register a method class under its ``name`` (usable as a decorator)."""
-    _REGISTRY[check_method_class(cls, cls.name)] = cls
+    _REGISTRY[cls.name] = check_method_class(cls, cls.name)
     return cls
 
 
@@ -35,27 +35,27 @@ def names() -> list[str]:
     return list(_REGISTRY)
 
 
-def check_method_class(obj, ref: str):
+def check_method_class(obj: object, ref: str) -> type[Method]:
     if not (isinstance(obj, type) and issubclass(obj, Method)) or obj is Method:
         raise MethodError(f"method {ref!r}: {obj!r} is not a subclass of testbed.methods.Method")
     return obj
 
 
-def entry_points() -> dict:
-    out = {}
+def entry_points() -> dict[str, importlib.metadata.EntryPoint]:
+    out: dict[str, importlib.metadata.EntryPoint] = {}
     for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
         out.setdefault(ep.name, ep)
     return out
 
 
-def _from_module(ref: str, base_dir: str | None):
+def _from_module(ref: str, base_dir: str | None) -> type[Method]:
     try:
         return check_method_class(import_module_attr(ref, base_dir, "method", MethodError), ref)
     except ValueError as e:  # plants.refs.PlantRefError from the shared importer
         raise MethodError(str(e).replace("plant", "method", 1)) from None
 
 
-def _load_entry_point(ep):
+def _load_entry_point(ep: importlib.metadata.EntryPoint) -> type[Method]:
     try:
         obj = ep.load()
     except Exception as e:  # noqa: BLE001 - a user's package: whatever it raises becomes one line

@@ -114,6 +114,7 @@ def run_node(cfg: NodeConfig) -> int:
 
     on_stop_signals(on_signal, main_handler=before_context, grace=STOP_GRACE_S,
                     others={signal.SIGUSR2: kill_guest} if "encoder" in opts.colocate and role == "plant" else None)
+    assert cfg.session.run_id is not None  # a process's session has one (only the launcher's makes one)
     keys = transport.Keys.for_run(cfg.session.run_id)
     conf = zenoh_config(cfg.session, role, keys, hub=role == "plant" and not cfg.launched, colocate=opts.colocate)
     if cfg.session.insecure and not cfg.launched:

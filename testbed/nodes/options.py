@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass, field
+from typing import Any
 
 from .. import optionspec
 from ..optionspec import option
@@ -112,7 +113,8 @@ class RunOptions:
         for k in d:
             if k not in known:
                 raise BadInput(f"{where}: unknown run option {k!r}")
-        return cls(**{k: tuple(v or ()) if isinstance(known[k].default, tuple) else v for k, v in d.items()})
+        given: dict[str, Any] = {k: tuple(v or ()) if isinstance(known[k].default, tuple) else v for k, v in d.items()}
+        return cls(**given)
 
 
 def add_run_option_arguments(p: argparse.ArgumentParser,
@@ -257,7 +259,7 @@ class RunConfig:
     definition of their flag (``testbed.optionspec``); the others' flags are defined by the module that uses them
     (``cliargs``, ``live.netns``, ``live.recorder``, ``view.rerun``, ``live.external``)."""
 
-    scenario: str | None
+    scenario: str
     opts: RunOptions = RunOptions()
     session: SessionOptions = field(default_factory=lambda: SessionOptions.of("run"))
     json: bool = False

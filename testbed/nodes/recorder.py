@@ -320,6 +320,7 @@ def run_recorder(cfg: RecorderConfig) -> int:
         stop.set()
 
     on_stop_signals(on_signal, grace=RECORDER_STOP_GRACE_S)
+    assert cfg.session.run_id is not None  # a process's session has one (only the launcher's makes one)
     out = Path(cfg.out) if cfg.out else recording.default_path(sc.name, run_id=cfg.session.run_id)
     keys = transport.Keys.for_run(cfg.session.run_id)
     conf = zenoh_config(cfg.session, ROLE, keys, colocate=opts.colocate)

@@ -95,7 +95,7 @@ def _records(fh: _File, *, bodies: set[int], crc: list | None = None):
             in_data = False
         need = op in bodies or (crc is not None and in_data)
         body = f.read(length) if need else None
-        if crc is not None and in_data:
+        if crc is not None and in_data and body is not None:  # read: ``need``
             crc[0] = zlib.crc32(body, zlib.crc32(head, crc[0]))
         yield off, op, body if op in bodies else None
         if op == OP_FOOTER:

@@ -12,6 +12,7 @@ from collections import Counter, defaultdict
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ..wire import messages as msg
 from . import schema
@@ -30,6 +31,9 @@ from .mcapfile import (
 from .recorded import recorded_scenario
 from .topics import TELEMETRY_TOPICS
 
+if TYPE_CHECKING:
+    from google.protobuf.message import Message
+
 
 # ============================================================================ reading
 @dataclass
@@ -42,7 +46,7 @@ class Recording:
     metadata: dict[str, dict] = field(default_factory=dict)
     start: msg.Start | None = None
     stops: list[msg.Stop] = field(default_factory=list)
-    telemetry: dict[str, dict[int, object]] = field(default_factory=lambda: {r: {} for r in TELEMETRY_TOPICS})
+    telemetry: dict[str, dict[int, Any]] = field(default_factory=lambda: {r: {} for r in TELEMETRY_TOPICS})
     plant_final: msg.PlantTelemetry | None = None
     events: list[msg.Event] = field(default_factory=list)
     status: list[msg.AttackerStatus] = field(default_factory=list)
@@ -187,9 +191,9 @@ def _read(path: Path, loop: bool) -> Recording:
     data = path.read_bytes()
     if not data.startswith(MAGIC):
         raise ValueError(f"{path}: not an MCAP file")
-    schemas: dict[int, dict[str, type]] = {}
+    schemas: dict[int, dict[str, type[Message]]] = {}
     schema_names: dict[int, str] = {}
-    channels: dict[int, tuple[str, str, type | None]] = {}
+    channels: dict[int, tuple[str, str, type[Message] | None]] = {}
     seen_footer = False
     it = _records(data)
     while True:

@@ -148,7 +148,8 @@ class _StandIns:
     """The classes a recording's data stands in for, when their stored source is not run."""
 
     def __init__(self, metadata: dict, data: dict, path: str):
-        self.data, self.path, self.used = data, path, []
+        self.data, self.path = data, path
+        self.used: list[str] = []
         self.model_stand_in = self.method_stand_in = False
         res = metadata.get("testbed.resolved") or {}
         try:
@@ -157,6 +158,7 @@ class _StandIns:
             self.K = K
         except (KeyError, TypeError, ValueError, IndexError):
             self.K = None
+        self.L_u: float | None
         try:
             self.L_u = float(json.loads(res["L_u"]))
             self.rule = json.loads(res["quantizer"]).get("rule")
@@ -214,7 +216,8 @@ class _StandIns:
         resolved K (no design on a model without code) and L_u; the checks the run passed not repeated."""
         qt = data.setdefault("quantizer", {})
         if self.model_stand_in and self.K is not None:
-            ct = data.get("controller") if isinstance(data.get("controller"), dict) else {}
+            ct = data.get("controller")
+            ct = ct if isinstance(ct, dict) else {}
             data["controller"] = {"K": self.K, **({"u_max": ct["u_max"]} if "u_max" in ct else {})}
             if self.rule == "delay-aware" and "L_u" not in qt and self.L_u is not None:
                 qt["L_u"] = self.L_u

@@ -475,9 +475,8 @@ def _bulk_samples(w: RecordingWriter, fox, sc, res, t0: int, Tn: int, every: int
     withheld = np.zeros(N, bool) if res.withheld is None else np.asarray(res.withheld, dtype=bool)
     fault_at = res.plant_fault_at if getattr(res, "plant_fault", None) is not None else -1
     on = np.asarray(attack_on, dtype=bool)
-    switch = np.flatnonzero(on != np.concatenate([[False], on[:-1]])) if N else np.zeros(0, np.int64)
+    switch = set((np.flatnonzero(on != np.concatenate([[False], on[:-1]])) if N else np.zeros(0, np.int64)).tolist())
     sat = np.flatnonzero(res.saturated)
-    switch = set(switch.tolist())
     special = set(range(0, N, every)) | switch | set(sat.tolist()) | ({fault_at} - {-1})
     add = w.adder()
     topics = ("/telemetry/plant", "/telemetry/encoder", "/telemetry/attacker", "/telemetry/controller")

@@ -21,9 +21,13 @@ field; the README's recording section points here.
 from __future__ import annotations
 
 from functools import cache, lru_cache
+from typing import TYPE_CHECKING
 
 from ..protobuf import classes_from
 from ..wire import messages as msg
+
+if TYPE_CHECKING:
+    from google.protobuf.message import Message
 
 PACKAGE = "testbed"
 FILE_NAME = "testbed/recording.proto"
@@ -169,7 +173,7 @@ def file_descriptor_set() -> bytes:
 
 
 @lru_cache(maxsize=1)
-def classes() -> dict[str, type]:
+def classes() -> dict[str, type[Message]]:
     """This version's message classes, by short name (``PlantSample`` ...)."""
     return {full.rsplit(".", 1)[-1]: cls for full, cls in classes_from(file_descriptor_set()).items()
             if full.startswith(PACKAGE + ".")}

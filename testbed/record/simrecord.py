@@ -121,7 +121,10 @@ def encode(name: str, N: int, cols: dict) -> list[bytes]:
     absolute ns.  A field not in ``cols`` is absent from every message.
     """
     kinds, numbers, where = [], [], []
-    ints, ipres, dbls, dpres, reps, rlens = [], [], [], [], [], []
+    ints: list[np.ndarray] = []
+    dbls: list[np.ndarray] = []
+    reps: list[np.ndarray] = []
+    ipres, dpres, rlens = [], [], []
     H = np.zeros(N, dtype=np.int64)
     for num, (f, t, _doc) in enumerate(schema.SPEC[name], start=1):
         if f not in cols:

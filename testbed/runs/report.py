@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -146,7 +147,8 @@ def _security(runmeta: dict) -> dict | None:
 RESIMULATE_SAMPLES = 10_000
 
 
-def report(path, *, arrays: bool = False, resimulate: int | None | str = "default", trust_code: bool = False) -> dict:
+def report(path, *, arrays: bool = False, resimulate: int | None | Literal["default"] = "default",
+           trust_code: bool = False) -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
     ``arrays``: the per-sample values stay numpy arrays (``record.summary.write_json`` streams them).
@@ -165,7 +167,7 @@ def run_of(path, *, trust_code: bool = False):
     return run_of_recording(cols, sc)
 
 
-def report_of_run(run, *, resimulate: int | None | str = "default") -> dict:
+def report_of_run(run, *, resimulate: int | None | Literal["default"] = "default") -> dict:
     """The report of a recording's ``Run`` (``testbed.runs.run.run_of_recording``): its whole summary and the
     report's own sections (module docstring); per-sample values as numpy arrays."""
     if resimulate == "default":

@@ -198,9 +198,9 @@ def plant_model_error(run: dict, n: int | None = None) -> dict | None:
         at.append(k)
     if not errs:
         return None
-    e = np.asarray(errs)
-    i = int(np.argmax(e))
-    return {"max": float(e[i]), "at": int(at[i]), "mean": float(e.mean())}
+    ea = np.asarray(errs)
+    i = int(np.argmax(ea))
+    return {"max": float(ea[i]), "at": int(at[i]), "mean": float(ea.mean())}
 
 
 #: what the loop computed, compared bit for bit by ``loop_differences`` (NaN equals NaN)

@@ -27,11 +27,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import BadInput
 from ..record.tracereader import read_recording_trace
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 #: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
 #: docs/api.md explains each)
@@ -56,7 +60,7 @@ class MissingExtra(ImportError):
 class Run:
     """One run, live or simulated, as arrays (see the module docstring)."""
 
-    scenario: object
+    scenario: Scenario
     arrays: dict[str, np.ndarray]
     events: list[dict] = field(default_factory=list)
     timing: dict | None = None
@@ -275,7 +279,8 @@ def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - 
 
     compilenotice.install()
     # every field (q_k at the encoder, the stage times)
-    return run_of_recording(*load(path, fields=None, trust_code=trust_code), path)
+    cols, sc = load(path, fields=None, trust_code=trust_code)
+    return run_of_recording(cols, sc, path)
 
 
 # ============================================================================ from the simulator

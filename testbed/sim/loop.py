@@ -13,15 +13,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from attackers.greedy import greedy_init, greedy_step
 from plants.base import PlantFault
 
 from ..channel import ATTACKER, LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from ..methods.base import symbol_code
+from ..methods.base import DecoderEnd, EncoderEnd, End, Method, symbol_code
 from ..methods.bundled import PaperMethod
 from ..protocol import (
     DEADLINE,
@@ -39,6 +41,13 @@ from ..quantizer import (
     QuantizerParams,
     control_input,
 )
+
+if TYPE_CHECKING:
+    from attackers.schedule import Schedule
+    from plants.base import Plant, PlantProcess
+
+    from ..device import DeviceSpec
+
 
 SCORE_STATE = 0  # greedy attacker hurts where ||x_k||_inf is largest
 SCORE_E = 1      # ... or where E_k is largest
@@ -105,7 +114,7 @@ class SimResult:
         return bool(np.array_equal(self.xi_enc[known], self.xi_dec[known])
                     and np.array_equal(self.E_enc[known], self.E_dec[known]))
 
-    def intervals(self):
+    def intervals(self) -> Schedule:
         """The realized DoS schedule as (start, length) pairs: the runs of samples the attacker dropped
         (``loss_cause``; a loss of another cause, a ``[network]`` link's, a late or withheld sample, is not an
         attack; without ``loss_cause``, every lost sample)."""
@@ -118,14 +127,15 @@ class SimResult:
 class OnlineAttacker:
     """theta_k from a precomputed 0/1 sequence or from the greedy policy (online)."""
 
-    def __init__(self, theta=None, greedy_params=None, score: str = "state", T: float = 0.1):
+    def __init__(self, theta: npt.ArrayLike | None = None, greedy_params: npt.ArrayLike | None = None,
+                 score: str = "state", T: float = 0.1):
         self.theta = None if theta is None else np.asarray(theta, dtype=np.uint8)
         self.greedy_params = None if greedy_params is None else np.asarray(greedy_params, dtype=np.float64)
         self.score = SCORES[score]
         self.T = T
         self._gstate = greedy_init()
 
-    def decide(self, k: int, x_k, E_k) -> int:
+    def decide(self, k: int, x_k: np.ndarray, E_k: float) -> int:
         if self.greedy_params is not None:
             s = float(np.max(np.abs(x_k))) if self.score == SCORE_STATE else float(E_k)
             return int(greedy_step(self._gstate, k, self.T, s, self.greedy_params))
@@ -181,11 +191,12 @@ class Replay:
     delays: np.ndarray | None = None
 
 
-def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: OnlineAttacker | None,
-                  flow: FlowOptions = DEFAULT_FLOW, *, model=None, process=None, timing=None, latency=None,
-                  u_max: float = math.inf, effects: LinkEffects | None = None,
-                  replay: Replay | None = None, method=None, device=None, states=None,
-                  measured=None) -> SimResult:
+def simulate_loop(plant: Plant | None, K: npt.ArrayLike, qp: QuantizerParams, x0: npt.ArrayLike, n_steps: int,
+                  attacker: OnlineAttacker | None, flow: FlowOptions = DEFAULT_FLOW, *, model: Plant | None = None,
+                  process: PlantProcess | None = None, timing: npt.ArrayLike | None = None,
+                  latency: npt.ArrayLike | None = None, u_max: float = math.inf, effects: LinkEffects | None = None,
+                  replay: Replay | None = None, method: Method | None = None, device: DeviceSpec | None = None,
+                  states: np.ndarray | None = None, measured: np.ndarray | None = None) -> SimResult:
     """One trajectory, sample by sample, through the protocol state machines of the live nodes.
 
     The encoder (``protocol.EncoderProtocol``), the controller (``ControllerProtocol``)
@@ -221,12 +232,16 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
     None: x_k, or the sensor model of ``device``).
     """
     model = plant if model is None else model
+    if model is None:
+        raise ValueError("simulate_loop needs the plant or its model")
     n, m = model.n, model.m
     K = np.asarray(K, dtype=np.float64).reshape(m, n)
     N = int(n_steps)
     net = effects or LinkEffects()
     corrupt = dict(net.corrupt)
     if process is None:
+        if plant is None:
+            raise ValueError("simulate_loop needs the true plant or its process")
         process = OdeProcess(plant, flow)
     try:
         process.reset(np.asarray(x0, dtype=np.float64))
@@ -326,6 +341,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
             if replay.u_missing[k]:
                 u_k = None
             if physical:
+                assert replay.delays is not None  # physical timing: the replay carries the recorded delays
                 dns = int(replay.delays[k])
         else:
             if chan is not None and chan.actuation_lost[k]:
@@ -340,7 +356,7 @@ def simulate_loop(plant, K, qp: QuantizerParams, x0, n_steps: int, attacker: Onl
                     dns = pp.delay_ns(arr, d.theta)
         if u_k is None:
             u_missing[k] = True
-        if physical:
+        if delays is not None:  # physical timing
             delays[k] = dns
         try:
             st = pp.step(u_k, dns)
@@ -422,12 +438,13 @@ def _method_sample(encp, ctlp, replay, acks, k, x, attacker, corrupt, cb, chan=N
     return send, decs + [drop]
 
 
-def loop_state_of(enc, dec) -> np.ndarray:
+def loop_state_of(enc: End, dec: End) -> np.ndarray:
     """The packed loop state (``loop_state_width``) of an encoder and a decoder end (``methods.End``)."""
     return np.concatenate([enc.xi, [enc.E], enc.u_prev, dec.xi, [dec.E], dec.u_prev]).astype(np.float64)
 
 
-def loop_state_from_samples(res: SimResult, model, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW):
+def loop_state_from_samples(res: SimResult, model: Plant, qp: QuantizerParams,
+                            flow: FlowOptions = DEFAULT_FLOW) -> np.ndarray | None:
     """Both ends' state after the last sample of a run whose per-sample record is all there is
     (a recording): the controller's xi, E of its last sample (the encoder's if the controller's
     is missing), updated once by rules (xi), (E) with that sample's symbol and theta (u_{k-1}
@@ -469,8 +486,8 @@ def record_replay(res: SimResult) -> Replay:
     return Replay(reason=reason.astype(np.int64), sensed=sensed, withheld=withheld, u_missing=np.zeros(N, bool))
 
 
-def ends_from_record(res: SimResult, method, model, K, qp: QuantizerParams, flow: FlowOptions = DEFAULT_FLOW,
-                     replay: Replay | None = None):
+def ends_from_record(res: SimResult, method: Method, model: Plant, K: np.ndarray, qp: QuantizerParams,
+                     flow: FlowOptions = DEFAULT_FLOW, replay: Replay | None = None) -> tuple[EncoderEnd, DecoderEnd]:
     """Both ends of ``method`` after the last sample of a run, rebuilt from its per-sample record alone.
 
     The method's encoder and decoder ends run through the protocol objects (``_method_sample``, as

@@ -27,8 +27,10 @@ Everything else runs the per-sample loop.  ``simulator="per-sample"`` forces the
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from attackers.greedy import greedy_init
 
@@ -36,6 +38,10 @@ from ..channel import LATE, loss_cause
 from ..flow import FLOW_OK
 from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
 from .loop import SCORES, LinkEffects, OnlineAttacker, SimResult, simulate_loop
+
+if TYPE_CHECKING:
+    from ..methods.base import EncoderEnd
+    from ..scenariospec import Scenario
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
 #: error), "per-sample" (the loop always)
@@ -48,7 +54,7 @@ def _bundled(plant) -> bool:
     return type(plant).__module__.split(".")[0] == "plants" and hasattr(type(plant).rhs, "cfunc")
 
 
-def kernel_refusal(sc, effects: LinkEffects | None = None) -> str | None:
+def kernel_refusal(sc: Scenario, effects: LinkEffects | None = None) -> str | None:
     """Why the batch kernel cannot run scenario ``sc`` (one phrase), or None when it can."""
     if sc.plant.fmu is not None:
         return "the true plant is an FMU"
@@ -92,7 +98,7 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
     protocol object driven as ``loop.simulate_loop`` drives it (acks before the next sensor sample)."""
     from ..protocol import EncoderProtocol
 
-    encp = EncoderProtocol(_Ledger(), len(chan.sensed))
+    encp = EncoderProtocol(cast("EncoderEnd", _Ledger()), len(chan.sensed))  # a stand-in: the members it reads
     acks: list = []
     last_rx = -1
     for k in range(last):
@@ -100,7 +106,7 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
             encp.ack(*a)
         acks.clear()
         if chan.sensed[k]:
-            encp.sensor(k, None)
+            encp.sensor(k, ())  # the ledger encodes nothing: no state
         if theta[k] == 0:
             last_rx = k
         if not chan.ack_lost[k]:
@@ -112,13 +118,16 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
     return out
 
 
-def simulate_kernel(sc, N: int, latency=None) -> SimResult:
+def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) -> SimResult:
     """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None)."""
     plant, model = sc.make_plant(), sc.make_model()
     n, m = model.n, model.m
     qp = sc.quantizer
     method = sc.make_method()
-    mode = int(method.kernel_code(qp))
+    code = method.kernel_code(qp)
+    if code is None:  # kernel_refusal(sc) says so first
+        raise ValueError(f"method {method.display_name()!r} has no batch kernel")
+    mode = int(code)
     E0 = float(method.kernel_E0(qp))
     dpar = np.zeros(4) if mode == 4 else np.ascontiguousarray(qp.dpar, dtype=np.float64)
     K = np.ascontiguousarray(np.asarray(sc.K, dtype=np.float64).reshape(m, n))
@@ -163,7 +172,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
          "xi_dec": col(tf[:, 3 * n:4 * n])}
     U, ED = col(tf[:, 4 * n:4 * n + m]), col(tf[:, 4 * n + m])
     SYM, SAT, UMISS, DEL = col(ti[:, 0]), ti[:, 1].astype(bool), ti[:, 2].astype(bool), col(ti[:, 3])
-    last, status = int(stop_k[0]), int(status[0])
+    last, code = int(stop_k[0]), int(status[0])
     nrej, nclamp, novf = (int(v) for v in counts[0])
     sl = slice(0, last)
     theta = TH[sl].copy()
@@ -192,14 +201,14 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=a["x"][sl], u=U[sl], q=a["q"][sl], q_enc=a["q_enc"][sl],
                      xi_enc=a["xi_enc"][sl], E_enc=EE[sl], xi_dec=a["xi_dec"][sl], E_dec=ED[sl], theta=theta,
                      symbols=SYM[sl], saturated=sat, x_final=x_final,
-                     flow_status=FLOW_OK if status == 0 else status, diverged_at=-1 if status == 0 else last - 1, K=K,
+                     flow_status=FLOW_OK if code == 0 else code, diverged_at=-1 if code == 0 else last - 1, K=K,
                      reason=theta.astype(np.int64), withheld=withheld, u_missing=UMISS[sl], loss_cause=cause,
                      delays=DEL[sl].copy() if physical else None, counters=counters, loop_state=state_final,
                      simulator=BATCH)
 
 
-def simulate_scenario(sc, *, n_steps: int | None = None, effects: LinkEffects | None = None,
-                      latency=None, simulator: str = "auto") -> SimResult:
+def simulate_scenario(sc: Scenario, *, n_steps: int | None = None, effects: LinkEffects | None = None,
+                      latency: npt.ArrayLike | None = None, simulator: str = "auto") -> SimResult:
     """Run a scenario (see ``testbed.scenario``): on the batch kernel where it can run, else per sample.
 
     The true plant is ``[plant]`` (``sc.make_process()``), the predictions use ``[model]``;

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from typing import Any
 
 from .. import optionspec
 from ..optionspec import option
@@ -156,7 +157,7 @@ def zenoh_config(s: SessionOptions, role: str, keys: transport.Keys, *, hub: boo
         else:
             connect = [hub_ep]
     mode = "peer" if peer else ("router" if hub else "client")
-    common = dict(listen=listen, connect=connect, config_file=s.zenoh_config, colocate=tuple(colocate),
+    common: dict[str, Any] = dict(listen=listen, connect=connect, config_file=s.zenoh_config, colocate=tuple(colocate),
                   low_latency=s.low_latency, accepts=hub)
     if s.router_tls:
         transport.require_tls((*listen, *connect), "--topology router --tls-dir")
