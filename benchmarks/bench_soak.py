@@ -235,7 +235,7 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
     import tracemalloc
 
     from testbed import scenario
-    from testbed.live.collect import Spill, spill_columns
+    from testbed.live.collect import SpillRows
     from testbed.quantizer import Codebook
     from testbed.record.summary import LIVE_FIELDS, build_summary, write_json
 
@@ -249,20 +249,16 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
         def write(self, s):
             Sink.chars += len(s)
 
-    sp = Spill.__new__(Spill)
-    sp.path, sp.f = path, open(path, "ab")
     t = time.perf_counter()
     tracemalloc.start()
-    try:
-        cols = spill_columns(sc, sp.decoded(), n, LIVE_FIELDS, plant_final=final)
-        s = build_summary(sc, cols, run_id="synthetic", ack_via_attacker=False, nodes={}, faults=[],
-                          codebook=Codebook(2, 6, True), arrays=True)
-        del cols
+    try:  # as the launcher makes it (``Launcher.summarize``): rows a chunk at a time, per-sample values in files
+        rows = SpillRows(sc, path, n, None, LIVE_FIELDS, plant_final=final)
+        s = build_summary(sc, rows, run_id="synthetic", ack_via_attacker=False, nodes={}, faults=[],
+                          codebook=Codebook(2, 6, True), arrays=True, store=tmp)
         write_json(s, Sink())
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-        sp.close()
         path.unlink()
     return {"samples": n, "peak_mb": peak / 2**20, "seconds": time.perf_counter() - t, "json_chars": Sink.chars,
             "summary_samples": s["samples"]}
@@ -336,13 +332,16 @@ def main(argv=None) -> int:
         b = base["peak_mb"].get("launcher")
         print(f"\nthe launcher's peak (VmHWM, the end of the run included) against the run's length "
               f"(T = {a.T:g} s; goal: within {GOAL_PEAK_RATIO:g}x the shortest run's):")
-        print(f"{'duration':>9} {'samples':>9} {'recorded':>9} {'peak MB':>8} {'ratio':>6}")
+        print(f"{'duration':>9} {'samples':>9} {'recorded':>9} {'all':>4} {'peak MB':>8} {'ratio':>6}")
         for r in runs:
             pk = r["peak_mb"].get("launcher")
             ratio = pk / b if pk and b else None
             r["launcher_peak_ratio"] = ratio
-            print(f"{r['duration_s']:8g}s {r['recording']['run_samples'] or 0:9d} "
-                  f"{r['recording']['recorded_samples'] or 0:9d} {pk or float('nan'):8.1f} "
+            rc = r["recording"]
+            r["every_sample_recorded"] = every = (rc["recorded_samples"] == rc["run_samples"] == rc["n_steps"]
+                                                  and bool(rc["recording_complete"]))
+            print(f"{r['duration_s']:8g}s {rc['run_samples'] or 0:9d} {rc['recorded_samples'] or 0:9d} "
+                  f"{'yes' if every else 'NO':>4} {pk or float('nan'):8.1f} "
                   + ("     ?" if ratio is None else f"{ratio:6.2f}"))
     if a.json:
         Path(a.json).write_text(json.dumps(runs[0] if len(runs) == 1 else {"runs": runs}, indent=1))

@@ -371,5 +371,6 @@ def parse_network(table) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "late_of_rest", "loss_counts", "loss_counts_of", "loss_tally", "losses_of_tally", "loss_text", "model_lost", "recorded_losses",
+           "payload_bits", "loss_cause", "late_of_rest", "loss_counts", "loss_counts_of", "loss_tally",
+           "losses_of_tally", "loss_text", "model_lost", "recorded_losses",
            "LOSS_KINDS", "RECEIVED", "ATTACKER", "CHANNEL", "LATE", "WITHHELD", "NETWORK"]

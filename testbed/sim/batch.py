@@ -521,7 +521,8 @@ class RunTally:
                   x_meas: bool = False) -> dict:
         """:func:`summarize`'s document from the chunks added: ``res`` gives the run's scalars (x_final, flow
         status, faults, K, simulator); ``record`` the record again, ``record() -> iter((k0, X, replay))``, for a
-        method's ends (:func:`escaped_run`; default ``res`` whole); ``x_meas``: the key ``x_meas`` is written (a sensor read x_k)."""
+        method's ends (:func:`escaped_run`; default ``res`` whole); ``x_meas``: the key ``x_meas`` is written
+        (a sensor read x_k)."""
         L = (lambda a: a) if arrays else (lambda a: a.tolist())
         P = {key: st.result() for key, st in self.per_sample.items() if key != "x_meas" or x_meas}
         model = sc.make_model()
