@@ -8,6 +8,7 @@ import io
 import json
 import random
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -269,14 +270,21 @@ def _spill_of(path, sc, rec, order):
     sp.close()
 
 
-@pytest.mark.parametrize("chunk", [1, 7, 64, None])
-def test_the_spill_read_as_rows_gives_the_whole_columns_summary(tmp_path, chunk):
+NOISY = str(Path(__file__).resolve().parent.parent / "docs" / "examples" / "paper-noisy.toml")
+
+
+@pytest.mark.parametrize("chunk,name,over", [(1, "paper", {}), (7, "paper", {}), (64, "paper", {}), (None, "paper", {}),
+                                             (7, NOISY, {"method": "zoom"})])  # x_meas; a method's ends replayed
+def test_the_spill_read_as_rows_gives_the_whole_columns_summary(tmp_path, chunk, name, over):
     """``collect.SpillRows`` (the launcher's end of run): records in the order they arrive (the nodes a few
     samples apart, a batch late), read as chunks of rows, give the summary of the whole columns byte for byte;
     the lag it measures is how far the order strays."""
     from testbed.live.collect import SpillRows
 
-    sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
+    if name == NOISY:  # a copy: the recording goes next to the scenario (sim_recording: NAME.mcap)
+        (tmp_path / "noisy.toml").write_text(Path(NOISY).read_text())
+    sc, res, path = sim_recording(tmp_path, str(tmp_path / "noisy.toml") if name == NOISY else name, duration=5.0,
+                                  **over)
     rec = reader.read(path)
     tele = rec.telemetry
     order = []
@@ -291,7 +299,8 @@ def test_the_spill_read_as_rows_gives_the_whole_columns_summary(tmp_path, chunk)
     whole = columns.from_records(sc, {r: {k: tele[r][k] for r2, k in [(transport.ROLES[i], k) for i, k in order]
                                           if r2 == r} for r in transport.ROLES}, plant_final=rec.plant_final,
                                  fields=LIVE_FIELDS)
-    want, _ = _text(sc, whole)
+    want, s = _text(sc, whole)
+    assert ("x_meas" in s) == (name == NOISY)
     rows = SpillRows(sc, tmp_path / "telemetry.bin", whole.rows, None, LIVE_FIELDS, chunk=chunk,
                      plant_final=rec.plant_final)
     assert rows.lag >= 20 and rows.last_k("plant") == whole.last_k("plant")
