@@ -7,8 +7,10 @@ its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
 With a ``spill`` file (the launcher's: ``telemetry.bin`` in the run folder) the records are
 appended there as they arrive and only the last ``RECENT`` of each node stay in memory, so that
 the launcher's memory stays flat however long the run.  At the end the file is read back in
-chunks of ``Spill.CHUNK`` bytes (``Spill.records``): straight into numpy columns for the summary
-(``snapshot``) and through each node's digest (``telemetry_check``), never as one object per record.
+chunks of ``Spill.CHUNK`` bytes (``Spill.records``): through each node's digest (``telemetry_check``)
+and, as rows of numpy columns ``SpillRows.CHUNK`` samples at a time in the order of k (``rows``), into
+the summary, whose every reduction is made chunk by chunk; never as one object per record, nor as
+whole columns (``snapshot`` still gives those, for a caller that wants them).
 """
 
 from __future__ import annotations
