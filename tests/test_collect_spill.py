@@ -17,7 +17,8 @@ from helpers import sim_recording
 from testbed.live.collect import Collector, Spill
 from testbed.quantizer import Codebook
 from testbed.record import columns, reader
-from testbed.record.summary import LIVE_FIELDS, build_summary, write_json
+from testbed.record.summary import LIVE_FIELDS, build_summary, to_lists, write_json
+from testbed.stats import StoredArray
 from testbed.wire import messages as msg
 from testbed.wire import transport
 
@@ -258,8 +259,10 @@ def test_the_summary_is_the_same_however_the_rows_are_cut(tmp_path, name, over, 
         assert s["method_fault_at"] == fault and s["escaped"] is True
     for size in (1, 7, None):
         for store in (None, tmp_path):
-            got, _ = _text(sc, ColumnChunks(cols, size), store)
+            got, s = _text(sc, ColumnChunks(cols, size), store)
             assert got == want, (size, store)
+    assert to_lists(s) == json.loads(want)  # the values kept in files (stats.StoredArray) as lists
+    assert isinstance(s["x"], StoredArray) and s["x"][3].tolist() == json.loads(want)["x"][3]
 
 
 def _spill_of(path, sc, rec, order):
