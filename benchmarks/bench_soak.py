@@ -13,8 +13,8 @@ recording's completeness: ``recording_complete`` from the run's summary and the 
 the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
 flat, within 25 %).  ``--synthetic N,N,...`` runs no live run: it writes spills of N samples of the
 four nodes' telemetry with the collector's writer and builds the launcher's end-of-run summary from
-each in-process (``synthetic_summary_peak``: the columns, ``build_summary``, the ``--json`` output to
-a sink), printing its peak memory (tracemalloc) against N.
+each in-process as the launcher builds it (``synthetic_summary_peak``: rows of the spill a chunk at a
+time, ``build_summary``, the ``--json`` output to a sink), printing its peak memory (tracemalloc) against N.
 
     python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
