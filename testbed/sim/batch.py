@@ -460,7 +460,8 @@ class RunTally:
         self.samples = self.saturations = self.lost = 0
         self.x_max = None           # max |x_k| so far (NaN once a NaN was seen, as np.max gives)
         self.agree = True
-        self.withheld = self.causes = None   # None: the record has no withheld / loss_cause
+        self.withheld: bool | None = None    # None: the record has no withheld
+        self.causes: np.ndarray | None = None  # counts of each loss cause (None: the record has no loss_cause)
         self.runs: list[tuple[int, int]] = []  # (first, last) sample of each run of the attacker's drops
         self._open: int | None = None
         self._last_on = False
