@@ -13,8 +13,8 @@ recording's completeness: ``recording_complete`` from the run's summary and the 
 the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
 flat, within 25 %).  ``--synthetic N,N,...`` runs no live run: it writes spills of N samples of the
 four nodes' telemetry with the collector's writer and builds the launcher's end-of-run summary from
-each in-process (``synthetic_summary_peak``: the columns, ``build_summary``, the ``--json`` output to
-a sink), printing its peak memory (tracemalloc) against N.
+each in-process as the launcher builds it (``synthetic_summary_peak``: rows of the spill a chunk at a
+time, ``build_summary``, the ``--json`` output to a sink), printing its peak memory (tracemalloc) against N.
 
     python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
@@ -235,9 +235,10 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
     import tracemalloc
 
     from testbed import scenario
-    from testbed.live.collect import Spill, spill_columns
+    from testbed.live.collect import SpillRows
     from testbed.quantizer import Codebook
     from testbed.record.summary import LIVE_FIELDS, build_summary, write_json
+    from testbed.wire.transport import ROLES
 
     sc = scenario.with_overrides(scenario.load("paper"), {"T": 0.001, "duration": n * 0.001})
     path = Path(tmp) / f"telemetry-{n}.bin"
@@ -249,20 +250,17 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
         def write(self, s):
             Sink.chars += len(s)
 
-    sp = Spill.__new__(Spill)
-    sp.path, sp.f = path, open(path, "ab")
     t = time.perf_counter()
     tracemalloc.start()
-    try:
-        cols = spill_columns(sc, sp.decoded(), n, LIVE_FIELDS, plant_final=final)
-        s = build_summary(sc, cols, run_id="synthetic", ack_via_attacker=False, nodes={}, faults=[],
-                          codebook=Codebook(2, 6, True), arrays=True)
-        del cols
+    try:  # as the launcher makes it (``Launcher.summarize``): rows a chunk at a time, per-sample values in files
+        # the lag and each node's last sample as the collector counts them as records arrive (in order here)
+        rows = SpillRows(sc, path, n, 0, LIVE_FIELDS, plant_final=final, top={r: n - 1 for r in ROLES})
+        s = build_summary(sc, rows, run_id="synthetic", ack_via_attacker=False, nodes={}, faults=[],
+                          codebook=Codebook(2, 6, True), arrays=True, store=tmp)
         write_json(s, Sink())
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-        sp.close()
         path.unlink()
     return {"samples": n, "peak_mb": peak / 2**20, "seconds": time.perf_counter() - t, "json_chars": Sink.chars,
             "summary_samples": s["samples"]}
@@ -282,7 +280,7 @@ def synthetic_main(spec: str, json_out: str | None) -> int:
     print(f"{'samples':>9} {'peak MB':>8} {'ratio':>6} {'seconds':>8}")
     out = []
     with tempfile.TemporaryDirectory() as tmp:
-        synthetic_summary_peak(min(ns), tmp)  # the modules' and kernels' first use, out of the figures
+        synthetic_summary_peak(min(min(ns), 2000), tmp)  # the modules' and kernels' first use, out of the figures
         for n in ns:
             r = synthetic_summary_peak(n, tmp)
             out.append(r)
@@ -336,13 +334,16 @@ def main(argv=None) -> int:
         b = base["peak_mb"].get("launcher")
         print(f"\nthe launcher's peak (VmHWM, the end of the run included) against the run's length "
               f"(T = {a.T:g} s; goal: within {GOAL_PEAK_RATIO:g}x the shortest run's):")
-        print(f"{'duration':>9} {'samples':>9} {'recorded':>9} {'peak MB':>8} {'ratio':>6}")
+        print(f"{'duration':>9} {'samples':>9} {'recorded':>9} {'all':>4} {'peak MB':>8} {'ratio':>6}")
         for r in runs:
             pk = r["peak_mb"].get("launcher")
             ratio = pk / b if pk and b else None
             r["launcher_peak_ratio"] = ratio
-            print(f"{r['duration_s']:8g}s {r['recording']['run_samples'] or 0:9d} "
-                  f"{r['recording']['recorded_samples'] or 0:9d} {pk or float('nan'):8.1f} "
+            rc = r["recording"]
+            r["every_sample_recorded"] = every = (rc["recorded_samples"] == rc["run_samples"] == rc["n_steps"]
+                                                  and bool(rc["recording_complete"]))
+            print(f"{r['duration_s']:8g}s {rc['run_samples'] or 0:9d} {rc['recorded_samples'] or 0:9d} "
+                  f"{'yes' if every else 'NO':>4} {pk or float('nan'):8.1f} "
                   + ("     ?" if ratio is None else f"{ratio:6.2f}"))
     if a.json:
         Path(a.json).write_text(json.dumps(runs[0] if len(runs) == 1 else {"runs": runs}, indent=1))

@@ -267,7 +267,11 @@ def loss_cause(theta: npt.ArrayLike, *, withheld: npt.ArrayLike | None = None, s
 def loss_counts(cause: np.ndarray) -> dict:
     """``{"attacker", "channel", "network", "late", "withheld"}`` (``LOSS_KINDS``): how many samples each
     cause lost (a simulation has no real network: its ``network`` is 0)."""
-    c = np.bincount(np.asarray(cause, dtype=np.int64), minlength=len(LOSS_KINDS) + 1)
+    return loss_counts_of(np.bincount(np.asarray(cause, dtype=np.int64), minlength=len(LOSS_KINDS) + 1))
+
+
+def loss_counts_of(c: np.ndarray) -> dict:
+    """``loss_counts`` of the counts of each cause (``np.bincount`` of ``loss_cause``, summed over chunks of a run)."""
     return {"attacker": int(c[ATTACKER]), "channel": int(c[CHANNEL]), "network": int(c[NETWORK]),
             "late": int(c[LATE]), "withheld": int(c[WITHHELD])}
 
@@ -303,16 +307,27 @@ def recorded_losses(theta: npt.ArrayLike, *, withheld: npt.ArrayLike, attacker: 
     after their sample was decided (``late_symbols``, its summary's ``late``).  Every other lost sample
     was sent (and forwarded) and did not arrive by the loss deadline: the ``late_symbols`` that did
     arrive, later, are late, the rest the real network's (a cut link, a stalled host).  The five add up to the samples lost."""
+    return losses_of_tally(loss_tally(theta, withheld=withheld, attacker=attacker, invalid=invalid,
+                                      superseded=superseded, channel_lost=channel_lost), late_symbols)
+
+
+def loss_tally(theta, *, withheld, attacker, invalid, superseded, channel_lost=None) -> np.ndarray:
+    """``recorded_losses``' counts of some samples (a chunk of a run: the tallies of a run's chunks add up):
+    [attacker, channel, other, superseded, withheld], ``other`` being sent, not the model's and not received."""
     lost = np.asarray(theta) != 0
     w = lost & np.asarray(withheld, dtype=bool)
     a = lost & ~w & (np.asarray(attacker, dtype=bool) | np.asarray(invalid, dtype=bool))
     sup = lost & ~w & ~a & np.asarray(superseded, dtype=bool)
     rest = lost & ~w & ~a & ~sup
     ch = rest & (np.zeros(len(lost), dtype=bool) if channel_lost is None else np.asarray(channel_lost, dtype=bool))
-    others = int(np.count_nonzero(rest & ~ch))
+    return np.array([a.sum(), ch.sum(), np.count_nonzero(rest & ~ch), sup.sum(), w.sum()], dtype=np.int64)
+
+
+def losses_of_tally(t: np.ndarray, late_symbols: int | None) -> dict:
+    """``recorded_losses`` of a run from its ``loss_tally`` (summed over its chunks)."""
+    a, ch, others, sup, w = (int(v) for v in t)
     late = late_of_rest(others, late_symbols)
-    return {"attacker": int(a.sum()), "channel": int(ch.sum()), "network": others - late,
-            "late": late + int(sup.sum()), "withheld": int(w.sum())}
+    return {"attacker": a, "channel": ch, "network": others - late, "late": late + sup, "withheld": w}
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -362,5 +377,6 @@ def parse_network(table: object) -> NetworkModel:
 
 __all__ = ["LINKS", "DISTRIBUTIONS", "ChannelError", "LinkModel", "NetworkModel", "LinkDraws", "draws",
            "loss_chain", "parse_link", "parse_network", "SampleChannel", "sample_channel", "withheld_pattern",
-           "payload_bits", "loss_cause", "late_of_rest", "loss_counts", "loss_text", "model_lost", "recorded_losses",
+           "payload_bits", "loss_cause", "late_of_rest", "loss_counts", "loss_counts_of", "loss_tally",
+           "losses_of_tally", "loss_text", "model_lost", "recorded_losses",
            "LOSS_KINDS", "RECEIVED", "ATTACKER", "CHANNEL", "LATE", "WITHHELD", "NETWORK"]

@@ -176,3 +176,98 @@ def fmt_percentiles(p: dict | None) -> str:
     if not p or p.get("p50") is None:
         return "n/a"
     return f"p50 {p['p50']:.0f} us, p99 {p['p99']:.0f} us, max {p['max']:.0f} us"
+
+
+class StoredArray:
+    """A per-sample array kept in an unnamed temporary file, read back a block of rows at a time: what a
+    run's summary holds for its per-sample values when they are made a chunk at a time (``Stack``), so that
+    its memory stays bounded however long the run.  ``len``, a slice of rows (a numpy array, read from the
+    file), a single row or value, ``tolist`` (every row: only for a caller that wants the lists) and
+    truth (not empty) behave as the numpy array's; ``record.summary.write_json`` streams it out."""
+
+    def __init__(self, f, dtype: np.dtype, shape: tuple, n: int):
+        self._f, self.dtype, self._row, self._n = f, np.dtype(dtype), tuple(shape), int(n)
+        self._size = self.dtype.itemsize * int(np.prod(self._row, dtype=np.int64))
+
+    @property
+    def shape(self) -> tuple:
+        return (self._n,) + self._row
+
+    @property
+    def ndim(self) -> int:
+        return 1 + len(self._row)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __bool__(self) -> bool:
+        return self._n > 0
+
+    def _read(self, lo: int, hi: int) -> np.ndarray:
+        import os
+
+        hi = max(lo, hi)
+        b = os.pread(self._f.fileno(), (hi - lo) * self._size, lo * self._size) if hi > lo else b""
+        return np.frombuffer(b, dtype=self.dtype).reshape((hi - lo,) + self._row).copy()
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            lo, hi, step = i.indices(self._n)
+            if step != 1:
+                raise IndexError("a StoredArray reads contiguous rows only")
+            return self._read(lo, hi)
+        i = int(i)
+        if i < 0:
+            i += self._n
+        if not 0 <= i < self._n:
+            raise IndexError(i)
+        v = self._read(i, i + 1)[0]
+        return v.item() if v.ndim == 0 else v
+
+    def __iter__(self):
+        for lo in range(0, self._n, Stack.BLOCK):
+            yield from self._read(lo, min(self._n, lo + Stack.BLOCK))
+
+    def tolist(self) -> list:
+        return self[:].tolist()
+
+    def close(self) -> None:
+        self._f.close()
+
+
+class Stack:
+    """Chunks of a per-sample array appended in the order of their samples, kept in an unnamed temporary file
+    (in ``dir``: a run's folder) rather than in memory; ``result()`` is the whole as a ``StoredArray``.  The
+    ``stack`` of ``testbed.sim.batch.RunTally`` for a run's summary made a chunk at a time."""
+
+    #: rows read at a time when iterated
+    BLOCK = 1 << 14
+
+    def __init__(self, dir=None):
+        self._dir = dir
+        self._f = None
+        self.dtype: np.dtype | None = None
+        self.row: tuple = ()
+        self.n = 0
+
+    def append(self, a) -> None:
+        a = np.asarray(a)
+        if self._f is None:
+            import tempfile
+
+            self._f = tempfile.TemporaryFile(dir=self._dir)
+            self.dtype, self.row = a.dtype, a.shape[1:]
+        elif a.dtype != self.dtype or a.shape[1:] != self.row:
+            a = a.astype(self.dtype).reshape((len(a),) + self.row)
+        self._f.write(np.ascontiguousarray(a).tobytes())
+        self.n += len(a)
+
+    def result(self, dtype=None, row: tuple = ()) -> StoredArray:
+        """The appended rows (``dtype`` and ``row``: the shape of an empty one's rows)."""
+        if self._f is None:
+            import tempfile
+
+            self._f = tempfile.TemporaryFile(dir=self._dir)
+            self.dtype, self.row = np.dtype(dtype or np.float64), tuple(row)
+        self._f.flush()
+        return StoredArray(self._f, self.dtype, self.row, self.n)

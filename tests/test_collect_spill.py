@@ -8,6 +8,7 @@ import io
 import json
 import random
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +17,8 @@ from helpers import sim_recording
 from testbed.live.collect import Collector, Spill
 from testbed.quantizer import Codebook
 from testbed.record import columns, reader
-from testbed.record.summary import LIVE_FIELDS, build_summary, write_json
+from testbed.record.summary import LIVE_FIELDS, build_summary, to_lists, write_json
+from testbed.stats import StoredArray
 from testbed.wire import messages as msg
 from testbed.wire import transport
 
@@ -92,6 +94,15 @@ def test_the_streamed_end_of_run_equals_the_whole_file_read(tmp_path, monkeypatc
         assert col.plant_final == final and col.rejected == 0
         got = _summary(sc, col.snapshot(sc, fields=LIVE_FIELDS), arrays=True)
         assert got == want  # every key, every sample, every float
+        # as the launcher reads it: rows a chunk at a time, the lag measured as the records came (the encoder's
+        # batches shuffled), per-sample values in files
+        assert col.lag > 7
+        for chunk in (7, None):
+            s = build_summary(sc, col.rows(sc, LIVE_FIELDS, chunk=chunk), run_id="r", ack_via_attacker=False,
+                              nodes={}, faults=[], codebook=Codebook(2, 6, True), arrays=True, store=tmp_path)
+            f = io.StringIO()
+            write_json(s, f)
+            assert json.loads(f.getvalue()) == want
         # the nodes' own accounts (records in the order of k, the plant's final last) check out
         summaries = {r: {"telemetry_records": len(tele[r]) + (r == "plant"),
                          "telemetry_sha256": _digest([tele[r][k] for k in sorted(tele[r])]
@@ -193,3 +204,108 @@ def test_the_timing_section_in_windows_equals_the_whole_arrays(tmp_path, monkeyp
     assert tm["stages_us"] == {"encoder": percentiles(d(etx, t)), "proxy": percentiles(d(atx, etx)),
                                "controller": percentiles(d(ctx, atx)), "plant": percentiles(d(urx, ctx))}
     assert tm["sampling_jitter_us"]["n"] == n and tm["sampling_jitter_us"]["p50"] > 0
+
+
+def _text(sc, src, store=None):
+    s = build_summary(sc, src, run_id="r", ack_via_attacker=False, nodes={}, faults=[],
+                      codebook=Codebook(2, 6, True), arrays=True, store=store)
+    f = io.StringIO()
+    write_json(s, f)
+    return f.getvalue(), s
+
+
+def _provoked(cols, N):
+    """Causes the simulation itself does not make, written into the columns: withheld samples, an invalid payload,
+    a controller record missing, a deadline miss and a break of lockstep (the decoder's E altered)."""
+    from testbed.record.columns import normalize
+
+    cols.get("encoder", "silent")[[5, 6, N - 3]] = 1
+    cols.get("controller", "theta")[[5, 6, N - 3]] = 1
+    normalize(cols)
+    cols.get("controller", "reason")[9] = msg.ControllerTelemetry.INVALID
+    cols.get("controller", "theta")[9] = 1
+    cols.present[12, transport.ROLES.index("controller")] = 0
+    cols.get("plant", "flags")[[3, 4]] |= msg.PlantTelemetry.FLAG_MISS
+    cols.get("controller", "E")[20:23] *= 1.5
+    return cols
+
+
+@pytest.mark.parametrize("name,over,provoke,fault", [
+    ("paper", {"duration": 6.0}, False, None),                              # attacker drops
+    ("paper", {"duration": 6.0}, True, None),                               # + withheld, invalid, missing, misses
+    ("paper", {"method": "zoom", "duration": 5.0}, True, None),             # a method's ends replayed: lockstep
+    ("paper-greedy", {"duration": 8.0}, False, 41),                         # a method fault at sample 41
+])
+def test_the_summary_is_the_same_however_the_rows_are_cut(tmp_path, name, over, provoke, fault):
+    """``build_summary`` chunk by chunk (1 row, 7 rows, the whole run; per-sample values in memory or in files,
+    ``stats.Stack``) writes the same JSON, byte for byte, on recordings with losses of several causes, a break of
+    lockstep and a method fault."""
+    from testbed.record.summary import ColumnChunks, load
+
+    _sc, _res, path = sim_recording(tmp_path, name, **over)
+    cols, sc = load(path, note=False)
+    N = sc.n_steps
+    if provoke:
+        cols = _provoked(cols, N)
+    if fault is not None:
+        cols.events.append(msg.Event(node="controller", kind="method_fault", k=fault, detail="raised"))
+    want, s = _text(sc, cols)
+    assert json.loads(want)["samples"] == (N if fault is None else fault)
+    if provoke:
+        assert s["losses"]["withheld"] == 3 and s["losses"]["attacker"] >= 1 and s["deadline_missed_at"].tolist() == [3, 4]
+        if over.get("method") == "zoom":
+            assert s["lockstep_breaks"][:3] == [20, 21, 22]
+    if fault is not None:
+        assert s["method_fault_at"] == fault and s["escaped"] is True
+    for size in (1, 7, None):
+        for store in (None, tmp_path):
+            got, s = _text(sc, ColumnChunks(cols, size), store)
+            assert got == want, (size, store)
+    assert to_lists(s) == json.loads(want)  # the values kept in files (stats.StoredArray) as lists
+    assert isinstance(s["x"], StoredArray) and s["x"][3].tolist() == json.loads(want)["x"][3]
+
+
+def _spill_of(path, sc, rec, order):
+    """A spill file of a recording's telemetry, written in ``order`` (a list of (role index, k))."""
+    sp = Spill(path)
+    for ri, k in order:
+        sp.write(ri, rec.telemetry[transport.ROLES[ri]][k].encode())
+    sp.close()
+
+
+NOISY = str(Path(__file__).resolve().parent.parent / "docs" / "examples" / "paper-noisy.toml")
+
+
+@pytest.mark.parametrize("chunk,name,over", [(1, "paper", {}), (7, "paper", {}), (64, "paper", {}), (None, "paper", {}),
+                                             (7, NOISY, {"method": "zoom"})])  # x_meas; a method's ends replayed
+def test_the_spill_read_as_rows_gives_the_whole_columns_summary(tmp_path, chunk, name, over):
+    """``collect.SpillRows`` (the launcher's end of run): records in the order they arrive (the nodes a few
+    samples apart, a batch late), read as chunks of rows, give the summary of the whole columns byte for byte;
+    the lag it measures is how far the order strays."""
+    from testbed.live.collect import SpillRows
+
+    if name == NOISY:  # a copy: the recording goes next to the scenario (sim_recording: NAME.mcap)
+        (tmp_path / "noisy.toml").write_text(Path(NOISY).read_text())
+    sc, res, path = sim_recording(tmp_path, str(tmp_path / "noisy.toml") if name == NOISY else name, duration=5.0,
+                                  **over)
+    rec = reader.read(path)
+    tele = rec.telemetry
+    order = []
+    for k in range(sc.n_steps + 9):
+        for ri, role in enumerate(transport.ROLES):
+            kk = k - 3 * ri  # the later nodes behind the plant
+            if 0 <= kk < sc.n_steps and kk in tele[role] and not (role == "attacker" and 20 <= kk < 25):
+                order.append((ri, kk))
+    late = [(transport.ROLES.index("attacker"), k) for k in range(20, 25) if k in tele["attacker"]]
+    order[300:300] = late  # a batch that came long after
+    _spill_of(tmp_path / "telemetry.bin", sc, rec, order)
+    whole = columns.from_records(sc, {r: {k: tele[r][k] for r2, k in [(transport.ROLES[i], k) for i, k in order]
+                                          if r2 == r} for r in transport.ROLES}, plant_final=rec.plant_final,
+                                 fields=LIVE_FIELDS)
+    want, s = _text(sc, whole)
+    assert ("x_meas" in s) == (name == NOISY)
+    rows = SpillRows(sc, tmp_path / "telemetry.bin", whole.rows, None, LIVE_FIELDS, chunk=chunk,
+                     plant_final=rec.plant_final)
+    assert rows.lag >= 20 and rows.last_k("plant") == whole.last_k("plant")
+    got, _ = _text(sc, rows, tmp_path)
+    assert got == want

@@ -7,8 +7,10 @@ its telemetry up to the kill.  ``snapshot(sc)`` hands it, as columns, to
 With a ``spill`` file (the launcher's: ``telemetry.bin`` in the run folder) the records are
 appended there as they arrive and only the last ``RECENT`` of each node stay in memory, so that
 the launcher's memory stays flat however long the run.  At the end the file is read back in
-chunks of ``Spill.CHUNK`` bytes (``Spill.records``): straight into numpy columns for the summary
-(``snapshot``) and through each node's digest (``telemetry_check``), never as one object per record.
+chunks of ``Spill.CHUNK`` bytes (``Spill.records``): through each node's digest (``telemetry_check``)
+and, as rows of numpy columns ``SpillRows.CHUNK`` samples at a time in the order of k (``rows``), into
+the summary, whose every reduction is made chunk by chunk; never as one object per record, nor as
+whole columns (``snapshot`` still gives those, for a caller that wants them).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import struct
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 from ..record.faults import Fault
 from ..wire import messages as msg
@@ -92,6 +96,8 @@ class Collector:
         self._seen = {r: bytearray(self.n_steps // 8 + 1) for r in transport.ROLES}  # one bit per sample
         self._spill = None if spill is None else Spill(spill)
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
+        self.lag = 0  # how far a record's k fell behind the highest k of any role before it (``SpillRows``)
+        self._top_all = -1
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
         self.summaries: dict[str, dict] = {}
@@ -143,6 +149,10 @@ class Collector:
                     d[t.k] = t
                     if t.k > self.top[role]:
                         self.top[role] = t.k
+                    if t.k > self._top_all:
+                        self._top_all = t.k
+                    elif self._top_all - t.k > self.lag:
+                        self.lag = self._top_all - t.k
                     if self._spill is not None:
                         self._spill.write(ri, bytes(b))
             if self._spill is not None and len(d) > 2 * self.RECENT:
@@ -335,6 +345,18 @@ class Collector:
                 h.update(got[j])
         return h
 
+    def rows(self, sc, fields=None, chunk: int | None = None) -> "SpillRows":
+        """What has arrived, as rows a chunk at a time (``record.summary.build_summary``: the end-of-run summary in
+        bounded memory).  Read with the lock held: call once the nodes are done."""
+        if self._spill is None:
+            from ..record.summary import ColumnChunks
+
+            return ColumnChunks(self.snapshot(sc, fields), chunk)
+        self._spill.f.flush()
+        return SpillRows(sc, self._spill.path, max(self.top.values()) + 1, self.lag, fields, chunk=chunk,
+                         events=self.events, status=self.status, summaries=self.summaries,
+                         plant_final=self.plant_final, top=self.top)
+
     def snapshot(self, sc, fields=None):
         """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``).
 
@@ -353,3 +375,128 @@ def spill_columns(sc, records, rows: int, fields=None, *, events=(), status=(), 
     for ri, t in records:
         b.add(ri, t)
     return b.finish(plant_final)
+
+
+
+class SpillRows:
+    """A spill file's records (``Spill``) as rows of columns a chunk at a time, in the order of k: what the
+    launcher's end-of-run summary reads (``record.summary.build_summary``), in memory bounded by the chunk
+    (``CHUNK`` rows) and by how far records arrived out of order (``lag``: the collector's ``Collector.lag``).
+
+    Records arrive in nearly the order of k (each node's in order, the nodes a few batches apart): after a
+    record of the highest k so far, no later record has a k below that minus ``lag``, so the rows below are
+    complete and go out as a chunk.  A record that breaks this (a ``lag`` too small) makes the rows read again
+    with room for every row at once: the same columns, in more memory."""
+
+    #: rows of a chunk
+    CHUNK = 1 << 14
+
+    def __init__(self, sc, path, rows: int, lag: int | None = None, fields=None, *, chunk: int | None = None,
+                 events=(), status=(), summaries=None, plant_final=None, top=None, metadata=None):
+        from ..record.columns import layout
+
+        self.sc, self.path, self.fields = sc, Path(path), fields
+        plant = sc.make_model()
+        self.lay = layout(plant.n, plant.m, fields)
+        self.rows = max(0, min(int(sc.n_steps), int(rows)))
+        self.size = max(1, int(chunk or self.CHUNK))
+        self.events, self.status, self.summaries = list(events), list(status), dict(summaries or {})
+        self.metadata = dict(metadata or {})
+        self.final = None if plant_final is None else {"k": int(plant_final.k),
+                                                       "x": np.array(plant_final.x, dtype=float),
+                                                       "flow_status": int(plant_final.flow_status)}
+        self._top = dict(top) if top is not None else None
+        self.lag = self.measure_lag() if lag is None else int(lag)
+
+    def records(self):
+        sp = Spill.__new__(Spill)
+        sp.path, sp.f = self.path, _NoFlush()
+        return sp.decoded()
+
+    def measure_lag(self) -> int:
+        """``Collector.lag`` of the file (its k order), read from it (a spill without its collector)."""
+        top, lag, tops = -1, 0, {}
+        for ri, t in self.records():
+            tops[ri] = max(tops.get(ri, -1), t.k)
+            if t.k > top:
+                top = t.k
+            else:
+                lag = max(lag, top - t.k)
+        if self._top is None:
+            self._top = {r: tops.get(i, -1) for i, r in enumerate(transport.ROLES)}
+        return lag
+
+    def last_k(self, role: str) -> int:
+        if self._top is None:
+            self.measure_lag()
+        return int(self._top.get(role, -1))
+
+    def chunks(self, hi: int):
+        """``(k0, columns of rows k0 .. k0 + CHUNK - 1)`` covering rows 0 .. hi - 1 (at least one chunk)."""
+        hi = max(0, min(int(hi), self.rows))
+        try:
+            yield from self._chunks(hi, self.lag)
+        except _Disorder as e:  # rows already handed out: the reader above starts again with every row at once
+            raise RuntimeError("spill records out of order beyond the measured lag") from e
+
+    def _chunks(self, hi: int, lag: int):
+        from ..record.columns import ColumnBuilder, normalize
+
+        size = self.size
+        span = size + lag + 1
+        base, top = 0, -1
+        b = self._builder(span, ColumnBuilder)
+        for ri, t in self.records():
+            k = t.k
+            if k >= hi:
+                continue
+            if k < base:
+                raise _Disorder(k)
+            if k > top:
+                top = k
+            while top - lag >= base + size:  # rows below top - lag are complete
+                yield base, self._cut(b, size, normalize)
+                base += size
+                b = self._shift(b, size, span, ColumnBuilder, base)
+            b.add(ri, t)
+        while True:
+            n = min(size, hi - base)
+            yield base, self._cut(b, max(0, n), normalize)
+            base += size
+            if base >= hi:
+                return
+            b = self._shift(b, size, span, ColumnBuilder, base)
+
+    def _builder(self, span, ColumnBuilder, k0=0):
+        b = ColumnBuilder(self.sc, span, self.fields, summaries=self.summaries)
+        b.k0 = k0
+        return b
+
+    @staticmethod
+    def _cut(b, n, normalize):
+        """The first ``n`` rows of the builder's columns, as columns of their own (copies)."""
+        from dataclasses import replace
+
+        c = b.c
+        out = replace(c, tables={t: v[:n].copy() for t, v in c.tables.items()}, present=c.present[:n].copy(), rows=n)
+        normalize(out)
+        return out
+
+    def _shift(self, b, size, span, ColumnBuilder, k0):
+        """The builder's rows moved up by ``size`` (the rows after the chunk handed out), the rest fresh."""
+        nb = self._builder(span, ColumnBuilder, k0)
+        keep = b.c.rows - size
+        if keep > 0:
+            for t, v in b.c.tables.items():
+                nb.c.tables[t][:keep] = v[size:]
+            nb.c.present[:keep] = b.c.present[size:]
+        return nb
+
+
+class _Disorder(Exception):
+    pass
+
+
+class _NoFlush:
+    def flush(self):
+        pass

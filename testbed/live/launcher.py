@@ -407,11 +407,15 @@ class Launcher:
         plant = self.sc.make_model()
         cb = self.sc.make_method().codebook(plant.n, self.sc.quantizer)
         nodes = self.nodes.nodes(transport.ROLES)
-        # the spill read back a chunk at a time into the report's columns; the per-sample values stay
-        # numpy arrays (``testbed run --json`` streams them out: ``record.summary.write_json``)
-        summary = build_summary(self.sc, col.snapshot(self.sc, fields=LIVE_FIELDS), run_id=self.run_id,
-                                ack_via_attacker=self.opts.ack_via_attacker, nodes=nodes,
-                                faults=self.faults.dicts(), codebook=cb, arrays=True)
+        # the spill read back a chunk of rows at a time (``collect.SpillRows``): every reduction made chunk by
+        # chunk and the per-sample values kept in files of the run folder (``stats.Stack``), so that the end of
+        # the run takes the same memory however long the run; ``testbed run --json`` streams them out
+        # (``record.summary.write_json``)
+        with col.lock:
+            rows = col.rows(self.sc, fields=LIVE_FIELDS)
+            summary = build_summary(self.sc, rows, run_id=self.run_id, ack_via_attacker=self.opts.ack_via_attacker,
+                                    nodes=nodes, faults=self.faults.dicts(), codebook=cb, arrays=True,
+                                    store=self.run_dir)
         if summary.get("plant_fault"):  # the true plant (an FMU) failed: say so, not "crashed"
             outcome = f"plant fault at sample {summary.get('plant_fault_at')}"
             for f in self.faults:

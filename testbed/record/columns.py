@@ -519,7 +519,10 @@ class ColumnBuilder:
     ``rows``: the samples to hold (the caller's highest accepted k + 1, at most the scenario's N);
     a record of a k outside them is rejected and counted, one whose vector has the wrong width is
     malformed.  ``add`` keeps no reference to the record: the columns are the only per-sample state.
+    ``k0``: the sample of the first row (a window of a run's rows: ``testbed.live.collect.SpillRows``).
     """
+
+    k0 = 0
 
     def __init__(self, sc, rows: int, fields: set[str] | None = None, *, events=(), status=(), summaries=None):
         plant = sc.make_model()
@@ -533,7 +536,7 @@ class ColumnBuilder:
     def add(self, r: int, t) -> None:
         """Record ``t`` (a telemetry dataclass) of role index ``r`` into row ``t.k``."""
         c = self.c
-        k = t.k
+        k = t.k - self.k0
         if not 0 <= k < c.rows:
             c.rejected[ROLES[r]] = c.rejected.get(ROLES[r], 0) + 1
             return

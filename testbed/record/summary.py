@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..channel import model_lost, recorded_losses
+from ..channel import loss_tally, losses_of_tally, model_lost
 from ..sim.batch import json_clean as _clean
-from ..stats import Spool, percentiles
+from ..stats import Spool, StoredArray, percentiles
 from ..wire import messages as msg
 from ..wire import transport
 from .degraded import timing_degraded
@@ -65,22 +65,32 @@ def _diffs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return a[ok] - b[ok]
 
 
-def recorded_lockstep_breaks(sc, xi_enc, E_enc, xi_dec, E_dec, both) -> list[int]:
-    """The samples where a method's two ends held different shared state, as recorded: xi_k and E_k of the
-    encoder (before it encoded x_k) and of the decoder (before it decided sample k) differ, on the samples
-    ``both`` recorded with a symbol sent.  What ``testbed simulate`` counts as ``lockstep_breaks`` for a
-    method whose ends declare a shared state (``EncoderEnd.state``, by default xi and E; the paper's ends
-    are checked by ``encoder_decoder_agree``); [] for the others."""
+def lockstep_checked(sc) -> bool:
+    """Whether a run's method declares a shared state of its two ends (``EncoderEnd.state``, by default xi and
+    E; the paper's ends are checked by ``encoder_decoder_agree``): only then are breaks of lockstep counted."""
     try:
         model = sc.make_model()
         end = sc.make_method().make_decoder(model, sc.K, sc.quantizer, sc.flow)
     except Exception:  # noqa: BLE001 - a method that cannot build its end: its run says why elsewhere
-        return []
-    if getattr(end, "state", None) is None:
-        return []
+        return False
+    return getattr(end, "state", None) is not None
+
+
+def lockstep_breaks_in(xi_enc, E_enc, xi_dec, E_dec, both) -> np.ndarray:
+    """The samples (indices into the arrays) where the ends' recorded xi_k and E_k differ, of those ``both``
+    recorded with a symbol sent (a method whose ends share a state: ``lockstep_checked``)."""
     both = both & np.isfinite(E_enc) & np.isfinite(E_dec)
-    differs = both & ((E_enc != E_dec) | np.any(xi_enc != xi_dec, axis=1))
-    return np.flatnonzero(differs).tolist()
+    return np.flatnonzero(both & ((E_enc != E_dec) | np.any(xi_enc != xi_dec, axis=1)))
+
+
+def recorded_lockstep_breaks(sc, xi_enc, E_enc, xi_dec, E_dec, both) -> list[int]:
+    """The samples where a method's two ends held different shared state, as recorded: xi_k and E_k of the
+    encoder (before it encoded x_k) and of the decoder (before it decided sample k) differ, on the samples
+    ``both`` recorded with a symbol sent.  What ``testbed simulate`` counts as ``lockstep_breaks`` for a
+    method whose ends declare a shared state (``lockstep_checked``); [] for the others."""
+    if not lockstep_checked(sc):
+        return []
+    return lockstep_breaks_in(xi_enc, E_enc, xi_dec, E_dec, both).tolist()
 
 
 def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
@@ -90,26 +100,55 @@ def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
     return int(np.count_nonzero(arrival_ns > int(tp[2]))) if (tp[0] and tp[1]) else 0
 
 
+def column_rows(cols, a: int, b: int):
+    """Rows a .. b - 1 of ``cols`` as columns of their own (views: nothing copied)."""
+    from dataclasses import replace
+
+    return replace(cols, tables={t: v[a:b] for t, v in cols.tables.items()}, present=cols.present[a:b],
+                   rows=max(0, b - a))
+
+
+class ColumnChunks:
+    """A run's whole columns (``Columns``) handed to ``build_summary`` a chunk of rows at a time, as the
+    launcher's spill is (``testbed.live.collect.SpillRows``): the same interface, for the tests of chunking."""
+
+    def __init__(self, cols, size: int | None = None):
+        self.cols, self.size = cols, size
+
+    def __getattr__(self, name):
+        return getattr(self.cols, name)
+
+    def chunks(self, hi: int):
+        """``(k0, columns of rows k0 ..)`` covering rows 0 .. hi - 1 (at least one chunk, maybe empty)."""
+        size = max(1, int(self.size or hi or 1))
+        for a in range(0, max(hi, 1), size):
+            yield a, column_rows(self.cols, a, min(hi, a + size))
+
+
 def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict, faults: list, codebook,
-                  arrays: bool = False) -> dict:
+                  arrays: bool = False, store=None) -> dict:
     """One JSON-able dict: ``testbed simulate --json`` keys plus timing, faults and node reports.
 
     ``cols``: a ``testbed.record.columns.Columns`` (a recording, or the live collector's
-    snapshot).  ``arrays``: per-sample values stay numpy arrays (``write_json``
-    streams them); otherwise plain lists.
+    snapshot), or rows a chunk at a time (``ColumnChunks``; the launcher's ``collect.SpillRows``): every
+    reduction is made chunk by chunk (``sim.batch.RunTally``, ``channel.loss_tally``, ``stats.Spool``), so the
+    summary is the same however the rows are cut.  ``arrays``: per-sample values stay numpy arrays
+    (``write_json`` streams them); otherwise plain lists.  ``store``: a folder where they are kept in files
+    (``stats.Stack``: ``StoredArray`` values) rather than in memory (None).
     """
     from ..flow import FLOW_OK
-    from ..sim.batch import summarize
+    from ..sim.batch import MemStack, RunTally
     from ..sim.loop import Replay, SimResult
+    from ..stats import Stack
 
+    src = cols if hasattr(cols, "chunks") else ColumnChunks(cols)
     plant = sc.make_model()
     n, m = plant.n, plant.m
     Tn = int(round(sc.T * 1e9))
-    final = cols.final
-    N = final["k"] if final is not None else cols.last_k("plant") + 1
-    N = max(0, min(N, cols.rows))
-    g = cols.get
-    events = cols.events
+    final = src.final
+    N = final["k"] if final is not None else src.last_k("plant") + 1
+    N = max(0, min(N, src.rows))
+    events = src.events
     # a method's end raised at sample k (its node's event): the run ended there, as testbed simulate ends it
     mf = next((e for e in events if e.kind == "method_fault" and e.k >= 0), None)
     if mf is not None and mf.k > N:
@@ -117,96 +156,139 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     x_fault = None
     if mf is not None:
         N = int(mf.k)
-        if N < cols.rows and cols.has("plant")[N]:
-            x_fault = g("plant", "x")[N].copy()
-    P, EN, C, A = (cols.has(r)[:N] for r in ("plant", "encoder", "controller", "attacker"))
-    silent = g("encoder", "silent")[:N] != 0
-    E_ok = EN & ~silent
-    # the columns hold NaN (u: 0, symbol: -1) where a sample was not recorded or its symbol withheld
-    x, u = g("plant", "x")[:N], g("plant", "u")[:N]
-    q_enc, xi_enc, E_enc = g("encoder", "q")[:N], g("encoder", "xi")[:N], g("encoder", "E")[:N]
-    symbols = g("encoder", "symbol")[:N]
-    sat = E_ok & (g("encoder", "saturated")[:N] != 0)
-    q, xi_dec, E_dec = g("controller", "q")[:N], g("controller", "xi")[:N], g("controller", "E")[:N]
-    p_theta = g("plant", "theta")[:N]
-    theta = np.ones(N, dtype=np.uint8)
-    from_plant = ~C & P & (p_theta != msg.THETA_NONE)
-    theta[from_plant] = p_theta[from_plant]
-    theta[C] = g("controller", "theta")[:N][C]
-    t_ns = g("plant", "t_ns")[:N]
-    u_rx = g("plant", "u_rx_ns")[:N]
-    flags = g("plant", "flags")[:N]
-    e_tx = g("encoder", "tx_ns")[:N]
-    c_tx = g("controller", "tx_ns")[:N]
-    a_tx = g("attacker", "tx_ns")[:N]
-    reason = g("controller", "reason")[:N]
-    has_t = P & (t_ns != msg.NO_TIME)
+    stack = MemStack if store is None else (lambda: Stack(store))
+    tally = RunTally(sc.T, stack)
+    st = {k: stack() for k in ("t_sample", "u_ctl", "u_mask", "xi_dec", "missed", "withheld", "dropped")}
     # the timing section's ns differences go to files a window of samples at a time (``stats.Spool``: exact
     # percentiles in bounded memory)
     spools = {name: Spool() for name in ("jitter", "s2a", "encoder", "plant", "proxy", "controller")}
     d_ns = int(sc.run.deadline * Tn)
-    overruns = late_sched = 0
-    for a in range(0, N, TIMING_WINDOW):
-        w = slice(a, min(N, a + TIMING_WINDOW))
-        jitter = t_ns[w][has_t[w]] - (np.flatnonzero(has_t[w]) + a) * Tn
-        overruns += int(np.count_nonzero(jitter > d_ns))
-        s2a = _diffs(u_rx[w], t_ns[w], P[w] & (p_theta[w] == 0))
-        late_sched += late_for_schedule(sc, s2a)
-        for name, v in (("jitter", jitter), ("s2a", s2a), ("encoder", _diffs(e_tx[w], t_ns[w], E_ok[w] & P[w])),
-                        ("plant", _diffs(u_rx[w], c_tx[w], C[w] & P[w])),
-                        ("proxy", _diffs(a_tx[w], e_tx[w], A[w] & EN[w])),
-                        ("controller", _diffs(c_tx[w], a_tx[w], A[w] & C[w] & (reason[w] == CT.RECEIVED)))):
-            spools[name].extend(v)
+    overruns = late_sched = misses = no_u = 0
+    n_reason = np.zeros(4, dtype=np.int64)
+    diverged_at = -1
+    agree_known = True
+    xm_col = ("plant", "x_meas") in src.lay.cols
+    xm_seen = False
+    x_last = None
+    K = np.asarray(sc.K, dtype=float)
+    checked = lockstep_checked(sc)
+    net = getattr(sc, "network", None)
+    ch_lost = model_lost(net, N) if net is not None else None
+    losses = np.zeros(5, dtype=np.int64)
+    for a, c in src.chunks(min(src.rows, N + 1) if mf is not None else N):
+        g = c.get
+        if mf is not None and a <= N < a + c.rows and c.has("plant")[N - a]:
+            x_fault = g("plant", "x")[N - a].copy()  # x_k at the method's fault
+        R = max(0, min(c.rows, N - a))
+        if R == 0 and a > 0:
+            continue
+        P, EN, C, A = (c.has(r)[:R] for r in ("plant", "encoder", "controller", "attacker"))
+        silent = g("encoder", "silent")[:R] != 0
+        E_ok = EN & ~silent
+        # the columns hold NaN (u: 0, symbol: -1) where a sample was not recorded or its symbol withheld
+        x, u = g("plant", "x")[:R], g("plant", "u")[:R]
+        xi_enc, E_enc = g("encoder", "xi")[:R], g("encoder", "E")[:R]
+        xi_dec, E_dec = g("controller", "xi")[:R], g("controller", "E")[:R]
+        p_theta = g("plant", "theta")[:R]
+        theta = np.ones(R, dtype=np.uint8)
+        from_plant = ~C & P & (p_theta != msg.THETA_NONE)
+        theta[from_plant] = p_theta[from_plant]
+        theta[C] = g("controller", "theta")[:R][C]
+        t_ns, u_rx, flags = g("plant", "t_ns")[:R], g("plant", "u_rx_ns")[:R], g("plant", "flags")[:R]
+        e_tx, c_tx, a_tx = g("encoder", "tx_ns")[:R], g("controller", "tx_ns")[:R], g("attacker", "tx_ns")[:R]
+        reason = g("controller", "reason")[:R]
+        has_t = P & (t_ns != msg.NO_TIME)
+        for w0 in range(0, R, TIMING_WINDOW):
+            w = slice(w0, min(R, w0 + TIMING_WINDOW))
+            jitter = t_ns[w][has_t[w]] - (np.flatnonzero(has_t[w]) + a + w0) * Tn
+            overruns += int(np.count_nonzero(jitter > d_ns))
+            s2a = _diffs(u_rx[w], t_ns[w], P[w] & (p_theta[w] == 0))
+            late_sched += late_for_schedule(sc, s2a)
+            for name, v in (("jitter", jitter), ("s2a", s2a),
+                            ("encoder", _diffs(e_tx[w], t_ns[w], E_ok[w] & P[w])),
+                            ("plant", _diffs(u_rx[w], c_tx[w], C[w] & P[w])),
+                            ("proxy", _diffs(a_tx[w], e_tx[w], A[w] & EN[w])),
+                            ("controller", _diffs(c_tx[w], a_tx[w], A[w] & C[w] & (reason[w] == CT.RECEIVED)))):
+                spools[name].extend(v)
+        missed = P & (flags & PT.FLAG_MISS != 0)
+        misses += int(np.count_nonzero(missed))
+        no_u += int(np.count_nonzero(P & (flags & PT.FLAG_NO_U != 0)))
+        if R:
+            n_reason += np.bincount(reason[C], minlength=4)[:4]
+            x_last = x[-1].copy()
+        bad_flow = np.flatnonzero(P & (g("plant", "flow_status")[:R] != FLOW_OK))
+        if diverged_at < 0 and bad_flow.size:
+            diverged_at = int(bad_flow[0]) + a
+        xm = g("plant", "x_meas")[:R] if xm_col else None  # what the sensor read ([plant.sensor]); NaN where not
+        xm_seen = xm_seen or (xm is not None and bool(np.isfinite(xm).any()))
+        dropped = A & (g("attacker", "dropped")[:R] != 0)
+        withheld = EN & silent
+        chunk = SimResult(T=sc.T, t=np.arange(a, a + R) * sc.T, x=x, u=u, q=g("controller", "q")[:R],
+                          q_enc=g("encoder", "q")[:R], xi_enc=xi_enc, E_enc=E_enc, xi_dec=xi_dec, E_dec=E_dec,
+                          theta=theta, symbols=g("encoder", "symbol")[:R],
+                          saturated=E_ok & (g("encoder", "saturated")[:R] != 0), x_final=x[:0], K=K, x_meas=xm)
+        if checked:
+            chunk.lockstep_breaks = lockstep_breaks_in(xi_enc, E_enc, xi_dec, E_dec, E_ok & C) + a
+        tally.add(a, chunk)
+        agree_known = agree_known and _agree_where_known(xi_enc, E_enc, xi_dec, E_dec)
+        for key, v in (("t_sample", np.where(has_t, t_ns / 1e9, np.nan)), ("u_ctl", g("controller", "u")[:R]),
+                       ("u_mask", C), ("xi_dec", xi_dec), ("missed", np.flatnonzero(missed) + a),
+                       ("withheld", np.flatnonzero(withheld) + a), ("dropped", np.flatnonzero(dropped) + a)):
+            st[key].append(v)
+        losses += loss_tally(theta, withheld=withheld, attacker=dropped, invalid=C & (reason == CT.INVALID),
+                             superseded=C & (reason == CT.SUPERSEDED),
+                             channel_lost=None if ch_lost is None else ch_lost[a:a + R])
     timing = {name: percentiles(sp) for name, sp in spools.items()}
     for sp in spools.values():
         sp.close()
-    misses = int(np.count_nonzero(P & (flags & PT.FLAG_MISS != 0)))
-    no_u = int(np.count_nonzero(P & (flags & PT.FLAG_NO_U != 0)))
-    n_reason = np.bincount(reason[C], minlength=4) if N else np.zeros(4, dtype=np.int64)
     if x_fault is not None:  # x_k at the method's fault (the plant may have run on until the Stop)
         x_final, flow_status = x_fault, FLOW_OK
     elif final is not None:
         x_final = np.array(final["x"], dtype=float)
         flow_status = final["flow_status"]
     else:
-        x_final = x[-1] if N else np.array(sc.x0, dtype=float)
+        x_final = x_last if N else np.array(sc.x0, dtype=float)
         flow_status = FLOW_OK
-    bad_flow = np.flatnonzero(P & (g("plant", "flow_status")[:N] != FLOW_OK))
-    diverged_at = int(bad_flow[0]) if bad_flow.size else -1
-    res = SimResult(T=sc.T, t=np.arange(N) * sc.T, x=x, u=u, q=q, q_enc=q_enc, xi_enc=xi_enc, E_enc=E_enc,
-                    xi_dec=xi_dec, E_dec=E_dec, theta=theta, symbols=symbols, saturated=sat, x_final=x_final,
-                    flow_status=int(flow_status), diverged_at=diverged_at, K=np.asarray(sc.K, dtype=float),
-                    simulator=cols.metadata.get("testbed.run", {}).get("simulator"))  # None: a live run
-    if ("plant", "x_meas") in cols.lay.cols:  # what the sensor read ([plant.sensor]); NaN where not recorded
-        xm = g("plant", "x_meas")[:N]
-        if np.isfinite(xm).any():
-            res.x_meas = xm
+    none = np.zeros((0,))
+    res = SimResult(T=sc.T, t=none, x=np.zeros((0, n)), u=none, q=none, q_enc=none, xi_enc=none, E_enc=none,
+                    xi_dec=none, E_dec=none, theta=none, symbols=none, saturated=none, x_final=x_final,
+                    flow_status=int(flow_status), diverged_at=diverged_at, K=K,
+                    simulator=src.metadata.get("testbed.run", {}).get("simulator"))  # None: a live run
     if mf is not None:
         res.method_fault, res.method_fault_at = mf.detail, int(mf.k)
-    res.lockstep_breaks = recorded_lockstep_breaks(sc, xi_enc, E_enc, xi_dec, E_dec, E_ok & C)
     pf = next((e for e in events if e.node == "plant" and e.kind == "plant_fault"), None)
     if pf is not None:  # the true plant failed (an FMU step): the run ended at that sample
         res.plant_fault, res.plant_fault_at = pf.detail, int(pf.k)
-    # what the ends saw, as ``testbed resimulate`` replays it: the escape verdict rebuilds the ends from it
-    replay = Replay(reason=np.where(C, reason, -1).astype(np.int64), sensed=EN.copy(), withheld=EN & silent,
-                    u_missing=np.zeros(N, dtype=bool))
+    use_xm = xm_col and xm_seen
+
+    def record():
+        """What the ends saw, as ``testbed resimulate`` replays it: the escape verdict rebuilds the ends from it."""
+        for a, c in src.chunks(N):
+            R = max(0, min(c.rows, N - a))
+            C, EN = c.has("controller")[:R], c.has("encoder")[:R]
+            silent = c.get("encoder", "silent")[:R] != 0
+            X = c.get("plant", "x_meas" if use_xm else "x")[:R]
+            yield a, X, Replay(reason=np.where(C, c.get("controller", "reason")[:R], -1).astype(np.int64),
+                               sensed=EN.copy(), withheld=EN & silent, u_missing=np.zeros(R, dtype=bool))
+
     if not np.all(np.isfinite(x_final)):
         res.x_final = np.array(sc.x0, dtype=float)
-        out = summarize(sc, res, arrays=arrays, replay=replay)
+        out = tally.summarize(sc, res, arrays=arrays, record=record, x_meas=use_xm)
         out.update(x_final=None, final_norm=None, converged=False, escaped=None)
     else:
-        out = summarize(sc, res, arrays=arrays, replay=replay)
+        out = tally.summarize(sc, res, arrays=arrays, record=record, x_meas=use_xm)
     out = _clean(out)
     base_keys = set(out)
-    summaries = cols.summaries
+    summaries = src.summaries
     ps = summaries.get("plant", {})
     es = summaries.get("encoder", {})
     cs = summaries.get("controller", {})
     ats = summaries.get("attacker", {})
     ev_count = Counter(e.kind for e in events)
     L = (lambda a: a) if arrays else (lambda a: a.tolist())
-    t_sample = np.where(has_t, t_ns / 1e9, np.nan)
-    u_ctl = RowsOrNone(g("controller", "u")[:N], C)
+    t_sample = st["t_sample"].result()
+    xi_dec = st["xi_dec"].result()
+    u_ctl = RowsOrNone(st["u_ctl"].result(), st["u_mask"].result())
     out.update({
         "live": True,
         "run_id": run_id,
@@ -219,10 +301,10 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         "t_sample": t_sample if arrays else _clean(t_sample.tolist()),
         "u_controller": u_ctl if arrays else _clean(u_ctl.tolist()),
         "xi_dec": xi_dec if arrays else _clean(xi_dec.tolist()),
-        "encoder_decoder_agree_where_known": _agree_where_known(xi_enc, E_enc, xi_dec, E_dec),
-        "deadline_missed_at": L(np.flatnonzero(P & (flags & PT.FLAG_MISS != 0))),
-        "withheld_at": L(np.flatnonzero(EN & silent)),
-        "attacker_dropped_at": L(np.flatnonzero(A & (g("attacker", "dropped")[:N] != 0))),
+        "encoder_decoder_agree_where_known": agree_known,
+        "deadline_missed_at": L(st["missed"].result()),
+        "withheld_at": L(st["withheld"].result()),
+        "attacker_dropped_at": L(st["dropped"].result()),
         "loss_reasons": {"received": int(n_reason[CT.RECEIVED]), "deadline": int(n_reason[CT.DEADLINE]),
                          "invalid": int(n_reason[CT.INVALID]), "superseded": int(n_reason[CT.SUPERSEDED])},
         "invalid_payloads": cs.get("invalid", int(n_reason[CT.INVALID])),
@@ -247,15 +329,13 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         },
         "events": dict(ev_count),
         "event_log": [dict(node=e.node, kind=e.kind, k=e.k, detail=e.detail) for e in events[:50]],
-        "attacker_status": [dict(k=s.k, attack_on=s.attack_on, dropped=s.dropped) for s in cols.status],
+        "attacker_status": [dict(k=s.k, attack_on=s.attack_on, dropped=s.dropped) for s in src.status],
         "faults": faults,
         "nodes": nodes,
         "node_summaries": summaries,
     })
-    out["losses"] = recorded_losses(  # one cause per lost sample (channel.LOSS_KINDS; docs/recording-format.md)
-        theta, withheld=EN & silent, attacker=A & (g("attacker", "dropped")[:N] != 0),
-        invalid=C & (reason == CT.INVALID), superseded=C & (reason == CT.SUPERSEDED), late_symbols=cs.get("late"),
-        channel_lost=model_lost(getattr(sc, "network", None), N))
+    # one cause per lost sample (channel.LOSS_KINDS; docs/recording-format.md)
+    out["losses"] = losses_of_tally(losses, cs.get("late"))
     out["attacker"] = {"dropped": ats.get("dropped"), "forwarded": ats.get("forwarded"),
                        "corrupted": ats.get("corrupted"), "acks_dropped": ats.get("acks_dropped")}
     out.update(timing_degraded(out))  # by the criterion of ``testbed.record.degraded``
@@ -379,14 +459,15 @@ def write_json(obj, fp) -> None:
             w((", " if i else "") + json.dumps(str(key)) + ": ")
             write_json(v, fp)
         w("}")
-    elif isinstance(obj, (list, tuple)) and any(isinstance(v, (np.ndarray, RowsOrNone, dict)) for v in obj):
+    elif isinstance(obj, (list, tuple)) and any(isinstance(v, (np.ndarray, StoredArray, RowsOrNone, dict))
+                                                for v in obj):
         w("[")
         for i, v in enumerate(obj):
             if i:
                 w(", ")
             write_json(v, fp)
         w("]")
-    elif isinstance(obj, np.ndarray):
+    elif isinstance(obj, (np.ndarray, StoredArray)):  # a StoredArray: read from its file a block at a time
         _json_array(obj, w)
     elif isinstance(obj, RowsOrNone):
         _json_array(obj.values, w, obj.mask)
@@ -400,7 +481,7 @@ def to_lists(obj):
         return {k: to_lists(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [to_lists(v) for v in obj]
-    if isinstance(obj, (np.ndarray, RowsOrNone)):
+    if isinstance(obj, (np.ndarray, StoredArray, RowsOrNone)):
         return _clean(obj.tolist())
     return obj
 

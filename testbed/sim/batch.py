@@ -25,7 +25,7 @@ import numpy as np
 
 from attackers.greedy import greedy_init
 
-from ..channel import ATTACKER, loss_counts
+from ..channel import ATTACKER, LOSS_KINDS, loss_counts_of
 from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..quantizer import (
     MODES,
@@ -36,6 +36,7 @@ from .loop import (  # noqa: F401 - LinkEffects, OnlineAttacker, simulate_loop: 
     SCORES,
     LinkEffects,
     OnlineAttacker,
+    RecordEnds,
     SimResult,
     continue_ends,
     ends_from_record,
@@ -335,7 +336,7 @@ def plant_and_model(sc) -> dict:
             "model_params": model.params_dict()}
 
 
-def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None) -> bool:
+def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None, *, record=None) -> bool:
     """The escape verdict of one run of scenario ``sc``: every reader's (``testbed simulate``, ``run``,
     ``report``, ``testbed.open``, ``versus``, campaign rows and ``--verify``), for every method.
 
@@ -346,6 +347,9 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None) -> 
     without attack (:class:`EscapeCriterion`): by the batch kernel for a bundled method
     (:func:`judge_escape`), by the method's own ends for a user's (``continue_ends``).  A run whose flow
     diverged, or whose method faulted, escaped.
+
+    ``record``: (N, the record a chunk at a time: ``chunks() -> iter((k0, X, replay))``, X: x_k, or x_meas,k
+    where a sensor read it); ``res`` then needs only its last two samples (:class:`RunTally`). Default: ``res``.
     """
     if res.flow_status != FLOW_OK or res.method_fault is not None:
         return True
@@ -357,7 +361,13 @@ def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None) -> 
         st = loop_state_from_samples(res, model, sc.quantizer, sc.flow)
     if st is None:
         try:
-            ends = ends_from_record(res, method, model, res.K, sc.quantizer, sc.flow, replay)
+            if record is None:
+                ends = ends_from_record(res, method, model, res.K, sc.quantizer, sc.flow, replay)
+            else:
+                rec = RecordEnds(method, model, res.K, sc.quantizer, sc.flow, record[0])
+                for k0, X, rp in record[1]():
+                    rec.feed(k0, X, rp)
+                ends = rec.ends()
         except Exception:  # noqa: BLE001 - a method that raises on its own record: the loop cannot go on
             return True
         if method.kernel_code(sc.quantizer) is None:  # a user's method: its own ends, continued per sample
@@ -409,81 +419,208 @@ def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
     diverged and not converged; ``escaped`` is then about the state at the fault.
     ``arrays``: the per-sample values stay numpy arrays (``testbed report`` streams them out).
     ``replay``: what a recording's columns say happened (:func:`escaped_run`; None: the record's own).
+    The reductions are :class:`RunTally`'s, here over the whole run as one chunk.
     """
-    L = (lambda a: a) if arrays else (lambda a: a.tolist())
-    model = sc.make_model()
-    tol = sc.run.converge_tol
-    flow_diverged = res.flow_status != FLOW_OK
-    diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
-    crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
-    # a recording's plant or method whose stored code was not run (no --trust-code): not judged
-    escaped = None if sc.code_not_run() else escaped_run(sc, res, crit, replay)
-    sch = res.intervals()
-    cb = sc.make_method().codebook(model.n, sc.quantizer)
-    o = run_outcome(sc, res.x, res.x_final, res.theta, bits=cb.bits, saturations=res.saturations, agree=res.agree,
-                    diverged=diverged, escaped=escaped, plant_fault=res.plant_fault, method_fault=res.method_fault,
-                    losses=None if res.loss_cause is None else loss_counts(res.loss_cause))  # channel.loss_cause
-    return json_clean({
-        "scenario": sc.name,
-        **plant_and_model(sc),
-        "method": o["method"],
-        "method_params": dict(sc.method.params),
-        "n": model.n,
-        "m": model.m,
-        "T": sc.T,
-        "M": sc.quantizer.M,
-        "Lambda": sc.quantizer.Lambda,
-        "mode": sc.quantizer.mode,
-        "bits": o["bits"],
-        "K": res.K.tolist(),
-        "t": L(res.t),
-        "x": L(res.x),
-        **({} if res.x_meas is None else {"x_meas": L(res.x_meas)}),  # what the sensor read ([plant.sensor])
-        "u": L(res.u if res.u_plant is None else res.u_plant),  # what acted (after [plant.actuator], as recorded)
-        "q": L(res.q),
-        "xi": L(res.xi_enc),
-        "E": L(res.E_enc),
-        "E_dec": L(res.E_dec),
-        "theta": res.theta if arrays else res.theta.astype(int).tolist(),
-        "symbols": L(res.symbols),
-        "saturations": o["saturations"],
-        "saturated_at": L(np.nonzero(res.saturated)[0]),
-        "dos_intervals": [list(iv) for iv in sch.intervals],
-        "packets_dropped": o["packets_dropped"],
-        "encoder_decoder_agree": o["encoder_decoder_agree"],
-        "x_final": o["x_final"],
-        "final_norm": o["final_norm"],
-        "converged": o["converged"],
-        "escaped": o["escaped"],
-        "escape_criterion": crit.to_dict(),
-        "diverged": o["diverged"],
-        "diverged_at": (res.method_fault_at if res.method_fault is not None else
-                        res.diverged_at if res.plant_fault is None else res.plant_fault_at),
-        "plant_fault": o["plant_fault"],
-        "plant_fault_at": res.plant_fault_at,
-        "method_fault": o["method_fault"],
-        "method_fault_at": res.method_fault_at,
-        "lockstep_breaks": list(res.lockstep_breaks),
-        "max_norm": o["max_norm"],
-        "samples_lost": o["samples_lost"],
-        "timing_mode": sc.run.timing,
-        "simulator": res.simulator,
-        "rule": sc.quantizer.rule,
-        "withheld_at": [] if res.withheld is None else np.nonzero(res.withheld)[0].tolist(),
-        "losses": o["losses"],
-    })
+    tally = RunTally(res.T)
+    tally.add(0, res)
+    return tally.summarize(sc, res, arrays=arrays, replay=replay, x_meas=res.x_meas is not None)
+
+
+class MemStack:
+    """A per-sample array made of chunks, in memory (``RunTally``'s default ``stack``): one chunk is itself."""
+
+    def __init__(self):
+        self.parts: list = []
+
+    def append(self, a) -> None:
+        self.parts.append(np.asarray(a))
+
+    def result(self):
+        return self.parts[0] if len(self.parts) == 1 else np.concatenate(self.parts)
+
+
+class RunTally:
+    """:func:`summarize`'s reductions over a run's per-sample record, fed a chunk of samples at a time
+    (``add``, in the order of the samples): counts, the first and last samples, the maximum norm, the
+    agreement of the ends, the DoS intervals, the losses by cause, and the per-sample values kept by
+    ``stack`` (default in memory; ``testbed.stats.Stack``: in a file, so that a run's summary is made in
+    bounded memory).  A whole run is one chunk (``summarize``); any chunking gives the same summary."""
+
+    #: per-sample keys of the summary and the ``SimResult`` field each comes from
+    PER_SAMPLE = (("t", "t"), ("x", "x"), ("x_meas", "x_meas"), ("u", "u"), ("q", "q"), ("xi", "xi_enc"),
+                  ("E", "E_enc"), ("E_dec", "E_dec"), ("theta", "theta"), ("symbols", "symbols"))
+    #: the last samples kept (``loop_state_from_samples`` reads the last two)
+    TAIL = ("theta", "symbols", "q", "xi_dec", "E_dec", "xi_enc", "E_enc")
+
+    def __init__(self, T: float, stack=MemStack):
+        self.T = float(T)
+        self.stack = stack
+        self.per_sample = {key: stack() for key, _ in self.PER_SAMPLE}
+        self.saturated_at, self.withheld_at, self.breaks = stack(), stack(), stack()
+        self.samples = self.saturations = self.lost = 0
+        self.x_max = None           # max |x_k| so far (NaN once a NaN was seen, as np.max gives)
+        self.agree = True
+        self.withheld: bool | None = None    # None: the record has no withheld
+        self.causes: np.ndarray | None = None  # counts of each loss cause (None: the record has no loss_cause)
+        self.runs: list[tuple[int, int]] = []  # (first, last) sample of each run of the attacker's drops
+        self._open: int | None = None
+        self._last_on = False
+        self.tail: dict = {}
+
+    def add(self, k0: int, res: SimResult) -> None:
+        """Samples k0 .. k0 + len(res.theta) - 1 of the run (``res``: their per-sample arrays; its
+        ``lockstep_breaks`` the run's sample numbers in them)."""
+        n = len(res.theta)
+        for key, name in self.PER_SAMPLE:
+            v = res.u if key == "u" and res.u_plant is None else res.u_plant if key == "u" else getattr(res, name)
+            if v is not None:
+                self.per_sample[key].append(v)
+        sat = np.asarray(res.saturated)
+        self.saturations += int(sat.sum())
+        self.saturated_at.append(np.nonzero(sat)[0] + k0)
+        if res.withheld is not None:
+            self.withheld = True
+            self.withheld_at.append(np.nonzero(res.withheld)[0] + k0)
+        self.breaks.append(np.asarray(list(res.lockstep_breaks), dtype=np.int64))
+        known = np.isfinite(res.E_enc)
+        self.agree = self.agree and not len(res.lockstep_breaks) and not (res.withheld is None and not known.all()) \
+            and bool(np.array_equal(res.xi_enc[known], res.xi_dec[known])
+                     and np.array_equal(res.E_enc[known], res.E_dec[known]))
+        self.lost += int(np.asarray(res.theta).sum())
+        if len(res.x):
+            m = np.max(np.abs(res.x))
+            self.x_max = m if self.x_max is None else np.maximum(self.x_max, m)
+        if res.loss_cause is not None:
+            c = np.bincount(np.asarray(res.loss_cause, dtype=np.int64), minlength=len(LOSS_KINDS) + 1)
+            self.causes = c if self.causes is None else _add_counts(self.causes, c)
+        on = np.asarray(res.theta if res.loss_cause is None else np.asarray(res.loss_cause) == ATTACKER, dtype=bool)
+        if n:  # the runs of the attacker's drops (``SimResult.intervals``), carried over the chunks
+            prev = np.concatenate(([self._last_on], on[:-1]))
+            ons = (np.flatnonzero(on & ~prev) + k0).tolist()
+            offs = (np.flatnonzero(~on & prev) + k0).tolist()
+            if self._open is not None and offs:
+                self.runs.append((self._open, offs.pop(0) - 1))
+                self._open = None
+            self.runs.extend((a, b - 1) for a, b in zip(ons, offs))
+            if len(ons) > len(offs):
+                self._open = ons[-1]
+            self._last_on = bool(on[-1])
+            for name in self.TAIL:
+                v = np.asarray(getattr(res, name))[-2:]
+                old = self.tail.get(name)
+                self.tail[name] = v if old is None else np.concatenate([old, v])[-2:]
+        self.samples += n
+
+    def intervals(self):
+        """The realized DoS schedule (``SimResult.intervals``: ``Schedule.from_theta`` of the attacker's drops)."""
+        from attackers.schedule import Schedule
+
+        runs = self.runs + ([] if self._open is None else [(self._open, self.samples - 1)])
+        return Schedule(tuple((float(a) * self.T, float(b - a) * self.T) for a, b in runs)) if runs else Schedule(())
+
+    def summarize(self, sc, res: SimResult, *, arrays: bool = False, replay=None, record=None,
+                  x_meas: bool = False) -> dict:
+        """:func:`summarize`'s document from the chunks added: ``res`` gives the run's scalars (x_final, flow
+        status, faults, K, simulator); ``record`` the record again, ``record() -> iter((k0, X, replay))``, for a
+        method's ends (:func:`escaped_run`; default ``res`` whole); ``x_meas``: the key ``x_meas`` is written
+        (a sensor read x_k)."""
+        L = (lambda a: a) if arrays else (lambda a: a.tolist())
+        P = {key: st.result() for key, st in self.per_sample.items() if key != "x_meas" or x_meas}
+        model = sc.make_model()
+        tol = sc.run.converge_tol
+        flow_diverged = res.flow_status != FLOW_OK
+        diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
+        crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
+        if record is None:
+            last = res
+        else:  # the last two samples (what the paper's end state reads) and the run's scalars
+            last = SimResult(T=res.T, t=res.t, x=res.x, u=res.u, q=self.tail.get("q", res.q), q_enc=res.q_enc,
+                             xi_enc=self.tail.get("xi_enc", res.xi_enc), E_enc=self.tail.get("E_enc", res.E_enc),
+                             xi_dec=self.tail.get("xi_dec", res.xi_dec), E_dec=self.tail.get("E_dec", res.E_dec),
+                             theta=self.tail.get("theta", res.theta), symbols=self.tail.get("symbols", res.symbols),
+                             saturated=res.saturated, x_final=res.x_final, flow_status=res.flow_status, K=res.K,
+                             method_fault=res.method_fault)
+            record = (self.samples, record)
+        # a recording's plant or method whose stored code was not run (no --trust-code): not judged
+        escaped = None if sc.code_not_run() else escaped_run(sc, last, crit, replay, record=record)
+        sch = self.intervals()
+        cb = sc.make_method().codebook(model.n, sc.quantizer)
+        o = run_outcome(sc, None, res.x_final, None, bits=cb.bits, saturations=self.saturations, agree=self.agree,
+                        diverged=diverged, escaped=escaped, plant_fault=res.plant_fault, method_fault=res.method_fault,
+                        losses=None if self.causes is None else loss_counts_of(self.causes),  # channel.loss_cause
+                        x_max=self.x_max, lost=self.lost)
+        breaks = self.breaks.result()
+        withheld_at = None if self.withheld is None else self.withheld_at.result()
+        return json_clean({
+            "scenario": sc.name,
+            **plant_and_model(sc),
+            "method": o["method"],
+            "method_params": dict(sc.method.params),
+            "n": model.n,
+            "m": model.m,
+            "T": sc.T,
+            "M": sc.quantizer.M,
+            "Lambda": sc.quantizer.Lambda,
+            "mode": sc.quantizer.mode,
+            "bits": o["bits"],
+            "K": res.K.tolist(),
+            "t": L(P["t"]),
+            "x": L(P["x"]),
+            **({"x_meas": L(P["x_meas"])} if x_meas else {}),  # what the sensor read ([plant.sensor])
+            "u": L(P["u"]),  # what acted (after [plant.actuator], as recorded)
+            "q": L(P["q"]),
+            "xi": L(P["xi"]),
+            "E": L(P["E"]),
+            "E_dec": L(P["E_dec"]),
+            "theta": P["theta"] if arrays else np.asarray(P["theta"][:]).astype(int).tolist(),
+            "symbols": L(P["symbols"]),
+            "saturations": o["saturations"],
+            "saturated_at": L(self.saturated_at.result()),
+            "dos_intervals": [list(iv) for iv in sch.intervals],
+            "packets_dropped": o["packets_dropped"],
+            "encoder_decoder_agree": o["encoder_decoder_agree"],
+            "x_final": o["x_final"],
+            "final_norm": o["final_norm"],
+            "converged": o["converged"],
+            "escaped": o["escaped"],
+            "escape_criterion": crit.to_dict(),
+            "diverged": o["diverged"],
+            "diverged_at": (res.method_fault_at if res.method_fault is not None else
+                            res.diverged_at if res.plant_fault is None else res.plant_fault_at),
+            "plant_fault": o["plant_fault"],
+            "plant_fault_at": res.plant_fault_at,
+            "method_fault": o["method_fault"],
+            "method_fault_at": res.method_fault_at,
+            "lockstep_breaks": breaks.tolist() if isinstance(breaks, np.ndarray) else breaks,
+            "max_norm": o["max_norm"],
+            "samples_lost": o["samples_lost"],
+            "timing_mode": sc.run.timing,
+            "simulator": res.simulator,
+            "rule": sc.quantizer.rule,
+            "withheld_at": [] if self.withheld is None else
+            withheld_at.tolist() if isinstance(withheld_at, np.ndarray) else withheld_at,
+            "losses": o["losses"],
+        })
+
+
+def _add_counts(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    n = max(len(a), len(b))
+    return np.pad(a, (0, n - len(a))) + np.pad(b, (0, n - len(b)))
 
 
 def run_outcome(sc, x, x_final, theta, *, bits: int, saturations: int, agree: bool, diverged: bool, escaped,
-                plant_fault=None, method_fault=None, losses: dict | None = None) -> dict:
+                plant_fault=None, method_fault=None, losses: dict | None = None, x_max=None, lost=None) -> dict:
     """How a run ended, as ``testbed simulate --json`` states it (:func:`summarize`) and a campaign's row
     of a batch-kernel run (``testbed.campaign.batch``): method, bits, converged (not diverged and
     max |x_final| < converge_tol), escaped, diverged, final_norm, max_norm, x_final, saturations,
-    samples_lost = packets_dropped (theta's lost samples), losses by cause, encoder_decoder_agree, the faults."""
+    samples_lost = packets_dropped (theta's lost samples), losses by cause, encoder_decoder_agree, the faults.
+    ``x`` and ``theta`` None: ``x_max`` and ``lost`` instead (``RunTally``'s, tallied over the run's chunks)."""
     final_norm = float(np.max(np.abs(x_final)))
-    lost = int(np.asarray(theta).sum())
+    if x is not None:  # else ``x_max`` (max |x_k|, None: no samples) and ``lost`` (sum of theta), tallied
+        x_max = np.max(np.abs(x)) if len(x) else None
+        lost = int(np.asarray(theta).sum())
     return {"method": sc.method.name, "bits": bits, "converged": bool(not diverged and final_norm < sc.run.converge_tol),
             "escaped": None if escaped is None else bool(escaped), "diverged": bool(diverged), "final_norm": final_norm,
-            "max_norm": float(max(np.max(np.abs(x)) if len(x) else 0.0, final_norm)), "x_final": x_final.tolist(),
+            "max_norm": float(max(0.0 if x_max is None else x_max, final_norm)), "x_final": x_final.tolist(),
             "saturations": int(saturations), "samples_lost": lost, "packets_dropped": lost, "losses": losses,
             "encoder_decoder_agree": agree, "plant_fault": plant_fault, "method_fault": method_fault}

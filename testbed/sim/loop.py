@@ -498,19 +498,48 @@ def ends_from_record(res: SimResult, method: Method, model: Plant, K: np.ndarray
     the loop from these.  Returns (encoder, decoder), or raises what the method's ends raise.
     """
     replay = record_replay(res) if replay is None else replay
-    N = len(res.theta)
-    K = np.asarray(K, dtype=np.float64).reshape(model.m, model.n)
-    encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), N)
-    ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), N)
-    X = np.asarray(res.x if res.x_meas is None else res.x_meas, dtype=np.float64)
-    acks: list = []
-    for k in range(N):
-        _send, decs = _method_sample(encp, ctlp, replay, acks, k, X[k], None, {}, ctlp.codebook)
-        decs.pop()
-        acks.extend((d.k, d.theta, d.last_rx) for d in decs if d is not None)
-    for a in acks:
-        encp.ack(*a)
-    return encp.enc, ctlp.dec
+    ends = RecordEnds(method, model, K, qp, flow, len(res.theta))
+    ends.feed(0, np.asarray(res.x if res.x_meas is None else res.x_meas, dtype=np.float64), replay)
+    return ends.ends()
+
+
+class _From:
+    """A chunk's per-sample array indexed by the run's sample k (the chunk starts at sample ``k0``)."""
+
+    def __init__(self, a, k0: int):
+        self.a, self.k0 = a, k0
+
+    def __getitem__(self, k):
+        return self.a[k - self.k0]
+
+
+class RecordEnds:
+    """:func:`ends_from_record` fed a chunk of the record at a time (``feed``, in the order of the samples):
+    the same ends, with the protocol objects and the pending acks carried from chunk to chunk."""
+
+    def __init__(self, method, model, K, qp: QuantizerParams, flow: FlowOptions, n_steps: int):
+        K = np.asarray(K, dtype=np.float64).reshape(model.m, model.n)
+        self.encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), n_steps)
+        self.ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), n_steps)
+        self.acks: list = []
+
+    def feed(self, k0: int, X, replay: Replay) -> None:
+        """Samples k0 .. k0 + len(X) - 1: x_k (x_meas,k where a sensor read it) and the chunk's ``Replay``."""
+        rp = Replay(reason=_From(replay.reason, k0), sensed=_From(replay.sensed, k0),
+                    withheld=_From(replay.withheld, k0), u_missing=_From(replay.u_missing, k0))
+        X = np.asarray(X, dtype=np.float64)
+        encp, ctlp, acks = self.encp, self.ctlp, self.acks
+        for i in range(len(X)):
+            _send, decs = _method_sample(encp, ctlp, rp, acks, k0 + i, X[i], None, {}, ctlp.codebook)
+            decs.pop()
+            acks.extend((d.k, d.theta, d.last_rx) for d in decs if d is not None)
+
+    def ends(self):
+        """(encoder, decoder) after the samples fed."""
+        for a in self.acks:
+            self.encp.ack(*a)
+        self.acks = []
+        return self.encp.enc, self.ctlp.dec
 
 
 def continue_ends(plant, x_final, ends, c, T: float, flow, u_max: float) -> bool:
