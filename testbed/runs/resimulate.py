@@ -236,6 +236,30 @@ def is_reproduced(plant: str, *, loop_identical: bool, first_divergence: int | N
     return first_divergence is None and (final_error is None or final_error <= tolerance)
 
 
+def kernel_replay(sc, replay, n: int):
+    """Samples 0 .. n - 1 of ``replay`` re-run on the batch kernel (``sim.trajectory.simulate_kernel``), where
+    the kernel runs the scenario and the replay says nothing but theta_k: ideal timing, every sample
+    sensed and sent, every u_k delivered.  There the kernel and the per-sample loop of the protocol
+    objects compute the same numbers bit for bit (``tests/test_simbatch.py``; the lost samples are an
+    offline schedule to both, whatever the controller's reason), and the kernel does so hundreds of
+    times faster.  None where it does not apply (the loop runs)."""
+    from ..protocol import RECEIVED
+    from ..sim.trajectory import _bundled, simulate_kernel
+
+    if n <= 0 or replay.delays is not None or sc.timing_params[0] or sc.plant.device is not None \
+            or sc.plant.fmu is not None:
+        return None
+    if not (replay.sensed[:n].all() and not replay.withheld[:n].any() and not replay.u_missing[:n].any()):
+        return None
+    try:  # what the kernel runs (``sim.trajectory.kernel_refusal``; the attacker and the channel are the replay's)
+        if not (_bundled(sc.make_plant()) and _bundled(sc.make_model())) \
+                or sc.make_method().kernel_code(sc.quantizer) is None:
+            return None
+    except Exception:  # noqa: BLE001 - the loop reports what makes the scenario fail
+        return None
+    return simulate_kernel(sc, n, theta=(np.asarray(replay.reason[:n]) != RECEIVED).astype(np.uint8))
+
+
 def compare(run: dict, limit: int | None = None, plant: str = "model", why: str | None = None) -> dict:
     """Resimulate ``recorded_run(...)`` and compare it with the recording, sample by sample.
 
@@ -262,10 +286,12 @@ def compare(run: dict, limit: int | None = None, plant: str = "model", why: str 
     fault_at = run.get("method_fault_at")
     # on the model, run into the sample the method raised at (on the recorded plant there is no x_N to give it)
     through = fault_at is not None and n == N and not recorded
+    res = None if recorded or through else kernel_replay(sc, run["replay"], n_loop)
     try:
-        res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n_loop + through, None, sc.flow, model=model,
-                            process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
-                            replay=run["replay"], method=sc.make_method(), device=sc.plant.device, **extra)
+        if res is None:
+            res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n_loop + through, None, sc.flow, model=model,
+                                process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
+                                replay=run["replay"], method=sc.make_method(), device=sc.plant.device, **extra)
     finally:
         process.close()
     M = min(len(res.t), n_loop)  # the resimulation stops early if its flow diverged (or its method raised)

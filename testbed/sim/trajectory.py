@@ -112,8 +112,11 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
     return out
 
 
-def simulate_kernel(sc, N: int, latency=None) -> SimResult:
-    """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None)."""
+def simulate_kernel(sc, N: int, latency=None, theta=None) -> SimResult:
+    """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None).
+
+    ``theta``: theta_k for k = 0..N-1 decided elsewhere (a recording's, ``testbed.runs.resimulate``): the
+    attacker and the ``[network]`` channel are left out, every sample is sensed and sent."""
     plant, model = sc.make_plant(), sc.make_model()
     n, m = model.n, model.m
     qp = sc.quantizer
@@ -122,7 +125,10 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
     E0 = float(method.kernel_E0(qp))
     dpar = np.zeros(4) if mode == 4 else np.ascontiguousarray(qp.dpar, dtype=np.float64)
     K = np.ascontiguousarray(np.asarray(sc.K, dtype=np.float64).reshape(m, n))
-    if sc.attack.online:
+    if theta is not None:
+        gp = np.zeros((0, 5))
+        tab = np.ascontiguousarray(theta, dtype=np.uint8).reshape(1, -1)
+    elif sc.attack.online:
         gp = np.ascontiguousarray(sc.attack.greedy_params(), dtype=np.float64).reshape(1, 5)
         tab = np.zeros((1, 0), dtype=np.uint8)
     else:
@@ -135,7 +141,7 @@ def simulate_kernel(sc, N: int, latency=None) -> SimResult:
         latency = sc.sim_latency(N)
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     cb = method.codebook(n, qp)
-    chan = Network(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
+    chan = None if theta is not None else Network(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
     ctab = np.zeros((4, N), dtype=np.int64)
     if chan is not None:
         ctab[0] = chan.forced
