@@ -311,7 +311,8 @@ def recorded_losses(theta: npt.ArrayLike, *, withheld: npt.ArrayLike, attacker: 
                                       superseded=superseded, channel_lost=channel_lost), late_symbols)
 
 
-def loss_tally(theta, *, withheld, attacker, invalid, superseded, channel_lost=None) -> np.ndarray:
+def loss_tally(theta: npt.ArrayLike, *, withheld: npt.ArrayLike, attacker: npt.ArrayLike, invalid: npt.ArrayLike,
+               superseded: npt.ArrayLike, channel_lost: npt.ArrayLike | None = None) -> np.ndarray:
     """``recorded_losses``' counts of some samples (a chunk of a run: the tallies of a run's chunks add up):
     [attacker, channel, other, superseded, withheld], ``other`` being sent, not the model's and not received."""
     lost = np.asarray(theta) != 0

@@ -365,3 +365,116 @@ def test_report_prices_an_intervals_attack_as_declared(tmp_path):
     assert dos["logged_intervals"] == [[0.0, 0.5]]
     assert dos["budget"]["kappa_F_min"] == pytest.approx(3.0) and dos["budget"]["kappa_D_min"] == pytest.approx(0.3)
     assert dos["budget"]["within"] is True
+
+
+# ---------------------------------------------------------------------------- post-mortems' shortcuts, same answers
+def _tampered(rr: dict) -> dict:
+    """A copy of ``recorded_run``'s record with E_7 at the encoder and x_9 of the plant off by a little."""
+    live = dict(rr["live"], E=rr["live"]["E"].copy(), x=rr["live"]["x"].copy())
+    live["E"][7] *= 1 + 1e-12
+    live["x"][9, 0] += 1e-9
+    return dict(rr, live=live)
+
+
+@pytest.mark.parametrize("name", ["paper", "paper-greedy", "paper-mismatch", "cartpole", "pendulum"])
+def test_the_kernel_replay_resimulates_as_the_loop_does(tmp_path, monkeypatch, name):
+    """``testbed resimulate`` / the report's resimulation re-run on the batch kernel where the replay is theta
+    alone: every key of its result equals the per-sample loop's (the protocol objects), on the recording and
+    on a tampered copy (then both say NOT reproduced, at the same sample, with the same plant error)."""
+    from testbed.runs import resimulate
+
+    _, _, path = sim_recording(tmp_path, name, duration=4.0)
+    rr = resimulate.recorded_run(testbed.open(path))
+    cases = [(rr, None), (rr, 15), (_tampered(rr), None)]
+    assert resimulate.kernel_replay(rr["scenario"], rr["replay"], rr["N"]) is not None
+    fast = [resimulate.compare(r, limit=n) for r, n in cases]
+    monkeypatch.setattr(resimulate, "kernel_replay", lambda *a: None)
+    slow = [resimulate.compare(r, limit=n) for r, n in cases]
+    assert fast == slow
+    assert fast[0]["reproduced"] and not fast[2]["reproduced"] and fast[2]["first_divergence"] == 7
+    assert fast[2]["plant_model_error"]["max"] > 0
+
+
+def test_a_replay_beyond_theta_runs_the_loop(tmp_path):
+    """Withheld samples (acks via the attacker, a corrupted payload) are the protocol objects' to replay."""
+    from testbed.runs import resimulate
+
+    _, _, path = sim_recording(tmp_path, "paper", duration=4.0)
+    rr = resimulate.recorded_run(testbed.open(path))
+    withheld = dataclasses.replace(rr["replay"], withheld=rr["replay"].withheld.copy())
+    withheld.withheld[3] = True
+    assert resimulate.kernel_replay(rr["scenario"], withheld, rr["N"]) is None
+    late = dataclasses.replace(rr["replay"], u_missing=rr["replay"].u_missing.copy())
+    late.u_missing[3] = True
+    assert resimulate.kernel_replay(rr["scenario"], late, rr["N"]) is None
+
+
+def test_the_region_cache_returns_the_solved_region(tmp_path, monkeypatch):
+    """Theorem 1's paper-rule solves read back from the cache are those ``min_condition_P`` gives, bit for bit;
+    a damaged entry is solved again."""
+    from testbed.analysis import Loop, allowable_region
+    from testbed.analysis.theorem1 import min_condition_P
+
+    monkeypatch.setenv("TESTBED_CACHE_DIR", str(tmp_path))
+    loop = Loop.from_scenario(scenario.load("paper"))
+    solved = allowable_region(loop, "paper")
+    (entry,) = (tmp_path / "regions").glob("*.npz")
+    cached = allowable_region(loop, "paper")
+    k0 = [min_condition_P(loop.Phi0, p)[1] for p in solved.phi0]
+    k1 = [min_condition_P(loop.Phi1, p)[1] for p in solved.phi1]
+    direct = np.log(np.array(k0))[:, None] + np.log(np.array(k1))[None, :]
+    for reg in (solved, cached):
+        assert reg.a.tobytes() == direct.tobytes()
+        assert all(np.array_equal(P, min_condition_P(loop.Phi0, p)[0]) for P, p in zip(reg.P0[:3], reg.phi0[:3]))
+    assert (cached.rho_F_max, cached.rho_D_max) == (solved.rho_F_max, solved.rho_D_max)
+    entry.write_bytes(b"not an npz")
+    assert allowable_region(loop, "paper").a.tobytes() == direct.tobytes()
+
+
+def test_the_report_is_the_same_without_its_shortcuts(tmp_path, monkeypatch):
+    """The whole report (text and JSON) of a recording with the kernel replay and the region cache equals the
+    one computed the long way (the per-sample loop, the LMIs solved in an empty cache)."""
+    import contextlib
+
+    from testbed.commands.report import print_text
+    from testbed.runs import resimulate
+    from testbed.runs.report import report_of_run, run_of
+
+    _, _, path = sim_recording(tmp_path, "paper", duration=6.0)
+
+    def both():
+        s = report_of_run(run_of(path), resimulate=None)
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            print_text(s)
+        js = io.StringIO()
+        write_json(s, js)
+        return out.getvalue(), js.getvalue()
+
+    monkeypatch.setenv("TESTBED_CACHE_DIR", str(tmp_path / "warm"))
+    both()
+    fast = both()  # the region read back from the cache, the resimulation on the kernel
+    monkeypatch.setenv("TESTBED_CACHE_DIR", str(tmp_path / "cold"))
+    monkeypatch.setattr(resimulate, "kernel_replay", lambda *a: None)
+    slow = both()
+    assert "reproduced bit for bit" in fast[0] and fast == slow
+
+
+def test_export_streams_the_whole_table(tmp_path, monkeypatch):
+    """``testbed export`` writes a few rows at a time: the CSV is the bytes of the whole table written at once,
+    the Parquet file reads back as that table, metadata included."""
+    import pyarrow.csv as pcsv
+    import pyarrow.parquet as pq
+
+    from testbed.runs import export as ex
+
+    _, _, path = sim_recording(tmp_path, "paper", duration=4.0)
+    run = testbed.open(path)
+    monkeypatch.setattr(ex, "ROWS", 7)
+    whole = ex.table(run)
+    pcsv.write_csv(whole, tmp_path / "whole.csv")
+    ex.export(run, tmp_path / "rows.csv", "csv")
+    assert (tmp_path / "rows.csv").read_bytes() == (tmp_path / "whole.csv").read_bytes()
+    ex.export(run, tmp_path / "rows.parquet", "parquet")
+    back = pq.read_table(tmp_path / "rows.parquet")
+    assert back.equals(whole) and back.schema.metadata == whole.schema.metadata and back.num_rows == run.N > 7

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .regioncache import paper_solves
 from .theorem1 import (
     RULES,
     Certificate,
@@ -162,9 +163,8 @@ def allowable_region(loop: Loop, rule: str = "paper", *, n_phi0: int | None = No
     Lam2M2 = loop.Lambda ** 2 / loop.M ** 2
     b = -np.log(np.maximum(g0, Lam2M2))[:, None] * np.ones((1, len(g1)))
     c = np.ones((len(g0), 1)) * np.log(np.maximum(g1, loop.Lambda ** 2))[None, :]
-    if rule == "paper":
-        P0s, k0 = zip(*(min_condition_P(loop.Phi0, p) for p in g0))
-        P1s, k1 = zip(*(min_condition_P(loop.Phi1, p) for p in g1))
+    if rule == "paper":  # the same solves for the same matrices and grids: kept on disk (``regioncache``)
+        P0s, k0, P1s, k1 = paper_solves(loop.Phi0, g0, loop.Phi1, g1, min_condition_P)
         a = np.log(np.array(k0))[:, None] + np.log(np.array(k1))[None, :]
         return Region(loop, rule, g0, g1, a, b, c, list(P0s), list(P1s), **grid)
     # tight: a(phi_0, phi_1) = min ln(mu_0 mu_1) is nonincreasing in both phis (larger

@@ -47,11 +47,12 @@ def _u64(buf, p):
 
 
 @njit(cache=True, nogil=True)
-def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits):
-    """One telemetry message ``buf[a:b]`` into the scratch rows s0..s3; returns k, or -1 if malformed."""
+def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
+    """One telemetry message ``buf[a:b]`` into the scratch rows s0..s3; returns k, or -1 if malformed.
+    ``vf[:nv]``: the role's vector fields (the only ones ``fcount`` counts)."""
     k = np.int64(0)
-    for f in range(MAX_FIELD):
-        fcount[f] = 0
+    for i in range(nv):
+        fcount[vf[i]] = 0
     p = a
     while p < b:
         key, p = _varint(buf, p, b)
@@ -137,8 +138,9 @@ def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits):
                 return -1
             s2[col] = np.uint8(lo)
     # a vector is absent (NaN) or has exactly its width
-    for f in range(MAX_FIELD):
-        if tg[f, 0] == G_VEC and fcount[f] != 0 and fcount[f] != tg[f, 2]:
+    for i in range(nv):
+        f = vf[i]
+        if fcount[f] != 0 and fcount[f] != tg[f, 2]:
             return -1
     return k
 
@@ -163,6 +165,14 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
     s3 = D3.copy()
     fcount = np.zeros(MAX_FIELD, dtype=np.int64)
     fbits = np.zeros(1, dtype=np.uint64)
+    nroles = tgt.shape[0]
+    vfs = np.zeros((nroles, MAX_FIELD), dtype=np.int64)   # each role's vector fields
+    nvs = np.zeros(nroles, dtype=np.int64)
+    for r in range(nroles):
+        for f in range(MAX_FIELD):
+            if tgt[r, f, 0] == G_VEC:
+                vfs[r, nvs[r]] = f
+                nvs[r] += 1
     while pos < n:
         if pos + 9 > n:
             return pos, 2, n_py
@@ -200,7 +210,7 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
             s1[lo1:hi1] = D1[lo1:hi1]
             s2[lo2:hi2] = D2[lo2:hi2]
             s3[lo3:hi3] = D3[lo3:hi3]
-            k = _parse(buf, body + MSG_HEAD, end, tg, s0, s1, s2, s3, fcount, fbits)
+            k = _parse(buf, body + MSG_HEAD, end, tg, s0, s1, s2, s3, fcount, fbits, vfs[r], nvs[r])
             if k < 0:
                 role_stats[r, 0] += 1
             elif r == 0 and flags_col >= 0 and (s2[flags_col] & FLAG_FINAL) != 0:

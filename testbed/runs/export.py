@@ -21,19 +21,29 @@ import json
 from pathlib import Path
 
 from ..errors import BadInput
+from .run import flat_columns
 
 FORMATS = ("parquet", "csv")
 
 
-def table(run):
-    """The run as a ``pyarrow.Table`` with the metadata described above."""
-    import pyarrow as pa
+#: rows of a run converted and written at a time (``export``): its memory is that of the run's arrays, not a copy
+ROWS = 1 << 16
 
-    cols = run.columns()
+
+def _metadata(run) -> dict[bytes, bytes]:
     meta = {name: json.dumps(rec) for name, rec in run.metadata.items()}
     meta["testbed.summary"] = json.dumps(_scalars(run.summary), default=str)
     meta["testbed.source"] = run.source
-    return pa.table(cols, metadata={k.encode(): v.encode() for k, v in meta.items()})
+    return {k.encode(): v.encode() for k, v in meta.items()}
+
+
+def table(run, rows: slice | None = None, metadata: dict[bytes, bytes] | None = None):
+    """The run as a ``pyarrow.Table`` with the metadata described above (``rows``: those rows only;
+    ``metadata``: ``_metadata(run)`` when the caller has it already)."""
+    import pyarrow as pa
+
+    arrays = run.arrays if rows is None else {k: v[rows] for k, v in run.arrays.items()}
+    return pa.table(flat_columns(arrays), metadata=_metadata(run) if metadata is None else metadata)
 
 
 def _scalars(d: dict) -> dict:
@@ -48,16 +58,22 @@ def export(run, path: str | Path, fmt: str) -> Path:
     path = Path(path)
     if fmt not in FORMATS:
         raise BadInput(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    t = table(run)
+    # streamed: ROWS rows at a time, so that no second copy of the run is made (one Parquet row group each)
     try:
+        meta = _metadata(run)
+        first = table(run, slice(0, ROWS), meta)
         if fmt == "parquet":
             import pyarrow.parquet as pq
 
-            pq.write_table(t, path)
+            writer = pq.ParquetWriter(path, first.schema)
         else:
             import pyarrow.csv as pcsv
 
-            pcsv.write_csv(t, path)
+            writer = pcsv.CSVWriter(path, first.schema)
+        with writer:
+            writer.write_table(first)
+            for a in range(ROWS, run.N, ROWS):
+                writer.write_table(table(run, slice(a, a + ROWS), meta))
     except OSError as e:
         raise BadInput(f"cannot write {path}: {e}") from None
     return path

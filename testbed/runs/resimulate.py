@@ -159,7 +159,27 @@ class _NoPlant:
         pass
 
 
-def plant_model_error(run: dict, n: int | None = None) -> dict | None:
+def _steps_known(run: dict, n: int, res) -> np.ndarray | None:
+    """phi_T(x_k, u_k) of the model for k = 0 .. n - 1 where a kernel re-run (``kernel_replay``) already
+    computed it, NaN elsewhere; None when ``res`` is not such a re-run.  Its x_k+1 is phi_T of the same
+    function (the true plant is the model: same class, parameters and flow options) at the same
+    arguments, bit for bit: x_k as recorded, and the input the plant applied (the recorded u_k, clamped
+    to u_max, as the kernel's u_k is): so it is what integrating again would give, at no cost."""
+    if res is None or res.simulator != "batch" or len(res.t) != n or res.flow_status != 0:
+        return None
+    sc, live = run["scenario"], run["live"]
+    plant, model = sc.make_plant(), sc.make_model()
+    if type(plant) is not type(model) or not np.array_equal(np.asarray(plant.p), np.asarray(model.p)):
+        return None
+    u_max = sc.controller.u_max
+    x, ua = live["x"][:n], np.clip(live["u_acted"][:n], -u_max, u_max)
+    same = np.all(x == res.x[:n], axis=1) & np.all(ua == np.clip(res.u[:n], -u_max, u_max), axis=1)
+    same &= np.all(np.isfinite(ua), axis=1)
+    nxt = np.vstack([res.x[1:n], np.asarray(res.x_final, dtype=float)[None]])
+    return np.where(same[:, None], nxt, np.nan)
+
+
+def plant_model_error(run: dict, n: int | None = None, res=None) -> dict | None:
     """e_k = ||x_k+1 - phi_T(x_k, u_k)||_inf over samples 0 .. n - 1 of a recording: the plant's reported
     x_k+1 against the scenario's model (its flow map, as the simulator runs it) from the reported x_k with
     the input that acted (the plant's recorded u_k; under physical timing u_k-1 held for the recorded
@@ -174,15 +194,21 @@ def plant_model_error(run: dict, n: int | None = None) -> dict | None:
         return None
     x, have, u = live["x"], live["have_x"], live["u_acted"]
     delays = run["replay"].delays
+    known = None if delays is not None else _steps_known(run, n, res)
     x_next = np.vstack([x[1:], (np.full(x.shape[1], np.nan) if run["x_final"] is None else run["x_final"])[None]])
     have_next = np.append(have[1:], run["x_final"] is not None)
     u_max = sc.controller.u_max
     proc = OdeProcess(model, sc.flow)
     T = sc.T
-    errs, at = [], []
-    for k in range(n):
-        if not (have[k] and have_next[k]):
-            continue
+    steps = have[:n] & have_next[:n]
+    e_all = np.full(n, np.nan)
+    todo = steps.copy()
+    if known is not None:  # the steps the kernel re-run integrated already (``_steps_known``)
+        done = steps & ~np.isnan(known[:, 0])
+        if done.any():
+            e_all[done] = np.max(np.abs(x_next[:n][done] - known[done]), axis=1)
+        todo &= ~done
+    for k in np.flatnonzero(todo):
         proc.reset(x[k])
         u_k = np.clip(u[k], -u_max, u_max)
         if delays is None:
@@ -193,14 +219,14 @@ def plant_model_error(run: dict, n: int | None = None) -> dict | None:
             st = proc.advance(u_prev, d)
             if st == 0:
                 st = proc.advance(u_k, T - d)
-        e = float(np.max(np.abs(x_next[k] - proc.x))) if st == 0 else float("inf")
-        errs.append(e)
-        at.append(k)
-    if not errs:
+        e_all[k] = float(np.max(np.abs(x_next[k] - proc.x))) if st == 0 else float("inf")
+    at = np.flatnonzero(steps)
+    errs = e_all[at]
+    if not len(errs):
         return None
-    ea = np.asarray(errs)
-    i = int(np.argmax(ea))
-    return {"max": float(ea[i]), "at": int(at[i]), "mean": float(ea.mean())}
+    e = errs
+    i = int(np.argmax(e))
+    return {"max": float(e[i]), "at": int(at[i]), "mean": float(e.mean())}
 
 
 #: what the loop computed, compared bit for bit by ``loop_differences`` (NaN equals NaN)
@@ -236,6 +262,30 @@ def is_reproduced(plant: str, *, loop_identical: bool, first_divergence: int | N
     return first_divergence is None and (final_error is None or final_error <= tolerance)
 
 
+def kernel_replay(sc, replay, n: int):
+    """Samples 0 .. n - 1 of ``replay`` re-run on the batch kernel (``sim.trajectory.simulate_kernel``), where
+    the kernel runs the scenario and the replay says nothing but theta_k: ideal timing, every sample
+    sensed and sent, every u_k delivered.  There the kernel and the per-sample loop of the protocol
+    objects compute the same numbers bit for bit (``tests/test_simbatch.py``; the lost samples are an
+    offline schedule to both, whatever the controller's reason), and the kernel does so hundreds of
+    times faster.  None where it does not apply (the loop runs)."""
+    from ..protocol import RECEIVED
+    from ..sim.trajectory import _bundled, simulate_kernel
+
+    if n <= 0 or replay.delays is not None or sc.timing_params[0] or sc.plant.device is not None \
+            or sc.plant.fmu is not None:
+        return None
+    if not (replay.sensed[:n].all() and not replay.withheld[:n].any() and not replay.u_missing[:n].any()):
+        return None
+    try:  # what the kernel runs (``sim.trajectory.kernel_refusal``; the attacker and the channel are the replay's)
+        if not (_bundled(sc.make_plant()) and _bundled(sc.make_model())) \
+                or sc.make_method().kernel_code(sc.quantizer) is None:
+            return None
+    except Exception:  # noqa: BLE001 - the loop reports what makes the scenario fail
+        return None
+    return simulate_kernel(sc, n, theta=(np.asarray(replay.reason[:n]) != RECEIVED).astype(np.uint8))
+
+
 def compare(run: dict, limit: int | None = None, plant: str = "model", why: str | None = None) -> dict:
     """Resimulate ``recorded_run(...)`` and compare it with the recording, sample by sample.
 
@@ -262,10 +312,12 @@ def compare(run: dict, limit: int | None = None, plant: str = "model", why: str 
     fault_at = run.get("method_fault_at")
     # on the model, run into the sample the method raised at (on the recorded plant there is no x_N to give it)
     through = fault_at is not None and n == N and not recorded
+    res = kernel = None if recorded or through else kernel_replay(sc, run["replay"], n_loop)
     try:
-        res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n_loop + through, None, sc.flow, model=model,
-                            process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
-                            replay=run["replay"], method=sc.make_method(), device=sc.plant.device, **extra)
+        if res is None:
+            res = simulate_loop(None, sc.K, sc.quantizer, sc.x0, n_loop + through, None, sc.flow, model=model,
+                                process=process, timing=sc.timing_params, u_max=sc.controller.u_max,
+                                replay=run["replay"], method=sc.make_method(), device=sc.plant.device, **extra)
     finally:
         process.close()
     M = min(len(res.t), n_loop)  # the resimulation stops early if its flow diverged (or its method raised)
@@ -275,7 +327,7 @@ def compare(run: dict, limit: int | None = None, plant: str = "model", why: str 
         loop_bad[d] = True
     loop_first = int(np.argmax(loop_bad)) if loop_bad.any() else (M if M < n_loop else None)
     loop_identical = loop_first is None
-    pme = plant_model_error(run, n)
+    pme = plant_model_error(run, n, kernel)
     hx = live["have_x"][:M]
     err = np.zeros(M)
     if not recorded:

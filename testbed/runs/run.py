@@ -278,8 +278,9 @@ def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - 
     from ..record.summary import load
 
     compilenotice.install()
-    # every field (q_k at the encoder, the stage times)
-    cols, sc = load(path, fields=None, trust_code=trust_code)
+    # the fields the arrays, the summary and the resimulation read (q_k at the encoder; the stage times of a live
+    # run), as ``testbed report`` reads them, and no other: the columns are the memory of a long recording
+    cols, sc = load(path, trust_code=trust_code)
     return run_of_recording(cols, sc, path)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -509,8 +509,13 @@ class _From:
     def __init__(self, a, k0: int):
         self.a, self.k0 = a, k0
 
-    def __getitem__(self, k):
+    def __getitem__(self, k: int) -> Any:
         return self.a[k - self.k0]
+
+
+def _from(a: np.ndarray, k0: int) -> Any:
+    """:class:`_From`, read by the protocol objects as the array it stands for."""
+    return _From(a, k0)
 
 
 class RecordEnds:
@@ -525,8 +530,8 @@ class RecordEnds:
 
     def feed(self, k0: int, X, replay: Replay) -> None:
         """Samples k0 .. k0 + len(X) - 1: x_k (x_meas,k where a sensor read it) and the chunk's ``Replay``."""
-        rp = Replay(reason=_From(replay.reason, k0), sensed=_From(replay.sensed, k0),
-                    withheld=_From(replay.withheld, k0), u_missing=_From(replay.u_missing, k0))
+        rp = Replay(reason=_from(replay.reason, k0), sensed=_from(replay.sensed, k0),
+                    withheld=_from(replay.withheld, k0), u_missing=_from(replay.u_missing, k0))
         X = np.asarray(X, dtype=np.float64)
         encp, ctlp, acks = self.encp, self.ctlp, self.acks
         for i in range(len(X)):

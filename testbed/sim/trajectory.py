@@ -118,8 +118,12 @@ def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> di
     return out
 
 
-def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) -> SimResult:
-    """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None)."""
+def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None,
+                    theta: npt.ArrayLike | None = None) -> SimResult:
+    """Scenario ``sc`` for N samples on the batch kernel with its full trace (``kernel_refusal(sc)`` must be None).
+
+    ``theta``: theta_k for k = 0..N-1 decided elsewhere (a recording's, ``testbed.runs.resimulate``): the
+    attacker and the ``[network]`` channel are left out, every sample is sensed and sent."""
     plant, model = sc.make_plant(), sc.make_model()
     n, m = model.n, model.m
     qp = sc.quantizer
@@ -131,7 +135,10 @@ def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) 
     E0 = float(method.kernel_E0(qp))
     dpar = np.zeros(4) if mode == 4 else np.ascontiguousarray(qp.dpar, dtype=np.float64)
     K = np.ascontiguousarray(np.asarray(sc.K, dtype=np.float64).reshape(m, n))
-    if sc.attack.online:
+    if theta is not None:
+        gp = np.zeros((0, 5))
+        tab = np.ascontiguousarray(theta, dtype=np.uint8).reshape(1, -1)
+    elif sc.attack.online:
         gp = np.ascontiguousarray(sc.attack.greedy_params(), dtype=np.float64).reshape(1, 5)
         tab = np.zeros((1, 0), dtype=np.uint8)
     else:
@@ -144,7 +151,7 @@ def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) 
         latency = sc.sim_latency(N)
     lat = np.broadcast_to(np.asarray(0 if latency is None else latency, dtype=np.int64), (N,))
     cb = method.codebook(n, qp)
-    chan = LinkEffects(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
+    chan = None if theta is not None else LinkEffects(channel=sc.network).samples(N, tpar, n, m, cb.nbytes)
     ctab = np.zeros((4, N), dtype=np.int64)
     if chan is not None:
         ctab[0] = chan.forced
@@ -175,8 +182,8 @@ def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) 
     last, code = int(stop_k[0]), int(status[0])
     nrej, nclamp, novf = (int(v) for v in counts[0])
     sl = slice(0, last)
-    theta = TH[sl].copy()
-    lost = int(theta.sum())
+    theta_k = TH[sl].copy()
+    lost = int(theta_k.sum())
     sat = SAT[sl].copy()
     enc_counters = {"sent": last, "withheld": 0, "saturations": int(sat.sum()), "desync_episodes": 0,
                     "stale_sensor": 0, "stale_acks": 0, "inconsistent_acks": 0}
@@ -190,19 +197,19 @@ def simulate_kernel(sc: Scenario, N: int, latency: npt.ArrayLike | None = None) 
         for arr in (a["xi_enc"], a["q_enc"]):
             arr[sl][unsent] = np.nan
         EE[sl][unsent] = np.nan
-        enc_counters = _encoder_counters(chan, theta, sat, last)
+        enc_counters = _encoder_counters(chan, theta_k, sat, last)
         c = {"sensed": chan.sensed[sl], "symbol_lost": chan.symbol_lost[sl], "late": chan.late[sl]}
-    cause = loss_cause(theta, withheld=withheld, attacker=ctab[3, sl] != 0, **c)
+    cause = loss_cause(theta_k, withheld=withheld, attacker=ctab[3, sl] != 0, **c)
     counters = {"encoder": enc_counters,
                 "controller": {"received": last - lost, "lost_deadline": lost, "invalid": 0,
                                "late": int(np.count_nonzero(cause == LATE)),
                                "superseded": 0, "future": 0, "overflows": novf, "decided": last},
                 "plant": {"rejected_nonfinite": nrej, "clamped": nclamp}}
     return SimResult(T=qp.T, t=np.arange(last) * qp.T, x=a["x"][sl], u=U[sl], q=a["q"][sl], q_enc=a["q_enc"][sl],
-                     xi_enc=a["xi_enc"][sl], E_enc=EE[sl], xi_dec=a["xi_dec"][sl], E_dec=ED[sl], theta=theta,
+                     xi_enc=a["xi_enc"][sl], E_enc=EE[sl], xi_dec=a["xi_dec"][sl], E_dec=ED[sl], theta=theta_k,
                      symbols=SYM[sl], saturated=sat, x_final=x_final,
                      flow_status=FLOW_OK if code == 0 else code, diverged_at=-1 if code == 0 else last - 1, K=K,
-                     reason=theta.astype(np.int64), withheld=withheld, u_missing=UMISS[sl], loss_cause=cause,
+                     reason=theta_k.astype(np.int64), withheld=withheld, u_missing=UMISS[sl], loss_cause=cause,
                      delays=DEL[sl].copy() if physical else None, counters=counters, loop_state=state_final,
                      simulator=BATCH)
 
