@@ -31,6 +31,7 @@ from .. import methodswap, validate
 from .. import scenario as scenario_mod
 from ..errors import BadInput
 from ..record.tracereader import read_recording_trace
+from ..scenariosections import SECTIONS
 from ..scenariospec import ScenarioError
 from ..scenariowrite import to_toml
 from . import engine
@@ -115,9 +116,9 @@ def loads(text: str, path: Path) -> Campaign:
             raise BadInput(f"{where}: axis {k!r} must be a non-empty list of values, got {v!r}")
         if len({json.dumps(x, sort_keys=True) for x in v}) != len(v):
             raise BadInput(f"{where}: axis {k!r} names a value twice")
-        if k.split(".")[0] not in scenario_mod._SECTIONS or "." not in k:
+        if k.split(".")[0] not in SECTIONS or "." not in k:
             raise BadInput(f"{where}: axis {k!r} is not a scenario key (section.key, e.g. \"attack.seed\"; "
-                           f"sections: {', '.join(sorted(scenario_mod._SECTIONS - {'name', 'description'}))})")
+                           f"sections: {', '.join(sorted(SECTIONS - {'name', 'description'}))})")
         flat[k] = v
     for k in flat:
         if k.startswith("method.") and k != "method.name" and k != "method.params" and not k.startswith("method.params."):
