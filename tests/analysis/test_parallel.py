@@ -102,6 +102,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow  # a process per flipped source, each compiling the kernel
 def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
     """A copy of the packages; one byte of each source the specialized kernel depends on flipped in turn
     (and flipped back): each flip gives a newly generated module (a cache miss), the flip back the first."""

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers.cli import tb_run
+from helpers.cli import tb_run, tb_run_here
 
 import testbed
 from testbed import errors, figstyle, scenario
@@ -28,6 +28,7 @@ API_MD = (ROOT / "docs" / "api.md").read_text()
 
 
 # ============================================================================ Run.save, Run.plot
+@pytest.mark.slow  # seconds: a report and a Rerun replay of the run
 def test_run_save_writes_a_recording_that_every_reader_and_viewer_opens(tmp_path):
     sim = testbed.simulate("paper", x0=[0.05, -0.02], duration=6, attack={"intervals": [[0.5, 0.25]]})
     path = sim.save(tmp_path / "sim.mcap")
@@ -37,10 +38,10 @@ def test_run_save_writes_a_recording_that_every_reader_and_viewer_opens(tmp_path
         assert np.array_equal(run.arrays[name], a, equal_nan=a.dtype.kind == "f"), name
     assert list(run.scenario.x0) == [0.05, -0.02]          # the overrides went into the recording
     assert testbed.compare(run, sim)["identical"]
-    r = tb_run("report", path, "--json")
+    r = tb_run_here("report", path, "--json")
     assert r.returncode == 0, r.stderr
     rrd = tmp_path / "sim.rrd"
-    r = tb_run("replay", path, "--rrd", rrd, "--no-roa")
+    r = tb_run_here("replay", path, "--rrd", rrd, "--no-roa")
     assert r.returncode == 0, r.stderr
     assert rrd.stat().st_size > 1000
 
@@ -55,10 +56,11 @@ def test_run_save_never_overwrites_unless_asked_and_copies_a_recording(tmp_path)
     assert copy.read_bytes() == path.read_bytes()
 
 
+@pytest.mark.slow  # seconds: the paper's figure drawn twice (41 s on a busy 2-core machine)
 def test_run_plot_is_the_figure_of_simulate_plot(tmp_path):
     """Same data drawn (the digests every figure carries are equal), in each format and size."""
     png = tmp_path / "cli.png"
-    r = tb_run("simulate", "paper", "--plot", png)
+    r = tb_run_here("simulate", "paper", "--plot", png)
     assert r.returncode == 0, r.stderr
     sim = testbed.simulate("paper")
     want = figstyle.read_digest(png)
@@ -159,15 +161,15 @@ def test_x_final_is_the_state_one_period_after_the_last_sample():
 
 def test_scenarios_show_prints_the_bundled_toml(tmp_path):
     for name in scenario.bundled_names():
-        r = tb_run("scenarios", "--show", name)
+        r = tb_run_here("scenarios", "--show", name)
         assert r.returncode == 0, r.stderr
         assert r.stdout == scenario.load(name).source
         tomllib.loads(r.stdout)
     f = tmp_path / "mine.toml"
-    f.write_text(tb_run("scenarios", "--show", "paper").stdout)
+    f.write_text(tb_run_here("scenarios", "--show", "paper").stdout)
     a, b = testbed.simulate(str(f)), testbed.simulate("paper")
     assert np.array_equal(a.arrays["x"], b.arrays["x"])
-    r = tb_run("scenarios", "--show", "nope")
+    r = tb_run_here("scenarios", "--show", "nope")
     assert r.returncode == 2 and "bundled ones are" in r.stderr and len(r.stderr.splitlines()) == 1
 
 
@@ -279,13 +281,14 @@ def test_check_plant_takes_the_plant_from_the_scenario(tmp_path):
     assert r.returncode == 2 and "name a plant (REF) or a scenario" in r.stderr
 
 
+@pytest.mark.slow  # seconds of numerics: two analyses
 def test_analyze_prints_prose_and_the_papers_delta_only_for_the_papers_example():
-    r = tb_run("analyze", "paper")
+    r = tb_run_here("analyze", "paper")
     assert r.returncode == 0, r.stderr
     assert "{" not in r.stdout and "'paper'" not in r.stdout, r.stdout
     assert "Theorem 1's condition at this budget holds" in r.stdout
     assert "the paper's delta" in r.stdout
-    r = tb_run("analyze", "pendulum")
+    r = tb_run_here("analyze", "pendulum")
     assert r.returncode == 0, r.stderr
     assert "{" not in r.stdout and "paper's delta" not in r.stdout, r.stdout
 

@@ -34,6 +34,7 @@ def method_dir(tmp_path):
     return d
 
 
+@pytest.mark.slow  # end to end: testbed versus in its own process
 def test_versus_paper_zoom_unquantized(tmp_path):
     """The paper's method converges, the zoom quantizer saturates (and recovers by its zoom-out), the
     unquantized loop converges, and all three faced the same attack."""
@@ -55,6 +56,7 @@ def test_versus_paper_zoom_unquantized(tmp_path):
     assert "ignores [quantizer]" in err and (tmp_path / "v.png").stat().st_size > 1000
 
 
+@pytest.mark.slow  # end to end: three testbed versus processes
 def test_versus_seeds_summary(tmp_path):
     """--seeds: every method on the same random attack per seed; success rate, Wilson interval, paired
     difference to the first method (checked against the rows)."""
@@ -129,6 +131,7 @@ def test_methods_command():
     assert all("batch" in rows[n]["runs"] for n in rows)
 
 
+@pytest.mark.slow  # end to end: a user's method loaded by four processes
 def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     """A method from a module next to its scenario: simulate from another folder, record, and report the
     recording from a third; the recording stores the method's reference, source and hash."""
@@ -160,6 +163,7 @@ def test_user_method_next_to_scenario_simulate_and_report(method_dir):
     assert rc == 2 and "no batch kernel" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # end to end: simulate, versus and campaign processes
 def test_swapping_in_the_scenarios_own_method_keeps_its_params(method_dir):
     """One swap rule: --method with the scenario's own method keeps its [method] params (a = 0.9, not the
     default 0.96), another method names the params it drops in one stderr line, and simulate, versus and a
@@ -201,6 +205,7 @@ def test_swapping_in_the_scenarios_own_method_keeps_its_params(method_dir):
     assert "testbed campaign: note: method 'paper' drops the [method] params a of 'mymethod:CenteredZoom'" in err
 
 
+@pytest.mark.slow  # end to end: six testbed processes
 def test_trace_method_b_loses_method_a_samples(tmp_path):
     """Method B on method A's recording (a trace of the samples A's attacker dropped) loses exactly them;
     the trace is embedded in B's recording (report works with A's file gone); a wrong T or a trace shorter
@@ -280,6 +285,7 @@ def test_bad_method_references_one_line(tmp_path, ref, msg):
     assert rc == 2 and msg in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.slow  # end to end: a user's method in its own processes
 def test_method_whose_ends_disagree_or_raise(tmp_path):
     text = (Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml").read_text()
     for raise_, what in (("False", "broke lockstep"), ("True", "raised at sample 7: ZeroDivisionError: boom")):

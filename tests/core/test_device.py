@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers.cli import run_cli, tb_cmd
+from helpers.cli import tb_here
 
 from testbed import scenario
 from testbed.analysis import noise
@@ -157,9 +157,9 @@ def test_batch_kernel_refuses_a_device_and_auto_runs_the_loop(tmp_path):
     assert "device" in kernel_refusal(sc)
     f = tmp_path / "noisy.toml"
     f.write_text(text)
-    rc, out, err = run_cli(tb_cmd("simulate", str(f)))
+    rc, out, err = tb_here("simulate", f)
     assert rc == 0 and "simulator: the per-sample loop (the plant is a device: [plant.sensor])" in out, (out, err)
-    rc, out, err = run_cli(tb_cmd("simulate", str(f), "--simulator", "batch"))
+    rc, out, err = tb_here("simulate", f, "--simulator", "batch")
     assert rc == 2 and "device" in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -169,7 +169,7 @@ def test_recording_keeps_true_and_measured_state_and_resimulates(tmp_path):
     f = tmp_path / "noisy.toml"
     f.write_text(text)
     rec = tmp_path / "n.mcap"
-    rc, out, err = run_cli(tb_cmd("simulate", str(f), "--json", "--out", str(rec)))
+    rc, out, err = tb_here("simulate", f, "--json", "--out", rec)
     assert rc in (0, 1), err
     sim = json.loads(out)
     res = simulate_scenario(scenario.loads(text))
@@ -178,14 +178,14 @@ def test_recording_keeps_true_and_measured_state_and_resimulates(tmp_path):
     cols = read_columns(rec)
     assert np.array_equal(cols.get("plant", "x_meas")[:len(res.t)], res.x_meas)
     assert np.array_equal(cols.get("plant", "x")[:len(res.t)], res.x)
-    rc, out, err = run_cli(tb_cmd("report", str(rec), "--json"))
+    rc, out, err = tb_here("report", rec, "--json")
     assert rc in (0, 1), err
     assert json.loads(out)["x_meas"] == sim["x_meas"]
     import testbed
 
     run = testbed.open(rec)
     assert np.array_equal(run.arrays["x_meas"], res.x_meas) and "x_meas2" in run.columns()
-    rc, out, err = run_cli(tb_cmd("resimulate", str(rec), "--json"))
+    rc, out, err = tb_here("resimulate", rec, "--json")
     r = json.loads(out)
     assert r["reproduced"] and r["max_state_error"] == 0, r
 
@@ -212,13 +212,12 @@ def test_bad_device_tables_are_one_line(tmp_path, extra, key):
         scenario.loads(text)
     f = tmp_path / "bad.toml"
     f.write_text(text)
-    rc, out, err = run_cli(tb_cmd("simulate", str(f)))
+    rc, out, err = tb_here("simulate", f)
     assert rc == 2 and len(err.strip().splitlines()) == 1 and key in err, err
 
 
 def test_noise_command_sweeps_and_says_what_it_found(tmp_path):
-    rc, out, err = run_cli(tb_cmd("noise", "docs/examples/paper-noisy.toml", "--scale", "1e-5", "--ratio", "0", "3",
-                                  "--json"))
+    rc, out, err = tb_here("noise", "docs/examples/paper-noisy.toml", "--scale", "1e-5", "--ratio", "0", "3", "--json")
     assert rc == 0, err
     d = json.loads(out)
     (e,) = d["scales"]
@@ -227,7 +226,7 @@ def test_noise_command_sweeps_and_says_what_it_found(tmp_path):
     assert none["E_min"] == 0 and none["saturations_after"] > 0
     assert floor["E_min"] == pytest.approx(3e-5, rel=1e-12)
     assert floor["saturations"] == 0 and floor["inside_ball"] and not floor["escaped"]
-    rc, out, err = run_cli(tb_cmd("noise", "docs/examples/paper-noisy.toml", "--settle", "99"))
+    rc, out, err = tb_here("noise", "docs/examples/paper-noisy.toml", "--settle", "99")
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "--settle" in err, err
 
 
@@ -239,6 +238,7 @@ def test_campaigns_run_a_device_on_the_per_sample_loop():
     assert batch_key(scenario.load("paper"), PAPER, "") is not None
 
 
+@pytest.mark.slow  # seconds of numerics: analyses of a noisy scenario
 def test_the_analysis_says_what_of_the_scenario_it_leaves_out(tmp_path):
     """The analysis runs the paper's loop: a [network] channel and the device are named in one stderr line and in
     ``not_modelled`` of the JSON (the paper's own example: nothing left out, no line)."""
@@ -247,12 +247,12 @@ def test_the_analysis_says_what_of_the_scenario_it_leaves_out(tmp_path):
                              "[network]\nseed = 1\nsymbol = { loss = 0.2 }\n", duration=3.0))
     for cmd in (["analyze", f, "--json"], ["worst-attack", f, "--attacks", "1", "--workers", "1", "--no-progress",
                                            "--json"]):
-        rc, out, err = run_cli(tb_cmd(*cmd), timeout=300)
+        rc, out, err = tb_here(*cmd)
         assert rc == 0, err
         assert json.loads(out)["not_modelled"] == ["[network]", "[plant.sensor]", "[plant.actuator]"]
         (line,) = [ln for ln in err.splitlines() if "note:" in ln]
         assert line.startswith(f"testbed {cmd[0]}: note: the analysis runs the paper's loop") and \
             line.endswith("it leaves out this scenario's [network], [plant.sensor], [plant.actuator], which "
                           "testbed simulate and testbed run model")
-    rc, out, err = run_cli(tb_cmd("analyze", "paper", "--json"), timeout=300)
+    rc, out, err = tb_here("analyze", "paper", "--json")
     assert rc == 0 and json.loads(out)["not_modelled"] == [] and "note:" not in err

@@ -118,6 +118,7 @@ def test_zoom_saturates_under_the_papers_attack_paper_does_not():
     assert np.array_equal(z.theta, p.theta)
 
 
+@pytest.mark.slow  # seconds of numerics: testbed worst-attack end to end
 def test_worst_attack_with_a_method_agrees_with_the_per_sample_simulator(tmp_path):
     """worst-attack --method (batch kernel, escape by the method's own loop) against testbed.simulate
     (per-sample simulator): the schedule it returns escapes, the same one shortened by one sample does not."""

@@ -10,7 +10,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from helpers.cli import PY
+from helpers.cli import tb_run_here
 
 from testbed import scenario
 from testbed.quantizer import MAX_CODES
@@ -49,7 +49,7 @@ def _linear(n: int, M: int, extra: str = "") -> str:
 def test_a_codebook_beyond_the_limit_is_refused_up_front(tmp_path, n, M):
     f = tmp_path / "big.toml"
     f.write_text(_linear(n, M))
-    r = subprocess.run([PY, "-m", "testbed.cli", "simulate", str(f)], capture_output=True, text=True, timeout=120)
+    r = tb_run_here("simulate", f)
     assert r.returncode == 2, r.stderr
     line = r.stderr.strip()
     assert len(line.splitlines()) == 1 and "[quantizer.M]" in line and "2^31 - 1" in line, line
@@ -70,8 +70,7 @@ def test_the_largest_codebook_works_end_to_end(tmp_path):
     assert np.array_equal(b.x[0], res.x) and np.array_equal(b.E[0], res.E_enc)
     out = tmp_path / "big.mcap"
     recording.record_simulation(out, sc, res)
-    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(out), "--json"], capture_output=True, text=True,
-                       timeout=120)
+    r = tb_run_here("report", out, "--json")
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     assert rep["symbols"] == s["symbols"] and rep["resimulation"]["reproduced"]

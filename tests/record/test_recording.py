@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from failclosed import require
-from helpers.cli import PY
+from helpers.cli import PY, tb_run_here
 from helpers.sims import sim_recording
 
 from testbed import scenario
@@ -56,7 +56,7 @@ def test_the_stored_descriptor_set_is_self_contained():
 
 
 # ---------------------------------------------------------------------------- simulate --out and report
-@pytest.mark.parametrize("name", ["paper", "paper-escape", "cartpole"])
+@pytest.mark.parametrize("name", ["paper", "paper-escape", pytest.param("cartpole", marks=pytest.mark.slow)])  # cartpole: seconds
 def test_report_of_a_simulation_equals_simulate_json(tmp_path, name):
     sc, res, path = sim_recording(tmp_path, name, duration=8.0)
     want = json.loads(json.dumps(summarize(sc, res)))
@@ -121,14 +121,14 @@ def test_plain_mcap_reader_opens_and_decodes_it(tmp_path):
 def test_report_cli_json_and_plot(tmp_path):
     _, _, path = sim_recording(tmp_path, "paper", duration=6.0)
     png = tmp_path / "fig.png"
-    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(path), "--json", "--plot", str(png)],
-                       capture_output=True, text=True, timeout=120)
+    r = tb_run_here("report", path, "--json", "--plot", png)
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert s["scenario"] == "paper" and len(s["t"]) == 60
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow  # seconds: a whole recording re-simulated
 def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_path, monkeypatch, capsys):
     """The report's resimulation check covers RESIMULATE_SAMPLES samples by default (the API's and the
     command's default, read when the report is made) and says so; all or none on request."""
@@ -149,19 +149,16 @@ def test_report_resimulates_the_first_samples_by_default_and_all_when_asked(tmp_
     assert full["checked"] == N and full["reproduced"] is True and "of" not in full["verdict"]
     none = rep_mod.report(path, resimulate=0)["resimulation"]
     assert none["reproduced"] is None and "not resimulated" in none["verdict"]
-    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(path), "--json", "--resimulate", "all"],
-                       capture_output=True, text=True, timeout=120)
+    r = tb_run_here("report", path, "--json", "--resimulate", "all")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["resimulation"]["checked"] == N
-    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(path), "--resimulate", "-3"],
-                       capture_output=True, text=True, timeout=120)
+    r = tb_run_here("report", path, "--resimulate", "-3")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "--resimulate" in r.stderr
 
 
 def test_simulate_out_flag_writes_a_recording(tmp_path):
     out = tmp_path / "s.mcap"
-    r = subprocess.run([PY, "-m", "testbed.cli", "simulate", "paper", "--duration", "2", "--out", str(out)],
-                       capture_output=True, text=True, timeout=120)
+    r = tb_run_here("simulate", "paper", "--duration", "2", "--out", out)
     assert r.returncode == 0, r.stderr
     assert len(reader.read(out).telemetry["plant"]) == 20
 
@@ -172,10 +169,9 @@ def test_not_an_mcap_file_is_a_clear_error(tmp_path):
     bad.write_bytes(b"hello, not a recording")
     with pytest.raises(ValueError, match="not an MCAP file"):
         reader.read(bad)
-    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(bad)], capture_output=True, text=True, timeout=60)
+    r = tb_run_here("report", bad)
     assert r.returncode == 2 and "not an MCAP file" in r.stderr
-    r = subprocess.run([PY, "-m", "testbed.cli", "report", str(tmp_path / "missing.mcap")], capture_output=True,
-                       text=True, timeout=60)
+    r = tb_run_here("report", tmp_path / "missing.mcap")
     assert r.returncode == 2 and "No such file" in r.stderr
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import rerun as rr  # noqa: F401 - a dependency of the testbed (rerun-sdk)
 from failclosed import require
-from helpers.cli import PY
+from helpers.cli import tb_run_here
 from rerun.chunk import RrdReader
 
 from testbed.view import phase
@@ -122,8 +122,7 @@ def test_simulation_rrd_entities_and_E(sim, tmp_path):
 def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
     """n = 4: phase plane of (x1, x2), no ROA outline."""
     path = tmp_path / "cp.rrd"
-    p = subprocess.run([PY, "-m", "testbed.cli", "simulate", "cartpole", "--duration", "2", "--rrd", str(path)],
-                       capture_output=True, text=True, timeout=TIMEOUT)
+    p = tb_run_here("simulate", "cartpole", "--duration", "2", "--rrd", path)
     assert p.returncode == 0, p.stderr[-2000:]
     paths = entity_paths(path)
     assert ENTITIES <= paths and "/phase/roa" not in paths
@@ -136,11 +135,9 @@ def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
 def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
     sc, res = sim
     mcap, rrd = tmp_path / "sim.mcap", tmp_path / "replay.rrd"
-    p = subprocess.run([PY, "-m", "testbed.cli", "simulate", "paper", "--out", str(mcap)], capture_output=True,
-                       text=True, timeout=TIMEOUT)
+    p = tb_run_here("simulate", "paper", "--out", mcap)
     assert p.returncode == 0, p.stderr[-2000:]
-    p = subprocess.run([PY, "-m", "testbed.cli", "replay", str(mcap), "--rrd", str(rrd)], capture_output=True,
-                       text=True, timeout=TIMEOUT)
+    p = tb_run_here("replay", mcap, "--rrd", rrd)
     assert p.returncode == 0, p.stderr[-2000:]
     assert ENTITIES | {"/phase/roa", "/scenario"} <= entity_paths(rrd)
     E = scalars(rrd, "/encoder/E")

@@ -14,6 +14,11 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
+
+# mypy over the whole code takes a minute and more (87 s for the first test on a busy 2-core machine): slow tier
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from helpers.cli import run_cli, tb_cmd
+from helpers.cli import tb_here
 from helpers.sims import sim_recording
 
 import testbed
@@ -50,13 +50,13 @@ def test_a_plant_whose_physics_differ_from_the_model(tmp_path):
     """paper-mismatch: the true plant has b = 0.03, the model b = 0.02.  On the recorded plant the loop is
     identical (it did what the method says with the plant's numbers) and e_k shows the plant is not the model."""
     _sc, _res, path = sim_recording(tmp_path, "paper-mismatch")
-    rc, out, err = run_cli(tb_cmd("resimulate", str(path), "--plant", "recorded", "--json"))
+    rc, out, err = tb_here("resimulate", path, "--plant", "recorded", "--json")
     assert rc == 0, err
     r = json.loads(out)
     assert r["plant"] == "recorded" and r["loop_identical"] is True and r["loop_first_divergence"] is None, r
     pm = r["plant_model_error"]
     assert pm["max"] > 1e-6 and 0 <= pm["at"] < 300 and 0 < pm["mean"] < pm["max"], pm
-    rc, out, err = run_cli(tb_cmd("resimulate", str(path), "--plant", "recorded"))
+    rc, out, err = tb_here("resimulate", path, "--plant", "recorded")
     assert rc == 0 and "re-run on the recorded plant (--plant recorded)" in out, (out, err)
     assert "reproduced: the loop is identical on the recorded plant" in out and "plant vs model" in out, out
 
@@ -83,7 +83,7 @@ def test_a_controller_that_breaks_the_law_diverges_at_its_sample(tmp_path):
     r = resimulation(testbed.open(path), plant="recorded")
     assert r["loop_identical"] is False and r["loop_first_divergence"] == 40 and "u" in r["loop_differs_in"], r
     assert not r["reproduced"] and "differs from sample 40 (u)" in r["verdict"], r["verdict"]
-    rc, out, err = run_cli(tb_cmd("resimulate", str(path), "--plant", "recorded", "--json"))
+    rc, out, err = tb_here("resimulate", path, "--plant", "recorded", "--json")
     assert rc == 1 and json.loads(out)["loop_first_divergence"] == 40, err
     path = _tampered(tmp_path, "symbol", 77)
     r = resimulation(testbed.open(path), plant="recorded")

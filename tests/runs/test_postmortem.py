@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers.cli import PY, tb_run
+from helpers.cli import PY, tb_run_here
 from helpers.recordings import assert_columns_equal_reference
 from helpers.sims import sim_recording
 
@@ -67,7 +67,7 @@ def test_a_file_cut_mid_chunk_reads_like_the_reference(tmp_path):
     rec = reader.read(cut)
     assert cols.truncated and rec.truncated and 0 < cols.last_k("plant") < len(res.t) - 1
     assert_columns_equal_reference(cols, rec)
-    r = tb_run("report", cut)
+    r = tb_run_here("report", cut)
     assert r.returncode == 0 and "TRUNCATED" in r.stdout, r.stderr
     s = report(cut)
     assert s["recording"]["truncated"] and s["samples"] == cols.last_k("plant") + 1
@@ -96,11 +96,11 @@ def test_telemetry_outside_0_N_is_rejected_and_counted(tmp_path):
     assert path.stat().st_size < 20_000
     cols = columns.read_columns(path)
     assert cols.rows == 20 and cols.rejected == {"plant": 3} and cols.malformed == 1   # k >= N; a 3-vector
-    r = tb_run("report", path, "--json")
+    r = tb_run_here("report", path, "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert s["samples"] == 2 and s["recording"]["rejected"] == {"plant": 3}
-    r = tb_run("report", path)
+    r = tb_run_here("report", path)
     assert "WARNING: 3 telemetry messages rejected" in r.stdout
 
 
@@ -150,11 +150,11 @@ def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, caps
             assert code == 2 and len(err.strip().splitlines()) == 1, (what, cmd, err)
         with pytest.raises(BadInput, match=re.escape(str(path))):  # as docs/api.md promises, a missing file too
             testbed.open(path)
-        r = tb_run("report", path)
+        r = tb_run_here("report", path)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, \
             (what, r.stderr)
-    assert "corrupt recording" in tb_run("report", bad["bit-flipped"]).stderr
-    assert "no scenario" in tb_run("report", bad["foreign"]).stderr
+    assert "corrupt recording" in tb_run_here("report", bad["bit-flipped"]).stderr
+    assert "no scenario" in tb_run_here("report", bad["foreign"]).stderr
 
 
 def test_a_cut_recording_is_read_up_to_the_cut_by_every_command(tmp_path, capsys):
@@ -187,6 +187,7 @@ def test_a_cut_recording_is_read_up_to_the_cut_by_every_command(tmp_path, capsys
     assert run.N == n and len(run.arrays["x"]) == n
 
 
+@pytest.mark.slow  # seconds: the reader fuzzed with random, cut and flipped files
 def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
     """Issue 11: 1e5 random telemetry messages, then cut and bit-flipped files: no traceback, bounded memory."""
     rng = random.Random(1234)
@@ -266,6 +267,7 @@ def test_simulate_overrides_are_validated_like_the_file():
         testbed.simulate("paper", K=[[0, 0]])
 
 
+@pytest.mark.slow  # end to end: the walkthrough script in its own process
 def test_the_api_walkthrough_runs_on_the_public_api_only(tmp_path):
     """docs/walkthrough.py: only ``import testbed`` and the names it exports; it saves and plots a Run."""
     import ast
@@ -296,7 +298,7 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
 
     sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     out = tmp_path / f"run.{fmt}"
-    r = tb_run("export", path, "--format", fmt, "-o", out, "--json")
+    r = tb_run_here("export", path, "--format", fmt, "-o", out, "--json")
     assert r.returncode == 0, r.stderr
     t = pq.read_table(out) if fmt == "parquet" else pcsv.read_csv(out)
     cols = testbed.open(path).columns()
@@ -312,14 +314,14 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
 
 def test_compare_identical_and_different_runs(tmp_path):
     _, _, a = sim_recording(tmp_path, "paper", duration=5.0)
-    r = tb_run("compare", a, "paper", "--json", "--plot", tmp_path / "c.png")
+    r = tb_run_here("compare", a, "paper", "--json", "--plot", tmp_path / "c.png")
     c = json.loads(r.stdout)
     assert r.returncode == 0 and c["identical"] and c["first_divergence"] is None and c["max_state_error"] == 0.0
     assert c["theta_differs_at"] == [] and c["symbols_differ_at"] == [] and c["samples"]["b"] == 50
     assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
     text = tmp_path / "late.toml"
     text.write_text(scenario.load("paper").source.replace("[[1.0, 1.2], [4.0, 0.8]]", "[[1.0, 1.2], [4.1, 0.8]]"))
-    c = json.loads(tb_run("compare", a, text, "--json").stdout)
+    c = json.loads(tb_run_here("compare", a, text, "--json").stdout)
     assert not c["identical"] and c["first_divergence"] == 40 and c["theta_differs_at"][0] == 40
     assert c["theta_differs"] == 2 and c["max_state_error"] > 0
 

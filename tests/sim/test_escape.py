@@ -7,7 +7,7 @@ import dataclasses
 import json
 
 import numpy as np
-from helpers.cli import tb_run
+from helpers.cli import tb_run_here
 from helpers.sims import paper_loop_toml
 
 from testbed import scenario
@@ -46,7 +46,7 @@ def test_an_attack_ending_at_the_horizon_escapes_although_x_N_is_in_the_nominal_
     assert set(crit) >= {"kind", "horizon_s", "x_tol", "E_tol"}
     assert crit["horizon_s"] > 0 and crit["x_tol"] == sc.run.converge_tol
     # through the command, as a user runs it
-    p = tb_run("simulate", "paper", "--duration", "2", "--json", timeout=300)
+    p = tb_run_here("simulate", "paper", "--duration", "2", "--json")
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["escape_criterion"] == crit
 
