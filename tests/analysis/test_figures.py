@@ -41,6 +41,7 @@ def _check(docs: Path, *only: str) -> subprocess.CompletedProcess:
     return subprocess.run(args, capture_output=True, text=True, timeout=3600, cwd=ROOT)
 
 
+@pytest.mark.slow  # seconds: figures drawn and compared (44 s on a busy 2-core machine)
 def test_a_current_figure_passes_and_a_stale_one_fails(tmp_path):
     docs = tmp_path / "docs"
     (docs / "figures").mkdir(parents=True)

@@ -327,6 +327,7 @@ def test_three_attacks_on_the_paper_cost_at_most_0_3_s_and_the_scenario_escapes(
     assert p.returncode == 2 and "--force" in p.stderr and out.read_text() == before
 
 
+@pytest.mark.slow  # end to end: worst-attack in its own process
 def test_scenario_out_when_nothing_escapes_exits_1_and_writes_nothing(tmp_path):
     out = tmp_path / "none.toml"
     p = _cli("worst-attack", "paper", "--max-length", "0.1", "--no-greedy", "--no-progress", "--workers", "1",
@@ -342,6 +343,7 @@ def test_scenario_out_when_nothing_escapes_exits_1_and_writes_nothing(tmp_path):
     assert not list(tmp_path.glob(".worst-*"))
 
 
+@pytest.mark.slow  # end to end: worst-attack and simulate in their own processes
 @pytest.mark.parametrize("method", ["zoom", "unquantized"])
 def test_scenario_out_of_a_swapped_method_names_the_method_and_escapes(tmp_path, method):
     """``--method`` with ``--scenario-out``: the file's [method] is the one searched, its [quantizer]

@@ -99,6 +99,7 @@ def _verdicts(tmp_path, base: str, duration: float) -> dict:
 
 @pytest.mark.parametrize("base, duration", [("paper", 4.0), ("paper", 30.0), ("paper-escape", 4.0),
                                             ("paper-escape", 30.0)])
+@pytest.mark.slow  # seconds: every reader of every method's run
 def test_one_escape_verdict_for_every_reader_and_method(tmp_path, examples_on_path, base, duration):
     v = _verdicts(tmp_path, base, duration)
     assert set(v.values()) == {True, False}, v  # each case has runs that escape and runs that do not
@@ -129,6 +130,7 @@ def test_the_issue_cases(tmp_path, examples_on_path, capsys):
     assert "ESCAPED" not in out if not sim["escaped"] else "ESCAPED" in out
 
 
+@pytest.mark.slow  # seconds of numerics: report and analyze of the paper's example
 def test_report_and_analyze_say_which_theorem1_check_they_make(tmp_path, capsys):
     """The paper's converging run: its realized loss rates taken as rates lie outside Theorem 1's region,
     the declared budget (with its intercepts) inside; the report says both and which is which, and the

@@ -40,6 +40,7 @@ def test_batch_equals_single_and_is_deterministic():
 
 @pytest.mark.parametrize("x0,u", [([5.0, 50.0], 400.0), ([100.0, 100.0], -400.0),
                                   ([-30.0, 2.0], 0.0), ([3.0, -200.0], 370.0)])
+@pytest.mark.slow  # seconds of numerics: long stiff integrations
 def test_stiff_after_long_attack(x0, u):
     """After a 1 s attack E_k ~ 100 and K q_k is huge: the -b x1^5 term is stiff; stay finite and accurate."""
     p = plants.make("lienard")

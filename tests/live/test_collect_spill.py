@@ -112,6 +112,7 @@ def test_the_streamed_end_of_run_equals_the_whole_file_read(tmp_path, monkeypatc
         assert col2.telemetry_check() == []
 
 
+@pytest.mark.slow  # seconds: a long run's spill read back in chunks (39 s on a busy 2-core machine)
 def test_the_spill_is_read_in_bounded_chunks(tmp_path):
     """500,000 records read back through ``Spill.records``: every one, in order, and the reader's memory
     (tracemalloc's peak) a few chunks, not the file (about 30 MB)."""

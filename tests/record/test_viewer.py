@@ -119,6 +119,7 @@ def test_simulation_rrd_entities_and_E(sim, tmp_path):
     assert v.returncode == 0, v.stderr[-2000:]
 
 
+@pytest.mark.slow  # seconds: the cart-pole drawn into Rerun
 def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
     """n = 4: phase plane of (x1, x2), no ROA outline."""
     path = tmp_path / "cp.rrd"
@@ -132,6 +133,7 @@ def test_simulate_cli_rrd_cartpole_without_roa(tmp_path):
 
 
 # ---------------------------------------------------------------- replay of an MCAP recording
+@pytest.mark.slow  # seconds: a simulation recorded and replayed into Rerun
 def test_replay_of_simulated_recording_gives_the_same_E(sim, tmp_path):
     sc, res = sim
     mcap, rrd = tmp_path / "sim.mcap", tmp_path / "replay.rrd"

@@ -153,9 +153,9 @@ def test_machine_stalls_count_for_every_test():
 
 # ---------------------------------------------------------------------------------------------- broken builds
 def _simulated(*args) -> dict:
-    from helpers.cli import run_cli, tb_cmd
+    from helpers.cli import tb_here
 
-    rc, out, err = run_cli(tb_cmd("simulate", "paper", *args, "--json"))
+    rc, out, err = tb_here("simulate", "paper", *args, "--json")
     assert rc == 0, err
     return json.loads(out)
 

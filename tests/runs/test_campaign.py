@@ -153,6 +153,7 @@ def test_verify_and_a_tampered_row(c120, tmp_path):
     assert f"version: numpy 0.0 in the manifest, {np.__version__} here" in p.stdout
 
 
+@pytest.mark.slow  # end to end: a campaign process per bad value
 def test_bad_value_is_one_line_naming_axis_value_reason(tmp_path):
     c = _campaign(tmp_path, 'scenario = "random.toml"\n[axes]\n"method.name" = ["paper"]\n'
                             '"plant.x0" = [[0.1, 0.1], [9.0, 0.0]]\n')
@@ -403,6 +404,7 @@ def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
     assert any(r["settle_samples"] is not None for r in single) and any(r["settle_samples"] is None for r in single)
 
 
+@pytest.mark.slow  # end to end: campaigns in their own processes
 def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
     """A user's method (docs/examples/mymethod.py) has no batch kernel: its runs go through the per-sample
     simulator and equal testbed simulate --json; a run that raises (a method whose codebook fails for one
@@ -441,6 +443,7 @@ def test_a_users_method_runs_per_sample_and_a_crash_is_exit_1(tmp_path):
     assert json.loads(p.stdout)["summary"]["failed"] == 1
 
 
+@pytest.mark.slow  # end to end: campaigns of a user's method in their own processes
 def test_a_campaign_with_a_users_method_reruns_from_its_folder_alone(tmp_path):
     """The folder stores the method's module (manifest: source and sha256; a copy beside the scenarios):
     from another folder, with only the project root on PYTHONPATH, `testbed simulate DIR/scenarios/RUN.toml`
@@ -555,6 +558,7 @@ def test_the_slurm_example_renders_the_job_script_it_describes():
     assert "--nworkers 8" in script and "--nthreads 1" in script, script  # one thread per worker process
 
 
+@pytest.mark.slow  # seconds: a campaign's runs
 def test_rows_count_the_lost_samples_by_cause(tmp_path):
     """``losses``: a campaign over a symbol link with and without losses: each row's causes add up to
     ``samples_lost`` and equal ``testbed simulate --json`` of its scenario (the batch kernel's rows:
@@ -577,6 +581,7 @@ def test_rows_count_the_lost_samples_by_cause(tmp_path):
 
 
 # ============================================================================ summary, comparisons, progress
+@pytest.mark.slow  # seconds: a campaign's runs
 def test_summary_pairs_the_runs_and_the_table_shows_them(tmp_path):
     """The summary's paired comparison of two methods equals the one counted here from the rows paired by
     seed; every group tells converged, bounded and escaped apart; --table prints it as Markdown and LaTeX.

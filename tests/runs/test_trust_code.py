@@ -128,6 +128,7 @@ def _drive(tmp: Path, rec: Path, cwd: Path, trust: bool) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # end to end: every reader in its own process
 @pytest.mark.parametrize("kind", ["method", "plant"])
 def test_no_reader_runs_stored_code_without_trust_code_and_every_reader_runs_it_with_it(tmp_path, kind):
     rec, sim, elsewhere = _recording(tmp_path, kind)
@@ -171,6 +172,7 @@ def test_no_reader_runs_stored_code_without_trust_code_and_every_reader_runs_it_
     assert got["testbed.open"]["escaped"] == rep["escaped"] and not got["testbed.open"]["not_run"]
 
 
+@pytest.mark.slow  # end to end: readers in their own processes
 def test_a_module_importable_from_the_users_own_path_runs_without_the_flag(tmp_path):
     """The user's own code: the module on the user's path (here PYTHONPATH) is imported as the run did."""
     rec, sim, elsewhere = _recording(tmp_path, "method")

@@ -155,6 +155,7 @@ def test_recorded_losses_on_a_constructed_record():
     assert got["network"] == 0 and got["late"] == int(theta.sum())
 
 
+@pytest.mark.slow  # seconds: simulations recorded and reported
 def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
     """A simulated run with a lossy, late symbol link and a lossy ack link, written as a recording: the
     report reads back the simulator's losses (the attacker's from its log, the late ones from the
@@ -194,6 +195,7 @@ def test_report_of_a_simulated_recording_tells_losses_apart(tmp_path):
     assert ld["theorem1"]["in_allowable_region"] == bool(reg.holds(ld["frequency"], ld["duration_fraction"]))
 
 
+@pytest.mark.slow  # seconds of numerics: Theorem 1's region twice
 def test_losses_as_dos_inside_and_outside_theorem1_region():
     from testbed.runs.report import losses_as_dos
 
