@@ -227,7 +227,7 @@ def _test_layout() -> list[str]:
 def test_every_test_module_is_in_a_folder_the_docs_name():
     """A newcomer finds a test by the layer it is about: every ``test_*.py`` is in a folder that
     docs/development.md names and says what it holds, every folder named there exists, and no two test
-    modules share a file name (pytest imports them by it; tests/ has no ``__init__.py``)."""
+    modules share a file name (pytest imports them by it: the one ``__init__.py`` of tests/ is the helpers package's)."""
     layout = _test_layout()
     folders = {e.rstrip("/") for e in layout if e.endswith("/")}
     assert {"tests/core", "tests/sim", "tests/live", "tests/helpers", "tests/repo"} <= folders, layout
@@ -242,3 +242,4 @@ def test_every_test_module_is_in_a_folder_the_docs_name():
         names.setdefault(p.name, []).append(str(p.relative_to(ROOT)))
     twice = {n: ps for n, ps in names.items() if len(ps) > 1}
     assert not twice, f"test modules of one name: {twice}"
+    assert sorted(TESTS.rglob("__init__.py")) == [TESTS / "helpers" / "__init__.py"]  # one package: tests/helpers
