@@ -9,7 +9,7 @@ every line, image, patch and text of a figure in the file's metadata (``figstyle
 and ``--check`` recomputes the figure and compares the digests. The data files beside the figures
 (``docs/analysis/paper.json``, ``docs/figures/*.json``: what the command printed with ``--json``)
 are compared value by value (to 9 significant digits), without what depends on the machine (wall
-times, rates, worker counts) and without the figure paths. ``tests/test_figures.py`` runs the
+times, rates, worker counts) and without the figure paths. ``tests/analysis/test_figures.py`` runs the
 check (slow tier) and shows that it fails on a stale copy (fast tier).
 """
 

@@ -9,7 +9,7 @@ comes from the commands below, run here as a user would run them (``testbed ... 
 holds a number as ``<!--n:NAME-->value<!--/n-->`` and a table as ``<!--numbers:NAME-->`` ...
 ``<!--/numbers-->``; this script rewrites what is between the markers and nothing else (the
 figures and their data come from ``docs/make_figures.py``). A slow-tier test runs ``--check``
-(``tests/test_docs.py``). Timing figures are not here: they depend on the
+(``tests/repo/test_docs.py``). Timing figures are not here: they depend on the
 machine, and ``docs/benchmarks.md`` names the benchmark that measures each.
 """
 
@@ -391,7 +391,7 @@ def render(n: dict[str, str], b: dict[str, str]) -> dict[Path, str]:
         out[page] = BLOCK.sub(block, INLINE.sub(inline, text))
     lines = ["# The generated numbers", "",
              "Written by `python docs/make_numbers.py` from `testbed ... --json` runs (the commands are in the script); "
-             "`tests/test_docs.py` checks, in the slow tier, that every page is current. Nothing on this page "
+             "`tests/repo/test_docs.py` checks, in the slow tier, that every page is current. Nothing on this page "
              "depends on the machine.", ""]
     titles = {"bundled_scenarios": "Bundled scenarios (`testbed simulate NAME`)",
               "mismatch": "Model mismatch (`testbed simulate paper-mismatch`)",

@@ -1,4 +1,4 @@
-"""A notebook-style walkthrough of the Python API (docs/api.md); ``tests/test_postmortem.py`` runs it.
+"""A notebook-style walkthrough of the Python API (docs/api.md); ``tests/runs/test_postmortem.py`` runs it.
 
     python docs/walkthrough.py [WORKDIR]
 

@@ -1,6 +1,6 @@
 """The contract a plant of equation (1) must meet, checked one verdict at a time.
 
-Used by the contract test over every registered plant (``tests/test_plants.py``)
+Used by the contract test over every registered plant (``tests/core/test_plants.py``)
 and by ``testbed check-plant REF`` on a user's plant:
 
 * ``shapes``: n, m >= 1; f over a batch has shape (P, n), is finite, equals f

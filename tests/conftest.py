@@ -6,7 +6,8 @@ import sys
 import tempfile
 
 import pytest
-from helpers import LOGS, cmdlines, procs_with, reap
+from helpers.live import LOGS
+from helpers.procs import cmdlines, procs_with, reap
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 # live runs record by default: the tests' recordings go to a scratch directory, not recordings/
@@ -24,11 +25,11 @@ def paper():
 
 @pytest.fixture(scope="session")
 def lienard_fmu(tmp_path_factory):
-    """The test FMU of the Lienard plant (tests/fmu: C source built with gcc against fmpy's FMI headers)."""
+    """The test FMU of the Lienard plant (tests/data/fmu: C source built with gcc against fmpy's FMI headers)."""
     import importlib.util
     from pathlib import Path
 
-    spec = importlib.util.spec_from_file_location("testbed_test_fmu_build", Path(__file__).parent / "fmu" / "build.py")
+    spec = importlib.util.spec_from_file_location("testbed_test_fmu_build", Path(__file__).parent / "data" / "fmu" / "build.py")
     build = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(build)
     return build.build(tmp_path_factory.mktemp("fmu") / "lienard.fmu")

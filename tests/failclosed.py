@@ -22,7 +22,7 @@ npm, ...) calls ``require(capability, reason)`` when it is missing: the test is 
 reason, unless the capability is named in ``TESTBED_REQUIRE`` (comma-separated; ``all``: every
 one), where it fails with the reason.  CI (``.ci/run``) requires every capability, so a machine
 that lacks one cannot turn CI green; on a user's machine the README's test command skips with
-the reason.  ``tests/test_failclosed.py`` fails when a test calls ``pytest.skip`` (or
+the reason.  ``tests/repo/test_failclosed.py`` fails when a test calls ``pytest.skip`` (or
 ``importorskip``, ``skipif``) anywhere but here.
 """
 

@@ -2,9 +2,9 @@
 but the initial state and the attack) in one ``simulate_batch`` call.
 
 The batch kernel equals the per-sample simulator bit for bit (x_k, E_k, theta_k, saturations, the
-final loop state of both ends: ``tests/test_simulate.py``, ``tests/test_methods.py``), and the escape
+final loop state of both ends: ``tests/sim/test_simulate.py``, ``tests/core/test_methods.py``), and the escape
 is judged by the same ``judge_escape`` from the same final loop state, so a row from here equals
-``testbed simulate --json`` of its scenario (``tests/test_campaign.py`` checks every row of a campaign
+``testbed simulate --json`` of its scenario (``tests/runs/test_campaign.py`` checks every row of a campaign
 against the per-sample simulator).  A run the kernel cannot run -- an FMU plant, a plant that is a
 device ([plant.sensor], ...), a user's method,
 physical timing, an online (greedy) attacker, a ``[network]`` channel -- or whose flow diverged in the kernel (the per-sample

@@ -17,7 +17,7 @@ The rules are one compiled function, ``quantizer.zoom_update``, which the batch 
 (so that the two simulators agree bit for bit).  It calls the flow map ``End.phi_T`` calls, sums
 u = K q as ``End.feedback`` does and floors E as ``End.floor_E`` does, so a method written in
 Python with those three and configured like this one computes the same numbers
-(``PredictiveZoom`` of docs/examples/mymethod.py, tests/test_methods.py).
+(``PredictiveZoom`` of docs/examples/mymethod.py, tests/core/test_methods.py).
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ cost far more than the writer; here the four telemetry messages of every sample 
 over numpy columns into one buffer, in the protobuf wire format with the field numbers of
 ``testbed.record.schema.SPEC``.  The bytes are those ``schema.to_pb(...).SerializeToString()``
 gives for the same message (fields in number order, proto3 defaults left out, optional
-fields present or absent, repeated doubles packed), which ``tests/test_simrecord.py`` checks
+fields present or absent, repeated doubles packed), which ``tests/record/test_simrecord.py`` checks
 message by message; :func:`fast_adder` then adds them to mcap's writer without its per-message
 objects.
 """
@@ -229,10 +229,10 @@ def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, droppe
 
 def fast_adder(writer):
     """``add(channel_id, log_time, data, publish_time)`` for mcap's ``Writer`` (chunked), 2-3 times
-    cheaper than its ``add_message`` (measured: ``tests/test_simrecord.py``, whose test of this fails when
+    cheaper than its ``add_message`` (measured: ``tests/record/test_simrecord.py``, whose test of this fails when
     mcap's private state it writes into changes): the same Message record, chunk index and statistics, kept in the
     writer's own state (so its ``add_message``, ``flush`` and ``finish`` go on as if it had written them;
-    ``tests/test_simrecord.py`` checks the files are byte for byte the same).  The messages must come in
+    ``tests/record/test_simrecord.py`` checks the files are byte for byte the same).  The messages must come in
     order of log time (a simulation's do).  A writer whose internals differ from mcap 1.x's: its own
     ``add_message``."""
     import struct

@@ -4,7 +4,7 @@ The per-sample loop (``testbed.sim.loop.simulate_loop``) runs the live nodes' pr
 one sample at a time in Python (about 5,000 samples/s).  For the runs the batch kernel covers
 it is replaced here by the batch kernel itself (``sim.kernel._batch_kernel``) over one trajectory, keeping every per-sample
 array of a ``SimResult`` (x_k, u_k, q_k at both ends, xi_k and E_k at both ends, theta_k, the
-symbols, saturations, delays, ...): the same numbers bit for bit (``tests/test_simbatch.py``
+symbols, saturations, delays, ...): the same numbers bit for bit (``tests/sim/test_simbatch.py``
 compares every array and the JSON summary), hundreds of times faster.
 
 The kernel runs a scenario when (:func:`kernel_refusal` says why not otherwise):

@@ -6,7 +6,7 @@ makes from the definitions themselves (``testbed.wire.messages``, ``testbed.wire
 and, for the worked example, from the real encoders and state machines of the nodes
 (``testbed.protocol`` on the bundled ``paper`` scenario).  ``python -m testbed.wire.spec``
 rewrites the blocks of docs/protocol.md; ``--check`` only says whether they are current
-(tests/test_protocol_spec.py does the same).  Every field of every message needs a line in
+(tests/wire/test_protocol_spec.py does the same).  Every field of every message needs a line in
 ``FIELD_DOC`` here: a new field without one fails the generator, so the spec cannot miss it.
 """
 
