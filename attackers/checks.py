@@ -1,7 +1,7 @@
 """The check of a number: a real number (not a bool), finite, in a range, with one wording.
 
 It lives here, in the lowest package that checks numbers (``attackers`` imports nothing of
-``testbed``), and ``testbed.validate.number`` is this same function: an attack's parameter, the
+``testbed``), and ``testbed.common.validate.number`` is this same function: an attack's parameter, the
 scenario's keys, a channel's, a device's, a method's and a flag's numbers are all checked by it.
 """
 

@@ -11,7 +11,7 @@ For each sample period T it measures, in one invocation:
    consecutive measured round trips would miss;
 2. the floor with the work: the same four hops between two processes, the echo
    doing the encoder's and the controller's per-sample work (decode, quantizer
-   update, encode, through ``testbed.protocol`` and ``testbed.wire.messages`` as
+   update, encode, through ``testbed.loop.protocol`` and ``testbed.wire.messages`` as
    the nodes do) and the pinger the attacker's forward and the plant's decode
    and flow map, its u_k checked against the simulator's.  Its excess over 2 x RTT
    is what our code costs per sample; the live loop's excess over it is what the
@@ -200,12 +200,12 @@ def _ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
 # the encoder and the controller.  Per sample: x_k (Sensor) -> echo: decode, Algorithm 1 (quantizer
 # update), pack -> symbol -> pinger forwards it as the attacker does -> echo: unpack, Algorithm 2,
 # control law (2), Actuation -> pinger: decode, the plant's flow map (off the clock).  Everything
-# through the objects the nodes use (``testbed.protocol``, ``testbed.wire.messages``); no node shell
+# through the objects the nodes use (``testbed.loop.protocol``, ``testbed.wire.messages``); no node shell
 # (threads, telemetry, locks, run clock), no router, no TLS.  Its u_k are checked against the
 # simulator's for the same scenario.
 def _work_objects(scenario_file: str, n: int):
     from testbed import scenario
-    from testbed.protocol import ControllerProtocol, EncoderProtocol
+    from testbed.loop.protocol import ControllerProtocol, EncoderProtocol
 
     sc = scenario.load(scenario_file)
     model = sc.make_model()
@@ -219,8 +219,8 @@ def echo_work_main(port: int, seconds: float, realtime: bool, scenario_file: str
     """The encoder's and the controller's per-sample work, as the echo of ``work_ping_pong``."""
     import zenoh
 
+    from testbed.loop.protocol import Send
     from testbed.nodes.process import set_realtime, tune_process
-    from testbed.protocol import Send
     from testbed.wire import messages as msg
     from testbed.wire import transport
 
@@ -292,9 +292,9 @@ def work_ping_pong(T: float, seconds: float, realtime: bool, budget: float | Non
 def _work_ping_pong(T: float, seconds: float, realtime: bool) -> dict | None:
     import zenoh
 
+    from testbed.loop.protocol import PlantProtocol
     from testbed.nodes.clock import RunClock
     from testbed.nodes.process import set_realtime, tune_process
-    from testbed.protocol import PlantProtocol
     from testbed.wire import messages as msg
     from testbed.wire import transport
 

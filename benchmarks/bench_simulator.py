@@ -32,7 +32,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from testbed import scenario
-from testbed.flow import phi_T
+from testbed.loop.flow import phi_T
 from testbed.sim.batch import in_nominal_roa, simulate_batch
 
 

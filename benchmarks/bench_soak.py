@@ -236,7 +236,7 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
 
     from testbed import scenario
     from testbed.live.collect import SpillRows
-    from testbed.quantizer import Codebook
+    from testbed.loop.quantizer import Codebook
     from testbed.record.summary import LIVE_FIELDS, build_summary, write_json
     from testbed.wire.transport import ROLES
 

@@ -4,7 +4,7 @@
     python docs/make_figures.py --check          # run them into a scratch folder and compare: exit 1 naming what is stale
     python docs/make_figures.py --only NAME ...  # only these jobs (see --list)
 
-A figure is compared by the data it drew, not by its pixels: ``testbed.figstyle`` stores a digest of
+A figure is compared by the data it drew, not by its pixels: ``testbed.common.figstyle`` stores a digest of
 every line, image, patch and text of a figure in the file's metadata (``figstyle.read_digest``),
 and ``--check`` recomputes the figure and compares the digests. The data files beside the figures
 (``docs/analysis/paper.json``, ``docs/figures/*.json``: what the command printed with ``--json``)
@@ -163,7 +163,7 @@ def write_data(path: Path, data) -> None:
 
 def stale(job: Job, fresh: Path, committed: Path) -> list[str]:
     """What of ``job`` under ``committed`` differs from the freshly drawn ``fresh``: one line each."""
-    from testbed.figstyle import read_digest
+    from testbed.common.figstyle import read_digest
 
     out = []
     for f in job.figures:
@@ -193,7 +193,7 @@ def gallery() -> str:
     lines = ["# Figures", "",
              "Every figure the commands draw, made by the commands below (`python docs/make_figures.py` runs "
              "them all and writes this page; `python docs/make_figures.py --check` tells whether a figure or its "
-             "data is stale). The style is one for all (`testbed/figstyle.py`):", "",
+             "data is stale). The style is one for all (`testbed/common/figstyle.py`):", "",
              "- **Sizes for IEEE papers**: `--figsize page` (both columns, 7.16 in wide, the default) or "
              "`--figsize column` (one column, 3.5 in); fonts of 8-9 pt at that size.",
              "- **Formats by the file's extension**: `--plot FIG.png` (300 dpi), `FIG.pdf` (fonts embedded), "

@@ -2,7 +2,7 @@
 
 A plant is an immutable parameter object plus one numba-compiled right-hand side
 ``rhs(x, u, p, dx)`` written for a single state.  Everything else (the vectorized
-``f`` over a batch, the flow map phi_T in ``testbed.flow``, the batch simulator)
+``f`` over a batch, the flow map phi_T in ``testbed.loop.flow``, the batch simulator)
 is built on that one function, so the model is written once.
 """
 
@@ -101,7 +101,7 @@ def broadcast_xu(x, u, n: int, m: int):
     """States x (..., n) and inputs u (..., m) broadcast against each other's leading dimensions.
 
     Returns (lead, X, U): the common leading shape and C-contiguous float64 copies (B, n), (B, m), B the
-    product of ``lead``; a batch kernel's input (``Plant.f``, ``testbed.flow.phi_T``).
+    product of ``lead``; a batch kernel's input (``Plant.f``, ``testbed.loop.flow.phi_T``).
     """
     x = np.asarray(x, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
@@ -240,7 +240,7 @@ class Plant:
         """Numerical estimate of L_u = sup ||df/du||_inf on the box of ``lipschitz``.
 
         How much the input can change f: ||f(x, u) - f(x, v)||_inf <= L_u ||u - v||_inf.
-        The delay-aware quantizer rule uses it (``testbed.quantizer.delay_margin_gain``).
+        The delay-aware quantizer rule uses it (``testbed.loop.quantizer.delay_margin_gain``).
         Plants affine in u with a constant input matrix B have L_u = ||B||_inf exactly
         and may override this; this default samples the box and is an estimate.
         """
@@ -311,7 +311,7 @@ class PlantFault(RuntimeError):
 class PlantProcess(Protocol):
     """The true plant as a process that is stepped in time: what the simulator and the live plant node hold.
 
-    A plant of equation (1) integrated by ``testbed.flow`` and a co-simulation FMU
+    A plant of equation (1) integrated by ``testbed.loop.flow`` and a co-simulation FMU
     (``plants.fmu.FMUPlant``) both present it.  Between sampling instants the input
     u is held (zero-order hold), so one sampling period is ``advance(u_k, T)``; a
     delayed actuation splits the period into two ``advance`` calls.

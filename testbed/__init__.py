@@ -10,7 +10,7 @@ The Python API (docs/api.md), imported on first use so that ``import testbed`` s
 * ``testbed.BadInput``: what every bad argument raises (one line that says what to change).
 """
 
-from .errors import BadInput
+from .common.errors import BadInput
 
 __version__ = "0.1.0"
 __all__ = ["BadInput", "__version__"]  # and, on first use: open, simulate, compare, Run (not in *: open)

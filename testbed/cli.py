@@ -5,7 +5,7 @@ Subcommands live in their own modules and are imported only when used, so
 ``add_arguments(parser)`` and ``main(args) -> int``.
 
 Exit codes of every command: 0 ok, 1 the run or job failed, 2 bad input
-(``testbed.errors.BadInput``: one line on stderr, never a traceback).
+(``testbed.common.errors.BadInput``: one line on stderr, never a traceback).
 """
 
 from __future__ import annotations
@@ -16,7 +16,15 @@ import importlib.util
 import os
 import sys
 
-from .entry import CHILD_COMMANDS, EPILOG, QUIET_START, add_command_arguments, run_command, run_guarded, runner_of
+from .common.dispatch import (
+    CHILD_COMMANDS,
+    EPILOG,
+    QUIET_START,
+    add_command_arguments,
+    run_command,
+    run_guarded,
+    runner_of,
+)
 
 __all__ = ["COMMANDS", "QUIET_START", "build_parser", "main", "run_guarded"]
 

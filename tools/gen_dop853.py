@@ -1,8 +1,8 @@
-"""Generate testbed/_dop853.py: one Dormand-Prince 8(5,3) step with the tableau unrolled.
+"""Generate testbed/loop/_dop853.py: one Dormand-Prince 8(5,3) step with the tableau unrolled.
 
 The coefficients are scipy's (scipy.integrate.DOP853), written out as exact float
 literals and with the zero entries skipped, so numba compiles straight-line code.
-Run:  python tools/gen_dop853.py > testbed/_dop853.py
+Run:  python tools/gen_dop853.py > testbed/loop/_dop853.py
 """
 
 from scipy.integrate import DOP853 as D

@@ -14,7 +14,7 @@ import argparse
 import numpy as np
 
 from plants.lienard import Lienard
-from testbed.flow import phi_T
+from testbed.loop.flow import phi_T
 
 
 def rk4(plant: Lienard, x: np.ndarray, u: np.ndarray, T: float, substeps: int) -> np.ndarray:

@@ -1,5 +1,5 @@
 """The figures of the testbed (matplotlib, Agg backend, imported lazily), in the style of
-``testbed.figstyle`` (sizes, formats by extension, palette, DoS shading, legends outside the data).
+``testbed.common.figstyle`` (sizes, formats by extension, palette, DoS shading, legends outside the data).
 
 * :func:`plot_time_series`: x_k, u_k and E_k over time with the DoS intervals
   shaded (the paper's second figure);
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import figstyle
+from ..common import figstyle
 
 if TYPE_CHECKING:
     from matplotlib.artist import Artist
@@ -65,7 +65,7 @@ def plot_time_series(res, path, *, title: str = "", intervals=None, size: str = 
     res : a ``testbed.sim.loop.SimResult`` (or anything with ``T, t, x, u, E_enc, E_dec, theta``;
         :func:`series_of_run` makes one of a ``Run``).
     intervals : attack intervals [(a_i, tau_i), ...] to shade (default: runs of lost samples).
-    size : ``"column"`` or ``"page"`` (``testbed.figstyle``).
+    size : ``"column"`` or ``"page"`` (``testbed.common.figstyle``).
     """
     spans = dos_spans(res.theta, res.T, intervals)
     with figstyle.style(size):

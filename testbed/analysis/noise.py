@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from ..control import c2d, closed_loop
-from ..device import DeviceSpec, SensorSpec
-from ..rulesofthumb import e_min_guarantee, growth  # the one definition (the warnings of run/simulate)
+from ..loop.control import c2d, closed_loop
+from ..loop.device import DeviceSpec, SensorSpec
+from ..scenario.rulesofthumb import e_min_guarantee, growth  # the one definition (the warnings of run/simulate)
 from ..sim.trajectory import simulate_scenario
 
 
@@ -116,7 +116,7 @@ def sweep(sc, scales, ratios, *, distribution: str = "uniform", seed: int = 1, s
 def plot_sweep(data: dict, path, *, size: str = "page", title: str = ""):
     """Two panels over E_min / b: the OVERFLOW recaptures after the transient, and the state's
     steady size against the predicted ball; the estimate and the guarantee marked per scale."""
-    from .. import figstyle
+    from ..common import figstyle
 
     plt = figstyle.pyplot()
     with figstyle.style(size):

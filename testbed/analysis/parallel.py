@@ -38,10 +38,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .. import validate
-from ..errors import BadInput
-from ..flow import DEFAULT_FLOW, FlowOptions
-from ..loopspec import QuantizerParams
+from ..common import validate
+from ..common.errors import BadInput
+from ..loop.flow import DEFAULT_FLOW, FlowOptions
+from ..loop.params import QuantizerParams
 
 if TYPE_CHECKING:
     from distributed import Client

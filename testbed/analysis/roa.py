@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from ..quantizer import QuantizerParams
+from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
+from ..loop.quantizer import QuantizerParams
 from .parallel import run_batch
 
 #: default half-widths of the gridded window per plant (covering the Lienard limit cycle)

@@ -53,7 +53,7 @@ import numpy as np
 
 from attackers.generators import make_schedule
 
-from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
+from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..sim.batch import ESCAPE_HORIZON, EscapeCriterion, judge_escape
 from .parallel import Stages, n_chunks, run_batch
 from .roa import RoaResult

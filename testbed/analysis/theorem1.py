@@ -68,7 +68,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.linalg import solve_discrete_lyapunov
 
-from ..control import c2d, closed_loop, spectral_radius
+from ..loop.control import c2d, closed_loop, spectral_radius
 from .lmi import Block, barrier_minimize, max_margin, sym_basis, vec_from_sym
 
 RULES = ("paper", "tight")

@@ -62,8 +62,8 @@ import numpy as np
 
 from plants.base import Plant
 
-from ..flow import DEFAULT_FLOW, FlowOptions
-from ..loopspec import QuantizerParams
+from ..loop.flow import DEFAULT_FLOW, FlowOptions
+from ..loop.params import QuantizerParams
 from ..sim.batch import EscapeCriterion
 from .parallel import Stages, n_chunks, run_batch
 from .sweep import classify

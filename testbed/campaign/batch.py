@@ -18,7 +18,7 @@ import tomllib
 
 import numpy as np
 
-from ..channel import LOSS_KINDS
+from ..loop.channel import LOSS_KINDS
 from ..sim.trajectory import kernel_refusal
 
 

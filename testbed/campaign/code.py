@@ -20,7 +20,7 @@ import hashlib
 import tomllib
 from pathlib import Path
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 
 #: the classes this process has pinned: (kind, ref, sha256, base_dir)
 _LOADED: set = set()

@@ -5,7 +5,7 @@
 with the per-sample simulator (the live nodes' protocol objects, every method) and returns a row
 with the keys of ``testbed simulate --json`` that a comparison needs.  :func:`summarize_rows`
 gives, per method, the success rate (success = converged) with a 95 % Wilson score interval and
-the paired comparison to a reference method over the same seeds (``testbed.comparestats``).
+the paired comparison to a reference method over the same seeds (``testbed.common.comparestats``).
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import comparestats
 from .. import scenario as scenario_mod
-from ..errors import BadInput
+from ..common import comparestats
+from ..common.errors import BadInput
 
 #: the keys of one row (``testbed versus --json``)
 ROW_KEYS = ("method", "seed", "converged", "escaped", "final_norm", "max_norm", "saturations", "samples_lost",
@@ -115,7 +115,7 @@ def wilson(successes: int, n: int) -> tuple[float, float] | None:
 def paired_difference(a: list[bool | None], b: list[bool | None]) -> dict:
     """Success of ``a`` minus success of ``b`` over the same seeds (paired): ``difference``, its 95 %
     Newcombe hybrid score interval ``ci95``, the exact McNemar ``mcnemar_p``, the discordant pairs
-    (``a_only``, ``b_only``), ``both``, ``neither`` and ``n`` (``testbed.comparestats.paired_binary``)."""
+    (``a_only``, ``b_only``), ``both``, ``neither`` and ``n`` (``testbed.common.comparestats.paired_binary``)."""
     return comparestats.paired_binary(a, b)
 
 

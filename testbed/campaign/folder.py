@@ -14,8 +14,8 @@ import platform
 import sys
 from pathlib import Path
 
-from .. import comparestats
-from ..errors import BadInput
+from ..common import comparestats
+from ..common.errors import BadInput
 from . import code
 from .engine import outcome_counts, wilson
 from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, PlannedRun

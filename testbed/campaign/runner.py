@@ -12,8 +12,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..errors import BadInput
-from ..progress import RunsProgress as Progress
+from ..common.errors import BadInput
+from ..common.progress import RunsProgress as Progress
 from . import code
 from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
@@ -325,10 +325,10 @@ PLOT_OUTCOMES = (("converged", "converged"), ("escaped", "escaped"))
 def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
     """The rates of converged and of escaped runs (each with its 95 % Wilson interval) over the first axis of
     more than one value (not a seed, where there is another), one series per value of the second such axis
-    (the others pooled).  In the one figure style (``testbed.figstyle``): categorical values are points side
+    (the others pooled).  In the one figure style (``testbed.common.figstyle``): categorical values are points side
     by side with their intervals (a numeric axis is joined by lines), the legend below the panels."""
-    from .. import figstyle
-    from ..comparestats import wilson
+    from ..common import figstyle
+    from ..common.comparestats import wilson
 
     multi = [k for k, v in c.axes.items() if len(v) > 1]
     pref = [k for k in multi if not k.endswith("seed")] or multi

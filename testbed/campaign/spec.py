@@ -27,13 +27,14 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .. import methodswap, validate
 from .. import scenario as scenario_mod
-from ..errors import BadInput
+from ..common import validate
+from ..common.errors import BadInput
 from ..record.tracereader import read_recording_trace
-from ..scenariosections import SECTIONS
-from ..scenariospec import ScenarioError
-from ..scenariowrite import to_toml
+from ..scenario import methodswap
+from ..scenario.sections import SECTIONS
+from ..scenario.spec import ScenarioError
+from ..scenario.write import to_toml
 from . import engine
 
 #: the outcome columns of a row: keys of ``testbed simulate --json`` (and ``testbed report --json``)

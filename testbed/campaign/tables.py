@@ -4,7 +4,7 @@ latex|markdown``; ``summary.md``).
 A campaign's design is paired: the runs of two values of an axis (two methods, say) that share every
 other axis value, the repeat and the seeds faced the same attack from the same initial state.  For every
 axis of more than one value that is not a seed, each value is compared with the axis's first value (the
-reference) over those pairs (``engine.compare_paired``: the statistics of ``testbed.comparestats``).
+reference) over those pairs (``engine.compare_paired``: the statistics of ``testbed.common.comparestats``).
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import cliargs
-from ..progress import Progress
+from ..common import cliargs
+from ..common.progress import Progress
 from ..record.tracereader import read_recording_trace
 
 
@@ -45,7 +45,7 @@ def _with_method(sc, args, prog: str):
     import dataclasses
 
     from .. import scenario
-    from ..errors import BadInput
+    from ..common.errors import BadInput
     from ..methods.base import MethodQuantizerParams
 
     note_not_modelled(sc, prog)
@@ -82,7 +82,7 @@ def true_plant(sc, what: str):
     the true plant with the model's predictions; the batch kernel integrates equation (1)
     plants only, so an FMU true plant cannot run there.
     """
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     if sc.plant.fmu is not None:
         raise BadInput(f"the true plant is the FMU {Path(sc.plant.fmu.path).name}, which the batch simulator of "
@@ -105,7 +105,7 @@ def not_modelled(sc) -> list[str]:
     attacker is the only cause of loss; the plant's state is measured and its input applied exactly), so a
     ``[network]`` channel and a device around the plant (``[plant.sensor]``, ``[plant.actuator]``,
     ``[plant.disturbance]``) are not in it.  ``testbed simulate`` and ``testbed run`` model them."""
-    from ..device import TABLES
+    from ..loop.device import TABLES
 
     out = ["[network]"] if sc.network is not None else []
     dev = sc.plant.device
@@ -351,7 +351,7 @@ def _sweep_summary(sw, res=None) -> dict:
 
 def _escape_arg(v, sc):
     """--escape-x0: None, "auto" or n floats (``BadInput`` otherwise)."""
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     if not v:
         return None
@@ -369,8 +369,8 @@ def _escape_arg(v, sc):
 def figure_paths(plot: str | Path, scenario_name: str, *, create: bool = True):
     """``--plot`` of analyze: a figure path (the allowable region there, the rest beside it, in its format)
     or a folder (``<scenario>-<figure>.png`` there); an unknown extension is a ``BadInput``."""
-    from ..errors import BadInput
-    from ..figstyle import FORMATS
+    from ..common.errors import BadInput
+    from ..common.figstyle import FORMATS
 
     plot = Path(plot)
     ext = plot.suffix.lower()

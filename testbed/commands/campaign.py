@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .. import cliargs, validate
+from ..common import cliargs, validate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     if args.verify:
         if args.campaign:

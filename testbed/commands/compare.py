@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .. import cliargs
+from ..common import cliargs
 from ..runs.compare import (
     compare,
     load_pair,

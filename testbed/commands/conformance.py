@@ -13,7 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .. import cliargs, optionspec
+from ..common import cliargs, optionspec
 from ..live.conformance import PLANT_TOLERANCE
 from ..nodes.options import RunConfig, add_run_option_arguments
 from ..record.tracereader import read_recording_trace
@@ -61,7 +61,7 @@ def replay_on_recorded_plant(path: str) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
     from ..live.conformance import ADVERSE, DEVICE, REQUIREMENTS, conformance, feedable
     from .liveconfig import run_options, session_options
 

@@ -9,7 +9,7 @@ import argparse
 import json
 import sys
 
-from .. import cliargs
+from ..common import cliargs
 from ..runs.export import FORMATS, export
 
 

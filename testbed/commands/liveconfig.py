@@ -1,10 +1,10 @@
 """The typed configuration of a live run, built once from the command line of ``testbed run``, ``testbed node``,
 ``testbed record`` and ``testbed conformance`` (``testbed.nodes.options``, each option defined once:
-``testbed.optionspec``); nothing below the commands reads an argparse namespace."""
+``testbed.common.optionspec``); nothing below the commands reads an argparse namespace."""
 
 from __future__ import annotations
 
-from .. import optionspec
+from ..common import optionspec
 from ..nodes.options import NodeConfig, RecorderConfig, RunConfig, RunOptions
 from ..wire.session import SessionOptions
 

@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any
 
-from .. import cliargs, validate
+from ..common import cliargs, validate
 from ..record.tracereader import read_recording_trace
 
 
@@ -68,7 +68,7 @@ def add_arguments_versus(p: argparse.ArgumentParser) -> None:
 
 
 def _methods_arg(v: str) -> list[str]:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     ms = [m.strip() for m in (v or "").split(",") if m.strip()]
     if not ms:
@@ -158,7 +158,7 @@ def _live(args, sc, points):
     import subprocess
     from pathlib import Path
 
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     folder = Path(args.out or Path("recordings") / f"versus-{sc.name}")
     folder.mkdir(parents=True, exist_ok=True)
@@ -216,7 +216,7 @@ def _row_from_recording(rec, p):
 def _plot(path, sc, series, size) -> None:
     import numpy as np
 
-    from ..figstyle import pyplot, subplots
+    from ..common.figstyle import pyplot, subplots
 
     plt = pyplot()
     fig, axs = subplots(size, 2, 1, sharex=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from .. import optionspec
+from ..common import optionspec
 from ..nodes.options import NodeConfig, add_run_option_arguments
 from ..wire import transport
 from ..wire.session import add_zenoh_arguments

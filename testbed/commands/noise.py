@@ -12,7 +12,7 @@ import json
 import math
 import sys
 
-from .. import cliargs
+from ..common import cliargs
 from ..record.tracereader import read_recording_trace
 
 SCALES = (1e-6, 1e-5, 1e-4)
@@ -57,8 +57,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis import noise
-    from ..errors import BadInput
-    from ..progress import Progress
+    from ..common.errors import BadInput
+    from ..common.progress import Progress
 
     sc = scenario.load(args.scenario, read_recording_trace=read_recording_trace)
     if args.method:

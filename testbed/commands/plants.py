@@ -4,7 +4,7 @@
 built-in ones and those of installed plant packages (entry-point group
 ``dos_testbed.plants``), with n, m and a description.
 
-``check-plant`` runs the contract checks of ``testbed.plantcheck`` on one plant
+``check-plant`` runs the contract checks of ``testbed.loop.plantcheck`` on one plant
 (a registered name, an entry-point name or ``"module.path:ClassName"``, imported
 from the current folder first): one verdict line per check; exit 0 when all
 pass, 1 when any fails, 2 when REF cannot be loaded.
@@ -16,8 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-from .. import cliargs, validate
-from ..errors import BadInput
+from ..common import cliargs, validate
+from ..common.errors import BadInput
 from ..record.tracereader import read_recording_trace
 
 
@@ -78,7 +78,7 @@ def _param(text: str) -> tuple[str, float]:
 def main_check_plant(args: argparse.Namespace) -> int:
     import plants
 
-    from .. import plantcheck
+    from ..loop import plantcheck
 
     for name in ("L", "T", "region", "u_bound"):
         v = getattr(args, name)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from .. import optionspec
+from ..common import optionspec
 from ..nodes.options import RecorderConfig, add_run_option_arguments
 from ..wire.session import add_zenoh_arguments
 from .liveconfig import recorder_config

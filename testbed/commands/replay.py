@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .. import cliargs
+from ..common import cliargs
 from ..runs.run import open as open_run
 from ..view.rerun import run_to_rrd
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .. import cliargs
+from ..common import cliargs
 from ..record.faulttext import fault_line
 from ..record.summary import write_json
+from ..record.timingstats import fmt_percentiles
 from ..runs import report as reports
 from ..runs.report import plot, report_of_run, run_of
-from ..stats import fmt_percentiles
 
 
 def print_text(s: dict) -> None:
@@ -70,7 +70,7 @@ def print_text(s: dict) -> None:
               f"|A(H)|/H = {d['realized']['duration_fraction']:.4g}")
     ls = s.get("losses")
     if ls:
-        from ..channel import loss_text
+        from ..loop.channel import loss_text
 
         print(f"  losses by cause: {loss_text(ls)} (the budget below counts the attacker's only)")
     ld = s.get("losses_as_dos") or {}

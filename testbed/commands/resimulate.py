@@ -9,7 +9,7 @@ import argparse
 import json
 import sys
 
-from .. import cliargs
+from ..common import cliargs
 from ..runs.resimulate import PLANTS
 from ..runs.run import resimulate
 
@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     try:
         out = resimulate(args.recording, trust_code=args.trust_code, plant=args.plant)

@@ -6,22 +6,23 @@ import argparse
 import shutil
 import sys
 
-from .. import cliargs, optionspec, rulesofthumb
-from ..channel import loss_text
+from ..common import cliargs, optionspec
 from ..live.external import add_external_arguments
 from ..live.launcher import Launcher
 from ..live.netns import add_cut_arguments, add_netns_arguments, main_clean
 from ..live.recorder import add_record_error_argument
+from ..loop.channel import loss_text
 from ..nodes.options import RunConfig, add_run_option_arguments
 from ..record.faulttext import fault_line
-from ..stats import fmt_percentiles
+from ..record.timingstats import fmt_percentiles
+from ..scenario import rulesofthumb
 from ..view.rerun import add_rerun_run_arguments
 from ..wire.session import add_network_arguments
 from .liveconfig import run_config
 
 
 def add_arguments_run(p: argparse.ArgumentParser) -> None:
-    """``testbed run``'s flags: the options of ``RunConfig`` by their groups (``testbed.optionspec``), and those the
+    """``testbed run``'s flags: the options of ``RunConfig`` by their groups (``testbed.common.optionspec``), and those the
     modules that use them define."""
     p.add_argument("scenario", nargs="?", help="scenario file (.toml) or bundled name")
     cliargs.add_json(p, "the run's summary (the keys of testbed simulate --json, plus timing and faults)")
@@ -92,7 +93,7 @@ def print_text(s: dict) -> None:
 
 
 def main_run(args: argparse.Namespace) -> int:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     if args.netns_clean:  # only that
         return main_clean()

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import cliargs, validate
-from ..progress import Progress
+from ..common import cliargs, validate
+from ..common.progress import Progress
 from ..record.tracereader import read_recording_trace
 from .analyze import (
     _add_method,
@@ -142,7 +142,7 @@ def _add_search(p) -> None:
 
 
 def _search_args(args, sc) -> dict:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     validate.flag("--attacks", args.attacks, integer=True, lo=1)
     validate.flag("--beam", args.beam, integer=True, lo=1)
@@ -177,7 +177,7 @@ def add_arguments_worst_attack(p: argparse.ArgumentParser) -> None:
 def main_worst_attack(args: argparse.Namespace) -> int:
     from .. import scenario
     from ..analysis.worst import Loop, worst_attack
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed worst-attack")
     kw = _search_args(args, sc)
@@ -247,7 +247,8 @@ def _write_scenario_out(sc, out: dict, path: Path) -> str:
     import os
     import tempfile
 
-    from .. import scenario, scenariowrite
+    from .. import scenario
+    from ..scenario import write as scenariowrite
 
     iv = out["intervals"]
     desc = (f"testbed worst-attack {sc.name}: at most {out['attacks']} attack(s) from x0 = {out['x0']}, "
@@ -292,7 +293,7 @@ def main_vulnerability(args: argparse.Namespace) -> int:
     from ..analysis.summary import analyze
     from ..analysis.vulnerability import vulnerability_map
     from ..analysis.worst import Loop
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     sc = _with_method(scenario.load(args.scenario, read_recording_trace=read_recording_trace), args, "testbed vulnerability")
     kw = _search_args(args, sc)

@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from .. import cliargs
+from ..common import cliargs
 
 
 def add_arguments_secret(p: argparse.ArgumentParser) -> None:
@@ -22,7 +22,7 @@ def add_arguments_secret(p: argparse.ArgumentParser) -> None:
 
 
 def main_secret(args: argparse.Namespace) -> int:
-    from ..errors import BadInput
+    from ..common.errors import BadInput
     from ..wire import transport
 
     if args.tls:

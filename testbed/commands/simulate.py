@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from .. import cliargs
+from ..common import cliargs
 
 
 def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
@@ -33,11 +33,12 @@ def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
 
 
 def main_simulate(args: argparse.Namespace) -> int:
-    from .. import rulesofthumb, scenario
-    from ..channel import loss_text
-    from ..errors import BadInput
+    from .. import scenario
+    from ..common.errors import BadInput
+    from ..loop.channel import loss_text
     from ..nodes.attacker import parse_corrupt
     from ..record.tracereader import read_recording_trace
+    from ..scenario import rulesofthumb
     from ..sim.batch import outcome_text, summarize
     from ..sim.loop import LinkEffects
     from ..sim.trajectory import simulate_scenario
@@ -137,7 +138,7 @@ def recorded_latency(path, sc):
     sample's counted from the controller's loss deadline); a sample without a record: the latest one."""
     import numpy as np
 
-    from ..errors import BadInput
+    from ..common.errors import BadInput
     from ..record import reader
     from ..wire import messages as msg
 
@@ -167,7 +168,7 @@ def add_arguments_scenarios(p: argparse.ArgumentParser) -> None:
 
 def main_scenarios(args: argparse.Namespace) -> int:
     from .. import scenario
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     if args.show:
         if args.show not in scenario.bundled_names():

@@ -9,7 +9,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..wire import transport
 from ..wire.session import AUTO, SessionOptions, zenoh_config
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..nodes.options import T_ns, run_digest
 from ..record import faults as faultrec
 from ..wire import join, transport
@@ -61,7 +61,7 @@ def join_data(role: str, la: RunCredentials, sc, opts, cfg) -> dict:
     ack = la.keys.ack_for_encoder(opts.ack_via_attacker, opts.ack_on_actuation)
     ref = Path(cfg.scenario)
     base_dir = str(ref.resolve().parent) if (ref.suffix == ".toml" or ref.exists()) else None
-    options = opts.join_fields()  # every run option a node takes (testbed.optionspec)
+    options = opts.join_fields()  # every run option a node takes (testbed.common.optionspec)
     return {"join_version": join.JOIN_VERSION, "protocol": join.PROTOCOL_VERSION, "role": role,
             "run_id": la.run_id, "key_prefix": la.keys.prefix, "ack_key": ack[len(la.keys.prefix) + 1:],
             "topology": la.topology, "mode": "peer" if peer else "client", "connect": [la.node_connect],

@@ -21,7 +21,7 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..record import schema, topics
 from ..view.foxglove import TOPICS as FOXGLOVE_TOPICS
 from ..view.foxglove import FoxgloveTopics, descriptor_set, telemetry_extra

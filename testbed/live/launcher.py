@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .. import scenario
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..nodes.options import NodeConfig, RecorderConfig, RunConfig, load_scenario
 from ..nodes.process import parse_cpus, peak_rss_mb
 from ..record.faults import Fault

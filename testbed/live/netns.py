@@ -31,7 +31,7 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..record.faults import Fault
 from .stalls import parse_role_interval
 

@@ -18,7 +18,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..errors import EXIT_RECORDING_INCOMPLETE
+from ..common.errors import EXIT_RECORDING_INCOMPLETE
 from ..nodes.options import RECORD_FAILED, RecorderConfig
 from ..record.faults import Fault
 from ..wire import transport

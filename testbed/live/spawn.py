@@ -79,7 +79,7 @@ def _forked_node(argv: list[str], log_fd: int) -> None:
             pass
         sys.stdout.reconfigure(line_buffering=True)  # type: ignore[union-attr]  # a TextIOWrapper here; typeshed: TextIO
         logging.root.handlers.clear()
-        from ..entry import run_child
+        from ..common.dispatch import run_child
 
         code = run_child(argv)
     except SystemExit as e:

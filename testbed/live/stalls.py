@@ -22,7 +22,7 @@ import time
 from collections.abc import Set
 from typing import TYPE_CHECKING
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..record.faults import Fault
 from ..wire import messages as msg
 from ..wire import transport

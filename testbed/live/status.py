@@ -4,7 +4,7 @@ On a terminal (stderr a tty) the line is redrawn in place; on a pipe nothing is 
 ``testbed run --progress`` asks for it, and then each update is a line of its own.  Nothing goes to
 stdout.  ``status_text`` formats the line; ``LiveStatus`` counts what the collector
 (``testbed.live.collect``) received as it arrives, each record once, in bounded memory: samples
-lost by cause (``testbed.channel.recorded_losses``, the function the run's summary uses), the
+lost by cause (``testbed.loop.channel.recorded_losses``, the function the run's summary uses), the
 plant's deadline misses, and the last E_k at the encoder and at the controller (the decoder).
 """
 
@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..channel import LOSS_KINDS, late_of_rest, loss_text, model_lost, recorded_losses
+from ..loop.channel import LOSS_KINDS, late_of_rest, loss_text, model_lost, recorded_losses
 from ..wire import messages as msg
 
 if TYPE_CHECKING:

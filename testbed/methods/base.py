@@ -3,7 +3,7 @@
 A *method* (public API, as stable as ``plants.Plant``) says how x_k becomes a symbol of a
 declared number of bits at the encoder, and how the decoder turns a symbol, or a loss,
 into the input u_k.  Both ends are pure, deterministic state machines: no clock, no
-network, no randomness.  The protocol core (``testbed.protocol``: acks, withholding, loss
+network, no randomness.  The protocol core (``testbed.loop.protocol``: acks, withholding, loss
 deadlines) runs them, in the per-sample simulator and in the live nodes alike, so every
 method gets the same ack protocol, faults, recording and re-simulation.
 
@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from .. import validate
-from ..loopspec import DEFAULT_FLOW, ROUNDOFF, Codebook, FlowOptions, InvalidSymbol, QuantizerParams, SymbolPacking
+from ..common import validate
+from ..loop.params import DEFAULT_FLOW, ROUNDOFF, Codebook, FlowOptions, InvalidSymbol, QuantizerParams, SymbolPacking
 
 if TYPE_CHECKING:
     from plants.base import Plant
@@ -169,12 +169,12 @@ class End:
     def phi_T(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """phi_T(x, u): the model's state one period T after x under the held input u (a new array).
 
-        The flow map of ``testbed.flow`` (``flow_into``, adaptive Dormand-Prince 8(5,3)) with the
+        The flow map of ``testbed.loop.flow`` (``flow_into``, adaptive Dormand-Prince 8(5,3)) with the
         model's right-hand side and the scenario's ``[flow]`` options: the function the paper's rule
         (xi) calls, xi_{k+1} = phi_T(q_k, K q_k) or phi_T(xi_k, 0).  Always finite; the status
         (0 ok, 1 diverged past ``x_max``, 2 step limit) is left in ``flow_status``.
         """
-        from ..flow import compiled_for, flow_into  # compiled: loaded when a run starts
+        from ..loop.flow import compiled_for, flow_into  # compiled: loaded when a run starts
 
         n, m = self.plant.n, self.plant.m
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(n)

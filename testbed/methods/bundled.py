@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..loopspec import Codebook, QuantizerParams
+from ..loop.params import Codebook, QuantizerParams
 from .base import FloatCodebook, Method, MethodError, finite_params
 
 #: batch kernel codes (``sim.kernel._batch_kernel`` ``mode``); 0, 1 are the paper's ideal and resilient

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 import numba as nb
 import numpy as np
 
-from ..loopspec import DEFAULT_FLOW, FlowOptions, QuantizerParams
-from ..quantizer import box_center, control_input, floor_E, quantize_index, zoom_update
+from ..loop.params import DEFAULT_FLOW, FlowOptions, QuantizerParams
+from ..loop.quantizer import box_center, control_input, floor_E, quantize_index, zoom_update
 from .base import DecoderEnd, EncoderEnd, FloatCodebook, Method, Symbol
 from .paper import PaperDecoder, PaperEncoder, ZoomRule
 

@@ -11,7 +11,7 @@ theta_k = 0, the symbol), the update rules (xi) and (E) (``update``):
 
 floored as ``End.floor_E`` says, and u_{k-1} kept in ``u_prev``.  The resilient mode (the
 testbed's) adds the OVERFLOW codeword: a state outside the box is sent as the spare code M^n,
-u_k = 0, and both ends zoom out, E_{k+1} = sigma Lambda max(E_k, E_r) (``testbed.quantizer``).
+u_k = 0, and both ends zoom out, E_{k+1} = sigma Lambda max(E_k, E_r) (``testbed.loop.quantizer``).
 
 The rules are one compiled function, ``quantizer.zoom_update``, which the batch kernel runs too
 (so that the two simulators agree bit for bit).  It calls the flow map ``End.phi_T`` calls, sums
@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..flow import compiled_for
-from ..loopspec import FlowOptions, QuantizerParams
-from ..quantizer import box_center, control_input, quantize_index, zoom_update
+from ..loop.flow import compiled_for
+from ..loop.params import FlowOptions, QuantizerParams
+from ..loop.quantizer import box_center, control_input, quantize_index, zoom_update
 from .base import DecoderEnd, EncoderEnd, Symbol
 
 if TYPE_CHECKING:

@@ -23,7 +23,7 @@ import numpy as np
 
 from attackers.gate import Gate
 
-from ..loopspec import corrupt_payload
+from ..loop.params import corrupt_payload
 from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher

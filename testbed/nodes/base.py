@@ -12,7 +12,7 @@ from .inlet import Inlet
 from .options import NodeConfig
 
 if TYPE_CHECKING:
-    from ..protocol import MethodFault
+    from ..loop.protocol import MethodFault
 
 log = logging.getLogger("testbed.nodes")
 
@@ -126,7 +126,7 @@ class Node:
         try:
             return fn(*args, **kw)
         except Exception as e:  # a method's end raised: a method fault, not a crash of the node
-            from ..protocol import MethodFault  # here, not at the top: the attacker node loads no numba
+            from ..loop.protocol import MethodFault  # here, not at the top: the attacker node loads no numba
 
             if isinstance(e, MethodFault):
                 raise
@@ -134,7 +134,7 @@ class Node:
             raise MethodFault(self.sc.make_method().display_name(), at, e, self.role) from e
 
     def fail(self, e: BaseException) -> None:
-        from ..protocol import MethodFault  # here, not at the top: the attacker node loads no numba
+        from ..loop.protocol import MethodFault  # here, not at the top: the attacker node loads no numba
 
         if isinstance(e, MethodFault):  # the run ends there: one event, then nothing more from this node
             if self.method_fault is None and self.error is None:

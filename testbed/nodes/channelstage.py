@@ -31,7 +31,7 @@ import itertools
 import math
 import threading
 
-from .. import channel
+from ..loop import channel
 from ..wire import messages as msg
 
 

@@ -1,6 +1,6 @@
 """Controller node: Algorithm 2 and control law (2); u_k to the plant, theta_k to the encoder.
 
-The logic is ``testbed.protocol.ControllerProtocol`` (the simulator runs the same
+The logic is ``testbed.loop.protocol.ControllerProtocol`` (the simulator runs the same
 object): samples are decided strictly in order k = 0, 1, ... Sample k is decided
 when its symbol arrives (theta_k = 0, or 1 for a malformed / out-of-range
 payload) or, if nothing has arrived by the loss deadline t_k + ``loss_fraction`` *
@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import threading
 
-from ..protocol import ControllerProtocol, Decision, MethodFault
-from ..stats import Timings, percentiles
+from ..loop.protocol import ControllerProtocol, Decision, MethodFault
+from ..record.timingstats import Timings, percentiles
 from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher

@@ -1,6 +1,6 @@
 """Encoder node: Algorithm 1 on x_k from the plant; symbol out, theta_k back with the actuation (or an ack).
 
-The logic is ``testbed.protocol.EncoderProtocol`` (the simulator runs the same
+The logic is ``testbed.loop.protocol.EncoderProtocol`` (the simulator runs the same
 object); this shell adds the clock, the grace for a late ack, publishing and
 telemetry.  If x_k+1 arrives and theta_k is still unknown (a lost or late ack:
 the ack is routed through the attacker, or the controller is slow or dead), it
@@ -26,9 +26,9 @@ import logging
 import threading
 import time
 
+from ..loop.protocol import EncoderProtocol, MethodFault, Send, skip_sample
 from ..methods.base import symbol_code
-from ..protocol import EncoderProtocol, MethodFault, Send, skip_sample
-from ..stats import Timings, percentiles
+from ..record.timingstats import Timings, percentiles
 from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher

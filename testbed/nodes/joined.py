@@ -13,7 +13,7 @@ def apply(cfg: NodeConfig) -> tuple:
     """Read ``$TESTBED_JOIN``: the checked ``JoinFile`` and ``cfg`` set as the launcher sets its own nodes'.
 
     A file of another role, or unusable credentials, is ``BadInput`` (one line, exit 2)."""
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     jf = join.read()
     role = cfg.role

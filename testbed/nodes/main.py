@@ -86,7 +86,7 @@ def run_node(cfg: NodeConfig) -> int:
         jf, cfg = joined.apply(cfg)
     opts = cfg.opts
     if role in opts.colocate:
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         raise BadInput(f"--colocate {role}: the {role} runs inside the {opts.process_of(role)}'s process; "
                        f"start no {role} node")

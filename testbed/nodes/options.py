@@ -15,8 +15,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
-from .. import optionspec
-from ..optionspec import option
+from ..common import optionspec
+from ..common.optionspec import option
 from ..wire import transport
 from ..wire.session import SessionOptions
 from .inlet import RX_MODES
@@ -40,7 +40,7 @@ class RunOptions:
     """Options of a live run that every node must share (they enter the start digest).
 
     Any field left None keeps the scenario's value.  Each field is the one definition of its flag
-    (``testbed.optionspec``): the flag of every command that takes it, ``cli``, the join file and docs/cli.md.
+    (``testbed.common.optionspec``): the flag of every command that takes it, ``cli``, the join file and docs/cli.md.
     """
 
     duration: float | None = _shared(help="override [run] duration (seconds)", kind=float)
@@ -107,7 +107,7 @@ class RunOptions:
     @classmethod
     def of_join(cls, d: dict, where: str = "join file") -> RunOptions:
         """The options of a join file's ``run_options`` (``join_fields``); an unknown one is ``BadInput``."""
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         known = {f.name: f for f, _ in optionspec.options(cls, "node")}
         for k in d:
@@ -134,7 +134,7 @@ def _record(default=None, help="", **kw):
 @dataclass(frozen=True)
 class NodeConfig:
     """One node process of a run (``testbed node ROLE``): the run's options, its session, and its own settings
-    (each field the one definition of its flag: ``testbed.optionspec``).
+    (each field the one definition of its flag: ``testbed.common.optionspec``).
 
     ``scenario`` None: the run of the join file named by ``$TESTBED_JOIN`` (``testbed.nodes.joined``)."""
 
@@ -216,7 +216,7 @@ class RecorderConfig:
 
 def pairs(items, sep: str, what: str, roles=transport.ROLES) -> dict[str, str]:
     """Repeated ``ROLE<sep>VALUE`` flags -> {role: value}; one clear line for a malformed one."""
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     out = {}
     for it in items:
@@ -229,8 +229,8 @@ def pairs(items, sep: str, what: str, roles=transport.ROLES) -> dict[str, str]:
 
 def _number(kind, value: str, flag: str):
     """A time (``float``, seconds) or a sample index (``int``) of ``ROLE@VALUE``: finite and >= 0."""
-    from .. import validate
-    from ..errors import BadInput
+    from ..common import validate
+    from ..common.errors import BadInput
 
     try:
         return validate.text_number(value, kind)
@@ -256,7 +256,7 @@ class RunConfig:
     and passed to the launcher (``testbed.live.launcher``), which builds each node's ``NodeConfig`` and the
     recorder's ``RecorderConfig`` from it.  The field names are those of ``testbed run``'s flags; a
     repeatable ``ROLE=VALUE`` or ``ROLE@VALUE`` flag is a dict by role.  The fields with an ``option`` are the one
-    definition of their flag (``testbed.optionspec``); the others' flags are defined by the module that uses them
+    definition of their flag (``testbed.common.optionspec``); the others' flags are defined by the module that uses them
     (``cliargs``, ``live.netns``, ``live.recorder``, ``view.rerun``, ``live.external``)."""
 
     scenario: str

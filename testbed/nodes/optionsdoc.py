@@ -1,5 +1,5 @@
 """The options table of docs/cli.md, generated from the one definition of each live-run option
-(``testbed.optionspec``): ``python -m testbed.nodes.optionsdoc`` rewrites the block between
+(``testbed.common.optionspec``): ``python -m testbed.nodes.optionsdoc`` rewrites the block between
 ``<!-- BEGIN generated:options -->`` and ``<!-- END generated:options -->``, ``--check`` exits 1 when it is stale."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import re
 import sys
 from pathlib import Path
 
-from .. import optionspec
+from ..common import optionspec
 from ..wire.session import SessionOptions
 from .options import NodeConfig, RecorderConfig, RunConfig, RunOptions
 

@@ -3,7 +3,7 @@
 It is also the run's time master: once every node is ready it picks t0 and
 publishes ``Start``; when the last sample is done it publishes ``Stop``.
 
-What acts on the plant is ``testbed.protocol.PlantProtocol`` (the simulator runs
+What acts on the plant is ``testbed.loop.protocol.PlantProtocol`` (the simulator runs
 the same object) on the scenario's true plant (``[plant]``, ``sc.make_process()``).
 Timing modes (``[run] timing``), with d = ``[run] deadline``:
 
@@ -22,7 +22,7 @@ an event.  If the controller's liveliness token disappears the plant stops waiti
 and runs on with u = 0; the run is marked (``controller_lost_at``).
 
 A plant that is a device (``[plant.sensor]``, ``[plant.actuator]``, ``[plant.disturbance]``,
-``testbed.device``, applied by ``PlantProtocol`` as in the simulator): the sensor message carries
+``testbed.loop.device``, applied by ``PlantProtocol`` as in the simulator): the sensor message carries
 x_meas,k, the telemetry both x_k and x_meas,k, and u is the input that acted after the actuator.
 
 Colocated encoder (``--colocate encoder``, a smart sensor): the plant's process also
@@ -47,9 +47,9 @@ import numpy as np
 
 from plants.base import PlantFault
 
-from ..flow import FLOW_OK, STATUS_NAMES
-from ..protocol import PlantProtocol
-from ..stats import Timings, percentiles
+from ..loop.flow import FLOW_OK, STATUS_NAMES
+from ..loop.protocol import PlantProtocol
+from ..record.timingstats import Timings, percentiles
 from ..wire import messages as msg
 from ..wire import transport
 from .base import Node

@@ -116,7 +116,7 @@ def _exit_after(seconds: float, signum: int) -> None:
 
 def parse_cpus(spec: str) -> set[int]:
     """``2``, ``2,3``, ``0-3,6`` -> a set of CPU numbers (BadInput on anything else)."""
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     out: set[int] = set()
     try:

@@ -10,7 +10,7 @@ summaries, liveliness, the recorder's malformed log) is rare and decoded with
 the protobuf classes; the control path (``/loop/*``), the Foxglove topics and
 channels of unknown schemas are counted, not decoded.
 
-Trust (``testbed.errors.BadInput``, one line, exit 2):
+Trust (``testbed.common.errors.BadInput``, one line, exit 2):
 
 * memory is sized by the scenario stored in the recording (N = its ``n_steps``)
   and capped by the file's size (at most ``ROW_BYTES_MIN`` bytes of file a

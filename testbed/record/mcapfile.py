@@ -10,7 +10,7 @@ import struct
 import zlib
 from pathlib import Path
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05

@@ -93,8 +93,8 @@ def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, tru
     from plants.refs import CodeNotTrusted
 
     from ..scenario import loads, with_overrides
-    from ..scenariospec import ScenarioError
-    from ..scenariowrite import to_toml
+    from ..scenario.spec import ScenarioError
+    from ..scenario.write import to_toml
 
     meta = metadata.get("testbed.scenario", {})
     toml = meta.get("toml")
@@ -241,7 +241,7 @@ def _resolve_plant(meta: dict, base_dir: str | None, prefix: str, path: str, tru
                                         sha256=meta.get(f"{prefix}_sha256", ""), trust_code=trust_code,
                                         stand_in=stand.plant(prefix, ref, meta.get(f"{prefix}_class", "")))
     except PlantRefError as e:
-        from ..scenariospec import ScenarioError
+        from ..scenario.spec import ScenarioError
 
         raise ScenarioError(f"{path}: {e}") from None
     status["module"] = meta.get(f"{prefix}_module", "")
@@ -261,7 +261,7 @@ def _resolve_method(meta: dict, base_dir: str | None, path: str, trust_code: boo
     it is not importable."""
     from ..methods import MethodError
     from ..methods.registry import resolve_recorded
-    from ..scenariospec import ScenarioError
+    from ..scenario.spec import ScenarioError
 
     ref = meta.get("method_ref")
     if not ref:
@@ -284,8 +284,8 @@ def _with_resolved(sc, meta: dict | None):
     may differ: the recording's own values win)."""
     import dataclasses
 
-    from ..quantizer import QuantizerParams
-    from ..scenariospec import DelaySpec, SimDelaySpec
+    from ..loop.quantizer import QuantizerParams
+    from ..scenario.spec import DelaySpec, SimDelaySpec
 
     if not meta:
         return sc

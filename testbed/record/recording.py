@@ -57,7 +57,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from ..channel import ATTACKER, CHANNEL
+from ..loop.channel import ATTACKER, CHANNEL
 from ..wire import messages as msg
 from . import schema
 from .recorded import resolved_metadata, scenario_metadata, software_versions
@@ -111,7 +111,7 @@ class RecordingWriter:
                  compression: str = "zstd", exclusive: bool = True, reserve: bool = False):
         from mcap.writer import CompressionType, Writer
 
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         self.path = Path(path)
         try:

@@ -23,7 +23,7 @@ from __future__ import annotations
 from functools import cache, lru_cache
 from typing import TYPE_CHECKING
 
-from ..protobuf import classes_from
+from ..common.protobuf import classes_from
 from ..wire import messages as msg
 
 if TYPE_CHECKING:

@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..channel import loss_tally, losses_of_tally, model_lost
+from ..loop.channel import loss_tally, losses_of_tally, model_lost
 from ..sim.batch import json_clean as _clean
-from ..stats import Spool, StoredArray, percentiles
 from ..wire import messages as msg
 from ..wire import transport
 from .degraded import timing_degraded
+from .timingstats import Spool, StoredArray, percentiles
 
 PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
@@ -136,10 +136,10 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     (``write_json`` streams them); otherwise plain lists.  ``store``: a folder where they are kept in files
     (``stats.Stack``: ``StoredArray`` values) rather than in memory (None).
     """
-    from ..flow import FLOW_OK
+    from ..loop.flow import FLOW_OK
     from ..sim.batch import MemStack, RunTally
     from ..sim.loop import Replay, SimResult
-    from ..stats import Stack
+    from .timingstats import Stack
 
     src = cols if hasattr(cols, "chunks") else ColumnChunks(cols)
     plant = sc.make_model()

@@ -1,4 +1,4 @@
-"""A recording read as an attack trace: the samples its attacker dropped (``testbed.traces``)."""
+"""A recording read as an attack trace: the samples its attacker dropped (``testbed.scenario.traces``)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The reader of a recording as an attack trace, importable at no cost: the shells that load scenarios pass it to
-``testbed.scenario`` (``read_recording_trace=``), which reads no MCAP itself (``testbed.traces``)."""
+``testbed.scenario`` (``read_recording_trace=``), which reads no MCAP itself (``testbed.scenario.traces``)."""
 
 from __future__ import annotations
 

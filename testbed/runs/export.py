@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from .run import flat_columns
 
 FORMATS = ("parquet", "csv")

@@ -102,7 +102,7 @@ def _through_fault(cols, sc, replay, N: int):
     """``replay`` with sample N, the one the method raised at, appended: as its records say (the encoder
     sent or withheld it, the attacker dropped it), else sensed and received unless the scenario's
     schedule attacks t_N (a simulated recording holds nothing of the faulted sample)."""
-    from ..protocol import DEADLINE, RECEIVED
+    from ..loop.protocol import DEADLINE, RECEIVED
     from ..sim.loop import Replay
 
     def at(role, field, default):
@@ -185,7 +185,7 @@ def plant_model_error(run: dict, n: int | None = None, res=None) -> dict | None:
     the input that acted (the plant's recorded u_k; under physical timing u_k-1 held for the recorded
     delta_k first).  x_N is the final record's.  {"max", "at", "mean"}; None when no step is known
     (no two consecutive plant records) or the model has no right-hand side (an FMU)."""
-    from ..protocol import OdeProcess
+    from ..loop.protocol import OdeProcess
 
     sc, N, live = run["scenario"], run["N"], run["live"]
     n = N if n is None else min(N, n)
@@ -269,7 +269,7 @@ def kernel_replay(sc, replay, n: int):
     objects compute the same numbers bit for bit (``tests/test_simbatch.py``; the lost samples are an
     offline schedule to both, whatever the controller's reason), and the kernel does so hundreds of
     times faster.  None where it does not apply (the loop runs)."""
-    from ..protocol import RECEIVED
+    from ..loop.protocol import RECEIVED
     from ..sim.trajectory import _bundled, simulate_kernel
 
     if n <= 0 or replay.delays is not None or sc.timing_params[0] or sc.plant.device is not None \

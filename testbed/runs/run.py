@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import BadInput
+from ..common.errors import BadInput
 from ..record.tracereader import read_recording_trace
 
 if TYPE_CHECKING:
@@ -124,8 +124,8 @@ class Run:
     def plot(self, path: str | Path, *, size: str = "page", title: str | None = None) -> Path:
         """Draw the run as ``testbed simulate --plot`` does (states, input, E_k at both ends, DoS shaded):
         ``.png``, ``.pdf`` or ``.svg`` by the extension; ``size`` ``"column"`` or ``"page"`` (IEEE widths)."""
-        from .. import figstyle
         from ..analysis.figures import figure_title, plot_time_series, series_of_run
+        from ..common import figstyle
 
         figstyle.check_path(path)
         figstyle.check_size(size)
@@ -272,9 +272,9 @@ def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - 
     plots are all there; what needs the code (``Run.scenario.code_not_run()`` says what) is skipped:
     ``summary["escaped"]`` is None, and simulating the scenario raises ``plants.refs.CodeNotTrusted``.
 
-    Raises ``testbed.errors.BadInput`` for a file that is not a usable recording.
+    Raises ``testbed.common.errors.BadInput`` for a file that is not a usable recording.
     """
-    from .. import compilenotice
+    from ..common import compilenotice
     from ..record.summary import load
 
     compilenotice.install()
@@ -326,7 +326,7 @@ def simulate(scenario, **overrides) -> Run:
     (a table merged into ``[attack]``, e.g. ``attack={"intervals": [[1.0, 2.0]]}``; a new
     ``kind`` replaces the table).  A bad override raises ``testbed.BadInput`` with what to change.
     """
-    from .. import compilenotice
+    from ..common import compilenotice
     from ..sim.batch import simulate_scenario
 
     compilenotice.install()

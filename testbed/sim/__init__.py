@@ -1,7 +1,7 @@
 """The in-process simulators: the same loop as a live run, without processes or a network.
 
 * ``loop``: ``simulate_loop``, one trajectory sample by sample with the live nodes' own protocol
-  objects (``testbed.protocol``), every per-sample quantity in a ``SimResult``;
+  objects (``testbed.loop.protocol``), every per-sample quantity in a ``SimResult``;
 * ``kernel``: ``_batch_kernel``, the one compiled loop (numba), and ``kernelcache``: that kernel
   specialized per plant and cached on disk;
 * ``batch``: ``simulate_batch``, many initial states and schedules at once on the kernel (what the

@@ -25,9 +25,9 @@ import numpy as np
 
 from attackers.greedy import greedy_init
 
-from ..channel import ATTACKER, LOSS_KINDS, loss_counts_of
-from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from ..quantizer import (
+from ..loop.channel import ATTACKER, LOSS_KINDS, loss_counts_of
+from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
+from ..loop.quantizer import (
     MODES,
     QuantizerParams,
 )
@@ -443,7 +443,7 @@ class RunTally:
     """:func:`summarize`'s reductions over a run's per-sample record, fed a chunk of samples at a time
     (``add``, in the order of the samples): counts, the first and last samples, the maximum norm, the
     agreement of the ends, the DoS intervals, the losses by cause, and the per-sample values kept by
-    ``stack`` (default in memory; ``testbed.stats.Stack``: in a file, so that a run's summary is made in
+    ``stack`` (default in memory; ``testbed.record.timingstats.Stack``: in a file, so that a run's summary is made in
     bounded memory).  A whole run is one chunk (``summarize``); any chunking gives the same summary."""
 
     #: per-sample keys of the summary and the ``SimResult`` field each comes from

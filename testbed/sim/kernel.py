@@ -22,9 +22,9 @@ import numpy as np
 
 from attackers.greedy import greedy_step
 
-from ..flow import flow_into
+from ..loop.flow import flow_into
+from ..loop.quantizer import box_center, control_input, quantize_index, zoom_update
 from ..methods.ends import unaware_update
-from ..quantizer import box_center, control_input, quantize_index, zoom_update
 
 #: the kernel parameters that carry a right-hand side (the true plant's, the model's): the cached
 #: specialized kernel (``testbed.sim.kernelcache``) turns each into a global bound to a plant's ``RHS.jit``

@@ -1,6 +1,6 @@
 """The per-sample simulator (``simulate_loop``): one trajectory, sample by sample, with *separate*
 encoder and decoder ends (``methods.EncoderEnd``, ``DecoderEnd``) that only see symbols and acks
-(what a live run does), run through the protocol objects of ``testbed.protocol`` that the live
+(what a live run does), run through the protocol objects of ``testbed.loop.protocol`` that the live
 nodes run too.  Returns every per-sample quantity (``SimResult``).  ``testbed.simulate`` holds the
 batch kernel and the scenario level.
 
@@ -21,11 +21,9 @@ import numpy.typing as npt
 from attackers.greedy import greedy_init, greedy_step
 from plants.base import PlantFault
 
-from ..channel import ATTACKER, LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
-from ..flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
-from ..methods.base import DecoderEnd, EncoderEnd, End, Method, symbol_code
-from ..methods.bundled import PaperMethod
-from ..protocol import (
+from ..loop.channel import ATTACKER, LATE, NetworkModel, SampleChannel, loss_cause, sample_channel
+from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
+from ..loop.protocol import (
     DEADLINE,
     INVALID,
     RECEIVED,
@@ -37,16 +35,18 @@ from ..protocol import (
     Send,
     corrupt_payload,
 )
-from ..quantizer import (
+from ..loop.quantizer import (
     QuantizerParams,
     control_input,
 )
+from ..methods.base import DecoderEnd, EncoderEnd, End, Method, symbol_code
+from ..methods.bundled import PaperMethod
 
 if TYPE_CHECKING:
     from attackers.schedule import Schedule
     from plants.base import Plant, PlantProcess
 
-    from ..device import DeviceSpec
+    from ..loop.device import DeviceSpec
 
 
 SCORE_STATE = 0  # greedy attacker hurts where ||x_k||_inf is largest
@@ -147,13 +147,13 @@ class OnlineAttacker:
 @dataclass(frozen=True)
 class LinkEffects:
     """What the links between the nodes of a simulated run do, beyond the attacker's drops (the scenario's
-    ``[network]`` model is one part of it: ``channel``, a ``testbed.channel.NetworkModel``).
+    ``[network]`` model is one part of it: ``channel``, a ``testbed.loop.channel.NetworkModel``).
 
     ack_via_attacker : the ack of sample k crosses the attacker too, and is dropped iff
         the attacker dropped sample k (``testbed run --ack-via-attacker``).
     corrupt : {k: "range" | "length"}: the attacker replaces the payload of sample k by an
         out-of-range code or a payload of the wrong length (``testbed run --corrupt``).
-    channel : the emulated channels (the scenario's ``[network]``, ``testbed.channel``): per
+    channel : the emulated channels (the scenario's ``[network]``, ``testbed.loop.channel``): per
         sample, the sensor link can lose x_k (the encoder never gets it), the symbol link the
         symbol (after the attacker), the ack link the ack (the encoder withholds), the actuation
         link u_k (u_missing); under physical timing a symbol later than the loss deadline is lost
@@ -223,7 +223,7 @@ def simulate_loop(plant: Plant | None, K: npt.ArrayLike, qp: QuantizerParams, x0
     A method whose ends raise ends the run at that sample (``method_fault``, ``method_fault_at``);
     one whose ends' shared state differs is counted in ``lockstep_breaks`` (``agree`` is then False).
 
-    ``device``: the plant's sensor, actuator and disturbance (``testbed.device.DeviceSpec``, the
+    ``device``: the plant's sensor, actuator and disturbance (``testbed.loop.device.DeviceSpec``, the
     scenario's ``sc.plant.device``): the encoder and the attacker see x_meas,k, the true plant
     integrates the input the actuator lets through, and x_k+1 carries the disturbance.
 

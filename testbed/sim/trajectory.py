@@ -15,7 +15,7 @@ The kernel runs a scenario when (:func:`kernel_refusal` says why not otherwise):
 * the links are plain: no ``--ack-via-attacker``, no ``--corrupt`` (with those an ack
   can be lost and the encoder withholds samples, which only the protocol objects model);
 * ideal or physical timing, an offline schedule or the online greedy attacker (all it has);
-* a ``[network]`` channel (``testbed.channel``): its draws are made ahead and given to the kernel per sample
+* a ``[network]`` channel (``testbed.loop.channel``): its draws are made ahead and given to the kernel per sample
   (the controller cannot receive it; the upstream delay; u_k lost), and the samples the encoder withholds
   after a lost ack are computed ahead (``channel.withheld_pattern``); only the greedy attacker scoring E
   with a lossy ack link (it reads the withholding encoder's E_k) runs the loop.
@@ -34,14 +34,14 @@ import numpy.typing as npt
 
 from attackers.greedy import greedy_init
 
-from ..channel import LATE, loss_cause
-from ..flow import FLOW_OK
+from ..loop.channel import LATE, loss_cause
+from ..loop.flow import FLOW_OK
 from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_width
 from .loop import SCORES, LinkEffects, OnlineAttacker, SimResult, simulate_loop
 
 if TYPE_CHECKING:
     from ..methods.base import EncoderEnd
-    from ..scenariospec import Scenario
+    from ..scenario.spec import Scenario
 
 #: ``simulate_scenario(simulator=...)``: "auto" (the kernel where it can run), "batch" (the kernel or an
 #: error), "per-sample" (the loop always)
@@ -96,7 +96,7 @@ class _Ledger:
 def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> dict:
     """The encoder's counters (``EncoderProtocol.counters``) of a kernel run with a channel: the same
     protocol object driven as ``loop.simulate_loop`` drives it (acks before the next sensor sample)."""
-    from ..protocol import EncoderProtocol
+    from ..loop.protocol import EncoderProtocol
 
     encp = EncoderProtocol(cast("EncoderEnd", _Ledger()), len(chan.sensed))  # a stand-in: the members it reads
     acks: list = []

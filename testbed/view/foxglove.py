@@ -85,7 +85,7 @@ def _numbers() -> dict[str, dict[str, int]]:
 
 @cache
 def _log_class():
-    from ..protobuf import classes_from
+    from ..common.protobuf import classes_from
 
     return classes_from(descriptor_set(LOG))[LOG]
 

@@ -290,7 +290,7 @@ def run_to_rrd(path, run, *, recording_id: str | None = None, roa: bool = True, 
         try:
             rr.spawn(connect=False, recording=rec)
         except (RuntimeError, OSError) as e:
-            from ..errors import BadInput
+            from ..common.errors import BadInput
 
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise BadInput(f"no Rerun viewer to open ({first}); write the view to a file with --rrd PATH.rrd") \
@@ -367,7 +367,7 @@ DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 
 def add_rerun_run_arguments(p: argparse.ArgumentParser) -> None:
     """The ``--rerun`` option group of ``testbed run``."""
-    from .. import cliargs
+    from ..common import cliargs
 
     g = p.add_argument_group("rerun (live view)")
     g.add_argument("--rerun", nargs="+", metavar="spawn | connect [URL] | save PATH.rrd",
@@ -402,7 +402,7 @@ class LiveRerun:
     @classmethod
     def from_options(cls, spec, rrd: str | None, roa: bool, sc, recording_id: str) -> "LiveRerun | None":
         """From ``testbed run``'s ``--rerun`` words (``spec``), ``--rrd`` and not ``--no-roa``; None: no live view."""
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         spec = list(spec) if spec else None
         if rrd:

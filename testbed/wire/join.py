@@ -66,7 +66,7 @@ CREDENTIAL_KINDS = {"mutual_tls": ("kind", "ca", "cert", "key"),
 
 
 def _bad(path, why: str):
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     return BadInput(f"join file {path}: {why}")
 
@@ -161,7 +161,7 @@ def read(path: str | Path | None = None) -> JoinFile:
     if path is None:
         path = os.environ.get(ENV)
         if not path:
-            from ..errors import BadInput
+            from ..common.errors import BadInput
 
             raise BadInput(f"no SCENARIO and no {ENV}: give a scenario, or the join file of a run in {ENV} "
                            "(testbed run SCENARIO --external ROLE writes one)")

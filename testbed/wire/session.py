@@ -6,8 +6,8 @@ import argparse
 from dataclasses import dataclass
 from typing import Any
 
-from .. import optionspec
-from ..optionspec import option
+from ..common import optionspec
+from ..common.optionspec import option
 from . import transport
 
 # ============================================================================ zenoh options
@@ -29,7 +29,7 @@ def _session(default=None, help="", *, launcher=None, commands=PROCESSES, **kw):
 @dataclass(frozen=True)
 class SessionOptions:
     """One process's session: run id, endpoints, topology and credentials (the flags of ``add_network_arguments``;
-    each field the one definition of its flag, ``testbed.optionspec``).
+    each field the one definition of its flag, ``testbed.common.optionspec``).
 
     ``testbed node`` and ``testbed record`` build it from their flags; the launcher builds one for each process it
     starts (``testbed.live.credentials``) and for its own session, and passes it on as flags (``argv``).  In the
@@ -145,7 +145,7 @@ def zenoh_config(s: SessionOptions, role: str, keys: transport.Keys, *, hub: boo
     ``tls_dir`` folder, and every process checks what it receives.  The one builder of every process's
     session, the launcher's own included (``testbed.live.credentials``).
     """
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     peer = s.topology == "peer"
     hub_ep = transport.DEFAULT_HUB.replace("tcp/", "tls/", 1) if (peer or s.router_tls) and not s.insecure \
@@ -186,7 +186,7 @@ def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), con
     plant) also authenticates them against the file's lines and checks the access rules.  ``insecure``:
     neither.  Used by the nodes and the recorder (``zenoh_config``) and the launcher's own session.
     """
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     common = {"listen": list(listen), "connect": list(connect), "config_file": config_file, "mode": mode,
               "low_latency": low_latency}

@@ -4,7 +4,7 @@ docs/protocol.md is written by hand except for the blocks between
 ``<!-- BEGIN generated:NAME -->`` and ``<!-- END generated:NAME -->``, which this module
 makes from the definitions themselves (``testbed.wire.messages``, ``testbed.wire.transport``)
 and, for the worked example, from the real encoders and state machines of the nodes
-(``testbed.protocol`` on the bundled ``paper`` scenario).  ``python -m testbed.wire.spec``
+(``testbed.loop.protocol`` on the bundled ``paper`` scenario).  ``python -m testbed.wire.spec``
 rewrites the blocks of docs/protocol.md; ``--check`` only says whether they are current
 (tests/wire/test_protocol_spec.py does the same).  Every field of every message needs a line in
 ``FIELD_DOC`` here: a new field without one fails the generator, so the spec cannot miss it.
@@ -272,7 +272,7 @@ def example_messages() -> dict:
     """Sample 0 of the bundled ``paper`` scenario, by the nodes' own state machines: every
     message of the sample as (key, payload bytes, attachment bytes), and the numbers behind them."""
     from .. import scenario
-    from ..protocol import ControllerProtocol, EncoderProtocol, Send
+    from ..loop.protocol import ControllerProtocol, EncoderProtocol, Send
 
     sc = scenario.load("paper")
     model = sc.make_model()
@@ -361,8 +361,8 @@ def plant_flags() -> str:
 
 
 def flow_codes() -> str:
-    """The ``flow_status`` codes (``testbed.loopspec.STATUS_NAMES``)."""
-    from ..loopspec import FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES
+    """The ``flow_status`` codes (``testbed.loop.params.STATUS_NAMES``)."""
+    from ..loop.params import FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES
 
     meaning = {FLOW_OK: "the period was integrated to its end",
                FLOW_DIVERGED: "an accepted step had ||x||_inf > x_max (1e8): x is that step's state; the run ends",
@@ -373,12 +373,12 @@ def flow_codes() -> str:
 
 
 def dop853_coefficients() -> str:
-    """The stages and error estimators of ``testbed/_dop853.py`` as written there (its float64 literals)."""
-    src = (Path(__file__).resolve().parents[1] / "_dop853.py").read_text()
+    """The stages and error estimators of ``testbed/loop/_dop853.py`` as written there (its float64 literals)."""
+    src = (Path(__file__).resolve().parents[1] / "loop" / "_dop853.py").read_text()
     stages = re.findall(r"ytmp\[i\] = y\[i\] \+ h \* \((.*)\)\n", src)
     errs = dict(re.findall(r"(a[53]) = \((.*)\) / sc", src))
     if len(stages) != 12 or set(errs) != {"a5", "a3"}:
-        raise AssertionError("testbed/_dop853.py: 12 stages and two error sums expected")
+        raise AssertionError("testbed/loop/_dop853.py: 12 stages and two error sums expected")
 
     def expr(e):
         return re.sub(r"K\[(\d+), i\]", r"K\1", e).replace("+ -", "- ")

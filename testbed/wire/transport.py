@@ -258,7 +258,7 @@ class Credentials:
         """Read and check a secret file: it must be a regular file that only its owner can read."""
         import stat
 
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         p = Path(path)
         try:
@@ -300,7 +300,7 @@ class Credentials:
         return p
 
     def password(self, user: str) -> str:
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         try:
             return self.users[user]
@@ -340,7 +340,7 @@ class TlsCredentials:
             from cryptography.hazmat.primitives.asymmetric import ec
             from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
         except ImportError:
-            from ..errors import BadInput
+            from ..common.errors import BadInput
 
             raise BadInput("the authenticated peer topology makes TLS certificates with the 'cryptography' "
                            "package, a dependency of dos-testbed: pip install cryptography (or run "
@@ -384,7 +384,7 @@ class TlsCredentials:
         """``transport/link/tls`` of ``user``'s session (checked: BadInput if a file is missing or unsafe)."""
         import stat
 
-        from ..errors import BadInput
+        from ..common.errors import BadInput
 
         files = {"ca": self.folder / "ca.pem", "cert": self.folder / f"{user}.pem", "key": self.folder / f"{user}.key"}
         for what, f in files.items():
@@ -408,7 +408,7 @@ class TlsCredentials:
 
 def require_tls(endpoints, what: str = "--topology peer") -> None:
     """The peer topology's links are mutual TLS: every endpoint ``tls/HOST:PORT`` (BadInput otherwise)."""
-    from ..errors import BadInput
+    from ..common.errors import BadInput
 
     for ep in endpoints:
         if not str(ep).startswith("tls/"):

@@ -2,7 +2,7 @@
 
 Two parts, both computed by the functions the bundled nodes run:
 
-- ``flow_map``: (x, u) -> phi_T(x, u) and its status for N points (``testbed.flow.phi_T``, the
+- ``flow_map``: (x, u) -> phi_T(x, u) and its status for N points (``testbed.loop.flow.phi_T``, the
   plant node's and the ends' flow map), x and u drawn from a fixed seed around the scenario's
   region (and its x0, u = 0 first);
 - ``loop``: a short run of the scenario's loop in ideal timing by the nodes' state machines
@@ -30,7 +30,7 @@ def _f(v) -> list[float]:
 
 def flow_vectors(sc, n: int, seed: int = 0) -> list[dict]:
     """``n`` points (x, u) -> phi_T(x, u) of the scenario's plant model (the first: x0, u = 0)."""
-    from ..flow import phi_T
+    from ..loop.flow import phi_T
 
     model = sc.make_model()
     rng = np.random.default_rng(seed)
@@ -50,7 +50,7 @@ def flow_vectors(sc, n: int, seed: int = 0) -> list[dict]:
 
 def loop_vectors(sc, samples: int = LOOP_SAMPLES) -> list[dict]:
     """The first ``samples`` samples of the loop, ideal timing, by the nodes' state machines."""
-    from ..protocol import ControllerProtocol, EncoderProtocol, PlantProtocol, Send
+    from ..loop.protocol import ControllerProtocol, EncoderProtocol, PlantProtocol, Send
 
     model = sc.make_model()
     method = sc.make_method()

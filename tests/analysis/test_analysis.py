@@ -38,7 +38,7 @@ from testbed.analysis.theorem2 import (
     theorem2,
     theorem2_auto,
 )
-from testbed.control import c2d
+from testbed.loop.control import c2d
 
 
 # ----------------------------------------------------------------------------- fixtures
@@ -336,7 +336,7 @@ def test_linear_plant_nonlinear_constants_vanish():
     A, B = lin.linearization()
     T = 0.1
     Ad, Bd = c2d(A, B, T)
-    from testbed.control import dlqr
+    from testbed.loop.control import dlqr
 
     K = dlqr(Ad, Bd, np.eye(2), np.eye(1))
     loop = Loop(A=A, B=B, K=K, T=T, M=8, Lambda=math.exp(3.0 * T))

@@ -15,7 +15,7 @@ import pytest
 import plants
 from testbed.analysis.roa import nominal_roa
 from testbed.analysis.sweep import KINDS, sweep, vulnerable_states
-from testbed.control import c2d, dlqr
+from testbed.loop.control import c2d, dlqr
 
 
 def test_roa_of_a_stable_linear_loop_is_everything():

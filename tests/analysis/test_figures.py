@@ -1,6 +1,6 @@
 """The committed figures and their data are what the commands draw now (docs/make_figures.py).
 
-A figure is compared by the data it drew (the digest ``testbed.figstyle`` stores in every figure
+A figure is compared by the data it drew (the digest ``testbed.common.figstyle`` stores in every figure
 file), not by pixels; the data files (``docs/analysis/paper.json``, ``docs/figures/*.json``) value
 by value. The fast tier shows the check on copies: a current copy passes, a figure drawn from
 other data, a figure without a digest and a data file with one changed value fail. The slow tier
@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from helpers.cli import PY
 
-from testbed import figstyle
+from testbed.common import figstyle
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
@@ -95,7 +95,7 @@ def test_the_gallery_is_the_page_the_script_writes_and_shows_every_figure():
     for job in mf.JOBS:
         for f in job.figures:
             assert (DOCS / f).is_file() and f"]({f})" in page, f
-            assert figstyle.read_digest(DOCS / f), f"{f}: no data digest (drawn before testbed.figstyle)"
+            assert figstyle.read_digest(DOCS / f), f"{f}: no data digest (drawn before testbed.common.figstyle)"
         if job.data:
             assert (DOCS / job.data).is_file(), job.data
         for c in job.commands:

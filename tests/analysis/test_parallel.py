@@ -68,7 +68,8 @@ def test_specialized_kernel_depends_on_every_source(paper):
     gen.function(_batch_kernel, {"rhs": "rhs", "rhs_m": "rhs_m"}, top=True)
     root = os.path.dirname(os.path.dirname(os.path.dirname(kernelcache.__file__)))  # testbed/sim/kernelcache.py
     names = {os.path.relpath(f, root) for f in gen.files}
-    for f in ("testbed/sim/kernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+    for f in ("testbed/sim/kernel.py", "testbed/loop/quantizer.py", "testbed/loop/flow.py",
+                              "testbed/loop/_dop853.py",
               "attackers/greedy.py"):
         assert f in names, f
 
@@ -113,7 +114,8 @@ def test_a_flipped_byte_in_any_source_of_the_kernel_misses_the_cache(tmp_path):
     for pkg in ("testbed", "plants", "attackers"):
         shutil.copytree(root / pkg, tmp_path / "src" / pkg, ignore=shutil.ignore_patterns("__pycache__"))
     src = tmp_path / "src"
-    deps = [src / f for f in ("testbed/sim/kernel.py", "testbed/quantizer.py", "testbed/flow.py", "testbed/_dop853.py",
+    deps = [src / f for f in ("testbed/sim/kernel.py", "testbed/loop/quantizer.py", "testbed/loop/flow.py",
+                              "testbed/loop/_dop853.py",
                               "attackers/greedy.py", "plants/lienard.py")]
     env = dict(os.environ, PYTHONPATH=str(src), TESTBED_CACHE_DIR=str(tmp_path / "cache"))
     r = subprocess.run([sys.executable, "-c", _FLIP, *map(str, deps)], capture_output=True, text=True, env=env,

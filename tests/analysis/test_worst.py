@@ -242,7 +242,7 @@ def test_worst_attack_on_the_paper_is_minimal_in_testbed_simulate(tmp_path):
     assert d["total_duration"] == pytest.approx(tau)
     # shorter than the paper's two attacks (2.0 s in all), which the loop survives
     assert tau < 2.0
-    base = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()
+    base = (Path(scenario.__file__).parent / "bundled" / "paper.toml").read_text()
     assert _simulate(tmp_path, base, [[1.0, 1.2], [4.0, 0.8]], "paper")["escaped"] is False
     hit = _simulate(tmp_path, base, d["intervals"], "worst")
     assert hit["escaped"] is True
@@ -312,7 +312,7 @@ def test_three_attacks_on_the_paper_cost_at_most_0_3_s_and_the_scenario_escapes(
         # exact only where the proof reaches the answer
         assert f["exact"] == (d["proof"][f["attacks"] - 1]["samples_lost_below"] >= f["samples_lost"])
     # testbed simulate confirms: the paper with these intervals escapes, and so does the written scenario
-    base = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()
+    base = (Path(scenario.__file__).parent / "bundled" / "paper.toml").read_text()
     assert _simulate(tmp_path, base, d["intervals"], "three")["escaped"] is True
     written = scenario.load(out)
     assert written.attack.kind == "intervals" and written.n_steps == d["n_steps"]

@@ -20,7 +20,7 @@ def test_the_worst_attack_scenario_escapes_live(tmp_path):
     from helpers.procs import reap
 
     # the paper's loop over a 3 s horizon (a live run of 3 s); two attacks at most
-    base = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()
+    base = (Path(scenario.__file__).parent / "bundled" / "paper.toml").read_text()
     short = tmp_path / "paper3.toml"
     short.write_text(re.sub(r"^duration = .*$", "duration = 3.0", base, flags=re.M))
     out = tmp_path / "worst.toml"

@@ -21,7 +21,8 @@ import pytest
 from helpers.cli import tb_run, tb_run_here
 
 import testbed
-from testbed import errors, figstyle, scenario
+from testbed import scenario
+from testbed.common import errors, figstyle
 
 ROOT = Path(__file__).resolve().parents[2]
 API_MD = (ROOT / "docs" / "api.md").read_text()
@@ -147,7 +148,7 @@ def test_summary_keys_are_documented_one_by_one_and_live_ones_apart(tmp_path):
 
 
 def test_x_final_is_the_state_one_period_after_the_last_sample():
-    from testbed.flow import phi_T
+    from testbed.loop.flow import phi_T
 
     sim = testbed.simulate("paper", duration=3)
     x, u = sim.arrays["x"], sim.arrays["u"]
@@ -175,13 +176,13 @@ def test_scenarios_show_prints_the_bundled_toml(tmp_path):
 
 # ============================================================================ no silent waits
 def test_a_long_compilation_names_the_kernel_and_says_it_happens_once():
-    """The numba listener of ``testbed.compilenotice`` (delay 0 here: every real compilation says so)."""
+    """The numba listener of ``testbed.common.compilenotice`` (delay 0 here: every real compilation says so)."""
     import io
 
     import numba as nb
     from numba.core import event
 
-    from testbed.compilenotice import _Notice
+    from testbed.common.compilenotice import _Notice
 
     out = io.StringIO()
     notice = _Notice(out, delay=0.0)

@@ -154,7 +154,7 @@ def test_exit_codes_come_from_one_definition_in_every_help_and_in_the_docs():
     (0, 1, 2 and 3), and no other code below 128."""
     from pathlib import Path
 
-    from testbed.errors import EPILOG, EXIT_CODES
+    from testbed.common.errors import EPILOG, EXIT_CODES
 
     assert sorted(EXIT_CODES) == [0, 1, 2, 3]
     helps = {"testbed": cli.build_parser().epilog, **{n: p.epilog for n, p in _parsers().items()}}

@@ -63,7 +63,7 @@ def test_versus_seeds_summary(tmp_path):
     from testbed.campaign.engine import wilson
 
     sc = tmp_path / "rand.toml"
-    sc.write_text((EXAMPLES.parents[0].parent / "testbed" / "scenarios" / "paper.toml").read_text()
+    sc.write_text((EXAMPLES.parents[0].parent / "testbed" / "scenario" / "bundled" / "paper.toml").read_text()
                   .replace('kind = "intervals"\nintervals = [[1.0, 1.2], [4.0, 0.8]]   # [start, length] in seconds',
                            'kind = "random"\nkappa_F = 1.0\nrho_F = 0.2\nkappa_D = 0.4\nrho_D = 0.1')
                   .replace("duration = 30.0", "duration = 10.0"))
@@ -213,7 +213,7 @@ def test_trace_method_b_loses_method_a_samples(tmp_path):
     rc, out, err = tb("simulate", "paper", "--method", "zoom", "--json", "--out", "a.mcap", cwd=tmp_path)
     assert rc == 0, err
     a = json.loads(out)
-    text = (Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml").read_text()
+    text = (Path(__file__).resolve().parents[2] / "testbed" / "scenario" / "bundled" / "paper.toml").read_text()
     text = text.replace('kind = "intervals"\nintervals = [[1.0, 1.2], [4.0, 0.8]]   # [start, length] in seconds',
                         'kind = "trace"\nsource = "a.mcap"')
     assert 'source = "a.mcap"' in text
@@ -287,7 +287,7 @@ def test_bad_method_references_one_line(tmp_path, ref, msg):
 
 @pytest.mark.slow  # end to end: a user's method in its own processes
 def test_method_whose_ends_disagree_or_raise(tmp_path):
-    text = (Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml").read_text()
+    text = (Path(__file__).resolve().parents[2] / "testbed" / "scenario" / "bundled" / "paper.toml").read_text()
     for raise_, what in (("False", "broke lockstep"), ("True", "raised at sample 7: ZeroDivisionError: boom")):
         d = tmp_path / raise_
         d.mkdir()
@@ -362,7 +362,7 @@ def test_live_bundled_method_equals_simulation(tmp_path, method):
 
 @pytest.mark.process
 def test_live_method_that_raises_ends_the_run_recording_intact(tmp_path):
-    text = (Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml").read_text()
+    text = (Path(__file__).resolve().parents[2] / "testbed" / "scenario" / "bundled" / "paper.toml").read_text()
     (tmp_path / "badmeth.py").write_text(BAD.replace("{raise_}", "True").replace("self.E += 1.0", "pass"))
     (tmp_path / "s.toml").write_text(text)
     rid = f"t{os.getpid()}xraise{secrets.token_hex(3)}"

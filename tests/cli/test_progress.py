@@ -1,4 +1,4 @@
-"""The progress bar of the long commands (``testbed/progress.py``): on stderr only; off a terminal the
+"""The progress bar of the long commands (``testbed/common/progress.py``): on stderr only; off a terminal the
 plain lines of a log (a tenth of the work each; a campaign's every 5 s and at its end), on a terminal
 tqdm's bar drawn in place (a real pseudo-terminal), a campaign's starting after its first run."""
 
@@ -13,7 +13,7 @@ import termios
 from pathlib import Path
 
 import testbed
-from testbed.progress import Progress, RunsProgress
+from testbed.common.progress import Progress, RunsProgress
 
 ROOT = str(Path(testbed.__file__).resolve().parent.parent)
 
@@ -40,7 +40,7 @@ def test_off_a_terminal_plain_lines_on_stderr_only(capsys):
 
 
 SCRIPT = """
-from testbed.progress import Progress, RunsProgress
+from testbed.common.progress import Progress, RunsProgress
 p = Progress("sweep")
 for i in range(11):
     p(i, 10)

@@ -164,7 +164,7 @@ def _faulty(tmp_path, monkeypatch, module: str, raise_at=-1, drift=0.0):
     d.mkdir()
     (d / f"{module}.py").write_text(FAULTY.format(raise_at=raise_at, drift=drift))
     monkeypatch.syspath_prepend(str(d))
-    (d / "s.toml").write_text((Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml")
+    (d / "s.toml").write_text((Path(__file__).resolve().parents[2] / "testbed" / "scenario" / "bundled" / "paper.toml")
                               .read_text())
     return d
 

@@ -84,7 +84,7 @@ def test_live_escape_verdict_is_the_simulators_and_the_recordings(tmp_path, scen
 
 def _faulty_dir(tmp_path, raise_at=-1, drift=0.0) -> Path:
     (tmp_path / "faultymeth.py").write_text(FAULTY.format(raise_at=raise_at, drift=drift))
-    (tmp_path / "s.toml").write_text((ROOT / "testbed" / "scenarios" / "paper.toml").read_text())
+    (tmp_path / "s.toml").write_text((ROOT / "testbed" / "scenario" / "bundled" / "paper.toml").read_text())
     return tmp_path
 
 

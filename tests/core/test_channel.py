@@ -1,4 +1,4 @@
-"""The channel model (testbed/channel.py): seeded, prefix-stable draws; the loss chain's statistics
+"""The channel model (testbed/loop/channel.py): seeded, prefix-stable draws; the loss chain's statistics
 against its parameters; the [network] section parsed, rejected and round-tripped."""
 
 import math
@@ -7,10 +7,11 @@ import tomllib
 import numpy as np
 import pytest
 
-from testbed import channel, scenario
-from testbed.channel import LINKS, LinkModel, NetworkModel, draws, parse_network
-from testbed.scenariospec import ScenarioError
-from testbed.scenariowrite import to_toml
+from testbed import scenario
+from testbed.loop import channel
+from testbed.loop.channel import LINKS, LinkModel, NetworkModel, draws, parse_network
+from testbed.scenario.spec import ScenarioError
+from testbed.scenario.write import to_toml
 
 
 def _bursts(lost: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@ from numpy.testing import assert_allclose
 from scipy.integrate import solve_ivp
 
 import plants
-from testbed.control import c2d, closed_loop, dlqr, spectral_radius
+from testbed.loop.control import c2d, closed_loop, dlqr, spectral_radius
 
 
 def test_paper_gain_reproduced():

@@ -12,10 +12,10 @@ from helpers.cli import tb_here
 
 from testbed import scenario
 from testbed.analysis import noise
-from testbed.device import ActuatorSpec, DeviceSpec, DisturbanceSpec, SensorSpec
-from testbed.protocol import OdeProcess
+from testbed.loop.device import ActuatorSpec, DeviceSpec, DisturbanceSpec, SensorSpec
+from testbed.loop.protocol import OdeProcess
 from testbed.record.columns import read_columns
-from testbed.scenariospec import ScenarioError
+from testbed.scenario.spec import ScenarioError
 from testbed.sim.trajectory import kernel_refusal, simulate_scenario
 
 PAPER = scenario.load("paper").source
@@ -129,7 +129,7 @@ def test_ball_radius_bounds_the_worst_error_sequence_of_the_linear_loop():
     ``ball_radius`` and comes close to it (the bound is a sum of norms, the worst case a norm of a sum)."""
     sc = scenario.load("paper")
     model = sc.make_model()
-    from testbed.control import c2d, closed_loop
+    from testbed.loop.control import c2d, closed_loop
 
     Ad, Bd = c2d(model.A, model.B, sc.T)
     Acl = closed_loop(Ad, Bd, sc.K)

@@ -6,7 +6,7 @@ from numpy.testing import assert_allclose
 from scipy.integrate import solve_ivp
 
 import plants
-from testbed.flow import FLOW_DIVERGED, FLOW_OK, FlowOptions, phi_T
+from testbed.loop.flow import FLOW_DIVERGED, FLOW_OK, FlowOptions, phi_T
 
 
 def _ref(p, x0, u, T, method="DOP853"):

@@ -40,7 +40,7 @@ XML = (DATA / "fmu" / "modelDescription.xml").read_text()
 
 def test_fmu_follows_phi_T_over_the_paper_scenario(lienard_fmu, paper):
     """The paper scenario's inputs, stepped open loop through the FMU and through phi_T: within 1e-6."""
-    from testbed.flow import phi_T
+    from testbed.loop.flow import phi_T
     from testbed.sim.batch import simulate_scenario
 
     res = simulate_scenario(paper)
@@ -78,7 +78,7 @@ def test_fmu_follows_phi_T_over_the_paper_scenario(lienard_fmu, paper):
 
 def test_fmu_parameters_are_set(lienard_fmu):
     """Real and Integer FMU parameters take effect at reset (a = b = 0: the linear part only)."""
-    from testbed.flow import phi_T
+    from testbed.loop.flow import phi_T
 
     lin0 = plants.make("lienard", a=0.0, b=0.0)
     x0 = np.array([1.5, -0.5])

@@ -12,7 +12,7 @@ from helpers.cli import tb_run
 
 import testbed
 from testbed import methods, scenario
-from testbed.loopspec import ROUNDOFF
+from testbed.loop.params import ROUNDOFF
 from testbed.sim.batch import OnlineAttacker, simulate_batch, simulate_loop
 
 BUNDLED = ["paper", "zoom", "static", "unquantized", "unquantized-hold"]

@@ -5,14 +5,14 @@ import pytest
 from numpy.testing import assert_allclose
 
 import plants
-from testbed.plantcheck import check_plant
+from testbed.loop.plantcheck import check_plant
 
 ALL = plants.names()
 
 
 @pytest.mark.parametrize("name", ALL)
 def test_contract(name):
-    """The contract of testbed.plantcheck (the checks testbed check-plant runs) on every registered plant.
+    """The contract of testbed.loop.plantcheck (the checks testbed check-plant runs) on every registered plant.
 
     Assumption 2 depends on the scenario's L, T, M: it is checked with each plant's bundled scenario.
     """

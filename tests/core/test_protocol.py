@@ -1,4 +1,4 @@
-"""The protocol core (testbed/protocol.py), actuation delays in both simulators, the delay-aware rule."""
+"""The protocol core (testbed/loop/protocol.py), actuation delays in both simulators, the delay-aware rule."""
 
 import math
 import tomllib
@@ -10,9 +10,8 @@ from hypothesis import strategies as st
 
 import plants
 from testbed import scenario
-from testbed.flow import phi_T
-from testbed.methods.bundled import PaperMethod
-from testbed.protocol import (
+from testbed.loop.flow import phi_T
+from testbed.loop.protocol import (
     DEADLINE,
     INVALID,
     RECEIVED,
@@ -24,7 +23,8 @@ from testbed.protocol import (
     Send,
     Withhold,
 )
-from testbed.quantizer import delay_margin_gain
+from testbed.loop.quantizer import delay_margin_gain
+from testbed.methods.bundled import PaperMethod
 from testbed.sim.batch import simulate_batch, simulate_scenario
 from testbed.sim.loop import LinkEffects, OnlineAttacker, simulate_loop
 

@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import plants
-from testbed.flow import phi_T
+from testbed.loop.flow import phi_T
+from testbed.loop.quantizer import Codebook, InvalidSymbol, QuantizerParams, box_center, quantize_index
 from testbed.methods.bundled import PaperMethod
-from testbed.quantizer import Codebook, InvalidSymbol, QuantizerParams, box_center, quantize_index
 from testbed.sim.loop import OnlineAttacker, simulate_loop
 
 LIENARD = plants.make("lienard")

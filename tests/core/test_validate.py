@@ -1,4 +1,4 @@
-"""One wording for an input's numbers, ranges and choices (``testbed/validate.py``): the checks' phrases,
+"""One wording for an input's numbers, ranges and choices (``testbed/common/validate.py``): the checks' phrases,
 and the same phrase behind each parser's field name (the scenario, its [network] and device tables, a
 method's parameters, a campaign file, ``testbed run``'s ROLE@VALUE flags)."""
 
@@ -8,12 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from testbed import scenario, validate
+from testbed import scenario
 from testbed.campaign import spec
-from testbed.errors import BadInput
-from testbed.scenariospec import ScenarioError
+from testbed.common import validate
+from testbed.common.errors import BadInput
+from testbed.scenario.spec import ScenarioError
 
-PAPER = resources.files("testbed").joinpath("scenarios/paper.toml").read_text()
+PAPER = resources.files("testbed").joinpath("scenario/bundled/paper.toml").read_text()
 
 
 @pytest.mark.parametrize("value,kw,phrase", [

@@ -15,10 +15,10 @@ import pytest
 from helpers.sims import sim_recording
 
 from testbed.live.collect import Collector, Spill
-from testbed.quantizer import Codebook
+from testbed.loop.quantizer import Codebook
 from testbed.record import columns, reader
 from testbed.record.summary import LIVE_FIELDS, build_summary, to_lists, write_json
-from testbed.stats import StoredArray
+from testbed.record.timingstats import StoredArray
 from testbed.wire import messages as msg
 from testbed.wire import transport
 
@@ -175,7 +175,7 @@ def test_the_timing_section_in_windows_equals_the_whole_arrays(tmp_path, monkeyp
     from testbed import scenario
     from testbed.live.collect import spill_columns
     from testbed.record import summary as summary_mod
-    from testbed.stats import Spool, percentiles
+    from testbed.record.timingstats import Spool, percentiles
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import bench_soak

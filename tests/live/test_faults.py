@@ -9,11 +9,11 @@ import os
 import numpy as np
 import pytest
 
-from testbed.errors import BadInput
+from testbed.common.errors import BadInput
 from testbed.live.stalls import StallWatch, parse_stalls
 from testbed.record import recording
 from testbed.record.degraded import timing_degraded
-from testbed.stats import Timings, percentiles
+from testbed.record.timingstats import Timings, percentiles
 from testbed.wire import messages as msg
 
 

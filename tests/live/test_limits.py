@@ -13,7 +13,7 @@ import pytest
 from helpers.cli import tb_run_here
 
 from testbed import scenario
-from testbed.quantizer import MAX_CODES
+from testbed.loop.quantizer import MAX_CODES
 from testbed.record import reader, recording
 from testbed.sim.batch import simulate_batch, simulate_scenario, summarize
 from testbed.wire import messages as msg

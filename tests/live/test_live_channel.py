@@ -1,5 +1,5 @@
 """The live channel stage: a run with ``[network]`` loses the samples the channel model's seeded draws
-say (``testbed.channel.draws``, the simulator's draws), holds each message for its drawn delay, and
+say (``testbed.loop.channel.draws``, the simulator's draws), holds each message for its drawn delay, and
 equals the simulator with the same ``[network]`` bit for bit."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import pytest
 from helpers.cli import run_cli, tb_cmd
 from helpers.live import BIT_EXACT_KEYS, TOPOLOGIES, live_exact, mismatch, simulate
 
-from testbed import channel, scenario
+from testbed import scenario
+from testbed.loop import channel
 
 pytestmark = pytest.mark.process
 

@@ -156,7 +156,8 @@ def test_netns_physical_timing_over_a_delayed_actuation_link(tmp_path):
     bit for bit, and its recording re-simulates within 1e-9."""
     from failclosed import fifo_permitted
 
-    from testbed import channel, scenario
+    from testbed import scenario
+    from testbed.loop import channel
 
     _require_netns()
     path = tmp_path / "paper-delay.toml"
@@ -236,7 +237,7 @@ def test_netns_a_cut_next_to_a_channel_model_tells_the_causes_apart(tmp_path):
     T = s["T"]
     during = set(range(int(cut["down_s"] / T) + 1, int(cut["up_s"] / T)))   # samples wholly inside the outage
     rec = reader.read(s["recording"]["path"])
-    from testbed.channel import model_lost
+    from testbed.loop.channel import model_lost
 
     recorded = set(rec.summaries["controller"]["channel"]["symbol"]["lost_at"])   # the stage's own record
     model = {int(k) for k in np.flatnonzero(model_lost(scenario.load(str(path)).network, s["n_steps"]))}

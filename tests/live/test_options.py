@@ -1,4 +1,4 @@
-"""A run option is defined once (``testbed.optionspec``): the parsers of ``testbed run``, ``node``, ``record`` and
+"""A run option is defined once (``testbed.common.optionspec``): the parsers of ``testbed run``, ``node``, ``record`` and
 ``conformance``, the typed configurations, a node's command line, the join file and the options table of
 docs/cli.md are generated from that one definition, and agree.  And the public-CLI contract: a process the testbed
 starts is a ``testbed`` subcommand, started with the flags a user would type (docs/development.md)."""
@@ -15,9 +15,10 @@ from pathlib import Path
 import pytest
 
 import testbed
-from testbed import cli, optionspec
+from testbed import cli
 from testbed.commands import conformance as conformance_cmd
 from testbed.commands.liveconfig import node_config, recorder_config, run_config, run_options, session_options
+from testbed.common import optionspec
 from testbed.nodes import optionsdoc
 from testbed.nodes.options import NodeConfig, RecorderConfig, RunConfig, RunOptions, load_scenario, run_digest
 from testbed.wire.session import SessionOptions
@@ -160,7 +161,7 @@ def test_the_join_file_carries_every_run_option_a_node_needs():
     assert {f.name for f, o in optionspec.options(RunOptions) if o.digest} <= set(carried)
     assert RunOptions.of_join(carried) == full
     assert RunOptions.of_join(json.loads(json.dumps(RunOptions().join_fields()))) == RunOptions()
-    from testbed.errors import BadInput
+    from testbed.common.errors import BadInput
 
     with pytest.raises(BadInput, match="unknown run option 'speed'"):
         RunOptions.of_join({"speed": 2})
@@ -249,8 +250,9 @@ def test_no_module_sets_another_modules_global():
 def test_a_recording_trace_is_read_by_the_reader_the_caller_passes(tmp_path):
     """``testbed.scenario`` reads a recording named as a trace with the reader it is given, and says what to pass
     when none is; a plain trace file needs none."""
-    from testbed import scenario, traces
-    from testbed.errors import BadInput
+    from testbed import scenario
+    from testbed.common.errors import BadInput
+    from testbed.scenario import traces
 
     assert not hasattr(traces, "recording_trace_reader")
     seen = []

@@ -64,7 +64,7 @@ def device() -> str:
 
 def _join_data(tmp_path: Path, **over) -> dict:
     """A join file's fields for an --insecure router run whose router is not there (nothing listens)."""
-    toml = (Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml").read_text()
+    toml = (Path(__file__).resolve().parents[2] / "testbed" / "scenario" / "bundled" / "paper.toml").read_text()
     d = {"join_version": 1, "protocol": 1, "role": "plant", "run_id": "nobody", "key_prefix": "testbed/nobody",
          "ack_key": "loop/actuation", "topology": "router", "mode": "client", "connect": ["tcp/127.0.0.1:9"],
          "listen": [], "low_latency": False, "credentials": {"kind": "none"}, "T_ns": 100_000_000, "n_steps": 10,
@@ -173,7 +173,7 @@ def _live_with_device(device: str, run_id: str, tls: str, out: Path, *args: str,
 def plant_model_error(rec: Path) -> tuple[float, int]:
     """max_k ||x_{k+1} - phi_T(x_k, u_k)||_inf over a recording (x_N from the final record), and its k."""
     import testbed
-    from testbed.flow import phi_T
+    from testbed.loop.flow import phi_T
 
     r = testbed.open(rec)
     a, sc, s = r.arrays, r.scenario, r.summary

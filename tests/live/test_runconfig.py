@@ -26,7 +26,7 @@ SESSION = SessionOptions(run_id="r-1", listen=("tls/127.0.0.1:0",), connect=("tl
 def _parse(module: str, name: str, argv: list[str]):
     import importlib
 
-    from testbed.entry import add_command_arguments
+    from testbed.common.dispatch import add_command_arguments
 
     p = argparse.ArgumentParser()
     add_command_arguments(p, importlib.import_module(module), name)

@@ -8,8 +8,8 @@ import io
 
 import numpy as np
 
-from testbed.channel import recorded_losses
 from testbed.live.status import LiveStatus, status_text
+from testbed.loop.channel import recorded_losses
 from testbed.wire import messages as msg
 
 
@@ -85,11 +85,11 @@ def test_the_console_loss_line_adds_up(tmp_path, capsys):
     from pathlib import Path
 
     from testbed import cli
-    from testbed.channel import loss_text
+    from testbed.loop.channel import loss_text
 
     assert loss_text({"attacker": 3, "channel": 1, "late": 0, "withheld": 2}) == \
         "attacker 3, channel 1, network 0, late 0, withheld 2"
-    paper = (Path(__file__).resolve().parents[2] / "testbed" / "scenarios" / "paper.toml").read_text()
+    paper = (Path(__file__).resolve().parents[2] / "testbed" / "scenario" / "bundled" / "paper.toml").read_text()
     path = tmp_path / "net.toml"
     path.write_text(paper.replace("[run]", "[network]\nseed = 3\n[network.symbol]\nloss = 0.1\n\n[run]"))
     assert cli.main(["simulate", str(path), "--duration", "10", "--json"]) == 0

@@ -1,6 +1,6 @@
 """A live run shows that it is alive (``testbed.live.status``): on a terminal one status line on stderr,
 redrawn about once a second; on a pipe nothing unless ``--progress``; never anything on stdout.  And the
-rule-of-thumb warnings of ``testbed run`` (``testbed.rulesofthumb``), said before the run."""
+rule-of-thumb warnings of ``testbed run`` (``testbed.scenario.rulesofthumb``), said before the run."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("testbed", "plants", "attackers")
 MAX_LINES = 700
-GENERATED = {"testbed/_dop853.py"}  # tools/gen_dop853.py writes it
+GENERATED = {"testbed/loop/_dop853.py"}  # tools/gen_dop853.py writes it
 
 
 def _modules() -> dict[str, tuple[Path, bool]]:
@@ -133,7 +133,7 @@ def test_the_layer_order_is_read():
     assert len(layers) >= 8
     assert _layer_of("testbed.cli", layers) < _layer_of("testbed.live.launcher", layers)
     assert _layer_of("testbed.nodes.plant", layers) < _layer_of("testbed.wire.messages", layers)
-    assert _layer_of("testbed.flow", layers) < _layer_of("plants.base", layers)
+    assert _layer_of("testbed.loop.flow", layers) < _layer_of("plants.base", layers)
 
 
 def test_every_module_has_a_layer():

@@ -21,7 +21,7 @@ from testbed.campaign import folder as cmp_folder
 from testbed.campaign import rows as cmp_rows
 from testbed.campaign import runner as campaignrun
 from testbed.campaign import spec as cmp
-from testbed.channel import LOSS_KINDS
+from testbed.loop.channel import LOSS_KINDS
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -240,7 +240,7 @@ def test_seeds_rule(tmp_path):
     c.write_text('scenario = "seeded.toml"\nseed = 5\n[axes]\n"method.name" = ["paper", "zoom"]\n')
     runs, notes = cmp.plan(cmp.parse(c))
     assert [r.seeds["seeds.attack"] for r in runs] == [42, 42]
-    assert notes == ["method 'zoom' ignores [quantizer] mode of this scenario"]  # the one swap note (testbed.methodswap)
+    assert notes == ["method 'zoom' ignores [quantizer] mode of this scenario"]  # the one swap note (testbed.scenario.methodswap)
 
 
 @pytest.mark.slow

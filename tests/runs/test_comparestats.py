@@ -1,4 +1,4 @@
-"""``testbed.comparestats`` (scipy's tests) against the same tests computed here from their definitions, on
+"""``testbed.common.comparestats`` (scipy's tests) against the same tests computed here from their definitions, on
 known tables: Wilson by its formula, McNemar from the binomial pmf, Newcombe's hybrid score interval by its
 formula, the Wilcoxon signed-rank p by enumerating every sign assignment; the degenerate cases."""
 
@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from testbed import comparestats as cs
+from testbed.common import comparestats as cs
 
 Z = 1.959963984540054  # the 97.5 % normal quantile
 

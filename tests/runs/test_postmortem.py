@@ -27,7 +27,7 @@ from helpers.sims import sim_recording
 
 import testbed
 from testbed import scenario
-from testbed.errors import BadInput
+from testbed.common.errors import BadInput
 from testbed.record import columns, reader, recording, schema, topics
 from testbed.record.summary import write_json
 from testbed.runs.report import report
@@ -330,7 +330,7 @@ def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
     """A node's telemetry that stops (killed): every count comes from the role that recorded it."""
     from collections import Counter
 
-    from testbed.quantizer import Codebook
+    from testbed.loop.quantizer import Codebook
     from testbed.record.summary import build_summary
 
     sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
@@ -353,7 +353,7 @@ def test_report_prices_an_intervals_attack_as_declared(tmp_path):
     """Three back-to-back attacks (0.1 s each) lose samples 0..5, which the attacker's log shows as one run:
     the budget check prices what was declared, three attacks of 0.3 s in all, not one of 0.5 s."""
     f = tmp_path / "three.toml"
-    text = (Path(scenario.__file__).parent / "scenarios" / "paper.toml").read_text()
+    text = (Path(scenario.__file__).parent / "bundled" / "paper.toml").read_text()
     text = text.replace("intervals = [[1.0, 1.2], [4.0, 0.8]]",
                         "intervals = [[0.0, 0.1], [0.2, 0.1], [0.4, 0.1]]\n"
                         "budget = { kappa_F = 3.0, rho_F = 0.0, kappa_D = 0.3, rho_D = 0.0 }")

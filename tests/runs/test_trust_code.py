@@ -41,7 +41,7 @@ PLANT = MARKER + textwrap.dedent('''\
         name: ClassVar[str] = "mylienard"
     ''')
 
-PLANT_SCENARIO = (ROOT / "testbed" / "scenarios" / "paper.toml").read_text().replace(
+PLANT_SCENARIO = (ROOT / "testbed" / "scenario" / "bundled" / "paper.toml").read_text().replace(
     'name = "lienard"', 'name = "myplant:MyLienard"').replace(
     "K = [[-1.81, -1.90]]", "lqr = { Q = [[1.0, 0.0], [0.0, 1.0]], R = [[1.0]] }")
 
@@ -57,7 +57,7 @@ DRIVER = textwrap.dedent('''\
     import contextlib, io, json, os, sys
     import testbed
     from testbed.cli import COMMANDS
-    from testbed.entry import run_command
+    from testbed.common.dispatch import run_command
     import plants.refs as refs
     import testbed.methods.registry as mreg
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from helpers.sims import SIM_ARRAYS, assert_simulators_identical, both_simulators, same_bits
 
-from testbed import channel, scenario
-from testbed.channel import ATTACKER, CHANNEL, LATE, WITHHELD, loss_counts
-from testbed.scenariowrite import to_toml
+from testbed import scenario
+from testbed.loop import channel
+from testbed.loop.channel import ATTACKER, CHANNEL, LATE, WITHHELD, loss_counts
+from testbed.scenario.write import to_toml
 from testbed.sim.batch import summarize
 from testbed.sim.trajectory import kernel_refusal, simulate_scenario
 

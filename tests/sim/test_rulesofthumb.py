@@ -1,4 +1,4 @@
-"""The rule-of-thumb warnings (``testbed.rulesofthumb``): E_min against the sensor's noise and E0 against
+"""The rule-of-thumb warnings (``testbed.scenario.rulesofthumb``): E_min against the sensor's noise and E0 against
 x0, as docs/plants-and-quantizer.md states them, and the one line ``testbed simulate`` prints before it runs
 (``testbed run`` prints the same lines: ``tests/live/test_status_process.py``)."""
 
@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from testbed import cli, rulesofthumb, scenario
+from testbed import cli, scenario
 from testbed.analysis import noise
+from testbed.scenario import rulesofthumb
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "docs" / "examples"
 

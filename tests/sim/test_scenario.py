@@ -7,7 +7,7 @@ import pytest
 from helpers.sims import paper_loop_toml
 
 from testbed import scenario
-from testbed.scenariospec import ScenarioError
+from testbed.scenario.spec import ScenarioError
 
 GOOD = paper_loop_toml() + """
 [attack]
@@ -143,8 +143,9 @@ def test_a_run_parses_its_scenario_once(monkeypatch, tmp_path):
     """A process of a live run reads its scenario text once: the run options are applied to the parsed
     document (not by parsing ``source`` again), and a drawn seed, the start digest, the rules of thumb,
     a rewrite of the scenario and a later override all work from that one parse."""
-    from testbed import rulesofthumb, scenariowrite
     from testbed.nodes.options import RunOptions, load_scenario, run_digest
+    from testbed.scenario import rulesofthumb
+    from testbed.scenario import write as scenariowrite
 
     path = tmp_path / "s.toml"
     random = 'kind = "random"\nkappa_F = 2.0\nrho_F = 0.1\nkappa_D = 1.0\nrho_D = 0.1'  # no seed: one is drawn

@@ -9,7 +9,7 @@ from helpers.cli import tb_run
 
 import plants
 from testbed import cli, scenario
-from testbed.flow import FLOW_OK, phi_T
+from testbed.loop.flow import FLOW_OK, phi_T
 from testbed.sim.batch import in_nominal_roa, simulate_batch, simulate_scenario, summarize
 from testbed.sim.loop import OnlineAttacker, simulate_loop
 
@@ -83,7 +83,7 @@ def test_batch_many_states_and_schedules():
         r = simulate_loop(p, sc.K, sc.quantizer, X0[i], sc.n_steps, OnlineAttacker(theta=tab[idx[i]], T=sc.T))
         assert np.array_equal(r.x_final, b.x_final[i])
     # a 5.5 s attack (samples 5..59) loses the loop: the flow diverges; no attack, and a 1 s one, converge
-    from testbed.loopspec import FLOW_DIVERGED
+    from testbed.loop.params import FLOW_DIVERGED
 
     assert b.converged()[idx != 2].all()
     assert not b.converged()[idx == 2].any() and (b.status[idx == 2] == FLOW_DIVERGED).all()

@@ -49,7 +49,7 @@ def test_symbol_payload_is_the_packed_bits(k, stamp, data):
 
 
 def test_paper_symbol_is_one_byte():
-    from testbed.quantizer import Codebook
+    from testbed.loop.quantizer import Codebook
 
     cb = Codebook(2, 6, resilient=True)
     p, a = msg.Symbol(3, 0, cb.pack(36)).encode()
@@ -272,7 +272,7 @@ def test_low_latency_config_and_router_without_scouting_delay():
 
 
 def test_parse_cpus():
-    from testbed.errors import BadInput
+    from testbed.common.errors import BadInput
     from testbed.nodes.process import parse_cpus
 
     cpu = min(os.sched_getaffinity(0))
@@ -329,7 +329,7 @@ def test_load_scenario_overrides_and_digest(paper):
 
 
 def test_load_scenario_T_override_is_validated():
-    from testbed.errors import BadInput
+    from testbed.common.errors import BadInput
     from testbed.nodes.options import RunOptions, load_scenario
 
     sc = load_scenario("pendulum", RunOptions(T=0.01, duration=1.0))  # LQR gain: recomputed for T
@@ -383,7 +383,7 @@ def test_run_clock_converts_realtime_to_monotonic():
 # ---------------------------------------------------------------- lockstep helper of the encoder
 def test_skip_sample_equals_a_lost_packet(paper):
     """An encoder that withheld sample k (skip_sample) stays in lockstep with a decoder that lost it."""
-    from testbed.flow import phi_T
+    from testbed.loop.flow import phi_T
     from testbed.nodes.encoder import skip_sample
     plant = paper.make_plant()
     enc = paper.make_method().make_encoder(plant, paper.K, paper.quantizer, paper.flow)

@@ -245,7 +245,7 @@ def test_the_documented_flow_map_reproduces_phi_T_bit_for_bit():
     import numpy as np
 
     import plants
-    from testbed.flow import phi_T
+    from testbed.loop.flow import phi_T
 
     a, b = 1.0 / 3.0, 1.0 / 50.0
 
@@ -271,7 +271,7 @@ def _table(block: str) -> list[list[str]]:
 
 
 def test_the_flags_and_flow_status_tables_are_the_codes_the_plant_writes():
-    from testbed.flow import FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT
+    from testbed.loop.flow import FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT
 
     PT = msg.PlantTelemetry
     flags = {int(r[1]): r[2] for r in _table("flags")}

@@ -1,9 +1,9 @@
-"""testbed.stats: percentiles of a spooled series (bounded memory) are numpy's, bit for bit."""
+"""testbed.record.timingstats: percentiles of a spooled series (bounded memory) are numpy's, bit for bit."""
 
 import numpy as np
 import pytest
 
-from testbed.stats import Spool, percentiles
+from testbed.record.timingstats import Spool, percentiles
 from testbed.wire.messages import NO_TIME
 
 

@@ -10,7 +10,7 @@ import stat
 
 import pytest
 
-from testbed.errors import BadInput
+from testbed.common.errors import BadInput
 from testbed.wire import transport
 
 

@@ -15,7 +15,7 @@ import struct
 import sys
 import time
 
-from testbed.entry import run_child
+from testbed.common.dispatch import run_child
 from testbed.nodes.context import NodeContext
 from testbed.wire import messages as msg
 

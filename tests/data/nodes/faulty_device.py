@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 
-from testbed.entry import run_child
+from testbed.common.dispatch import run_child
 from testbed.nodes.clock import RunClock
 from testbed.nodes.plant import PlantNode
 from testbed.wire import messages as msg

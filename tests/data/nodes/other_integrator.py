@@ -12,8 +12,8 @@ import sys
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from testbed.entry import run_child
-from testbed.protocol import FLOW_OK, OdeProcess
+from testbed.common.dispatch import run_child
+from testbed.loop.protocol import FLOW_OK, OdeProcess
 
 
 def _advance(self, u, dt: float) -> int:

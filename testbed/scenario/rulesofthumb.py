@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .control import c2d
+from ..loop.control import c2d
 
 
 def e_min_guarantee(b: float, Lambda: float, M: int, w: float = 0.0) -> float:
@@ -70,7 +70,7 @@ def warnings(sc) -> list[str]:
 
     A rule applies when the method uses the key it is about (``Method.uses``: E_min, E0) and, for E0, when
     the scenario does not ask for x0 outside the first box (``allow_x0_outside``)."""
-    from . import methods
+    from .. import methods
 
     dev = sc.plant.device
     b = dev.sensor.bound() if dev is not None and dev.sensor is not None else 0.0

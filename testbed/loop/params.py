@@ -1,8 +1,8 @@
 """The loop's parameter types and the codebook, without numba.
 
 What a process needs to read and check a scenario, and what the attacker and the
-launcher need of the quantizer, apart from the compiled kernels (``testbed.flow``,
-``testbed.quantizer``, which re-export every name here): a process that only reads a
+launcher need of the quantizer, apart from the compiled kernels (``testbed.loop.flow``,
+``testbed.loop.quantizer``, which re-export every name here): a process that only reads a
 scenario never imports numba.
 """
 

@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from . import validate
+from ..common import validate
 from .distributions import draw, names
 
-DISTRIBUTIONS = names("normal")  # the noise's distributions (testbed.distributions), its default first
+DISTRIBUTIONS = names("normal")  # the noise's distributions (testbed.loop.distributions), its default first
 SENSOR_STREAM = 1
 DISTURBANCE_STREAM = 2
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .wire.messages import NO_TIME
+from ..wire.messages import NO_TIME
 
 
 class Timings:

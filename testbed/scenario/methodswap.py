@@ -18,12 +18,12 @@ from __future__ import annotations
 from collections.abc import Collection
 from typing import Any
 
-from .scenariospec import ScenarioError
+from .spec import ScenarioError
 
 
 def own_method(data: dict[str, Any]) -> tuple[str, dict[str, Any]]:
     """The ``[method] name`` (default ``paper``) and ``params`` of a parsed scenario document."""
-    from . import methods
+    from .. import methods
 
     mt = data.get("method")
     if not isinstance(mt, dict):
@@ -39,7 +39,7 @@ def same_method(a: str, b: str, base_dir: str | None) -> bool:
     resolved is the same only as itself)."""
     if a == b:
         return True
-    from . import methods
+    from .. import methods
 
     try:
         return methods.resolve(a, base_dir) is methods.resolve(b, base_dir)
@@ -66,7 +66,7 @@ def swap(data: dict[str, Any], new: str | dict[str, Any], base_dir: str | None, 
     Only ``known_quantizer_keys`` are ever left out of ``[quantizer]`` (an unknown key stays, for the
     scenario's own check to name).  A method that cannot be made is a ``ScenarioError`` (one line).
     """
-    from . import methods
+    from .. import methods
 
     old, old_params = own_method(data)
     if isinstance(new, str):

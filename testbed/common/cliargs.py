@@ -13,7 +13,7 @@
 ==================  ===============================================================
 
 Old names stay accepted as hidden aliases (``--record``, ``--rerun-no-roa``).
-Exit codes: 0 ok, 1 the run or job failed, 2 bad input (``testbed.errors``).
+Exit codes: 0 ok, 1 the run or job failed, 2 bad input (``testbed.common.errors``).
 """
 
 from __future__ import annotations

@@ -11,20 +11,21 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-from . import device, methodswap, scenariooverrides, traces
-from . import scenariosections as sections
-from .errors import BadInput
-from .loopspec import QuantizerParams
-from .scenariospec import PlantSpec, RunSpec, Scenario, ScenarioError, _freeze
+from ..common.errors import BadInput
+from ..loop import device
+from ..loop.params import QuantizerParams
+from . import methodswap, sections, traces
+from . import overrides as scenariooverrides
+from .spec import PlantSpec, RunSpec, Scenario, ScenarioError, _freeze
 
-BUNDLED_DIR = "scenarios"
+BUNDLED_DIR = "bundled"  # testbed/scenario/bundled/
 
 
 MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML
 
 
 def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>") -> tuple[dict, str]:
-    """``data`` with the method ``new`` swapped in by the one rule (``testbed.methodswap``: the scenario's
+    """``data`` with the method ``new`` swapped in by the one rule (``testbed.scenario.methodswap``: the scenario's
     own method keeps its params, dropped params and ignored ``[quantizer]`` keys are named in the note):
     (the document, the note without its ``note: ``)."""
     return methodswap.swap(data, new, base_dir or None, known_quantizer_keys=sections.KEYS["quantizer"],
@@ -84,7 +85,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
 
 
 def bundled_names() -> list[str]:
-    d = resources.files("testbed").joinpath(BUNDLED_DIR)
+    d = resources.files(__name__).joinpath(BUNDLED_DIR)
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
 
 
@@ -92,7 +93,7 @@ def load(ref: str | Path, *, check_design: bool = True, overrides: dict | None =
          read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """Load a scenario from a file path or a bundled name (``paper``, ``paper-escape``, ...), with run-time
     ``overrides`` applied as in :func:`with_overrides` (the text parsed and the Scenario built once);
-    ``read_recording_trace``: how a recording named as an ``[attack]`` trace is read (``testbed.traces``)."""
+    ``read_recording_trace``: how a recording named as an ``[attack]`` trace is read (``testbed.scenario.traces``)."""
     p = Path(ref)
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
@@ -108,7 +109,7 @@ def load(ref: str | Path, *, check_design: bool = True, overrides: dict | None =
             raise ScenarioError(f"{ref}: {e.strerror or e}") from None
         name, where, base_dir = p.stem, str(p), str(p.resolve().parent)
     else:
-        res = resources.files("testbed").joinpath(BUNDLED_DIR, f"{ref}.toml")
+        res = resources.files(__name__).joinpath(BUNDLED_DIR, f"{ref}.toml")
         if not res.is_file():
             raise ScenarioError(f"{ref!r} is neither a scenario file nor a bundled scenario "
                                 f"(bundled: {', '.join(bundled_names())})")
@@ -175,7 +176,7 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
     overrides beside it.  A trace the scenario read is kept as read (``read_recording_trace``: for an
     ``attack`` override naming another).
     A bad override raises ``BadInput`` (not ``ScenarioError``: the file is fine) whose message
-    names the overrides and says what to change (:func:`testbed.scenariooverrides.hint`).
+    names the overrides and says what to change (:func:`testbed.scenario.overrides.hint`).
     """
     over = scenariooverrides.checked(overrides, sc.name)
     if not over:

@@ -13,7 +13,7 @@ import sys
 
 from .errors import EPILOG
 
-#: commands that compile nothing (or must start fast): no numba listener (``testbed.compilenotice``)
+#: commands that compile nothing (or must start fast): no numba listener (``testbed.common.compilenotice``)
 QUIET_START = {"scenarios", "secret", "plants", "node", "record", "run", "methods"}
 
 #: the commands that a live run's launcher starts as its children: command -> (module, one-line help)

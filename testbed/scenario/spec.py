@@ -13,17 +13,17 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
-from .channel import NetworkModel
-from .device import DeviceSpec
-from .errors import BadInput
-from .loopspec import FlowOptions, QuantizerParams
+from ..common.errors import BadInput
+from ..loop.channel import NetworkModel
+from ..loop.device import DeviceSpec
+from ..loop.params import FlowOptions, QuantizerParams
 
 if TYPE_CHECKING:
     from attackers.schedule import Schedule
     from plants.base import PlantProcess
     from plants.fmu import FMUPlant
 
-    from .methods.base import Method
+    from ..methods.base import Method
 
 
 def _freeze(v: Any) -> Any:
@@ -84,7 +84,7 @@ class PlantSpec(BuiltOnce["plants.Plant"]):
     ref: str = ""                  # [plant] name as written: registered, entry point or "module:Class"
     base_dir: str = ""             # the scenario file's folder ("" for bundled scenarios and strings)
     fmu: FMUSpec | None = None     # [plant] fmu = "...": the true plant is an FMU
-    device: DeviceSpec | None = None  # [plant.sensor], [plant.actuator], [plant.disturbance] (``testbed.device``)
+    device: DeviceSpec | None = None  # [plant.sensor], [plant.actuator], [plant.disturbance] (``testbed.loop.device``)
 
     def _build(self) -> plants.Plant:
         if self.fmu is not None:
@@ -120,13 +120,13 @@ class MethodSpec(BuiltOnce["Method"]):
     def _build(self) -> Method:
         """The method object (``testbed.methods.Method``: its params, a factory of ends): a run's state lives in
         its ends, never in the method."""
-        from . import methods
+        from .. import methods
 
         return methods.make(self.name, self.base_dir or None, _thaw(self.params))
 
     def source_info(self) -> dict[str, str]:
         """The method module's ``module``, ``class``, ``file``, ``source`` and ``sha256`` (as for plants)."""
-        from . import methods
+        from .. import methods
 
         return methods.source_info(methods.resolve(self.name, self.base_dir or None))
 
@@ -271,7 +271,7 @@ class Scenario:
     L_u: float = 0.0       # input gain of the model (delay-aware rule)
     base_dir: str = ""     # the file's folder: "module:Class" plants are imported from there first
     method: MethodSpec = MethodSpec()   # [method] (default: the paper's)
-    method_note: str = ""  # a swapped method (``--method``): what it leaves out, one line (testbed.methodswap)
+    method_note: str = ""  # a swapped method (``--method``): what it leaves out, one line (testbed.scenario.methodswap)
     network: NetworkModel | None = None   # [network]: the emulated channels (None: ideal links)
     # the TOML document of ``source`` as it was parsed, once (``document``)
     doc: dict = field(default_factory=dict, repr=False, compare=False)
@@ -298,7 +298,7 @@ class Scenario:
         code (re-simulation, the escape verdict, the region of attraction) is skipped; empty: all runs."""
         from plants.refs import not_run
 
-        from . import methods
+        from .. import methods
 
         classes: list[type] = [methods.resolve(self.method.name, self.method.base_dir or None)]
         if self.plant.fmu is None:
@@ -338,7 +338,7 @@ class Scenario:
         """The true plant as it advances in time (``plants.base.PlantProcess``): an ODE plant or an FMU."""
         if self.plant.fmu is not None:
             return self.plant.fmu.open()
-        from .protocol import OdeProcess
+        from ..loop.protocol import OdeProcess
 
         return OdeProcess(self.make_plant(), self.flow)
 

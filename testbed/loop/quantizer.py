@@ -47,7 +47,7 @@ import math
 import numba as nb
 
 from .flow import flow_into
-from .loopspec import (  # noqa: F401 - the quantizer's public names
+from .params import (  # noqa: F401 - the quantizer's public names
     MAX_CODES,
     MODE_IDEAL,
     MODE_NONE,

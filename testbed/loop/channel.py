@@ -28,12 +28,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from . import validate
+from ..common import validate
+from ..common.errors import BadInput
 from .distributions import draw, names
-from .errors import BadInput
 
 LINKS = ("sensor", "symbol", "actuation", "ack")
-DISTRIBUTIONS = names("uniform")  # the jitter's distributions (testbed.distributions), its default first
+DISTRIBUTIONS = names("uniform")  # the jitter's distributions (testbed.loop.distributions), its default first
 _LINK_KEYS = ("delay", "jitter", "distribution", "loss", "loss_burst", "rate")
 
 

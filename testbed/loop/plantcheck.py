@@ -13,7 +13,7 @@ and by ``testbed check-plant REF`` on a user's plant:
   (``Plant.lipschitz``) against the stated L;
 * ``assumption2``: M > Lambda = e^{L T};
 * ``stabilizable``: (A, B) stabilizable (PBH test on the eigenvalues with Re >= 0)
-  and so is its ZOH discretization (A~, B~) at T (``testbed.control.c2d``; on
+  and so is its ZOH discretization (A~, B~) at T (``testbed.loop.control.c2d``; on
   |lambda| >= 1), which the LQR design and Theorem 1 need.
 """
 

@@ -14,12 +14,14 @@ import numpy as np
 import plants
 from attackers import generators as attack_generators
 
-from . import device, traces, validate
-from .channel import ChannelError, parse_network
-from .control import c2d, closed_loop, dlqr, spectral_radius
-from .errors import BadInput
-from .loopspec import RULES, Codebook, CodebookTooLarge, FlowOptions, delay_margin_gain
-from .scenariospec import (
+from ..common import validate
+from ..common.errors import BadInput
+from ..loop import device
+from ..loop.channel import ChannelError, parse_network
+from ..loop.control import c2d, closed_loop, dlqr, spectral_radius
+from ..loop.params import RULES, Codebook, CodebookTooLarge, FlowOptions, delay_margin_gain
+from . import traces
+from .spec import (
     AttackSpec,
     ControllerSpec,
     DelaySpec,
@@ -114,7 +116,7 @@ def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
 def method_section(ctx, data: dict, base_dir: str):
     """[method] and the [quantizer] keys it uses: (MethodSpec, method).  A key the method does not use is
     an error naming it (a swapped method, :func:`testbed.scenario.swap_method`, has them left out already)."""
-    from . import methods
+    from .. import methods
 
     mt = _table(ctx, "method", data.get("method", {}))
     _unknown(ctx, "method", mt, {"name", "params"})
@@ -475,7 +477,7 @@ def flow_section(ctx, data: dict) -> FlowOptions:
 
 
 def network_section(data: dict, where: str):
-    """[network]: the emulated channels (testbed/channel.py), or None."""
+    """[network]: the emulated channels (testbed/loop/channel.py), or None."""
     try:
         return parse_network(data["network"]) if "network" in data else None
     except ChannelError as e:

@@ -39,9 +39,9 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 import numpy.typing as npt
 
+from ..methods.base import DecoderEnd, EncoderEnd, symbol_code
 from .flow import DEFAULT_FLOW, FLOW_OK, FlowOptions, compiled_for, flow_into
-from .loopspec import corrupt_payload
-from .methods.base import DecoderEnd, EncoderEnd, symbol_code
+from .params import corrupt_payload
 from .quantizer import Codebook, InvalidSymbol
 
 if TYPE_CHECKING:
@@ -387,7 +387,7 @@ class PlantProtocol:
     u_held: np.ndarray = field(default=None)  # type: ignore[arg-type]  # zeros(m), set after init
     rejected_nonfinite: int = 0
     clamped: int = 0
-    device: Device | None = None    # the sensor, actuator and disturbance (``testbed.device.Device``), or None
+    device: Device | None = None    # the sensor, actuator and disturbance (``testbed.loop.device.Device``), or None
     u_applied: np.ndarray | None = None  # the input that acted last (after the actuator)
 
     def __post_init__(self) -> None:

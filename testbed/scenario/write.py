@@ -10,7 +10,7 @@ from pathlib import Path
 
 import plants.refs
 
-from .scenariospec import Scenario, ScenarioError, _thaw
+from .spec import Scenario, ScenarioError, _thaw
 
 
 def _toml_key(k) -> str:

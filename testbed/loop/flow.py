@@ -28,7 +28,7 @@ import numpy as np
 from plants.base import broadcast_xu
 
 from ._dop853 import dop853_step
-from .loopspec import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401 - flow.py names them for its callers
+from .params import DEFAULT_FLOW, FLOW_DIVERGED, FLOW_OK, FLOW_STEP_LIMIT, STATUS_NAMES, FlowOptions  # noqa: F401 - flow.py names them for its callers
 
 if TYPE_CHECKING:
     from plants.base import Plant

@@ -1,6 +1,6 @@
 """The one table of noise distributions a scenario names (``distribution = "uniform" | "normal"``): the
-network channel's jitter (``[network.LINK]``, ``testbed.channel``) and the plant's sensor noise and
-disturbance (``[plant.sensor]``, ``[plant.disturbance]``, ``testbed.device``) draw from it.  Each user
+network channel's jitter (``[network.LINK]``, ``testbed.loop.channel``) and the plant's sensor noise and
+disturbance (``[plant.sensor]``, ``[plant.disturbance]``, ``testbed.loop.device``) draw from it.  Each user
 keeps its own default (the channel's jitter ``uniform``, the device's noise ``normal``)."""
 
 from __future__ import annotations
