@@ -96,6 +96,7 @@ class Collector:
         self._seen = {r: bytearray(self.n_steps // 8 + 1) for r in transport.ROLES}  # one bit per sample
         self._spill = None if spill is None else Spill(spill)
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
+        self.received: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # records kept, the plant's final one too
         self.lag = 0  # how far a record's k fell behind the highest k of any role before it (``SpillRows``)
         self._top_all = -1
         self.plant_final: msg.PlantTelemetry | None = None
@@ -142,11 +143,13 @@ class Collector:
                         self.rejected += 1
                         continue
                     self.plant_final = t
+                    self.received[role] += 1
                 elif not 0 <= t.k < N or seen[t.k >> 3] & (1 << (t.k & 7)):
                     self.rejected += 1  # never stored: a k from the wire sizes nothing
                 else:
                     seen[t.k >> 3] |= 1 << (t.k & 7)
                     d[t.k] = t
+                    self.received[role] += 1
                     if t.k > self.top[role]:
                         self.top[role] = t.k
                     if t.k > self._top_all:
@@ -255,6 +258,13 @@ class Collector:
     def snapshot_summaries(self) -> dict[str, dict]:
         with self.lock:
             return dict(self.summaries)
+
+    def telemetry_behind(self) -> list[str]:
+        """The nodes whose summary says they published more telemetry records than have arrived so far: a
+        node's summary can overtake its last batches (telemetry travels at a lower priority)."""
+        with self.lock:
+            return [r for r, s in self.summaries.items()
+                    if isinstance(s.get("telemetry_records"), int) and self.received.get(r, 0) < s["telemetry_records"]]
 
     def event_of(self, node: str, kind: str):
         """The first event ``kind`` of ``node``, or None."""

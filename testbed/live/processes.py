@@ -214,13 +214,18 @@ class NodeProcesses:
         for guest in self.colocated:
             self.check_guest(guest, col, t0_mono, final=final)
 
-    def wait_summaries(self, col: Collector, timeout: float = 0.3) -> None:
-        """Until every node that exited cleanly has its summary in (they publish it before they exit)."""
+    def wait_summaries(self, col: Collector, timeout: float = 0.3, telemetry_timeout: float = 3.0) -> None:
+        """Until every node that exited cleanly has its summary in (they publish it before they exit), then
+        until the telemetry each summary counts has arrived (at most ``telemetry_timeout`` more: what is still
+        missing then is the telemetry check's to report)."""
         want = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
         want |= {g for g in self.colocated if self.process_of(g) in want and g not in self.exits}
         end = time.monotonic() + timeout
         while time.monotonic() < end and not want <= set(col.snapshot_summaries()):
             time.sleep(0.01)
+        end = time.monotonic() + telemetry_timeout
+        while time.monotonic() < end and col.telemetry_behind():
+            time.sleep(0.02)
 
     def nodes(self, roles: tuple[str, ...]) -> dict:
         """The summary's ``nodes``: each role's exit and log (a colocated role: its host's, unless it died alone)."""
