@@ -275,7 +275,7 @@ def _spill_of(path, sc, rec, order):
     sp.close()
 
 
-NOISY = str(Path(__file__).resolve().parent.parent / "docs" / "examples" / "paper-noisy.toml")
+NOISY = str(Path(__file__).resolve().parents[2] / "docs" / "examples" / "paper-noisy.toml")
 
 
 @pytest.mark.parametrize("chunk,name,over", [(1, "paper", {}), (7, "paper", {}), (64, "paper", {}), (None, "paper", {}),
