@@ -83,16 +83,6 @@ def lockstep_breaks_in(xi_enc, E_enc, xi_dec, E_dec, both) -> np.ndarray:
     return np.flatnonzero(both & ((E_enc != E_dec) | np.any(xi_enc != xi_dec, axis=1)))
 
 
-def recorded_lockstep_breaks(sc, xi_enc, E_enc, xi_dec, E_dec, both) -> list[int]:
-    """The samples where a method's two ends held different shared state, as recorded: xi_k and E_k of the
-    encoder (before it encoded x_k) and of the decoder (before it decided sample k) differ, on the samples
-    ``both`` recorded with a symbol sent.  What ``testbed simulate`` counts as ``lockstep_breaks`` for a
-    method whose ends declare a shared state (``lockstep_checked``); [] for the others."""
-    if not lockstep_checked(sc):
-        return []
-    return lockstep_breaks_in(xi_enc, E_enc, xi_dec, E_dec, both).tolist()
-
-
 def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
     """Physical timing, scheduled actuation: how many received u_k arrived (``arrival_ns`` after
     t_k) later than their scheduled instant; 0 otherwise."""
