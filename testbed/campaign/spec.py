@@ -237,8 +237,8 @@ def _resolve(base, axes: dict, seeds_from, methods: dict | None = None) -> tuple
     note = ""
     if "method.name" in axes or given:
         try:
-            data, note = scenario_mod.swap_method(data, {"name": name, "params": given}, base.base_dir or None,
-                                                  "scenario")
+            data, note, _ = scenario_mod.swap_method(data, {"name": name, "params": given}, base.base_dir or None,
+                                                     "scenario")
         except ScenarioError as e:
             raise BadInput(str(e)) from None
     seeds = {}

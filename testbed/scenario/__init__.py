@@ -24,24 +24,25 @@ BUNDLED_DIR = "bundled"  # testbed/scenario/bundled/
 MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML
 
 
-def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>") -> tuple[dict, str]:
+def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>") -> methodswap.Swapped:
     """``data`` with the method ``new`` swapped in by the one rule (``testbed.scenario.methodswap``: the scenario's
     own method keeps its params, dropped params and ignored ``[quantizer]`` keys are named in the note):
-    (the document, the note without its ``note: ``)."""
+    (the document, the note without its ``note: ``, the method object built to check it)."""
     return methodswap.swap(data, new, base_dir or None, known_quantizer_keys=sections.KEYS["quantizer"],
                            where=where)
 
 
 def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", source: str = "",
               base_dir: str | Path | None = None, check_fmu: bool = True, check_design: bool = True,
-              method_note: str = "", document: dict | None = None,
+              swapped: methodswap.Swapped | None = None, document: dict | None = None,
               read_recording_trace: traces.RecordingTraceReader | None = None) -> Scenario:
     """Validate a parsed TOML document and build a Scenario.
 
     ``base_dir``: the scenario file's folder; a ``"module:Class"`` plant is imported
     from there first and an FMU path is relative to it.  ``check_fmu=False`` skips
     reading an FMU plant's file (a recording's scenario: the report needs only the model).
-    ``method_note``: the line of a method swapped into ``data`` (:func:`swap_method`), kept on the Scenario.
+    ``swapped``: the swap that put ``data``'s method in (:func:`swap_method`): its note is kept on the Scenario
+    and the method object it built is the Scenario's (built once).
     ``check_design=False`` skips the Schur check of a given K (scipy's expm): for the
     nodes of a run whose launcher checked the same text and overrides already.
     ``document``: what ``source`` parses to, when ``data`` is that with overrides applied (default ``data``);
@@ -54,7 +55,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     p = sections.plant_section(ctx, data, base_dir, check_fmu)
     model_obj, model = sections.model_section(ctx, data, p, base_dir)
     duration, tol, timing, deadline = sections.run_section(ctx, data)
-    q = sections.quantizer_section(ctx, data, base_dir, p.n, p.x0, timing)
+    q = sections.quantizer_section(ctx, data, base_dir, p.n, p.x0, timing, swapped)
     T = q.T
     tm = sections.timing_section(ctx, data, T, deadline, timing, q.rule)
     dpar, L_u = sections.delay_rule(ctx, q, model_obj, deadline, tm)
@@ -75,7 +76,7 @@ def from_dict(data: dict, *, name: str = "scenario", where: str = "<scenario>", 
     sc = Scenario(name=name, plant=spec, quantizer=qp,
                   controller=ctrl, attack=attack, run=run, flow=flow, source=source, path=where,
                   description=description, model=model, L_u=L_u, base_dir=base_dir, method=q.method,
-                  method_note=f"note: {method_note}" if method_note else "", network=network, doc=doc)
+                  method_note=f"note: {swapped.note}" if swapped and swapped.note else "", network=network, doc=doc)
     # the attack generator validates its own parameters
     try:
         sc.attack.schedule(T, max(duration, T))
@@ -138,9 +139,9 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
     where_o = f"{where} (with run overrides)"
     try:
         bd = str(Path(base_dir).resolve()) if base_dir else None
-        edited, note = scenariooverrides.apply(copy.deepcopy(data), over,
-                                               lambda d, m: swap_method(d, m, bd, where_o))
-        sc = from_dict(edited, where=where_o, method_note=note, document=data, **build)
+        edited, swapped = scenariooverrides.apply(copy.deepcopy(data), over,
+                                                  lambda d, m: swap_method(d, m, bd, where_o))
+        sc = from_dict(edited, where=where_o, swapped=swapped, document=data, **build)
     except ScenarioError as e:  # the file's own error first (raised here), else the overrides' fault
         base = from_dict(data, where=where, **build)
         raise BadInput(scenariooverrides.hint(str(e), base.name, base.x0, over)) from None
@@ -187,11 +188,11 @@ def with_overrides(sc: Scenario, overrides: dict | None, *, check_design: bool =
         data["attack"] = {**data["attack"], **{k: list(v) if isinstance(v, tuple) else v
                                                for k, v in sc.attack.params_dict.items()}}
     try:
-        data, note = scenariooverrides.apply(data, over,
-                                             lambda d, m: swap_method(d, m, sc.base_dir or None, where))
+        data, swapped = scenariooverrides.apply(data, over,
+                                                lambda d, m: swap_method(d, m, sc.base_dir or None, where))
         sc2 = from_dict(data, name=sc.name, where=where, source=sc.source, document=sc.doc or None,
                         base_dir=sc.base_dir or None, check_fmu=sc.plant.fmu is None or sc.plant.fmu.checked,
-                        check_design=check_design, method_note=note, read_recording_trace=read_recording_trace)
+                        check_design=check_design, swapped=swapped, read_recording_trace=read_recording_trace)
     except ScenarioError as e:
         raise BadInput(scenariooverrides.hint(str(e), sc.name, sc.x0, over)) from None
     return dataclasses.replace(sc2, path=sc.path)

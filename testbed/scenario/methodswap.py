@@ -16,9 +16,21 @@ The note is one line (``note(...)``), printed once on stderr by the command that
 from __future__ import annotations
 
 from collections.abc import Collection
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .spec import ScenarioError
+
+if TYPE_CHECKING:
+    from ..methods.base import Method
+
+
+class Swapped(NamedTuple):
+    """A swap's result: the new document, the note, and the method object the swap built to check it
+    (handed to the scenario's build, so that a ``--method`` swap builds its method once)."""
+
+    data: dict[str, Any]
+    note: str
+    method: Method
 
 
 def own_method(data: dict[str, Any]) -> tuple[str, dict[str, Any]]:
@@ -58,9 +70,9 @@ def note(name: str, old: str, ignored: list[str], dropped: list[str]) -> str:
 
 
 def swap(data: dict[str, Any], new: str | dict[str, Any], base_dir: str | None, *,
-         known_quantizer_keys: Collection[str] | None = None, where: str = "<scenario>") -> tuple[dict[str, Any], str]:
+         known_quantizer_keys: Collection[str] | None = None, where: str = "<scenario>") -> Swapped:
     """``data`` (a parsed scenario document; not changed) with the method ``new`` swapped in by the rule
-    of the module docstring: (the new document, the note).
+    of the module docstring: (the new document, the note, the method object built to check it).
 
     ``new``: a reference, or ``{"name": ref, "params": {...}}`` (no name: the scenario's own method).
     Only ``known_quantizer_keys`` are ever left out of ``[quantizer]`` (an unknown key stays, for the
@@ -93,4 +105,4 @@ def swap(data: dict[str, Any], new: str | dict[str, Any], base_dir: str | None, 
     out = {**data, "method": {"name": name, **({"params": params} if params else {})}}
     if ignored and isinstance(qt, dict):
         out["quantizer"] = {k: v for k, v in qt.items() if k not in ignored}
-    return out, note(name, old, ignored, dropped)
+    return Swapped(out, note(name, old, ignored, dropped), obj)

@@ -8,10 +8,12 @@ the Scenario; this module only edits the parsed document.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from ..common.errors import BadInput
+from .methodswap import Swapped
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
@@ -35,10 +37,10 @@ def checked(overrides: dict | None, name: str) -> dict:
     return over
 
 
-def apply(data: dict, over: dict, swap: Callable[[dict, object], tuple[dict, str]]) -> tuple[dict, str]:
+def apply(data: dict, over: dict, swap: Callable[[dict, Any], Swapped]) -> tuple[dict, Swapped | None]:
     """``over`` written into the parsed document ``data`` (edited in place) as if in the file; a method
     swapped in last by ``swap(data, method)`` (``testbed.scenario.swap_method``: the one rule).  Returns the
-    document and the swap's note."""
+    document and the swap (its note and the method it built), None without a method override."""
     for k, v in over.items():
         table, key = OVERRIDES[k]
         if table == "method":  # --method NAME (or {"name": ..., "params": {...}}): swapped in last, below
@@ -56,10 +58,10 @@ def apply(data: dict, over: dict, swap: Callable[[dict, object], tuple[dict, str
             v = v.tolist()
         as_float = isinstance(v, int) and not isinstance(v, bool) and k not in INT_OVERRIDES
         data.setdefault(table, {})[key] = float(v) if as_float else v
-    note = ""
     if "method" in over:
-        data, note = swap(data, over["method"])
-    return data, note
+        swapped = swap(data, over["method"])
+        return swapped.data, swapped
+    return data, None
 
 
 def hint(msg: str, name: str, x0, over: dict) -> str:

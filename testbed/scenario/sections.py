@@ -21,6 +21,7 @@ from ..loop.channel import ChannelError, parse_network
 from ..loop.control import c2d, closed_loop, dlqr, spectral_radius
 from ..loop.params import RULES, Codebook, CodebookTooLarge, FlowOptions, delay_margin_gain
 from . import traces
+from .methodswap import Swapped
 from .spec import (
     AttackSpec,
     ControllerSpec,
@@ -113,9 +114,10 @@ def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
         raise ctx.err(key, str(e)) from None
 
 
-def method_section(ctx, data: dict, base_dir: str):
+def method_section(ctx, data: dict, base_dir: str, swapped: Swapped | None = None):
     """[method] and the [quantizer] keys it uses: (MethodSpec, method).  A key the method does not use is
-    an error naming it (a swapped method, :func:`testbed.scenario.swap_method`, has them left out already)."""
+    an error naming it (a swapped method, :func:`testbed.scenario.swap_method`, has them left out already).
+    ``swapped``: the swap that wrote ``data``'s [method]; the method it built is taken, not built again."""
     from .. import methods
 
     mt = _table(ctx, "method", data.get("method", {}))
@@ -124,10 +126,13 @@ def method_section(ctx, data: dict, base_dir: str):
     if not isinstance(name, str) or not name:
         raise ctx.err("method.name", f"must be a non-empty string, got {name!r}")
     params = _table(ctx, "method.params", mt.get("params", {}))
-    try:
-        obj = methods.make(name, base_dir or None, params)
-    except methods.MethodError as e:
-        raise ctx.err("method", str(e)) from None
+    if swapped is not None and swapped.data.get("method") == mt:
+        obj = swapped.method
+    else:
+        try:
+            obj = methods.make(name, base_dir or None, params)
+        except methods.MethodError as e:
+            raise ctx.err("method", str(e)) from None
     qt = data.get("quantizer", {})
     used = set(obj.uses) | {"T"}
     unused = [k for k in qt if k not in used] if isinstance(qt, dict) else []
@@ -255,11 +260,12 @@ def run_section(ctx, data: dict) -> tuple[float, float, str, float]:
     return duration, tol, timing, deadline
 
 
-def quantizer_section(ctx, data: dict, base_dir: str, n: int, x0, timing: str) -> QuantizerPart:
+def quantizer_section(ctx, data: dict, base_dir: str, n: int, x0, timing: str,
+                      swapped: Swapped | None = None) -> QuantizerPart:
     """[method] and [quantizer]: the keys the method uses (defaults for the others), Assumptions 2 and 5."""
     qt = data["quantizer"]
     _unknown(ctx, "quantizer", qt, KEYS["quantizer"])
-    mspec, mobj = method_section(ctx, data, base_dir)
+    mspec, mobj = method_section(ctx, data, base_dir, swapped)
     muses = set(mobj.uses)
     qt = dict(qt)
     for k in ("T", "M", "L", "E0"):

@@ -133,7 +133,7 @@ def test_the_one_method_swap_rule():
     assert dict(back.method.params) == {"range": 0.7}
     data = tomllib.loads(text)
     data["quantizer"]["foo"] = 1
-    swapped, note = scenario.swap_method(data, "unquantized", None)
+    swapped, note, _ = scenario.swap_method(data, "unquantized", None)
     assert swapped["quantizer"] == {"T": 0.1, "foo": 1} and "ignores [quantizer] M of" in note
     with pytest.raises(ScenarioError, match=r"unknown key\(s\) \['foo'\]"):
         scenario.from_dict(swapped)
@@ -189,6 +189,12 @@ def test_a_process_builds_its_method_once(monkeypatch):
     assert sc2 == sc and sc2.make_method() is not m and built == ["paper", "paper"]
     other = dataclasses.replace(sc.method, name="zoom")
     assert other.make().display_name() != m.display_name() and built[-1] == "zoom"
+    built.clear()
+    swapped = scenario.load("paper", overrides={"method": "zoom"})
+    assert built == ["zoom"], "a --method swap builds its method once (the swap's check hands it to the build)"
+    assert swapped.make_method() is swapped.make_method() and built == ["zoom"]
+    built.clear()
+    assert scenario.with_overrides(sc, {"method": "static"}).method.name == "static" and built == ["static"]
 
 
 def test_a_process_parses_the_scenario_once_and_builds_each_object_once(monkeypatch, capsys):
