@@ -208,6 +208,7 @@ def test_min_condition_P_normal_matrix_is_identity():
     assert lyapunov_margin(Phi, P, 0.82) < 0
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_min_condition_P_against_brute_force():
     """A non-normal Phi: the LMI optimum is no worse than a brute-force search over P = [[1, p], [p, q]]."""
     Phi = np.array([[0.8, 0.5], [0.0, 0.7]])
@@ -254,6 +255,7 @@ def test_make_certificate_balances_mu():
 
 
 # ----------------------------------------------------------------------------- remainder bounds
+@pytest.mark.slow  # half a second or more on a warm cache
 @pytest.mark.parametrize("name", plants.names())
 def test_remainder_gain_contract(name):
     p = plants.make(name)
@@ -271,6 +273,7 @@ def test_remainder_gain_contract(name):
     assert np.all(lhs <= rhs * (1 + 1e-9) + 1e-15)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 @pytest.mark.parametrize("name", ["lienard", "pendulum"])
 def test_exact_remainder_gain_matches_numerical_estimate(name):
     p = plants.make(name)
@@ -330,6 +333,7 @@ def test_paper_delta_order_of_magnitude(lienard):
     assert lem.delta == pytest.approx(1.94e-7, rel=1e-6)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_linear_plant_nonlinear_constants_vanish():
     """g = 0: with gamma = 0, gamma0 = gamma1 = 0, phi^_p = phi_p and delta (and the E0 bound) unbounded."""
     lin = plants.make("linear", A=[[0.0, 1.0], [2.0, -1.0]], B=[[0.0], [1.0]])

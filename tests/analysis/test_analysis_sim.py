@@ -77,6 +77,7 @@ def test_sweep_small(paper):
     assert len(sw.empirical_boundary()) == 2
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_vulnerable_states(paper):
     p = paper.make_plant()
     roa = nominal_roa(p, paper.K, paper.T, grid=21, window=(1.0, 1.5), horizon=30.0)
@@ -88,6 +89,7 @@ def test_vulnerable_states(paper):
     assert none.to_dict()["states_in_region"] == int(roa.inside.sum())
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_cli_analyze_json(capsys):
     from testbed.cli import main
 
@@ -104,6 +106,7 @@ def test_cli_analyze_json(capsys):
     assert 1e-13 < d["gamma_for_paper_delta"] < 1e-12
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_cli_roa_and_sweep_json(capsys):
     from testbed.cli import main
 

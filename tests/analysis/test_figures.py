@@ -76,6 +76,7 @@ def test_a_current_figure_passes_and_a_stale_one_fails(tmp_path):
     assert "final_norm" in r.stdout
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_digest_follows_the_data_not_the_pixels(tmp_path):
     """The same data drawn at another size and format has the same digest; other data another."""
     import testbed
@@ -87,6 +88,7 @@ def test_the_digest_follows_the_data_not_the_pixels(tmp_path):
     assert a == b and a != c
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_gallery_is_the_page_the_script_writes_and_shows_every_figure():
     mf = _make_figures()
     page = (DOCS / "figures.md").read_text()

@@ -189,6 +189,7 @@ def _check_against_brute_force(loop, x0, n_max, masks):
     return w
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_front_agrees_with_brute_force_on_a_short_horizon(paper):
     """Every sample-aligned schedule of at most 3 attacks within 12 samples, from x0 = (0.1, 0.1)."""
     loop = replace(Loop.from_scenario(paper), n_steps=12)

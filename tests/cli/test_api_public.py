@@ -47,6 +47,7 @@ def test_run_save_writes_a_recording_that_every_reader_and_viewer_opens(tmp_path
     assert rrd.stat().st_size > 1000
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_run_save_never_overwrites_unless_asked_and_copies_a_recording(tmp_path):
     sim = testbed.simulate("paper", duration=2)
     path = sim.save(tmp_path / "a.mcap")
@@ -175,6 +176,7 @@ def test_scenarios_show_prints_the_bundled_toml(tmp_path):
 
 
 # ============================================================================ no silent waits
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_long_compilation_names_the_kernel_and_says_it_happens_once():
     """The numba listener of ``testbed.common.compilenotice`` (delay 0 here: every real compilation says so)."""
     import io
@@ -235,6 +237,7 @@ def test_a_long_compilation_names_the_kernel_and_says_it_happens_once():
     assert quiet.getvalue() == "" and threading.active_count() == threads
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_the_cli_installs_the_notice_where_it_computes():
     from testbed import cli
 
@@ -267,6 +270,7 @@ def test_the_first_analysis_of_an_own_plant_says_it_compiles_once(tmp_path):
     assert r.returncode == 0 and "compiling" not in r.stderr, r.stderr
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_check_plant_takes_the_plant_from_the_scenario(tmp_path):
     toml = _own_plant(tmp_path)
     elsewhere = tmp_path / "elsewhere"
@@ -294,6 +298,7 @@ def test_analyze_prints_prose_and_the_papers_delta_only_for_the_papers_example()
     assert "{" not in r.stdout and "paper's delta" not in r.stdout, r.stdout
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_a_refused_run_leaves_no_run_folder(tmp_path):
     tmp = tmp_path / "tmp"
     tmp.mkdir()

@@ -69,6 +69,7 @@ def test_old_names_are_hidden_aliases_of_the_new_ones():
     assert not re.search(r"--record[ ,\]]", helptext) and "--rerun-no-roa" not in helptext
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_help_has_no_markup_and_the_version_prints():
     r = subprocess.run([PY, "-m", "testbed.cli", "--help"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "``" not in r.stdout and "exit codes" in r.stdout
@@ -76,6 +77,7 @@ def test_help_has_no_markup_and_the_version_prints():
     assert r.returncode == 0 and r.stdout.startswith("testbed (dos-testbed) ")
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_scenarios_lists_descriptions_and_json(capsys):
     assert cli.main(["scenarios", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)["scenarios"]
@@ -85,6 +87,7 @@ def test_scenarios_lists_descriptions_and_json(capsys):
     assert "the paper's example" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_simulate_plot_draws_fig_2(tmp_path, capsys):
     png = tmp_path / "fig2.png"
     assert cli.main(["simulate", "paper", "--plot", str(png), "--json"]) == 0
@@ -116,6 +119,7 @@ def test_a_figure_in_an_unknown_format_is_bad_input_before_any_work(tmp_path, ca
     assert "--escape-x0 takes 'auto' or 2" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_exit_codes_bad_input_is_2_with_one_line(tmp_path):
     cases = [
         ["simulate", "no-such-scenario"],

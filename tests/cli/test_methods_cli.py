@@ -113,6 +113,7 @@ def test_versus_seeds_summary(tmp_path):
     assert [r["seed"] for r in rows] == [drawn, drawn] and rows[0]["samples_lost"] == rows[1]["samples_lost"]
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_wilson_against_a_direct_computation():
     from testbed.campaign.engine import wilson
 
@@ -122,6 +123,7 @@ def test_wilson_against_a_direct_computation():
     assert wilson(0, 5)[0] == 0.0 and wilson(5, 5)[1] == 1.0
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_methods_command():
     rc, out, err = tb("methods", "--json", cwd=".")
     assert rc == 0, err
@@ -273,6 +275,7 @@ RAISE = {raise_}
 '''
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 @pytest.mark.parametrize("ref, msg", [
     ("nosuchmethod", "unknown method 'nosuchmethod'"),
     ("nomod_xyz:Thing", "no module 'nomod_xyz'"),

@@ -152,6 +152,7 @@ def test_module_next_to_scenario_simulate_and_report(plant_dir):
     assert ps["loaded_from"] == "import" and ps["differs"] is True and ps["importable_sha256"] != sha
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_plant_reference_errors(tmp_path):
     """A reference that cannot be resolved is one line naming what was looked for, and exit 2."""
     from testbed import scenario

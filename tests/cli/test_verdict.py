@@ -105,6 +105,7 @@ def test_one_escape_verdict_for_every_reader_and_method(tmp_path, examples_on_pa
     assert set(v.values()) == {True, False}, v  # each case has runs that escape and runs that do not
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_the_issue_cases(tmp_path, examples_on_path, capsys):
     """The cases the issue names: unquantized on paper over 4 s and the docs' mymethod.toml over 10 s
     (simulate --out --json against report of its file and testbed.open), each through the commands."""
@@ -200,6 +201,7 @@ def test_simulated_raise_is_a_method_fault_at_its_sample_everywhere(tmp_path, mo
     assert (s["method_fault"], s["method_fault_at"]) == (sim["method_fault"], 40)
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_resimulation_says_when_the_method_no_longer_raises(tmp_path, monkeypatch, capsys):
     """A recording whose method raised at sample 40, re-simulated with a method that does not: not reproduced,
     and the verdict says why."""

@@ -281,6 +281,7 @@ class TestGenerators:
         s = make_schedule("periodic", {"period": 1.0, "length": 0.0}, T=0.1, horizon=2.5)
         assert s.intervals == ((0.0, 0.0), (1.0, 0.0), (2.0, 0.0))
 
+    @pytest.mark.slow  # half a second or more on a warm cache
     @FAST
     @given(
         period=st.floats(0.1, 10.0),

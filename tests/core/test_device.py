@@ -163,6 +163,7 @@ def test_batch_kernel_refuses_a_device_and_auto_runs_the_loop(tmp_path):
     assert rc == 2 and "device" in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_recording_keeps_true_and_measured_state_and_resimulates(tmp_path):
     text = noisy_paper("[plant.sensor]\ndistribution = \"normal\"\nscale = 1e-6\nseed = 9\nresolution = 1e-6\n",
                        duration=4.0, E_min=3e-5)

@@ -252,6 +252,7 @@ def test_two_fmu_plants_in_one_process_keep_their_own_log(lienard_fmu):
     a.close()
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_plant_fault_stops_the_simulation_and_is_reported(lienard_fmu, tmp_path, capsys):
     """A failing FMU step ends testbed simulate at that sample: the samples before it are the good FMU's,
     the fault is in the JSON and in one line on stderr, exit 1; a failing reset is a run of no samples."""

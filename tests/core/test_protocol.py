@@ -247,6 +247,7 @@ def test_scheduled_physical_timing_converges_on_the_paper_and_the_paper_rule_doe
 
 
 # ============================================================================ lockstep, whatever happens
+@pytest.mark.slow  # half a second or more on a warm cache
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), via=st.booleans(), arrival=st.booleans())
 def test_encoder_and_decoder_stay_in_lockstep_under_random_delays_losses_and_ack_losses(seed, via, arrival):

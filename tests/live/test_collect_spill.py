@@ -69,6 +69,7 @@ def _collect(session, keys, sc, tele, final, spill, *, shuffle_role="encoder", b
     return col
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_streamed_end_of_run_equals_the_whole_file_read(tmp_path, monkeypatch):
     """A run's telemetry through the collector (records spilled, read back 97 bytes at a time so that
     records straddle the reads, the encoder's arriving out of order): the launcher's summary equals,
@@ -166,6 +167,7 @@ def test_a_spill_cut_mid_record_reads_up_to_its_last_whole_record(tmp_path, cut)
     assert np.all([len(b) == 30 for b in got])
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_timing_section_in_windows_equals_the_whole_arrays(tmp_path, monkeypatch):
     """The end of run's timing percentiles, computed a window of samples at a time into ``stats.Spool`` files
     (windows, bins and the sorted set made small: several passes), equal numpy's on the whole columns,

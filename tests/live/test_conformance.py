@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from failclosed import rerun_while_stalled
-from helpers.cli import PY, run_cli, tb_cmd
+from helpers.cli import PY, run_cli, tb_cmd, tb_here
 from helpers.live import BIT_EXACT_KEYS, LOGS, JoinAnnounce, mismatch, simulate
 from helpers.procs import reap
 from helpers.sims import sim_recording
@@ -89,8 +89,8 @@ def test_every_join_field_is_in_the_protocol_document():
 @pytest.mark.parametrize("flags, why", [(("--colocate", "encoder"), "--colocate"),
                                         (("--kill", "plant@1"), "--kill plant")])
 def test_run_external_refuses_what_it_cannot_do(tmp_path, flags, why):
-    rc, out, err = run_cli(tb_cmd("run", "paper", "--external", "plant", "--no-record", "--run-dir",
-                                  str(tmp_path / "r"), *flags), timeout=60)
+    rc, out, err = tb_here("run", "paper", "--external", "plant", "--no-record", "--run-dir",
+                           str(tmp_path / "r"), *flags)  # refused before any process starts
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -113,7 +113,7 @@ def test_run_external_without_the_node_gives_up_after_the_startup_timeout(run_id
                                        (("plant", "paper", "--plant-tolerance", "-1", "--", "true"),
                                         "--plant-tolerance")])
 def test_conformance_bad_input_is_one_line_and_exit_2(args, why):
-    rc, out, err = run_cli(tb_cmd("conformance", *args), timeout=60)
+    rc, out, err = tb_here("conformance", *args)  # refused before any process starts
     assert rc == 2 and why in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -160,6 +160,7 @@ def test_the_loops_nodes_adverse_cases_are_judged_by_the_replay_at_the_targeted_
     assert _statuses(adverse.loop_judge(None, [], {6: "it sent 2 messages"}, "u")) == ["fail", "pass", "pass"]
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_plant_whose_physics_differ_from_the_model_fails_plant_follows_model_only(tmp_path):
     """paper-mismatch recorded by the simulator (the true plant's b = 0.03, the model's 0.02): the loop did
     what the method says with the plant's numbers (loop_equals_replay passes), the plant is not the model

@@ -55,6 +55,7 @@ def test_a_codebook_beyond_the_limit_is_refused_up_front(tmp_path, n, M):
     assert len(line.splitlines()) == 1 and "[quantizer.M]" in line and "2^31 - 1" in line, line
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_largest_codebook_works_end_to_end(tmp_path):
     """n = 2, M = 46340: 31-bit symbols, 4 bytes; simulate, the batch kernel, a recording and its report."""
     f = tmp_path / "big.toml"
@@ -96,6 +97,7 @@ def test_the_largest_codebook_runs_live(tmp_path):
 
 
 # ============================================================================ the recorder, fuzzed
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_recorder_survives_1e5_random_messages_in_bounded_memory(tmp_path):
     """Random keys, payloads and attachments (and mutations of genuine messages) straight into the
     recorder's decode-and-write path: no exception, every one counted, the file bounded and readable."""

@@ -36,6 +36,7 @@ def _left(token: str) -> list[str]:
     return [line for line in (*ns.splitlines(), *links.splitlines()) if token in line]
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_netns_refused_without_ip(tmp_path):
     """Without what it needs (here: no ``ip`` on PATH), one clear line and exit 2; --cut without --netns too."""
     env = dict(os.environ, PATH=str(tmp_path))

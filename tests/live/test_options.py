@@ -208,6 +208,7 @@ def _spawned_modules():
                         yield path.relative_to(ROOT.parent), e.lineno, elts[i + 1], nxt
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_testbed_starts_only_testbed_subcommands():
     """A process the testbed starts (a node, the recorder, a run of a campaign, of conformance or versus) is
     ``python -m testbed.cli SUBCOMMAND``: the public command line, never a module of its own."""
@@ -231,6 +232,7 @@ def _module_names(tree) -> set[str]:
     return names
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_no_module_sets_another_modules_global():
     """A dependency is passed, never patched into another of the testbed's modules (``traces.recording_trace_reader``
     was): no ``module.NAME = ...`` anywhere in testbed/."""

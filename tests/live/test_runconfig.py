@@ -6,11 +6,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers.cli import tb_run_here
 
 from testbed.commands.liveconfig import node_config, recorder_config, run_config
 from testbed.nodes.options import NodeConfig, RecorderConfig, RunOptions
@@ -104,8 +103,7 @@ def test_the_launcher_gives_each_process_its_part_of_the_run_config():
     (["--duration", "3", "--crash", "encoder@30"], "--crash encoder@30: sample 30 is past the run's last sample (29)"),
 ])
 def test_a_malformed_run_flag_is_one_line_and_exit_2(flags, says):
-    r = subprocess.run([sys.executable, "-m", "testbed.cli", "run", "paper", "--no-record", *flags],
-                       capture_output=True, text=True, timeout=120)
+    r = tb_run_here("run", "paper", "--no-record", *flags)  # refused before any process starts
     assert r.returncode == 2 and says in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
 
 

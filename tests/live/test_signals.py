@@ -78,6 +78,7 @@ def test_stop_signals_never_deadlock(rep):
     assert "callback on helper" in out and "callback on main" not in out
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_grace_deadline_ends_a_stop_that_hangs():
     p = _child("stuck")
     t0 = time.monotonic()

@@ -103,6 +103,7 @@ def test_fast_runs_send_the_trajectory_every_50_ms_and_what_is_new_between():
             assert "trajectory" not in ents and pts[0] == start and pts[-1] == tuple(x[k]) and len(pts) <= 11
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_trajectory_stays_small_at_any_rate():
     sc = scenario.load("paper")
     ps = fx.PhaseScene(window=1.0)

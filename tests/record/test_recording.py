@@ -118,6 +118,7 @@ def test_plain_mcap_reader_opens_and_decodes_it(tmp_path):
     assert np.array_equal(np.array(enc), res.E_enc)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_report_cli_json_and_plot(tmp_path):
     _, _, path = sim_recording(tmp_path, "paper", duration=6.0)
     png = tmp_path / "fig.png"
@@ -239,6 +240,7 @@ _WRITER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_sigkill_of_a_writer_loses_at_most_the_last_second(tmp_path):
     path = tmp_path / "killed.mcap"
     p = subprocess.Popen([PY, "-c", _WRITER, str(path)], stdout=subprocess.PIPE, text=True)

@@ -73,6 +73,7 @@ def test_the_encoder_writes_what_protobuf_writes():
         assert got[k] == to_pb(d, "EncoderSample", extra).SerializeToString(), k
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_fast_runs_decimate_the_phase_plane_and_keep_every_sample(tmp_path):
     sc = _sc("paper", T=0.002, duration=4.0)
     res = simulate_scenario(sc)
@@ -94,6 +95,7 @@ def test_fast_runs_decimate_the_phase_plane_and_keep_every_sample(tmp_path):
     assert json.loads(run["phase_every"]) == every and run["writer"] == "bulk" and run["simulator"] == "batch"
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_every_reader_reads_a_decimated_recording(tmp_path):
     from helpers.recordings import assert_columns_equal_reference
 

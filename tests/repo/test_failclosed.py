@@ -99,6 +99,7 @@ def test_the_guard_sees_every_way_to_skip():
     assert own_rerun_policies(src) == [(9, "stalled")]
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_no_test_skips_outside_the_capability_helper_or_reruns_on_its_own():
     """Every skip of the suite goes through ``failclosed.require`` (so CI's ``TESTBED_REQUIRE`` turns it into
     a failure), and every rerun of a stalled run through ``failclosed.rerun_while_stalled``."""
@@ -160,6 +161,7 @@ def _simulated(*args) -> dict:
     return json.loads(out)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_broken_build_whose_outsider_gets_in_fails_the_security_test():
     """Broken build: the outsider's forged symbol for sample 30 is taken, and its later copies arrive late.
     The old test read the late symbols as a stall, ran it again, and skipped; now the run is compared.
@@ -191,6 +193,7 @@ def test_a_broken_build_whose_outsider_gets_in_fails_the_security_test():
     assert calls == ["tbroken" + "r" * i for i in range(STALL_RERUNS + 1)]
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_broken_build_whose_u_acts_late_in_every_run_fails_the_physical_timing_test(monkeypatch):
     """Broken build: under physical timing u_k acts a little after its instant in every run (late for its
     schedule), so the loop leaves the simulator's path though it still converges and re-simulates.  The

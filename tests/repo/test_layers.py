@@ -10,6 +10,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("testbed", "plants", "attackers")
 MAX_LINES = 700
@@ -201,6 +203,7 @@ def imports_of_test_modules(source: str) -> list[tuple[int, str]]:
     return found
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_no_test_module_imports_another():
     """What tests share lives in tests/helpers/, tests/conftest.py (fixtures) or tests/failclosed.py (the
     rerun policy, capabilities): a test module never imports another (that would run its tests' set-up,

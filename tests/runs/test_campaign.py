@@ -176,6 +176,7 @@ def test_bad_value_is_one_line_naming_axis_value_reason(tmp_path):
         assert p.returncode == 2 and len(lines) == 1 and all(w in lines[0] for w in words), (text, p.stderr)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_each_method_its_own_params(tmp_path):
     """[methods.NAME] params give one method of a method.name axis its params (over the scenario's own when
     it is the scenario's method, under a method.params axis); a bad one is one line before anything runs,
@@ -212,6 +213,7 @@ def test_each_method_its_own_params(tmp_path):
         assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_changed_campaign_refused_and_default_folder(tmp_path):
     c = _campaign(tmp_path, 'scenario = "random.toml"\n[axes]\n"attack.seed" = [1, 2]\n', "mine.toml")
     p = _cli("campaign", c.name, "--no-progress", cwd=tmp_path)
@@ -290,6 +292,7 @@ def test_journal_cut_mid_line(tmp_path):
     assert (tmp_path / cmp_folder.JOURNAL).read_text() == '{"run": "p00000r0", "status": "ok"}\n'
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_crashed_run_is_a_failed_row_and_exit_1(tmp_path):
     """A run that raises is a failed row (the others are results); a failed run is run again on resume."""
     c = _campaign(tmp_path, 'scenario = "random.toml"\n[axes]\n"attack.seed" = [1, 2]\n')
@@ -380,6 +383,7 @@ def test_live_campaign_four_runs_recorded_and_resimulated(tmp_path):
     assert v["checked_live"] == 4 and v["identical"]
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_batch_kernel_rows_equal_per_sample_rows(tmp_path):
     """Every bundled method, converging, escaping and diverging runs: the rows the batch kernel gives equal
     the per-sample simulator's (testbed simulate's) bit for bit, in every outcome column and settle_samples."""
@@ -532,6 +536,7 @@ def test_live_campaign_on_dask_brings_the_recordings_back(tmp_path):
     assert json.loads(p.stdout)["checked_live"] == 2
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_slurm_example_renders_the_job_script_it_describes():
     """docs/campaigns.md's SLURM cluster, made as written (its scheduler on a free port, nothing
     submitted): the job script asks for what the page says."""

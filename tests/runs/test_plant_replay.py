@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from helpers.cli import tb_here
 from helpers.sims import sim_recording
 
@@ -46,6 +47,7 @@ def test_a_healthy_run_re_runs_identically_on_its_recorded_plant(tmp_path):
         assert "auto, model, recorded" in str(e)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_plant_whose_physics_differ_from_the_model(tmp_path):
     """paper-mismatch: the true plant has b = 0.03, the model b = 0.02.  On the recorded plant the loop is
     identical (it did what the method says with the plant's numbers) and e_k shows the plant is not the model."""
@@ -78,6 +80,7 @@ def _tampered(tmp_path, what: str, k: int):
     return path
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_controller_that_breaks_the_law_diverges_at_its_sample(tmp_path):
     path = _tampered(tmp_path, "u", 40)
     r = resimulation(testbed.open(path), plant="recorded")
@@ -100,6 +103,7 @@ def test_the_replay_reads_what_each_node_recorded(tmp_path):
     assert rr["external_plant"] is False and rr["live"]["x_meas"] is None
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_device_scenario_is_re_run_on_its_recorded_plant_by_default(tmp_path):
     """A scenario that declares its plant a device ([plant.sensor]): ``auto`` re-runs the loop on the recorded
     plant, with the encoder fed the recorded x_meas; noise-free physics: e_k = 0."""

@@ -50,6 +50,7 @@ def test_columns_equal_the_reference_reader(tmp_path, name):
     assert np.array_equal(cols.get("encoder", "E"), res.E_enc) and np.array_equal(cols.get("plant", "x"), res.x)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_file_cut_mid_chunk_reads_like_the_reference(tmp_path):
     sc = scenario.with_overrides(scenario.load("paper"), {"duration": 20.0})
     res = simulate_scenario(sc)
@@ -134,6 +135,7 @@ def _bad_files(tmp_path) -> dict[str, Path]:
     return out
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, capsys):
     """Not MCAP, missing, a directory, a foreign MCAP file, a bit-flipped recording: each in report, replay,
     export, compare and resimulate (in this process), and testbed.open; report as its own process too."""
@@ -157,6 +159,7 @@ def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, caps
     assert "no scenario" in tb_run_here("report", bad["foreign"]).stderr
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_cut_recording_is_read_up_to_the_cut_by_every_command(tmp_path, capsys):
     """A file cut mid-chunk (a killed recorder): report, replay, export and compare read what it holds."""
     from mcap.reader import make_reader
@@ -244,6 +247,7 @@ def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
 
 
 # ---------------------------------------------------------------------------- the API, export, compare
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_open_and_simulate_give_the_same_arrays(tmp_path):
     sc, res, path = sim_recording(tmp_path, "paper", duration=5.0)
     run = testbed.open(path)
@@ -312,6 +316,7 @@ def test_export_round_trips_through_pyarrow(tmp_path, fmt):
         assert json.loads(meta["testbed.summary"])["converged"] is False
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_compare_identical_and_different_runs(tmp_path):
     _, _, a = sim_recording(tmp_path, "paper", duration=5.0)
     r = tb_run_here("compare", a, "paper", "--json", "--plot", tmp_path / "c.png")
@@ -349,6 +354,7 @@ def test_the_summary_of_a_run_whose_nodes_died_early(tmp_path):
     assert s["attacker_dropped_at"] == [k for k in range(10) if res.theta[k]]
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_report_prices_an_intervals_attack_as_declared(tmp_path):
     """Three back-to-back attacks (0.1 s each) lose samples 0..5, which the attacker's log shows as one run:
     the budget check prices what was declared, three attacks of 0.3 s in all, not one of 0.5 s."""
@@ -380,6 +386,7 @@ def _tampered(rr: dict) -> dict:
     return dict(rr, live=live)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 @pytest.mark.parametrize("name", ["paper", "paper-greedy", "paper-mismatch", "cartpole", "pendulum"])
 def test_the_kernel_replay_resimulates_as_the_loop_does(tmp_path, monkeypatch, name):
     """``testbed resimulate`` / the report's resimulation re-run on the batch kernel where the replay is theta
@@ -413,6 +420,7 @@ def test_a_replay_beyond_theta_runs_the_loop(tmp_path):
     assert resimulate.kernel_replay(rr["scenario"], late, rr["N"]) is None
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_region_cache_returns_the_solved_region(tmp_path, monkeypatch):
     """Theorem 1's paper-rule solves read back from the cache are those ``min_condition_P`` gives, bit for bit;
     a damaged entry is solved again."""
@@ -435,6 +443,7 @@ def test_the_region_cache_returns_the_solved_region(tmp_path, monkeypatch):
     assert allowable_region(loop, "paper").a.tobytes() == direct.tobytes()
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_report_is_the_same_without_its_shortcuts(tmp_path, monkeypatch):
     """The whole report (text and JSON) of a recording with the kernel replay and the region cache equals the
     one computed the long way (the per-sample loop, the LMIs solved in an empty cache)."""

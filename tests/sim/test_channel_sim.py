@@ -98,6 +98,7 @@ def test_losses_told_apart_on_a_constructed_case():
     assert (res.loss_cause[res.theta != 0] == WITHHELD).all()
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_gilbert_elliott_bursts_in_the_simulated_run():
     """Losses on a bursty symbol link (mean burst 5) come in runs of about 5 samples; Bernoulli at the same
     loss rate in runs of about 1 / (1 - loss)."""
@@ -212,6 +213,7 @@ def test_losses_as_dos_inside_and_outside_theorem1_region():
     assert ld["count"] == 100 and ld["theorem1"]["in_allowable_region"] is False
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_campaign_sweeps_network_keys(tmp_path):
     """``[axes]`` with dotted ``network.*`` keys: every row is its scenario's ``testbed simulate`` run (the
     channel applied: more samples lost on the lossy link), and the batch-kernel grouping leaves the channel

@@ -96,6 +96,7 @@ def test_missing_file_and_unknown_name():
         scenario.load("not-a-scenario")
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_reading_a_scenario_imports_no_numba():
     """The launcher until the run starts and the attacker node never import numba (about 0.3 s of
     CPU per process at a live run's start-up): reading and checking a scenario needs none."""

@@ -55,6 +55,7 @@ def test_random_attacks(seed, method):
     assert_simulators_identical(sc, per, bat)
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_cartpole_random_attack_seeds():
     for seed in (4, 5):
         sc = _sc("cartpole", seed=seed)

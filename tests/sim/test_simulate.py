@@ -125,6 +125,7 @@ def test_cli_reports_bad_scenario(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # its own processes (an interpreter start-up each)
 def test_console_script_runs():
     r = tb_run("simulate", "paper-escape", "--json", timeout=120)
     assert r.returncode == 0, r.stderr

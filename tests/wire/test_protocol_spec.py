@@ -115,6 +115,7 @@ def test_start_carries_the_protocol_version_and_decode_checks_it_first():
     assert f"Protocol version: **{msg.PROTOCOL_VERSION}**" in DOC.read_text()
 
 
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_a_client_joins_the_router_topology_over_mutual_tls_and_the_router_checks_it(tmp_path):
     """The authenticated way in for a device that has mutual TLS but no user/password (zenoh-pico):
     nodes started by hand in the router topology with --tls-dir.  Real Zenoh sessions: the plant's (the
