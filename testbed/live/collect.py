@@ -15,6 +15,7 @@ whole columns (``snapshot`` still gives those, for a caller that wants them).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import struct
 import threading
@@ -61,6 +62,34 @@ class Spill:
                         break
                     yield ri, buf[off + head.size:off + head.size + n]
                     off += head.size + n
+                buf = buf[off:]
+                if not more:
+                    return
+
+    def blocks(self, chunk: int | None = None):
+        """The file ``chunk`` bytes at a time: ``(bytes, role indices, offsets, lengths)`` of the whole records
+        in each read (the arrays index the bytes), in the order written."""
+        chunk = int(chunk or self.CHUNK)
+        unpack, hs = self.HEAD.unpack_from, self.HEAD.size
+        self.f.flush()
+        with open(self.path, "rb") as f:
+            buf = b""
+            while True:
+                more = f.read(chunk)
+                buf = buf + more if buf else more
+                ris, offs, lens = [], [], []
+                off, size = 0, len(buf)
+                while off + hs <= size:
+                    ri, n = unpack(buf, off)
+                    if off + hs + n > size:
+                        break
+                    ris.append(ri)
+                    offs.append(off + hs)
+                    lens.append(n)
+                    off += hs + n
+                if ris:
+                    yield (buf, np.array(ris, dtype=np.int64), np.array(offs, dtype=np.int64),
+                           np.array(lens, dtype=np.int64))
                 buf = buf[off:]
                 if not more:
                     return
@@ -285,6 +314,16 @@ class Collector:
             return
         yield from self._spill.decoded()
 
+    def _encoded(self):
+        """Every ``(role index, k, record bytes)``: a spill's as they arrived (what the node sent and digested),
+        else the records kept in memory, encoded."""
+        if self._spill is None:
+            for ri, t in self._records():
+                yield ri, t.k, t.encode()
+            return
+        for ri, b in self._spill.records():
+            yield ri, int.from_bytes(b[:4], "little"), b
+
     def telemetry_check(self) -> list[Fault]:
         """Each node's own account of its telemetry (records and digest, in its summary) against what
         arrived here: a difference means records were lost, forged or altered on the way.
@@ -302,15 +341,15 @@ class Collector:
             count = dict.fromkeys(want, 0)
             last = dict.fromkeys(want, -1)
             unordered: set[int] = set()
-            for ri, t in self._records():
+            for ri, k, b in self._encoded():
                 if ri not in want:
                     continue
                 count[ri] += 1
-                if t.k < last[ri]:
+                if k < last[ri]:
                     unordered.add(ri)
-                last[ri] = t.k
+                last[ri] = k
                 if ri not in unordered:
-                    h[ri].update(t.encode())
+                    h[ri].update(b)
             for ri in unordered:
                 h[ri] = self._digest_by_k(ri)
             for ri in sorted(want):
@@ -336,7 +375,7 @@ class Collector:
             for k in sorted(d):
                 h.update(d[k].encode())
             return h
-        ks = np.array([t.k for r, t in self._records() if r == ri], dtype=np.int64)  # 8 bytes a record
+        ks = np.array([k for r, k, _ in self._encoded() if r == ri], dtype=np.int64)  # 8 bytes a record
         order = np.argsort(ks, kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(len(order))
@@ -345,11 +384,11 @@ class Collector:
         for lo in range(0, len(order), win):
             got: dict[int, bytes] = {}
             i = 0
-            for r, t in self._records():
+            for r, _, b in self._encoded():
                 if r != ri:
                     continue
                 if lo <= rank[i] < lo + win:
-                    got[int(rank[i])] = t.encode()
+                    got[int(rank[i])] = b
                 i += 1
             for j in range(lo, min(lo + win, len(order))):
                 h.update(got[j])
@@ -418,20 +457,27 @@ class SpillRows:
         self._top = dict(top) if top is not None else None
         self.lag = self.measure_lag() if lag is None else int(lag)
 
-    def records(self):
+    def _spill(self) -> Spill:
         sp = Spill.__new__(Spill)
         sp.path, sp.f = self.path, _NoFlush()
-        return sp.decoded()
+        return sp
+
+    def records(self):
+        return self._spill().decoded()
+
+    def _blocks(self):
+        return self._spill().blocks()
 
     def measure_lag(self) -> int:
         """``Collector.lag`` of the file (its k order), read from it (a spill without its collector)."""
         top, lag, tops = -1, 0, {}
-        for ri, t in self.records():
-            tops[ri] = max(tops.get(ri, -1), t.k)
-            if t.k > top:
-                top = t.k
-            else:
-                lag = max(lag, top - t.k)
+        for buf, ris, offs, _lens in self._blocks():
+            ks = _ks(buf, offs)
+            for ri in np.unique(ris):
+                tops[int(ri)] = max(tops.get(int(ri), -1), int(ks[ris == ri].max()))
+            before = np.maximum.accumulate(np.concatenate(([top], ks)))[:-1]  # the highest k before each record
+            lag = max(lag, int((before - ks).max()))
+            top = max(top, int(ks.max()))
         if self._top is None:
             self._top = {r: tops.get(i, -1) for i, r in enumerate(transport.ROLES)}
         return lag
@@ -456,19 +502,31 @@ class SpillRows:
         span = size + lag + 1
         base, top = 0, -1
         b = self._builder(span, ColumnBuilder)
-        for ri, t in self.records():
-            k = t.k
-            if k >= hi:
+        for buf, ris, offs, lens in self._blocks():
+            ks = _ks(buf, offs)
+            keep = ks < hi
+            if not keep.all():
+                ris, offs, lens, ks = ris[keep], offs[keep], lens[keep], ks[keep]
+            if not len(ks):
                 continue
-            if k < base:
-                raise _Disorder(k)
-            if k > top:
-                top = k
-            while top - lag >= base + size:  # rows below top - lag are complete
-                yield base, self._cut(b, size, normalize)
-                base += size
-                b = self._shift(b, size, span, ColumnBuilder, base)
-            b.add(ri, t)
+            tops = np.maximum(np.maximum.accumulate(ks), top)  # the highest k up to each record
+            arr = np.frombuffer(buf, dtype=np.uint8)
+            i = 0
+            while i < len(ks):
+                # the records before the first whose k completes a chunk go in at once; that one completes it
+                j = i + int(np.searchsorted(tops[i:], base + size + lag, side="left"))
+                if j > i:
+                    if ks[i:j].min() < base:
+                        raise _Disorder(int(ks[i:j].min()))
+                    _add(b, buf, arr, ris[i:j], offs[i:j], lens[i:j])
+                if j < len(ks):
+                    top = int(tops[j])
+                    while top - lag >= base + size:  # rows below top - lag are complete
+                        yield base, self._cut(b, size, normalize)
+                        base += size
+                        b = self._shift(b, size, span, ColumnBuilder, base)
+                i = j
+            top = max(top, int(tops[-1]))
         while True:
             n = min(size, hi - base)
             yield base, self._cut(b, max(0, n), normalize)
@@ -505,6 +563,36 @@ class SpillRows:
 
 class _Disorder(Exception):
     pass
+
+
+def _ks(buf: bytes, offs: np.ndarray) -> np.ndarray:
+    """The sample k of the records at ``offs`` (every telemetry record starts with it: u32 LE), as int64."""
+    arr = np.frombuffer(buf, dtype=np.uint8)
+    return arr[offs[:, None] + np.arange(4)].view("<u4")[:, 0].astype(np.int64)
+
+
+#: the names each role's telemetry dataclass carries
+_FIELDS = {ri: tuple(f.name for f in dataclasses.fields(msg.TELEMETRY_TYPES[r]))  # type: ignore[arg-type]
+           for ri, r in enumerate(transport.ROLES)}
+
+
+def _add(b, buf: bytes, arr: np.ndarray, ris: np.ndarray, offs: np.ndarray, lens: np.ndarray) -> None:
+    """Records into a ``ColumnBuilder``: those of one role and length at once, as one structured array
+    (``columns.decode_records``); a group whose records do not share the first one's layout one by one."""
+    from ..record.columns import decode_records, record_vectors
+
+    key = ris * (1 << 32) + lens
+    for g in np.unique(key):
+        sel = np.flatnonzero(key == g)
+        ri, n = int(ris[sel[0]]), int(lens[sel[0]])
+        cls = msg.TELEMETRY_TYPES[transport.ROLES[ri]]
+        vectors = record_vectors(cls, buf, int(offs[sel[0]]), n)
+        rec = None if vectors is None else decode_records(cls, arr, offs[sel], vectors)
+        if rec is None or vectors is None:
+            for o in offs[sel]:
+                b.add(ri, cls.decode(buf[o:o + n]))
+        else:
+            b.add_records(ri, rec, vectors, _FIELDS[ri])
 
 
 class _NoFlush:

@@ -559,6 +559,40 @@ class ColumnBuilder:
                 tab[k, col.col] = v
         c.present[k, r] = 1
 
+    def add_records(self, r: int, rec: np.ndarray, vectors: tuple[tuple[str, int], ...],
+                    fields: tuple[str, ...]) -> None:
+        """:meth:`add` of many records of role ``r`` at once: ``rec`` from :func:`decode_records` (one layout,
+        ``vectors``), ``fields`` the names the role's telemetry dataclass carries.  The same rows, rejections
+        and malformed counts as adding them one by one (a k appears once per role: the collector's spill)."""
+        c = self.c
+        rows = rec["k"].astype(np.int64) - self.k0
+        ok = (rows >= 0) & (rows < c.rows)
+        if not ok.all():
+            c.rejected[ROLES[r]] = c.rejected.get(ROLES[r], 0) + int((~ok).sum())
+            rows, rec = rows[ok], rec[ok]
+        if not len(rows):
+            return
+        widths = dict(vectors)
+        plan = []
+        for name, col in self._mine[r]:
+            if name not in fields:  # a field the wire dataclass does not carry (derived: log10_E)
+                continue
+            if col.group == G_VEC:
+                w = widths.get(name, 0)
+                if w and w != col.width:
+                    c.malformed += len(rows)
+                    return
+                plan.append((col, rec[name] if w else col.default))
+            else:
+                plan.append((col, rec[name]))
+        for col, v in plan:
+            tab = c.tables[_TABLE[col.group]]
+            if col.group == G_VEC:
+                tab[rows, col.col:col.col + col.width] = v
+            else:
+                tab[rows, col.col] = v
+        c.present[rows, r] = 1
+
     def finish(self, plant_final=None) -> Columns:
         c = self.c
         if plant_final is not None:
@@ -566,6 +600,57 @@ class ColumnBuilder:
                        "flow_status": int(plant_final.flow_status)}
         normalize(c)
         return c
+
+
+# ============================================================================ many records of one layout at once
+#: numpy's name of each ``struct`` code the telemetry structs use (``testbed.wire.messages``)
+_NP_OF_STRUCT = {"I": "<u4", "i": "<i4", "q": "<i8", "Q": "<u8", "H": "<u2", "h": "<i2", "B": "u1", "b": "i1",
+                 "d": "<f8"}
+
+
+def record_vectors(cls, data: bytes, off: int, length: int) -> tuple[tuple[str, int], ...] | None:
+    """The vectors (name, length) of the binary telemetry record of class ``cls`` at ``data[off:off + length]``,
+    in the order ``cls.encode`` writes them; None where the record does not parse (``cls.decode`` says why)."""
+    end, pos = off + length, off + cls._scalars.size
+    if pos > end:
+        return None
+    out = []
+    for name in cls._vector_fields:
+        if pos >= end:
+            return None
+        out.append((name, data[pos]))
+        pos += 1 + 8 * data[pos]
+    if cls._optional_vector is not None and pos < end:
+        if data[pos] == 0:  # never sent empty
+            return None
+        out.append((cls._optional_vector, data[pos]))
+        pos += 1 + 8 * data[pos]
+    return tuple(out) if pos == end else None
+
+
+def record_dtype(cls, vectors: tuple[tuple[str, int], ...]) -> np.dtype:
+    """numpy's view of a record of ``cls`` whose vectors have these lengths, packed as ``cls.encode`` writes it."""
+    codes = cls._scalars.format.lstrip("<")
+    out: list[tuple] = [(name, _NP_OF_STRUCT[c]) for name, c in zip(cls._scalar_fields, codes, strict=True)]
+    for name, w in vectors:
+        out.append((f"{name}.n", "u1"))
+        if w:
+            out.append((name, "<f8", (w,)))
+    dt = np.dtype(out)
+    assert dt.itemsize == cls._scalars.size + sum(1 + 8 * w for _, w in vectors)
+    return dt
+
+
+def decode_records(cls, buf: np.ndarray, offs: np.ndarray, vectors: tuple[tuple[str, int], ...]) -> np.ndarray | None:
+    """The records of ``cls`` at byte offsets ``offs`` of ``buf`` (uint8), all of one layout (``vectors``,
+    from :func:`record_vectors` of one of them), as one structured array; None when one of them has another
+    layout (a length byte differs: decode those one by one)."""
+    dt = record_dtype(cls, vectors)
+    rec = buf[offs[:, None] + np.arange(dt.itemsize)].view(dt)[:, 0]
+    for name, w in vectors:
+        if (rec[f"{name}.n"] != w).any():
+            return None
+    return rec
 
 
 def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, events=(), status=(),
@@ -579,5 +664,6 @@ def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, ev
     return b.finish(plant_final)
 
 
-__all__ = ["Columns", "ColumnBuilder", "read_columns", "read_metadata", "from_records", "scenario_of", "layout",
+__all__ = ["Columns", "ColumnBuilder", "record_vectors", "record_dtype", "decode_records", "read_columns",
+           "read_metadata", "from_records", "scenario_of", "layout",
            "CorruptRecording", "rows_for"]

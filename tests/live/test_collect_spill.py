@@ -313,3 +313,42 @@ def test_the_spill_read_as_rows_gives_the_whole_columns_summary(tmp_path, chunk,
     assert rows.lag >= 20 and rows.last_k("plant") == whole.last_k("plant")
     got, _ = _text(sc, rows, tmp_path)
     assert got == want
+
+
+def test_records_added_at_once_equal_records_added_one_by_one(tmp_path, paper):
+    """``SpillRows`` decodes the records of one role and layout as one array (``columns.add_records``); a spill
+    with every odd case (a vector of the wrong width, an optional vector on some records only, an empty one,
+    a k past the rows, records far out of order) reads to the same columns as decoding them one at a time."""
+    from testbed.live.collect import SpillRows
+
+    rng = np.random.default_rng(5)
+    path = tmp_path / "odd.bin"
+    sp = Spill(path)
+    recs = []
+    for k in range(300):
+        x = tuple(rng.normal(size=2))
+        recs.append((0, msg.PlantTelemetry(k=k, t_ns=k * 10**8, sensor_tx_ns=k, u_rx_ns=msg.NO_TIME if k % 9 == 0 else k,
+                                           delay_ns=0, theta=k % 2, flags=k % 4, flow_status=-1 if k % 50 == 0 else 0,
+                                           x=x if k % 37 else x + (1.0,), u=(0.5,) if k % 41 else (),
+                                           x_meas=x if k % 3 == 0 else ())))
+        recs.append((1, msg.EncoderTelemetry(k=k, sensor_tx_ns=k, rx_ns=k, tx_ns=k, symbol=k % 37, saturated=k % 5 == 0,
+                                             silent=int(k % 11 == 0), E=float(k), xi=x, q=x)))
+        recs.append((2, msg.AttackerTelemetry(k=k, rx_ns=k, tx_ns=k, dropped=k % 3 == 0, corrupted=0, attack_on=1,
+                                              dropped_total=k, forwarded_total=k)))
+        recs.append((3, msg.ControllerTelemetry(k=299 - k, sym_stamp_ns=k, rx_ns=k, tx_ns=k, symbol=k % 37, theta=k % 2,
+                                                reason=0, E=1.0, xi=x, q=x, u=(1.0,))))
+    for ri, t in recs:
+        sp.write(ri, t.encode())
+    sp.close()
+    sc = paper
+    whole = columns.ColumnBuilder(sc, 250)
+    for ri, t in recs:
+        whole.add(ri, t)
+    want = whole.finish()
+    rows = SpillRows(sc, path, 250, chunk=64)
+    assert rows.lag == 299
+    got = [c for _, c in rows.chunks(250)]
+    for t in want.tables:
+        assert np.array_equal(np.concatenate([c.tables[t] for c in got])[:250], want.tables[t], equal_nan=True), t
+    assert np.array_equal(np.concatenate([c.present for c in got])[:250], want.present)
+    assert sum(c.malformed for c in got) == want.malformed > 0
