@@ -228,10 +228,11 @@ def synthetic_spill(path, sc, n: int) -> None:
     return final
 
 
-def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
+def synthetic_summary_peak(n: int, tmp: str | Path, traced: bool = True) -> dict:
     """The launcher's end of run in-process on a synthetic spill of ``n`` samples at 1 kHz: the summary
     built from the spill and written as ``testbed run --json`` writes it (to a sink), its peak memory
-    (tracemalloc: Python objects and numpy arrays) and its time."""
+    (tracemalloc: Python objects and numpy arrays; ``traced=False``: not measured, 0) and its time (tracemalloc
+    slows Python down: time it untraced)."""
     import tracemalloc
 
     from testbed import scenario
@@ -251,14 +252,15 @@ def synthetic_summary_peak(n: int, tmp: str | Path) -> dict:
             Sink.chars += len(s)
 
     t = time.perf_counter()
-    tracemalloc.start()
+    if traced:
+        tracemalloc.start()
     try:  # as the launcher makes it (``Launcher.summarize``): rows a chunk at a time, per-sample values in files
         # the lag and each node's last sample as the collector counts them as records arrive (in order here)
         rows = SpillRows(sc, path, n, 0, LIVE_FIELDS, plant_final=final, top={r: n - 1 for r in ROLES})
         s = build_summary(sc, rows, run_id="synthetic", ack_via_attacker=False, nodes={}, faults=[],
                           codebook=Codebook(2, 6, True), arrays=True, store=tmp)
         write_json(s, Sink())
-        peak = tracemalloc.get_traced_memory()[1]
+        peak = tracemalloc.get_traced_memory()[1] if traced else 0
     finally:
         tracemalloc.stop()
         path.unlink()
@@ -277,12 +279,13 @@ def synthetic_main(spec: str, json_out: str | None) -> int:
         return 2
     print("the launcher's end of run on a synthetic spill (in-process; tracemalloc's peak: Python objects "
           "and numpy arrays)")
-    print(f"{'samples':>9} {'peak MB':>8} {'ratio':>6} {'seconds':>8}")
+    print(f"{'samples':>9} {'peak MB':>8} {'ratio':>6} {'seconds':>8}  (seconds: a second pass, untraced)")
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         synthetic_summary_peak(min(min(ns), 2000), tmp)  # the modules' and kernels' first use, out of the figures
         for n in ns:
             r = synthetic_summary_peak(n, tmp)
+            r["seconds_traced"], r["seconds"] = r["seconds"], synthetic_summary_peak(n, tmp, traced=False)["seconds"]
             out.append(r)
             r["ratio"] = r["peak_mb"] / out[0]["peak_mb"]
             print(f"{n:9d} {r['peak_mb']:8.1f} {r['ratio']:6.2f} {r['seconds']:8.1f}", flush=True)
