@@ -35,8 +35,10 @@ import json
 import struct
 import zlib
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -61,6 +63,9 @@ from .mcapfile import (
     read_metadata,
 )
 from .topics import TELEMETRY_SCHEMA
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 ROW_BYTES_MIN = 8             # a recorded sample takes more file than this: rows <= file size / 8
 
@@ -244,6 +249,8 @@ class Columns:
     last_log_time: int = 0
     truncated: bool = False
     read_error: str | None = None
+    plant_source: dict | None = None   # set by ``record.summary.load``: how the plant module was loaded
+    model_source: dict | None = None   # ... and the [model]'s, when it is another class
 
     def get(self, role: str, name: str) -> np.ndarray:
         """The column (a view); a field that was not decoded reads as never recorded (a read-only array)."""
@@ -493,7 +500,8 @@ class _Reader:
                        "flow_status": int(self.final_tabs[1][fs.col]) if fs else 0}
 
 
-def read_columns(path: str | Path, *, fields: set[str] | None = None, sc=None) -> Columns:
+def read_columns(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = None,
+                 sc: Scenario | None = None) -> Columns:
     """Decode a recording into columns (see the module docstring).
 
     ``fields``: the ``"role.field"`` names to decode (default all), or a function of

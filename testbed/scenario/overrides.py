@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import numpy.typing as npt
 
 from ..common.errors import BadInput
 
@@ -35,7 +36,7 @@ def checked(overrides: dict | None, name: str) -> dict:
     return over
 
 
-def apply(data: dict, over: dict, swap: Callable[[dict, object], tuple[dict, str]]) -> tuple[dict, str]:
+def apply(data: dict, over: dict, swap: Callable[[dict, str | dict], tuple[dict, str]]) -> tuple[dict, str]:
     """``over`` written into the parsed document ``data`` (edited in place) as if in the file; a method
     swapped in last by ``swap(data, method)`` (``testbed.scenario.swap_method``: the one rule).  Returns the
     document and the swap's note."""
@@ -62,7 +63,7 @@ def apply(data: dict, over: dict, swap: Callable[[dict, object], tuple[dict, str
     return data, note
 
 
-def hint(msg: str, name: str, x0, over: dict) -> str:
+def hint(msg: str, name: str, x0: npt.ArrayLike, over: dict) -> str:
     """A scenario error caused by overrides, reworded so that a caller of overrides can act on it."""
     names = ", ".join(f"{k}={v!r}" for k, v in over.items())
     x0 = over.get("x0", x0)
