@@ -12,6 +12,7 @@ of an installed entry point (group ``dos_testbed.plants``) or
 
 from __future__ import annotations
 
+import os
 from dataclasses import fields
 from typing import Any
 
@@ -29,12 +30,12 @@ for _c in BUILT_IN:
     register(_c)
 
 
-def get(name: str, base_dir=None) -> type[Plant]:
+def get(name: str, base_dir: str | os.PathLike | None = None) -> type[Plant]:
     """The plant class a reference names (``plants.refs.resolve``); ValueError when it cannot."""
     return resolve(name, base_dir)
 
 
-def make(name: str, base_dir=None, **params) -> Plant:
+def make(name: str, base_dir: str | os.PathLike | None = None, **params: Any) -> Plant:
     """Instantiate the plant ``name`` (any plant reference) with the given parameters.
 
     ``base_dir``: where a ``"module:Class"`` reference is imported from first (the

@@ -7,15 +7,16 @@ matrices themselves: ``params = { A = [[...]], B = [[...]] }``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
+import numpy.typing as npt
 
 from .base import Plant, rhs_function
 
 
 @rhs_function
-def linear_rhs(x, u, p, dx):
+def linear_rhs(x: np.ndarray, u: np.ndarray, p: np.ndarray, dx: np.ndarray) -> None:
     n = int(p[0])
     m = int(p[1])
     for i in range(n):
@@ -54,15 +55,15 @@ class Linear(Plant):
         object.__setattr__(self, "B_", _as_tuple2(B))
 
     @classmethod
-    def from_params(cls, A=None, B=None):
-        kw = {}
+    def from_params(cls, A: npt.ArrayLike | None = None, B: npt.ArrayLike | None = None) -> Linear:
+        kw: dict[str, Any] = {}
         if A is not None:
             kw["A_"] = A
         if B is not None:
             kw["B_"] = B
         return cls(**kw)
 
-    def params_dict(self):
+    def params_dict(self) -> dict[str, Any]:
         return {"A": [list(r) for r in self.A_], "B": [list(r) for r in self.B_]}
 
     @property
@@ -78,7 +79,7 @@ class Linear(Plant):
         B = np.asarray(self.B_, dtype=float)
         return np.concatenate([[A.shape[0], B.shape[1]], A.ravel(), B.ravel()])
 
-    def linearization(self):
+    def linearization(self) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(self.A_, dtype=float), np.asarray(self.B_, dtype=float)
 
     def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:

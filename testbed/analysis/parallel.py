@@ -46,6 +46,8 @@ from ..loop.params import QuantizerParams
 if TYPE_CHECKING:
     from distributed import Client
 
+    from plants.base import Plant
+
 #: environment of every worker process: one thread for numba and the BLAS libraries
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1"}
@@ -308,7 +310,7 @@ def _dask_map(client, fn, items, warm, warmed: set, progress):
 class BatchChunk:
     """One chunk of a batch: everything a worker needs to run it (data only)."""
 
-    plant: object
+    plant: Plant
     K: np.ndarray
     qp: QuantizerParams
     X0: np.ndarray
@@ -322,7 +324,7 @@ class BatchChunk:
     flow: FlowOptions
     fields: tuple
     specialize: bool = True
-    model: object = None     # the predictions' model (rule (xi)); None: the plant itself
+    model: Plant | None = None     # the predictions' model (rule (xi)); None: the plant itself
     init_state: np.ndarray | None = None  # (B, W) both ends' state to continue from (``simulate_batch``)
     stop: tuple | None = None             # (x_tol, E_tol, x_out) early stop (``simulate_batch``)
 
