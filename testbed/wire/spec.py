@@ -16,6 +16,7 @@ import dataclasses
 import re
 import struct
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from . import messages as msg
@@ -422,7 +423,7 @@ def render(text: str) -> str:
     return out
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     text = DOC.read_text()
     new = render(text)
