@@ -30,12 +30,14 @@ import heapq
 import itertools
 import math
 import threading
+from collections.abc import Callable
+from typing import Any
 
 from ..loop import channel
 from ..wire import messages as msg
 
 
-def stage_for(node, link: str, fn):
+def stage_for(node: Any, link: str, fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
     """``fn`` wrapped in the link's channel stage, or ``fn`` itself when the link is ideal (or absent)."""
     net = getattr(node.sc, "network", None)
     if net is None or net.link(link).ideal:
@@ -151,7 +153,7 @@ class InProcessLink:
         return {"lost_at": list(self.lost_at), "delay_s": []}
 
 
-def in_process_links(guest) -> dict[str, InProcessLink]:
+def in_process_links(guest: Any) -> dict[str, InProcessLink]:
     """The colocated encoder's ``sensor`` and ``ack`` links that lose messages (registered as its stages)."""
     net = getattr(guest.sc, "network", None)
     out = {}
