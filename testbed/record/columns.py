@@ -35,10 +35,10 @@ import json
 import struct
 import zlib
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -296,7 +296,7 @@ def normalize(c: "Columns") -> None:
             c.get("encoder", name)[silent] = v
 
 
-def scenario_of(metadata: dict[str, dict], path: str = "recording"):
+def scenario_of(metadata: dict[str, dict], path: str = "recording") -> Scenario:
     """The scenario a run used, rebuilt from its metadata (``recorded.recorded_scenario``)."""
     from .recorded import recorded_scenario
 
@@ -541,7 +541,7 @@ class ColumnBuilder:
                          events=list(events), status=list(status), summaries=dict(summaries or {}))
         self._mine = [[(key[1], col) for key, col in L.cols.items() if key[0] == role] for role in ROLES]
 
-    def add(self, r: int, t) -> None:
+    def add(self, r: int, t: Any) -> None:
         """Record ``t`` (a telemetry dataclass) of role index ``r`` into row ``t.k``."""
         c = self.c
         k = t.k - self.k0
@@ -567,7 +567,7 @@ class ColumnBuilder:
                 tab[k, col.col] = v
         c.present[k, r] = 1
 
-    def finish(self, plant_final=None) -> Columns:
+    def finish(self, plant_final: msg.PlantTelemetry | None = None) -> Columns:
         c = self.c
         if plant_final is not None:
             c.final = {"k": int(plant_final.k), "x": np.array(plant_final.x, dtype=float),
@@ -576,8 +576,9 @@ class ColumnBuilder:
         return c
 
 
-def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, events=(), status=(),
-                 summaries=None, fields: set[str] | None = None) -> Columns:
+def from_records(sc: Scenario, tele: dict[str, dict[int, Any]], *, plant_final: msg.PlantTelemetry | None = None,
+                 events: Iterable[msg.Event] = (), status: Iterable[msg.AttackerStatus] = (),
+                 summaries: dict[str, dict] | None = None, fields: set[str] | None = None) -> Columns:
     """Columns from telemetry dataclasses by role and k (the live launcher's collector), same rules as a file."""
     ks = [k for d in tele.values() for k in d]
     b = ColumnBuilder(sc, max(ks) + 1 if ks else 0, fields, events=events, status=status, summaries=summaries)

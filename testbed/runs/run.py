@@ -36,6 +36,7 @@ from ..record.tracereader import read_recording_trace
 
 if TYPE_CHECKING:
     from ..scenario import Scenario
+    from ..sim.loop import SimResult
 
 #: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
 #: docs/api.md explains each)
@@ -70,7 +71,7 @@ class Run:
     metadata: dict[str, dict] = field(default_factory=dict)
     #: the overrides the run was simulated with (``testbed.simulate``), stored by ``save``
     overrides: dict = field(default_factory=dict)
-    _result: object = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
+    _result: SimResult | None = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
     _columns: object = field(default=None, repr=False)  # a recording's columns (``testbed report`` reads them)
     _details: dict | None = field(default=None, repr=False)  # a recording's whole summary (``recording_summary``)
 
