@@ -319,8 +319,9 @@ def phase_every(T: float) -> int:
     return 1 if T >= PHASE_PERIOD_S else max(1, int(round(PHASE_PERIOD_S / T)))
 
 
-def record_simulation(path: str | Path, sc: Scenario, res: SimResult, *, overrides: dict | None = None, ref: str | None = None,
-                      t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True,
+def record_simulation(path: str | Path, sc: Scenario, res: SimResult, *, overrides: dict | None = None,
+                      ref: str | None = None, t0_ns: int | None = None, flush_interval: float = 5.0,
+                      exclusive: bool = True,
                       roa: bool = True, bulk: bool = True) -> dict:
     """Write a simulated run (``testbed.sim.loop.SimResult``) with the topics and schemas of a live run.
 
