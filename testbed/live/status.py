@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..loop.channel import LOSS_KINDS, late_of_rest, loss_text, model_lost, recorded_losses
+from ..loop.channel import LOSS_KINDS, NetworkModel, late_of_rest, loss_text, model_lost, recorded_losses
 from ..wire import messages as msg
 
 if TYPE_CHECKING:
@@ -124,7 +124,7 @@ class LiveStatus:
         self._last = now
         self._draw()
 
-    def close(self, col=None) -> None:
+    def close(self, col: Collector | None = None) -> None:
         """The last state, counted to the end, as a line of its own (the terminal's line ends there).  Its
         losses are the run's ``losses``: the controller's count of late symbols (its summary) moves that many
         of the real network's to late, as ``recorded_losses`` does."""
@@ -157,7 +157,7 @@ class ClearingStream:
         return getattr(self._stream, name)
 
 
-def start(progress: bool, n_steps: int, T_s: float, network=None) -> LiveStatus | None:
+def start(progress: bool, n_steps: int, T_s: float, network: NetworkModel | None = None) -> LiveStatus | None:
     """The run's status line on stderr: on a terminal, or on a pipe with ``progress``; None otherwise.
     On a terminal ``sys.stderr`` becomes a ``ClearingStream`` until ``stop``."""
     real = sys.stderr
