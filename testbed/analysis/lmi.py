@@ -20,9 +20,14 @@ feasibility tests in bisections.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    pass
 
 
 # ----------------------------------------------------------------------------- symmetric bases
@@ -99,7 +104,8 @@ class BarrierResult:
     stopped_early: bool = False
 
 
-def barrier_minimize(c, blocks, z0, *, tau0: float | None = None, growth: float = 20.0, rtol: float = 1e-7,
+def barrier_minimize(c: np.ndarray, blocks: Sequence[Block], z0: np.ndarray, *, tau0: float | None = None,
+                     growth: float = 20.0, rtol: float = 1e-7,
                      atol: float = 1e-10, max_outer: int = 40, max_newton: int = 60,
                      stop_below: float | None = None, stop_if_bound_above: float | None = None) -> BarrierResult:
     """Minimize c'z subject to the strict LMIs ``blocks`` from the strictly feasible z0.
@@ -179,7 +185,7 @@ def barrier_minimize(c, blocks, z0, *, tau0: float | None = None, growth: float 
     return BarrierResult(z, float(c @ z), m_tot / tau, steps, False)
 
 
-def max_margin(blocks, x0, *, stop_at: float | None = 0.0, rtol: float = 1e-6,
+def max_margin(blocks: Sequence[Block], x0: np.ndarray, *, stop_at: float | None = 0.0, rtol: float = 1e-6,
                atol: float = 1e-9) -> tuple[np.ndarray, float]:
     """Phase I: maximize t subject to G_j(x) - t I > 0 for every block.
 
