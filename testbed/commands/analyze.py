@@ -406,7 +406,7 @@ def _analyze_plots(sc, res, extra, plot: Path, args) -> list[str]:
         roa = nominal_roa(plant, sc.K, sc.T, grid=101, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                           progress=Progress("region of attraction", not args.no_progress))
     trajs = [(f"the scenario's run from $x_0$ = {np.round(sc.x0, 3).tolist()}", sim.x, None)]
-    esc = None
+    esc: tuple[float | None, Any] | None = None
     if isinstance(args.escape_x0, str):  # "auto"
         esc = find_escape(sc)
         if esc is None:
