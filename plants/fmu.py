@@ -32,11 +32,14 @@ import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from .base import PlantFault
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 INSTALL_HINT = "pip install 'dos-testbed[fmu]' (or pip install fmpy)"
 

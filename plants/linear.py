@@ -7,12 +7,14 @@ matrices themselves: ``params = { A = [[...]], B = [[...]] }``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-import numpy.typing as npt
 
 from .base import Plant, rhs_function
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 
 @rhs_function

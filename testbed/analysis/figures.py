@@ -23,11 +23,11 @@ from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ..common import figstyle
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
     from matplotlib.artist import Artist
 
     from ..scenario import Scenario

@@ -38,7 +38,6 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ..common import validate
 from ..common.errors import BadInput
@@ -46,6 +45,7 @@ from ..loop.flow import DEFAULT_FLOW, FlowOptions
 from ..loop.params import QuantizerParams
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
     from distributed import Client
 
     from plants.base import Plant

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .regioncache import paper_solves
 from .theorem1 import (
@@ -27,7 +26,7 @@ from .theorem1 import (
 )
 
 if TYPE_CHECKING:
-    pass
+    import numpy.typing as npt
 
 
 # ============================================================================ the region

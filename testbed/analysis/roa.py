@@ -16,13 +16,14 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
-import numpy.typing as npt
 
 from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..loop.quantizer import QuantizerParams
 from .parallel import run_batch
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from plants.base import Plant
 
     from .parallel import Executor, Progress

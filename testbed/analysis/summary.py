@@ -11,7 +11,6 @@ from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from attackers.budget import check as budget_check
 
@@ -22,6 +21,8 @@ from .theorem1 import RULES, Loop
 from .theorem2 import RemainderRadius, delta_for_gamma, gamma_for_delta, theorem2, theorem2_auto
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from ..scenario import Scenario
 
 #: the value of delta the paper reports for its example (Section V)

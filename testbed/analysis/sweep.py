@@ -52,7 +52,6 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from attackers.generators import make_schedule
 
@@ -62,6 +61,8 @@ from .parallel import Stages, n_chunks, run_batch
 from .roa import RoaResult
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from plants.base import Plant
 
     from ..loop.params import QuantizerParams

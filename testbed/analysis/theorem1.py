@@ -67,13 +67,14 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 from scipy.linalg import solve_discrete_lyapunov
 
 from ..loop.control import c2d, closed_loop, spectral_radius
 from .lmi import Block, barrier_minimize, max_margin, sym_basis, vec_from_sym
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from plants.base import Plant
 
     from ..loop.params import QuantizerParams

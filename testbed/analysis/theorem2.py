@@ -63,11 +63,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .theorem1 import Certificate, Loop, _gen_ratios
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from plants.base import Plant
 
 _R_MAX = 1e6

@@ -61,7 +61,6 @@ from math import comb
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from plants.base import Plant
 
@@ -72,6 +71,8 @@ from .parallel import Stages, n_chunks, run_batch
 from .sweep import classify
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from ..scenario import Scenario
     from .parallel import Executor, Progress
 

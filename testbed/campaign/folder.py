@@ -13,12 +13,16 @@ import os
 import platform
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..common import comparestats
 from ..common.errors import BadInput
 from . import code
 from .engine import outcome_counts, wilson
 from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, PlannedRun
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 JOURNAL = "journal.jsonl"
 
@@ -69,7 +73,7 @@ def default_dir(c: Campaign) -> Path:
     return Path("recordings") / f"campaign-{c.stem}"
 
 
-def prepare(c: Campaign, runs: list[PlannedRun], folder: Path, base) -> None:
+def prepare(c: Campaign, runs: list[PlannedRun], folder: Path, base: Scenario) -> None:
     """Create ``folder`` (campaign copy, scenarios, manifest) or check that it holds this campaign."""
     cp = folder / "campaign.toml"
     man = folder / "manifest.json"
@@ -143,7 +147,7 @@ def source_hash() -> str:
     return "sha256:" + h.hexdigest()
 
 
-def manifest(c: Campaign, runs: list[PlannedRun], base, stored: list[dict] | None = None) -> dict:
+def manifest(c: Campaign, runs: list[PlannedRun], base: Scenario, stored: list[dict] | None = None) -> dict:
     """What the folder holds and what made it; ``code``: the user code of the runs (``code.collect``:
     each method's and plant's reference, module, class, source text, sha256 and its copy's path)."""
     __version__ = sys.modules["testbed"].__version__  # the package's face is a layer above: read, not imported

@@ -10,6 +10,7 @@ reference) over those pairs (``engine.compare_paired``: the statistics of ``test
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 
 from . import engine
 from .spec import SEED_KEYS
@@ -61,14 +62,14 @@ def _same(a, b) -> bool:
 
 
 # ============================================================================ formatting
-def fmt_p(p) -> str:
+def fmt_p(p: float | None) -> str:
     """A p value as a table prints it: ``p = 0.0625``, ``p < 0.001`` (``p -`` without one)."""
     if p is None:
         return "p -"
     return "p < 0.001" if p < 0.001 else f"p = {p:.3g}"
 
 
-def fmt_ci(est, ci, spec: str = "+.2f") -> str:
+def fmt_ci(est: float | None, ci: Sequence[float] | None, spec: str = "+.2f") -> str:
     """``est [lo, hi]`` (the estimate signed; ``-`` without an estimate, the estimate alone without an
     interval)."""
     if est is None:

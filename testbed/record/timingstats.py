@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ..wire.messages import NO_TIME
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 
 class Timings:

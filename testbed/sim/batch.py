@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from attackers.greedy import greedy_init
 from attackers.schedule import Schedule
@@ -51,6 +50,8 @@ from .loop import (  # noqa: F401 - LinkEffects, OnlineAttacker, simulate_loop: 
 from .trajectory import simulate_scenario  # noqa: F401 - re-exported: the scenario level's entry point
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from plants.base import Plant
 
     from ..methods.base import Method
