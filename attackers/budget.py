@@ -32,13 +32,13 @@ def _coerce_schedule(schedule: Schedule | Iterable[Iterable[float]]) -> Schedule
     return Schedule(tuple(tuple(p) for p in schedule))  # type: ignore[misc]  # __post_init__ checks the pairs
 
 
-def _check_nonneg(name: str, value, *, upper_open: float | None = None) -> float:
+def _check_nonneg(name: str, value: object, *, upper_open: float | None = None) -> float:
     if upper_open is not None:
         return field(name, value, RHO_D_WHY, lo=0.0, hi=upper_open, hi_open=True)
     return field(name, value, lo=0.0)
 
 
-def _check_horizon(horizon) -> float | None:
+def _check_horizon(horizon: object) -> float | None:
     if horizon is None:
         return None
     h = _check_nonneg("horizon", horizon)

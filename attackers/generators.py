@@ -290,14 +290,14 @@ def is_online(kind: str) -> bool:
     return kind in ONLINE_KINDS
 
 
-def _check_kind(kind) -> None:
+def _check_kind(kind: object) -> None:
     if kind not in GENERATORS:
         raise ValueError(
             f"unknown attack kind {kind!r} (known kinds: {', '.join(sorted(GENERATORS))})"
         )
 
 
-def _check_params(kind: str, params) -> Mapping:
+def _check_params(kind: str, params: Mapping | None) -> Mapping:
     if params is None:
         return {}
     if not isinstance(params, Mapping):

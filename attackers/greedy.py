@@ -208,7 +208,8 @@ class GreedyAttacker:
     ``(kappa_D, rho_D)``.
     """
 
-    def __init__(self, kappa_F, rho_F, kappa_D, rho_D, T, threshold=0.0):
+    def __init__(self, kappa_F: float, rho_F: float, kappa_D: float, rho_D: float, T: float,
+                 threshold: float = 0.0) -> None:
         self._params = greedy_params(kappa_F, rho_F, kappa_D, rho_D, threshold)
         if isinstance(T, (bool, np.bool_)):
             raise ValueError(f"greedy attacker: sampling period T must be a real number, got {T!r}")

@@ -19,7 +19,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING, overload
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 
@@ -45,7 +45,7 @@ def sample_eps(T: float) -> float:
     return SAMPLE_REL_EPS * float(T)
 
 
-def _as_float(x, what: str) -> float:
+def _as_float(x: Any, what: str) -> float:
     if isinstance(x, (bool, np.bool_)):
         raise ValueError(f"{what} must be a real number, got bool {x!r}")
     try:

@@ -47,7 +47,7 @@ class CartPole(Plant):
     description: ClassVar[str] = "cart-pole, upright equilibrium (n = 4, m = 1)"
     lipschitz_region: ClassVar[float] = 1.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for k in ("m_c", "m_p", "l"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"cartpole: {k} must be > 0, got {getattr(self, k)}")

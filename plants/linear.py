@@ -6,6 +6,7 @@ matrices themselves: ``params = { A = [[...]], B = [[...]] }``.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -30,7 +31,7 @@ def linear_rhs(x: np.ndarray, u: np.ndarray, p: np.ndarray, dx: np.ndarray) -> N
         dx[i] = acc
 
 
-def _as_tuple2(a) -> tuple[tuple[float, ...], ...]:
+def _as_tuple2(a: Iterable[Iterable[float]]) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(v) for v in row) for row in a)
 
 
@@ -44,7 +45,7 @@ class Linear(Plant):
     description: ClassVar[str] = "linear plant x' = A x + B u (any n, m)"
     lipschitz_region: ClassVar[float] = float("inf")
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         A = np.asarray(self.A_, dtype=float)
         B = np.asarray(self.B_, dtype=float)
         if A.ndim != 2 or A.shape[0] != A.shape[1] or A.shape[0] == 0:

@@ -36,7 +36,7 @@ class Pendulum(Plant):
     description: ClassVar[str] = "inverted pendulum, upright equilibrium (n = 2, m = 1)"
     lipschitz_region: ClassVar[float] = math.pi
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for k in ("l", "mass"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"pendulum: {k} must be > 0, got {getattr(self, k)}")

@@ -52,7 +52,7 @@ class Region:
     rho_F: np.ndarray = None  # type: ignore[assignment]  # computed in __post_init__
     arg: np.ndarray = None   # type: ignore[assignment]  # flat (i, j) index achieving each boundary point
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.rho_D is None:
             self.rho_D = np.linspace(0.0, self.rho_D_max, 201)
         self.rho_F, self.arg = self.envelope(self.rho_D)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -126,7 +126,7 @@ def trajectory(sc: Scenario, x0: npt.ArrayLike, *, E0: float | None = None) -> n
     return np.vstack([res.x[0, :k], res.x_final[0][None, :]])
 
 
-def _clean(v):
+def _clean(v: Any) -> Any:
     if isinstance(v, dict):
         return {k: _clean(x) for k, x in v.items() if not str(k).startswith("_")}
     if isinstance(v, (list, tuple)):

@@ -55,7 +55,7 @@ def comparisons(axes: dict, rows: list[dict]) -> dict:
     return out
 
 
-def _same(a, b) -> bool:
+def _same(a: object, b: object) -> bool:
     if isinstance(a, str) and not isinstance(b, str):  # an axis of mixed values is JSON text in the table
         return a == json.dumps(b)
     return a == b or (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b))
@@ -135,7 +135,7 @@ def table_rows(summary: dict) -> list[tuple[str, str, list[list[str]], str]]:
 HEAD = ("runs", "converged [95 % CI]", "bounded", "escaped")
 
 
-def _label(v) -> str:
+def _label(v: object) -> str:
     return v if isinstance(v, str) else json.dumps(v)
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TypeGuard
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -47,7 +47,7 @@ METHODS = {
 }
 
 
-def _stats():
+def _stats() -> Any:
     import scipy.stats
 
     return scipy.stats

@@ -147,7 +147,7 @@ def from_args(cls: type[T], args: argparse.Namespace, command: str, **given: Any
     return cls(**values(cls, args, command), **given)
 
 
-def _text(v) -> str:
+def _text(v: object) -> str:
     return repr(v) if isinstance(v, float) else str(v)
 
 
@@ -170,7 +170,7 @@ def argv(cfg: object, command: str) -> list[str]:
     return out
 
 
-def _cell(v) -> str:
+def _cell(v: object) -> str:
     if v is None or v in ((), [], {}) or v is False:
         return ""
     return f"`{v}`"

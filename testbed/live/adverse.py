@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 from ..wire import messages as msg
@@ -146,7 +146,7 @@ def plant_judge(acted: dict, sent: dict, n_steps: int, u_max: float) -> Callable
     u = 0 and took no copy for it."""
     from ..wire.messages import PlantTelemetry
 
-    def clip(u):
+    def clip(u: Iterable[float]) -> tuple[float, ...]:
         return tuple(min(max(float(v), -u_max), u_max) for v in u)
 
     def judge(case: str, f: dict) -> tuple[str, str]:

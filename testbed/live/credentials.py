@@ -94,7 +94,7 @@ class RunCredentials:
     (``cfg``: the run's ``RunConfig``, its endpoints as ``--netns`` set them; ``keys``: the run's key
     space; ``colocated``: the roles that run inside another node's process)."""
 
-    def __init__(self, cfg, run_id: str, keys: transport.Keys, colocated: tuple[str, ...] = ()):
+    def __init__(self, cfg: RunConfig, run_id: str, keys: transport.Keys, colocated: tuple[str, ...] = ()) -> None:
         self.cfg = cfg
         self.run_id = run_id
         self.keys = keys

@@ -113,7 +113,7 @@ class StallInjector:
                 _signal(procs[role], signal.SIGCONT)
 
 
-def _signal(p, sig) -> None:
+def _signal(p: subprocess.Popen, sig: int) -> None:
     if p.poll() is None:
         try:
             os.killpg(p.pid, sig)
@@ -157,7 +157,7 @@ class StallWatch:
     #: what drives each role's samples (None: the run clock)
     UPSTREAM = {"plant": None, "controller": None, "encoder": "plant", "attacker": "encoder"}
 
-    def __init__(self, T_ns: int, n_steps: int, colocated=()):
+    def __init__(self, T_ns: int, n_steps: int, colocated: Set[str] | tuple[str, ...] = ()) -> None:
         self.T_ns, self.N = int(T_ns), int(n_steps)
         self.gap_ns = max(MIN_GAP_NS, 3 * self.T_ns)
         self.gap_k = math.ceil(self.gap_ns / self.T_ns)

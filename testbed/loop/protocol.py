@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from .device import Device
 
 
-def _state(end):
+def _state(end: object) -> Any:
     """A method end's shared state (``methods.End.state``: xi_k and E_k unless the method says otherwise),
     or None for an object that keeps none (the kernel's bookkeeping encoder, ``sim.trajectory._Ledger``)."""
     f = getattr(end, "state", None)

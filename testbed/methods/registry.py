@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.metadata
 from collections.abc import Callable, Iterable
+from typing import Any, NoReturn
 
 from plants.refs import CodeNotTrusted, import_module_attr, not_trusted, recorded_class, resolve_in
 from plants.refs import source_info as _plant_source_info
@@ -136,10 +137,10 @@ def stand_in_method(ref: str, class_name: str, uses: Iterable[str], bits: int | 
     and no ends: making them (or the batch kernel's mode) raises ``CodeNotTrusted``."""
     why = str(not_trusted("method", ref))
 
-    def refuse(self, *a, **kw):
+    def refuse(self: object, *a: object, **kw: object) -> NoReturn:
         raise CodeNotTrusted(why)
 
-    def init(self, **params):
+    def init(self: Any, **params: Any) -> None:
         self.params = dict(params)
 
     ns = {"name": "", "description": "a recorded method whose stored source was not run", "uses": tuple(uses),

@@ -15,7 +15,7 @@ cannot be genuine and is rejected (counted, logged).
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..loop.protocol import ControllerProtocol, Decision, MethodFault
 from ..record.timingstats import Timings, percentiles
@@ -105,7 +105,7 @@ class ControllerNode(Node):
                                   reason=d.reason, E=d.E, xi=tuple(d.xi.tolist()), q=tuple(d.q.tolist()),
                                   u=ut).encode())
 
-    def _on_symbol(self, sample, h, rx: int):
+    def _on_symbol(self, sample: Any, h: msg.Header, rx: int) -> int | None:
         ctx = self.ctx
         k = h.k
         proto = self.proto

@@ -70,7 +70,7 @@ def on_stop_signals(callback: Callable[[int], object], *, main_handler: Callable
     wanted = {int(s) for s in signals}
     extra = {int(s): h for s, h in (others or {}).items()}
 
-    def py_handler(signum, _frame):
+    def py_handler(signum: int, _frame: object) -> None:
         if main_handler is not None and signum in wanted:
             main_handler(signum)
 

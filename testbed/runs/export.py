@@ -34,7 +34,7 @@ FORMATS = ("parquet", "csv")
 ROWS = 1 << 16
 
 
-def _metadata(run) -> dict[bytes, bytes]:
+def _metadata(run: Run) -> dict[bytes, bytes]:
     meta = {name: json.dumps(rec) for name, rec in run.metadata.items()}
     meta["testbed.summary"] = json.dumps(_scalars(run.summary), default=str)
     meta["testbed.source"] = run.source

@@ -46,6 +46,7 @@ if TYPE_CHECKING:
 
     from ..record.columns import Columns
     from ..scenario import Scenario
+    from ..scenario.spec import DelaySpec
     from .run import Run
 
 
@@ -92,7 +93,7 @@ def losses_as_dos(sc: Scenario, theta: np.ndarray) -> dict:
     return out
 
 
-def _actuation_section(sc, cols, N: int) -> dict | None:
+def _actuation_section(sc: Scenario, cols: Columns, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
@@ -108,7 +109,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
     tp = sc.timing_params
     qp = sc.quantizer
 
-    def bound(d):
+    def bound(d: DelaySpec | None) -> dict | None:
         return None if d is None else {"nominal": d.nominal, "min": d.min, "max": d.max, "declared": d.declared}
 
     return {"actuation": sc.run.actuation, "rule": qp.rule, "scheduled_delay_s": int(tp[2]) / 1e9,

@@ -95,7 +95,7 @@ def warnings(sc: Scenario) -> list[str]:
     return [line for line in out if line]
 
 
-def _allow_x0_outside(sc) -> bool:
+def _allow_x0_outside(sc: Scenario) -> bool:
     """``[quantizer] allow_x0_outside = true`` in the scenario's text."""
     import tomllib
 

@@ -18,12 +18,12 @@ if TYPE_CHECKING:
     import numpy as np
 
 
-def _toml_key(k) -> str:
+def _toml_key(k: object) -> str:
     k = str(k)
     return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
 
 
-def _toml_value(v) -> str:
+def _toml_value(v: object) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):

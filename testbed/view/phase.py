@@ -45,7 +45,7 @@ def roa_outline(sc: Scenario, grid: int = 61) -> RoaOutline | None:
 _ROA_CACHE: dict = {}
 
 
-def _roa_for(key, sc, grid) -> RoaOutline:
+def _roa_for(key: tuple, sc: Scenario, grid: int) -> RoaOutline:
     if key in _ROA_CACHE:
         return _ROA_CACHE[key]
     import contourpy

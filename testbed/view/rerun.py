@@ -79,7 +79,7 @@ def _times(k: np.ndarray, T: float) -> list:
     return [rr.TimeColumn(TIMELINE_K, sequence=k), rr.TimeColumn(TIMELINE_T, duration=k * float(T))]
 
 
-def _scalars(rec, path: str, k: np.ndarray, T: float, values) -> None:
+def _scalars(rec: Any, path: str, k: np.ndarray, T: float, values: np.ndarray) -> None:
     import rerun as rr
 
     values = np.asarray(values, dtype=np.float64)
@@ -402,7 +402,7 @@ class LiveRerun:
       (``rerun rrd optimize``): one recording, one file.
     """
 
-    def __init__(self, mode: str, target: str | None, sc, recording_id: str, roa: bool = True):
+    def __init__(self, mode: str, target: str | None, sc: Scenario, recording_id: str, roa: bool = True) -> None:
         self.mode, self.target, self.sc, self.recording_id, self.roa = mode, target, sc, recording_id, roa
         self.rec: Any = None                  # the launcher's rerun RecordingStream, from start()
         self.parts_dir: str | None = None

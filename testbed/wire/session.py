@@ -22,7 +22,8 @@ LAUNCHERS = ("run", "conformance")
 PROCESSES = ("run", "node", "record", "conformance")
 
 
-def _session(default=None, help="", *, launcher=None, commands=PROCESSES, **kw):
+def _session(default: Any = None, help: str = "", *, launcher: Any = None, commands: tuple[str, ...] = PROCESSES,
+             **kw: Any) -> Any:
     """A session option; ``launcher``: how ``testbed run`` (and ``testbed conformance``, which starts one) takes it."""
     return option(default, help, commands=commands, per={c: launcher for c in LAUNCHERS} if launcher else {}, **kw)
 

@@ -494,7 +494,7 @@ def acl_config(keys: Keys, colocate: tuple[str, ...] = (), by: str = "usernames"
             "policies": policies}
 
 
-def _json_or_none(conf, key):
+def _json_or_none(conf: Any, key: str) -> Any:
     try:
         v = json.loads(conf.get_json(key))
     except Exception:  # noqa: BLE001 - absent key

@@ -15,13 +15,14 @@ Two parts, both computed by the functions the bundled nodes run:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from . import messages as msg
 
 if TYPE_CHECKING:
+
     from ..scenario import Scenario
 
 #: samples of the short loop whose symbol the attacker drops
@@ -29,7 +30,7 @@ DROPPED = (3,)
 LOOP_SAMPLES = 8
 
 
-def _f(v) -> list[float]:
+def _f(v: Any) -> list[float]:
     return [float(a) for a in np.asarray(v, dtype=np.float64).ravel()]
 
 
