@@ -13,7 +13,7 @@
 This package depends only on numpy and numba; it never imports ``testbed`` or ``plants``.
 """
 
-from typing import Any
+from typing import Any as _Any
 
 from .budget import BudgetReport, RealizedRates, check, realized_rates, satisfies
 from .gate import Gate
@@ -26,7 +26,7 @@ _GREEDY = ("GREEDY_PARAMS_SIZE", "GREEDY_STATE_SIZE", "GreedyAttacker", "greedy_
            "greedy_run", "greedy_step")
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> _Any:
     if name in _GREEDY:
         from . import greedy
 

@@ -12,9 +12,8 @@ of an installed entry point (group ``dos_testbed.plants``) or
 
 from __future__ import annotations
 
-import os
 from dataclasses import fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .base import Plant, PlantFault, PlantProcess
 from .cartpole import CartPole
@@ -22,6 +21,9 @@ from .lienard import Lienard
 from .linear import Linear
 from .pendulum import Pendulum
 from .refs import _REGISTRY, ENTRY_POINT_GROUP, PlantRefError, entry_points, names, register, resolve
+
+if TYPE_CHECKING:
+    import os
 
 BUILT_IN: tuple[type[Plant], ...] = (Lienard, Pendulum, CartPole, Linear)
 

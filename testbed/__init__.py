@@ -10,7 +10,7 @@ The Python API (docs/api.md), imported on first use so that ``import testbed`` s
 * ``testbed.BadInput``: what every bad argument raises (one line that says what to change).
 """
 
-from typing import Any
+from typing import Any as _Any
 
 from .common.errors import BadInput
 
@@ -22,7 +22,7 @@ _LAZY = {"open": ("runs.run", "open"), "simulate": ("runs.run", "simulate"), "Ru
          "compare": ("runs.compare", "compare")}
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> _Any:
     if name in _LAZY:
         import importlib
 
