@@ -65,7 +65,7 @@ class Block:
         return self.G0 + np.tensordot(z, self.G, axes=1)
 
 
-def _merge(blocks) -> Block:
+def _merge(blocks: Sequence[Block]) -> Block:
     """All blocks as one block-diagonal LMI (one Cholesky per evaluation)."""
     if len(blocks) == 1:
         return blocks[0]
@@ -82,7 +82,7 @@ def _merge(blocks) -> Block:
     return Block(G0, G)
 
 
-def _chol(M: np.ndarray):
+def _chol(M: np.ndarray) -> np.ndarray | None:
     if not np.all(np.isfinite(M)):
         return None
     try:
@@ -131,7 +131,7 @@ def barrier_minimize(c: np.ndarray, blocks: Sequence[Block], z0: np.ndarray, *, 
     d, m_tot = Gs.shape[0], G0.shape[0]
     Gf = Gs.reshape(d, m_tot * m_tot)
 
-    def G_at(v):
+    def G_at(v: np.ndarray) -> np.ndarray:
         return G0 + (v @ Gf).reshape(m_tot, m_tot)
 
     Lc = _chol(G_at(z))

@@ -125,7 +125,7 @@ def classify(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, out: dict, cri
     ``plant`` is the true plant, ``model`` (default ``plant``) the predictions' model."""
     called = []
 
-    def run(X, S, n_steps, stop):
+    def run(X: np.ndarray, S: np.ndarray, n_steps: int, stop: tuple[float, float, float]) -> dict:
         called.append(1)
         return run_batch(plant, K, qp, X, n_steps, init_state=S, stop=stop, model=model, flow=flow,
                          fields=("x_final", "status", "state_final"), executor=executor, progress=progress)
@@ -188,7 +188,7 @@ class SweepResult:
         return out
 
     def to_dict(self) -> dict:
-        def clean(a):
+        def clean(a: npt.ArrayLike) -> list:
             return [[None if not np.isfinite(v) else float(v) for v in row] for row in np.asarray(a)]
         return {"rho_F": self.rho_F.tolist(), "rho_D": self.rho_D.tolist(), "kappa_F": self.kappa_F,
                 "kappa_D": self.kappa_D, "T": self.T, "horizon": self.horizon, "tol": self.tol, "seeds": self.seeds,
@@ -259,9 +259,9 @@ def sweep(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.ArrayLike
     groups = [list(range(a, min(a + 2, nF))) for a in range(0, nF, 2)]
     spec = (tuple(kinds), rho_F, rho_D, float(kappa_F), float(kappa_D), int(seeds), int(seed), T, float(horizon), N)
     items = [(spec, g) for g in groups]
-    parts = executor.map(_schedule_rows, items) if executor is not None else [_schedule_rows(it) for it in items]
-    rows = [r for p in parts for r in p[0]]
-    tags = [t for p in parts for t in p[1]]
+    drawn = executor.map(_schedule_rows, items) if executor is not None else [_schedule_rows(it) for it in items]
+    rows = [r for p in drawn for r in p[0]]
+    tags = [t for p in drawn for t in p[1]]
     n_off = len(rows) * B0
     n_gr = nF * nD * B0 if "greedy" in kinds else 0
     stages = Stages(progress, [n_chunks(n_off, N, executor), n_chunks(n_gr, N, executor),
@@ -296,7 +296,7 @@ def sweep(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.ArrayLike
     return res
 
 
-def _schedule_rows(item):
+def _schedule_rows(item: tuple) -> tuple[list, list]:
     """theta rows and (kind, i, j) tags of the offline schedules of the budget rows ``rows_i``."""
     (kinds, rho_F, rho_D, kappa_F, kappa_D, seeds, seed, T, horizon, N), rows_i = item
     nD = len(rho_D)
@@ -320,7 +320,7 @@ def _schedule_rows(item):
     return rows, tags
 
 
-def _accumulate(res: SweepResult, tags, conv, esc, lost) -> None:
+def _accumulate(res: SweepResult, tags: Sequence[tuple], conv: np.ndarray, esc: np.ndarray, lost: np.ndarray) -> None:
     groups: dict = {}
     for r, t in enumerate(tags):
         groups.setdefault(t, []).append(r)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import tomllib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,7 +35,7 @@ def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def _refs(data: dict):
+def _refs(data: dict) -> Iterator[tuple[str, str]]:
     """(kind, reference) of the method, plant and model a resolved scenario names."""
     from .. import methods
 
@@ -49,7 +49,7 @@ def _refs(data: dict):
             yield "plant", t["name"]
 
 
-def _registry(kind: str):
+def _registry(kind: str) -> tuple:
     """(resolve, source_info, pin, check, error, ships_with_testbed) of the plants' or the methods' registry."""
     if kind == "method":
         from ..methods import registry as r
@@ -120,7 +120,7 @@ def check(folder: Path, entries: list[dict]) -> list[str]:
     return out
 
 
-def _importable(e: dict, folder: Path):
+def _importable(e: dict, folder: Path) -> type | None:
     """The class the user's own path (``sys.path``) gives ``e['ref']`` when its module's sha256 is the stored
     one, else None.  A module that ``sys.path`` would find inside ``folder`` (the working directory there)
     is the folder's code, not the user's: not imported."""

@@ -12,8 +12,9 @@ import math
 import os
 import platform
 import sys
+from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..common import comparestats
 from ..common.errors import BadInput
@@ -218,7 +219,7 @@ def read_parquet(path: Path) -> list[dict]:
     return pq.read_table(path).to_pylist()
 
 
-def _median(v):
+def _median(v: Iterable[float | None]) -> float | None:
     v = sorted(x for x in v if x is not None and not (isinstance(x, float) and math.isnan(x)))
     if not v:
         return None
@@ -275,7 +276,7 @@ def summarize(c: Campaign, runs: list[PlannedRun], rows: list[dict]) -> dict:
                                    for p in json.loads(r["partial_recordings"])]}
 
 
-def _fmt(v, spec=".3g"):
+def _fmt(v: float | None, spec: str = ".3g") -> str:
     return "-" if v is None else format(v, spec)
 
 
@@ -284,7 +285,7 @@ def summary_md(s: dict) -> str:
              f"Scenario `{s['scenario']}`, {s['runs_kind']} runs: {s['done']} of {s['planned']} done, "
              f"{s['failed']} failed. Success: {s['success']}; interval: {s['interval']}.", ""]
 
-    def table(title, head, groups):
+    def table(title: str, head: str, groups: Iterable[tuple[str, Any]]) -> list[str]:
         out = [f"## {title}", "", f"| {head} | runs | success | rate | 95 % Wilson | bounded | escaped | median "
                "final norm | median max norm | median saturations |", "|---|---|---|---|---|---|---|---|---|---|"]
         for label, g in groups:

@@ -61,7 +61,7 @@ def load_side(ref: str | Path | Scenario | Run, other_overrides: dict | None = N
     return simulate(ref, **(other_overrides or {}))
 
 
-def _overrides(run) -> dict:
+def _overrides(run: Run | None) -> dict:
     if run is None or not run.metadata:
         return {}
     try:
@@ -133,13 +133,13 @@ def compare(a: str | Path | Scenario | Run, b: str | Path | Scenario | Run, *, t
     }
 
 
-def _is_scenario_ref(ref) -> bool:
+def _is_scenario_ref(ref: object) -> bool:
     from .run import Run
 
     return not isinstance(ref, Run) and not _is_recording(str(ref))
 
 
-def _describe(ref, run) -> dict:
+def _describe(ref: object, run: Run) -> dict:
     return {"ref": str(ref) if not hasattr(ref, "arrays") else repr(ref), "source": run.source,
             "scenario": run.scenario.name, "T": run.scenario.T, "samples": run.N}
 

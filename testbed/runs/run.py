@@ -165,7 +165,7 @@ class Run:
         """A ``polars.DataFrame``, one row per sample (``columns()``)."""
         return self._frame("polars")
 
-    def _frame(self, library: str):
+    def _frame(self, library: str) -> Any:
         import importlib
 
         try:
@@ -199,7 +199,7 @@ def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
-def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
+def _timing_arrays(cols: Columns, N: int, T: float) -> dict[str, np.ndarray]:
     from ..wire import messages as msg
 
     g = cols.get
@@ -207,7 +207,7 @@ def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
     t_ns, u_rx = g("plant", "t_ns")[:N], g("plant", "u_rx_ns")[:N]
     e_tx, c_tx, a_tx = g("encoder", "tx_ns")[:N], g("controller", "tx_ns")[:N], g("attacker", "tx_ns")[:N]
 
-    def diff(a, b, ok):
+    def diff(a: np.ndarray, b: np.ndarray, ok: np.ndarray) -> np.ndarray:
         ok = ok & (a != msg.NO_TIME) & (b != msg.NO_TIME)
         out = np.full(N, np.nan)
         out[ok] = (a[ok] - b[ok]) / 1e9

@@ -275,8 +275,10 @@ class EscapeCriterion:
         return int(round(self.horizon_s / T))
 
 
-def _batch_runner(plant, K, qp, model, flow, method=None):
-    def run(X, S, n_steps, stop):
+def _batch_runner(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, model: Plant, flow: FlowOptions,
+                  method: Method | None = None) -> Callable[[np.ndarray, np.ndarray, int, tuple[float, float, float]],
+                                                            dict]:
+    def run(X: np.ndarray, S: np.ndarray, n_steps: int, stop: tuple[float, float, float]) -> dict:
         r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop, method=method)
         return {"x_final": r.x_final, "status": r.status, "state_final": r.state_final}
     return run
@@ -472,7 +474,7 @@ class RunTally:
     #: the last samples kept (``loop_state_from_samples`` reads the last two)
     TAIL = ("theta", "symbols", "q", "xi_dec", "E_dec", "xi_enc", "E_enc")
 
-    def __init__(self, T: float, stack=MemStack):
+    def __init__(self, T: float, stack: Callable[[], Any] = MemStack) -> None:
         self.T = float(T)
         self.stack = stack
         self.per_sample = {key: stack() for key, _ in self.PER_SAMPLE}
