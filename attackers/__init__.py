@@ -13,6 +13,8 @@
 This package depends only on numpy and numba; it never imports ``testbed`` or ``plants``.
 """
 
+from typing import Any as _Any
+
 from .budget import BudgetReport, RealizedRates, check, realized_rates, satisfies
 from .gate import Gate
 from .generators import GENERATORS, ONLINE_KINDS, is_online, make_greedy, make_schedule
@@ -24,7 +26,7 @@ _GREEDY = ("GREEDY_PARAMS_SIZE", "GREEDY_STATE_SIZE", "GreedyAttacker", "greedy_
            "greedy_run", "greedy_step")
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> _Any:
     if name in _GREEDY:
         from . import greedy
 

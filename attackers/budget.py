@@ -14,6 +14,7 @@ inside an attack, ``-rho_D`` outside).  No time grid is used.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -25,19 +26,19 @@ from .schedule import Schedule
 __all__ = ["BudgetReport", "RealizedRates", "check", "satisfies", "realized_rates"]
 
 
-def _coerce_schedule(schedule) -> Schedule:
+def _coerce_schedule(schedule: Schedule | Iterable[Iterable[float]]) -> Schedule:
     if isinstance(schedule, Schedule):
         return schedule
-    return Schedule(tuple(tuple(p) for p in schedule))
+    return Schedule(tuple(tuple(p) for p in schedule))  # type: ignore[misc]  # __post_init__ checks the pairs
 
 
-def _check_nonneg(name: str, value, *, upper_open: float | None = None) -> float:
+def _check_nonneg(name: str, value: object, *, upper_open: float | None = None) -> float:
     if upper_open is not None:
         return field(name, value, RHO_D_WHY, lo=0.0, hi=upper_open, hi_open=True)
     return field(name, value, lo=0.0)
 
 
-def _check_horizon(horizon) -> float | None:
+def _check_horizon(horizon: object) -> float | None:
     if horizon is None:
         return None
     h = _check_nonneg("horizon", horizon)
@@ -95,7 +96,8 @@ class BudgetReport:
         return bool(ok_F and ok_D)
 
 
-def check(schedule, rho_F: float, rho_D: float, horizon: float | None = None) -> BudgetReport:
+def check(schedule: Schedule | Iterable[Iterable[float]], rho_F: float, rho_D: float,
+          horizon: float | None = None) -> BudgetReport:
     """Smallest ``kappa_F``, ``kappa_D`` making Assumptions 3 and 4 hold.
 
     Parameters
@@ -155,7 +157,7 @@ def check(schedule, rho_F: float, rho_D: float, horizon: float | None = None) ->
 
 
 def satisfies(
-    schedule,
+    schedule: Schedule | Iterable[Iterable[float]],
     kappa_F: float,
     rho_F: float,
     kappa_D: float,
@@ -179,7 +181,7 @@ class RealizedRates(NamedTuple):
     rho_D: float
 
 
-def realized_rates(schedule, horizon: float) -> RealizedRates:
+def realized_rates(schedule: Schedule | Iterable[Iterable[float]], horizon: float) -> RealizedRates:
     """Empirical average frequency ``N(H)/H`` and duration ratio ``|A(H)|/H`` (compare with rho_F, rho_D)."""
     sch = _coerce_schedule(schedule)
     H = _check_nonneg("horizon", horizon)

@@ -10,7 +10,7 @@ forwarded (``theta_k = 0``).  It is driven either by an offline
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .checks import field
 from .schedule import Schedule, sample_eps
@@ -21,7 +21,7 @@ if TYPE_CHECKING:  # numba: imported only for an online (greedy) gate
 __all__ = ["Gate"]
 
 
-def _is_greedy(source) -> bool:
+def _is_greedy(source: object) -> bool:
     from .greedy import GreedyAttacker
 
     return isinstance(source, GreedyAttacker)
@@ -40,7 +40,7 @@ class Gate:
     after the last decision), ``attacks_started`` (rising edges of ``theta``).
     """
 
-    def __init__(self, source, T: float | None = None):
+    def __init__(self, source: Any, T: float | None = None) -> None:
         if isinstance(source, Schedule):
             self.mode = "schedule"
         elif _is_greedy(source):

@@ -80,13 +80,13 @@ PARAMS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 #: Safety cap on the number of attacks the random generator produces.
 _MAX_RANDOM_ATTACKS = 10_000_000
 
-def gen_none(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+def gen_none(params: Mapping, *, T: float, horizon: float, rng: np.random.Generator) -> Schedule:
     """No DoS attack: ``N(t) = |A(t)| = 0``."""
     _check_keys("none", params, *PARAMS["none"])
     return Schedule(())
 
 
-def gen_intervals(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+def gen_intervals(params: Mapping, *, T: float, horizon: float, rng: np.random.Generator) -> Schedule:
     """Explicit attacks ``intervals = [[a_i, tau_i], ...]`` (start, length)."""
     kind = "intervals"
     _check_keys(kind, params, *PARAMS[kind])
@@ -111,7 +111,7 @@ def gen_intervals(params: Mapping, *, T: float, horizon: float, rng) -> Schedule
     return Schedule(tuple(pairs))
 
 
-def gen_periodic(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+def gen_periodic(params: Mapping, *, T: float, horizon: float, rng: np.random.Generator) -> Schedule:
     """Periodic attacks ``[offset + j period, offset + j period + length]``, start ``<= horizon``.
 
     Requires ``period > 0``, ``0 <= length < period``, ``offset >= 0``.  Satisfies
@@ -138,7 +138,7 @@ def gen_periodic(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     return Schedule(tuple((float(a), length) for a in starts))
 
 
-def gen_random(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+def gen_random(params: Mapping, *, T: float, horizon: float, rng: np.random.Generator) -> Schedule:
     """Random attacks over ``[0, horizon]`` that satisfy Assumptions 3 and 4 by construction.
 
     Parameters (in ``params``): ``kappa_F >= 0``, ``rho_F >= 0`` (Assumption 3),
@@ -237,7 +237,7 @@ def gen_random(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     return Schedule(tuple(zip(starts, lengths)))
 
 
-def gen_greedy(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+def gen_greedy(params: Mapping, *, T: float, horizon: float, rng: np.random.Generator) -> Schedule:
     """The greedy attacker is ONLINE: always raises ``ValueError`` (use :func:`make_greedy`)."""
     raise ValueError(
         "attack kind 'greedy' is online (state dependent: it reacts to the plant's state); "
@@ -246,7 +246,7 @@ def gen_greedy(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
     )
 
 
-def gen_trace(params: Mapping, *, T: float, horizon: float, rng) -> Schedule:
+def gen_trace(params: Mapping, *, T: float, horizon: float, rng: np.random.Generator) -> Schedule:
     """The samples another run's attacker dropped: ``samples`` (sample indices), ``T`` (the trace's
     period) and ``n_samples`` (its length); ``source`` names where it came from.  The trace must
     have the run's T and cover the run (``n_samples * T >= horizon``)."""
@@ -290,14 +290,14 @@ def is_online(kind: str) -> bool:
     return kind in ONLINE_KINDS
 
 
-def _check_kind(kind) -> None:
+def _check_kind(kind: object) -> None:
     if kind not in GENERATORS:
         raise ValueError(
             f"unknown attack kind {kind!r} (known kinds: {', '.join(sorted(GENERATORS))})"
         )
 
 
-def _check_params(kind: str, params) -> Mapping:
+def _check_params(kind: str, params: Mapping | None) -> Mapping:
     if params is None:
         return {}
     if not isinstance(params, Mapping):
@@ -305,7 +305,8 @@ def _check_params(kind: str, params) -> Mapping:
     return params
 
 
-def make_schedule(kind: str, params: Mapping | None, *, T: float, horizon: float, seed=None) -> Schedule:
+def make_schedule(kind: str, params: Mapping | None, *, T: float, horizon: float,
+                  seed: int | np.random.SeedSequence | np.random.Generator | None = None) -> Schedule:
     """Build the offline DoS schedule ``kind`` with ``params`` over ``[0, horizon]``.
 
     ``T`` is the sampling period (``T > 0``), ``horizon >= 0``.  ``seed`` (int,

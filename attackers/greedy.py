@@ -73,7 +73,7 @@ def greedy_init() -> np.ndarray:
     return s
 
 
-def greedy_params(kappa_F, rho_F, kappa_D, rho_D, threshold=0.0) -> np.ndarray:
+def greedy_params(kappa_F: float, rho_F: float, kappa_D: float, rho_D: float, threshold: float = 0.0) -> np.ndarray:
     """Validated float64 params array ``[kappa_F, rho_F, kappa_D, rho_D, threshold]``.
 
     ``kappa_F, kappa_D, rho_F >= 0`` (Assumptions 3 and 4), ``rho_D in [0, 1)``
@@ -90,7 +90,7 @@ def greedy_params(kappa_F, rho_F, kappa_D, rho_D, threshold=0.0) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def greedy_step(state, k, T, score, params):
+def greedy_step(state: np.ndarray, k: int, T: float, score: float, params: np.ndarray) -> int:
     """One decision of the greedy worst-case attacker; returns ``theta_k`` in {0, 1}.
 
     Parameters
@@ -183,7 +183,7 @@ def greedy_step(state, k, T, score, params):
 
 
 @numba.njit(cache=True)
-def greedy_run(scores, T, params):
+def greedy_run(scores: np.ndarray, T: float, params: np.ndarray) -> np.ndarray:
     """Run :func:`greedy_step` on ``k = 0..len(scores)-1`` from a fresh state; returns theta (uint8).
 
     Open-loop helper (scores given in advance) for tests and batch studies.
@@ -208,7 +208,8 @@ class GreedyAttacker:
     ``(kappa_D, rho_D)``.
     """
 
-    def __init__(self, kappa_F, rho_F, kappa_D, rho_D, T, threshold=0.0):
+    def __init__(self, kappa_F: float, rho_F: float, kappa_D: float, rho_D: float, T: float,
+                 threshold: float = 0.0) -> None:
         self._params = greedy_params(kappa_F, rho_F, kappa_D, rho_D, threshold)
         if isinstance(T, (bool, np.bool_)):
             raise ValueError(f"greedy attacker: sampling period T must be a real number, got {T!r}")

@@ -19,8 +19,12 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["Schedule", "sample_eps"]
 
@@ -41,7 +45,7 @@ def sample_eps(T: float) -> float:
     return SAMPLE_REL_EPS * float(T)
 
 
-def _as_float(x, what: str) -> float:
+def _as_float(x: Any, what: str) -> float:
     if isinstance(x, (bool, np.bool_)):
         raise ValueError(f"{what} must be a real number, got bool {x!r}")
     try:
@@ -105,9 +109,9 @@ class Schedule:
         return cls(())
 
     @classmethod
-    def from_list(cls, data) -> "Schedule":
+    def from_list(cls, data: Iterable[Iterable[float]]) -> Schedule:
         """Inverse of :meth:`to_list` (``[[a_i, tau_i], ...]``)."""
-        return cls(tuple(tuple(p) for p in data))
+        return cls(tuple(tuple(p) for p in data))  # type: ignore[misc]  # __post_init__ checks the pairs
 
     def to_list(self) -> list[list[float]]:
         """JSON-friendly ``[[a_i, tau_i], ...]``."""
@@ -162,7 +166,11 @@ class Schedule:
         return float(self._merged_arrays[2][-1])
 
     # ------------------------------------------------------ N(t) and |A(t)|
-    def count(self, t):
+    @overload
+    def count(self, t: float) -> int: ...
+    @overload
+    def count(self, t: np.ndarray) -> np.ndarray: ...
+    def count(self, t: float | np.ndarray) -> int | np.ndarray:
         """``N(t)``: number of attacks with start ``a_i`` in ``[0, t]`` (Assumption 3).
 
         Scalar in -> int out; array in -> int64 array out.
@@ -174,7 +182,11 @@ class Schedule:
             return int(n)
         return n.astype(np.int64)
 
-    def union_length(self, t):
+    @overload
+    def union_length(self, t: float) -> float: ...
+    @overload
+    def union_length(self, t: np.ndarray) -> np.ndarray: ...
+    def union_length(self, t: float | np.ndarray) -> float | np.ndarray:
         """``|A(t)|``: Lebesgue measure of the attacked set in ``[0, t]`` (Assumption 4).
 
         Exact (merged intervals, no time grid).  Scalar in -> float out, array
@@ -194,7 +206,11 @@ class Schedule:
         return out
 
     # ------------------------------------------------------------------ theta
-    def theta(self, t, eps: float | None = None):
+    @overload
+    def theta(self, t: float, eps: float | None = None) -> int: ...
+    @overload
+    def theta(self, t: np.ndarray, eps: float | None = None) -> np.ndarray: ...
+    def theta(self, t: float | np.ndarray, eps: float | None = None) -> int | np.ndarray:
         """Attack indicator at time(s) ``t``: 1 iff ``t`` lies in some ``[a_i, a_i + tau_i]``.
 
         Membership is tested as ``a_i - eps <= t <= a_i + tau_i + eps``.  With
@@ -241,7 +257,7 @@ class Schedule:
         return self.theta(t, eps=sample_eps(T))
 
     @classmethod
-    def from_theta(cls, theta, T: float) -> "Schedule":
+    def from_theta(cls, theta: npt.ArrayLike, T: float) -> Schedule:
         """Schedule whose samples are exactly ``theta`` (inverse of :meth:`theta_samples`).
 
         Each maximal run of attacked samples ``k..k+j`` becomes one attack

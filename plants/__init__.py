@@ -13,7 +13,7 @@ of an installed entry point (group ``dos_testbed.plants``) or
 from __future__ import annotations
 
 from dataclasses import fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .base import Plant, PlantFault, PlantProcess
 from .cartpole import CartPole
@@ -22,6 +22,9 @@ from .linear import Linear
 from .pendulum import Pendulum
 from .refs import _REGISTRY, ENTRY_POINT_GROUP, PlantRefError, entry_points, names, register, resolve
 
+if TYPE_CHECKING:
+    import os
+
 BUILT_IN: tuple[type[Plant], ...] = (Lienard, Pendulum, CartPole, Linear)
 
 
@@ -29,12 +32,12 @@ for _c in BUILT_IN:
     register(_c)
 
 
-def get(name: str, base_dir=None) -> type[Plant]:
+def get(name: str, base_dir: str | os.PathLike | None = None) -> type[Plant]:
     """The plant class a reference names (``plants.refs.resolve``); ValueError when it cannot."""
     return resolve(name, base_dir)
 
 
-def make(name: str, base_dir=None, **params) -> Plant:
+def make(name: str, base_dir: str | os.PathLike | None = None, **params: Any) -> Plant:
     """Instantiate the plant ``name`` (any plant reference) with the given parameters.
 
     ``base_dir``: where a ``"module:Class"`` reference is imported from first (the

@@ -9,10 +9,14 @@ is built on that one function, so the model is written once.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 # numba is imported on first use, not here: a process that only reads a scenario (the
 # launcher before it starts the nodes, the attacker) never pays its import (~0.3 s of CPU).
@@ -47,15 +51,15 @@ class RHS:
     Both are made on first use.
     """
 
-    def __init__(self, fn):
+    def __init__(self, fn: Callable[..., None]) -> None:
         self.py = fn
         self.__name__ = fn.__name__
         self.__doc__ = fn.__doc__
-        self._cfunc = None
-        self._jit = None
+        self._cfunc: Any = None  # numba's CFunc, made on first use
+        self._jit: Any = None    # numba's Dispatcher, made on first use
 
     @property
-    def jit(self):
+    def jit(self) -> Any:
         """The numba dispatcher (``njit(cache=True, inline="always")``)."""
         if self._jit is None:
             import numba as nb
@@ -64,7 +68,7 @@ class RHS:
         return self._jit
 
     @property
-    def cfunc(self):
+    def cfunc(self) -> Any:
         """The compiled C function, made on first use: importing the bundled plants loads none of
         theirs (each costs tens of ms even from numba's disk cache), a process loads only its own."""
         if self._cfunc is None:
@@ -74,7 +78,7 @@ class RHS:
         return self._cfunc
 
 
-def rhs_function(fn) -> RHS:
+def rhs_function(fn: Callable[..., None]) -> RHS:
     """Decorator for a plant's right-hand side: ``@rhs_function def my_rhs(x, u, p, dx): ...``."""
     return RHS(fn)
 
@@ -97,7 +101,7 @@ def _batch_rhs(rhs, x, u, p, out):
     _BATCH_RHS(rhs, x, u, p, out)
 
 
-def broadcast_xu(x, u, n: int, m: int):
+def broadcast_xu(x: npt.ArrayLike, u: npt.ArrayLike, n: int, m: int) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
     """States x (..., n) and inputs u (..., m) broadcast against each other's leading dimensions.
 
     Returns (lead, X, U): the common leading shape and C-contiguous float64 copies (B, n), (B, m), B the
@@ -188,7 +192,8 @@ class Plant:
     def B(self) -> np.ndarray:
         return self.linearization()[1]
 
-    def jacobian_fd(self, x=None, u=None, h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    def jacobian_fd(self, x: npt.ArrayLike | None = None, u: npt.ArrayLike | None = None,
+                    h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
         """Central finite-difference Jacobians (df/dx, df/du) at (x, u); default the equilibrium."""
         x = self.x_eq if x is None else np.asarray(x, dtype=np.float64)
         u = self.u_eq if u is None else np.asarray(u, dtype=np.float64)

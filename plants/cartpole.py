@@ -20,7 +20,7 @@ from .base import Plant, rhs_function
 
 
 @rhs_function
-def cartpole_rhs(x, u, p, dx):
+def cartpole_rhs(x: np.ndarray, u: np.ndarray, p: np.ndarray, dx: np.ndarray) -> None:
     m_c, m_p, l, g = p[0], p[1], p[2], p[3]
     Mt = m_c + m_p
     th = x[2]
@@ -47,7 +47,7 @@ class CartPole(Plant):
     description: ClassVar[str] = "cart-pole, upright equilibrium (n = 4, m = 1)"
     lipschitz_region: ClassVar[float] = 1.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for k in ("m_c", "m_p", "l"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"cartpole: {k} must be > 0, got {getattr(self, k)}")
@@ -63,7 +63,7 @@ class CartPole(Plant):
     def param_vector(self) -> np.ndarray:
         return np.array([self.m_c, self.m_p, self.l, self.g], dtype=np.float64)
 
-    def linearization(self):
+    def linearization(self) -> tuple[np.ndarray, np.ndarray]:
         Mt = self.m_c + self.m_p
         den = self.l * (4.0 / 3.0 - self.m_p / Mt)
         a_t = self.g / den            # d theta'' / d theta

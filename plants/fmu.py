@@ -29,12 +29,17 @@ import os
 import shutil
 import tempfile
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .base import PlantFault
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 INSTALL_HINT = "pip install 'dos-testbed[fmu]' (or pip install fmpy)"
 
@@ -80,7 +85,7 @@ class FMUInfo:
 _PARAM_TYPES = {"Real": (float, int), "Integer": (int,), "Boolean": (bool,), "String": (str,)}
 
 
-def describe(path: str | Path, *, inputs, states, params: dict | None = None) -> FMUInfo:
+def describe(path: str | Path, *, inputs: Sequence[str], states: Sequence[str], params: dict | None = None) -> FMUInfo:
     """Read ``path``'s model description and check ``inputs``, ``states`` and ``params`` against it.
 
     Does not load the FMU's binary, but checks that one for this platform is in
@@ -266,7 +271,7 @@ class FMUPlant:
         return PlantFault(f"FMU {Path(self.info.path).name}: {what}{why}" + (f": {last}" if last else ""))
 
     # -- PlantProcess
-    def reset(self, x0) -> None:
+    def reset(self, x0: npt.ArrayLike) -> None:
         """Instantiate (or reset) the FMU at t = 0, set the parameters, set x0 in initialization mode."""
         if self._fmu is None:
             raise PlantFault(f"FMU {Path(self.info.path).name}: closed")
@@ -305,7 +310,7 @@ class FMUPlant:
         self.t = 0.0
         self._ready = True
 
-    def advance(self, u, dt: float) -> int:
+    def advance(self, u: npt.ArrayLike, dt: float) -> int:
         """Hold u for dt seconds (``fmi2DoStep(t, dt)``); 0 on success, ``PlantFault`` on failure."""
         dt = float(dt)
         if dt == 0.0:

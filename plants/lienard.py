@@ -22,7 +22,7 @@ from .base import Plant, rhs_function
 
 
 @rhs_function
-def lienard_rhs(x, u, p, dx):
+def lienard_rhs(x: np.ndarray, u: np.ndarray, p: np.ndarray, dx: np.ndarray) -> None:
     x1 = x[0]
     x1sq = x1 * x1
     dx[0] = x[1] + x1 + p[0] * x1 * x1sq - p[1] * x1 * x1sq * x1sq
@@ -52,7 +52,7 @@ class Lienard(Plant):
     def param_vector(self) -> np.ndarray:
         return np.array([self.a, self.b], dtype=np.float64)
 
-    def linearization(self):
+    def linearization(self) -> tuple[np.ndarray, np.ndarray]:
         A = np.array([[1.0, 1.0], [-1.0, 0.0]])
         B = np.array([[0.0], [1.0]])
         return A, B

@@ -6,16 +6,20 @@ matrices themselves: ``params = { A = [[...]], B = [[...]] }``.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from .base import Plant, rhs_function
 
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
 
 @rhs_function
-def linear_rhs(x, u, p, dx):
+def linear_rhs(x: np.ndarray, u: np.ndarray, p: np.ndarray, dx: np.ndarray) -> None:
     n = int(p[0])
     m = int(p[1])
     for i in range(n):
@@ -27,7 +31,7 @@ def linear_rhs(x, u, p, dx):
         dx[i] = acc
 
 
-def _as_tuple2(a) -> tuple[tuple[float, ...], ...]:
+def _as_tuple2(a: Iterable[Iterable[float]]) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(v) for v in row) for row in a)
 
 
@@ -41,7 +45,7 @@ class Linear(Plant):
     description: ClassVar[str] = "linear plant x' = A x + B u (any n, m)"
     lipschitz_region: ClassVar[float] = float("inf")
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         A = np.asarray(self.A_, dtype=float)
         B = np.asarray(self.B_, dtype=float)
         if A.ndim != 2 or A.shape[0] != A.shape[1] or A.shape[0] == 0:
@@ -54,15 +58,15 @@ class Linear(Plant):
         object.__setattr__(self, "B_", _as_tuple2(B))
 
     @classmethod
-    def from_params(cls, A=None, B=None):
-        kw = {}
+    def from_params(cls, A: npt.ArrayLike | None = None, B: npt.ArrayLike | None = None) -> Linear:
+        kw: dict[str, Any] = {}
         if A is not None:
             kw["A_"] = A
         if B is not None:
             kw["B_"] = B
         return cls(**kw)
 
-    def params_dict(self):
+    def params_dict(self) -> dict[str, Any]:
         return {"A": [list(r) for r in self.A_], "B": [list(r) for r in self.B_]}
 
     @property
@@ -78,7 +82,7 @@ class Linear(Plant):
         B = np.asarray(self.B_, dtype=float)
         return np.concatenate([[A.shape[0], B.shape[1]], A.ravel(), B.ravel()])
 
-    def linearization(self):
+    def linearization(self) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(self.A_, dtype=float), np.asarray(self.B_, dtype=float)
 
     def remainder_gain(self, r: float, u_bound: float | None = None, grid: int | None = None) -> float:

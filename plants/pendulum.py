@@ -17,7 +17,7 @@ from .base import Plant, rhs_function
 
 
 @rhs_function
-def pendulum_rhs(x, u, p, dx):
+def pendulum_rhs(x: np.ndarray, u: np.ndarray, p: np.ndarray, dx: np.ndarray) -> None:
     g, l, mass, c = p[0], p[1], p[2], p[3]
     ml2 = mass * l * l
     dx[0] = x[1]
@@ -36,7 +36,7 @@ class Pendulum(Plant):
     description: ClassVar[str] = "inverted pendulum, upright equilibrium (n = 2, m = 1)"
     lipschitz_region: ClassVar[float] = math.pi
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for k in ("l", "mass"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"pendulum: {k} must be > 0, got {getattr(self, k)}")
@@ -52,7 +52,7 @@ class Pendulum(Plant):
     def param_vector(self) -> np.ndarray:
         return np.array([self.g, self.l, self.mass, self.damping], dtype=np.float64)
 
-    def linearization(self):
+    def linearization(self) -> tuple[np.ndarray, np.ndarray]:
         ml2 = self.mass * self.l**2
         A = np.array([[0.0, 1.0], [self.g / self.l, -self.damping / ml2]])
         B = np.array([[0.0], [1.0 / ml2]])

@@ -34,7 +34,9 @@ import re
 import shutil
 import sys
 import tempfile
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 from .base import RHS, Plant
 
@@ -76,7 +78,7 @@ def is_module_ref(ref: str) -> bool:
     return ":" in ref
 
 
-def check_plant_class(obj, ref: str) -> type[Plant]:
+def check_plant_class(obj: object, ref: str) -> type[Plant]:
     """``obj`` if it is a usable ``Plant`` subclass, else ``PlantRefError``."""
     if not (isinstance(obj, type) and issubclass(obj, Plant)) or obj is Plant:
         raise PlantRefError(f"plant {ref!r}: {obj!r} is not a subclass of plants.Plant")
@@ -127,7 +129,7 @@ def _import(modname: str, base_dir: str | None):
     return importlib.import_module(modname)
 
 
-def import_module_attr(ref: str, base_dir: str | None, what: str, error: type[Exception]):
+def import_module_attr(ref: str, base_dir: str | None, what: str, error: type[Exception]) -> Any:
     """The object a ``"module.path:Name"`` reference names, imported from ``base_dir`` first, then
     ``sys.path``; ``error`` (one line naming the ``what``: "plant", "method") when it cannot be."""
     m = _MODULE_REF.match(ref)
@@ -166,7 +168,7 @@ def _dist_name(ep) -> str | None:
     return getattr(d, "name", None) if d is not None else None
 
 
-def load_entry_point(ep) -> type[Plant]:
+def load_entry_point(ep: importlib.metadata.EntryPoint) -> type[Plant]:
     try:
         obj = ep.load()
     except Exception as e:  # noqa: BLE001 - a broken installed package: one line
@@ -193,8 +195,10 @@ def names() -> list[str]:
 
 
 # ----------------------------------------------------------------------------- resolving
-def resolve_in(ref, base_dir, *, what: str, error: type[Exception], registry: dict, cache: dict, from_module,
-               entry_points, load, unknown):
+def resolve_in(ref: object, base_dir: str | os.PathLike | None, *, what: str, error: type[Exception], registry: dict,
+               cache: dict, from_module: Callable[[str, str | None], Any],
+               entry_points: Callable[[], Mapping[str, Any]], load: Callable[[Any], Any],
+               unknown: Callable[[], str]) -> Any:
     """The class a reference names, in the order of the module docstring: a ``"module.path:Name"``
     (``from_module(ref, base_dir)``, once per reference and folder), a name in ``registry``, an entry point
     (``entry_points()``, loaded once with ``load(ep)``).  ``error`` with one line when it cannot
@@ -272,8 +276,8 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
-def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, sha256: str, check, error, *,
-                trust_code: bool = False):
+def load_stored(kind: str, ref: str, module: str, class_name: str, source: str, sha256: str,
+                check: Callable[[object, str], type], error: type[Exception], *, trust_code: bool = False) -> type:
     """Import ``class_name`` from a module's source stored in a recording, under the module's own name.
 
     THIS RUNS THE STORED CODE, and only when ``trust_code`` (the user's ``--trust-code``): otherwise
@@ -347,8 +351,10 @@ def pin(ref: str, base_dir: str | None, cls: type[Plant]) -> type[Plant]:
 _PINNED: dict[tuple[str, str, str], tuple[str, str, type]] = {}
 
 
-def recorded_class(kind: str, ref: str, base_dir: str | None, *, resolve, cache: dict, keys, check, error,
-                   module: str, class_name: str, source: str, sha256: str, trust_code: bool, stand_in=None):
+def recorded_class(kind: str, ref: str, base_dir: str | os.PathLike | None, *, resolve: Callable[[str, Any], type],
+                   cache: dict, keys: Iterable[object], check: Callable[[object, str], type],
+                   error: type[Exception], module: str, class_name: str, source: str, sha256: str, trust_code: bool,
+                   stand_in: Callable[[], type] | None = None) -> tuple[type, str, str | None]:
     """The class of a recorded plant or method reference, one rule for both.
 
     1. imported as the run did (``resolve(ref, base_dir)``: the scenario's folder, then ``sys.path``):
@@ -411,7 +417,7 @@ class _NotRunRHS(RHS):
     cfunc = property(lambda self: self._refuse())
 
 
-def stand_in_plant(ref: str, class_name: str, n: int, m: int, params) -> type[Plant]:
+def stand_in_plant(ref: str, class_name: str, n: int, m: int, params: Iterable[object]) -> type[Plant]:
     """A plant class for a recorded plant whose stored source is not run: its class name, dimensions and
     parameter names (the recording's data) and no code: its right-hand side, linearization and parameter
     vector raise ``CodeNotTrusted``.  ``not_run(cls)`` is the line that says why."""
@@ -435,14 +441,14 @@ def stand_in_plant(ref: str, class_name: str, n: int, m: int, params) -> type[Pl
                                       bases=(Plant,), namespace=ns, frozen=True)
 
 
-def not_run(obj) -> str | None:
+def not_run(obj: object) -> str | None:
     """The ``CodeNotTrusted`` line of a stand-in class or object (``stand_in_plant``, a method's), else None."""
     return getattr(obj, "STORED_NOT_RUN", None)
 
 
 def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "",
                      source: str = "", sha256: str = "", trust_code: bool = False,
-                     stand_in=None) -> tuple[type[Plant], dict]:
+                     stand_in: Callable[[], type[Plant]] | None = None) -> tuple[type[Plant], dict]:
     """Resolve a recorded plant reference (:func:`recorded_class`): imported, else the stored source
     with ``trust_code``, else ``stand_in()`` (``stand_in_plant``; None: ``CodeNotTrusted``).
 

@@ -10,6 +10,8 @@ The Python API (docs/api.md), imported on first use so that ``import testbed`` s
 * ``testbed.BadInput``: what every bad argument raises (one line that says what to change).
 """
 
+from typing import Any as _Any
+
 from .common.errors import BadInput
 
 __version__ = "0.1.0"
@@ -20,7 +22,7 @@ _LAZY = {"open": ("runs.run", "open"), "simulate": ("runs.run", "simulate"), "Ru
          "compare": ("runs.compare", "compare")}
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> _Any:
     if name in _LAZY:
         import importlib
 
@@ -29,5 +31,5 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'testbed' has no attribute {name!r}")
 
 
-def __dir__():
+def __dir__() -> list[str]:
     return sorted([*globals(), *_LAZY])

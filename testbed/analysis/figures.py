@@ -17,22 +17,29 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
+from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..common import figstyle
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
     from matplotlib.artist import Artist
+
+    from ..scenario import Scenario
+    from .roa import RoaResult
 
 
 def _plt():
     return figstyle.pyplot()
 
 
-def dos_spans(theta, T: float, intervals=None) -> list[tuple[float, float]]:
+def dos_spans(theta: npt.ArrayLike | None, T: float,
+              intervals: Iterable[Sequence[float]] | None = None) -> list[tuple[float, float]]:
     """Time spans to shade: the attack intervals if given, else [t_k, t_{k+1}) over runs of theta_k = 1."""
     if intervals is not None:
         return [(a, a + max(tau, 0.0)) for a, tau in intervals]
@@ -44,12 +51,12 @@ def dos_spans(theta, T: float, intervals=None) -> list[tuple[float, float]]:
     return [(s * T, e * T) for s, e in zip(starts, ends)]
 
 
-def figure_title(sc) -> str:
+def figure_title(sc: Scenario) -> str:
     """The title of a run's time-series figure: the scenario and its initial state (mathtext)."""
     return f"{sc.name}: $x_0$ = {[float(f'{v:.4g}') for v in sc.x0]}"
 
 
-def series_of_run(run) -> SimpleNamespace:
+def series_of_run(run: Any) -> SimpleNamespace:  # run: a testbed.Run (a layer above)
     """What :func:`plot_time_series` reads, from a ``testbed.runs.run.Run`` (its arrays)."""
     a = run.arrays
     return SimpleNamespace(T=run.scenario.T, t=np.asarray(a["t"], float), x=np.asarray(a["x"], float),
@@ -57,7 +64,8 @@ def series_of_run(run) -> SimpleNamespace:
                            E_dec=np.asarray(a["E_dec"], float), theta=np.asarray(a["theta"]).astype(int))
 
 
-def plot_time_series(res, path, *, title: str = "", intervals=None, size: str = "page"):
+def plot_time_series(res: Any, path: str | Path, *, title: str = "", intervals: Iterable[Sequence[float]] | None = None,
+                     size: str = "page") -> Path:
     """States, input and quantizer range E_k against time, DoS shaded (paper, Fig. 2).
 
     Parameters
@@ -104,8 +112,9 @@ def _square(size: str, nr: int, nc: int) -> float:
     return 0.85 if size == "column" else 0.95
 
 
-def plot_phase_portrait(roa, path, *, trajectories=(), vulnerable=None, baseline=None, title: str = "",
-                        labels=("$x_1$", "$x_2$"), zoom=None, size: str = "page"):
+def plot_phase_portrait(roa: RoaResult, path: str | Path, *, trajectories: Iterable[Any] = (), vulnerable: Any = None,
+                        baseline: Any = None, title: str = "", labels: tuple[str, str] = ("$x_1$", "$x_2$"),
+                        zoom: Any = None, size: str = "page") -> Path:
     """Nominal region of attraction (gray) with trajectories (paper, Fig. 3).
 
     Parameters
@@ -186,8 +195,9 @@ KIND_STYLES = {"random": (figstyle.VERMILLION, "o", "-"), "periodic": (figstyle.
                "greedy": (figstyle.PURPLE, "^", ":")}
 
 
-def plot_allowable_region(path, *, regions=None, plain=None, sweep=None, budget=None, budget_label=None,
-                          title: str = "", zoom: bool = True, sweep_zoom=None, size: str = "page"):
+def plot_allowable_region(path: str | Path, *, regions: Any = None, plain: Any = None, sweep: Any = None,
+                          budget: Sequence[float] | None = None, budget_label: str | None = None,
+                          title: str = "", zoom: bool = True, sweep_zoom: Any = None, size: str = "page") -> Path:
     """Theorem 1 boundaries, over the empirical map of a sweep when there is one (paper, Fig. 4).
 
     Parameters
@@ -278,8 +288,9 @@ def plot_allowable_region(path, *, regions=None, plain=None, sweep=None, budget=
         return figstyle.save(fig, path)
 
 
-def plot_delta(rows, path, *, gamma_mark=None, E0_mark=None, delta_paper=None, title: str = "",
-               size: str = "page"):
+def plot_delta(rows: Sequence[dict], path: str | Path, *, gamma_mark: float | None = None,
+               E0_mark: float | None = None, delta_paper: float | None = None, title: str = "",
+               size: str = "page") -> Path:
     """delta(gamma) of Lemma 2 (and E0 bounds if present) on log-log axes.
 
     rows : list of dicts with "gamma", "delta" (and optionally "E0_bound"; None where Theorem 2's
@@ -315,8 +326,9 @@ def plot_delta(rows, path, *, gamma_mark=None, E0_mark=None, delta_paper=None, t
         return figstyle.save(fig, path)
 
 
-def plot_vulnerability(vm, roa, path, *, title: str = "", labels=("$x_1$", "$x_2$"), x0=None,
-                       show: str = "duration", size: str = "page"):
+def plot_vulnerability(vm: Any, roa: RoaResult, path: str | Path, *, title: str = "",
+                       labels: tuple[str, str] = ("$x_1$", "$x_2$"), x0: npt.ArrayLike | None = None,
+                       show: str = "duration", size: str = "page") -> Path:
     """Heat map of the least DoS duration that defeats the loop, over the nominal region of attraction.
 
     Parameters
@@ -403,7 +415,8 @@ def _run_spans(run) -> list[tuple[float, float]]:
     return dos_spans(run.arrays["attack_on"], run.scenario.T)
 
 
-def plot_compare(a_run, b_run, path, *, names=("A", "B"), title: str = "", size: str = "page"):
+def plot_compare(a_run: Any, b_run: Any, path: str | Path, *, names: tuple[str, str] = ("A", "B"), title: str = "",
+                 size: str = "page") -> Path:
     """Two runs over time: x of both (component i in one hue, A solid, B dashed), ||x_A - x_B||_inf
     on a log scale, and the lost samples (theta_k = 1) of each on its own row; DoS of either shaded."""
     from matplotlib.lines import Line2D

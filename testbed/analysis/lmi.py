@@ -20,6 +20,7 @@ feasibility tests in bisections.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +65,7 @@ class Block:
         return self.G0 + np.tensordot(z, self.G, axes=1)
 
 
-def _merge(blocks) -> Block:
+def _merge(blocks: Sequence[Block]) -> Block:
     """All blocks as one block-diagonal LMI (one Cholesky per evaluation)."""
     if len(blocks) == 1:
         return blocks[0]
@@ -81,7 +82,7 @@ def _merge(blocks) -> Block:
     return Block(G0, G)
 
 
-def _chol(M: np.ndarray):
+def _chol(M: np.ndarray) -> np.ndarray | None:
     if not np.all(np.isfinite(M)):
         return None
     try:
@@ -99,7 +100,8 @@ class BarrierResult:
     stopped_early: bool = False
 
 
-def barrier_minimize(c, blocks, z0, *, tau0: float | None = None, growth: float = 20.0, rtol: float = 1e-7,
+def barrier_minimize(c: np.ndarray, blocks: Sequence[Block], z0: np.ndarray, *, tau0: float | None = None,
+                     growth: float = 20.0, rtol: float = 1e-7,
                      atol: float = 1e-10, max_outer: int = 40, max_newton: int = 60,
                      stop_below: float | None = None, stop_if_bound_above: float | None = None) -> BarrierResult:
     """Minimize c'z subject to the strict LMIs ``blocks`` from the strictly feasible z0.
@@ -129,7 +131,7 @@ def barrier_minimize(c, blocks, z0, *, tau0: float | None = None, growth: float 
     d, m_tot = Gs.shape[0], G0.shape[0]
     Gf = Gs.reshape(d, m_tot * m_tot)
 
-    def G_at(v):
+    def G_at(v: np.ndarray) -> np.ndarray:
         return G0 + (v @ Gf).reshape(m_tot, m_tot)
 
     Lc = _chol(G_at(z))
@@ -179,7 +181,7 @@ def barrier_minimize(c, blocks, z0, *, tau0: float | None = None, growth: float 
     return BarrierResult(z, float(c @ z), m_tot / tau, steps, False)
 
 
-def max_margin(blocks, x0, *, stop_at: float | None = 0.0, rtol: float = 1e-6,
+def max_margin(blocks: Sequence[Block], x0: np.ndarray, *, stop_at: float | None = 0.0, rtol: float = 1e-6,
                atol: float = 1e-9) -> tuple[np.ndarray, float]:
     """Phase I: maximize t subject to G_j(x) - t I > 0 for every block.
 

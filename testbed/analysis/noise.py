@@ -31,7 +31,9 @@ loop cannot recover from (the paper's example escapes with E_min = 4e-4, see the
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -40,13 +42,20 @@ from ..loop.device import DeviceSpec, SensorSpec
 from ..scenario.rulesofthumb import e_min_guarantee, growth  # the one definition (the warnings of run/simulate)
 from ..sim.trajectory import simulate_scenario
 
+if TYPE_CHECKING:
+    from plants.base import Plant
 
-def e_min_estimate(model, T: float, M: int, b: float, w: float = 0.0) -> float:
+    from ..scenario import Scenario
+    from .parallel import Progress
+
+
+def e_min_estimate(model: Plant, T: float, M: int, b: float, w: float = 0.0) -> float:
     """The guarantee with the linearized growth ``growth(model, T)`` in place of Lambda."""
     return e_min_guarantee(b, growth(model, T), M, w)
 
 
-def ball_radius(model, K, T: float, M: int, b: float, E_min: float, w: float = 0.0, terms: int = 2000) -> float:
+def ball_radius(model: Plant, K: np.ndarray, T: float, M: int, b: float, E_min: float, w: float = 0.0,
+                terms: int = 2000) -> float:
     """The ultimate bound of ||x||_inf of the linearized loop with ||x_k - q_k|| <= b + E_min / M
     and a disturbance ||w_k|| <= w (the sums of the module docstring, ``terms`` terms)."""
     Ad, Bd = c2d(model.A, model.B, T)
@@ -61,15 +70,15 @@ def ball_radius(model, K, T: float, M: int, b: float, E_min: float, w: float = 0
     return s_e * (b + E_min / M) + s_w * w
 
 
-def with_sensor(sc, sensor: SensorSpec, E_min: float):
+def with_sensor(sc: Scenario, sensor: SensorSpec, E_min: float) -> Scenario:
     """Scenario ``sc`` with ``[plant.sensor]`` = ``sensor`` and ``[quantizer] E_min`` = ``E_min``."""
     dev = sc.plant.device or DeviceSpec()
     plant = dataclasses.replace(sc.plant, device=dataclasses.replace(dev, sensor=sensor))
     return dataclasses.replace(sc, plant=plant, quantizer=dataclasses.replace(sc.quantizer, E_min=float(E_min)))
 
 
-def sweep(sc, scales, ratios, *, distribution: str = "uniform", seed: int = 1, settle: float | None = None,
-          progress=None) -> dict:
+def sweep(sc: Scenario, scales: Sequence[float], ratios: Sequence[float], *, distribution: str = "uniform",
+          seed: int = 1, settle: float | None = None, progress: Progress | None = None) -> dict:
     """Simulate ``sc`` (the per-sample loop) with sensor noise of every ``scale`` and E_min = ratio * b
     for every ``ratio`` (b = the noise's bound, ``SensorSpec.bound``).
 
@@ -88,8 +97,8 @@ def sweep(sc, scales, ratios, *, distribution: str = "uniform", seed: int = 1, s
     k0 = min(max(int(round(settle / sc.T)), 0), max(N - 1, 0))
     x0 = float(np.max(np.abs(sc.x0)))
     a = growth(model, sc.T)
-    out = {"scenario": sc.name, "distribution": distribution, "seed": int(seed), "M": qp.M, "Lambda": qp.Lambda,
-           "growth": a, "settle_s": k0 * sc.T, "samples": N, "scales": []}
+    out: dict[str, Any] = {"scenario": sc.name, "distribution": distribution, "seed": int(seed), "M": qp.M,
+                           "Lambda": qp.Lambda, "growth": a, "settle_s": k0 * sc.T, "samples": N, "scales": []}
     done, total = 0, len(scales) * len(ratios)
     for s in scales:
         sensor = SensorSpec(distribution=distribution, scale=float(s), seed=int(seed))
@@ -113,7 +122,7 @@ def sweep(sc, scales, ratios, *, distribution: str = "uniform", seed: int = 1, s
     return out
 
 
-def plot_sweep(data: dict, path, *, size: str = "page", title: str = ""):
+def plot_sweep(data: dict, path: str | Path, *, size: str = "page", title: str = "") -> Path:
     """Two panels over E_min / b: the OVERFLOW recaptures after the transient, and the state's
     steady size against the predicted ball; the estimate and the guarantee marked per scale."""
     from ..common import figstyle

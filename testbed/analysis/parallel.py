@@ -33,6 +33,7 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
@@ -44,13 +45,19 @@ from ..loop.flow import DEFAULT_FLOW, FlowOptions
 from ..loop.params import QuantizerParams
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
     from distributed import Client
+
+    from plants.base import Plant
 
 #: environment of every worker process: one thread for numba and the BLAS libraries
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1"}
 
 #: per-trajectory outputs of :func:`run_batch`
+#: a progress callback: ``progress(done, total)``
+Progress = Callable[[int, int], object]
+
 FIELDS = ("x_final", "E_final", "status", "stop_k", "saturations", "mismatch", "max_norm", "attacked", "state_final")
 
 #: trajectory-steps per chunk: at least this much work, so that a chunk costs far more than its
@@ -99,7 +106,7 @@ class Executor:
             self.workers = max(1, _dask_nthreads(self._client))
 
     @property
-    def client(self):
+    def client(self) -> Client | None:
         """The ``distributed.Client`` of the Dask cluster (None off Dask), for work the executor's maps do
         not cover (a campaign's live runs, one per host)."""
         return self._client
@@ -118,7 +125,7 @@ class Executor:
     def chunk_steps(self) -> float:
         return DASK_CHUNK_STEPS if self.kind == "dask" else MIN_CHUNK_STEPS
 
-    def map(self, fn, items: list, *, warm=None, progress=None) -> list:
+    def map(self, fn: Callable[[Any], Any], items: list, *, warm: Any = None, progress: Progress | None = None) -> list:
         """[fn(item) for item in items], in order, on this executor.
 
         ``warm`` is an item (a small one) run first, once per kind of job, where the
@@ -141,7 +148,7 @@ class Executor:
             return _local_map(fn, items, self.workers, progress)
         return _dask_map(self._client, fn, items, warm, self._warm, progress)
 
-    def imap(self, fn, items: list, *, warm=None):
+    def imap(self, fn: Callable[[Any], Any], items: list, *, warm: Any = None) -> Iterator[tuple[int, Any]]:
         """(index, fn(item)) for every item, as each finishes (in order on one process): a caller that
         stores every result as it arrives (a campaign's journal) loses only the items in flight."""
         if not items:
@@ -308,7 +315,7 @@ def _dask_map(client, fn, items, warm, warmed: set, progress):
 class BatchChunk:
     """One chunk of a batch: everything a worker needs to run it (data only)."""
 
-    plant: object
+    plant: Plant
     K: np.ndarray
     qp: QuantizerParams
     X0: np.ndarray
@@ -322,12 +329,12 @@ class BatchChunk:
     flow: FlowOptions
     fields: tuple
     specialize: bool = True
-    model: object = None     # the predictions' model (rule (xi)); None: the plant itself
+    model: Plant | None = None     # the predictions' model (rule (xi)); None: the plant itself
     init_state: np.ndarray | None = None  # (B, W) both ends' state to continue from (``simulate_batch``)
     stop: tuple | None = None             # (x_tol, E_tol, x_out) early stop (``simulate_batch``)
 
     @property
-    def warm_key(self):
+    def warm_key(self) -> tuple:
         m = self.model if self.model is not None else self.plant
         return (type(self.plant).__module__, type(self.plant).__name__, type(m).__module__, type(m).__name__,
                 self.mode, self.theta is None, self.greedy_params is None)
@@ -361,10 +368,13 @@ def run_chunk(c: BatchChunk) -> dict:
     return out
 
 
-def run_batch(plant, K, qp, X0, n_steps: int, *, E0=None, theta=None, sched_idx=None, greedy_params=None,
+def run_batch(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.ArrayLike, n_steps: int, *,
+              E0: npt.ArrayLike | None = None, theta: npt.ArrayLike | None = None,
+              sched_idx: npt.ArrayLike | None = None, greedy_params: npt.ArrayLike | None = None,
               score: str = "state", mode: str | None = None, flow: FlowOptions = DEFAULT_FLOW,
-              fields=FIELDS, executor: Executor | None = None, progress=None, chunk: int | None = None,
-              specialize: bool = True, model=None, init_state=None, stop=None) -> dict:
+              fields: Sequence[str] = FIELDS, executor: Executor | None = None, progress: Progress | None = None,
+              chunk: int | None = None, specialize: bool = True, model: Plant | None = None,
+              init_state: npt.ArrayLike | None = None, stop: tuple[float, float, float] | None = None) -> dict:
     """Run B closed loops in chunks on ``executor``; per-trajectory ``fields`` in input order.
 
     Parameters
@@ -459,22 +469,23 @@ class Stages:
     ``next()`` is the callback of the next batch (its real count replaces the estimate).
     """
 
-    def __init__(self, progress, expected):
+    def __init__(self, progress: Progress | None, expected: Iterable[int]) -> None:
         self.progress = progress
         self.counts = [max(int(n), 1) for n in expected]
         self.i = -1
 
-    def next(self):
+    def next(self) -> Callable[[int, int], None] | None:
         self.i += 1
-        if self.progress is None:
+        progress = self.progress
+        if progress is None:
             return None
         i = self.i
         if i >= len(self.counts):
             self.counts.append(1)
 
-        def cb(done, total):
+        def cb(done: int, total: int) -> None:
             self.counts[i] = max(int(total), 1)
-            self.progress(sum(self.counts[:i]) + done, sum(self.counts))
+            progress(sum(self.counts[:i]) + done, sum(self.counts))
 
         return cb
 

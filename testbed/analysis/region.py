@@ -5,7 +5,9 @@ phi_0 and phi_1; and the summary of Theorem 1 for a scenario."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,6 +24,9 @@ from .theorem1 import (
     min_relative_condition,
     plain_certificate,
 )
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 
 # ============================================================================ the region
@@ -47,13 +52,13 @@ class Region:
     rho_F: np.ndarray = None  # type: ignore[assignment]  # computed in __post_init__
     arg: np.ndarray = None   # type: ignore[assignment]  # flat (i, j) index achieving each boundary point
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.rho_D is None:
             self.rho_D = np.linspace(0.0, self.rho_D_max, 201)
         self.rho_F, self.arg = self.envelope(self.rho_D)
 
     # --- envelope
-    def envelope(self, rho_D) -> tuple[np.ndarray, np.ndarray]:
+    def envelope(self, rho_D: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Boundary rho_F^max(rho_D) (0 where no rho_F is allowed) and the certificate index."""
         rho_D = np.atleast_1d(np.asarray(rho_D, dtype=float))
         a, b, c = self.a.ravel(), self.b.ravel(), self.c.ravel()
@@ -62,7 +67,7 @@ class Region:
         k = np.argmax(val, axis=1)
         return np.maximum(val[np.arange(len(rho_D)), k], 0.0), k
 
-    def lhs_min(self, rho_F, rho_D) -> np.ndarray:
+    def lhs_min(self, rho_F: npt.ArrayLike, rho_D: npt.ArrayLike) -> np.ndarray:
         """min over the certificates of the left-hand side of (stability) (< 0: Theorem 1 holds)."""
         rho_F = np.asarray(rho_F, dtype=float)
         rho_D = np.asarray(rho_D, dtype=float)
@@ -71,7 +76,7 @@ class Region:
         v = rho_F[..., None] * self.loop.T * a - (1.0 - rs) * b + rs * c
         return np.min(np.where(np.isfinite(v), v, np.inf), axis=-1)
 
-    def holds(self, rho_F, rho_D):
+    def holds(self, rho_F: npt.ArrayLike, rho_D: npt.ArrayLike) -> Any:
         """Theorem 1's condition holds for (rho_F, rho_D) with some certificate of the family."""
         return self.lhs_min(rho_F, rho_D) < 0
 
@@ -209,7 +214,8 @@ def allowable_region(loop: Loop, rule: str = "paper", *, n_phi0: int | None = No
 
 
 # ============================================================================ summary
-def analyze_theorem1(loop: Loop, budget=None, *, rules=RULES, n_phi0: int | None = None,
+def analyze_theorem1(loop: Loop, budget: Sequence[float] | None = None, *, rules: Iterable[str] = RULES,
+                     n_phi0: int | None = None,
                      n_phi1: int | None = None, rule: str = "paper") -> dict:
     """Theorem 1 for a loop: plain choice, optimized regions per rule, verdict for a budget.
 
@@ -246,8 +252,8 @@ def analyze_theorem1(loop: Loop, budget=None, *, rules=RULES, n_phi0: int | None
         _, rF, _, rD = budget
         out["theorem1_holds"] = bool(reg.holds(rF, rD))
         out["stability_lhs"] = float(reg.lhs_min(rF, rD))
-        for rule, r in regions.items():
-            out[rule]["theorem1_holds"] = bool(r.holds(rF, rD))
+        for name, region in regions.items():
+            out[name]["theorem1_holds"] = bool(region.holds(rF, rD))
         out["plain"]["theorem1_holds"] = bool(plain.holds(rF, rD))
     out["_regions"] = regions
     out["_certificate"] = cert

@@ -15,9 +15,15 @@ import hashlib
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+
+    pass
 
 #: the modules whose code computes the solves (their source enters the hash)
 _SOURCES = ("lmi.py", "theorem1.py", "region.py", "regioncache.py")
@@ -42,7 +48,8 @@ def _key(Phi0: np.ndarray, g0: np.ndarray, Phi1: np.ndarray, g1: np.ndarray) -> 
     return h.hexdigest()
 
 
-def paper_solves(Phi0, g0, Phi1, g1, solve) -> tuple[list, list, list, list]:
+def paper_solves(Phi0: np.ndarray, g0: np.ndarray, Phi1: np.ndarray, g1: np.ndarray,
+                 solve: Callable[[np.ndarray, float], tuple[np.ndarray, float]]) -> tuple[list, list, list, list]:
     """``solve(Phi, phi)`` (``theorem1.min_condition_P``) at every phi_0 of ``g0`` and phi_1 of ``g1``:
     (P0s, k0, P1s, k1), from the cache when it holds them, else solved and stored."""
     try:

@@ -11,13 +11,22 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..loop.quantizer import QuantizerParams
 from .parallel import run_batch
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from plants.base import Plant
+
+    from .parallel import Executor, Progress
 
 #: default half-widths of the gridded window per plant (covering the Lienard limit cycle)
 DEFAULT_WINDOWS = {"lienard": (5.0, 7.0), "pendulum": (math.pi, 2.0 * math.pi), "cartpole": (0.6, 2.0),
@@ -26,15 +35,16 @@ DEFAULT_WINDOWS = {"lienard": (5.0, 7.0), "pendulum": (math.pi, 2.0 * math.pi), 
 DEFAULT_DIMS = {"cartpole": (2, 3)}
 
 
-def default_window(plant) -> tuple[float, float]:
+def default_window(plant: Plant) -> tuple[float, float]:
     return DEFAULT_WINDOWS.get(plant.name, (1.0, 1.0))
 
 
-def default_dims(plant) -> tuple[int, int]:
+def default_dims(plant: Plant) -> tuple[int, int]:
     return DEFAULT_DIMS.get(plant.name, (0, 1))
 
 
-def state_grid(plant, grid: int | tuple[int, int], window, dims, center=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def state_grid(plant: Plant, grid: int | tuple[int, int], window: tuple[float, float], dims: tuple[int, int],
+               center: npt.ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """States of a grid over coordinates ``dims``: (xs, ys, X) with X of shape (ny * nx, n), row-major in y."""
     nx, ny = (grid, grid) if isinstance(grid, (int, float, np.number)) else grid
     wx, wy = window
@@ -85,7 +95,7 @@ class RoaResult:
         """Trajectory-steps per second of the batch simulation."""
         return self.traj_steps / self.wall if self.wall > 0 else math.nan
 
-    def contains(self, X) -> np.ndarray:
+    def contains(self, X: npt.ArrayLike) -> np.ndarray:
         """Nearest-grid-point lookup of membership for states X (..., n); False outside the window."""
         X = np.asarray(X, dtype=float)
         a, b = X[..., self.dims[0]], X[..., self.dims[1]]
@@ -112,9 +122,11 @@ class RoaResult:
                 "traj_steps": self.traj_steps, "traj_steps_per_s": self.rate, "status_counts": self.status_counts}
 
 
-def nominal_roa(plant, K, T: float, *, grid: int | tuple[int, int] = 201, window=None, dims=None, center=None,
-                horizon: float = 30.0, tol: float = 1e-4, flow: FlowOptions = DEFAULT_FLOW,
-                chunk: int | None = None, progress=None, executor=None) -> RoaResult:
+def nominal_roa(plant: Plant, K: npt.ArrayLike, T: float, *, grid: int | tuple[int, int] = 201,
+                window: tuple[float, float] | None = None, dims: Sequence[int] | None = None,
+                center: npt.ArrayLike | None = None, horizon: float = 30.0, tol: float = 1e-4,
+                flow: FlowOptions = DEFAULT_FLOW, chunk: int | None = None, progress: Progress | None = None,
+                executor: Executor | None = None) -> RoaResult:
     """Grid the nominal region of attraction with the batch simulator.
 
     Parameters
@@ -134,7 +146,7 @@ def nominal_roa(plant, K, T: float, *, grid: int | tuple[int, int] = 201, window
     RoaResult (with wall time and trajectory-steps).
     """
     window = default_window(plant) if window is None else window
-    dims = default_dims(plant) if dims is None else tuple(dims)
+    dims = default_dims(plant) if dims is None else cast("tuple[int, int]", tuple(dims))  # two coordinates
     xs, ys, X = state_grid(plant, grid, window, dims, center)
     n_steps = int(round(horizon / T))
     qp = QuantizerParams(T=T, M=2, L=0.0, E0=1.0, mode="none")

@@ -7,6 +7,8 @@ This is what ``testbed analyze`` prints; the pieces live in ``theorem1``,
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,6 +20,11 @@ from .sweep import classify, run_grouped
 from .theorem1 import RULES, Loop
 from .theorem2 import RemainderRadius, delta_for_gamma, gamma_for_delta, theorem2, theorem2_auto
 
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from ..scenario import Scenario
+
 #: the value of delta the paper reports for its example (Section V)
 PAPER_DELTA = 1.94e-7
 
@@ -25,7 +32,7 @@ PAPER_DELTA = 1.94e-7
 DEFAULT_KAPPAS = (1.0, 0.2)
 
 
-def scenario_budget(sc, horizon: float | None = None) -> tuple[tuple[float, float, float, float], str]:
+def scenario_budget(sc: Scenario, horizon: float | None = None) -> tuple[tuple[float, float, float, float], str]:
     """(kappa_F, rho_F, kappa_D, rho_D) of a scenario's attacker and where it comes from.
 
     * an explicit budget (kinds "random", "greedy", or an [attack.budget] table): as given;
@@ -40,6 +47,7 @@ def scenario_budget(sc, horizon: float | None = None) -> tuple[tuple[float, floa
         return (kF, rF, kD, rD), "scenario"
     H = sc.run.duration if horizon is None else horizon
     sch = sc.attack.schedule(sc.T, H)
+    assert sch is not None  # an online attack (greedy) has a budget: returned above
     if sc.attack.kind == "periodic":
         d = sc.attack.params_dict
         rF, rD = 1.0 / float(d["period"]), float(d["length"]) / float(d["period"])
@@ -51,22 +59,25 @@ def scenario_budget(sc, horizon: float | None = None) -> tuple[tuple[float, floa
     return (float(rep.kappa_F_min), rF, float(rep.kappa_D_min), rD), src
 
 
-def sweep_kappas(sc) -> tuple[float, float]:
+def sweep_kappas(sc: Scenario) -> tuple[float, float]:
     """(kappa_F, kappa_D) for sweeps: the scenario's explicit budget, else ``DEFAULT_KAPPAS``."""
     if sc.attack.budget is not None:
         return float(sc.attack.budget[0]), float(sc.attack.budget[2])
     return DEFAULT_KAPPAS
 
 
-def scenario_theta(sc, n_steps: int | None = None):
+def scenario_theta(sc: Scenario, n_steps: int | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(theta table or None, greedy params or None) of the scenario's attacker for the batch simulator."""
     N = sc.n_steps if n_steps is None else n_steps
     if sc.attack.online:
         return None, sc.attack.greedy_params()
-    return sc.theta(N)[None, :], None
+    theta = sc.theta(N)
+    assert theta is not None  # an offline schedule
+    return theta[None, :], None
 
 
-def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horizon: float = 30.0):
+def find_escape(sc: Scenario, *, s_max: float | None = None, step: float = 0.25,
+                roa_horizon: float = 30.0) -> tuple[float, np.ndarray] | None:
     """Smallest s >= 1 (on a grid of ``step``) such that the loop from s x_0, under the
     scenario's own attack, escapes (``sweep.classify``) although s x_0 is in the nominal region.
 
@@ -98,7 +109,7 @@ def find_escape(sc, *, s_max: float | None = None, step: float = 0.25, roa_horiz
     return float(S[k]), X[k]
 
 
-def trajectory(sc, x0, *, E0: float | None = None):
+def trajectory(sc: Scenario, x0: npt.ArrayLike, *, E0: float | None = None) -> np.ndarray:
     """x_k of the scenario's loop from ``x0`` (batch simulator, recorded), shape (N, n): the true plant
     (``[plant]``, an equation (1) plant) with the model's predictions."""
     import dataclasses
@@ -115,7 +126,7 @@ def trajectory(sc, x0, *, E0: float | None = None):
     return np.vstack([res.x[0, :k], res.x_final[0][None, :]])
 
 
-def _clean(v):
+def _clean(v: Any) -> Any:
     if isinstance(v, dict):
         return {k: _clean(x) for k, x in v.items() if not str(k).startswith("_")}
     if isinstance(v, (list, tuple)):
@@ -132,7 +143,8 @@ def _clean(v):
     return v
 
 
-def analyze(sc, *, budget=None, gamma="auto", share: float = 0.5, rules=RULES, n_phi0: int | None = None,
+def analyze(sc: Scenario, *, budget: Sequence[float] | None = None, gamma: float | str = "auto", share: float = 0.5,
+            rules: Iterable[str] = RULES, n_phi0: int | None = None,
             n_phi1: int | None = None, rule: str = "paper") -> dict:
     """Theorems 1 and 2 for a scenario, on its plant model (``[model]``, default ``[plant]``).
 

@@ -47,7 +47,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -57,6 +59,14 @@ from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
 from ..sim.batch import ESCAPE_HORIZON, EscapeCriterion, judge_escape
 from .parallel import Stages, n_chunks, run_batch
 from .roa import RoaResult
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from plants.base import Plant
+
+    from ..loop.params import QuantizerParams
+    from .parallel import Executor, Progress
 
 KINDS = ("random", "periodic", "greedy")
 
@@ -83,15 +93,18 @@ def periodic_within_budget(rho_F: float, rho_D: float, kappa_F: float, kappa_D: 
     return {"period": P, "length": length, "offset": o}
 
 
-def e0_levels(X0, E0: float, ratio: float = 1.25, floor: float = 1e-6) -> np.ndarray:
+def e0_levels(X0: npt.ArrayLike, E0: float, ratio: float = 1.25, floor: float = 1e-6) -> np.ndarray:
     """E_0 per initial state: max(E0, ||x0||_inf) rounded up to a power of ``ratio`` (>= floor)."""
     r = np.maximum(np.max(np.abs(np.atleast_2d(X0)), axis=1), floor)
     up = ratio ** np.ceil(np.log(r) / math.log(ratio) - 1e-12)
     return np.where(r <= E0, E0, up)
 
 
-def run_grouped(plant, K, qp, X0, E0s, n_steps, *, theta=None, sched_idx=None, greedy_params=None,
-                score="state", flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None, model=None) -> dict:
+def run_grouped(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.ArrayLike, E0s: npt.ArrayLike,
+                n_steps: int, *, theta: npt.ArrayLike | None = None, sched_idx: npt.ArrayLike | None = None,
+                greedy_params: npt.ArrayLike | None = None, score: str = "state", flow: FlowOptions = DEFAULT_FLOW,
+                executor: Executor | None = None, progress: Progress | None = None,
+                model: Plant | None = None) -> dict:
     """The batch simulator with one E_0 per trajectory; arrays in input order (``parallel.run_batch``).
 
     ``plant`` is the true plant, ``model`` the predictions' model (default ``plant``)."""
@@ -101,8 +114,9 @@ def run_grouped(plant, K, qp, X0, E0s, n_steps, *, theta=None, sched_idx=None, g
                      executor=executor, progress=progress, model=model)
 
 
-def classify(plant, K, qp, out: dict, criterion: EscapeCriterion, *, model=None,
-             flow: FlowOptions = DEFAULT_FLOW, executor=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
+def classify(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, out: dict, criterion: EscapeCriterion, *,
+             model: Plant | None = None, flow: FlowOptions = DEFAULT_FLOW, executor: Executor | None = None,
+             progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(converged, escaped) per run of a batch ``out`` (``run_batch`` fields x_final, status,
     state_final): escaped by ``testbed.sim.batch.judge_escape`` (the quantized loop continued
     without attack, ``criterion``), its continuation on ``executor``; converged: ||x_N|| < x_tol
@@ -111,7 +125,7 @@ def classify(plant, K, qp, out: dict, criterion: EscapeCriterion, *, model=None,
     ``plant`` is the true plant, ``model`` (default ``plant``) the predictions' model."""
     called = []
 
-    def run(X, S, n_steps, stop):
+    def run(X: np.ndarray, S: np.ndarray, n_steps: int, stop: tuple[float, float, float]) -> dict:
         called.append(1)
         return run_batch(plant, K, qp, X, n_steps, init_state=S, stop=stop, model=model, flow=flow,
                          fields=("x_final", "status", "state_final"), executor=executor, progress=progress)
@@ -174,7 +188,7 @@ class SweepResult:
         return out
 
     def to_dict(self) -> dict:
-        def clean(a):
+        def clean(a: npt.ArrayLike) -> list:
             return [[None if not np.isfinite(v) else float(v) for v in row] for row in np.asarray(a)]
         return {"rho_F": self.rho_F.tolist(), "rho_D": self.rho_D.tolist(), "kappa_F": self.kappa_F,
                 "kappa_D": self.kappa_D, "T": self.T, "horizon": self.horizon, "tol": self.tol, "seeds": self.seeds,
@@ -192,10 +206,12 @@ def _capped(flow: FlowOptions, x_max: float | None) -> FlowOptions:
     return flow if x_max is None else replace(flow, x_max=min(flow.x_max, float(x_max)))
 
 
-def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: float = 0.5, seeds: int = 4,
-          horizon: float = 60.0, kinds=KINDS, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
-          escape_horizon: float = ESCAPE_HORIZON, seed: int = 0, flow: FlowOptions = DEFAULT_FLOW,
-          x_max: float | None = 1e3, progress=None, executor=None, model=None) -> SweepResult:
+def sweep(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.ArrayLike, rho_F: npt.ArrayLike,
+          rho_D: npt.ArrayLike, *, kappa_F: float = 1.0, kappa_D: float = 0.5, seeds: int = 4,
+          horizon: float = 60.0, kinds: Sequence[str] = KINDS, threshold: float = 0.0, score: str = "state",
+          tol: float = 1e-4, escape_horizon: float = ESCAPE_HORIZON, seed: int = 0, flow: FlowOptions = DEFAULT_FLOW,
+          x_max: float | None = 1e3, progress: Progress | None = None, executor: Executor | None = None,
+          model: Plant | None = None) -> SweepResult:
     """Run the loop over a grid of budgets (rho_F x rho_D) and attacker kinds.
 
     Parameters
@@ -243,9 +259,9 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
     groups = [list(range(a, min(a + 2, nF))) for a in range(0, nF, 2)]
     spec = (tuple(kinds), rho_F, rho_D, float(kappa_F), float(kappa_D), int(seeds), int(seed), T, float(horizon), N)
     items = [(spec, g) for g in groups]
-    parts = executor.map(_schedule_rows, items) if executor is not None else [_schedule_rows(it) for it in items]
-    rows = [r for p in parts for r in p[0]]
-    tags = [t for p in parts for t in p[1]]
+    drawn = executor.map(_schedule_rows, items) if executor is not None else [_schedule_rows(it) for it in items]
+    rows = [r for p in drawn for r in p[0]]
+    tags = [t for p in drawn for t in p[1]]
     n_off = len(rows) * B0
     n_gr = nF * nD * B0 if "greedy" in kinds else 0
     stages = Stages(progress, [n_chunks(n_off, N, executor), n_chunks(n_gr, N, executor),
@@ -280,7 +296,7 @@ def sweep(plant, K, qp, X0, rho_F, rho_D, *, kappa_F: float = 1.0, kappa_D: floa
     return res
 
 
-def _schedule_rows(item):
+def _schedule_rows(item: tuple) -> tuple[list, list]:
     """theta rows and (kind, i, j) tags of the offline schedules of the budget rows ``rows_i``."""
     (kinds, rho_F, rho_D, kappa_F, kappa_D, seeds, seed, T, horizon, N), rows_i = item
     nD = len(rho_D)
@@ -304,7 +320,7 @@ def _schedule_rows(item):
     return rows, tags
 
 
-def _accumulate(res: SweepResult, tags, conv, esc, lost) -> None:
+def _accumulate(res: SweepResult, tags: Sequence[tuple], conv: np.ndarray, esc: np.ndarray, lost: np.ndarray) -> None:
     groups: dict = {}
     for r, t in enumerate(tags):
         groups.setdefault(t, []).append(r)
@@ -348,11 +364,13 @@ class VulnerableResult:
                 "traj_steps": self.traj_steps, "escape_criterion": self.escape_criterion}
 
 
-def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, kind: str = "greedy",
+def vulnerable_states(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, budget: Sequence[float],
+                      roa: RoaResult, *, stride: int = 1, kind: str = "greedy",
                       horizon: float = 30.0, threshold: float = 0.0, score: str = "state", tol: float = 1e-4,
                       seed: int = 0, escape_horizon: float = ESCAPE_HORIZON, flow: FlowOptions = DEFAULT_FLOW,
-                      x_max: float | None = 1e3, kappa_D_shares=(0.0, 0.5, 1.0),
-                      progress=None, executor=None, model=None) -> VulnerableResult:
+                      x_max: float | None = 1e3, kappa_D_shares: Sequence[float] = (0.0, 0.5, 1.0),
+                      progress: Progress | None = None, executor: Executor | None = None,
+                      model: Plant | None = None) -> VulnerableResult:
     """Which states of the nominal region fail under a budget-limited attacker.
 
     Parameters
@@ -390,8 +408,9 @@ def vulnerable_states(plant, K, qp, budget, roa: RoaResult, *, stride: int = 1, 
     E0s = e0_levels(X, 0.0, floor=1e-3 * max(abs(xs).max(), abs(ys).max()))
     t0 = time.perf_counter()
     if kind == "greedy":
-        shares = tuple(kappa_D_shares) or (1.0,)
-        gp = np.array([[kF, rF, sh * kD, rD, threshold] for sh in shares for _ in range(len(X))])
+        kd_shares = tuple(kappa_D_shares) or (1.0,)
+        shares: tuple[float | None, ...] = kd_shares
+        gp = np.array([[kF, rF, sh * kD, rD, threshold] for sh in kd_shares for _ in range(len(X))])
         stages = Stages(progress, [n_chunks(len(gp), N, executor), n_chunks(len(gp), N, executor)])
         out = run_grouped(plant, K, qp, np.tile(X, (len(shares), 1)), np.tile(E0s, len(shares)), N,
                           greedy_params=gp, score=score, flow=flow, executor=executor, progress=stages.next(),

@@ -64,12 +64,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.linalg import solve_discrete_lyapunov
 
 from ..loop.control import c2d, closed_loop, spectral_radius
 from .lmi import Block, barrier_minimize, max_margin, sym_basis, vec_from_sym
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from plants.base import Plant
+
+    from ..loop.params import QuantizerParams
+    from ..scenario import Scenario
 
 RULES = ("paper", "tight")
 
@@ -105,13 +114,13 @@ class Loop:
         object.__setattr__(self, "Bd", Bd)
 
     @classmethod
-    def from_plant(cls, plant, K, qp) -> "Loop":
+    def from_plant(cls, plant: Plant, K: npt.ArrayLike, qp: QuantizerParams) -> Loop:
         """From a plant, a gain and QuantizerParams (T, M, Lambda = e^{L T})."""
         A, B = plant.linearization()
         return cls(A=A, B=B, K=np.asarray(K, dtype=float), T=float(qp.T), M=int(qp.M), Lambda=float(qp.Lambda))
 
     @classmethod
-    def from_scenario(cls, sc) -> "Loop":
+    def from_scenario(cls, sc: Scenario) -> Loop:
         return cls.from_plant(sc.make_model(), sc.K, sc.quantizer)
 
     @property
@@ -158,7 +167,8 @@ class Loop:
 
 
 # ============================================================================ (stability)
-def stability_lhs(rho_F, rho_D, T, mu0, mu1, nu0, nu1):
+def stability_lhs(rho_F: npt.ArrayLike, rho_D: npt.ArrayLike, T: float, mu0: float, mu1: float, nu0: float,
+                  nu1: float) -> Any:
     """Left-hand side of (stability): rho_F T ln(mu0 mu1) + (1 - rho_D*) ln nu0 + rho_D* ln nu1.
 
     Vectorized over rho_F and rho_D; Theorem 1 holds where it is negative.
@@ -169,13 +179,13 @@ def stability_lhs(rho_F, rho_D, T, mu0, mu1, nu0, nu1):
     return rho_F * T * math.log(mu0 * mu1) + (1.0 - rs) * math.log(nu0) + rs * math.log(nu1)
 
 
-def lyapunov_margin(Phi, P, phi) -> float:
+def lyapunov_margin(Phi: np.ndarray, P: np.ndarray, phi: float) -> float:
     """Largest eigenvalue of Phi' P Phi - phi P, relative to lambda_min(P) (< 0 when (Lyapunov) holds)."""
     S = Phi.T @ P @ Phi - phi * P
     return float(np.linalg.eigvalsh((S + S.T) / 2)[-1] / np.linalg.eigvalsh(P)[0])
 
 
-def mu_pair(P0, P1, eta0, eta1, rule: str = "paper") -> tuple[float, float]:
+def mu_pair(P0: np.ndarray, P1: np.ndarray, eta0: float, eta1: float, rule: str = "paper") -> tuple[float, float]:
     """(mu_0, mu_1) of (mu0), (mu1) (rule "paper") or the smallest constants of (mu) (rule "tight")."""
     if rule == "paper":
         a = np.linalg.eigvalsh(P1)[-1] / np.linalg.eigvalsh(P0)[0]
@@ -251,12 +261,12 @@ class Certificate:
         mu0, mu1 = self.mu
         return math.log(mu0 * mu1), -math.log(self.nu0), math.log(self.nu1)
 
-    def lhs(self, rho_F, rho_D):
+    def lhs(self, rho_F: npt.ArrayLike, rho_D: npt.ArrayLike) -> Any:
         """Left-hand side of (stability) for this choice."""
         mu0, mu1 = self.mu
         return stability_lhs(rho_F, rho_D, self.T, mu0, mu1, self.nu0, self.nu1)
 
-    def holds(self, rho_F, rho_D):
+    def holds(self, rho_F: npt.ArrayLike, rho_D: npt.ArrayLike) -> Any:
         return self.lhs(rho_F, rho_D) < 0
 
     @property
@@ -271,12 +281,12 @@ class Certificate:
         a, b, c = self.abc
         return b / (self.T * (a + b + c))
 
-    def boundary(self, rho_D):
+    def boundary(self, rho_D: npt.ArrayLike) -> np.ndarray:
         """rho_F on this choice's boundary line for the given rho_D (clipped at 0)."""
         a, b, c = self.abc
         return np.maximum((b - np.asarray(rho_D, dtype=float) * (b + c)) / (self.T * (a + b + c)), 0.0)
 
-    def verify(self, Phi0, Phi1) -> dict:
+    def verify(self, Phi0: np.ndarray, Phi1: np.ndarray) -> dict:
         """Check the strict Lyapunov inequalities and positivity by eigenvalues."""
         m0 = lyapunov_margin(Phi0, self.P0, self.phi0)
         m1 = lyapunov_margin(Phi1, self.P1, self.phi1)
@@ -298,7 +308,8 @@ class Certificate:
                 "nu0": self.nu0, "nu1": self.nu1, "rho_D_max": self.rho_D_max, "rho_F_max": self.rho_F_max}
 
 
-def make_certificate(loop: Loop, phi0: float, phi1: float, P0, P1, rule: str = "paper") -> Certificate:
+def make_certificate(loop: Loop, phi0: float, phi1: float, P0: np.ndarray, P1: np.ndarray,
+                     rule: str = "paper") -> Certificate:
     """Normalize (P_0, P_1) as described in :class:`Certificate` and wrap them."""
     P0 = _sym(np.asarray(P0, dtype=float))
     P1 = _sym(np.asarray(P1, dtype=float))
@@ -325,14 +336,14 @@ def _sym(P):
 
 
 # ============================================================================ choices of P
-def lyapunov_P(Phi, phi) -> np.ndarray:
+def lyapunov_P(Phi: np.ndarray, phi: float) -> np.ndarray:
     """P solving (phi^{-1/2} Phi)' P (phi^{-1/2} Phi) - P = -I (the plain choice)."""
     a = Phi / math.sqrt(phi)
     P = solve_discrete_lyapunov(a.T, np.eye(Phi.shape[0]))
     return _sym(P)
 
 
-def min_condition_P(Phi, phi, *, rtol: float = 1e-7) -> tuple[np.ndarray, float]:
+def min_condition_P(Phi: np.ndarray, phi: float, *, rtol: float = 1e-7) -> tuple[np.ndarray, float]:
     """P > 0 of smallest condition number with Phi' P Phi - phi P < 0 (an LMI problem).
 
     Solves  min kappa  s.t.  P - I > 0,  kappa I - P > 0,  phi P - Phi' P Phi > 0
@@ -387,7 +398,8 @@ def _lyap_op(Phi, phi, S):
     return phi * S - np.einsum("ji,djk,kl->dil", Phi, S, Phi)
 
 
-def common_P(Phi0, phi0, Phi1, phi1, *, start=None) -> np.ndarray | None:
+def common_P(Phi0: np.ndarray, phi0: float, Phi1: np.ndarray, phi1: float, *,
+             start: np.ndarray | None = None) -> np.ndarray | None:
     """A common P > 0 with Phi_p' P Phi_p - phi_p P < 0 for p = 0, 1, or None.
 
     Phase-I LMI problem with tr P = 1: maximize t s.t. P, phi_p P - Phi_p' P Phi_p >= t I.
@@ -410,7 +422,8 @@ def common_P(Phi0, phi0, Phi1, phi1, *, start=None) -> np.ndarray | None:
     return None
 
 
-def min_relative_condition(Phi0, phi0, Phi1, phi1, *, P0_start, P1_start, tol: float = 5e-3,
+def min_relative_condition(Phi0: np.ndarray, phi0: float, Phi1: np.ndarray, phi1: float, *, P0_start: np.ndarray,
+                           P1_start: np.ndarray, tol: float = 5e-3,
                            max_iter: int = 40, lower: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
     """(P_0, P_1) minimizing lambda_max(P_0^{-1} P_1) lambda_max(P_1^{-1} P_0) (rule "tight").
 

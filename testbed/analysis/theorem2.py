@@ -58,17 +58,23 @@ enlarges delta but pushes omega_0, omega_1 away from nu_0, nu_1.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .theorem1 import Certificate, Loop, _gen_ratios
 
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from plants.base import Plant
+
 _R_MAX = 1e6
 
 
-def inf_norm(M) -> float:
+def inf_norm(M: npt.ArrayLike) -> float:
     """Induced infinity norm (max absolute row sum)."""
     M = np.atleast_2d(np.asarray(M, dtype=float))
     return float(np.max(np.sum(np.abs(M), axis=1)))
@@ -264,7 +270,8 @@ def _num(v):
     return v if math.isfinite(v) else None
 
 
-def evaluate(loop: Loop, pd: _PData, lem: LemmaConstants, cert: Certificate, budget, s: float, eps: float,
+def evaluate(loop: Loop, pd: _PData, lem: LemmaConstants, cert: Certificate, budget: Sequence[float], s: float,
+             eps: float,
              eta0: float, eta1: float, share: float = 0.5) -> Theorem2Result:
     """All Lemma 3 / Theorem 2 constants for explicit (s, epsilon, eta_0, eta_1).
 
@@ -341,7 +348,8 @@ def _objective(loop, pd, lem, cert, budget, share):
     return f
 
 
-def theorem2(loop: Loop, plant, cert: Certificate, gamma: float, budget=(0.0, 0.0, 0.0, 0.0), *,
+def theorem2(loop: Loop, plant: Plant, cert: Certificate, gamma: float,
+             budget: Sequence[float] = (0.0, 0.0, 0.0, 0.0), *,
              radius: RemainderRadius | None = None, varrho: float | None = None,
              share: float = 0.5) -> Theorem2Result:
     """Lemma 3 and Theorem 2 for ``gamma`` with (s, epsilon, eta_0, eta_1) maximizing the E_0 bound.
@@ -391,8 +399,8 @@ def theorem2(loop: Loop, plant, cert: Certificate, gamma: float, budget=(0.0, 0.
     return evaluate(loop, pd, lem, cert, budget, s, eps, eta0, eta1, share)
 
 
-def theorem2_auto(loop: Loop, plant, cert: Certificate, budget=(0.0, 0.0, 0.0, 0.0), *,
-                  log10_gamma=(-14.0, 1.0), radius: RemainderRadius | None = None,
+def theorem2_auto(loop: Loop, plant: Plant, cert: Certificate, budget: Sequence[float] = (0.0, 0.0, 0.0, 0.0), *,
+                  log10_gamma: tuple[float, float] = (-14.0, 1.0), radius: RemainderRadius | None = None,
                   varrho: float | None = None, share: float = 0.5) -> Theorem2Result:
     """:func:`theorem2` with gamma also chosen to maximize the E_0 bound.
 
@@ -424,14 +432,15 @@ def theorem2_auto(loop: Loop, plant, cert: Certificate, budget=(0.0, 0.0, 0.0, 0
     return best if best.E0_bound >= vals[k] else results[k]
 
 
-def delta_for_gamma(loop: Loop, plant, gammas, radius: RemainderRadius | None = None) -> list[dict]:
+def delta_for_gamma(loop: Loop, plant: Plant, gammas: Iterable[float],
+                    radius: RemainderRadius | None = None) -> list[dict]:
     """delta (and d, delta') for a list of gammas: the table of the README."""
     radius = radius or RemainderRadius(plant)
     varrho = float(getattr(plant, "lipschitz_region", math.inf))
     return [lemma_constants(loop, radius, float(g), varrho).to_dict() for g in gammas]
 
 
-def gamma_for_delta(loop: Loop, plant, delta: float, radius: RemainderRadius | None = None) -> float:
+def gamma_for_delta(loop: Loop, plant: Plant, delta: float, radius: RemainderRadius | None = None) -> float:
     """The gamma whose delta (Lemma 2) equals ``delta`` (bisection on log gamma; nan if out of reach)."""
     radius = radius or RemainderRadius(plant)
     varrho = float(getattr(plant, "lipschitz_region", math.inf))

@@ -55,8 +55,10 @@ Every candidate schedule is one row of a theta table; a batch of them is one
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from math import comb
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -67,6 +69,12 @@ from ..loop.params import QuantizerParams
 from ..sim.batch import EscapeCriterion
 from .parallel import Stages, n_chunks, run_batch
 from .sweep import classify
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from ..scenario import Scenario
+    from .parallel import Executor, Progress
 
 #: thresholds and scores tried for the greedy attacker's comparison
 GREEDY_THRESHOLDS = (0.0, 0.25, 0.5, 0.75, 0.9)
@@ -103,7 +111,7 @@ class Loop:
         return float(self.qp.T)
 
     @property
-    def nominal(self):
+    def nominal(self) -> Plant:
         """The plant model of the predictions."""
         return self.plant if self.model is None else self.model
 
@@ -113,28 +121,28 @@ class Loop:
         return self.criterion or EscapeCriterion.for_loop(self.nominal, self.qp, self.tol)
 
     @classmethod
-    def from_scenario(cls, sc) -> "Loop":
+    def from_scenario(cls, sc: Scenario) -> Loop:
         return cls(sc.make_plant(), np.asarray(sc.K, dtype=float), sc.quantizer, sc.n_steps, sc.run.converge_tol,
                    sc.flow, sc.make_model())
 
 
-def e0_for(loop: Loop, X0) -> np.ndarray:
+def e0_for(loop: Loop, X0: npt.ArrayLike) -> np.ndarray:
     """E_0 per initial state: max(quantizer E_0, ||x_0||_inf) (Assumption 5: x_0 in Q(0, E_0))."""
     X0 = np.atleast_2d(X0)
     return np.maximum(float(loop.qp.E0), np.max(np.abs(X0), axis=1))
 
 
-def runs_to_intervals(runs, T: float) -> list[list[float]]:
+def runs_to_intervals(runs: Iterable[tuple[int, int]], T: float) -> list[list[float]]:
     """[(k0, L), ...] -> [[start, length], ...] in seconds (a scenario's ``[attack] intervals``)."""
     return [[round(k0 * T, 12), round((L - 1) * T, 12)] for k0, L in sorted(runs)]
 
 
-def duration_samples(runs) -> int:
+def duration_samples(runs: Iterable[tuple[int, int]]) -> int:
     """Total duration of the runs, each one attack, in sampling periods: sum (L_i - 1)."""
     return int(sum(L - 1 for _k0, L in runs))
 
 
-def samples_lost(runs) -> int:
+def samples_lost(runs: Iterable[tuple[int, int]]) -> int:
     """S: the lost samples of the runs."""
     return int(sum(L for _k0, L in runs))
 
@@ -145,7 +153,7 @@ def least_duration_samples(S: int, attacks: int) -> int:
     return int(S - min(int(attacks), int(S)))
 
 
-def realize(runs, attacks: int) -> tuple:
+def realize(runs: Sequence[tuple[int, int]], attacks: int) -> tuple:
     """Attacks (k0, L) that lose exactly the samples of ``runs`` with the least total duration.
 
     ``len(runs) <= attacks``.  min(attacks, S) attacks in all: runs are split into pieces
@@ -174,7 +182,7 @@ def realize(runs, attacks: int) -> tuple:
     return tuple(out)
 
 
-def runs_of(theta) -> tuple:
+def runs_of(theta: npt.ArrayLike) -> tuple:
     """The runs (k0, L) of lost samples of a 0/1 sequence."""
     th = np.asarray(theta, dtype=np.int8)
     d = np.diff(np.concatenate(([0], th, [0])))
@@ -183,7 +191,7 @@ def runs_of(theta) -> tuple:
     return tuple((int(a), int(b - a)) for a, b in zip(starts, ends))
 
 
-def theta_table(runs_list, n_steps: int) -> np.ndarray:
+def theta_table(runs_list: Sequence[Iterable[tuple[int, int]]], n_steps: int) -> np.ndarray:
     """(C, N) uint8 table: row c has theta_k = 1 on every run (k0, L) of candidate c."""
     tab = np.zeros((len(runs_list), n_steps), dtype=np.uint8)
     for c, runs in enumerate(runs_list):
@@ -192,14 +200,16 @@ def theta_table(runs_list, n_steps: int) -> np.ndarray:
     return tab
 
 
-def single_table(k0, L, n_steps: int) -> np.ndarray:
+def single_table(k0: npt.ArrayLike, L: npt.ArrayLike, n_steps: int) -> np.ndarray:
     """theta table of single runs (k0[c], L[c])."""
     ar = np.arange(n_steps)
     k0 = np.asarray(k0)[:, None]
     return ((ar >= k0) & (ar < k0 + np.asarray(L)[:, None])).astype(np.uint8)
 
 
-def evaluate(loop: Loop, X0, E0, tab, sched_idx, *, executor=None, progress=None, stages=None):
+def evaluate(loop: Loop, X0: np.ndarray, E0: np.ndarray, tab: np.ndarray, sched_idx: np.ndarray, *,
+             executor: Executor | None = None, progress: Progress | None = None,
+             stages: Stages | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(escaped, peak ||x_k||_inf) of each candidate row: trajectory b starts at X0[b] with E0[b]
     under row sched_idx[b] of ``tab``; escape by ``loop.escape`` (``sweep.classify``)."""
     st = stages or Stages(progress, [n_chunks(len(sched_idx), loop.n_steps, executor), 1])
@@ -224,7 +234,8 @@ class SingleResult:
     pool: list = field(default_factory=list)
 
 
-def least_single(loop: Loop, X0, *, E0=None, max_len: int | None = None, executor=None, progress=None,
+def least_single(loop: Loop, X0: npt.ArrayLike, *, E0: npt.ArrayLike | None = None, max_len: int | None = None,
+                 executor: Executor | None = None, progress: Progress | None = None,
                  keep_pool: bool = False) -> SingleResult:
     """The shortest single sample-aligned attack that makes the loop escape, for each initial state.
 
@@ -374,7 +385,7 @@ def _placements(lengths, n_steps: int, start: int = 0):
             yield (k,) + tail
 
 
-def all_schedules(m: int, extra: int, n_steps: int):
+def all_schedules(m: int, extra: int, n_steps: int) -> Iterator[tuple[tuple[int, int], ...]]:
     """Every schedule of m runs with total duration ``extra`` samples, as tuples of (k0, L)."""
     for ext in _compositions(extra, m):
         lengths = tuple(e + 1 for e in ext)
@@ -482,9 +493,9 @@ def _entry(n: int, runs, escaped: bool, exact: bool, T: float) -> dict:
             "intervals": runs_to_intervals(realize(runs, n), T), "exact": exact, "escaped": True}
 
 
-def worst_attack(loop: Loop, x0, *, attacks: int = 1, E0: float | None = None, max_len: int | None = None,
-                 beam: int = 16, exhaustive_limit: int = 100_000, greedy: bool = True, executor=None,
-                 progress=None) -> WorstAttack:
+def worst_attack(loop: Loop, x0: npt.ArrayLike, *, attacks: int = 1, E0: float | None = None,
+                 max_len: int | None = None, beam: int = 16, exhaustive_limit: int = 100_000, greedy: bool = True,
+                 executor: Executor | None = None, progress: Progress | None = None) -> WorstAttack:
     """The fewest lost samples S*(n), and the least duration, with which at most n = 1..``attacks``
     attacks make the loop from ``x0`` escape (the module docstring: pricing, search, exactness).
 
@@ -603,7 +614,7 @@ def worst_attack(loop: Loop, x0, *, attacks: int = 1, E0: float | None = None, m
             note += f", then beam search (width {beam}) and local descent ({sum(used)})"
         proven = min(proven, proven_n)
         found = best is not None
-        exact = proven >= samples_lost(best) if found else (proven > Lmax and Lmax == N)
+        exact = proven >= samples_lost(best) if best is not None else (proven > Lmax and Lmax == N)
         front.append(_entry(n, best, found, exact, T))
         proof.append({"attacks": n, "samples_lost_below": proven, "horizon_samples": N,
                       "schedules": sr.evaluated + enumerated})

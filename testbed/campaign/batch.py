@@ -15,14 +15,18 @@ from __future__ import annotations
 
 import json
 import tomllib
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..loop.channel import LOSS_KINDS
 from ..sim.trajectory import kernel_refusal
 
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
-def batch_key(sc, text: str, base_dir: str):
+
+def batch_key(sc: Scenario, text: str, base_dir: str) -> str | None:
     """What a run shares with the runs it can share a kernel call with; None: the per-sample simulator."""
     if kernel_refusal(sc) is not None:
         return None  # the kernel cannot run it (the one predicate of testbed simulate's kernel)

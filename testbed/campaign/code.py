@@ -18,9 +18,14 @@ from __future__ import annotations
 
 import hashlib
 import tomllib
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..common.errors import BadInput
+
+if TYPE_CHECKING:
+    from .spec import PlannedRun
 
 #: the classes this process has pinned: (kind, ref, sha256, base_dir)
 _LOADED: set = set()
@@ -30,7 +35,7 @@ def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def _refs(data: dict):
+def _refs(data: dict) -> Iterator[tuple[str, str]]:
     """(kind, reference) of the method, plant and model a resolved scenario names."""
     from .. import methods
 
@@ -44,7 +49,7 @@ def _refs(data: dict):
             yield "plant", t["name"]
 
 
-def _registry(kind: str):
+def _registry(kind: str) -> tuple:
     """(resolve, source_info, pin, check, error, ships_with_testbed) of the plants' or the methods' registry."""
     if kind == "method":
         from ..methods import registry as r
@@ -57,7 +62,7 @@ def _registry(kind: str):
             lambda ref: not pr.is_module_ref(ref) and ref in plants.names())
 
 
-def collect(runs) -> list[dict]:
+def collect(runs: Iterable[PlannedRun]) -> list[dict]:
     """The user code of ``runs`` (``spec.PlannedRun``): one entry per (kind, reference) with ``kind``, ``ref``,
     ``module``, ``class``, ``sha256``, ``source`` and ``copy`` (the copy's path in the folder, or None)."""
     out: dict = {}
@@ -74,7 +79,7 @@ def collect(runs) -> list[dict]:
     return list(out.values())
 
 
-def write_copies(folder: Path, entries: list[dict], write) -> None:
+def write_copies(folder: Path, entries: list[dict], write: Callable[[Path, str], None]) -> None:
     """Each entry's copy beside the scenarios (``write(path, text)``: atomically); a dotted module's
     packages get an empty ``__init__.py`` where they have none."""
     for e in entries:
@@ -90,7 +95,7 @@ def write_copies(folder: Path, entries: list[dict], write) -> None:
         write(path, e["source"])
 
 
-def changed(entries: list[dict], runs) -> list[str]:
+def changed(entries: list[dict], runs: Iterable[PlannedRun]) -> list[str]:
     """The entries whose module is no longer the stored one (a campaign resumed after an edit)."""
     now = {(e["kind"], e["ref"]): e["sha256"] for e in collect(runs)}
     return [f"{e['kind']} {e['ref']!r}" for e in entries if now.get((e["kind"], e["ref"]), e["sha256"]) != e["sha256"]]
@@ -115,7 +120,7 @@ def check(folder: Path, entries: list[dict]) -> list[str]:
     return out
 
 
-def _importable(e: dict, folder: Path):
+def _importable(e: dict, folder: Path) -> type | None:
     """The class the user's own path (``sys.path``) gives ``e['ref']`` when its module's sha256 is the stored
     one, else None.  A module that ``sys.path`` would find inside ``folder`` (the working directory there)
     is the folder's code, not the user's: not imported."""

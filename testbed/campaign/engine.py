@@ -10,13 +10,21 @@ the paired comparison to a reference method over the same seeds (``testbed.commo
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .. import scenario as scenario_mod
 from ..common import comparestats
 from ..common.errors import BadInput
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from ..scenario import Scenario
+    from ..sim.loop import SimResult
 
 #: the keys of one row (``testbed versus --json``)
 ROW_KEYS = ("method", "seed", "converged", "escaped", "final_norm", "max_norm", "saturations", "samples_lost",
@@ -27,24 +35,24 @@ ROW_KEYS = ("method", "seed", "converged", "escaped", "final_norm", "max_norm", 
 class Point:
     """One run: ``sc`` with ``method`` swapped in (None: its own) and the attack seed ``seed`` (None: its own)."""
 
-    sc: object
+    sc: Scenario
     method: str | None = None
     seed: int | None = None
 
-    def scenario(self):
+    def scenario(self) -> Scenario:
         """The point's scenario: the method swapped in by the one rule (``scenario.swap_method``: the
         scenario's own method keeps its params) and the attack seed (None: the scenario's own, also a
         seed drawn for it by ``scenario.with_seed``, which a swap re-reading the file would lose)."""
-        over = {}
+        over: dict[str, Any] = {}
         if self.method is not None:
             over["method"] = self.method
         seed = self.seed if self.seed is not None else attack_seed(self.sc)
-        if self.seed is not None or (seed is not None and over):
+        if seed is not None and (self.seed is not None or over):
             over["seed"] = int(seed)
         return scenario_mod.with_overrides(self.sc, over) if over else self.sc
 
 
-def attack_seed(sc) -> int | None:
+def attack_seed(sc: Scenario) -> int | None:
     """The seed of a scenario's random attack (None: the attack draws nothing)."""
     if sc.attack.kind != "random":
         return None
@@ -52,7 +60,7 @@ def attack_seed(sc) -> int | None:
     return None if s is None else int(s)
 
 
-def settle_samples(x, x_final, tol: float) -> int | None:
+def settle_samples(x: np.ndarray, x_final: npt.ArrayLike, tol: float) -> int | None:
     """The first sample k from which ||x_j||_inf < tol for every j >= k (x_N included); None if never."""
     norms = np.concatenate([np.max(np.abs(np.atleast_2d(x)), axis=1) if len(x) else np.zeros(0),
                             [float(np.max(np.abs(x_final)))]])
@@ -69,7 +77,7 @@ OUTCOME_KEYS = ("method", "bits", "converged", "escaped", "diverged", "final_nor
                 "method_fault")
 
 
-def simulate_one(sc):
+def simulate_one(sc: Scenario) -> tuple[dict, SimResult]:
     """One scenario on the per-sample simulator, as ``testbed simulate`` runs it: (its ``testbed simulate
     --json`` document, the ``SimResult``)."""
     from ..sim.batch import simulate_scenario, summarize
@@ -83,7 +91,7 @@ def outcome(s: dict) -> dict:
     return {k: s[k] for k in OUTCOME_KEYS}
 
 
-def run_point(point: Point, *, keep=False):
+def run_point(point: Point, *, keep: bool = False) -> dict | tuple[dict, Scenario, SimResult]:
     """Simulate one point; its row (``ROW_KEYS``, and ``lockstep_breaks``, ``method_fault``). ``keep``:
     also return the scenario and the ``SimResult``."""
     sc = point.scenario()
@@ -97,7 +105,8 @@ def run_point(point: Point, *, keep=False):
     return (row, sc, res) if keep else row
 
 
-def run_points(points, *, keep=False, progress=None) -> list:
+def run_points(points: Sequence[Point], *, keep: bool = False,
+               progress: Callable[[int, int], object] | None = None) -> list:
     """Every point in order (one process); ``progress(i, n)`` after each."""
     out = []
     for i, p in enumerate(points):
@@ -162,7 +171,7 @@ def summarize_rows(rows: list[dict], methods: list[str]) -> dict:
     return out
 
 
-def seeds_for(sc, n: int | None, first: int) -> list[int | None]:
+def seeds_for(sc: Scenario, n: int | None, first: int) -> list[int | None]:
     """The attack seeds S..S+N-1 (``--seeds N --seed S``), or [the scenario's own] without ``n``."""
     if n is None:
         return [None]

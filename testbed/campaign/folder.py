@@ -12,13 +12,18 @@ import math
 import os
 import platform
 import sys
+from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ..common import comparestats
 from ..common.errors import BadInput
 from . import code
 from .engine import outcome_counts, wilson
 from .spec import OUTCOME_KEYS, SEED_KEYS, Campaign, PlannedRun
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 JOURNAL = "journal.jsonl"
 
@@ -69,7 +74,7 @@ def default_dir(c: Campaign) -> Path:
     return Path("recordings") / f"campaign-{c.stem}"
 
 
-def prepare(c: Campaign, runs: list[PlannedRun], folder: Path, base) -> None:
+def prepare(c: Campaign, runs: list[PlannedRun], folder: Path, base: Scenario) -> None:
     """Create ``folder`` (campaign copy, scenarios, manifest) or check that it holds this campaign."""
     cp = folder / "campaign.toml"
     man = folder / "manifest.json"
@@ -143,7 +148,7 @@ def source_hash() -> str:
     return "sha256:" + h.hexdigest()
 
 
-def manifest(c: Campaign, runs: list[PlannedRun], base, stored: list[dict] | None = None) -> dict:
+def manifest(c: Campaign, runs: list[PlannedRun], base: Scenario, stored: list[dict] | None = None) -> dict:
     """What the folder holds and what made it; ``code``: the user code of the runs (``code.collect``:
     each method's and plant's reference, module, class, source text, sha256 and its copy's path)."""
     __version__ = sys.modules["testbed"].__version__  # the package's face is a layer above: read, not imported
@@ -214,7 +219,7 @@ def read_parquet(path: Path) -> list[dict]:
     return pq.read_table(path).to_pylist()
 
 
-def _median(v):
+def _median(v: Iterable[float | None]) -> float | None:
     v = sorted(x for x in v if x is not None and not (isinstance(x, float) and math.isnan(x)))
     if not v:
         return None
@@ -271,7 +276,7 @@ def summarize(c: Campaign, runs: list[PlannedRun], rows: list[dict]) -> dict:
                                    for p in json.loads(r["partial_recordings"])]}
 
 
-def _fmt(v, spec=".3g"):
+def _fmt(v: float | None, spec: str = ".3g") -> str:
     return "-" if v is None else format(v, spec)
 
 
@@ -280,7 +285,7 @@ def summary_md(s: dict) -> str:
              f"Scenario `{s['scenario']}`, {s['runs_kind']} runs: {s['done']} of {s['planned']} done, "
              f"{s['failed']} failed. Success: {s['success']}; interval: {s['interval']}.", ""]
 
-    def table(title, head, groups):
+    def table(title: str, head: str, groups: Iterable[tuple[str, Any]]) -> list[str]:
         out = [f"## {title}", "", f"| {head} | runs | success | rate | 95 % Wilson | bounded | escaped | median "
                "final norm | median max norm | median saturations |", "|---|---|---|---|---|---|---|---|---|---|"]
         for label, g in groups:

@@ -73,7 +73,7 @@ def simulate_runs_per_sample(items: list) -> list[dict]:
     return simulate_runs(items, batch=False)
 
 
-def _failed(rid, e, t0) -> dict:
+def _failed(rid: str, e: BaseException, t0: float) -> dict:
     return {"run": rid, **{k: None for k in OUTCOME_KEYS}, "status": "failed", "error": f"{type(e).__name__}: {e}",
             "simulator": None, "wall_s": time.perf_counter() - t0}
 

@@ -11,6 +11,7 @@ import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..common.errors import BadInput
 from ..common.progress import RunsProgress as Progress
@@ -18,6 +19,10 @@ from . import code
 from .folder import Journal, prepare, read_journal, read_parquet, source_hash, versions, write_results
 from .rows import live_run, simulate_runs, simulate_runs_per_sample
 from .spec import OUTCOME_KEYS, Campaign, PlannedRun, base_scenario, plan
+
+if TYPE_CHECKING:
+
+    from ..analysis.parallel import Executor
 
 
 def chunks(items: list, workers: int, dask: bool) -> list[list]:
@@ -28,8 +33,8 @@ def chunks(items: list, workers: int, dask: bool) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
 
 
-def run(c: Campaign, folder: Path, *, executor=None, progress: bool = True, live_timeout: float | None = None,
-        notes=None, planned: tuple | None = None) -> dict:
+def run(c: Campaign, folder: Path, *, executor: Executor | None = None, progress: bool = True,
+        live_timeout: float | None = None, notes: list[str] | None = None, planned: tuple | None = None) -> dict:
     """Run every run of ``c`` not yet finished in ``folder``; write the table and summaries.  ``planned``:
     ``(base scenario, runs, notes)`` of ``plan`` when the caller has them already (planning validates
     every run: seconds for a large campaign).
@@ -178,7 +183,8 @@ def _same(a, b) -> bool:
     return a == b
 
 
-def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor=None, trust_code: bool = False) -> dict:
+def verify(folder: Path, *, sample: int | None = None, seed: int = 0, executor: Executor | None = None,
+           trust_code: bool = False) -> dict:
     """Re-run the rows of a campaign's folder and compare: simulated rows bit for bit (every one, or
     ``sample`` drawn with ``seed``), live rows re-simulated from their recordings; the versions that
     differ from the manifest's.  Each row that differs is one entry saying why (``why``: the re-run's
@@ -322,7 +328,7 @@ def _norm(v):
 PLOT_OUTCOMES = (("converged", "converged"), ("escaped", "escaped"))
 
 
-def plot(path, c: Campaign, summary: dict, size: str = "page") -> Path:
+def plot(path: str | Path, c: Campaign, summary: dict, size: str = "page") -> Path:
     """The rates of converged and of escaped runs (each with its 95 % Wilson interval) over the first axis of
     more than one value (not a seed, where there is another), one series per value of the second such axis
     (the others pooled).  In the one figure style (``testbed.common.figstyle``): categorical values are points side

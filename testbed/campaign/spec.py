@@ -26,6 +26,7 @@ import json
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .. import scenario as scenario_mod
 from ..common import validate
@@ -36,6 +37,9 @@ from ..scenario.sections import SECTIONS
 from ..scenario.spec import ScenarioError
 from ..scenario.write import to_toml
 from . import engine
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 #: the outcome columns of a row: keys of ``testbed simulate --json`` (and ``testbed report --json``)
 OUTCOME_KEYS = engine.OUTCOME_KEYS
@@ -166,7 +170,7 @@ class PlannedRun:
     def sha256(self) -> str:
         return hashlib.sha256(self.text.encode()).hexdigest()
 
-    def scenario(self):
+    def scenario(self) -> Scenario:
         return scenario_mod.loads(self.text, name=self.name, where=f"run {self.id}", base_dir=self.base_dir or None,
                                   read_recording_trace=read_recording_trace)
 
@@ -180,7 +184,7 @@ def derived_seed(campaign_seed: int, choice: str, axes: dict, repeat: int) -> in
     return int.from_bytes(hashlib.sha256(doc.encode()).digest()[:8], "big") % (2 ** 31)
 
 
-def base_scenario(c: Campaign):
+def base_scenario(c: Campaign) -> Scenario:
     """The campaign's scenario (a path is relative to the campaign file)."""
     ref = c.scenario
     p = Path(ref)
@@ -259,7 +263,7 @@ def _resolve(base, axes: dict, seeds_from, methods: dict | None = None) -> tuple
     return data, seeds, note
 
 
-def plan(c: Campaign, base=None) -> tuple[list[PlannedRun], list[str]]:
+def plan(c: Campaign, base: Scenario | None = None) -> tuple[list[PlannedRun], list[str]]:
     """Every run of campaign ``c``, resolved and validated (``BadInput`` naming the axis, the value and
     the reason for a bad one), and the notes (once per campaign)."""
     base = base_scenario(c) if base is None else base

@@ -10,6 +10,7 @@ reference) over those pairs (``engine.compare_paired``: the statistics of ``test
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 
 from . import engine
 from .spec import SEED_KEYS
@@ -54,21 +55,21 @@ def comparisons(axes: dict, rows: list[dict]) -> dict:
     return out
 
 
-def _same(a, b) -> bool:
+def _same(a: object, b: object) -> bool:
     if isinstance(a, str) and not isinstance(b, str):  # an axis of mixed values is JSON text in the table
         return a == json.dumps(b)
     return a == b or (isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) and list(a) == list(b))
 
 
 # ============================================================================ formatting
-def fmt_p(p) -> str:
+def fmt_p(p: float | None) -> str:
     """A p value as a table prints it: ``p = 0.0625``, ``p < 0.001`` (``p -`` without one)."""
     if p is None:
         return "p -"
     return "p < 0.001" if p < 0.001 else f"p = {p:.3g}"
 
 
-def fmt_ci(est, ci, spec: str = "+.2f") -> str:
+def fmt_ci(est: float | None, ci: Sequence[float] | None, spec: str = "+.2f") -> str:
     """``est [lo, hi]`` (the estimate signed; ``-`` without an estimate, the estimate alone without an
     interval)."""
     if est is None:
@@ -134,7 +135,7 @@ def table_rows(summary: dict) -> list[tuple[str, str, list[list[str]], str]]:
 HEAD = ("runs", "converged [95 % CI]", "bounded", "escaped")
 
 
-def _label(v) -> str:
+def _label(v: object) -> str:
     return v if isinstance(v, str) else json.dumps(v)
 
 

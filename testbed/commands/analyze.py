@@ -18,14 +18,20 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..common import cliargs
 from ..common.progress import Progress
 from ..record.tracereader import read_recording_trace
+
+if TYPE_CHECKING:
+    from plants.base import Plant
+
+    from ..scenario import Scenario
 
 
 # ============================================================================ shared options
@@ -75,7 +81,7 @@ def _write_json(obj) -> None:
     sys.stdout.write("\n")
 
 
-def true_plant(sc, what: str):
+def true_plant(sc: Scenario, what: str) -> Plant:
     """The true plant ([plant]) for the batch simulator, or one line (exit 2) when it is an FMU.
 
     The experiments (sweeps, vulnerable states, the worst attack, escape searches) run
@@ -85,6 +91,7 @@ def true_plant(sc, what: str):
     from ..common.errors import BadInput
 
     if sc.plant.fmu is not None:
+        assert sc.model is not None  # an FMU plant needs a [model]
         raise BadInput(f"the true plant is the FMU {Path(sc.plant.fmu.path).name}, which the batch simulator of "
                        f"{what} cannot run (it integrates equation (1) plants only): run {what} on a copy of the "
                        f"scenario whose [plant] is its [model] (name = \"{sc.model.name}\"), or the FMU itself with "
@@ -92,7 +99,7 @@ def true_plant(sc, what: str):
     return sc.make_plant()
 
 
-def plant_and_model(sc) -> dict:
+def plant_and_model(sc: Scenario) -> dict:
     """``plant``, ``model`` and their parameters for the JSON outputs (``testbed.sim.batch.plant_and_model``),
     and ``not_modelled``: what of the scenario the analysis leaves out (:func:`not_modelled`)."""
     from ..sim.batch import plant_and_model as names
@@ -100,7 +107,7 @@ def plant_and_model(sc) -> dict:
     return {**names(sc), "not_modelled": not_modelled(sc)}
 
 
-def not_modelled(sc) -> list[str]:
+def not_modelled(sc: Scenario) -> list[str]:
     """The tables of ``sc`` that the analysis leaves out: it runs the paper's loop (Assumptions 3 and 4: the
     attacker is the only cause of loss; the plant's state is measured and its input applied exactly), so a
     ``[network]`` channel and a device around the plant (``[plant.sensor]``, ``[plant.actuator]``,
@@ -112,7 +119,7 @@ def not_modelled(sc) -> list[str]:
     return out + ([f"[plant.{t}]" for t in TABLES if getattr(dev, t) is not None] if dev is not None else [])
 
 
-def note_not_modelled(sc, prog: str) -> None:
+def note_not_modelled(sc: Scenario, prog: str) -> None:
     """One line on stderr when the analysis leaves part of the scenario out (:func:`not_modelled`)."""
     left = not_modelled(sc)
     if left:
@@ -366,7 +373,7 @@ def _escape_arg(v, sc):
     return x
 
 
-def figure_paths(plot: str | Path, scenario_name: str, *, create: bool = True):
+def figure_paths(plot: str | Path, scenario_name: str, *, create: bool = True) -> Callable[[str], Path]:
     """``--plot`` of analyze: a figure path (the allowable region there, the rest beside it, in its format)
     or a folder (``<scenario>-<figure>.png`` there); an unknown extension is a ``BadInput``."""
     from ..common.errors import BadInput
@@ -406,7 +413,7 @@ def _analyze_plots(sc, res, extra, plot: Path, args) -> list[str]:
         roa = nominal_roa(plant, sc.K, sc.T, grid=101, horizon=30.0, tol=sc.run.converge_tol, flow=sc.flow,
                           progress=Progress("region of attraction", not args.no_progress))
     trajs = [(f"the scenario's run from $x_0$ = {np.round(sc.x0, 3).tolist()}", sim.x, None)]
-    esc = None
+    esc: tuple[float | None, Any] | None = None
     if isinstance(args.escape_x0, str):  # "auto"
         esc = find_escape(sc)
         if esc is None:
@@ -465,7 +472,7 @@ def budget_label(res: dict) -> str:
 PAPER_DELTA = 1.94e-7
 
 
-def is_paper_example(sc) -> bool:
+def is_paper_example(sc: Scenario) -> bool:
     """The paper's example: the Lienard plant with the paper's parameters, T and K (the bundled ``paper*``)."""
     from .. import scenario
 

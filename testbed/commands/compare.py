@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
 from ..common import cliargs
 from ..runs.compare import (
@@ -15,8 +16,11 @@ from ..runs.compare import (
     plot,
 )
 
+if TYPE_CHECKING:
+    from ..runs.run import Run
 
-def _name(run) -> str:
+
+def _name(run: Run) -> str:
     """A run as a figure names it: its scenario and where it came from (not a file path)."""
     kind = {"live": "live run", "simulate": "simulation"}.get(run.source, run.source)
     return f"{run.scenario.name}, {kind}"

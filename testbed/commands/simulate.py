@@ -5,8 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..common import cliargs
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from ..scenario import Scenario
 
 
 def add_arguments_simulate(p: argparse.ArgumentParser) -> None:
@@ -133,7 +140,7 @@ def main_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def recorded_latency(path, sc):
+def recorded_latency(path: str | Path, sc: Scenario) -> np.ndarray:
     """The latency [ns] of u_k per sample in a recorded run: when it reached the plant after t_k (a lost
     sample's counted from the controller's loss deadline); a sample without a record: the latest one."""
     import numpy as np

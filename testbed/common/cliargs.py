@@ -19,6 +19,7 @@ Exit codes: 0 ok, 1 the run or job failed, 2 bad input (``testbed.common.errors`
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from typing import Any, Protocol
 
 
@@ -86,7 +87,7 @@ def add_scenario(p: Arguments) -> None:
     p.add_argument("scenario", help="scenario file (.toml) or bundled name (see 'testbed scenarios')")
 
 
-def int_at_least(low: int, *, or_all: bool = False):
+def int_at_least(low: int, *, or_all: bool = False) -> Callable[[str], int | None]:
     """An argparse ``type``: an integer >= ``low``; with ``or_all`` also the word ``all`` (read as None)."""
     what = f"an integer >= {low}" + (" or 'all'" if or_all else "")
 

@@ -21,6 +21,8 @@ interval.  Every function takes plain sequences and returns plain floats (JSON-r
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -45,7 +47,7 @@ METHODS = {
 }
 
 
-def _stats():
+def _stats() -> Any:
     import scipy.stats
 
     return scipy.stats
@@ -109,25 +111,25 @@ def newcombe_paired(both: int, a_only: int, b_only: int, neither: int,
     return max(-1.0, lo), min(1.0, hi)
 
 
-def paired_binary(a, b) -> dict:
+def paired_binary(a: Sequence[bool | int | None], b: Sequence[bool | int | None]) -> dict:
     """Paired 0/1 outcomes ``a`` and ``b`` (the same seeds, in the same order): the table (``both``,
     ``a_only``, ``b_only``, ``neither``, ``n``), ``difference`` = rate of a - rate of b, its ``ci95``
     (Newcombe) and ``mcnemar_p`` (exact).  n = 0: difference, interval and p None."""
-    a = [bool(x) for x in a]
-    b = [bool(x) for x in b]
-    if len(a) != len(b):
-        raise ValueError(f"paired outcomes of different lengths ({len(a)} and {len(b)})")
-    both = sum(x and y for x, y in zip(a, b))
-    a_only = sum(x and not y for x, y in zip(a, b))
-    b_only = sum(y and not x for x, y in zip(a, b))
-    n = len(a)
+    xa = [bool(x) for x in a]
+    xb = [bool(x) for x in b]
+    if len(xa) != len(xb):
+        raise ValueError(f"paired outcomes of different lengths ({len(xa)} and {len(xb)})")
+    both = sum(x and y for x, y in zip(xa, xb))
+    a_only = sum(x and not y for x, y in zip(xa, xb))
+    b_only = sum(y and not x for x, y in zip(xa, xb))
+    n = len(xa)
     ci = newcombe_paired(both, a_only, b_only, n - both - a_only - b_only)
     return {"n": n, "both": both, "a_only": a_only, "b_only": b_only, "neither": n - both - a_only - b_only,
             "difference": (a_only - b_only) / n if n else None, "ci95": None if ci is None else list(ci),
             "mcnemar_p": mcnemar_exact(a_only, b_only) if n else None}
 
 
-def wilcoxon(d) -> tuple[float | None, str]:
+def wilcoxon(d: np.ndarray) -> tuple[float | None, str]:
     """The two-sided Wilcoxon signed-rank p of differences ``d`` (zeros dropped) and how it was computed:
     ``exact`` (no ties), ``all sign assignments`` (ties, at most ``EXACT_WITH_TIES`` nonzero differences),
     ``normal approximation`` (with tie correction); (1.0, ``all differences zero``); (None, ``no pairs``)."""
@@ -149,7 +151,7 @@ def wilcoxon(d) -> tuple[float | None, str]:
     return min(1.0, p), how
 
 
-def bootstrap_median(d, seed: int = 0, n_resamples: int = RESAMPLES) -> tuple[float, float] | None:
+def bootstrap_median(d: np.ndarray, seed: int = 0, n_resamples: int = RESAMPLES) -> tuple[float, float] | None:
     """The 95 % percentile bootstrap interval of the median of ``d`` (resampled with ``seed``); None for
     fewer than 2 values; [v, v] when every value is v."""
     d = np.asarray(d, dtype=float)
@@ -163,14 +165,14 @@ def bootstrap_median(d, seed: int = 0, n_resamples: int = RESAMPLES) -> tuple[fl
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
-def paired_continuous(a, b, seed: int = 0) -> dict:
+def paired_continuous(a: Sequence[float | None], b: Sequence[float | None], seed: int = 0) -> dict:
     """Paired values ``a`` and ``b`` (None or a non-finite value: that pair is left out, counted in
     ``missing``): ``n`` pairs, ``median_a``, ``median_b``, ``median_difference`` (median of a - b), its
     ``ci95`` (percentile bootstrap), ``wilcoxon_p`` and ``wilcoxon_method``, ``zero_differences``."""
     if len(a) != len(b):
         raise ValueError(f"paired values of different lengths ({len(a)} and {len(b)})")
 
-    def ok(v):
+    def ok(v: float | None) -> TypeGuard[float]:
         return v is not None and not isinstance(v, bool) and math.isfinite(float(v))
 
     pairs = [(float(x), float(y)) for x, y in zip(a, b) if ok(x) and ok(y)]

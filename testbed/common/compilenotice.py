@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from typing import TextIO
 
 #: seconds a compilation may take silently
 DELAY = 1.0
@@ -87,7 +88,7 @@ class _Notice:
             print(f"testbed: compiled in {time.perf_counter() - self.t0:.1f} s", file=self._out(), flush=True)
 
 
-def install(stream=None, delay: float = DELAY) -> None:
+def install(stream: TextIO | None = None, delay: float = DELAY) -> None:
     """Listen to numba's compilations in this process (once; later calls do nothing)."""
     global _installed
     if _installed:

@@ -10,6 +10,8 @@ import argparse
 import importlib
 import os
 import sys
+from collections.abc import Callable
+from types import ModuleType
 
 from .errors import EPILOG
 
@@ -28,13 +30,13 @@ def ident(name: str) -> str:
     return name.replace("-", "_")
 
 
-def add_command_arguments(parser: argparse.ArgumentParser, mod, name: str) -> None:
+def add_command_arguments(parser: argparse.ArgumentParser, mod: ModuleType, name: str) -> None:
     """The arguments of command ``name`` of module ``mod`` (``add_arguments_NAME`` or ``add_arguments``)."""
     adder = getattr(mod, f"add_arguments_{ident(name)}", None) or mod.add_arguments
     adder(parser)
 
 
-def runner_of(mod, name: str):
+def runner_of(mod: ModuleType, name: str) -> Callable[[argparse.Namespace], int | None]:
     """The function that runs command ``name`` of module ``mod`` (``main_NAME`` or ``main``)."""
     return getattr(mod, f"main_{ident(name)}", None) or mod.main
 
@@ -54,7 +56,7 @@ def run_child(argv: list[str]) -> int:
     return run_command(module, argv[0], argv[1:], help_)
 
 
-def run_guarded(runner, args, prog: str) -> int:
+def run_guarded(runner: Callable[[argparse.Namespace], int | None], args: argparse.Namespace, prog: str) -> int:
     """Run a command: bad input is one line and exit 2, an internal error one line and exit 1.
 
     ``TESTBED_TRACEBACK=1`` re-raises instead (for bug reports).

@@ -20,11 +20,20 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Iterable
+from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import BadInput
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.legend import Legend
+    from matplotlib.patches import Patch
 
 #: file formats, by extension
 FORMATS = (".png", ".pdf", ".svg")
@@ -48,7 +57,7 @@ AB_STYLES = ("-", "--")
 METADATA_KEY = "testbed-data"
 
 
-def check_path(path) -> Path:
+def check_path(path: str | Path) -> Path:
     """``path`` if its extension is a known format (``.png``, ``.pdf``, ``.svg``), else ``BadInput``."""
     p = Path(path)
     if p.suffix.lower() not in FORMATS:
@@ -79,7 +88,7 @@ def rc(size: str = "page") -> dict:
     }
 
 
-def pyplot():
+def pyplot() -> Any:
     """``matplotlib.pyplot`` on the Agg backend (no display needed)."""
     os.environ.setdefault("MPLBACKEND", "Agg")
     import matplotlib
@@ -90,7 +99,8 @@ def pyplot():
     return plt
 
 
-def subplots(size: str = "page", nrows: int = 1, ncols: int = 1, *, aspect: float = 0.62, **kw):
+def subplots(size: str = "page", nrows: int = 1, ncols: int = 1, *, aspect: float = 0.62,
+             **kw: Any) -> tuple[Figure, np.ndarray]:
     """``(fig, axes)`` of the style: ``size`` sets the width; the height is ``aspect`` x the width per
     row of a one-column layout (``aspect * width * nrows / ncols``)."""
     plt = pyplot()
@@ -106,12 +116,12 @@ def panels(size: str, n: int) -> tuple[int, int]:
     return (n, 1) if size == "column" else (1, n)
 
 
-def style(size: str = "page"):
+def style(size: str = "page") -> AbstractContextManager[None]:
     """``with style(size):`` draw a figure in the style (matplotlib reads most settings when an artist is made)."""
     return pyplot().rc_context(rc(size))
 
 
-def shade_dos(ax, spans, *, T: float = 0.0, label: bool = True):
+def shade_dos(ax: Axes, spans: Iterable[tuple[float, float]], *, T: float = 0.0, label: bool = True) -> None:
     """Shade DoS intervals [(start, end), ...] on a time axis; the first span is labelled "DoS"."""
     first = True
     for a, b in spans:
@@ -120,14 +130,15 @@ def shade_dos(ax, spans, *, T: float = 0.0, label: bool = True):
         first = False
 
 
-def dos_handle(label: str = "DoS"):
+def dos_handle(label: str = "DoS") -> Patch:
     """The legend entry of the DoS shading (for legends made of explicit handles)."""
     from matplotlib.patches import Patch
 
     return Patch(color=DOS_COLOR, alpha=DOS_ALPHA, lw=0, label=label)
 
 
-def legend_below(fig, handles=None, *, ncol: int | None = None, axes=None):
+def legend_below(fig: Figure, handles: list[Any] | None = None, *, ncol: int | None = None,
+                 axes: Iterable[Axes] | None = None) -> Legend | None:
     """One legend under the axes, outside the data (constrained layout makes room for it)."""
     if handles is None:
         handles = []
@@ -164,7 +175,7 @@ def _round(a) -> np.ndarray:
     return np.where(np.isfinite(a), r, a)
 
 
-def data_digest(fig) -> str:
+def data_digest(fig: Any) -> str:
     """SHA-256 of what the figure shows: the data of every line, image, collection and patch and
     every text (titles, labels, legends), axes by axes, insets and colorbars included."""
     from matplotlib.axes import Axes
@@ -213,7 +224,7 @@ def data_digest(fig) -> str:
     return h.hexdigest()
 
 
-def save(fig, path) -> Path:
+def save(fig: Figure, path: str | Path) -> Path:
     """Write ``fig`` in the format of ``path``'s extension, with the digest of its data in the metadata."""
     path = check_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -233,7 +244,7 @@ def save(fig, path) -> Path:
     return path
 
 
-def read_digest(path) -> str | None:
+def read_digest(path: str | Path) -> str | None:
     """The data digest stored in a figure file by :func:`save` (None if it has none)."""
     path = Path(path)
     ext = path.suffix.lower()

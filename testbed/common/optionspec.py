@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 #: every command that receives live-run options
 COMMANDS = ("run", "node", "record", "conformance", "simulate")
@@ -51,7 +53,7 @@ class Option:
         return dataclasses.replace(self, **self.per.get(command, {}), per={}) if command in self.per else self
 
 
-def option(default: Any = None, help: str = "", *, commands: tuple[str, ...] = ("node",), **kw) -> Any:
+def option(default: Any = None, help: str = "", *, commands: tuple[str, ...] = ("node",), **kw: Any) -> Any:
     """A dataclass field that is a command-line option (``Option``'s attributes as keywords)."""
     kw.setdefault("switch", default is False and "kind" not in kw)
     meta = {"option": Option(help=help, commands=tuple(commands), **kw)}
@@ -60,7 +62,7 @@ def option(default: Any = None, help: str = "", *, commands: tuple[str, ...] = (
     return field(default=default, metadata=meta)
 
 
-def options(cls, command: str | None = None) -> Iterator[tuple[dataclasses.Field, Option]]:
+def options(cls: type, command: str | None = None) -> Iterator[tuple[dataclasses.Field, Option]]:
     """The option fields of a configuration class (those ``command`` receives), in their order."""
     for f in dataclasses.fields(cls):
         o = f.metadata.get("option")
@@ -81,13 +83,14 @@ def default_of(f: dataclasses.Field, o: Option) -> Any:
     return f.default
 
 
-def defaults(cls, command: str) -> dict:
+def defaults(cls: type, command: str) -> dict:
     """The fields of ``cls`` that ``command`` receives, as that command's flags default them."""
     return {f.name: tuple(d) if isinstance(d := default_of(f, o), list) else (() if d is None and isinstance(
         f.default, tuple) else d) for f, o in options(cls, command)}
 
 
-def add_arguments(p, cls, command: str, *, group=None, section: str | None = None, names=None) -> None:
+def add_arguments(p: argparse._ActionsContainer, cls: type, command: str, *, group: argparse._ActionsContainer | None = None,
+                  section: str | None = None, names: Collection[str] | None = None) -> None:
     """The flags of ``cls``'s options that ``command`` receives: into ``group`` (a parser or an argument group)
     when given, else into each option's own group of ``p`` (made once, in the order of first use), or ``p``;
     ``section``: only the options of that group, ``names``: only these fields."""
@@ -102,6 +105,7 @@ def add_arguments(p, cls, command: str, *, group=None, section: str | None = Non
             if o.group not in groups:
                 groups[o.group] = p.add_argument_group(o.group)
             target = groups[o.group]
+        assert target is not None  # group, p or the option's group
         flags = [n for n in (o.short, flag_of(f, o)) if n]
         kw: dict[str, Any] = {"help": argparse.SUPPRESS if o.hidden else o.help}
         if o.switch:
@@ -125,7 +129,7 @@ def add_arguments(p, cls, command: str, *, group=None, section: str | None = Non
         target.add_argument(*flags, dest=f.name, **kw)
 
 
-def values(cls, args, command: str) -> dict:
+def values(cls: type, args: argparse.Namespace, command: str) -> dict:
     """The fields of ``cls`` that ``command`` receives, from a parsed command line (each converted once)."""
     out = {}
     for f, o in options(cls, command):
@@ -138,16 +142,16 @@ def values(cls, args, command: str) -> dict:
     return out
 
 
-def from_args(cls, args, command: str, **given):
+def from_args(cls: type[T], args: argparse.Namespace, command: str, **given: Any) -> T:
     """``cls`` built from a parsed command line of ``command`` (``given``: the fields that are not options)."""
     return cls(**values(cls, args, command), **given)
 
 
-def _text(v) -> str:
+def _text(v: object) -> str:
     return repr(v) if isinstance(v, float) else str(v)
 
 
-def argv(cfg, command: str) -> list[str]:
+def argv(cfg: object, command: str) -> list[str]:
     """The flags of ``command`` that make ``cfg``'s options again: ``--NAME VALUE`` for each value that is set
     (each element of a tuple on its own), ``--NAME`` for each switch that is on."""
     out: list[str] = []
@@ -166,7 +170,7 @@ def argv(cfg, command: str) -> list[str]:
     return out
 
 
-def _cell(v) -> str:
+def _cell(v: object) -> str:
     if v is None or v in ((), [], {}) or v is False:
         return ""
     return f"`{v}`"
@@ -176,7 +180,7 @@ def _md(text: str) -> str:
     return text.replace("|", "\\|")
 
 
-def table(classes, commands: tuple[str, ...] = ("run", "node", "record", "conformance")) -> str:
+def table(classes: Iterable[type], commands: tuple[str, ...] = ("run", "node", "record", "conformance")) -> str:
     """The options table of docs/cli.md: a row per option of ``classes`` and per form of it (the commands that take
     it alike: flag, default and help), and whether it enters the run's start digest."""
     rows = ["| option | commands | default | run digest | what it does |", "|---|---|---|---|---|"]

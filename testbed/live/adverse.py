@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 from ..wire import messages as msg
@@ -138,14 +139,14 @@ def targets(f: dict) -> tuple[int, int]:
     return k, k + 1
 
 
-def plant_judge(acted: dict, sent: dict, n_steps: int, u_max: float):
+def plant_judge(acted: dict, sent: dict, n_steps: int, u_max: float) -> Callable[[str, dict], tuple[str, str]]:
     """A plant's judge (``verdicts``): at each targeted sample, the u that acted (its telemetry: ``acted``,
     k -> (u, flags)) is the controller's genuine u_k (its actuation record: ``sent``, k -> u), compared bit for
     bit after the plant's saturation at ``u_max``; where the plant reports u_k missing (flags bit 1) it acted
     u = 0 and took no copy for it."""
     from ..wire.messages import PlantTelemetry
 
-    def clip(u):
+    def clip(u: Iterable[float]) -> tuple[float, ...]:
         return tuple(min(max(float(v), -u_max), u_max) for v in u)
 
     def judge(case: str, f: dict) -> tuple[str, str]:
@@ -169,7 +170,8 @@ def plant_judge(acted: dict, sent: dict, n_steps: int, u_max: float):
     return judge
 
 
-def loop_judge(first: int | None, differs_in: list, repeated: dict, what: str):
+def loop_judge(first: int | None, differs_in: list, repeated: dict,
+               what: str) -> Callable[[str, dict], tuple[str, str]]:
     """The judge (``verdicts``) of a node of the loop (an encoder, a controller, an attacker): at the targeted
     samples, what the loop computed (``what``: the node's observable) equals the testbed's nodes re-run on
     the plant's reported states from the genuine messages (``first``: that replay's first differing sample,
@@ -191,7 +193,8 @@ def loop_judge(first: int | None, differs_in: list, repeated: dict, what: str):
     return judge
 
 
-def verdicts(fed: dict, error: str | None, judge, *, node_counts: dict) -> list[dict]:
+def verdicts(fed: dict, error: str | None, judge: Callable[[str, dict], tuple[str, str]], *,
+             node_counts: dict) -> list[dict]:
     """One verdict per case, from what the node did with the copy at the samples it targets (``targets``):
     ``judge(case, fed[case])`` -> (status, why) (``plant_judge``, ``loop_judge``); a case not fed is
     inconclusive."""

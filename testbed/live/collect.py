@@ -20,13 +20,20 @@ import hashlib
 import struct
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..record.faults import Fault
 from ..wire import messages as msg
 from ..wire import transport
+
+if TYPE_CHECKING:
+    from ..record.columns import ColumnBuilder, Columns
+    from ..record.summary import ColumnChunks
+    from ..scenario import Scenario
 
 PT = msg.PlantTelemetry
 
@@ -38,14 +45,14 @@ class Spill:
     #: bytes read at a time at the end of the run (a record longer than this is read whole)
     CHUNK = 1 << 20
 
-    def __init__(self, path):
+    def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.f = open(self.path, "w+b", buffering=1 << 20)
 
     def write(self, ri: int, b: bytes) -> None:
         self.f.write(self.HEAD.pack(ri, len(b)) + b)
 
-    def records(self, chunk: int | None = None):
+    def records(self, chunk: int | None = None) -> Iterator[tuple[int, bytes]]:
         """Every ``(role index, record bytes)`` in the order written, read ``chunk`` bytes at a time."""
         chunk = int(chunk or self.CHUNK)
         head = self.HEAD
@@ -66,7 +73,7 @@ class Spill:
                 if not more:
                     return
 
-    def blocks(self, chunk: int | None = None):
+    def blocks(self, chunk: int | None = None) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
         """The file ``chunk`` bytes at a time: ``(bytes, role indices, offsets, lengths)`` of the whole records
         in each read (the arrays index the bytes), in the order written."""
         chunk = int(chunk or self.CHUNK)
@@ -94,7 +101,7 @@ class Spill:
                 if not more:
                     return
 
-    def decoded(self):
+    def decoded(self) -> Iterator[tuple[int, Any]]:
         """Every ``(role index, telemetry dataclass)``, as ``records`` reads them."""
         types = [msg.TELEMETRY_TYPES[r] for r in transport.ROLES]
         for ri, b in self.records():
@@ -112,7 +119,7 @@ class Collector:
     #: records of each node kept in memory when they are spilled to a file (the stall watch reads them)
     RECENT = 1024
 
-    def __init__(self, session, keys: transport.Keys, n_steps: int, spill=None):
+    def __init__(self, session: Any, keys: transport.Keys, n_steps: int, spill: str | Path | None = None) -> None:
         import zenoh
 
         self._zenoh = zenoh
@@ -121,7 +128,8 @@ class Collector:
         self.rejected = 0        # telemetry records for a sample outside [0, N), or a second copy of one
         self.events_dropped = 0
         self.lock = threading.Lock()
-        self.tele: dict[str, dict[int, object]] = {r: {} for r in transport.ROLES}  # all, or the recent ones
+        # each role's telemetry records by k (of ``msg.TELEMETRY_TYPES[role]``): all, or the recent ones
+        self.tele: dict[str, dict[int, Any]] = {r: {} for r in transport.ROLES}
         self._seen = {r: bytearray(self.n_steps // 8 + 1) for r in transport.ROLES}  # one bit per sample
         self._spill = None if spill is None else Spill(spill)
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
@@ -151,7 +159,7 @@ class Collector:
             session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True),
         ]
 
-    def _on_telemetry(self, sample) -> None:
+    def _on_telemetry(self, sample: Any) -> None:
         role = transport.Keys.node_of(sample.key_expr)
         typ = msg.TELEMETRY_TYPES.get(role)
         if typ is None:
@@ -192,7 +200,7 @@ class Collector:
                 for k in [k for k in d if k < keep]:
                     del d[k]
 
-    def _on_event(self, sample) -> None:
+    def _on_event(self, sample: Any) -> None:
         try:
             e = msg.Event.decode(sample.payload)
         except msg.MessageError:
@@ -204,7 +212,7 @@ class Collector:
             else:
                 self.events_dropped += 1
 
-    def _on_summary(self, sample) -> None:
+    def _on_summary(self, sample: Any) -> None:
         try:
             s = msg.NodeSummary.decode(sample.payload)
         except msg.MessageError:
@@ -216,7 +224,7 @@ class Collector:
         with self.lock:
             self.summaries[s.node] = s.data
 
-    def _on_status(self, sample) -> None:
+    def _on_status(self, sample: Any) -> None:
         try:
             s = msg.AttackerStatus.decode(sample.payload)
         except msg.MessageError:
@@ -225,7 +233,7 @@ class Collector:
             if len(self.status) < self.MAX_EVENTS:
                 self.status.append(s)
 
-    def _on_start(self, sample) -> None:
+    def _on_start(self, sample: Any) -> None:
         try:
             s = msg.Start.decode(sample.payload)
         except msg.MessageError:
@@ -235,7 +243,7 @@ class Collector:
                 self.start = s
                 self.start_rx_mono = time.monotonic_ns()
 
-    def _on_stop(self, sample) -> None:
+    def _on_stop(self, sample: Any) -> None:
         try:
             s = msg.Stop.decode(sample.payload)
         except msg.MessageError:
@@ -244,14 +252,14 @@ class Collector:
             if len(self.stops) < 100:
                 self.stops.append(s)
 
-    def _on_alive(self, sample) -> None:
+    def _on_alive(self, sample: Any) -> None:
         node = transport.Keys.node_of(sample.key_expr)
         alive = sample.kind != self._zenoh.SampleKind.DELETE
         with self.lock:
             self.liveliness.append((time.monotonic_ns(), node, alive))
             (self.alive.add if alive else self.alive.discard)(node)
 
-    def _on_ready(self, sample) -> None:
+    def _on_ready(self, sample: Any) -> None:
         node = transport.Keys.node_of(sample.key_expr)
         with self.lock:
             (self.ready.discard if sample.kind == self._zenoh.SampleKind.DELETE else self.ready.add)(node)
@@ -265,12 +273,12 @@ class Collector:
         with self.lock:
             return self.top.get(role, -1)
 
-    def record(self, role: str, k: int):
+    def record(self, role: str, k: int) -> Any:
         """``role``'s telemetry record of sample ``k``, or None."""
         with self.lock:
             return self.tele[role].get(k)
 
-    def first_after(self, role: str, k: int):
+    def first_after(self, role: str, k: int) -> Any:
         """``role``'s first telemetry record after sample ``k``, or None."""
         with self.lock:
             d = self.tele[role]
@@ -295,7 +303,7 @@ class Collector:
             return [r for r, s in self.summaries.items()
                     if isinstance(s.get("telemetry_records"), int) and self.received.get(r, 0) < s["telemetry_records"]]
 
-    def event_of(self, node: str, kind: str):
+    def event_of(self, node: str, kind: str) -> msg.Event | None:
         """The first event ``kind`` of ``node``, or None."""
         with self.lock:
             return next((e for e in self.events if e.node == node and e.kind == kind), None)
@@ -304,7 +312,7 @@ class Collector:
         with self.lock:
             return any(s.origin == "plant" for s in self.stops)
 
-    def _records(self):
+    def _records(self) -> Iterator[tuple[int, Any]]:
         """Every accepted ``(role index, record)`` (call with the lock held): from the spill file, a chunk at
         a time, when there is one; each role's in the order they arrived."""
         if self._spill is None:
@@ -314,7 +322,7 @@ class Collector:
             return
         yield from self._spill.decoded()
 
-    def _encoded(self):
+    def _encoded(self) -> Iterator[tuple[int, int, bytes]]:
         """Every ``(role index, k, record bytes)``: a spill's as they arrived (what the node sent and digested),
         else the records kept in memory, encoded."""
         if self._spill is None:
@@ -331,7 +339,7 @@ class Collector:
         The digest is over the records in the order of k (and the plant's final record last); records
         arrive in that order, so it is computed in one streaming pass, and again, from the k order of
         the role's records, for a role whose records came out of order."""
-        out = []
+        out: list[Fault] = []
         with self.lock:
             roles = [r for r in transport.ROLES if "telemetry_sha256" in (self.summaries.get(r) or {})]
             if not roles:
@@ -365,7 +373,7 @@ class Collector:
                                             + ("" if n != s.get("telemetry_records") else "; digests differ")))
         return out
 
-    def _digest_by_k(self, ri: int):
+    def _digest_by_k(self, ri: int) -> hashlib._Hash:
         """sha256 of role ``ri``'s records in the order of k (they arrived out of order: rare)."""
         import numpy as np
 
@@ -394,7 +402,7 @@ class Collector:
                 h.update(got[j])
         return h
 
-    def rows(self, sc, fields=None, chunk: int | None = None) -> "SpillRows":
+    def rows(self, sc: Scenario, fields: set[str] | None = None, chunk: int | None = None) -> SpillRows | ColumnChunks:
         """What has arrived, as rows a chunk at a time (``record.summary.build_summary``: the end-of-run summary in
         bounded memory).  Read with the lock held: call once the nodes are done."""
         if self._spill is None:
@@ -406,7 +414,7 @@ class Collector:
                          events=self.events, status=self.status, summaries=self.summaries,
                          plant_final=self.plant_final, top=self.top)
 
-    def snapshot(self, sc, fields=None):
+    def snapshot(self, sc: Scenario, fields: set[str] | None = None) -> Columns:
         """What has arrived so far as columns (``testbed.record.columns.Columns``, for ``record.summary.build_summary``).
 
         ``fields``: the ``"role.field"`` names to decode (``columns.layout``; default all)."""
@@ -415,7 +423,9 @@ class Collector:
                                  status=self.status, summaries=self.summaries, plant_final=self.plant_final)
 
 
-def spill_columns(sc, records, rows: int, fields=None, *, events=(), status=(), summaries=None, plant_final=None):
+def spill_columns(sc: Scenario, records: Iterable[tuple[int, Any]], rows: int, fields: set[str] | None = None, *,
+                  events: Iterable[msg.Event] = (), status: Iterable[msg.AttackerStatus] = (),
+                  summaries: dict[str, dict] | None = None, plant_final: msg.PlantTelemetry | None = None) -> Columns:
     """Columns (``testbed.record.columns.ColumnBuilder``) of ``rows`` samples from ``(role index, record)`` pairs
     (``Collector._records``, or ``Spill.decoded``): what ``Collector.snapshot`` hands the summary."""
     from ..record.columns import ColumnBuilder
@@ -440,8 +450,11 @@ class SpillRows:
     #: rows of a chunk
     CHUNK = 1 << 14
 
-    def __init__(self, sc, path, rows: int, lag: int | None = None, fields=None, *, chunk: int | None = None,
-                 events=(), status=(), summaries=None, plant_final=None, top=None, metadata=None):
+    def __init__(self, sc: Scenario, path: str | Path, rows: int, lag: int | None = None,
+                 fields: set[str] | None = None, *, chunk: int | None = None, events: Iterable[msg.Event] = (),
+                 status: Iterable[msg.AttackerStatus] = (), summaries: dict[str, dict] | None = None,
+                 plant_final: msg.PlantTelemetry | None = None, top: dict[str, int] | None = None,
+                 metadata: dict | None = None) -> None:
         from ..record.columns import layout
 
         self.sc, self.path, self.fields = sc, Path(path), fields
@@ -451,7 +464,7 @@ class SpillRows:
         self.size = max(1, int(chunk or self.CHUNK))
         self.events, self.status, self.summaries = list(events), list(status), dict(summaries or {})
         self.metadata = dict(metadata or {})
-        self.final = None if plant_final is None else {"k": int(plant_final.k),
+        self.final: dict | None = None if plant_final is None else {"k": int(plant_final.k),
                                                        "x": np.array(plant_final.x, dtype=float),
                                                        "flow_status": int(plant_final.flow_status)}
         self._top = dict(top) if top is not None else None
@@ -459,18 +472,19 @@ class SpillRows:
 
     def _spill(self) -> Spill:
         sp = Spill.__new__(Spill)
-        sp.path, sp.f = self.path, _NoFlush()
+        sp.path, sp.f = self.path, _NoFlush()  # type: ignore[assignment]  # the readers only flush it
         return sp
 
-    def records(self):
+    def records(self) -> Iterator[tuple[int, Any]]:
         return self._spill().decoded()
 
-    def _blocks(self):
+    def _blocks(self) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
         return self._spill().blocks()
 
     def measure_lag(self) -> int:
         """``Collector.lag`` of the file (its k order), read from it (a spill without its collector)."""
-        top, lag, tops = -1, 0, {}
+        top, lag = -1, 0
+        tops: dict[int, int] = {}
         for buf, ris, offs, _lens in self._blocks():
             ks = _ks(buf, offs)
             for ri in np.unique(ris):
@@ -485,9 +499,10 @@ class SpillRows:
     def last_k(self, role: str) -> int:
         if self._top is None:
             self.measure_lag()
+        assert self._top is not None  # measure_lag sets it
         return int(self._top.get(role, -1))
 
-    def chunks(self, hi: int):
+    def chunks(self, hi: int) -> Iterator[tuple[int, Columns]]:
         """``(k0, columns of rows k0 .. k0 + CHUNK - 1)`` covering rows 0 .. hi - 1 (at least one chunk)."""
         hi = max(0, min(int(hi), self.rows))
         try:
@@ -495,7 +510,7 @@ class SpillRows:
         except _Disorder as e:  # rows already handed out: the reader above starts again with every row at once
             raise RuntimeError("spill records out of order beyond the measured lag") from e
 
-    def _chunks(self, hi: int, lag: int):
+    def _chunks(self, hi: int, lag: int) -> Iterator[tuple[int, Columns]]:
         from ..record.columns import ColumnBuilder, normalize
 
         size = self.size
@@ -535,13 +550,13 @@ class SpillRows:
                 return
             b = self._shift(b, size, span, ColumnBuilder, base)
 
-    def _builder(self, span, ColumnBuilder, k0=0):
+    def _builder(self, span: int, ColumnBuilder: type[ColumnBuilder], k0: int = 0) -> ColumnBuilder:
         b = ColumnBuilder(self.sc, span, self.fields, summaries=self.summaries)
         b.k0 = k0
         return b
 
     @staticmethod
-    def _cut(b, n, normalize):
+    def _cut(b: ColumnBuilder, n: int, normalize: Callable[[Columns], None]) -> Columns:
         """The first ``n`` rows of the builder's columns, as columns of their own (copies)."""
         from dataclasses import replace
 
@@ -550,7 +565,8 @@ class SpillRows:
         normalize(out)
         return out
 
-    def _shift(self, b, size, span, ColumnBuilder, k0):
+    def _shift(self, b: ColumnBuilder, size: int, span: int, ColumnBuilder: type[ColumnBuilder],
+               k0: int) -> ColumnBuilder:
         """The builder's rows moved up by ``size`` (the rows after the chunk handed out), the rest fresh."""
         nb = self._builder(span, ColumnBuilder, k0)
         keep = b.c.rows - size
@@ -576,7 +592,7 @@ _FIELDS = {ri: tuple(f.name for f in dataclasses.fields(msg.TELEMETRY_TYPES[r]))
            for ri, r in enumerate(transport.ROLES)}
 
 
-def _add(b, buf: bytes, arr: np.ndarray, ris: np.ndarray, offs: np.ndarray, lens: np.ndarray) -> None:
+def _add(b: ColumnBuilder, buf: bytes, arr: np.ndarray, ris: np.ndarray, offs: np.ndarray, lens: np.ndarray) -> None:
     """Records into a ``ColumnBuilder``: those of one role and length at once, as one structured array
     (``columns.decode_records``); a group whose records do not share the first one's layout one by one."""
     from ..record.columns import decode_records, record_vectors
@@ -596,5 +612,5 @@ def _add(b, buf: bytes, arr: np.ndarray, ris: np.ndarray, offs: np.ndarray, lens
 
 
 class _NoFlush:
-    def flush(self):
+    def flush(self) -> None:
         pass

@@ -19,14 +19,19 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..record.tracereader import read_recording_trace
 from ..wire import join, transport
 from ..wire.session import SessionOptions
 from . import adverse
 from .external import ANNOUNCE
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 #: the per-sample keys of a run that must equal the simulator's bit for bit (as the bit-exact tests compare)
 BIT_EXACT_KEYS = ("symbols", "theta", "E", "E_dec", "xi", "q", "x", "u", "saturated_at", "x_final")
@@ -115,7 +120,8 @@ def feedable(session: SessionOptions) -> str | None:
     return None
 
 
-def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path, flags=(),
+def run_external(role: str, scenario: str, command: list[str], *, run_id: str, folder: Path,
+                 flags: Sequence[str] = (),
                  timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = False,
                  session: SessionOptions | None = None) -> ExternalRun:
     """``testbed run SCENARIO --external ROLE`` with ``command`` as the ROLE (``TESTBED_JOIN`` set), to the end,
@@ -123,7 +129,8 @@ def run_external(role: str, scenario: str, command: list[str], *, run_id: str, f
     made for the run when ``session`` names none)."""
     session = dataclasses.replace(session or SessionOptions.of("run"), run_id=run_id)
     folder.mkdir(parents=True, exist_ok=True)
-    out = ExternalRun(recording=str(folder / f"{run_id}.mcap"))
+    recording = str(folder / f"{run_id}.mcap")
+    out = ExternalRun(recording=recording)
     feeder = None
     if feed:
         why = feedable(session)
@@ -138,7 +145,7 @@ def run_external(role: str, scenario: str, command: list[str], *, run_id: str, f
                                 low_latency=session.low_latency)
     flags = (*flags, *session.argv("run"))  # testbed run's own flags: the session as the launcher takes it
     cmd = [sys.executable, "-P", "-m", "testbed.cli", "run", scenario, "--external", role, "--json",
-           "--run-dir", str(folder / run_id), "--out", out.recording, "--force", "--record-loop", "on",
+           "--run-dir", str(folder / run_id), "--out", recording, "--force", "--record-loop", "on",
            "--startup-timeout", str(startup_timeout), *flags]
     p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          start_new_session=True)
@@ -335,7 +342,7 @@ def device_verdicts(replay: dict | None, tolerance: float, *, required: bool = T
     return [loop, model]
 
 
-def run_scenario(jd: dict):
+def run_scenario(jd: dict) -> Scenario:
     """The run's scenario with the run's options (the seed it drew included), from its join file."""
     from .. import scenario as scn
     from ..nodes.options import RunOptions
@@ -346,7 +353,7 @@ def run_scenario(jd: dict):
                      read_recording_trace=read_recording_trace)
 
 
-def simulated(sc) -> dict:
+def simulated(sc: Scenario) -> dict:
     """``testbed simulate --json`` of scenario ``sc`` (the same per-sample simulator)."""
     from ..sim.batch import summarize
     from ..sim.trajectory import simulate_scenario
@@ -355,7 +362,8 @@ def simulated(sc) -> dict:
 
 
 def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | None = None, bit_exact: bool = False,
-              plant_tolerance: float = PLANT_TOLERANCE, replay=None) -> list[dict]:
+              plant_tolerance: float = PLANT_TOLERANCE,
+              replay: Callable[[str], dict] | None = None) -> list[dict]:
     """Every requirement of ``names(role, ...)`` judged on run ``r`` (``stall_again``: the run stalled twice).
 
     ``replay(path) -> dict``: the recording's re-run on the recorded plant (``resimulation(run,
@@ -432,6 +440,7 @@ def check_run(role: str, scenario: str, r: ExternalRun, *, stall_again: dict | N
     rep, rep_error = None, None
     if replay is not None and (role == "plant" or r.fed is not None):
         try:
+            assert r.recording is not None  # run_external names it
             rep = replay(r.recording)
         except Exception as e:  # noqa: BLE001 - reported as the requirement's detail
             rep_error = f"{type(e).__name__}: {e}"
@@ -618,10 +627,11 @@ def _stop(role, rec, r: ExternalRun, s) -> dict:
                                 "summary; the join file was removed")
 
 
-def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str, flags=(),
+def conformance(role: str, scenario: str, command: list[str], *, folder: Path, run_id: str,
+                flags: Sequence[str] = (),
                 timeout: float = 300.0, startup_timeout: float = 120.0, feed: bool = True,
                 session: SessionOptions | None = None, bit_exact: bool = False, plant_tolerance: float = PLANT_TOLERANCE,
-                replay=None) -> dict:
+                replay: Callable[[str], dict] | None = None) -> dict:
     """Run and check (once more if the run stalled): ``{"passed", "requirements", "runs"}``; ``passed`` is over
     the required requirements (``check_run``: ``bit_exact``, ``plant_tolerance``, ``replay``)."""
     runs = []

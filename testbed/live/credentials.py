@@ -8,10 +8,14 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ..common.errors import BadInput
 from ..wire import transport
 from ..wire.session import AUTO, SessionOptions, zenoh_config
+
+if TYPE_CHECKING:
+    from ..nodes.options import RunConfig
 
 #: why ``--topology auto`` chose the peer topology
 ONE_HOST = "every node runs on the launcher's host"
@@ -28,7 +32,7 @@ def _loopback(ep: str) -> bool:
         return False
 
 
-def choose_topology(cfg) -> tuple[str, str]:
+def choose_topology(cfg: RunConfig) -> tuple[str, str]:
     """``--topology``'s topology for the run and why: (``router`` | ``peer``, reason).
 
     ``auto`` is the peer topology (direct links, mutual TLS: one link per hop instead of two
@@ -90,7 +94,7 @@ class RunCredentials:
     (``cfg``: the run's ``RunConfig``, its endpoints as ``--netns`` set them; ``keys``: the run's key
     space; ``colocated``: the roles that run inside another node's process)."""
 
-    def __init__(self, cfg, run_id: str, keys: transport.Keys, colocated: tuple[str, ...] = ()):
+    def __init__(self, cfg: RunConfig, run_id: str, keys: transport.Keys, colocated: tuple[str, ...] = ()) -> None:
         self.cfg = cfg
         self.run_id = run_id
         self.keys = keys
@@ -198,12 +202,14 @@ class RunCredentials:
             return f"{scheme}/[{host}]:0" if ":" in host else f"{scheme}/{host}:0"
         return transport.TLS_LOOPBACK_ANY if self.tls else transport.LOOPBACK_ANY
 
-    def session_config(self):
+    def session_config(self) -> Any:
         """The launcher's own session: the run's router (or a peer), accepting the run's credentials."""
         c = self.cfg
         own = SessionOptions(run_id=self.run_id, listen=(self.listen,), zenoh_config=c.zenoh_config,
                              topology="router" if self.topology == "router" else "peer",
-                             tls_dir=self.tls_dir, secret_file=self.secret_path, insecure=not self.secure,
+                             tls_dir=None if self.tls_dir is None else str(self.tls_dir),
+                             secret_file=None if self.secret_path is None else str(self.secret_path),
+                             insecure=not self.secure,
                              low_latency=c.low_latency)
         return zenoh_config(own, transport.LAUNCHER, self.keys, hub=True, colocate=self.colocated)
 

@@ -7,8 +7,11 @@ from ``TESTBED_JOIN``; the file goes with the run's other credentials at the end
 
 from __future__ import annotations
 
+import argparse
 import sys
+from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..common.errors import BadInput
 from ..nodes.options import T_ns, run_digest
@@ -16,11 +19,16 @@ from ..record import faults as faultrec
 from ..wire import join, transport
 from .credentials import RunCredentials
 
+if TYPE_CHECKING:
+    from ..nodes.options import RunConfig, RunOptions
+    from ..record.faults import Fault
+    from ..scenario import Scenario
+
 #: what ``testbed run`` prints on stderr (one line; ``testbed conformance`` reads it)
 ANNOUNCE = "testbed run: join file for the external {role}: {path}"
 
 
-def add_external_arguments(p) -> None:
+def add_external_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("external node")
     g.add_argument("--external", choices=transport.ROLES, metavar="ROLE",
                    help="do not start ROLE: write a join file for a node from outside, print its path on stderr "
@@ -28,7 +36,7 @@ def add_external_arguments(p) -> None:
                         "(docs/protocol.md#joining-a-run-from-outside)")
 
 
-def check(cfg, colocated: tuple[str, ...]) -> str | None:
+def check(cfg: RunConfig, colocated: tuple[str, ...]) -> str | None:
     """The external role of the run (None: none), refused with one line where the run cannot have it
     (``cfg``: the run's ``RunConfig``)."""
     role = cfg.external
@@ -43,7 +51,7 @@ def check(cfg, colocated: tuple[str, ...]) -> str | None:
     return role
 
 
-def join_data(role: str, la: RunCredentials, sc, opts, cfg) -> dict:
+def join_data(role: str, la: RunCredentials, sc: Scenario, opts: RunOptions, cfg: RunConfig) -> dict:
     """The join file's fields (``join.FIELDS``) for the external ``role`` of the run whose sessions are ``la``
     (``opts``: its ``RunOptions``; ``cfg``: its ``RunConfig``)."""
     if not la.secure:
@@ -73,7 +81,8 @@ def join_data(role: str, la: RunCredentials, sc, opts, cfg) -> dict:
             "scenario": {"name": sc.name, "toml": sc.source, "base_dir": base_dir}}
 
 
-def write_join(role: str | None, run_dir: Path, la: RunCredentials, sc, opts, cfg) -> Path | None:
+def write_join(role: str | None, run_dir: Path, la: RunCredentials, sc: Scenario, opts: RunOptions,
+               cfg: RunConfig) -> Path | None:
     """Write the join file of the external role (after the run's credentials are made) and say where, on stderr."""
     if role is None:
         return None
@@ -87,7 +96,7 @@ def remove_join(path: Path | None) -> None:
     join.remove(path)
 
 
-def annotate(summary: dict, role: str | None, faults) -> None:
+def annotate(summary: dict, role: str | None, faults: Iterable[Fault]) -> None:
     """The summary says which role came from outside (``external``); that node has no exit or log of ours;
     a start-up timeout of the run's ``faults`` says when it never joined."""
     summary["external"] = role

@@ -4,7 +4,7 @@ launcher publishes each new one once, as an ``Event`` of node ``launcher`` (so t
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING
 
 from ..record.faults import Fault, given
@@ -24,7 +24,7 @@ class FaultLog:
     def append(self, f: Fault) -> None:
         self._faults.append(f)
 
-    def extend(self, fs) -> None:
+    def extend(self, fs: Iterable[Fault]) -> None:
         self._faults.extend(fs)
 
     def __iter__(self) -> Iterator[Fault]:

@@ -19,13 +19,14 @@ import logging
 import os
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..common.errors import BadInput
 from ..record import schema, topics
 from ..view.foxglove import TOPICS as FOXGLOVE_TOPICS
 from ..view.foxglove import FoxgloveTopics, descriptor_set, telemetry_extra
 from ..wire import messages as msg
+from ..wire.transport import Keys
 
 if TYPE_CHECKING:
     import foxglove
@@ -60,7 +61,7 @@ class FoxgloveLive:
             return self._fg.Schema(name=name, encoding="protobuf", data=descriptor_set(name))
         return self._fg.Schema(name=schema.full_name(name), encoding="protobuf", data=schema.file_descriptor_set())
 
-    def start(self, session, keys) -> None:
+    def start(self, session: Any, keys: Keys) -> None:
         """Declare every channel, start the server (loopback), subscribe to the run's keys.
 
         The channels exist before the server does, so a viewer that connects at once gets them all in

@@ -227,7 +227,7 @@ class Launcher:
     def prepare(self, cleanup: contextlib.ExitStack) -> None:
         """Signal handlers, CPUs, credentials, the join file, the namespaces, and the forked nodes (all before
         Zenoh starts a thread in this process)."""
-        def on_signal(signum, _frame):
+        def on_signal(signum: int, _frame: object) -> None:
             self.signal = signum
 
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}

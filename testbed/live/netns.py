@@ -20,6 +20,7 @@ namespace removes its links with it.
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import hashlib
 import os
@@ -36,6 +37,7 @@ from ..record.faults import Fault
 from .stalls import parse_role_interval
 
 if TYPE_CHECKING:
+    from ..nodes.options import RunConfig, RunOptions
     from .faultlog import FaultLog
 
 PREFIX = "tbn-"
@@ -48,7 +50,7 @@ RIDDEN_THROUGH = ("link_cut",)
 _SAFE = re.compile(r"[^A-Za-z0-9_.]+")
 
 
-def add_netns_arguments(g) -> None:
+def add_netns_arguments(g: argparse._ActionsContainer) -> None:
     """The flags of ``testbed run`` this module serves (in the ``network`` group)."""
     g.add_argument("--netns", action="store_true",
                    help="every node in its own network namespace, joined by veth links through a bridge "
@@ -57,7 +59,7 @@ def add_netns_arguments(g) -> None:
                    help="only remove the namespaces of --netns runs whose launcher is gone, then exit")
 
 
-def add_cut_arguments(g) -> None:
+def add_cut_arguments(g: argparse._ActionsContainer) -> None:
     g.add_argument("--cut", action="append", default=[], metavar="ROLE@SECONDS:DURATION",
                    help="with --netns: set a node's link down SECONDS after t0, up again DURATION seconds later "
                         "(repeatable)")
@@ -147,7 +149,7 @@ class NetnsRun:
         self._home: int | None = None                      # the launcher's own namespace (an fd)
 
     # ---- the run's arguments
-    def endpoints(self, cfg) -> dict:
+    def endpoints(self, cfg: RunConfig) -> dict:
         """The run's endpoints in the namespaces: ``listen``, ``node_listen`` and ``node_prefix`` of its ``RunConfig``."""
         # mutual TLS links: the peer topology, and the router topology over mutual TLS (--topology router
         # --tls-dir DIR, no --secret-file: the way a zenoh-pico device joins)
@@ -242,7 +244,7 @@ class NetnsRun:
                                     up_s=round((st["up_ns"] - base) / 1e9, 4)))
 
 
-def plan(cfg, run_id: str, opts) -> NetnsRun | None:
+def plan(cfg: RunConfig, run_id: str, opts: RunOptions) -> NetnsRun | None:
     """From ``testbed run``'s ``RunConfig``: this run's namespaces (None without ``--netns``), whose
     ``endpoints`` the launcher then uses; one clear line (``BadInput``) for what cannot be."""
     if not cfg.netns:

@@ -9,6 +9,7 @@ exit code of ``testbed run`` then says so (``RECORDING_INCOMPLETE``), unless som
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -32,7 +33,7 @@ if TYPE_CHECKING:
 RECORDING_INCOMPLETE = EXIT_RECORDING_INCOMPLETE
 
 
-def add_record_error_argument(g) -> None:
+def add_record_error_argument(g: argparse._ActionsContainer) -> None:
     g.add_argument("--on-record-error", choices=["continue", "stop"], default="continue",
                    help="when the recorder cannot write (disk full, I/O error, file removed): go on unrecorded "
                         "(default) or stop the run; either way the summary's recording_complete is false and "

@@ -19,8 +19,8 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Set
-from typing import TYPE_CHECKING
+from collections.abc import Iterable, Set
+from typing import TYPE_CHECKING, Any
 
 from ..common.errors import BadInput
 from ..record.faults import Fault
@@ -30,6 +30,7 @@ from ..wire import transport
 if TYPE_CHECKING:
     import subprocess
 
+    from ..nodes.options import RunConfig
     from .collect import Collector
     from .faultlog import FaultLog
     from .processes import NodeProcesses
@@ -55,7 +56,7 @@ def parse_role_interval(it: str, flag: str) -> tuple[str, float, float]:
     return role, s, d
 
 
-def parse_stalls(items, colocated=()) -> dict[str, tuple[float, float]]:
+def parse_stalls(items: Iterable[str], colocated: Set[str] | tuple[str, ...] = ()) -> dict[str, tuple[float, float]]:
     """``ROLE@SECONDS:DURATION`` items -> {role: (seconds after t0, duration s)}; BadInput if malformed."""
     out = {}
     for it in items:
@@ -67,7 +68,7 @@ def parse_stalls(items, colocated=()) -> dict[str, tuple[float, float]]:
     return out
 
 
-def check_fault_times(cfg, n_steps: int, T: float) -> None:
+def check_fault_times(cfg: RunConfig, n_steps: int, T: float) -> None:
     """Refuse a fault injected where the run never gets (one line, BadInput): ``--kill``, ``--stall`` or
     ``--cut`` at SECONDS at or after the run's end (N T after t0), ``--crash`` at a sample K >= N."""
     end = n_steps * T
@@ -112,7 +113,7 @@ class StallInjector:
                 _signal(procs[role], signal.SIGCONT)
 
 
-def _signal(p, sig) -> None:
+def _signal(p: subprocess.Popen, sig: int) -> None:
     if p.poll() is None:
         try:
             os.killpg(p.pid, sig)
@@ -120,7 +121,7 @@ def _signal(p, sig) -> None:
             pass
 
 
-def own_stamp(role: str, t) -> int:
+def own_stamp(role: str, t: Any) -> int:
     """When the node handled a telemetry record's sample, on its own clock (ns since t0), or NO_TIME."""
     if role == "plant":
         return t.t_ns
@@ -131,7 +132,7 @@ def own_stamp(role: str, t) -> int:
     return t.rx_ns  # attacker
 
 
-def lateness(role: str, a, t, col: Collector, T_ns: int) -> int | None:
+def lateness(role: str, a: Any, t: Any, col: Collector, T_ns: int) -> int | None:
     """How late the node handled sample ``t.k`` (ns), or None: against when it was due (the plant takes
     x_k at t_k; the controller decides it by t_k + c d T < t_k+1), or for the encoder and the attacker
     against when the oldest input it had not handled since its record ``a`` was sent to it (the plant's
@@ -156,7 +157,7 @@ class StallWatch:
     #: what drives each role's samples (None: the run clock)
     UPSTREAM = {"plant": None, "controller": None, "encoder": "plant", "attacker": "encoder"}
 
-    def __init__(self, T_ns: int, n_steps: int, colocated=()):
+    def __init__(self, T_ns: int, n_steps: int, colocated: Set[str] | tuple[str, ...] = ()) -> None:
         self.T_ns, self.N = int(T_ns), int(n_steps)
         self.gap_ns = max(MIN_GAP_NS, 3 * self.T_ns)
         self.gap_k = math.ceil(self.gap_ns / self.T_ns)

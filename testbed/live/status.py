@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from ..loop.channel import LOSS_KINDS, late_of_rest, loss_text, model_lost, recorded_losses
+from ..loop.channel import LOSS_KINDS, NetworkModel, late_of_rest, loss_text, model_lost, recorded_losses
 from ..wire import messages as msg
 
 if TYPE_CHECKING:
@@ -35,7 +35,7 @@ def status_text(k: int, N: int, losses: dict, misses: int, E_enc: float | None, 
     lost = sum(losses.values())
     causes = loss_text(losses)
 
-    def e(v):
+    def e(v: float | None) -> str:
         return "-" if v is None else f"{v:.3g}"
 
     return (f"sample {k}/{N} | lost {lost} ({causes}) | deadline misses {misses} | "
@@ -50,7 +50,8 @@ class LiveStatus:
     #: and controller's records have come by then), or at the end
     LAG_S = 0.1
 
-    def __init__(self, n_steps: int, T_s: float, stream=None, *, tty: bool | None = None, network=None):
+    def __init__(self, n_steps: int, T_s: float, stream: TextIO | None = None, *, tty: bool | None = None,
+                 network: NetworkModel | None = None) -> None:
         self.N = int(n_steps)
         self.channel_lost = model_lost(network, self.N + 2)  # the [network] model's decisions, known ahead
         self.stream = sys.stderr if stream is None else stream
@@ -124,7 +125,7 @@ class LiveStatus:
         self._last = now
         self._draw()
 
-    def close(self, col=None) -> None:
+    def close(self, col: Collector | None = None) -> None:
         """The last state, counted to the end, as a line of its own (the terminal's line ends there).  Its
         losses are the run's ``losses``: the controller's count of late symbols (its summary) moves that many
         of the real network's to late, as ``recorded_losses`` does."""
@@ -145,7 +146,7 @@ class ClearingStream:
     """``sys.stderr`` while a terminal's status line is up: any other write takes the line off first, so
     that the launcher's own stderr lines (a node lost, a stall) never land in the middle of it."""
 
-    def __init__(self, stream, status: LiveStatus):
+    def __init__(self, stream: TextIO, status: LiveStatus) -> None:
         self._stream, self._status = stream, status
 
     def write(self, s: str) -> int:
@@ -153,11 +154,11 @@ class ClearingStream:
             self._status.clear()
         return self._stream.write(s)
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> Any:
         return getattr(self._stream, name)
 
 
-def start(progress: bool, n_steps: int, T_s: float, network=None) -> LiveStatus | None:
+def start(progress: bool, n_steps: int, T_s: float, network: NetworkModel | None = None) -> LiveStatus | None:
     """The run's status line on stderr: on a terminal, or on a pipe with ``progress``; None otherwise.
     On a terminal ``sys.stderr`` becomes a ``ClearingStream`` until ``stop``."""
     real = sys.stderr

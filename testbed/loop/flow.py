@@ -35,7 +35,8 @@ if TYPE_CHECKING:
 
 
 @nb.njit(cache=True)
-def flow_into(rhs, x0, u, p, T, opts, K, ytmp, out):
+def flow_into(rhs: Any, x0: np.ndarray, u: np.ndarray, p: np.ndarray, T: float, opts: np.ndarray, K: np.ndarray,
+              ytmp: np.ndarray, out: np.ndarray) -> int:
     """phi_T(x0, u) written into ``out``; returns a FLOW_* status.
 
     K (13 x n) and ytmp (n,) are scratch arrays so that batch loops allocate nothing.
@@ -86,7 +87,8 @@ def flow_into(rhs, x0, u, p, T, opts, K, ytmp, out):
 
 
 @nb.njit(cache=True)
-def flow_batch_kernel(rhs, X, U, p, T, opts, out, status):
+def flow_batch_kernel(rhs: Any, X: np.ndarray, U: np.ndarray, p: np.ndarray, T: float, opts: np.ndarray,
+                      out: np.ndarray, status: np.ndarray) -> None:
     n = X.shape[1]
     K = np.empty((13, n))
     ytmp = np.empty(n)

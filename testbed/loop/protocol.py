@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from .device import Device
 
 
-def _state(end):
+def _state(end: object) -> Any:
     """A method end's shared state (``methods.End.state``: xi_k and E_k unless the method says otherwise),
     or None for an object that keeps none (the kernel's bookkeeping encoder, ``sim.trajectory._Ledger``)."""
     f = getattr(end, "state", None)
@@ -395,7 +395,7 @@ class PlantProtocol:
             self.u_held = np.zeros(self.process.m)
 
     @classmethod
-    def for_scenario(cls, sc, process: PlantProcess) -> PlantProtocol:  # sc: a Scenario (a layer above)
+    def for_scenario(cls, sc: Any, process: PlantProcess) -> PlantProtocol:  # sc: a Scenario (a layer above)
         phys, sched, s_ns, d_ns, loss_ns = (int(v) for v in sc.timing_params)
         dev = sc.plant.device
         return cls(process, sc.T, timing=sc.run.timing, actuation=sc.run.actuation, sched_ns=s_ns,

@@ -43,8 +43,10 @@ against the method interface like every other, are ``testbed.methods.paper``
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba as nb
+import numpy as np
 
 from .flow import flow_into
 from .params import (  # noqa: F401 - the quantizer's public names
@@ -65,7 +67,7 @@ from .params import (  # noqa: F401 - the quantizer's public names
 
 # ----------------------------------------------------------------------------- pure kernels
 @nb.njit(cache=True)
-def quantize_index(x, xi, E, M):
+def quantize_index(x: np.ndarray, xi: np.ndarray, E: float, M: int) -> tuple[int, bool]:
     """Algorithm 1, one sample: symbol of the box of Q(xi, E) containing x.
 
     Returns (i, saturated): saturated is True when x is outside Q(xi, E); then i is
@@ -101,7 +103,7 @@ def quantize_index(x, xi, E, M):
 
 
 @nb.njit(cache=True)
-def box_center(idx, xi, E, M, out):
+def box_center(idx: int, xi: np.ndarray, E: float, M: int, out: np.ndarray) -> None:
     """Algorithm 2: q = centre of box ``idx`` of Q(xi, E), written into ``out``."""
     n = xi.shape[0]
     r = idx
@@ -112,7 +114,7 @@ def box_center(idx, xi, E, M, out):
 
 
 @nb.njit(cache=True)
-def control_input(Kgain, q, theta, overflow, u):
+def control_input(Kgain: np.ndarray, q: np.ndarray, theta: int, overflow: bool, u: np.ndarray) -> None:
     """Control law (2): u_k = (1 - theta_k) K q_k; u_k = 0 after an OVERFLOW codeword too."""
     m = Kgain.shape[0]
     n = Kgain.shape[1]
@@ -125,7 +127,7 @@ def control_input(Kgain, q, theta, overflow, u):
 
 
 @nb.njit(cache=True)
-def floor_E(En, xi_next, E_min):
+def floor_E(En: float, xi_next: np.ndarray, E_min: float) -> float:
     """E_{k+1} never below the round-off of the box arithmetic around xi_{k+1} (a few ulp: a range
     narrower than that cannot hold x_{k+1} however exact the prediction), nor below ``E_min``."""
     big = 0.0
@@ -139,8 +141,10 @@ def floor_E(En, xi_next, E_min):
 
 
 @nb.njit(cache=True)
-def zoom_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
-                E_min, dpar, K_s, ytmp, u_s, xi_out):
+def zoom_update(rhs: Any, p: np.ndarray, T: float, opts: np.ndarray, Kgain: np.ndarray, theta: int, overflow: bool,
+                xi: np.ndarray, E: float, q: np.ndarray, u_prev: np.ndarray, Lambda: float, M: int, sigma: float,
+                E_min: float, dpar: np.ndarray, K_s: np.ndarray, ytmp: np.ndarray, u_s: np.ndarray,
+                xi_out: np.ndarray) -> tuple[float, int]:
     """Update rules (xi) and (E) (and the OVERFLOW zoom-out). Returns (E_next, flow status).
 
     ``u_s`` receives u_k, the input both ends know was sent for this sample

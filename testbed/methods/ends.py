@@ -7,7 +7,7 @@ the paper's are in ``paper`` (re-exported here, where ``bundled`` finds every en
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numba as nb
 import numpy as np
@@ -22,8 +22,10 @@ if TYPE_CHECKING:
 
 
 @nb.njit(cache=True)
-def unaware_update(rhs, p, T, opts, Kgain, theta, overflow, xi, E, q, u_prev, Lambda, M, sigma,
-                   E_min, dpar, K_s, ytmp, u_s, xi_out):
+def unaware_update(rhs: Any, p: np.ndarray, T: float, opts: np.ndarray, Kgain: np.ndarray, theta: int,
+                   overflow: bool, xi: np.ndarray, E: float, q: np.ndarray, u_prev: np.ndarray, Lambda: float,
+                   M: int, sigma: float, E_min: float, dpar: np.ndarray, K_s: np.ndarray, ytmp: np.ndarray,
+                   u_s: np.ndarray, xi_out: np.ndarray) -> tuple[float, int]:
     """The zoom quantizer's update without DoS resilience: rule (xi) as the paper's, but the
     zoom-in E_{k+1} = (Lambda / M) E_k whatever theta_k (after an OVERFLOW received: the zoom-out
     E_{k+1} = sigma Lambda max(E_k, E_r)); the same floors as ``zoom_update``."""

@@ -11,6 +11,8 @@ A recording stores the reference, the module's source text and its sha256 (:func
 from __future__ import annotations
 
 import importlib.metadata
+from collections.abc import Callable, Iterable
+from typing import Any, NoReturn
 
 from plants.refs import CodeNotTrusted, import_module_attr, not_trusted, recorded_class, resolve_in
 from plants.refs import source_info as _plant_source_info
@@ -103,7 +105,7 @@ def bundled(ref: str) -> bool:
 
 
 def resolve_recorded(ref: str, base_dir: str | None, *, module: str = "", class_name: str = "", source: str = "",
-                     sha256: str = "", trust_code: bool = False, stand_in=None) -> dict:
+                     sha256: str = "", trust_code: bool = False, stand_in: Callable[[], type] | None = None) -> dict:
     """Resolve a recorded method reference as the run did (``plants.refs.recorded_class``, the rule plants
     follow): imported (the user's own code); else, with ``trust_code``, the module's source stored in the
     recording (``plants.refs.load_stored``: THIS RUNS THE STORED CODE); else ``stand_in()``
@@ -129,16 +131,16 @@ class _StoredCodebook:
         self.n_codes = None if bits is None else 1 << min(bits, 62)
 
 
-def stand_in_method(ref: str, class_name: str, uses, bits: int | None) -> type[Method]:
+def stand_in_method(ref: str, class_name: str, uses: Iterable[str], bits: int | None) -> type[Method]:
     """A method class for a recorded method whose stored source is not run: it takes any parameters, uses
     the ``[quantizer]`` keys ``uses`` (the recorded scenario's), has a codebook of the recorded ``bits``,
     and no ends: making them (or the batch kernel's mode) raises ``CodeNotTrusted``."""
     why = str(not_trusted("method", ref))
 
-    def refuse(self, *a, **kw):
+    def refuse(self: object, *a: object, **kw: object) -> NoReturn:
         raise CodeNotTrusted(why)
 
-    def init(self, **params):
+    def init(self: Any, **params: Any) -> None:
         self.params = dict(params)
 
     ns = {"name": "", "description": "a recorded method whose stored source was not run", "uses": tuple(uses),

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ..wire import messages as msg
 from ..wire import transport
@@ -13,6 +14,8 @@ from .options import NodeConfig
 
 if TYPE_CHECKING:
     from ..loop.protocol import MethodFault
+
+T = TypeVar("T")
 
 log = logging.getLogger("testbed.nodes")
 
@@ -59,14 +62,14 @@ class Node:
         return {}
 
     # -- helpers
-    def publisher(self, key: str, control: bool = True):
+    def publisher(self, key: str, control: bool = True) -> Any:
         qos = transport.control_qos() if control else transport.telemetry_qos()
         return self.ctx.session.declare_publisher(key, **qos)
 
-    def guard(self, fn):
+    def guard(self, fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
         """Wrap a Zenoh callback: an exception stops the node (exit code 1) instead of vanishing."""
 
-        def wrapped(sample):
+        def wrapped(sample: Any) -> Any:
             if self.error is not None or self.method_fault is not None:
                 return None
             try:
@@ -77,8 +80,8 @@ class Node:
 
         return wrapped
 
-    def subscribe(self, key: str, fn, *, blocking: bool = False, primary: bool = False, thread: bool = True,
-                  link: str | None = None):
+    def subscribe(self, key: str, fn: Callable[[Any], int | None], *, blocking: bool = False, primary: bool = False,
+                  thread: bool = True, link: str | None = None) -> Any:
         """Subscribe ``fn(sample)`` (guarded) the way the node's ``--rx`` mode says.
 
         ``thread``: zenoh-python's callback thread runs it (one thread per subscriber, woken
@@ -119,7 +122,7 @@ class Node:
             d["rx_inlet"] = self.inlet.stats()
         return d
 
-    def method_call(self, k, fn, *args, **kw):
+    def method_call(self, k: int | Callable[[], int], fn: Callable[..., T], *args: Any, **kw: Any) -> T:
         """``fn(*args, **kw)``, a call into the method's end through the protocol; what it raises becomes a
         ``MethodFault`` at sample ``k`` (an int, or a function giving it after the raise: the sample
         ``testbed simulate`` names)."""
@@ -161,7 +164,7 @@ class Node:
         if self.malformed <= 20:
             self.ctx.event("malformed", k=k, detail=f"{what}: {e}")
 
-    def rx_header(self, sample, what: str):
+    def rx_header(self, sample: Any, what: str) -> msg.Header | None:
         """The sample's header, or None for a warm-up put or a malformed header (counted)."""
         try:
             h = msg.Header.decode(sample.attachment)
@@ -170,12 +173,12 @@ class Node:
             return None
         return None if h.warmup else h
 
-    def stamped(self, fn, what: str):
+    def stamped(self, fn: Callable[[Any, msg.Header, int], int | None], what: str) -> Callable[[Any], int | None]:
         """A subscriber callback that calls ``fn(sample, header, rx)``, ``rx`` the receive time on the run
         clock; it ignores a warm-up put, a malformed header (counted as ``what``) and a sample that arrives
         before the run clock (no Start within ``ctx.wait_clock``'s wait)."""
 
-        def handler(sample):
+        def handler(sample: Any) -> int | None:
             h = self.rx_header(sample, what)
             if h is None:
                 return None

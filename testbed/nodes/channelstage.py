@@ -30,12 +30,14 @@ import heapq
 import itertools
 import math
 import threading
+from collections.abc import Callable
+from typing import Any
 
 from ..loop import channel
 from ..wire import messages as msg
 
 
-def stage_for(node, link: str, fn):
+def stage_for(node: Any, link: str, fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
     """``fn`` wrapped in the link's channel stage, or ``fn`` itself when the link is ideal (or absent)."""
     net = getattr(node.sc, "network", None)
     if net is None or net.link(link).ideal:
@@ -43,7 +45,7 @@ def stage_for(node, link: str, fn):
     return ChannelStage(node, link, net, fn)
 
 
-def _bits(node, link: str, model: channel.NetworkModel) -> int:
+def _bits(node: Any, link: str, model: channel.NetworkModel) -> int:
     """The payload bits a finite ``rate`` charges for one message (``channel.payload_bits``, as the simulator)."""
     if not math.isfinite(model.link(link).rate):
         return 0
@@ -56,7 +58,7 @@ class ChannelStage:
     #: rows of realized delays kept for the node's summary (the run's first ones; the rest are counted)
     MAX_ROWS = 100_000
 
-    def __init__(self, node, link: str, model: channel.NetworkModel, fn):
+    def __init__(self, node: Any, link: str, model: channel.NetworkModel, fn: Callable[[Any], Any]) -> None:
         self.node = node
         self.link = link
         self.fn = fn
@@ -72,7 +74,7 @@ class ChannelStage:
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
 
-    def __call__(self, sample):
+    def __call__(self, sample: Any) -> Any:
         ctx = self.node.ctx
         try:
             h = msg.Header.decode(sample.attachment)
@@ -133,7 +135,7 @@ class InProcessLink:
     the plant's process): the model's losses alone, as the simulator applies them (a delay has nothing
     to hold here: the ack rides on the actuation message, which its own link delays)."""
 
-    def __init__(self, node, link: str, model: channel.NetworkModel):
+    def __init__(self, node: Any, link: str, model: channel.NetworkModel) -> None:
         self.node = node
         self.link = link
         self.lost = channel.draws(model, link, node.ctx.n_steps + 2).lost
@@ -151,7 +153,7 @@ class InProcessLink:
         return {"lost_at": list(self.lost_at), "delay_s": []}
 
 
-def in_process_links(guest) -> dict[str, InProcessLink]:
+def in_process_links(guest: Any) -> dict[str, InProcessLink]:
     """The colocated encoder's ``sensor`` and ``ack`` links that lose messages (registered as its stages)."""
     net = getattr(guest.sc, "network", None)
     out = {}

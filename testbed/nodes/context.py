@@ -6,7 +6,8 @@ import hashlib
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import Any
 
 from ..wire import messages as msg
 from ..wire import transport
@@ -87,7 +88,7 @@ class NodeContext:
                 self.ready.add(node)
             self._cond.notify_all()
 
-    def on_peer(self, handler) -> None:
+    def on_peer(self, handler: Callable[[str, bool], None]) -> None:
         """``handler(node, alive: bool)`` on every liveliness change (runs on a Zenoh thread)."""
         self._peer_handlers.append(handler)
 
@@ -97,7 +98,7 @@ class NodeContext:
     def declare_ready(self) -> None:
         self._tokens.append(self.session.liveliness().declare_token(self.keys.ready(self.role)))
 
-    def wait_for(self, what: str, nodes, timeout: float) -> bool:
+    def wait_for(self, what: str, nodes: Iterable[str], timeout: float) -> bool:
         """Wait until every node of ``nodes`` is in ``self.alive`` / ``self.ready``."""
         want = set(nodes)
         end = time.monotonic() + timeout
@@ -109,7 +110,7 @@ class NodeContext:
                 self._cond.wait(min(rem, 0.1))
         return True
 
-    def missing(self, what: str, nodes) -> list[str]:
+    def missing(self, what: str, nodes: Iterable[str]) -> list[str]:
         with self._cond:
             return sorted(set(nodes) - getattr(self, what))
 
@@ -368,7 +369,7 @@ class RoleView:
     close = NodeContext.close
 
 
-def warm_publisher(pub, payload: bytes, times: int = 3, pause: float = 0.001) -> None:
+def warm_publisher(pub: Any, payload: bytes, times: int = 3, pause: float = 0.001) -> None:
     """First puts on a publisher are slow: send a few with the warm-up index (readers ignore them)."""
     att = msg.Header(msg.WARMUP_K, 0).encode()
     for _ in range(times):

@@ -15,6 +15,7 @@ cannot be genuine and is rejected (counted, logged).
 from __future__ import annotations
 
 import threading
+from typing import TYPE_CHECKING, Any
 
 from ..loop.protocol import ControllerProtocol, Decision, MethodFault
 from ..record.timingstats import Timings, percentiles
@@ -22,10 +23,15 @@ from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher
 
+if TYPE_CHECKING:
+    from plants.base import Plant
+
+    from ..scenario import Scenario
+
 CT = msg.ControllerTelemetry
 
 
-def warm_kernels(sc, model) -> None:
+def warm_kernels(sc: Scenario, model: Plant) -> None:
     """Load the decoder's compiled kernels: the node's warm-up, and the launcher's before it forks."""
     d = sc.make_method().make_decoder(model, sc.K, sc.quantizer, sc.flow)
     d.step(None)
@@ -99,7 +105,7 @@ class ControllerNode(Node):
                                   reason=d.reason, E=d.E, xi=tuple(d.xi.tolist()), q=tuple(d.q.tolist()),
                                   u=ut).encode())
 
-    def _on_symbol(self, sample, h, rx: int):
+    def _on_symbol(self, sample: Any, h: msg.Header, rx: int) -> int | None:
         ctx = self.ctx
         k = h.k
         proto = self.proto

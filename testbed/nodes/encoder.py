@@ -25,6 +25,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from ..loop.protocol import EncoderProtocol, MethodFault, Send, skip_sample
 from ..methods.base import symbol_code
@@ -33,10 +35,17 @@ from ..wire import messages as msg
 from .base import Node
 from .context import warm_publisher
 
+if TYPE_CHECKING:
+    import numpy as np
+
+    from plants.base import Plant
+
+    from ..scenario import Scenario
+
 log = logging.getLogger("testbed.nodes")
 
 
-def warm_kernels(sc, model) -> None:
+def warm_kernels(sc: Scenario, model: Plant) -> None:
     """Load the encoder's compiled kernels (quantizer, flow map, the plant's right-hand side): the
     node's warm-up, and the launcher's before it forks its nodes."""
     e = sc.make_method().make_encoder(model, sc.K, sc.quantizer, sc.flow)
@@ -110,7 +119,7 @@ class EncoderNode(Node):
         self.sensor_in(s.k, s.stamp_ns, s.x, clock.now())
         return s.k
 
-    def sensor_in(self, k: int, stamp_ns: int, x, rx: int) -> None:
+    def sensor_in(self, k: int, stamp_ns: int, x: Sequence[float] | np.ndarray, rx: int) -> None:
         """x_k (sampled at ``stamp_ns``) reached the encoder at ``rx`` (run clock): encode, send."""
         if self.dead or self.method_fault is not None:
             return

@@ -7,6 +7,8 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 # ============================================================================ receiving
 #: how a node receives its control-path messages (``--rx``)
@@ -32,8 +34,8 @@ class Inlet:
 
     HISTORY = 8
 
-    def __init__(self, node, key: str, handler, *, budget_ns: int, margin_ns: int = 300_000,
-                 thread: bool = True):
+    def __init__(self, node: Any, key: str, handler: Callable[[Any], int | None], *, budget_ns: int,
+                 margin_ns: int = 300_000, thread: bool = True) -> None:
         import zenoh
 
         self.node = node
@@ -59,11 +61,11 @@ class Inlet:
 
     # ---- the two streams
     @staticmethod
-    def _ident(sample) -> bytes:
+    def _ident(sample: Any) -> bytes:
         att = sample.attachment
         return (b"" if att is None else att.to_bytes()) + b"|" + sample.payload.to_bytes()
 
-    def _on_callback(self, sample) -> None:
+    def _on_callback(self, sample: Any) -> None:
         with self.lock:
             i = self.n_cb
             self.n_cb += 1
@@ -125,7 +127,7 @@ class Inlet:
         finally:
             self.spin_ns += time.monotonic_ns() - t
 
-    def _handle(self, sample) -> None:
+    def _handle(self, sample: Any) -> None:
         ctx = self.node.ctx
         clock = ctx.clock
         rx = clock.now() if clock is not None else None

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..wire import join
 from .options import NodeConfig, RunOptions
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 
 def apply(cfg: NodeConfig) -> tuple:
@@ -43,7 +47,7 @@ def apply(cfg: NodeConfig) -> tuple:
                                    launched=True)
 
 
-def scenario(jf, overrides: dict | None = None):
+def scenario(jf: join.JoinFile, overrides: dict | None = None) -> Scenario:
     """The scenario the join file embeds (its text, as the run read it: the same digest), with the run's
     ``overrides`` applied in the one parse."""
     from .. import scenario as scn

@@ -91,8 +91,11 @@ def run_node(cfg: NodeConfig) -> int:
         raise BadInput(f"--colocate {role}: the {role} runs inside the {opts.process_of(role)}'s process; "
                        f"start no {role} node")
     # the scenario text parsed and its plant, model and method built once (ScenarioError -> exit 2 in the CLI)
-    sc = load_scenario(cfg.scenario, opts, check_design=not cfg.launched) if jf is None else \
-        joined.scenario(jf, opts.overrides())
+    if jf is None:
+        assert cfg.scenario is not None  # else the join file gave jf
+        sc = load_scenario(cfg.scenario, opts, check_design=not cfg.launched)
+    else:
+        sc = joined.scenario(jf, opts.overrides())
     phase(role, "scenario")
     tune_process(cfg.parent_pid)
     sys.setswitchinterval(1e-4)  # a callback thread waiting for the GIL waits 100 us, not 5 ms

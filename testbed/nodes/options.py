@@ -12,14 +12,18 @@ import argparse
 import dataclasses
 import hashlib
 import json
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..common import optionspec
 from ..common.optionspec import option
 from ..wire import transport
 from ..wire.session import SessionOptions
 from .inlet import RX_MODES
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 #: ``testbed run --foxglove``'s port when none is given
 FOXGLOVE_PORT = 8765
@@ -214,7 +218,7 @@ class RecorderConfig:
         return ["record", self.scenario, *self.opts.cli(), *self.session.argv(), *optionspec.argv(self, "record")]
 
 
-def pairs(items, sep: str, what: str, roles=transport.ROLES) -> dict[str, str]:
+def pairs(items: Iterable[str], sep: str, what: str, roles: Sequence[str] = transport.ROLES) -> dict[str, str]:
     """Repeated ``ROLE<sep>VALUE`` flags -> {role: value}; one clear line for a malformed one."""
     from ..common.errors import BadInput
 
@@ -338,7 +342,7 @@ class RunConfig:
     low_latency = property(lambda self: self.session.low_latency)
 
 
-def load_scenario(ref, opts: RunOptions, *, check_design: bool = True):
+def load_scenario(ref: str | Scenario, opts: RunOptions, *, check_design: bool = True) -> Scenario:
     """Load a scenario (a file, a bundled name, or a loaded ``Scenario``) and apply the run overrides
     (validated as if written in the file).
 
@@ -355,11 +359,11 @@ def load_scenario(ref, opts: RunOptions, *, check_design: bool = True):
                                    read_recording_trace=read_recording_trace)
 
 
-def T_ns(sc) -> int:
+def T_ns(sc: Scenario) -> int:
     return int(round(sc.T * 1e9))
 
 
-def run_digest(sc, opts: RunOptions) -> str:
+def run_digest(sc: Scenario, opts: RunOptions) -> str:
     """What all nodes must agree on: the scenario text, the resolved loop, the run options, and the plant's
     and the method's module (the method's reference and params, a ``--method`` swap included, and the
     sha256 of each module's source: the same code in every node)."""
@@ -373,6 +377,6 @@ def run_digest(sc, opts: RunOptions) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def attack_horizon(sc) -> float:
+def attack_horizon(sc: Scenario) -> float:
     """Horizon of the offline DoS schedule: the run's duration, as ``testbed simulate`` uses."""
     return sc.n_steps * sc.T

@@ -29,7 +29,7 @@ def render(text: str) -> str:
     return _BLOCK.sub(lambda m: m.group(1) + options_table() + m.group(3), text)
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     text = DOC.read_text(encoding="utf-8")
     new = render(text)

@@ -42,6 +42,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -55,10 +56,13 @@ from ..wire import transport
 from .base import Node
 from .context import RoleView
 
+if TYPE_CHECKING:
+    from ..scenario import Scenario
+
 PT = msg.PlantTelemetry
 
 
-def warm_process(sc) -> None:
+def warm_process(sc: Scenario) -> None:
     """Load the true plant's compiled flow map (or start an FMU) on a throw-away copy of the plant:
     the node's warm-up, and the launcher's before it forks (for an ODE plant only)."""
     p = sc.make_process()

@@ -10,6 +10,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterable
 
 log = logging.getLogger("testbed.nodes")
 
@@ -46,8 +47,9 @@ def tune_process(parent_pid: int | None = None) -> dict:
     return info
 
 
-def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
-                    signals=(signal.SIGINT, signal.SIGTERM), others: dict | None = None) -> None:
+def on_stop_signals(callback: Callable[[int], object], *, main_handler: Callable[[int], object] | None = None,
+                    grace: float | None = None, signals: Iterable[int] = (signal.SIGINT, signal.SIGTERM),
+                    others: dict[int, Callable[[], object]] | None = None) -> None:
     """Call ``callback(signum)`` on a helper thread when one of ``signals`` arrives.
 
     A Python signal handler runs on the main thread between two bytecodes, which
@@ -68,7 +70,7 @@ def on_stop_signals(callback, *, main_handler=None, grace: float | None = None,
     wanted = {int(s) for s in signals}
     extra = {int(s): h for s, h in (others or {}).items()}
 
-    def py_handler(signum, _frame):
+    def py_handler(signum: int, _frame: object) -> None:
         if main_handler is not None and signum in wanted:
             main_handler(signum)
 

@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..record import recording, topics
 from ..wire import messages as msg
@@ -37,6 +37,9 @@ from ..wire import transport
 from ..wire.session import security_info, zenoh_config
 from .options import RECORD_FAILED, RecorderConfig, T_ns, load_scenario
 from .process import on_stop_signals, parse_cpus, tune_process
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 log = logging.getLogger("testbed.recorder")
 ROLE = "recorder"
@@ -292,7 +295,7 @@ class Recorder:
 # ============================================================================ command line
 
 
-def loop_default(sc, choice: str) -> bool:
+def loop_default(sc: Scenario, choice: str) -> bool:
     return choice == "on" or (choice == "auto" and sc.T >= 0.01)
 
 

@@ -15,12 +15,16 @@ import collections
 import logging
 import os
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..view import rerun as viewer
 from ..wire import messages as msg
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
+    from .options import NodeConfig
 
 log = logging.getLogger("testbed.nodes")
 
@@ -33,8 +37,8 @@ NICE = 10  # the logging thread's (and Rerun's threads') nice value: the loop's 
 class RerunTap:
     """Telemetry records of one node -> Rerun, from a background thread."""
 
-    def __init__(self, role: str, sc, recording_id: str, *, url: str | None = None, save: str | None = None,
-                 period: float = 0.1, nice: int = NICE):
+    def __init__(self, role: str, sc: Scenario, recording_id: str | None, *, url: str | None = None,
+                 save: str | None = None, period: float = 0.1, nice: int = NICE) -> None:
         self.role, self.T, self.period, self.nice = role, sc.T, period, nice
         plant = sc.make_model()
         self.n, self.m = plant.n, plant.m
@@ -140,7 +144,7 @@ class RerunTap:
         return {"rerun_logged": self.logged, "rerun_errors": self.errors}
 
 
-def of(cfg, role: str, sc) -> RerunTap | None:
+def of(cfg: NodeConfig, role: str, sc: Scenario) -> RerunTap | None:
     """The tap a node's ``NodeConfig`` asks for (``--rerun-url`` / ``--rerun-save``, with ``--recording-id``), or None."""
     if not (cfg.rerun_url or cfg.rerun_save):
         return None

@@ -35,8 +35,10 @@ import json
 import struct
 import zlib
 from collections import Counter
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -61,6 +63,9 @@ from .mcapfile import (
     read_metadata,
 )
 from .topics import TELEMETRY_SCHEMA
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 ROW_BYTES_MIN = 8             # a recorded sample takes more file than this: rows <= file size / 8
 
@@ -244,6 +249,8 @@ class Columns:
     last_log_time: int = 0
     truncated: bool = False
     read_error: str | None = None
+    plant_source: dict | None = None   # set by ``record.summary.load``: how the plant module was loaded
+    model_source: dict | None = None   # ... and the [model]'s, when it is another class
 
     def get(self, role: str, name: str) -> np.ndarray:
         """The column (a view); a field that was not decoded reads as never recorded (a read-only array)."""
@@ -289,7 +296,7 @@ def normalize(c: "Columns") -> None:
             c.get("encoder", name)[silent] = v
 
 
-def scenario_of(metadata: dict[str, dict], path: str = "recording"):
+def scenario_of(metadata: dict[str, dict], path: str = "recording") -> Scenario:
     """The scenario a run used, rebuilt from its metadata (``recorded.recorded_scenario``)."""
     from .recorded import recorded_scenario
 
@@ -493,7 +500,8 @@ class _Reader:
                        "flow_status": int(self.final_tabs[1][fs.col]) if fs else 0}
 
 
-def read_columns(path: str | Path, *, fields: set[str] | None = None, sc=None) -> Columns:
+def read_columns(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = None,
+                 sc: Scenario | None = None) -> Columns:
     """Decode a recording into columns (see the module docstring).
 
     ``fields``: the ``"role.field"`` names to decode (default all), or a function of
@@ -533,7 +541,7 @@ class ColumnBuilder:
                          events=list(events), status=list(status), summaries=dict(summaries or {}))
         self._mine = [[(key[1], col) for key, col in L.cols.items() if key[0] == role] for role in ROLES]
 
-    def add(self, r: int, t) -> None:
+    def add(self, r: int, t: Any) -> None:
         """Record ``t`` (a telemetry dataclass) of role index ``r`` into row ``t.k``."""
         c = self.c
         k = t.k - self.k0
@@ -593,7 +601,7 @@ class ColumnBuilder:
                 tab[rows, col.col] = v
         c.present[rows, r] = 1
 
-    def finish(self, plant_final=None) -> Columns:
+    def finish(self, plant_final: msg.PlantTelemetry | None = None) -> Columns:
         c = self.c
         if plant_final is not None:
             c.final = {"k": int(plant_final.k), "x": np.array(plant_final.x, dtype=float),
@@ -608,7 +616,7 @@ _NP_OF_STRUCT = {"I": "<u4", "i": "<i4", "q": "<i8", "Q": "<u8", "H": "<u2", "h"
                  "d": "<f8"}
 
 
-def record_vectors(cls, data: bytes, off: int, length: int) -> tuple[tuple[str, int], ...] | None:
+def record_vectors(cls: type[msg._Telemetry], data: bytes, off: int, length: int) -> tuple[tuple[str, int], ...] | None:
     """The vectors (name, length) of the binary telemetry record of class ``cls`` at ``data[off:off + length]``,
     in the order ``cls.encode`` writes them; None where the record does not parse (``cls.decode`` says why)."""
     end, pos = off + length, off + cls._scalars.size
@@ -628,7 +636,7 @@ def record_vectors(cls, data: bytes, off: int, length: int) -> tuple[tuple[str, 
     return tuple(out) if pos == end else None
 
 
-def record_dtype(cls, vectors: tuple[tuple[str, int], ...]) -> np.dtype:
+def record_dtype(cls: type[msg._Telemetry], vectors: tuple[tuple[str, int], ...]) -> np.dtype:
     """numpy's view of a record of ``cls`` whose vectors have these lengths, packed as ``cls.encode`` writes it."""
     codes = cls._scalars.format.lstrip("<")
     out: list[tuple] = [(name, _NP_OF_STRUCT[c]) for name, c in zip(cls._scalar_fields, codes, strict=True)]
@@ -641,7 +649,8 @@ def record_dtype(cls, vectors: tuple[tuple[str, int], ...]) -> np.dtype:
     return dt
 
 
-def decode_records(cls, buf: np.ndarray, offs: np.ndarray, vectors: tuple[tuple[str, int], ...]) -> np.ndarray | None:
+def decode_records(cls: type[msg._Telemetry], buf: np.ndarray, offs: np.ndarray,
+                   vectors: tuple[tuple[str, int], ...]) -> np.ndarray | None:
     """The records of ``cls`` at byte offsets ``offs`` of ``buf`` (uint8), all of one layout (``vectors``,
     from :func:`record_vectors` of one of them), as one structured array; None when one of them has another
     layout (a length byte differs: decode those one by one)."""
@@ -653,8 +662,9 @@ def decode_records(cls, buf: np.ndarray, offs: np.ndarray, vectors: tuple[tuple[
     return rec
 
 
-def from_records(sc, tele: dict[str, dict[int, object]], *, plant_final=None, events=(), status=(),
-                 summaries=None, fields: set[str] | None = None) -> Columns:
+def from_records(sc: Scenario, tele: dict[str, dict[int, Any]], *, plant_final: msg.PlantTelemetry | None = None,
+                 events: Iterable[msg.Event] = (), status: Iterable[msg.AttackerStatus] = (),
+                 summaries: dict[str, dict] | None = None, fields: set[str] | None = None) -> Columns:
     """Columns from telemetry dataclasses by role and k (the live launcher's collector), same rules as a file."""
     ks = [k for d in tele.values() for k in d]
     b = ColumnBuilder(sc, max(ks) + 1 if ks else 0, fields, events=events, status=status, summaries=summaries)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 from ..common.errors import BadInput
@@ -54,11 +55,11 @@ class _File:
         self.closed_file = self.size >= 2 * len(MAGIC) and self.f.read(len(MAGIC)) == MAGIC
         self.f.seek(len(MAGIC))
 
-    def close(self):
+    def close(self) -> None:
         self.f.close()
 
 
-def _cut(fh: _File, what: str):
+def _cut(fh: _File, what: str) -> str:
     """A record that does not fit: a cut file (truncated) or, in a file that was closed, corruption."""
     if fh.closed_file:
         raise CorruptRecording(f"{fh.path}: corrupt recording: {what}, in a file that ends as a finished "
@@ -66,7 +67,7 @@ def _cut(fh: _File, what: str):
     return f"cut short: {what}"
 
 
-def _records(fh: _File, *, bodies: set[int], crc: list | None = None):
+def _records(fh: _File, *, bodies: set[int], crc: list | None = None) -> Iterator[tuple]:
     """``(offset, op, body or None)`` in file order up to the footer; ``("cut", reason)`` at a cut.
 
     ``bodies``: the opcodes whose body is read (the others are skipped with a seek).
@@ -107,7 +108,7 @@ def _metadata_record(body: bytes) -> tuple[str, dict[str, str]]:
     """A Metadata record's body: name, then a map of string pairs (the MCAP spec's layout)."""
     p = 0
 
-    def string():
+    def string() -> str:
         nonlocal p
         (ln,) = struct.unpack_from("<I", body, p)
         if p + 4 + ln > len(body):

@@ -9,6 +9,7 @@ import io
 import json
 import struct
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,8 @@ from .topics import TELEMETRY_TOPICS
 
 if TYPE_CHECKING:
     from google.protobuf.message import Message
+
+    from ..scenario import Scenario
 
 
 # ============================================================================ reading
@@ -69,7 +72,7 @@ class Recording:
     def scenario_toml(self) -> str | None:
         return self.metadata.get("testbed.scenario", {}).get("toml")
 
-    def scenario(self):
+    def scenario(self) -> Scenario:
         """The scenario the run used (``recorded_scenario``); sets ``plant_source``, ``model_source``."""
         sc, ps, ms = recorded_scenario(self.metadata, self.path, _cache=self)
         self.plant_source, self.model_source = ps, ms
@@ -166,7 +169,7 @@ def _records(data: bytes):
 
 
 @contextmanager
-def no_gc():
+def no_gc() -> Iterator[None]:
     """Cyclic GC off while millions of small acyclic objects are made (a third of a long read)."""
     was = gc.isenabled()
     gc.disable()

@@ -7,8 +7,12 @@ import json
 import platform
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from .topics import FORMAT_VERSION
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 
 def software_versions() -> dict[str, str]:
@@ -41,7 +45,7 @@ def _module_keys(prefix: str, ref: str, info: dict) -> dict[str, str]:
             f"{prefix}_sha256": info.get("sha256", "")}
 
 
-def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
+def scenario_metadata(sc: Scenario, ref: str | None = None) -> dict[str, str]:
     """The ``testbed.scenario`` record: the scenario's name, TOML, reference, folder, plant and model modules."""
     from plants.refs import source_info
 
@@ -73,7 +77,7 @@ def scenario_metadata(sc, ref: str | None = None) -> dict[str, str]:
 
 
 def recorded_scenario(metadata: dict[str, dict], path: str = "recording", *, trust_code: bool = False,
-                      note: bool = True, _cache=None):
+                      note: bool = True, _cache: Any = None) -> tuple[Scenario, dict | None, dict | None]:
     """The scenario a recorded run used, rebuilt from the TOML stored in its metadata.
 
     Returns ``(scenario, plant_source, model_source)``.  The run's overrides are applied
@@ -305,7 +309,7 @@ def _with_resolved(sc, meta: dict | None):
     return dataclasses.replace(sc, quantizer=qp, run=run)
 
 
-def resolved_metadata(sc) -> dict[str, str]:
+def resolved_metadata(sc: Scenario) -> dict[str, str]:
     """What the run resolved from its scenario: the quantizer's parameters (the delay-aware rule's
     nominal delays and margins included), the timing and its bounds (``testbed.resolved``)."""
     import dataclasses

@@ -55,13 +55,19 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ..loop.channel import ATTACKER, CHANNEL
 from ..wire import messages as msg
 from . import schema
 from .recorded import resolved_metadata, scenario_metadata, software_versions
 from .topics import _U64_MAX, FORMAT_VERSION, PROFILE, schema_for_topic
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
+    from ..sim.loop import SimResult
 
 
 def default_path(scenario_name: str, when: float | None = None, directory: str | Path | None = None,
@@ -189,7 +195,7 @@ class RecordingWriter:
         with self._lock:
             return self._channel(topic, name)
 
-    def adder(self):
+    def adder(self) -> Callable[[int, int, bytes, int], None]:
         """``add(channel_id, log_time, data, publish_time)`` of mcap's writer (``simrecord.fast_adder``), for one
         thread writing many messages in a row in order of log time (``record_simulation``): no lock, no counts
         (the caller adds them), no flush (the caller calls :meth:`maybe_flush`)."""
@@ -207,7 +213,7 @@ class RecordingWriter:
                 except OSError as e:
                     raise self._fail(e) from None
 
-    def write(self, topic: str, obj, log_time: int, publish_time: int | None = None,
+    def write(self, topic: str, obj: Any, log_time: int, publish_time: int | None = None,
               name: str | None = None, extra: dict | None = None) -> None:
         """``obj``: a ``testbed.wire.messages`` dataclass, a dict with the schema's fields, or a protobuf message.
 
@@ -289,7 +295,7 @@ class RecordingWriter:
         self.close()
 
 
-def write_text_metadata(w: RecordingWriter, sc, *, source: str, run_id: str, ref: str | None = None,
+def write_text_metadata(w: RecordingWriter, sc: Scenario, *, source: str, run_id: str, ref: str | None = None,
                         extra: dict | None = None) -> None:
     """The metadata every recording starts with."""
     w.metadata("testbed.scenario", scenario_metadata(sc, ref))
@@ -313,8 +319,9 @@ def phase_every(T: float) -> int:
     return 1 if T >= PHASE_PERIOD_S else max(1, int(round(PHASE_PERIOD_S / T)))
 
 
-def record_simulation(path: str | Path, sc, res, *, overrides: dict | None = None, ref: str | None = None,
-                      t0_ns: int | None = None, flush_interval: float = 5.0, exclusive: bool = True,
+def record_simulation(path: str | Path, sc: Scenario, res: SimResult, *, overrides: dict | None = None,
+                      ref: str | None = None, t0_ns: int | None = None, flush_interval: float = 5.0,
+                      exclusive: bool = True,
                       roa: bool = True, bulk: bool = True) -> dict:
     """Write a simulated run (``testbed.sim.loop.SimResult``) with the topics and schemas of a live run.
 

@@ -21,7 +21,7 @@ field; the README's recording section points here.
 from __future__ import annotations
 
 from functools import cache, lru_cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..common.protobuf import classes_from
 from ..wire import messages as msg
@@ -194,7 +194,7 @@ def _layout(name: str):
     return plain, optional, repeated, stamps, headers
 
 
-def to_pb(obj, name: str | None = None, extra: dict | None = None):
+def to_pb(obj: Any, name: str | None = None, extra: dict | None = None) -> Any:
     """A messages dataclass (or a dict with the schema's field names) -> protobuf message.
 
     ``extra``: fields the dataclass does not have (``header``: its stamp in ns since the epoch, ``log10_E``).
@@ -249,7 +249,7 @@ def _converter(name: str):
     return env["conv"]
 
 
-def from_pb(m, name: str):
+def from_pb(m: Any, name: str) -> Any:
     """protobuf message -> the messages dataclass of its schema."""
     return _converter(name)(m)
 

@@ -17,19 +17,25 @@ here beside the keys of ``build_summary`` (those of ``testbed simulate --json`` 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .summary import build_summary
 
+if TYPE_CHECKING:
+    from ..scenario import Scenario
+    from .columns import Columns
 
-def recorded_attack(cols, N: int) -> tuple[np.ndarray, np.ndarray]:
+
+def recorded_attack(cols: Columns, N: int) -> tuple[np.ndarray, np.ndarray]:
     """Per sample, from the attacker's own log: a DoS interval was on (``attack_on``), it dropped the
     symbol (``dropped``); False where the attacker recorded nothing."""
     A = cols.has("attacker")[:N]
     return A & (cols.get("attacker", "attack_on")[:N] != 0), A & (cols.get("attacker", "dropped")[:N] != 0)
 
 
-def dos_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
+def dos_section(sc: Scenario, attack_on: np.ndarray, horizon: float) -> dict:
     """The ``dos`` section (module docstring) of a run of ``horizon`` seconds with the attacker's log ``attack_on``."""
     from attackers.budget import check, realized_rates
     from attackers.schedule import Schedule
@@ -39,6 +45,7 @@ def dos_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
         # priced as declared: back-to-back attacks lose the samples one longer attack would lose,
         # for less duration, so the log's runs of lost samples would overprice them
         full = sc.attack.schedule(sc.T, horizon)
+        assert full is not None  # an offline kind
         sch = Schedule.from_list([iv for iv in full.intervals if iv[0] < horizon - 1e-9]) if horizon > 0 else full
         priced = "declared intervals"
     else:
@@ -61,7 +68,7 @@ def dos_section(sc, attack_on: np.ndarray, horizon: float) -> dict:
     return out
 
 
-def agreement(cols, N: int) -> dict:
+def agreement(cols: Columns, N: int) -> dict:
     """Encoder and decoder (xi_k, E_k) compared bit for bit at every sample both recorded."""
     e_ok = cols.has("encoder")[:N] & (cols.get("encoder", "silent")[:N] == 0)
     both = e_ok & cols.has("controller")[:N]
@@ -79,7 +86,7 @@ def agreement(cols, N: int) -> dict:
 SECTIONS = ("live", "source", "dos", "dropped_by_attacker", "agreement", "outcome")
 
 
-def recording_summary(cols, sc) -> dict:
+def recording_summary(cols: Columns, sc: Scenario) -> dict:
     """``build_summary`` of a recording's columns (per-sample values as numpy arrays) and the sections above."""
     runmeta = cols.metadata.get("testbed.run", {})
     launcher = cols.summaries.get("launcher", {})

@@ -15,11 +15,16 @@ objects.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numba as nb
 import numpy as np
 
 from . import schema
+
+if TYPE_CHECKING:
+    from ..sim.loop import SimResult
 
 # field kinds of the encoder
 VARINT, VARINT_OPT, DOUBLE, DOUBLE_OPT, PACKED, HEADER = range(6)
@@ -183,7 +188,8 @@ def _log10(E: np.ndarray):
     return out, ok
 
 
-def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, dropped_total, reason, drop=None) -> dict:
+def telemetry_columns(res: SimResult, k0: int, k1: int, t0: int, Tn: int, attack_on: np.ndarray,
+                      dropped_total: np.ndarray, reason: np.ndarray, drop: np.ndarray | None = None) -> dict:
     """The columns of the four telemetry messages of samples k0..k1-1 of a ``SimResult`` (what
     ``record_simulation``'s per-message path puts in each): schema name -> columns for :func:`encode`."""
     N = k1 - k0
@@ -197,13 +203,15 @@ def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, droppe
     dk = np.zeros(N, np.int64) if res.delays is None else np.asarray(res.delays[sl], dtype=np.int64)
     miss = np.zeros(N, bool) if res.u_missing is None else np.asarray(res.u_missing[sl], dtype=bool)
     held = np.zeros(N, bool) if res.withheld is None else np.asarray(res.withheld[sl], dtype=bool)
-    u = np.where(miss[:, None], 0.0, res.u[sl]) if getattr(res, "u_plant", None) is None else res.u_plant[sl]
+    u_plant = getattr(res, "u_plant", None)
+    u = np.where(miss[:, None], 0.0, res.u[sl]) if u_plant is None else u_plant[sl]
     fs = np.where(ks == res.diverged_at, int(res.flow_status), 0)
     plant = {"k": ks, "t_ns": (tk, yes), "sensor_tx_ns": (tk, yes), "u_rx_ns": (tk + dk, ~miss), "delay_ns": dk,
              "theta": np.where(miss, 255, th), "flags": np.where(miss, 3, 0), "flow_status": fs,
              "x": (res.x[sl], np.full(N, n)), "u": (u, np.full(N, m)), "header": hdr}
-    if getattr(res, "x_meas", None) is not None:  # what the sensor read ([plant.sensor])
-        plant["x_meas"] = (res.x_meas[sl], np.full(N, n))
+    x_meas = getattr(res, "x_meas", None)
+    if x_meas is not None:  # what the sensor read ([plant.sensor])
+        plant["x_meas"] = (x_meas[sl], np.full(N, n))
     sym = np.asarray(res.symbols[sl], dtype=np.int64)
     E = np.where(held, np.nan, res.E_enc[sl])
     lg, has = _log10(E)
@@ -227,7 +235,7 @@ def telemetry_columns(res, k0: int, k1: int, t0: int, Tn: int, attack_on, droppe
     return {"PlantSample": plant, "EncoderSample": enc, "AttackerSample": att, "ControllerSample": ctl}
 
 
-def fast_adder(writer):
+def fast_adder(writer: Any) -> Callable[[int, int, bytes, int], None]:
     """``add(channel_id, log_time, data, publish_time)`` for mcap's ``Writer`` (chunked), 2-3 times
     cheaper than its ``add_message`` (measured: ``tests/record/test_simrecord.py``, whose test of this fails when
     mcap's private state it writes into changes): the same Message record, chunk index and statistics, kept in the

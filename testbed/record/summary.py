@@ -11,8 +11,10 @@ added beside them.
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,12 +25,19 @@ from ..wire import transport
 from .degraded import timing_degraded
 from .timingstats import Spool, StoredArray, percentiles
 
+if TYPE_CHECKING:
+    from concurrent.futures import Future
+
+    from ..loop.params import Codebook
+    from ..scenario import Scenario
+    from .columns import Columns
+
 PT = msg.PlantTelemetry
 CT = msg.ControllerTelemetry
 
 
 
-def _agree_where_known(xi_e, E_e, xi_d, E_d) -> bool:
+def _agree_where_known(xi_e: np.ndarray, E_e: np.ndarray, xi_d: np.ndarray, E_d: np.ndarray) -> bool:
     """xi_k, E_k identical at both ends on every sample where both were recorded."""
     known = np.isfinite(E_e) & np.isfinite(E_d)
     return bool(np.array_equal(xi_e[known], xi_d[known]) and np.array_equal(E_e[known], E_d[known]))
@@ -37,7 +46,7 @@ def _agree_where_known(xi_e, E_e, xi_d, E_d) -> bool:
 class RowsOrNone:
     """Per-sample vectors where a missing sample is ``null`` as a whole (not a row of nulls) in JSON."""
 
-    def __init__(self, values: np.ndarray, mask: np.ndarray):
+    def __init__(self, values: np.ndarray | StoredArray, mask: np.ndarray | StoredArray) -> None:
         self.values, self.mask = values, mask
 
     def tolist(self) -> list:
@@ -65,7 +74,7 @@ def _diffs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return a[ok] - b[ok]
 
 
-def lockstep_checked(sc) -> bool:
+def lockstep_checked(sc: Scenario) -> bool:
     """Whether a run's method declares a shared state of its two ends (``EncoderEnd.state``, by default xi and
     E; the paper's ends are checked by ``encoder_decoder_agree``): only then are breaks of lockstep counted."""
     try:
@@ -76,21 +85,22 @@ def lockstep_checked(sc) -> bool:
     return getattr(end, "state", None) is not None
 
 
-def lockstep_breaks_in(xi_enc, E_enc, xi_dec, E_dec, both) -> np.ndarray:
+def lockstep_breaks_in(xi_enc: np.ndarray, E_enc: np.ndarray, xi_dec: np.ndarray, E_dec: np.ndarray,
+                      both: np.ndarray) -> np.ndarray:
     """The samples (indices into the arrays) where the ends' recorded xi_k and E_k differ, of those ``both``
     recorded with a symbol sent (a method whose ends share a state: ``lockstep_checked``)."""
     both = both & np.isfinite(E_enc) & np.isfinite(E_dec)
     return np.flatnonzero(both & ((E_enc != E_dec) | np.any(xi_enc != xi_dec, axis=1)))
 
 
-def late_for_schedule(sc, arrival_ns: np.ndarray) -> int:
+def late_for_schedule(sc: Scenario, arrival_ns: np.ndarray) -> int:
     """Physical timing, scheduled actuation: how many received u_k arrived (``arrival_ns`` after
     t_k) later than their scheduled instant; 0 otherwise."""
     tp = sc.timing_params
     return int(np.count_nonzero(arrival_ns > int(tp[2]))) if (tp[0] and tp[1]) else 0
 
 
-def column_rows(cols, a: int, b: int):
+def column_rows(cols: Columns, a: int, b: int) -> Columns:
     """Rows a .. b - 1 of ``cols`` as columns of their own (views: nothing copied)."""
     from dataclasses import replace
 
@@ -102,21 +112,21 @@ class ColumnChunks:
     """A run's whole columns (``Columns``) handed to ``build_summary`` a chunk of rows at a time, as the
     launcher's spill is (``testbed.live.collect.SpillRows``): the same interface, for the tests of chunking."""
 
-    def __init__(self, cols, size: int | None = None):
+    def __init__(self, cols: Columns, size: int | None = None) -> None:
         self.cols, self.size = cols, size
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> Any:
         return getattr(self.cols, name)
 
-    def chunks(self, hi: int):
+    def chunks(self, hi: int) -> Iterator[tuple[int, Columns]]:
         """``(k0, columns of rows k0 ..)`` covering rows 0 .. hi - 1 (at least one chunk, maybe empty)."""
         size = max(1, int(self.size or hi or 1))
         for a in range(0, max(hi, 1), size):
             yield a, column_rows(self.cols, a, min(hi, a + size))
 
 
-def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict, faults: list, codebook,
-                  arrays: bool = False, store=None) -> dict:
+def build_summary(sc: Scenario, cols: Any, *, run_id: str, ack_via_attacker: bool, nodes: dict, faults: list,
+                  codebook: Codebook, arrays: bool = False, store: str | Path | None = None) -> dict:
     """One JSON-able dict: ``testbed simulate --json`` keys plus timing, faults and node reports.
 
     ``cols``: a ``testbed.record.columns.Columns`` (a recording, or the live collector's
@@ -131,7 +141,8 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     from ..sim.loop import Replay, SimResult
     from .timingstats import Stack
 
-    src = cols if hasattr(cols, "chunks") else ColumnChunks(cols)
+    # ``Columns``, ``ColumnChunks`` or the launcher's ``SpillRows``: the columns' attributes, read alike
+    src: Any = cols if hasattr(cols, "chunks") else ColumnChunks(cols)
     plant = sc.make_model()
     n, m = plant.n, plant.m
     Tn = int(round(sc.T * 1e9))
@@ -146,7 +157,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
     x_fault = None
     if mf is not None:
         N = int(mf.k)
-    stack = MemStack if store is None else (lambda: Stack(store))
+    stack: Callable[[], MemStack | Stack] = MemStack if store is None else (lambda: Stack(store))
     tally = RunTally(sc.T, stack)
     st = {k: stack() for k in ("t_sample", "u_ctl", "u_mask", "xi_dec", "missed", "withheld", "dropped")}
     # the timing section's ns differences go to files a window of samples at a time (``stats.Spool``: exact
@@ -251,7 +262,7 @@ def build_summary(sc, cols, *, run_id: str, ack_via_attacker: bool, nodes: dict,
         res.plant_fault, res.plant_fault_at = pf.detail, int(pf.k)
     use_xm = xm_col and xm_seen
 
-    def record():
+    def record() -> Iterator[tuple[int, np.ndarray, Replay]]:
         """What the ends saw, as ``testbed resimulate`` replays it: the escape verdict rebuilds the ends from it."""
         for a, c in src.chunks(N):
             R = max(0, min(c.rows, N - a))
@@ -341,7 +352,7 @@ _ARROW_TYPES = {"f8": "float64", "i8": "int64", "i4": "int32", "i2": "int16", "i
                 "u4": "uint32", "u2": "uint16", "u1": "uint8"}
 
 
-def _arrow(col: np.ndarray):
+def _arrow(col: np.ndarray) -> Any:
     """A 1-D numpy array as an Arrow array over its buffer (``pa.array`` costs 40 MB on first use)."""
     import pyarrow as pa
 
@@ -359,7 +370,7 @@ def _arrow(col: np.ndarray):
     return pa.Array.from_buffers(getattr(pa, _ARROW_TYPES[key])(), len(col), [None, pa.py_buffer(col)])
 
 
-def _texts(col: np.ndarray):
+def _texts(col: np.ndarray) -> Any:
     """A 1-D array as JSON texts, one per value (Arrow's shortest round-trip formatting, vectorized).
 
     Floats parse back to the same double as ``json.dumps`` writes (an integral
@@ -378,7 +389,7 @@ def _texts(col: np.ndarray):
     return s
 
 
-def _joined(s) -> str:
+def _joined(s: Any) -> str:
     """The texts of a string array joined by ", " (read straight from Arrow's value buffer)."""
     import pyarrow.compute as pc
 
@@ -390,7 +401,7 @@ def _joined(s) -> str:
     return memoryview(s.buffers()[2])[lo:hi - 2].tobytes().decode("ascii")
 
 
-def _row_texts(b: np.ndarray, mask: np.ndarray | None = None):
+def _row_texts(b: np.ndarray, mask: np.ndarray | None = None) -> Any:
     """Rows of a block as texts: scalars, ``[a, b]`` for vectors; ``null`` where ``mask`` is False."""
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -409,15 +420,15 @@ def _row_texts(b: np.ndarray, mask: np.ndarray | None = None):
     return s
 
 
-def _json_array(a: np.ndarray, w, mask: np.ndarray | None = None) -> None:
+def _json_array(a: np.ndarray | StoredArray, w: Callable[[str], object],
+                mask: np.ndarray | StoredArray | None = None) -> None:
     """A per-sample array as the JSON of ``_clean(a.tolist())``, a block of rows at a time.
 
     Blocks are formatted on two threads (Arrow releases the GIL), at most two ahead of the writer.
     """
-    from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    def text(i):
+    def text(i: int) -> str:
         return _joined(_row_texts(a[i:i + _BLOCK], None if mask is None else mask[i:i + _BLOCK]))
 
     w("[")
@@ -427,7 +438,8 @@ def _json_array(a: np.ndarray, w, mask: np.ndarray | None = None) -> None:
             w(text(0))
     else:
         with ThreadPoolExecutor(2) as ex:
-            todo, inflight = deque(starts), deque()
+            todo = deque(starts)
+            inflight: deque[Future[str]] = deque()
             while todo or inflight:
                 while todo and len(inflight) < 2:
                     inflight.append(ex.submit(text, todo.popleft()))
@@ -438,7 +450,7 @@ def _json_array(a: np.ndarray, w, mask: np.ndarray | None = None) -> None:
     w("]")
 
 
-def write_json(obj, fp) -> None:
+def write_json(obj: Any, fp: IO[str]) -> None:
     """``json.dump(obj, fp)`` for summaries holding numpy arrays, without building their lists at once."""
     import json
 
@@ -465,7 +477,7 @@ def write_json(obj, fp) -> None:
         w(json.dumps(_clean(obj)))
 
 
-def to_lists(obj):
+def to_lists(obj: Any) -> Any:
     """A summary with numpy arrays -> the same with plain lists (what ``json.loads(write_json(...))`` gives)."""
     if isinstance(obj, dict):
         return {k: to_lists(v) for k, v in obj.items()}
@@ -494,7 +506,8 @@ def _fields(meta: dict) -> set[str]:
     return LIVE_FIELDS if live else (SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
 
 
-def load(path: str | Path, *, fields=_fields, trust_code: bool = False, note: bool = True):
+def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = _fields,
+         trust_code: bool = False, note: bool = True) -> tuple[Columns, Scenario]:
     """The columns of a recording and its scenario (``BadInput`` for anything unusable).
 
     ``fields``: what to decode (``read_columns``; default what the report reads, None: every field).

@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import IO, TYPE_CHECKING, Any
+
 import numpy as np
 
 from ..wire.messages import NO_TIME
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 
 class Timings:
@@ -19,7 +26,7 @@ class Timings:
 
     CAP = 65536
 
-    def __init__(self, cap: int = CAP, seed: int = 0):
+    def __init__(self, cap: int = CAP, seed: int = 0) -> None:
         self._a = np.empty(int(cap), dtype=np.int64)
         self.n = 0
         self.max: int | None = None
@@ -62,8 +69,8 @@ class Spool:
     BINS = 1 << 12
     GATHER = 1 << 16
 
-    def __init__(self):
-        self._f = None
+    def __init__(self) -> None:
+        self._f: IO[bytes] | None = None
         self.n = 0
         self.min: int | None = None
         self.max: int | None = None
@@ -87,7 +94,7 @@ class Spool:
     def __len__(self) -> int:
         return self.n
 
-    def windows(self):
+    def windows(self) -> Iterator[np.ndarray]:
         """The values in the order appended, ``WINDOW`` at a time."""
         if self._f is None:
             return
@@ -103,13 +110,15 @@ class Spool:
         range holding it until few enough are left to sort."""
         if not 0 <= r < self.n:
             raise IndexError(r)
+        assert self.min is not None and self.max is not None  # set by extend once n > 0
         lo, hi, below = self.min, self.max, 0  # below: values < lo
         while True:
             if hi == lo:
                 return lo
             width = (hi - lo) // self.BINS + 1  # a Python int: the range may exceed int64's
             counts = np.zeros(self.BINS, dtype=np.int64)
-            inside, kept, n_below = [], 0, 0
+            inside: list[np.ndarray] = []
+            kept, n_below = 0, 0
             lo64, hi64 = np.int64(lo), np.int64(hi)
             for a in self.windows():
                 n_below += int(np.count_nonzero(a < lo64))
@@ -133,7 +142,7 @@ class Spool:
             self._f = None
 
 
-def _percentile_of(stat, n: int, p: float) -> float:
+def _percentile_of(stat: Callable[[int], int], n: int, p: float) -> float:
     """``np.percentile`` (linear) of ``n`` values from their order statistics ``stat(r)``, bit for bit:
     numpy's virtual index (n - 1) q, its neighbours and its interpolation (``_lerp``)."""
     q = float(np.true_divide(p, 100))
@@ -147,18 +156,20 @@ def _percentile_of(stat, n: int, p: float) -> float:
     return b - d * (1 - t) if t >= 0.5 else a + d * t
 
 
-def percentiles(values, unit: float = 1e3) -> dict:
+def percentiles(values: Spool | Timings | np.ndarray | Iterable[int | None], unit: float = 1e3) -> dict:
     """p50 / p99 / max / count of ns values, in microseconds by default (None when empty)."""
     if isinstance(values, Spool):
         if values.n == 0:
             return {"p50": None, "p99": None, "max": None, "n": 0}
         n, stat = values.n, values.order_stat
+        assert values.max is not None  # n > 0
         return {"p50": _percentile_of(stat, n, 50) / unit, "p99": _percentile_of(stat, n, 99) / unit,
                 "max": float(values.max) / unit, "n": int(n)}
     if isinstance(values, Timings):
         if values.n == 0:
             return {"p50": None, "p99": None, "max": None, "n": 0}
         a = values.values().astype(float)
+        assert values.max is not None  # n > 0
         return {"p50": float(np.percentile(a, 50) / unit), "p99": float(np.percentile(a, 99) / unit),
                 "max": float(values.max / unit), "n": int(values.n)}
     if isinstance(values, np.ndarray) and values.dtype.kind in "iu":
@@ -185,7 +196,7 @@ class StoredArray:
     file), a single row or value, ``tolist`` (every row: only for a caller that wants the lists) and
     truth (not empty) behave as the numpy array's; ``record.summary.write_json`` streams it out."""
 
-    def __init__(self, f, dtype: np.dtype, shape: tuple, n: int):
+    def __init__(self, f: IO[bytes], dtype: np.dtype, shape: tuple, n: int) -> None:
         self._f, self.dtype, self._row, self._n = f, np.dtype(dtype), tuple(shape), int(n)
         self._size = self.dtype.itemsize * int(np.prod(self._row, dtype=np.int64))
 
@@ -204,13 +215,11 @@ class StoredArray:
         return self._n > 0
 
     def _read(self, lo: int, hi: int) -> np.ndarray:
-        import os
-
         hi = max(lo, hi)
         b = os.pread(self._f.fileno(), (hi - lo) * self._size, lo * self._size) if hi > lo else b""
         return np.frombuffer(b, dtype=self.dtype).reshape((hi - lo,) + self._row).copy()
 
-    def __getitem__(self, i):
+    def __getitem__(self, i: slice | int) -> Any:
         if isinstance(i, slice):
             lo, hi, step = i.indices(self._n)
             if step != 1:
@@ -224,7 +233,7 @@ class StoredArray:
         v = self._read(i, i + 1)[0]
         return v.item() if v.ndim == 0 else v
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[np.ndarray]:
         for lo in range(0, self._n, Stack.BLOCK):
             yield from self._read(lo, min(self._n, lo + Stack.BLOCK))
 
@@ -243,14 +252,14 @@ class Stack:
     #: rows read at a time when iterated
     BLOCK = 1 << 14
 
-    def __init__(self, dir=None):
+    def __init__(self, dir: str | os.PathLike[str] | None = None) -> None:
         self._dir = dir
-        self._f = None
+        self._f: IO[bytes] | None = None
         self.dtype: np.dtype | None = None
         self.row: tuple = ()
         self.n = 0
 
-    def append(self, a) -> None:
+    def append(self, a: npt.ArrayLike) -> None:
         a = np.asarray(a)
         if self._f is None:
             import tempfile
@@ -262,12 +271,13 @@ class Stack:
         self._f.write(np.ascontiguousarray(a).tobytes())
         self.n += len(a)
 
-    def result(self, dtype=None, row: tuple = ()) -> StoredArray:
+    def result(self, dtype: npt.DTypeLike | None = None, row: tuple = ()) -> StoredArray:
         """The appended rows (``dtype`` and ``row``: the shape of an empty one's rows)."""
         if self._f is None:
             import tempfile
 
             self._f = tempfile.TemporaryFile(dir=self._dir)
             self.dtype, self.row = np.dtype(dtype or np.float64), tuple(row)
+        assert self.dtype is not None  # set with the file
         self._f.flush()
         return StoredArray(self._f, self.dtype, self.row, self.n)

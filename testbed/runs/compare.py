@@ -24,8 +24,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
+    from .run import Run
 
 LIST_MAX = 1000
 QUANTITIES = ("x", "u", "xi", "E", "xi_dec", "E_dec", "theta", "symbols")
@@ -41,7 +46,8 @@ def _is_recording(ref: str) -> bool:
         return f.read(8) == b"\x89MCAP0\r\n"
 
 
-def load_side(ref, other_overrides: dict | None = None, *, trust_code: bool = False):
+def load_side(ref: str | Path | Scenario | Run, other_overrides: dict | None = None, *,
+              trust_code: bool = False) -> Run:
     """A ``testbed.runs.run.Run`` from a recording path (``trust_code`` as in ``testbed.runs.run.open``), a
     scenario, or a ``Run`` as it is."""
     from .run import Run, simulate
@@ -50,11 +56,12 @@ def load_side(ref, other_overrides: dict | None = None, *, trust_code: bool = Fa
     if isinstance(ref, Run):
         return ref
     if _is_recording(str(ref)):
+        assert isinstance(ref, (str, Path))  # a recording is a path
         return open_run(ref, trust_code=trust_code)
     return simulate(ref, **(other_overrides or {}))
 
 
-def _overrides(run) -> dict:
+def _overrides(run: Run | None) -> dict:
     if run is None or not run.metadata:
         return {}
     try:
@@ -76,7 +83,8 @@ def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return d.reshape(len(d), -1).any(axis=1) if d.ndim > 1 else d
 
 
-def load_pair(a, b, *, trust_code: bool = False):
+def load_pair(a: str | Path | Scenario | Run, b: str | Path | Scenario | Run, *,
+              trust_code: bool = False) -> tuple[Run, Run]:
     """Both sides as ``Run``s; a scenario opposite a recording gets the recording's overrides."""
     if _is_scenario_ref(a) and not _is_scenario_ref(b):
         rb = load_side(b, trust_code=trust_code)
@@ -85,7 +93,7 @@ def load_pair(a, b, *, trust_code: bool = False):
     return ra, load_side(b, _overrides(ra), trust_code=trust_code)
 
 
-def compare(a, b, *, trust_code: bool = False) -> dict:
+def compare(a: str | Path | Scenario | Run, b: str | Path | Scenario | Run, *, trust_code: bool = False) -> dict:
     """The comparison of two runs (recordings, scenarios or ``Run`` objects) as a JSON-able dict."""
     ra, rb = load_pair(a, b, trust_code=trust_code)
     A, B = ra.arrays, rb.arrays
@@ -125,18 +133,18 @@ def compare(a, b, *, trust_code: bool = False) -> dict:
     }
 
 
-def _is_scenario_ref(ref) -> bool:
+def _is_scenario_ref(ref: object) -> bool:
     from .run import Run
 
     return not isinstance(ref, Run) and not _is_recording(str(ref))
 
 
-def _describe(ref, run) -> dict:
+def _describe(ref: object, run: Run) -> dict:
     return {"ref": str(ref) if not hasattr(ref, "arrays") else repr(ref), "source": run.source,
             "scenario": run.scenario.name, "T": run.scenario.T, "samples": run.N}
 
 
-def plot(a_run, b_run, path, *, title: str = "", size: str = "page") -> Path:
+def plot(a_run: Run, b_run: Run, path: str | Path, *, title: str = "", size: str = "page") -> Path:
     """States of both runs over t (A solid, B dashed), ||x_A - x_B||_inf, the lost samples of each, DoS shaded."""
     from ..analysis.figures import plot_compare
 

@@ -19,9 +19,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ..common.errors import BadInput
 from .run import flat_columns
+
+if TYPE_CHECKING:
+    from .run import Run
 
 FORMATS = ("parquet", "csv")
 
@@ -30,14 +34,14 @@ FORMATS = ("parquet", "csv")
 ROWS = 1 << 16
 
 
-def _metadata(run) -> dict[bytes, bytes]:
+def _metadata(run: Run) -> dict[bytes, bytes]:
     meta = {name: json.dumps(rec) for name, rec in run.metadata.items()}
     meta["testbed.summary"] = json.dumps(_scalars(run.summary), default=str)
     meta["testbed.source"] = run.source
     return {k.encode(): v.encode() for k, v in meta.items()}
 
 
-def table(run, rows: slice | None = None, metadata: dict[bytes, bytes] | None = None):
+def table(run: Run, rows: slice | None = None, metadata: dict[bytes, bytes] | None = None) -> Any:
     """The run as a ``pyarrow.Table`` with the metadata described above (``rows``: those rows only;
     ``metadata``: ``_metadata(run)`` when the caller has it already)."""
     import pyarrow as pa
@@ -53,7 +57,7 @@ def _scalars(d: dict) -> dict:
     return {k: v for k, v in to_lists(d).items() if not (isinstance(v, list) and len(v) > 64)}
 
 
-def export(run, path: str | Path, fmt: str) -> Path:
+def export(run: Run, path: str | Path, fmt: str) -> Path:
     """Write ``run`` (a ``testbed.runs.run.Run``) to ``path`` as Parquet or CSV."""
     path = Path(path)
     if fmt not in FORMATS:

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -42,8 +42,15 @@ from ..wire import transport
 from .resimulate import resimulation
 from .run import run_of_recording
 
+if TYPE_CHECKING:
 
-def losses_as_dos(sc, theta: np.ndarray) -> dict:
+    from ..record.columns import Columns
+    from ..scenario import Scenario
+    from ..scenario.spec import DelaySpec
+    from .run import Run
+
+
+def losses_as_dos(sc: Scenario, theta: np.ndarray) -> dict:
     """Every lost sample -- the attacker's, the channel's, late and withheld -- taken together as if it
     were DoS: the runs of lost samples as attacks (one each), their realized average frequency N(H)/H and
     duration fraction |A(H)|/H (``attackers.budget.realized_rates``), the smallest kappa_F, kappa_D at
@@ -86,7 +93,7 @@ def losses_as_dos(sc, theta: np.ndarray) -> dict:
     return out
 
 
-def _actuation_section(sc, cols, N: int) -> dict | None:
+def _actuation_section(sc: Scenario, cols: Columns, N: int) -> dict | None:
     """Physical timing: the delays the plant measured and the bounds and margins the quantizer used."""
     if sc.run.timing != "physical":
         return None
@@ -102,7 +109,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
     tp = sc.timing_params
     qp = sc.quantizer
 
-    def bound(d):
+    def bound(d: DelaySpec | None) -> dict | None:
         return None if d is None else {"nominal": d.nominal, "min": d.min, "max": d.max, "declared": d.declared}
 
     return {"actuation": sc.run.actuation, "rule": qp.rule, "scheduled_delay_s": int(tp[2]) / 1e9,
@@ -115,7 +122,7 @@ def _actuation_section(sc, cols, N: int) -> dict | None:
             "late_for_schedule": late_for_schedule(sc, arrival)}
 
 
-def telemetry_check(cols, N: int) -> list[dict]:
+def telemetry_check(cols: Columns, N: int) -> list[dict]:
     """Each node's own account of its telemetry (the count of records in its summary) against the
     records the recording holds: a difference means records were lost, forged or altered on the way
     (the launcher compares digests too; a recording keeps the decoded fields, not the bytes)."""
@@ -147,8 +154,8 @@ def _security(runmeta: dict) -> dict | None:
 RESIMULATE_SAMPLES = 10_000
 
 
-def report(path, *, arrays: bool = False, resimulate: int | None | Literal["default"] = "default",
-           trust_code: bool = False) -> dict:
+def report(path: str | Path | tuple[Columns, Scenario], *, arrays: bool = False,
+           resimulate: int | None | Literal["default"] = "default", trust_code: bool = False) -> dict:
     """The report of one recording (a path, or ``(columns, scenario)`` from ``load``), as a JSON-able dict.
 
     ``arrays``: the per-sample values stay numpy arrays (``record.summary.write_json`` streams them).
@@ -160,19 +167,20 @@ def report(path, *, arrays: bool = False, resimulate: int | None | Literal["defa
     return out if arrays else to_lists(out)
 
 
-def run_of(path, *, trust_code: bool = False):
+def run_of(path: str | Path | tuple[Columns, Scenario], *, trust_code: bool = False) -> Run:
     """The ``testbed.Run`` of a recording (a path, or ``(columns, scenario)`` from ``load``), read with the
     fields the report needs (``record.summary.load``; ``trust_code`` as in ``testbed.runs.run.open``)."""
     cols, sc = load(path, trust_code=trust_code) if isinstance(path, (str, Path)) else path
     return run_of_recording(cols, sc)
 
 
-def report_of_run(run, *, resimulate: int | None | Literal["default"] = "default") -> dict:
+def report_of_run(run: Run, *, resimulate: int | None | Literal["default"] = "default") -> dict:
     """The report of a recording's ``Run`` (``testbed.runs.run.run_of_recording``): its whole summary and the
     report's own sections (module docstring); per-sample values as numpy arrays."""
     if resimulate == "default":
         resimulate = RESIMULATE_SAMPLES
     cols, sc, s = run.recorded_columns, run.scenario, run.recorded_summary
+    assert cols is not None and s is not None  # a recording's Run (run_of_recording)
     path = cols.path
     runmeta = cols.metadata.get("testbed.run", {})
     start = cols.start
@@ -216,7 +224,7 @@ def report_of_run(run, *, resimulate: int | None | Literal["default"] = "default
     return out
 
 
-def recording_end(path, rec: dict, samples) -> dict:
+def recording_end(path: str | Path, rec: dict, samples: int | None) -> dict:
     """Where an incomplete recording ends and why: ``ends`` (a sentence, None when complete) and ``error``
     (what the recorder wrote beside it, ``PATH.error``, when it could not write the file)."""
     from ..record.recording import error_path
@@ -235,7 +243,7 @@ def recording_end(path, rec: dict, samples) -> dict:
     return {"ends": f"ends {at}; {why}", "error": err}
 
 
-def plot(run, path: str | Path, *, title: str = "", size: str = "page") -> Path:
+def plot(run: Run, path: str | Path, *, title: str = "", size: str = "page") -> Path:
     """The paper's Fig. 2 of a recording's ``Run``: states, input, E_k at encoder and decoder, the DoS
     intervals of its ``dos`` section shaded."""
     from ..analysis.figures import plot_time_series, series_of_run

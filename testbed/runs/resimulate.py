@@ -29,7 +29,14 @@ Exit codes: 0 the run is reproduced, 1 it is not, 2 an unreadable recording.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+
+if TYPE_CHECKING:
+
+    from ..scenario import Scenario
+    from ..sim.loop import Replay, SimResult
 
 #: physical timing: the largest state error that still counts as reproduced (on the model)
 PHYSICAL_TOLERANCE = 1e-9
@@ -38,7 +45,7 @@ PHYSICAL_TOLERANCE = 1e-9
 PLANTS = ("auto", "model", "recorded")
 
 
-def recorded_run(run, limit: int | None = None) -> dict:
+def recorded_run(run: Any, limit: int | None = None) -> dict:  # run: a Run (runs/run.py imports this module)
     """The per-sample record a resimulation needs, from a recording's ``testbed.Run``
     (``testbed.runs.run.run_of_recording``): the values from its arrays, which samples each node recorded
     and what the controller and the plant said happened from its columns.
@@ -52,6 +59,7 @@ def recorded_run(run, limit: int | None = None) -> dict:
     from ..wire import messages as msg
 
     cols, sc, a = run.recorded_columns, run.scenario, run.arrays
+    assert cols is not None  # a recording's Run (run_of_recording)
     N = min(run.N, sc.n_steps)
     L = N if limit is None else max(0, min(N, int(limit) + 1))   # the rows of ``live``
     he = cols.has("encoder")[:N]
@@ -179,7 +187,7 @@ def _steps_known(run: dict, n: int, res) -> np.ndarray | None:
     return np.where(same[:, None], nxt, np.nan)
 
 
-def plant_model_error(run: dict, n: int | None = None, res=None) -> dict | None:
+def plant_model_error(run: dict, n: int | None = None, res: SimResult | None = None) -> dict | None:
     """e_k = ||x_k+1 - phi_T(x_k, u_k)||_inf over samples 0 .. n - 1 of a recording: the plant's reported
     x_k+1 against the scenario's model (its flow map, as the simulator runs it) from the reported x_k with
     the input that acted (the plant's recorded u_k; under physical timing u_k-1 held for the recorded
@@ -233,7 +241,7 @@ def plant_model_error(run: dict, n: int | None = None, res=None) -> dict | None:
 LOOP_QUANTITIES = ("symbols", "saturated", "E", "xi", "q_enc", "theta", "E_dec", "xi_dec", "q", "u")
 
 
-def loop_differences(live: dict, res, M: int) -> dict[str, np.ndarray]:
+def loop_differences(live: dict, res: SimResult, M: int) -> dict[str, np.ndarray]:
     """Per quantity of ``LOOP_QUANTITIES``: the samples (of 0 .. M - 1) where the recording and the re-run
     ``res`` (``sim.loop.SimResult``) differ, each where its node recorded it."""
     def same(a, b):
@@ -262,7 +270,7 @@ def is_reproduced(plant: str, *, loop_identical: bool, first_divergence: int | N
     return first_divergence is None and (final_error is None or final_error <= tolerance)
 
 
-def kernel_replay(sc, replay, n: int):
+def kernel_replay(sc: Scenario, replay: Replay, n: int) -> SimResult | None:
     """Samples 0 .. n - 1 of ``replay`` re-run on the batch kernel (``sim.trajectory.simulate_kernel``), where
     the kernel runs the scenario and the replay says nothing but theta_k: ideal timing, every sample
     sensed and sent, every u_k delivered.  There the kernel and the per-sample loop of the protocol
@@ -409,7 +417,8 @@ def compare(run: dict, limit: int | None = None, plant: str = "model", why: str 
     }
 
 
-def resimulation(run, *, plant: str = "auto", limit: int | None = None) -> dict:
+def resimulation(run: Any, *, plant: str = "auto",  # run: a Run (runs/run.py imports this module)
+                 limit: int | None = None) -> dict:
     """The re-run of a recording's ``testbed.Run`` (``run_of_recording``) on the plant ``plant_choice`` picks:
     the dict of ``testbed resimulate --json`` (``plant``, ``loop_identical``, ``loop_first_divergence``,
     ``plant_model_error``, ``reproduced``, ...).  The conformance kit's ``loop_equals_replay`` and

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,7 +35,10 @@ from ..common.errors import BadInput
 from ..record.tracereader import read_recording_trace
 
 if TYPE_CHECKING:
+
+    from ..record.columns import Columns
     from ..scenario import Scenario
+    from ..sim.loop import SimResult
 
 #: ``Run.summary`` of every run, live or simulated (the scalar keys of ``testbed simulate --json``;
 #: docs/api.md explains each)
@@ -70,12 +73,12 @@ class Run:
     metadata: dict[str, dict] = field(default_factory=dict)
     #: the overrides the run was simulated with (``testbed.simulate``), stored by ``save``
     overrides: dict = field(default_factory=dict)
-    _result: object = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
-    _columns: object = field(default=None, repr=False)  # a recording's columns (``testbed report`` reads them)
+    _result: SimResult | None = field(default=None, repr=False)  # the simulator's SimResult (``save`` records it)
+    _columns: Columns | None = field(default=None, repr=False)  # a recording's columns (``testbed report`` reads them)
     _details: dict | None = field(default=None, repr=False)  # a recording's whole summary (``recording_summary``)
 
     @property
-    def recorded_columns(self):
+    def recorded_columns(self) -> Columns | None:
         """A recording's columns as read (``testbed.record.columns``; None for a simulated run): what
         ``testbed report`` and the resimulation read beyond the arrays."""
         return self._columns
@@ -154,15 +157,15 @@ class Run:
         """Flat 1-D columns, one row per sample: vectors as x1..xn, u1..um, ... (what ``export`` writes)."""
         return flat_columns(self.arrays)
 
-    def to_pandas(self):
+    def to_pandas(self) -> Any:
         """A ``pandas.DataFrame``, one row per sample (``columns()``)."""
         return self._frame("pandas")
 
-    def to_polars(self):
+    def to_polars(self) -> Any:
         """A ``polars.DataFrame``, one row per sample (``columns()``)."""
         return self._frame("polars")
 
-    def _frame(self, library: str):
+    def _frame(self, library: str) -> Any:
         import importlib
 
         try:
@@ -196,7 +199,7 @@ def _ns_to_s(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
-def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
+def _timing_arrays(cols: Columns, N: int, T: float) -> dict[str, np.ndarray]:
     from ..wire import messages as msg
 
     g = cols.get
@@ -204,7 +207,7 @@ def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
     t_ns, u_rx = g("plant", "t_ns")[:N], g("plant", "u_rx_ns")[:N]
     e_tx, c_tx, a_tx = g("encoder", "tx_ns")[:N], g("controller", "tx_ns")[:N], g("attacker", "tx_ns")[:N]
 
-    def diff(a, b, ok):
+    def diff(a: np.ndarray, b: np.ndarray, ok: np.ndarray) -> np.ndarray:
         ok = ok & (a != msg.NO_TIME) & (b != msg.NO_TIME)
         out = np.full(N, np.nan)
         out[ok] = (a[ok] - b[ok]) / 1e9
@@ -226,7 +229,7 @@ def _timing_arrays(cols, N: int, T: float) -> dict[str, np.ndarray]:
     }
 
 
-def run_of_recording(cols, sc, path: str | Path | None = None) -> Run:
+def run_of_recording(cols: Columns, sc: Scenario, path: str | Path | None = None) -> Run:
     """A :class:`Run` from a recording's columns (``testbed.record.columns.Columns``) and its scenario;
     ``Run.path`` is ``path`` as given (default: the columns').
 
@@ -285,7 +288,8 @@ def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - 
 
 
 # ============================================================================ from the simulator
-def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict | None = None) -> Run:
+def run_of_simulation(sc: Scenario, res: SimResult, overrides: dict | None = None, *,
+                      summary: dict | None = None) -> Run:
     """A :class:`Run` from ``testbed.sim.batch.simulate_scenario``'s result; ``summary``: its
     ``testbed.sim.batch.summarize(sc, res)`` when the caller has made it already."""
     from ..sim.batch import attack_on_samples, attacker_drops, summarize
@@ -307,7 +311,7 @@ def run_of_simulation(sc, res, overrides: dict | None = None, *, summary: dict |
                overrides=dict(overrides or {}), _result=res)
 
 
-def resolve_scenario(scenario, overrides: dict | None = None):
+def resolve_scenario(scenario: str | Path | Scenario, overrides: dict | None = None) -> Scenario:
     """A scenario object, bundled name or .toml path, with overrides applied (``BadInput`` if unusable)."""
     from .. import scenario as scen
 
@@ -316,7 +320,7 @@ def resolve_scenario(scenario, overrides: dict | None = None):
     return scen.load(str(scenario), overrides=overrides, read_recording_trace=read_recording_trace)  # built once
 
 
-def simulate(scenario, **overrides) -> Run:
+def simulate(scenario: str | Path | Scenario, **overrides: Any) -> Run:
     """Simulate a scenario (object, bundled name or .toml path) with ``overrides`` and return a :class:`Run`.
 
     Overrides (validated as if written in the scenario file; ``testbed.scenario.OVERRIDES``):
@@ -338,7 +342,7 @@ __all__ = ["Run", "open", "simulate", "resimulate", "flat_columns", "run_of_simu
            "resolve_scenario", "BadInput", "SUMMARY_KEYS", "RECORDING_KEYS", "LIVE_KEYS"]
 
 
-def resimulate(path, *, trust_code: bool = False, plant: str = "auto") -> dict:
+def resimulate(path: str | Path, *, trust_code: bool = False, plant: str = "auto") -> dict:
     """``testbed resimulate PATH [--plant P] --json`` as a dict (``testbed.runs.resimulate.resimulation``).
     ``trust_code``: run a plant's or method's source stored in the recording (``open``); without it, when
     that code is needed, ``plants.refs.CodeNotTrusted`` (one line naming ``--trust-code``) and nothing is run."""

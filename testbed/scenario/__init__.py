@@ -10,6 +10,7 @@ import dataclasses
 import tomllib
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 from ..common.errors import BadInput
 from ..loop import device
@@ -24,7 +25,8 @@ BUNDLED_DIR = "bundled"  # testbed/scenario/bundled/
 MAX_SCENARIO_BYTES = 1 << 20   # a scenario is a page of TOML
 
 
-def swap_method(data: dict, new, base_dir: str | None, where: str = "<scenario>") -> methodswap.Swapped:
+def swap_method(data: dict, new: str | dict[str, Any], base_dir: str | None,
+                where: str = "<scenario>") -> methodswap.Swapped:
     """``data`` with the method ``new`` swapped in by the one rule (``testbed.scenario.methodswap``: the scenario's
     own method keeps its params, dropped params and ignored ``[quantizer]`` keys are named in the note):
     (the document, the note without its ``note: ``, the method object built to check it)."""
@@ -132,8 +134,8 @@ def loads(text: str, *, name: str = "scenario", where: str = "<string>",
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{where}: not valid TOML: {e}") from None
     over = scenariooverrides.checked(overrides, name)
-    build = dict(name=name, source=text, base_dir=base_dir, check_fmu=check_fmu, check_design=check_design,
-                 read_recording_trace=read_recording_trace)
+    build: dict[str, Any] = dict(name=name, source=text, base_dir=base_dir, check_fmu=check_fmu,
+                                 check_design=check_design, read_recording_trace=read_recording_trace)
     if not over:
         return from_dict(data, where=where, **build)
     where_o = f"{where} (with run overrides)"

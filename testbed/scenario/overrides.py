@@ -8,12 +8,15 @@ the Scenario; this module only edits the parsed document.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..common.errors import BadInput
 from .methodswap import Swapped
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 #: run-time overrides a scenario accepts (``testbed run|simulate --duration ...``): name -> (table, key)
 OVERRIDES = {"duration": ("run", "duration"), "timing": ("run", "timing"), "deadline": ("run", "deadline"),
@@ -64,7 +67,7 @@ def apply(data: dict, over: dict, swap: Callable[[dict, Any], Swapped]) -> tuple
     return data, None
 
 
-def hint(msg: str, name: str, x0, over: dict) -> str:
+def hint(msg: str, name: str, x0: npt.ArrayLike, over: dict) -> str:
     """A scenario error caused by overrides, reworded so that a caller of overrides can act on it."""
     names = ", ".join(f"{k}={v!r}" for k, v in over.items())
     x0 = over.get("x0", x0)

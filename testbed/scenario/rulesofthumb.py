@@ -16,9 +16,17 @@ disturbance ||w_k||_inf <= w.  The box Q(xi_k, E_k) must hold y_k, not only x_k:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..loop.control import c2d
+
+if TYPE_CHECKING:
+    from plants.base import Plant
+
+    from ..loop.device import DisturbanceSpec
+    from .spec import Scenario
 
 
 def e_min_guarantee(b: float, Lambda: float, M: int, w: float = 0.0) -> float:
@@ -27,13 +35,13 @@ def e_min_guarantee(b: float, Lambda: float, M: int, w: float = 0.0) -> float:
     return np.inf if M <= Lambda else ((1.0 + Lambda) * b + w) / (1.0 - Lambda / M)
 
 
-def growth(model, T: float) -> float:
+def growth(model: Plant, T: float) -> float:
     """a = ||e^{A T}||_inf: how much the linearized flow over one period stretches an error."""
     Ad, _ = c2d(model.A, model.B, T)
     return float(np.max(np.sum(np.abs(Ad), axis=1)))
 
 
-def disturbance_bound(spec) -> float:
+def disturbance_bound(spec: DisturbanceSpec | None) -> float:
     """A bound on ||w_k||_inf of ``[plant.disturbance]`` (``DisturbanceSpec``; 0 without one): the
     constant's largest entry plus the noise's (the uniform half-width, 4 sigma for normal noise)."""
     if spec is None:
@@ -65,7 +73,7 @@ def e0_warning(E0: float, x0_norm: float, b: float) -> str | None:
             f"{x0_norm + b:.6g}; docs/plants-and-quantizer.md)")
 
 
-def warnings(sc) -> list[str]:
+def warnings(sc: Scenario) -> list[str]:
     """The rule-of-thumb warnings of scenario ``sc`` (a ``Scenario``), each one line; empty when none.
 
     A rule applies when the method uses the key it is about (``Method.uses``: E_min, E0) and, for E0, when
@@ -87,7 +95,7 @@ def warnings(sc) -> list[str]:
     return [line for line in out if line]
 
 
-def _allow_x0_outside(sc) -> bool:
+def _allow_x0_outside(sc: Scenario) -> bool:
     """``[quantizer] allow_x0_outside = true`` in the scenario's text."""
     import tomllib
 

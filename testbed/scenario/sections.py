@@ -6,8 +6,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast, overload
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from attackers import generators as attack_generators
 from ..common import validate
 from ..common.errors import BadInput
 from ..loop import device
-from ..loop.channel import ChannelError, parse_network
+from ..loop.channel import ChannelError, NetworkModel, parse_network
 from ..loop.control import c2d, closed_loop, dlqr, spectral_radius
 from ..loop.params import RULES, Codebook, CodebookTooLarge, FlowOptions, delay_margin_gain
 from . import traces
@@ -33,6 +34,9 @@ from .spec import (
     SimDelaySpec,
     _freeze,
 )
+
+if TYPE_CHECKING:
+    from ..methods.base import Method
 
 # ----------------------------------------------------------------------------- validation
 SECTIONS = {"plant", "model", "quantizer", "controller", "attack", "run", "flow", "name", "description", "method",
@@ -52,7 +56,7 @@ KEYS = {
 
 
 class Ctx:
-    def __init__(self, where: str, read_recording_trace: traces.RecordingTraceReader | None = None):
+    def __init__(self, where: str, read_recording_trace: traces.RecordingTraceReader | None = None) -> None:
         self.where = where
         self.read_recording_trace = read_recording_trace  # how a recording named as a trace is read
 
@@ -60,14 +64,22 @@ class Ctx:
         return ScenarioError(f"{self.where}: [{key}] {msg}")
 
 
-def _num(ctx, key, v, *, positive=False, nonneg=False, integer=False) -> float:
+@overload
+def _num(ctx: Ctx, key: str, v: object, *, positive: bool = False, nonneg: bool = False,
+         integer: Literal[True]) -> int: ...
+@overload
+def _num(ctx: Ctx, key: str, v: object, *, positive: bool = False, nonneg: bool = False,
+         integer: Literal[False] = False) -> float: ...
+def _num(ctx: Ctx, key: str, v: object, *, positive: bool = False, nonneg: bool = False,
+         integer: bool = False) -> float:
+    """A number (``validate.number``: an ``int`` when ``integer``) or the error naming ``key``."""
     try:
         return validate.number(v, integer=integer, lo=0 if positive or nonneg else None, lo_open=positive)
     except validate.Invalid as e:
         raise ctx.err(key, str(e)) from None
 
 
-def _matrix(ctx, key, v, shape) -> tuple[tuple[float, ...], ...]:
+def _matrix(ctx: Ctx, key: str, v: object, shape: tuple[int, int]) -> tuple[tuple[float, ...], ...]:
     try:
         a = np.array(v, dtype=float)
     except (TypeError, ValueError):
@@ -81,13 +93,13 @@ def _matrix(ctx, key, v, shape) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(x) for x in row) for row in a)
 
 
-def _unknown(ctx, section, table, allowed):
+def _unknown(ctx: Ctx, section: str, table: dict, allowed: set[str]) -> None:
     bad = sorted(set(table) - allowed)
     if bad:
         raise ctx.err(section, f"unknown key(s) {bad}; allowed: {sorted(allowed)}")
 
 
-def _str(ctx, key, v, choices=None) -> str:
+def _str(ctx: Ctx, key: str, v: object, choices: Iterable[str] | None = None) -> str:
     if not isinstance(v, str):
         raise ctx.err(key, f"must be a string, got {v!r}")
     if choices is not None:
@@ -98,13 +110,13 @@ def _str(ctx, key, v, choices=None) -> str:
     return v
 
 
-def _table(ctx, key, v) -> dict:
+def _table(ctx: Ctx, key: str, v: object) -> dict:
     if not isinstance(v, dict):
         raise ctx.err(key, "must be a table")
     return v
 
 
-def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
+def _make_plant(ctx: Ctx, key: str, name: object, params: dict, base_dir: str = "") -> plants.Plant:
     """A plant from a reference (registered name, entry point or "module:Class", see ``plants.refs``)."""
     if not isinstance(name, str) or not name:
         raise ctx.err(f"{key}.name", f"must be a non-empty string, got {name!r}")
@@ -114,7 +126,7 @@ def _make_plant(ctx, key, name, params, base_dir: str = "") -> plants.Plant:
         raise ctx.err(key, str(e)) from None
 
 
-def method_section(ctx, data: dict, base_dir: str, swapped: Swapped | None = None):
+def method_section(ctx: Ctx, data: dict, base_dir: str, swapped: Swapped | None = None) -> tuple[MethodSpec, Method]:
     """[method] and the [quantizer] keys it uses: (MethodSpec, method).  A key the method does not use is
     an error naming it (a swapped method, :func:`testbed.scenario.swap_method`, has them left out already).
     ``swapped``: the swap that wrote ``data``'s [method]; the method it built is taken, not built again."""
@@ -160,7 +172,7 @@ class QuantizerPart(NamedTuple):
     uses: set
     table: dict
     T: float
-    M: float
+    M: int
     L: float
     E0: float
     mode: str
@@ -179,7 +191,7 @@ class Timing(NamedTuple):
     sim_delay: SimDelaySpec | None
 
 
-def top_level(ctx, data, name) -> tuple[str, str]:
+def top_level(ctx: Ctx, data: object, name: str) -> tuple[str, str]:
     """The document's tables and the top-level ``name`` and ``description``: (name, description)."""
     if not isinstance(data, dict):
         raise ctx.err("", "scenario must be a TOML table")
@@ -194,7 +206,7 @@ def top_level(ctx, data, name) -> tuple[str, str]:
     return name, _str(ctx, "description", data.get("description", ""))
 
 
-def plant_section(ctx, data: dict, base_dir: str, check_fmu: bool) -> PlantPart:
+def plant_section(ctx: Ctx, data: dict, base_dir: str, check_fmu: bool) -> PlantPart:
     """[plant]: the true plant (a registered or imported plant, or an FMU) and x0."""
     pt = data["plant"]
     _unknown(ctx, "plant", pt, KEYS["plant"])
@@ -224,10 +236,11 @@ def plant_section(ctx, data: dict, base_dir: str, check_fmu: bool) -> PlantPart:
     return PlantPart(pt, params, fmu, plant, n, m, plant_name, x0)
 
 
-def model_section(ctx, data: dict, p: PlantPart, base_dir: str) -> tuple[plants.Plant | None, ModelSpec]:
+def model_section(ctx: Ctx, data: dict, p: PlantPart, base_dir: str) -> tuple[plants.Plant, ModelSpec]:
     """[model]: what the predictions, the design and the analysis use (default: [plant]): (object, spec)."""
     pt, n, m = p.table, p.n, p.m
     if "model" not in data:
+        assert p.plant is not None  # an FMU plant needs a [model] (plant_section)
         return p.plant, ModelSpec(pt["name"], _freeze(p.params), base_dir=base_dir).with_built(p.plant)
     mt = _table(ctx, "model", data["model"])
     _unknown(ctx, "model", mt, KEYS["model"])
@@ -239,13 +252,14 @@ def model_section(ctx, data: dict, p: PlantPart, base_dir: str) -> tuple[plants.
     else:
         mparams = p.params if mname == pt.get("name") else {}
     model_obj = _make_plant(ctx, "model", mname, mparams, base_dir)
+    assert isinstance(mname, str)  # _make_plant raised otherwise
     if (model_obj.n, model_obj.m) != (n, m):
         raise ctx.err("model", f"{model_obj.name} has n = {model_obj.n}, m = {model_obj.m}; the plant "
                                f"{p.name} has n = {n}, m = {m}")
     return model_obj, ModelSpec(mname, _freeze(mparams), explicit=True, base_dir=base_dir).with_built(model_obj)
 
 
-def run_section(ctx, data: dict) -> tuple[float, float, str, float]:
+def run_section(ctx: Ctx, data: dict) -> tuple[float, float, str, float]:
     """[run] duration, converge_tol, timing, deadline (the timing decides the quantizer's default rule)."""
     rt = data["run"]
     _unknown(ctx, "run", rt, KEYS["run"])
@@ -260,7 +274,7 @@ def run_section(ctx, data: dict) -> tuple[float, float, str, float]:
     return duration, tol, timing, deadline
 
 
-def quantizer_section(ctx, data: dict, base_dir: str, n: int, x0, timing: str,
+def quantizer_section(ctx: Ctx, data: dict, base_dir: str, n: int, x0: Iterable[float], timing: str,
                       swapped: Swapped | None = None) -> QuantizerPart:
     """[method] and [quantizer]: the keys the method uses (defaults for the others), Assumptions 2 and 5."""
     qt = data["quantizer"]
@@ -305,7 +319,7 @@ def quantizer_section(ctx, data: dict, base_dir: str, n: int, x0, timing: str,
     return QuantizerPart(mspec, muses, qt, T, M, L, E0, mode, zoom_out, E_min, Lam, rule)
 
 
-def timing_section(ctx, data: dict, T: float, deadline: float, timing: str, rule: str) -> Timing:
+def timing_section(ctx: Ctx, data: dict, T: float, deadline: float, timing: str, rule: str) -> Timing:
     """[run] actuation, delay, delay_lost: when u_k acts (physical timing), and the bounds the delay-aware
     rule covers; sim_delay: the latency of u_k in a simulation."""
     rt = data["run"]
@@ -317,7 +331,7 @@ def timing_section(ctx, data: dict, T: float, deadline: float, timing: str, rule
     dT = deadline * T
     t_loss = loss_fraction * dT
 
-    def bound(key, default_lo, default_nom, default_hi):
+    def bound(key: str, default_lo: float, default_nom: float, default_hi: float) -> DelaySpec:
         if key not in rt:
             return DelaySpec(default_nom, default_lo, default_hi)
         dt_ = _table(ctx, f"run.{key}", rt[key])
@@ -353,7 +367,7 @@ def timing_section(ctx, data: dict, T: float, deadline: float, timing: str, rule
     return Timing(loss_fraction, actuation, delay, delay_lost, _sim_delay(ctx, rt, T))
 
 
-def _sim_delay(ctx, rt: dict, T: float) -> SimDelaySpec | None:
+def _sim_delay(ctx: Ctx, rt: dict, T: float) -> SimDelaySpec | None:
     """[run] sim_delay: constant, uniform (seeded) or a trace of latencies, each shorter than T."""
     if "sim_delay" not in rt:
         return None
@@ -387,7 +401,7 @@ def _sim_delay(ctx, rt: dict, T: float) -> SimDelaySpec | None:
     return sim_delay
 
 
-def delay_rule(ctx, q: QuantizerPart, model_obj, deadline: float, tm: Timing) -> tuple[dict, float]:
+def delay_rule(ctx: Ctx, q: QuantizerPart, model_obj: plants.Plant, deadline: float, tm: Timing) -> tuple[dict, float]:
     """The delay-aware rule's margins (``[quantizer] L_u``, default the model's input gain): (the
     QuantizerParams' delay fields, L_u)."""
     dpar = dict(delay_hat=0.0, margin_gain=0.0, delay_hat_lost=0.0, margin_gain_lost=0.0)
@@ -397,6 +411,7 @@ def delay_rule(ctx, q: QuantizerPart, model_obj, deadline: float, tm: Timing) ->
         region = float(getattr(model_obj, "lipschitz_region", math.inf))
         L_u = _num(ctx, "quantizer.L_u", qt["L_u"], nonneg=True) if "L_u" in qt else \
             float(model_obj.input_gain(region))
+        assert delay is not None and delay_lost is not None  # timing_section sets both for this rule
         ns = lambda v: round(v * 1e9) / 1e9  # noqa: E731 - delays act in whole ns, as the live plant measures them
         dpar = dict(delay_hat=ns(delay.nominal),
                     margin_gain=delay_margin_gain(Lam, L_u, delay.nominal, delay.min, delay.max),
@@ -408,7 +423,8 @@ def delay_rule(ctx, q: QuantizerPart, model_obj, deadline: float, tm: Timing) ->
     return dpar, L_u
 
 
-def controller_section(ctx, data: dict, model_obj, n: int, m: int, T: float, check_design: bool) -> ControllerSpec:
+def controller_section(ctx: Ctx, data: dict, model_obj: plants.Plant, n: int, m: int, T: float,
+                       check_design: bool) -> ControllerSpec:
     """[controller]: K given or designed by LQR on the model, checked Schur stable."""
     ct = data["controller"]
     _unknown(ctx, "controller", ct, KEYS["controller"])
@@ -438,7 +454,7 @@ def controller_section(ctx, data: dict, model_obj, n: int, m: int, T: float, che
     return ctrl
 
 
-def attack_section(ctx, data: dict, base_dir: str) -> AttackSpec:
+def attack_section(ctx: Ctx, data: dict, base_dir: str) -> AttackSpec:
     """[attack]: the kind, its parameters (a trace read now) and the budget (Assumption 4)."""
     at = _table(ctx, "attack", data.get("attack", {"kind": "none"}))
     kind = at.get("kind")
@@ -448,19 +464,21 @@ def attack_section(ctx, data: dict, base_dir: str) -> AttackSpec:
     aparams = {k: v for k, v in at.items() if k not in ("kind", "budget")}
     req, opt = attack_generators.PARAMS[kind]   # a misspelled key is named as one, whatever its value
     _unknown(ctx, "attack", aparams, {*req, *opt, *(("score",) if kind == "greedy" else ())})
-    budget = None
+    budget: tuple[float, float, float, float] | None = None
     if "budget" in at:
         bt = _table(ctx, "attack.budget", at["budget"])
         _unknown(ctx, "attack.budget", bt, {"kappa_F", "rho_F", "kappa_D", "rho_D"})
-        budget = tuple(_num(ctx, f"attack.budget.{k}", bt.get(k, 0.0), nonneg=True)
-                       for k in ("kappa_F", "rho_F", "kappa_D", "rho_D"))
+        budget = cast(tuple[float, float, float, float],  # the four keys
+                      tuple(_num(ctx, f"attack.budget.{k}", bt.get(k, 0.0), nonneg=True)
+                            for k in ("kappa_F", "rho_F", "kappa_D", "rho_D")))
     if kind in ("random", "greedy"):
-        vals = {}
+        vals: dict[str, float] = {}
         for k in ("kappa_F", "rho_F", "kappa_D", "rho_D"):
             if k not in aparams:
                 raise ctx.err(f"attack.{k}", f"missing (needed by kind = {kind!r})")
             vals[k] = _num(ctx, f"attack.{k}", aparams[k], nonneg=True)
-        budget = budget or tuple(vals[k] for k in ("kappa_F", "rho_F", "kappa_D", "rho_D"))
+        budget = budget or cast(tuple[float, float, float, float],  # the four keys
+                                tuple(vals[k] for k in ("kappa_F", "rho_F", "kappa_D", "rho_D")))
     if budget is not None and not budget[3] < 1:
         raise ctx.err("attack.rho_D", f"must be < 1 (Assumption 4), got {budget[3]}")
     if kind == "greedy":
@@ -474,15 +492,16 @@ def attack_section(ctx, data: dict, base_dir: str) -> AttackSpec:
     return AttackSpec(kind=str(kind), params=_freeze(aparams), budget=budget)
 
 
-def flow_section(ctx, data: dict) -> FlowOptions:
+def flow_section(ctx: Ctx, data: dict) -> FlowOptions:
     """[flow]: the integrator's tolerances and limits."""
     ft = _table(ctx, "flow", data.get("flow", {}))
     _unknown(ctx, "flow", ft, KEYS["flow"])
-    return FlowOptions(**{k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
-                          for k, v in ft.items()})
+    opts: dict[str, Any] = {k: (_num(ctx, f"flow.{k}", v, positive=True, integer=(k == "max_steps")))
+                            for k, v in ft.items()}
+    return FlowOptions(**opts)
 
 
-def network_section(data: dict, where: str):
+def network_section(data: dict, where: str) -> NetworkModel | None:
     """[network]: the emulated channels (testbed/loop/channel.py), or None."""
     try:
         return parse_network(data["network"]) if "network" in data else None
@@ -490,7 +509,7 @@ def network_section(data: dict, where: str):
         raise ScenarioError(f"{where}: {e}") from None
 
 
-def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) -> FMUSpec:
+def _fmu_spec(ctx: Ctx, pt: dict, params: dict, base_dir: str, check: bool = True) -> FMUSpec:
     """``[plant] fmu``, ``inputs``, ``states``, ``params``, checked against the FMU's model description."""
     if "name" in pt:
         raise ctx.err("plant", "give either name = \"...\" or fmu = \"file.fmu\", not both")
@@ -500,7 +519,7 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) ->
     path = Path(f).expanduser()
     if not path.is_absolute():
         path = Path(base_dir or ".") / path
-    lists = {}
+    lists: dict[str, tuple[str, ...]] = {}
     for k in ("inputs", "states"):
         v = pt.get(k)
         if not isinstance(v, list) or not v or not all(isinstance(x, str) and x for x in v):
@@ -519,7 +538,7 @@ def _fmu_spec(ctx, pt: dict, params: dict, base_dir: str, check: bool = True) ->
                    params=_freeze(params), checked=check)
 
 
-def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
+def _trace_params(ctx: Ctx, aparams: dict, base_dir: str) -> dict:
     """``[attack] kind = "trace"``: ``source = PATH`` (a recording or a file, relative to the scenario's
     folder) read now, or the embedded form ``samples``, ``T``, ``n_samples`` (what a recording stores)."""
     if "samples" in aparams:
@@ -534,7 +553,7 @@ def _trace_params(ctx, aparams: dict, base_dir: str) -> dict:
         raise ctx.err("attack.source", f"{src}: {e}") from None
 
 
-def _check_attack_params(ctx, kind: str, aparams: dict) -> None:
+def _check_attack_params(ctx: Ctx, kind: str, aparams: dict) -> None:
     """Types of the attack's parameters: numbers are numbers (a string "1.0" is an error)."""
     for k, v in aparams.items():
         if k == "score":

@@ -6,19 +6,24 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import plants.refs
 
 from .spec import Scenario, ScenarioError, _thaw
 
+if TYPE_CHECKING:
+    import numpy as np
 
-def _toml_key(k) -> str:
+
+def _toml_key(k: object) -> str:
     k = str(k)
     return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
 
 
-def _toml_value(v) -> str:
+def _toml_value(v: object) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -45,8 +50,8 @@ def to_toml(data: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def with_attack(sc: Scenario, *, x0, E0: float, intervals, duration: float, name: str, description: str,
-                out_dir: str | Path, budget: dict | None = None) -> str:
+def with_attack(sc: Scenario, *, x0: Sequence[float] | np.ndarray, E0: float, intervals: Iterable[Sequence[float]],
+                duration: float, name: str, description: str, out_dir: str | Path, budget: dict | None = None) -> str:
     """TOML text of ``sc`` from ``x0`` with E0, under the attack ``intervals`` ([[start, length], ...];
     none: kind "none") with the declared ``budget`` ([attack] budget keys), for ``duration``
     seconds, to be saved in ``out_dir``.

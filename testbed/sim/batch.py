@@ -19,11 +19,14 @@ both ends apply (xi), (E) -> plant x_{k+1} = phi_T(x_k, u_k)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from attackers.greedy import greedy_init
+from attackers.schedule import Schedule
 
 from ..loop.channel import ATTACKER, LOSS_KINDS, loss_counts_of
 from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
@@ -45,6 +48,15 @@ from .loop import (  # noqa: F401 - LinkEffects, OnlineAttacker, simulate_loop: 
     simulate_loop,
 )
 from .trajectory import simulate_scenario  # noqa: F401 - re-exported: the scenario level's entry point
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from plants.base import Plant
+
+    from ..methods.base import Method
+    from ..scenario.spec import Scenario
+    from .loop import Replay
 
 
 # ============================================================================ batch simulator
@@ -73,11 +85,14 @@ class BatchResult:
         return (self.status == FLOW_OK) & (self.final_norm < tol)
 
 
-def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=None, theta=None, sched_idx=None,
-                   timing=None, latency=None, latency_idx=None, u_max: float = math.inf, greedy_params=None,
+def simulate_batch(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.ArrayLike, n_steps: int, *,
+                   model: Plant | None = None, theta: npt.ArrayLike | None = None,
+                   sched_idx: npt.ArrayLike | None = None, timing: Sequence[float] | np.ndarray | None = None,
+                   latency: npt.ArrayLike | None = None, latency_idx: npt.ArrayLike | None = None,
+                   u_max: float = math.inf, greedy_params: npt.ArrayLike | None = None,
                    score: str = "state", mode: str | None = None, record: bool = False,
-                   flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False, init_state=None,
-                   stop=None, method=None) -> BatchResult:
+                   flow: FlowOptions = DEFAULT_FLOW, specialize: bool = False, init_state: npt.ArrayLike | None = None,
+                   stop: tuple[float, float, float] | None = None, method: Method | None = None) -> BatchResult:
     """Vectorized lockstep simulation of B trajectories (numba, one core).
 
     Parameters
@@ -164,10 +179,11 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     if method is None:
         method = getattr(qp, "method", None)   # ``methods.base.MethodQuantizerParams``
     if method is not None and mode is None:
-        mode_code = method.kernel_code(qp)
-        if mode_code is None:
+        code = method.kernel_code(qp)
+        if code is None:
             raise ValueError(f"method {method.display_name()!r} has no batch kernel (a user's method runs in "
                              "the per-sample simulator and live only)")
+        mode_code = code
         E0 = float(method.kernel_E0(qp))
         if mode_code == 4:
             dpar = np.zeros(4)
@@ -175,7 +191,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
     X_rec = np.zeros(shp + (n,)) if record else np.zeros((0, 0, n))
     E_rec = np.zeros(shp)
     th_rec = np.zeros(shp, dtype=np.uint8)
-    out = dict(x_final=np.zeros((B, n)), E_final=np.zeros(B), status=np.zeros(B, np.int8),
+    out: dict[str, Any] = dict(x_final=np.zeros((B, n)), E_final=np.zeros(B), status=np.zeros(B, np.int8),
                stop_k=np.zeros(B, np.int64), saturations=np.zeros(B, np.int64),
                mismatch=np.zeros(B, np.int64), max_norm=np.zeros(B), attacked=np.zeros(B, np.int64))
     W = loop_state_width(plant.n, plant.m)
@@ -204,7 +220,7 @@ def simulate_batch(plant, K, qp: QuantizerParams, X0, n_steps: int, *, model=Non
 
 
 # ============================================================================ scenario level
-def in_nominal_roa(plant, K, T: float, X, horizon: float = 60.0, tol: float = 1e-4,
+def in_nominal_roa(plant: Plant, K: npt.ArrayLike, T: float, X: npt.ArrayLike, horizon: float = 60.0, tol: float = 1e-4,
                    flow: FlowOptions = DEFAULT_FLOW) -> np.ndarray:
     """Whether each state of X (B, n) lies in the nominal region of attraction.
 
@@ -243,8 +259,8 @@ class EscapeCriterion:
     kind: str = "quantized loop continued without attack"
 
     @classmethod
-    def for_loop(cls, model, qp: QuantizerParams, tol: float = 1e-4,
-                 horizon_s: float = ESCAPE_HORIZON) -> "EscapeCriterion":
+    def for_loop(cls, model: Plant, qp: QuantizerParams, tol: float = 1e-4,
+                 horizon_s: float = ESCAPE_HORIZON) -> EscapeCriterion:
         """The criterion of a loop: x_tol = ``tol`` (``[run] converge_tol``), E_tol = max(tol, 2 E_min)
         (E_k cannot fall below the floor E_min), x_out = the model's ``lipschitz_region``."""
         return cls(float(horizon_s), float(tol), max(float(tol), 2.0 * float(qp.E_min)),
@@ -259,15 +275,20 @@ class EscapeCriterion:
         return int(round(self.horizon_s / T))
 
 
-def _batch_runner(plant, K, qp, model, flow, method=None):
-    def run(X, S, n_steps, stop):
+def _batch_runner(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, model: Plant, flow: FlowOptions,
+                  method: Method | None = None) -> Callable[[np.ndarray, np.ndarray, int, tuple[float, float, float]],
+                                                            dict]:
+    def run(X: np.ndarray, S: np.ndarray, n_steps: int, stop: tuple[float, float, float]) -> dict:
         r = simulate_batch(plant, K, qp, X, n_steps, model=model, flow=flow, init_state=S, stop=stop, method=method)
         return {"x_final": r.x_final, "status": r.status, "state_final": r.state_final}
     return run
 
 
-def judge_escape(plant, K, qp: QuantizerParams, x_final, state_final, status, criterion: EscapeCriterion, *,
-                 model=None, flow: FlowOptions = DEFAULT_FLOW, run=None, method=None) -> np.ndarray:
+def judge_escape(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, x_final: npt.ArrayLike,
+                 state_final: npt.ArrayLike, status: npt.ArrayLike, criterion: EscapeCriterion, *,
+                 model: Plant | None = None, flow: FlowOptions = DEFAULT_FLOW,
+                 run: Callable[[np.ndarray, np.ndarray, int, tuple[float, float, float]], dict] | None = None,
+                 method: Method | None = None) -> np.ndarray:
     """Whether each run escaped (:class:`EscapeCriterion`): (B,) bool.
 
     Parameters
@@ -310,7 +331,7 @@ def _all_finite_numbers(o: list) -> bool:
     return a.dtype.kind in "biu"
 
 
-def json_clean(o):
+def json_clean(o: Any) -> Any:
     """NaN -> None, recursively (JSON has no NaN)."""
     if isinstance(o, float):
         return o if math.isfinite(o) else None
@@ -323,7 +344,7 @@ def json_clean(o):
     return o
 
 
-def plant_and_model(sc) -> dict:
+def plant_and_model(sc: Scenario) -> dict:
     """The true plant and the model of a scenario by name and parameters (the JSON outputs name both).
 
     ``plant``: what the simulator and the live plant node integrate (``[plant]``; "fmu:FILE"
@@ -336,7 +357,8 @@ def plant_and_model(sc) -> dict:
             "model_params": model.params_dict()}
 
 
-def escaped_run(sc, res: SimResult, criterion: EscapeCriterion, replay=None, *, record=None) -> bool:
+def escaped_run(sc: Scenario, res: SimResult, criterion: EscapeCriterion, replay: Replay | None = None, *,
+                record: tuple[int, Callable[[], Iterable[tuple[int, np.ndarray, Replay]]]] | None = None) -> bool:
     """The escape verdict of one run of scenario ``sc``: every reader's (``testbed simulate``, ``run``,
     ``report``, ``testbed.open``, ``versus``, campaign rows and ``--verify``), for every method.
 
@@ -391,13 +413,13 @@ def outcome_text(s: dict) -> str:
     return "not converged"
 
 
-def attacker_drops(res) -> np.ndarray:
+def attacker_drops(res: SimResult) -> np.ndarray:
     """Per sample: the attacker dropped it (``res.loss_cause``; without one, every lost sample)."""
     theta = np.asarray(res.theta, dtype=bool)
     return theta if res.loss_cause is None else np.asarray(res.loss_cause) == ATTACKER
 
 
-def attack_on_samples(sc, res) -> np.ndarray:
+def attack_on_samples(sc: Scenario, res: SimResult) -> np.ndarray:
     """Per sample: the DoS schedule is active at t_k, or the attacker dropped sample k (an online
     attacker is on when it drops). A loss of another cause (a ``[network]`` link, a late symbol, a
     withheld one: ``res.loss_cause``) is not an attack, as the live attacker's own log has it."""
@@ -409,7 +431,7 @@ def attack_on_samples(sc, res) -> np.ndarray:
     return np.asarray(sched.theta_samples(sc.T, N), dtype=bool) | dropped
 
 
-def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
+def summarize(sc: Scenario, res: SimResult, *, arrays: bool = False, replay: Replay | None = None) -> dict:
     """The JSON document of ``testbed simulate --json`` (keys shared with ``testbed report``).
 
     ``escaped``: the loop continued without attack from where the run ended does not
@@ -429,13 +451,13 @@ def summarize(sc, res: SimResult, *, arrays: bool = False, replay=None) -> dict:
 class MemStack:
     """A per-sample array made of chunks, in memory (``RunTally``'s default ``stack``): one chunk is itself."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.parts: list = []
 
-    def append(self, a) -> None:
+    def append(self, a: npt.ArrayLike) -> None:
         self.parts.append(np.asarray(a))
 
-    def result(self):
+    def result(self) -> np.ndarray:
         return self.parts[0] if len(self.parts) == 1 else np.concatenate(self.parts)
 
 
@@ -452,7 +474,7 @@ class RunTally:
     #: the last samples kept (``loop_state_from_samples`` reads the last two)
     TAIL = ("theta", "symbols", "q", "xi_dec", "E_dec", "xi_enc", "E_enc")
 
-    def __init__(self, T: float, stack=MemStack):
+    def __init__(self, T: float, stack: Callable[[], Any] = MemStack) -> None:
         self.T = float(T)
         self.stack = stack
         self.per_sample = {key: stack() for key, _ in self.PER_SAMPLE}
@@ -511,14 +533,13 @@ class RunTally:
                 self.tail[name] = v if old is None else np.concatenate([old, v])[-2:]
         self.samples += n
 
-    def intervals(self):
+    def intervals(self) -> Schedule:
         """The realized DoS schedule (``SimResult.intervals``: ``Schedule.from_theta`` of the attacker's drops)."""
-        from attackers.schedule import Schedule
-
         runs = self.runs + ([] if self._open is None else [(self._open, self.samples - 1)])
         return Schedule(tuple((float(a) * self.T, float(b - a) * self.T) for a, b in runs)) if runs else Schedule(())
 
-    def summarize(self, sc, res: SimResult, *, arrays: bool = False, replay=None, record=None,
+    def summarize(self, sc: Scenario, res: SimResult, *, arrays: bool = False, replay: Replay | None = None,
+                  record: Callable[[], Iterable[tuple[int, np.ndarray, Replay]]] | None = None,
                   x_meas: bool = False) -> dict:
         """:func:`summarize`'s document from the chunks added: ``res`` gives the run's scalars (x_final, flow
         status, faults, K, simulator); ``record`` the record again, ``record() -> iter((k0, X, replay))``, for a
@@ -531,6 +552,7 @@ class RunTally:
         flow_diverged = res.flow_status != FLOW_OK
         diverged = flow_diverged or res.plant_fault is not None or res.method_fault is not None
         crit = EscapeCriterion.for_loop(model, sc.quantizer, tol)
+        chunked = None
         if record is None:
             last = res
         else:  # the last two samples (what the paper's end state reads) and the run's scalars
@@ -540,9 +562,9 @@ class RunTally:
                              theta=self.tail.get("theta", res.theta), symbols=self.tail.get("symbols", res.symbols),
                              saturated=res.saturated, x_final=res.x_final, flow_status=res.flow_status, K=res.K,
                              method_fault=res.method_fault)
-            record = (self.samples, record)
+            chunked = (self.samples, record)
         # a recording's plant or method whose stored code was not run (no --trust-code): not judged
-        escaped = None if sc.code_not_run() else escaped_run(sc, last, crit, replay, record=record)
+        escaped = None if sc.code_not_run() else escaped_run(sc, last, crit, replay, record=chunked)
         sch = self.intervals()
         cb = sc.make_method().codebook(model.n, sc.quantizer)
         o = run_outcome(sc, None, res.x_final, None, bits=cb.bits, saturations=self.saturations, agree=self.agree,
@@ -608,8 +630,10 @@ def _add_counts(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.pad(a, (0, n - len(a))) + np.pad(b, (0, n - len(b)))
 
 
-def run_outcome(sc, x, x_final, theta, *, bits: int, saturations: int, agree: bool, diverged: bool, escaped,
-                plant_fault=None, method_fault=None, losses: dict | None = None, x_max=None, lost=None) -> dict:
+def run_outcome(sc: Scenario, x: np.ndarray | None, x_final: np.ndarray, theta: npt.ArrayLike | None, *, bits: int,
+                saturations: int, agree: bool, diverged: bool, escaped: bool | None, plant_fault: str | None = None,
+                method_fault: str | None = None, losses: dict | None = None, x_max: float | None = None,
+                lost: int | None = None) -> dict:
     """How a run ended, as ``testbed simulate --json`` states it (:func:`summarize`) and a campaign's row
     of a batch-kernel run (``testbed.campaign.batch``): method, bits, converged (not diverged and
     max |x_final| < converge_tol), escaped, diverged, final_norm, max_norm, x_final, saturations,

@@ -43,6 +43,7 @@ import tempfile
 import textwrap
 import threading
 from pathlib import Path
+from typing import Any
 
 import numba as nb
 
@@ -70,7 +71,7 @@ def cache_dir() -> Path:
 
 
 # ============================================================================ public entry point
-def specialized(kernel, bindings: dict):
+def specialized(kernel: Any, bindings: dict) -> Any:
     """A callable with ``kernel``'s arguments that runs its cached specialization.
 
     Parameters

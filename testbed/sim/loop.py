@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -164,7 +164,7 @@ class LinkEffects:
     corrupt: tuple[tuple[int, str], ...] = ()
     channel: NetworkModel | None = None
 
-    def samples(self, N: int, tpar, n: int, m: int, symbol_bytes: int) -> SampleChannel | None:
+    def samples(self, N: int, tpar: np.ndarray, n: int, m: int, symbol_bytes: int) -> SampleChannel | None:
         """The channel's effect on samples 0..N-1 (None without a channel)."""
         if self.channel is None:
             return None
@@ -522,13 +522,14 @@ class RecordEnds:
     """:func:`ends_from_record` fed a chunk of the record at a time (``feed``, in the order of the samples):
     the same ends, with the protocol objects and the pending acks carried from chunk to chunk."""
 
-    def __init__(self, method, model, K, qp: QuantizerParams, flow: FlowOptions, n_steps: int):
+    def __init__(self, method: Method, model: Plant, K: npt.ArrayLike, qp: QuantizerParams, flow: FlowOptions,
+                 n_steps: int) -> None:
         K = np.asarray(K, dtype=np.float64).reshape(model.m, model.n)
         self.encp = EncoderProtocol(method.make_encoder(model, K, qp, flow), n_steps)
         self.ctlp = ControllerProtocol(method.make_decoder(model, K, qp, flow), n_steps)
         self.acks: list = []
 
-    def feed(self, k0: int, X, replay: Replay) -> None:
+    def feed(self, k0: int, X: npt.ArrayLike, replay: Replay) -> None:
         """Samples k0 .. k0 + len(X) - 1: x_k (x_meas,k where a sensor read it) and the chunk's ``Replay``."""
         rp = Replay(reason=_from(replay.reason, k0), sensed=_from(replay.sensed, k0),
                     withheld=_from(replay.withheld, k0), u_missing=_from(replay.u_missing, k0))
@@ -539,7 +540,7 @@ class RecordEnds:
             decs.pop()
             acks.extend((d.k, d.theta, d.last_rx) for d in decs if d is not None)
 
-    def ends(self):
+    def ends(self) -> tuple[EncoderEnd, DecoderEnd]:
         """(encoder, decoder) after the samples fed."""
         for a in self.acks:
             self.encp.ack(*a)
@@ -547,7 +548,20 @@ class RecordEnds:
         return self.encp.enc, self.ctlp.dec
 
 
-def continue_ends(plant, x_final, ends, c, T: float, flow, u_max: float) -> bool:
+class StopCriterion(Protocol):
+    """What :func:`continue_ends` reads of its criterion (``testbed.sim.batch.EscapeCriterion``)."""
+
+    @property
+    def x_tol(self) -> float: ...
+    @property
+    def E_tol(self) -> float: ...
+    @property
+    def x_out(self) -> float: ...
+    def steps(self, T: float) -> int: ...
+
+
+def continue_ends(plant: Plant, x_final: npt.ArrayLike, ends: tuple[EncoderEnd, DecoderEnd], c: StopCriterion,
+                  T: float, flow: FlowOptions, u_max: float) -> bool:
     """The escape criterion ``c`` (``testbed.sim.batch.EscapeCriterion``) for a method without a batch
     kernel: its own two ends (``ends``, :func:`ends_from_record`),
     continued from where the run ended (``x_final``) with theta_k = 0 and the true plant under ideal timing.

@@ -40,6 +40,9 @@ from .kernel import COUNTS, TRACE_INTS, _batch_kernel, loop_state_width, trace_w
 from .loop import SCORES, LinkEffects, OnlineAttacker, SimResult, simulate_loop
 
 if TYPE_CHECKING:
+    from plants.base import Plant
+
+    from ..loop.channel import SampleChannel
     from ..methods.base import EncoderEnd
     from ..scenario.spec import Scenario
 
@@ -50,7 +53,7 @@ BATCH = "batch"
 PER_SAMPLE = "per-sample"
 
 
-def _bundled(plant) -> bool:
+def _bundled(plant: Plant) -> bool:
     return type(plant).__module__.split(".")[0] == "plants" and hasattr(type(plant).rhs, "cfunc")
 
 
@@ -86,14 +89,14 @@ class _Ledger:
     xi = E = q = None
     saturations = 0
 
-    def encode(self, x):
+    def encode(self, x: np.ndarray) -> tuple[int, bool]:
         return 0, False
 
-    def ack(self, theta):
+    def ack(self, theta: int) -> None:
         pass
 
 
-def _encoder_counters(chan, theta: np.ndarray, sat: np.ndarray, last: int) -> dict:
+def _encoder_counters(chan: SampleChannel, theta: np.ndarray, sat: np.ndarray, last: int) -> dict:
     """The encoder's counters (``EncoderProtocol.counters``) of a kernel run with a channel: the same
     protocol object driven as ``loop.simulate_loop`` drives it (acks before the next sensor sample)."""
     from ..loop.protocol import EncoderProtocol

@@ -38,12 +38,18 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Sequence
 from functools import cache
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..wire import messages as msg
-from .phase import PHASE_DIMS, phase_bounds, roa_outline
+from .phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from ..scenario import Scenario
 
 TOPIC_LOG = "/log"
 TOPIC_PHASE = "/phase"
@@ -226,7 +232,8 @@ class PhaseScene:
             self.kept_bytes = [self.enc.points([q]) for q in self.kept]
         return True
 
-    def sample(self, t_ns: int, x, xi=None, E=None) -> bytes:
+    def sample(self, t_ns: int, x: Sequence[float] | np.ndarray, xi: Sequence[float] | np.ndarray | None = None,
+               E: float | None = None) -> bytes:
         """The SceneUpdate at t_k (absolute ns): x_k, and xi_k with the box Q(xi_k, E_k) when known."""
         enc = self.enc
         p = self._xy(x)
@@ -257,7 +264,7 @@ class PhaseScene:
         return enc.update(ents)
 
 
-def roa_update(outline, t_ns: int) -> bytes | None:
+def roa_update(outline: RoaOutline | None, t_ns: int) -> bytes | None:
     """The SceneUpdate of the nominal region of attraction's outline (``view.phase.roa_outline``), or None."""
     if outline is None or not outline.lines:
         return None
@@ -267,7 +274,7 @@ def roa_update(outline, t_ns: int) -> bytes | None:
     return enc.update([enc.entity("roa", t_ns, lines=lines)])
 
 
-def window_of(sc, roa=None) -> float:
+def window_of(sc: Scenario, roa: RoaOutline | None = None) -> float:
     """The phase plane's width (``view.phase.phase_bounds`` of the live view)."""
     (x0, x1), _ = phase_bounds(sc, None, roa)
     return x1 - x0
@@ -429,7 +436,7 @@ class FoxgloveTopics:
         return [(TOPIC_PHASE, SCENE, self.scene.sample(self._stamp(k), x, xi, E), log_time)]
 
 
-def telemetry_extra(name: str, t, t0_ns: int | None, T_ns: int) -> dict | None:
+def telemetry_extra(name: str, t: Any, t0_ns: int | None, T_ns: int) -> dict | None:
     """The derived fields of a telemetry message: ``header`` (its stamp t0 + k T, absolute), ``log10_E``."""
     if t0_ns is None:
         return None

@@ -9,8 +9,12 @@ slice over other coordinates).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 #: the components of x drawn as the phase plane's axes
 PHASE_DIMS = (0, 1)
@@ -26,7 +30,7 @@ class RoaOutline:
     note: str
 
 
-def roa_outline(sc, grid: int = 61) -> RoaOutline | None:
+def roa_outline(sc: Scenario, grid: int = 61) -> RoaOutline | None:
     """The nominal region's outline (level 1/2 of the grid's membership), None for n != 2.
 
     A coarse grid (61 x 61: under a second for the paper's plant) is enough for a picture.
@@ -41,7 +45,7 @@ def roa_outline(sc, grid: int = 61) -> RoaOutline | None:
 _ROA_CACHE: dict = {}
 
 
-def _roa_for(key, sc, grid) -> RoaOutline:
+def _roa_for(key: tuple, sc: Scenario, grid: int) -> RoaOutline:
     if key in _ROA_CACHE:
         return _ROA_CACHE[key]
     import contourpy
@@ -63,7 +67,8 @@ def _roa_for(key, sc, grid) -> RoaOutline:
     return out
 
 
-def phase_bounds(sc, x=None, roa: RoaOutline | None = None):
+def phase_bounds(sc: Scenario, x: np.ndarray | None = None,
+                 roa: RoaOutline | None = None) -> tuple[tuple[float, float], tuple[float, float]]:
     """Visual bounds of the phase plane: around the trajectory when known (offline), else around the origin and x0."""
     a, b = PHASE_DIMS
     if x is None:  # live: a window around the origin that holds x0 and reaches the nearest part of the ROA outline

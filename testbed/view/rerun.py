@@ -48,12 +48,17 @@ Rerun is imported only inside the functions: importing this module is cheap.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 APP_ID = "testbed"
 TIMELINE_K = "k"
@@ -74,7 +79,7 @@ def _times(k: np.ndarray, T: float) -> list:
     return [rr.TimeColumn(TIMELINE_K, sequence=k), rr.TimeColumn(TIMELINE_T, duration=k * float(T))]
 
 
-def _scalars(rec, path: str, k: np.ndarray, T: float, values) -> None:
+def _scalars(rec: Any, path: str, k: np.ndarray, T: float, values: np.ndarray) -> None:
     import rerun as rr
 
     values = np.asarray(values, dtype=np.float64)
@@ -90,8 +95,11 @@ def _log10(E: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.nan)
 
 
-def log_samples(rec, k, T: float, *, x=None, u=None, E_enc=None, xi_enc=None, saturated=None,
-                E_dec=None, xi_dec=None, theta=None, attack_on=None, x_prev=None, dims=PHASE_DIMS) -> None:
+def log_samples(rec: Any, k: np.ndarray, T: float, *, x: np.ndarray | None = None, u: np.ndarray | None = None,
+                E_enc: np.ndarray | None = None, xi_enc: np.ndarray | None = None, saturated: np.ndarray | None = None,
+                E_dec: np.ndarray | None = None, xi_dec: np.ndarray | None = None, theta: np.ndarray | None = None,
+                attack_on: np.ndarray | None = None, x_prev: np.ndarray | None = None,
+                dims: tuple[int, int] = PHASE_DIMS) -> None:
     """Log samples ``k`` (int array) of whatever arrays are given (rows aligned with ``k``).
 
     Parameters
@@ -154,7 +162,7 @@ def log_samples(rec, k, T: float, *, x=None, u=None, E_enc=None, xi_enc=None, sa
         _scalars(rec, "attacker/attack_on", k, T, np.asarray(attack_on, dtype=np.float64))
 
 
-def log_styles(rec, n: int, m: int, roles=("plant", "encoder", "controller", "attacker")) -> None:
+def log_styles(rec: Any, n: int, m: int, roles: Iterable[str] = ("plant", "encoder", "controller", "attacker")) -> None:
     """Static series names and colours of the entities of ``roles``."""
     import rerun as rr
 
@@ -185,7 +193,7 @@ def log_styles(rec, n: int, m: int, roles=("plant", "encoder", "controller", "at
             rr.log(path, arch, static=True, recording=rec)
 
 
-def flip_y(rec) -> None:
+def flip_y(rec: Any) -> None:
     """Rerun's 2D space has y pointing down: a static transform of ``phase`` makes x2 point up (values unchanged)."""
     import rerun as rr
 
@@ -193,7 +201,7 @@ def flip_y(rec) -> None:
 
 
 # ============================================================================ static parts and blueprint
-def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline | None:
+def log_scenario(rec: Any, sc: Scenario, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline | None:
     """Static: the scenario text and the nominal region's outline (when ``roa`` and n = 2)."""
     import rerun as rr
 
@@ -208,7 +216,7 @@ def log_scenario(rec, sc, *, roa: bool = True, roa_grid: int = 61) -> RoaOutline
     return out
 
 
-def blueprint(sc, bounds=None):
+def blueprint(sc: Scenario, bounds: tuple[tuple[float, float], tuple[float, float]] | None = None) -> Any:
     """States and input over time; log10 E_k at encoder and decoder; theta_k and DoS; the phase plane."""
     import rerun.blueprint as rrb
 
@@ -216,7 +224,7 @@ def blueprint(sc, bounds=None):
                                         end=rrb.TimeRangeBoundary.cursor_relative(seq=0)),
                    rrb.VisibleTimeRange(TIMELINE_T, start=rrb.TimeRangeBoundary.infinite(),
                                         end=rrb.TimeRangeBoundary.cursor_relative(seconds=0.0))]
-    phase_kw = {}
+    phase_kw: dict[str, Any] = {}
     if bounds is not None:
         (x0, x1), (y0, y1) = bounds
         phase_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[y0, y1])
@@ -242,7 +250,7 @@ def blueprint(sc, bounds=None):
 
 
 # ============================================================================ offline: a whole run
-def log_run(rec, run) -> None:
+def log_run(rec: Any, run: Any) -> None:  # run: a testbed.Run (a layer above)
     """Every entity of a whole run (the same ones a live run streams).
 
     ``run``: a ``testbed.Run`` (a simulation or a recording), read duck-typed (this layer sits below
@@ -266,13 +274,14 @@ def log_run(rec, run) -> None:
     log_samples(rec, k[ok_d], T, E_dec=E_dec[ok_d], xi_dec=xi_dec[ok_d])
 
 
-def new_stream(recording_id: str | None = None):
+def new_stream(recording_id: str | None = None) -> Any:
     import rerun as rr
 
     return rr.RecordingStream(APP_ID, recording_id=recording_id)
 
 
-def run_to_rrd(path, run, *, recording_id: str | None = None, roa: bool = True, spawn: bool = False) -> None:
+def run_to_rrd(path: str | Path, run: Any, *,  # run: a testbed.Run (a layer above)
+               recording_id: str | None = None, roa: bool = True, spawn: bool = False) -> None:
     """Write (and/or show) a whole run (``log_run``): statics, blueprint and every sample.
 
     ``testbed simulate --rrd`` and ``testbed replay`` (the recording id: ``sim-NAME`` and the run id)."""
@@ -323,7 +332,7 @@ def rerun_binary() -> str:
 
 
 @contextmanager
-def saving_server(path, *, port: int = 0, startup_s: float = 30.0):
+def saving_server(path: str | Path, *, port: int = 0, startup_s: float = 30.0) -> Iterator[str]:
     """A headless Rerun gRPC server (``rerun --port P --save PATH``): it receives what a viewer's
     server would, without a window, and saves it (no footer: read it with ``RrdReader.stream()``).
     Yields the URL for ``--rerun connect``; stopped with SIGINT on exit (the test and the benchmark
@@ -393,14 +402,15 @@ class LiveRerun:
       (``rerun rrd optimize``): one recording, one file.
     """
 
-    def __init__(self, mode: str, target: str | None, sc, recording_id: str, roa: bool = True):
+    def __init__(self, mode: str, target: str | None, sc: Scenario, recording_id: str, roa: bool = True) -> None:
         self.mode, self.target, self.sc, self.recording_id, self.roa = mode, target, sc, recording_id, roa
         self.rec: Any = None                  # the launcher's rerun RecordingStream, from start()
         self.parts_dir: str | None = None
         self.merge_error: str | None = None
 
     @classmethod
-    def from_options(cls, spec, rrd: str | None, roa: bool, sc, recording_id: str) -> "LiveRerun | None":
+    def from_options(cls, spec: Sequence[str] | None, rrd: str | None, roa: bool, sc: Scenario,
+                     recording_id: str) -> LiveRerun | None:
         """From ``testbed run``'s ``--rerun`` words (``spec``), ``--rrd`` and not ``--no-roa``; None: no live view."""
         from ..common.errors import BadInput
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
@@ -67,7 +68,7 @@ _HEADER = struct.Struct("<Iq")
 HEADER_SIZE = _HEADER.size
 
 
-def _bytes(data) -> bytes:
+def _bytes(data: object) -> bytes:
     if data is None:
         raise MessageError("missing payload or attachment")
     if hasattr(data, "to_bytes"):  # zenoh.ZBytes
@@ -94,7 +95,7 @@ class Header:
         return _HEADER.pack(self.k, self.stamp_ns)
 
     @classmethod
-    def decode(cls, data) -> "Header":
+    def decode(cls, data: object) -> Header:
         data = _bytes(data)
         if len(data) != HEADER_SIZE:
             raise MessageError(f"header of {len(data)} bytes, expected {HEADER_SIZE}")
@@ -118,7 +119,7 @@ class Sensor:
         return struct.pack(f"<{len(self.x)}d", *self.x), Header(self.k, self.stamp_ns).encode()
 
     @classmethod
-    def decode(cls, payload, attachment) -> "Sensor":
+    def decode(cls, payload: object, attachment: object) -> Sensor:
         h = Header.decode(attachment)
         x = _floats(_bytes(payload), "sensor")
         if not x:
@@ -130,7 +131,7 @@ class Sensor:
 STATE_NONFINITE, STATE_WRONG_LENGTH = "state_nonfinite", "state_wrong_length"
 
 
-def state_fault(x, n: int) -> tuple[str, str] | None:
+def state_fault(x: Sequence[float], n: int) -> tuple[str, str] | None:
     """What is wrong with an x_k the plant sent, as (kind, why), or None: its length is not the plant's n,
     or an entry is not finite (NaN, inf)."""
     if len(x) != n:
@@ -156,7 +157,7 @@ class Symbol:
         return bytes(self.data), Header(self.k, self.stamp_ns).encode()
 
     @classmethod
-    def decode(cls, payload, attachment) -> "Symbol":
+    def decode(cls, payload: object, attachment: object) -> Symbol:
         h = Header.decode(attachment)
         return cls(h.k, h.stamp_ns, _bytes(payload))
 
@@ -184,7 +185,7 @@ class Actuation:
                 Header(self.k, self.stamp_ns).encode())
 
     @classmethod
-    def decode(cls, payload, attachment) -> "Actuation":
+    def decode(cls, payload: object, attachment: object) -> Actuation:
         h = Header.decode(attachment)
         data = _bytes(payload)
         if len(data) < _ACT.size + 8:
@@ -220,7 +221,7 @@ class Ack:
         return _ACK.pack(self.theta, self.last_rx), Header(self.k, self.stamp_ns).encode()
 
     @classmethod
-    def decode(cls, payload, attachment) -> "Ack":
+    def decode(cls, payload: object, attachment: object) -> Ack:
         h = Header.decode(attachment)
         data = _bytes(payload)
         if len(data) != _ACK.size:
@@ -415,7 +416,7 @@ def pack_batch(records: list[bytes]) -> bytes:
     return bytes(out)
 
 
-def unpack_batch(payload) -> list[bytes]:
+def unpack_batch(payload: object) -> list[bytes]:
     data = _bytes(payload)
     out, off = [], 0
     while off < len(data):
@@ -482,7 +483,7 @@ class Start(_Json):
     protocol: int = PROTOCOL_VERSION
 
     @classmethod
-    def decode(cls, payload) -> "Start":
+    def decode(cls, payload: object) -> Start:
         try:
             d = json.loads(_bytes(payload))
         except (UnicodeDecodeError, json.JSONDecodeError) as e:

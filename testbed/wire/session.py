@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from ..common import optionspec
@@ -21,7 +22,8 @@ LAUNCHERS = ("run", "conformance")
 PROCESSES = ("run", "node", "record", "conformance")
 
 
-def _session(default=None, help="", *, launcher=None, commands=PROCESSES, **kw):
+def _session(default: Any = None, help: str = "", *, launcher: Any = None, commands: tuple[str, ...] = PROCESSES,
+             **kw: Any) -> Any:
     """A session option; ``launcher``: how ``testbed run`` (and ``testbed conformance``, which starts one) takes it."""
     return option(default, help, commands=commands, per={c: launcher for c in LAUNCHERS} if launcher else {}, **kw)
 
@@ -90,14 +92,14 @@ class SessionOptions:
         return optionspec.argv(self, command)
 
 
-def add_security_arguments(g, launcher: bool = False) -> None:
+def add_security_arguments(g: argparse._ActionsContainer, launcher: bool = False) -> None:
     """``--topology``, ``--secret-file``, ``--tls-dir``, ``--insecure``, ``--low-latency``: every process of a run
     (``testbed run``, ``testbed node``, ``testbed record``) takes the same flags.  The launcher (``testbed run``)
     also takes ``--topology auto``, its default: it decides for the run and passes the topology on."""
     optionspec.add_arguments(g, SessionOptions, "run" if launcher else "node", group=g, section="security")
 
 
-def add_network_arguments(g, launcher: bool = False, command: str | None = None) -> None:
+def add_network_arguments(g: argparse._ActionsContainer, launcher: bool = False, command: str | None = None) -> None:
     """The network flags of every process of a run (``SessionOptions``): ``--run-id``, ``--listen``, ``--zenoh-config``
     and the security flags; a node and the recorder (``launcher=False``) also take ``--connect``.  The launcher
     (``testbed run``, and ``testbed conformance``: ``command``) listens on one endpoint and makes a run id unless
@@ -134,7 +136,8 @@ def security_info(s: SessionOptions) -> dict:
             "low_latency": s.low_latency}
 
 
-def zenoh_config(s: SessionOptions, role: str, keys: transport.Keys, *, hub: bool = False, colocate=()):
+def zenoh_config(s: SessionOptions, role: str, keys: transport.Keys, *, hub: bool = False,
+                 colocate: tuple[str, ...] = ()) -> Any:
     """The session of ``role``: a node, the recorder, or (``hub``) the run's router or first peer.
 
     Standalone defaults (no endpoint given): the plant is the hub and listens on tcp/127.0.0.1:7447, the
@@ -173,9 +176,11 @@ def zenoh_config(s: SessionOptions, role: str, keys: transport.Keys, *, hub: boo
                           **common)
 
 
-def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), connect=(), config_file=None,
-                   colocate=(), low_latency: bool = False, insecure: bool = False, tls_dir=None, secret_file=None,
-                   accepts: bool = False):
+def session_config(role: str, mode: str, keys: transport.Keys, *, listen: list[str] | tuple[str, ...] = (),
+                   connect: list[str] | tuple[str, ...] = (), config_file: str | Path | None = None,
+                   colocate: tuple[str, ...] = (), low_latency: bool = False, insecure: bool = False,
+                   tls_dir: str | Path | None = None, secret_file: str | Path | None = None,
+                   accepts: bool = False) -> Any:
     """The Zenoh config of one process of a run, the one place a session's security is put together.
 
     ``mode`` "peer": mutual TLS with ``role``'s certificate of ``tls_dir``, and the access rules checked
@@ -188,16 +193,18 @@ def session_config(role: str, mode: str, keys: transport.Keys, *, listen=(), con
     """
     from ..common.errors import BadInput
 
-    common = {"listen": list(listen), "connect": list(connect), "config_file": config_file, "mode": mode,
-              "low_latency": low_latency}
+    common: dict[str, Any] = {"listen": list(listen), "connect": list(connect), "config_file": config_file,
+                              "mode": mode, "low_latency": low_latency}
     if insecure:
         return transport.make_config(**common)
     if mode == "peer":
+        assert tls_dir is not None  # zenoh_config refuses a peer without one (PEER_NEEDS_TLS)
         return transport.make_config(**common, acl=transport.acl_config(keys, colocate, by="cert_common_names"),
                                      tls=transport.TlsCredentials(tls_dir).zenoh(role))
     if tls_dir is not None and secret_file is None:  # router topology over mutual TLS: the router checks by name
         acl = transport.acl_config(keys, colocate, by="cert_common_names") if accepts else None
         return transport.make_config(**common, acl=acl, tls=transport.TlsCredentials(tls_dir).zenoh(role))
+    assert secret_file is not None  # zenoh_config refuses a session without one ("no --secret-file")
     cred = transport.Credentials.read(secret_file)
     if accepts:
         missing = [u for u in (*transport.ROLES, transport.RECORDER) if u not in cred.users]

@@ -16,6 +16,7 @@ import dataclasses
 import re
 import struct
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from . import messages as msg
@@ -161,7 +162,7 @@ def keys_table() -> str:
     return "\n".join(rows)
 
 
-def _struct_rows(cls_name: str, st: struct.Struct, names, off0: int = 0) -> tuple[list[str], int]:
+def _struct_rows(cls_name: str, st: struct.Struct, names: Sequence[str], off0: int = 0) -> tuple[list[str], int]:
     fmt = st.format.lstrip("<")
     if st.format[0] != "<":
         raise AssertionError(f"{cls_name}: {st.format} is not little-endian")
@@ -228,7 +229,7 @@ def json_fields() -> str:
     return "\n".join(out).rstrip()
 
 
-def _json_default(v) -> str:
+def _json_default(v: object) -> str:
     if v == msg.NO_TIME:
         return "NO_TIME"
     return "`\"\"`" if v == "" else f"`{v}`"
@@ -380,7 +381,7 @@ def dop853_coefficients() -> str:
     if len(stages) != 12 or set(errs) != {"a5", "a3"}:
         raise AssertionError("testbed/loop/_dop853.py: 12 stages and two error sums expected")
 
-    def expr(e):
+    def expr(e: str) -> str:
         return re.sub(r"K\[(\d+), i\]", r"K\1", e).replace("+ -", "- ")
 
     lines = [f"stage {j:2d}: Y = y + h*({expr(e)}); K{j} = f(Y, u)" for j, e in enumerate(stages, 1)]
@@ -409,7 +410,7 @@ def render(text: str) -> str:
     """``text`` with every generated block made anew (an unknown block name, or a missing one, is an error)."""
     seen = set()
 
-    def sub(m):
+    def sub(m: re.Match[str]) -> str:
         name = m.group(2)
         if name not in BLOCKS:
             raise AssertionError(f"docs/protocol.md: unknown generated block {name!r}")
@@ -422,7 +423,7 @@ def render(text: str) -> str:
     return out
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     text = DOC.read_text()
     new = render(text)

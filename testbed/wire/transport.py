@@ -56,8 +56,10 @@ from __future__ import annotations
 
 import json
 import socket
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 ROOT = "testbed"
 ROLES = ("plant", "encoder", "attacker", "controller")
@@ -170,7 +172,7 @@ class Keys:
 def make_config(listen: list[str] | tuple[str, ...] = (), connect: list[str] | tuple[str, ...] = (),
                 config_file: str | Path | None = None, multicast: bool = False, *, mode: str = "peer",
                 user: str | None = None, password: str | None = None, dictionary_file: str | Path | None = None,
-                acl: dict | None = None, low_latency: bool = False, tls: dict | None = None):
+                acl: dict | None = None, low_latency: bool = False, tls: dict | None = None) -> Any:
     """A ``zenoh.Config``: explicit endpoints, multicast scouting off.
 
     ``mode``: "peer", "router" or "client" (a client has no listener of its own).
@@ -248,7 +250,7 @@ class Credentials:
         self.users = dict(users)
 
     @classmethod
-    def new(cls, users=USERS) -> "Credentials":
+    def new(cls, users: Iterable[str] = USERS) -> Credentials:
         import secrets
 
         return cls({u: secrets.token_urlsafe(24) for u in users})
@@ -329,7 +331,7 @@ class TlsCredentials:
         self.folder = Path(folder)
 
     @classmethod
-    def new(cls, folder: str | Path, users=USERS) -> "TlsCredentials":
+    def new(cls, folder: str | Path, users: Iterable[str] = USERS) -> TlsCredentials:
         """Make the authority and every process's key and certificate in the new folder ``folder``."""
         import datetime
         import os
@@ -406,7 +408,7 @@ class TlsCredentials:
                 "verify_name_on_connect": False}
 
 
-def require_tls(endpoints, what: str = "--topology peer") -> None:
+def require_tls(endpoints: Iterable[str], what: str = "--topology peer") -> None:
     """The peer topology's links are mutual TLS: every endpoint ``tls/HOST:PORT`` (BadInput otherwise)."""
     from ..common.errors import BadInput
 
@@ -427,7 +429,7 @@ def _write_new(path: Path, data: bytes, mode: int) -> None:
 COLOCATABLE = {"encoder": "plant"}
 
 
-def colocated_roles(value) -> tuple[str, ...]:
+def colocated_roles(value: str | Iterable[str] | None) -> tuple[str, ...]:
     """``--colocate``'s value (one role, several, or None) as a sorted tuple of roles."""
     return tuple(sorted({value} if isinstance(value, str) else set(value or ())))
 
@@ -492,7 +494,7 @@ def acl_config(keys: Keys, colocate: tuple[str, ...] = (), by: str = "usernames"
             "policies": policies}
 
 
-def _json_or_none(conf, key):
+def _json_or_none(conf: Any, key: str) -> Any:
     try:
         v = json.loads(conf.get_json(key))
     except Exception:  # noqa: BLE001 - absent key

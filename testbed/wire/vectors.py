@@ -15,20 +15,26 @@ Two parts, both computed by the functions the bundled nodes run:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from . import messages as msg
+
+if TYPE_CHECKING:
+
+    from ..scenario import Scenario
 
 #: samples of the short loop whose symbol the attacker drops
 DROPPED = (3,)
 LOOP_SAMPLES = 8
 
 
-def _f(v) -> list[float]:
+def _f(v: Any) -> list[float]:
     return [float(a) for a in np.asarray(v, dtype=np.float64).ravel()]
 
 
-def flow_vectors(sc, n: int, seed: int = 0) -> list[dict]:
+def flow_vectors(sc: Scenario, n: int, seed: int = 0) -> list[dict]:
     """``n`` points (x, u) -> phi_T(x, u) of the scenario's plant model (the first: x0, u = 0)."""
     from ..loop.flow import phi_T
 
@@ -48,7 +54,7 @@ def flow_vectors(sc, n: int, seed: int = 0) -> list[dict]:
     return [{"x": _f(X[i]), "u": _f(U[i]), "x_T": _f(XT[i]), "status": int(st[i])} for i in range(n)]
 
 
-def loop_vectors(sc, samples: int = LOOP_SAMPLES) -> list[dict]:
+def loop_vectors(sc: Scenario, samples: int = LOOP_SAMPLES) -> list[dict]:
     """The first ``samples`` samples of the loop, ideal timing, by the nodes' state machines."""
     from ..loop.protocol import ControllerProtocol, EncoderProtocol, PlantProtocol, Send
 
@@ -100,7 +106,7 @@ def loop_vectors(sc, samples: int = LOOP_SAMPLES) -> list[dict]:
     return out
 
 
-def vectors(sc, n: int = 8) -> dict:
+def vectors(sc: Scenario, n: int = 8) -> dict:
     """Everything ``testbed vectors`` prints (see the module docstring)."""
     model = sc.make_model()
     fo = sc.flow
