@@ -15,11 +15,15 @@ flat, within 25 %).  ``--synthetic N,N,...`` runs no live run: it writes spills 
 four nodes' telemetry with the collector's writer and builds the launcher's end-of-run summary from
 each in-process as the launcher builds it (``synthetic_summary_peak``: rows of the spill a chunk at a
 time, ``build_summary``, the ``--json`` output to a sink), printing its peak memory (tracemalloc) against N.
+``--starve-recorder ON,OFF`` stops and continues the recorder (SIGSTOP, SIGCONT) in a cycle of ON ms running
+and OFF ms stopped while the loop runs, as a recorder at nice 10 on a loaded machine gets little CPU: its
+writer falls behind and its queue grows (what its memory then does is the figure to read).
 
     python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
     python benchmarks/bench_soak.py --rate 1000 --durations 60,180     # 1 kHz, 1 and 3 minutes
     python benchmarks/bench_soak.py --synthetic 200000,1200000         # the end of run alone, in-process
+    python benchmarks/bench_soak.py --rate 1000 --durations 150 --starve-recorder 5,45   # a writer behind
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -93,6 +98,31 @@ def slope_per_hour(ts: list[float], ys: list[float]) -> float | None:
     return sum((t - mt) * (y - my) for t, y in zip(ts, ys)) / var * 3600
 
 
+def starve(launcher: int, seconds: float, on_s: float, off_s: float, done: threading.Event) -> None:
+    """SIGSTOP and SIGCONT the launcher's recorder in a cycle (``on_s`` running, ``off_s`` stopped) for ``seconds``
+    from when it appears, or until ``done``."""
+    rec = None
+    while rec is None and not done.is_set():
+        rec = next((c for c in children(launcher) if " record " in cmdline(c)), None)
+        done.wait(0.05)
+    if rec is None:
+        return
+    end = time.monotonic() + seconds
+    try:
+        while not done.is_set() and time.monotonic() < end:
+            os.kill(rec, signal.SIGSTOP)
+            done.wait(off_s)
+            os.kill(rec, signal.SIGCONT)
+            done.wait(on_s)
+    except ProcessLookupError:
+        return
+    finally:
+        try:
+            os.kill(rec, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+
+
 def soak(dur: float, a, every: float, warmup: float) -> dict | None:
     """One run of ``dur`` seconds: its readings, each process's growth and peak, the recording's completeness."""
     tmp = tempfile.mkdtemp(prefix="bench-soak-")
@@ -104,6 +134,13 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
     with open(so_path, "w") as so_f, open(se_path, "w") as se_f:  # a pipe would fill with the summary and block it
         p = subprocess.Popen(cmd, stdout=so_f, stderr=se_f, text=True, start_new_session=True)
     t_start = time.monotonic()
+    starved = threading.Event()
+    if a.starve_recorder:
+        on_ms, off_ms = a.starve_recorder
+        print(f"bench_soak: the recorder starved while the loop runs: {on_ms:g} ms running, {off_ms:g} ms stopped",
+              flush=True)
+        threading.Thread(target=starve, args=(p.pid, dur + STARTUP_S, on_ms / 1e3, off_ms / 1e3, starved),
+                         daemon=True).start()
     readings: list[dict] = []
     peak: dict[str, float] = {}
     next_print = 0.0
@@ -134,9 +171,12 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
                 readings.append(row)
         p.wait()
     except KeyboardInterrupt:
+        starved.set()
         os.killpg(p.pid, signal.SIGINT)
         p.wait()
         raise
+    finally:
+        starved.set()
     so, se = so_path.read_text(), se_path.read_text()
     try:
         summary = json.loads(so)
@@ -311,7 +351,19 @@ def main(argv=None) -> int:
     ap.add_argument("--synthetic", metavar="N,N,...",
                     help="no live run: the launcher's end of run in-process on synthetic spills of these many "
                          "samples at 1 kHz, its peak memory (tracemalloc) and the ratio to the smallest's")
+    ap.add_argument("--starve-recorder", metavar="ON,OFF",
+                    help="while the loop runs, stop and continue the recorder in a cycle of ON ms running and OFF ms "
+                         "stopped (as a niced recorder on a loaded machine: its writer falls behind)")
     a = ap.parse_args(argv)
+    if a.starve_recorder:
+        spec = a.starve_recorder
+        try:
+            a.starve_recorder = tuple(float(v) for v in spec.split(","))
+            if len(a.starve_recorder) != 2 or not all(v > 0 for v in a.starve_recorder):
+                raise ValueError
+        except ValueError:
+            print(f"bench_soak: --starve-recorder {spec!r}: two positive numbers of ms, ON,OFF", file=sys.stderr)
+            return 2
     if a.synthetic:
         return synthetic_main(a.synthetic, a.json)
     if a.rate is not None:

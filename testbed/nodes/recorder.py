@@ -8,7 +8,10 @@ from its first sample; a recorder started by hand records whatever it sees.
 
 Off the loop's path: a Zenoh callback only appends the raw bytes and the
 arrival time to a queue; a writer thread decodes, converts to protobuf and
-writes.  The control path (``loop/*``: five messages a sample) is recorded by
+writes.  The queue holds at most ``Recorder.IN_MEMORY`` messages in memory and
+the rest in an unnamed temporary file beside the recording
+(``testbed.nodes.backlog``): a writer behind the run (niced, on a loaded
+machine) holds no memory per message however long the run.  The control path (``loop/*``: five messages a sample) is recorded by
 default only when T >= 10 ms (``--loop auto``); telemetry carries every value
 of it anyway.  The file is flushed at least every ``--flush`` seconds, so a
 recorder killed with SIGKILL loses at most that much.
@@ -19,7 +22,6 @@ or by itself ``--linger`` seconds after the plant's ``Stop``.
 
 from __future__ import annotations
 
-import collections
 import json
 import logging
 import os
@@ -35,6 +37,7 @@ from ..record import recording, topics
 from ..wire import messages as msg
 from ..wire import transport
 from ..wire.session import security_info, zenoh_config
+from .backlog import Backlog
 from .options import RECORD_FAILED, RecorderConfig, T_ns, load_scenario
 from .process import on_stop_signals, parse_cpus, tune_process
 
@@ -82,13 +85,14 @@ class Recorder:
         self.keys = keys
         self.w = writer
         self.loop = loop
-        self.q: collections.deque = collections.deque()
+        # raw messages waiting for the writer: in memory up to a bound, the rest in a temporary file beside
+        # the recording (a writer behind for the whole of a long run holds no memory per message)
+        self.q = Backlog(self.IN_MEMORY, writer.path.parent)
         self.t0: int | None = None
         self.received = 0
         self.written = 0
         self.warmup = 0
         self.malformed = 0
-        self.max_queue = 0
         self.write_errors = 0
         self.failed: str | None = None  # why the file cannot be written (``RecordingFailed``)
         self.fox = foxglove   # testbed.view.foxglove.FoxgloveTopics, or None
@@ -120,8 +124,10 @@ class Recorder:
         query.reply(query.key_expr, json.dumps(d).encode())
 
     # ---- Zenoh threads: just enqueue
-    #: messages waiting for the writer; beyond that they are counted, not kept (a flood cannot exhaust memory)
+    #: messages waiting for the writer; beyond that they are counted, not kept (a flood cannot fill the disk)
     MAX_QUEUE = 500_000
+    #: of those, the ones held in memory (about 460 bytes each for a telemetry batch); the rest wait on disk
+    IN_MEMORY = 4096
 
     def _on_sample(self, sample) -> None:
         if self.failed is not None:
@@ -130,8 +136,10 @@ class Recorder:
             self.overflow += 1
             return
         att = sample.attachment
-        self.q.append((str(sample.key_expr), sample.payload.to_bytes(), None if att is None else att.to_bytes(),
-                       time.time_ns()))
+        if not self.q.append((str(sample.key_expr), sample.payload.to_bytes(), None if att is None else att.to_bytes(),
+                              time.time_ns())):
+            self.overflow += 1  # the backlog's file could not be written
+            return
         self.received += 1
         self._wake.set()
 
@@ -154,7 +162,6 @@ class Recorder:
         while True:
             self._wake.wait(0.1)
             self._wake.clear()
-            self.max_queue = max(self.max_queue, len(self.q))
             try:
                 while self.q:
                     item = self.q.popleft()
@@ -274,7 +281,7 @@ class Recorder:
     def stats(self) -> dict:
         return {"received": self.received, "written": self.written, "warmup_skipped": self.warmup,
                 "malformed": self.malformed, "rejected_k": self.rejected, "queue_overflow": self.overflow,
-                "max_queue": self.max_queue, "write_errors": self.write_errors,
+                "max_queue": self.q.max_len, "write_errors": self.write_errors,
                 "loop_recorded": self.loop}
 
     def close(self, timeout: float = 30.0) -> dict:
@@ -286,6 +293,8 @@ class Recorder:
         self._done.set()
         self._wake.set()
         self._thread.join(timeout)
+        if not self._thread.is_alive():
+            self.q.close()
         self._foxglove_flush()
         st = self.stats()
         self.w.close(st)
