@@ -28,7 +28,7 @@ def main(args: argparse.Namespace) -> int:
     fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")
     run = open_run(args.recording, trust_code=args.trust_code)
     out = export(run, args.output, fmt)
-    cols = list(run.columns())
+    cols = run.column_names()  # the names only: run.columns() would copy every vector's columns
     if args.json:
         print(json.dumps({"path": str(out), "format": fmt, "rows": run.N, "columns": cols}))
     else:

@@ -154,6 +154,10 @@ class Run:
         """Flat 1-D columns, one row per sample: vectors as x1..xn, u1..um, ... (what ``export`` writes)."""
         return flat_columns(self.arrays)
 
+    def column_names(self) -> list[str]:
+        """The names of ``columns()``, in order, without making the columns."""
+        return column_names(self.arrays)
+
     def to_pandas(self):
         """A ``pandas.DataFrame``, one row per sample (``columns()``)."""
         return self._frame("pandas")
@@ -171,6 +175,15 @@ class Run:
             raise MissingExtra(f"to_{library}() needs {library}: pip install {library} "
                                "(or pip install 'dos-testbed[dataframes]')") from None
         return lib.DataFrame(self.columns())
+
+
+def column_names(arrays: dict[str, np.ndarray]) -> list[str]:
+    """The names ``flat_columns`` gives, from the arrays' shapes alone."""
+    out = []
+    for name, a in arrays.items():
+        shape = np.shape(a)
+        out += [f"{name}{j + 1}" for j in range(shape[1])] if len(shape) == 2 else [name]
+    return out
 
 
 def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
