@@ -35,7 +35,6 @@ import json
 import struct
 import zlib
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -423,31 +422,17 @@ class _Reader:
         c = self.cols
         crc = [0]
         data_crc = None
-        # the next chunk is read, decompressed and CRC-checked on a second thread while this one walks the
-        # last (zstd, zlib and the numba walk release the GIL); chunks are walked, and their errors raised,
-        # in file order, as before
-        ahead: list = []   # [(future of _decompress, offset)] of the one chunk not yet walked
-
-        def walk_ahead():
-            if ahead:
-                fut, at = ahead.pop()
-                self.records(fut.result()[0], at)
-
-        pool = ThreadPoolExecutor(1)
         try:
             for off, op, body in _records(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE,
                                                       OP_DATA_END, OP_FOOTER}, crc=crc):
-                if op == OP_CHUNK:
-                    fut = pool.submit(_decompress, fh, off, body)
-                    walk_ahead()
-                    ahead.append((fut, off))
-                    continue
-                walk_ahead()
                 if op is None:
                     if body is not None:
                         c.truncated, c.read_error = True, body
                     break
-                if op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
+                if op == OP_CHUNK:
+                    inner, _ = _decompress(fh, off, body)
+                    self.records(inner, off)
+                elif op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
                     self.records(REC.pack(op, len(body)) + body, off)
                 elif op == OP_DATA_END:
                     data_crc = struct.unpack_from("<I", body, 0)[0] if len(body) >= 4 else 0
@@ -458,12 +443,7 @@ class _Reader:
                 elif op == OP_FOOTER:
                     self.check_summary(fh, off, body)
                     break
-            walk_ahead()
-        except CorruptRecording:
-            walk_ahead()   # the chunk before the record found corrupt first (its own error, if it has one)
-            raise
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
             fh.close()
         self.finish()
         return c
