@@ -47,20 +47,6 @@ def _u64(buf, p):
 
 
 @njit(cache=True, nogil=True)
-def _fill(dst, src, lo, hi):
-    """``dst[lo:hi] = src[lo:hi]`` as a loop (a slice makes an array view: a fifth of the walk's time)."""
-    for i in range(lo, hi):
-        dst[i] = src[i]
-
-
-@njit(cache=True, nogil=True)
-def _row(T, k, src, lo, hi):
-    """``T[k, lo:hi] = src[lo:hi]`` as a loop."""
-    for i in range(lo, hi):
-        T[k, i] = src[i]
-
-
-@njit(cache=True, nogil=True)
 def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
     """One telemetry message ``buf[a:b]`` into the scratch rows s0..s3; returns k, or -1 if malformed.
     ``vf[:nv]``: the role's vector fields (the only ones ``fcount`` counts)."""
@@ -220,10 +206,10 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
             lo1, hi1 = ranges[r, 1, 0], ranges[r, 1, 1]
             lo2, hi2 = ranges[r, 2, 0], ranges[r, 2, 1]
             lo3, hi3 = ranges[r, 3, 0], ranges[r, 3, 1]
-            _fill(s0, D0, lo0, hi0)
-            _fill(s1, D1, lo1, hi1)
-            _fill(s2, D2, lo2, hi2)
-            _fill(s3, D3, lo3, hi3)
+            s0[lo0:hi0] = D0[lo0:hi0]
+            s1[lo1:hi1] = D1[lo1:hi1]
+            s2[lo2:hi2] = D2[lo2:hi2]
+            s3[lo3:hi3] = D3[lo3:hi3]
             k = _parse(buf, body + MSG_HEAD, end, tg, s0, s1, s2, s3, fcount, fbits, vfs[r], nvs[r])
             if k < 0:
                 role_stats[r, 0] += 1
@@ -231,10 +217,10 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
                 if k > N or k > rows:
                     role_stats[r, 1] += 1
                 else:
-                    _fill(F0, s0, lo0, hi0)
-                    _fill(F1, s1, lo1, hi1)
-                    _fill(F2, s2, lo2, hi2)
-                    _fill(F3, s3, lo3, hi3)
+                    F0[lo0:hi0] = s0[lo0:hi0]
+                    F1[lo1:hi1] = s1[lo1:hi1]
+                    F2[lo2:hi2] = s2[lo2:hi2]
+                    F3[lo3:hi3] = s3[lo3:hi3]
                     final_k[0] = k
                     role_stats[r, 4] += 1
             elif k >= N:
@@ -245,9 +231,9 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
                 if present[k, r] != 0:
                     role_stats[r, 2] += 1
                 present[k, r] = 1
-                _row(T0, k, s0, lo0, hi0)
-                _row(T1, k, s1, lo1, hi1)
-                _row(T2, k, s2, lo2, hi2)
-                _row(T3, k, s3, lo3, hi3)
+                T0[k, lo0:hi0] = s0[lo0:hi0]
+                T1[k, lo1:hi1] = s1[lo1:hi1]
+                T2[k, lo2:hi2] = s2[lo2:hi2]
+                T3[k, lo3:hi3] = s3[lo3:hi3]
         pos = end
     return pos, 0, n_py
