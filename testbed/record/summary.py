@@ -376,11 +376,16 @@ def _texts(col: np.ndarray):
 
     s = pc.cast(arrow_array(col), pa.string())
     if col.dtype.kind == "f":
-        fin = arrow_array(np.isfinite(col))
-        plain = pc.invert(pc.or_(pc.match_substring(s, "."), pc.match_substring(s, "e")))
-        s = pc.if_else(pc.and_(plain, fin), pc.binary_join_element_wise(s, ".0", ""), s)
-        if not pc.all(fin).as_py():
-            s = pc.if_else(fin, s, "null")
+        fin = np.isfinite(col)
+        # only an integral value can print without "." or "e": the texts of those alone are looked at
+        integral = fin & (np.floor(col) == col)
+        if integral.any():
+            sub = pc.take(s, pa.array(np.flatnonzero(integral)))
+            plain = pc.invert(pc.or_(pc.match_substring(sub, "."), pc.match_substring(sub, "e")))
+            sub = pc.if_else(plain, pc.binary_join_element_wise(sub, ".0", ""), sub)
+            s = pc.replace_with_mask(s, arrow_array(integral), sub)
+        if not fin.all():
+            s = pc.if_else(arrow_array(fin), s, "null")
     return s
 
 
