@@ -154,10 +154,6 @@ class Run:
         """Flat 1-D columns, one row per sample: vectors as x1..xn, u1..um, ... (what ``export`` writes)."""
         return flat_columns(self.arrays)
 
-    def column_names(self) -> list[str]:
-        """The names of ``columns()``, in order, without making the columns."""
-        return column_names(self.arrays)
-
     def to_pandas(self):
         """A ``pandas.DataFrame``, one row per sample (``columns()``)."""
         return self._frame("pandas")
