@@ -23,12 +23,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from ..runs.run import column_names
     from ..runs.run import open as open_run
 
     fmt = args.format or ("csv" if str(args.output).lower().endswith(".csv") else "parquet")
     run = open_run(args.recording, trust_code=args.trust_code)
     out = export(run, args.output, fmt)
-    cols = list(run.columns())
+    cols = column_names(run.arrays)  # the names only: run.columns() would copy every vector's columns
     if args.json:
         print(json.dumps({"path": str(out), "format": fmt, "rows": run.N, "columns": cols}))
     else:

@@ -352,8 +352,9 @@ _ARROW_TYPES = {"f8": "float64", "i8": "int64", "i4": "int32", "i2": "int16", "i
                 "u4": "uint32", "u2": "uint16", "u1": "uint8"}
 
 
-def _arrow(col: np.ndarray) -> Any:
-    """A 1-D numpy array as an Arrow array over its buffer (``pa.array`` costs 40 MB on first use)."""
+def arrow_array(col: np.ndarray) -> Any:
+    """A 1-D numpy array as an Arrow array over its buffer (``pa.array`` imports pandas, 40 MB, on first
+    use); a dtype Arrow has no plain type for is cast to float64 (``arrow_plain`` says which have one)."""
     import pyarrow as pa
 
     global _POOL
@@ -370,6 +371,11 @@ def _arrow(col: np.ndarray) -> Any:
     return pa.Array.from_buffers(getattr(pa, _ARROW_TYPES[key])(), len(col), [None, pa.py_buffer(col)])
 
 
+def arrow_plain(col: np.ndarray) -> bool:
+    """Whether ``arrow_array`` keeps ``col``'s dtype (booleans, integers and float64)."""
+    return col.dtype == bool or f"{col.dtype.kind}{col.dtype.itemsize}" in _ARROW_TYPES
+
+
 def _texts(col: np.ndarray) -> Any:
     """A 1-D array as JSON texts, one per value (Arrow's shortest round-trip formatting, vectorized).
 
@@ -379,13 +385,18 @@ def _texts(col: np.ndarray) -> Any:
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    s = pc.cast(_arrow(col), pa.string())
+    s = pc.cast(arrow_array(col), pa.string())
     if col.dtype.kind == "f":
-        fin = _arrow(np.isfinite(col))
-        plain = pc.invert(pc.or_(pc.match_substring(s, "."), pc.match_substring(s, "e")))
-        s = pc.if_else(pc.and_(plain, fin), pc.binary_join_element_wise(s, ".0", ""), s)
-        if not pc.all(fin).as_py():
-            s = pc.if_else(fin, s, "null")
+        fin = np.isfinite(col)
+        # only an integral value can print without "." or "e": the texts of those alone are looked at
+        integral = fin & (np.floor(col) == col)
+        if integral.any():
+            sub = pc.take(s, pa.array(np.flatnonzero(integral)))
+            plain = pc.invert(pc.or_(pc.match_substring(sub, "."), pc.match_substring(sub, "e")))
+            sub = pc.if_else(plain, pc.binary_join_element_wise(sub, ".0", ""), sub)
+            s = pc.replace_with_mask(s, arrow_array(integral), sub)
+        if not fin.all():
+            s = pc.if_else(arrow_array(fin), s, "null")
     return s
 
 
@@ -409,14 +420,14 @@ def _row_texts(b: np.ndarray, mask: np.ndarray | None = None) -> Any:
     if b.ndim == 1:
         s = _texts(b)
     elif b.shape[1] == 0:
-        s = pc.binary_join_element_wise(pc.cast(_arrow(np.zeros(len(b), np.int8)), pa.string()), "[]", "")
+        s = pc.binary_join_element_wise(pc.cast(arrow_array(np.zeros(len(b), np.int8)), pa.string()), "[]", "")
         s = pc.utf8_slice_codeunits(s, 1)
     else:
         inner = pc.binary_join_element_wise(*[_texts(np.ascontiguousarray(b[:, j])) for j in range(b.shape[1])],
                                             ", ")
         s = pc.binary_join_element_wise("[", inner, "]", "")
     if mask is not None:
-        s = pc.if_else(_arrow(np.asarray(mask, dtype=bool)), s, "null")
+        s = pc.if_else(arrow_array(np.asarray(mask, dtype=bool)), s, "null")
     return s
 
 

@@ -176,6 +176,15 @@ class Run:
         return lib.DataFrame(self.columns())
 
 
+def column_names(arrays: dict[str, np.ndarray]) -> list[str]:
+    """The names ``flat_columns`` gives, from the arrays' shapes alone."""
+    out = []
+    for name, a in arrays.items():
+        shape = np.shape(a)
+        out += [f"{name}{j + 1}" for j in range(shape[1])] if len(shape) == 2 else [name]
+    return out
+
+
 def flat_columns(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Vectors (N, w) become columns name1..namew; the rest stay as they are."""
     out = {}
