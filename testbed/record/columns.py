@@ -559,13 +559,7 @@ class ColumnBuilder:
                     c.malformed += 1
                     return
             vals.append((col, v))
-        for col, v in vals:
-            tab = c.tables[_TABLE[col.group]]
-            if col.group == G_VEC:
-                tab[k, col.col:col.col + col.width] = v
-            else:
-                tab[k, col.col] = v
-        c.present[k, r] = 1
+        self._put(r, k, vals)
 
     def add_records(self, r: int, rec: np.ndarray, vectors: tuple[tuple[str, int], ...],
                     fields: tuple[str, ...]) -> None:
@@ -593,7 +587,12 @@ class ColumnBuilder:
                 plan.append((col, rec[name] if w else col.default))
             else:
                 plan.append((col, rec[name]))
-        for col, v in plan:
+        self._put(r, rows, plan)
+
+    def _put(self, r: int, rows: int | np.ndarray, vals: list[tuple[Col, Any]]) -> None:
+        """The values of role ``r`` into row(s) ``rows``, which are now present."""
+        c = self.c
+        for col, v in vals:
             tab = c.tables[_TABLE[col.group]]
             if col.group == G_VEC:
                 tab[rows, col.col:col.col + col.width] = v
