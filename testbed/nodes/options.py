@@ -352,11 +352,11 @@ def load_scenario(ref: str | Scenario, opts: RunOptions, *, check_design: bool =
     from .. import scenario
     from ..record.tracereader import read_recording_trace
 
+    over = opts.overrides()
     if isinstance(ref, str):  # parsed and built once, the overrides applied to the parsed text
-        return scenario.load(ref, check_design=check_design, overrides=opts.overrides(),
+        return scenario.load(ref, check_design=check_design, overrides=over,
                              read_recording_trace=read_recording_trace)
-    return scenario.with_overrides(ref, opts.overrides(), check_design=check_design,
-                                   read_recording_trace=read_recording_trace)
+    return scenario.with_overrides(ref, over, check_design=check_design, read_recording_trace=read_recording_trace)
 
 
 def T_ns(sc: Scenario) -> int:
