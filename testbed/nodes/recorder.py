@@ -146,7 +146,8 @@ class Recorder:
     def _liveliness(self, sample, token: str) -> None:
         node = transport.Keys.node_of(sample.key_expr)
         present = sample.kind != self._zenoh.SampleKind.DELETE
-        self.q.append(("", None, (node, token, present), time.time_ns()))
+        if not self.q.append(("", None, (node, token, present), time.time_ns())):
+            self.overflow += 1  # the backlog's file could not be written
         if not present and token == "alive":
             self.lost[node] = time.monotonic()
         self._wake.set()
@@ -164,7 +165,15 @@ class Recorder:
             self._wake.clear()
             try:
                 while self.q:
-                    item = self.q.popleft()
+                    try:
+                        item = self.q.popleft()
+                    except OSError as e:  # the backlog's file cannot be read back: what waits in it is lost, counted
+                        self.write_errors += len(self.q)
+                        self.q.clear()
+                        print(f"testbed record: the queue's file beside the recording cannot be read ({e}); "
+                              "the messages waiting in it are lost (counted in write_errors)", file=sys.stderr,
+                              flush=True)
+                        break
                     try:
                         self._write(*item)
                     except recording.RecordingFailed:

@@ -94,3 +94,21 @@ def test_an_item_the_file_cannot_take_is_refused(tmp_path):
     assert q.append(("k", b"x", None, 1))
     assert not q.append(("k", b"y", None, 2))  # the file cannot be made: counted by the caller as lost
     assert _drain(q) == [("k", b"x", None, 1)]
+
+
+def test_a_file_that_cannot_be_read_back_raises_and_a_cleared_backlog_goes_on(tmp_path):
+    """A backlog file cut under the queue (a disk fault) is an ``OSError`` from ``popleft`` (the recorder counts
+    what waited in it in ``write_errors``), never a wrong item; after ``clear`` the queue works again."""
+    import pytest
+
+    q = Backlog(2, tmp_path)
+    items = _items(6, random.Random(3))
+    for it in items:
+        assert q.append(it)
+    assert q.popleft() == items[0] and q.popleft() == items[1]
+    os.ftruncate(q._fd, 0)  # the file's contents gone
+    with pytest.raises(OSError):
+        q.popleft()
+    q.clear()
+    assert not q and q.append(items[0]) and q.popleft() == items[0]
+    q.close()
