@@ -54,24 +54,9 @@ class Spill:
 
     def records(self, chunk: int | None = None) -> Iterator[tuple[int, bytes]]:
         """Every ``(role index, record bytes)`` in the order written, read ``chunk`` bytes at a time."""
-        chunk = int(chunk or self.CHUNK)
-        head = self.HEAD
-        self.f.flush()
-        with open(self.path, "rb") as f:  # its own handle: the writer's position stays at the end
-            buf = b""
-            while True:
-                more = f.read(chunk)
-                buf = buf + more if buf else more
-                off = 0
-                while off + head.size <= len(buf):
-                    ri, n = head.unpack_from(buf, off)
-                    if off + head.size + n > len(buf):
-                        break
-                    yield ri, buf[off + head.size:off + head.size + n]
-                    off += head.size + n
-                buf = buf[off:]
-                if not more:
-                    return
+        for buf, ris, offs, lens in self.blocks(chunk):
+            for ri, o, n in zip(ris.tolist(), offs.tolist(), lens.tolist(), strict=True):
+                yield ri, buf[o:o + n]
 
     def blocks(self, chunk: int | None = None) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
         """The file ``chunk`` bytes at a time: ``(bytes, role indices, offsets, lengths)`` of the whole records
@@ -79,7 +64,7 @@ class Spill:
         chunk = int(chunk or self.CHUNK)
         unpack, hs = self.HEAD.unpack_from, self.HEAD.size
         self.f.flush()
-        with open(self.path, "rb") as f:
+        with open(self.path, "rb") as f:  # its own handle: the writer's position stays at the end
             buf = b""
             while True:
                 more = f.read(chunk)
@@ -474,9 +459,6 @@ class SpillRows:
         sp = Spill.__new__(Spill)
         sp.path, sp.f = self.path, _NoFlush()  # type: ignore[assignment]  # the readers only flush it
         return sp
-
-    def records(self) -> Iterator[tuple[int, Any]]:
-        return self._spill().decoded()
 
     def _blocks(self) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
         return self._spill().blocks()
