@@ -433,12 +433,13 @@ VARIANTS = {
     "low-latency": (["--low-latency"], {}),                           # Zenoh's low-latency transport
     "rx-direct": (["--rx", "direct"], {}),                            # handlers on Zenoh's receive thread
     "rx-spin": (["--rx", "spin"], {}),                                # ... and a spin before the input is due
-    "realtime": (["--realtime"], {}),                                 # SCHED_FIFO (the nodes and the router)
+    "realtime": (["--realtime"], {}),                                 # SCHED_FIFO (the nodes and the router) at any T
+    "no-realtime": (["--realtime", "off"], {}),                       # OFF: SCHED_FIFO by default below 10 ms
     "exec": (["--spawn", "exec"], {}),                                # OFF: nodes forked from the launcher
     "separate-ack": (["--separate-ack"], {}),                         # OFF: the ack on the actuation message
 }
 #: ``--ab``: every change of the faster loop against the default, at each period
-AB_SET = ("default", "router", "exec", "separate-ack", "low-latency", "rx-direct", "rx-spin",
+AB_SET = ("default", "no-realtime", "router", "exec", "separate-ack", "low-latency", "rx-direct", "rx-spin",
           "colocated", "insecure", "router+insecure", "router+colocated")
 
 

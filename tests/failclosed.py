@@ -33,6 +33,7 @@ import warnings
 
 import pytest
 
+from testbed.nodes.process import fifo_permitted
 from testbed.record.degraded import ATTACKER_CAUSED, timing_faults
 
 #: every capability a test may require, and what it is
@@ -113,16 +114,6 @@ def stalled(summary: dict, *, attacker: bool = False) -> dict | None:
     stall["withheld_at"] = summary.get("withheld_at")
     stall["sampling_jitter_max_us"] = (tm.get("sampling_jitter_us") or {}).get("max")
     return stall
-
-
-def fifo_permitted() -> bool:
-    """Whether this process may run under SCHED_FIFO (root or CAP_SYS_NICE, and an RT budget)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-    except (OSError, AttributeError):
-        return False
-    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    return True
 
 
 def rerun_flags(attempt: int, args=()) -> tuple[str, ...]:

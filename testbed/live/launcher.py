@@ -61,9 +61,10 @@ def recording_default_path(name: str, run_id: str) -> Path:
 
 
 class RouterPriority:
-    """With ``--realtime``, the launcher's threads (the run's router) run under SCHED_FIFO during the loop as
-    the nodes' do: a router thread at normal priority waits behind every other process for each message it
-    forwards.  ``fifo``: whether it did at some point of the run (the summary's ``launcher.sched_fifo``)."""
+    """With SCHED_FIFO asked for (``RunConfig.sched_fifo``), the launcher's threads (the run's router) run under
+    SCHED_FIFO during the loop as the nodes' do: a router thread at normal priority waits behind every other
+    process for each message it forwards.  ``fifo``: whether it did at some point of the run (the summary's
+    ``launcher.sched_fifo``)."""
 
     def __init__(self, realtime: bool):
         self.realtime = realtime
@@ -151,7 +152,8 @@ class Launcher:
         self.stalls = StallControl(stalls, self.colocated, self.external, self.nodes, self.faults)
         self.recorder = None if self.record_path is None else \
             RecorderProcess(self.record_path, self.run_dir, self.faults, cfg.on_record_error)
-        self.router = RouterPriority(cfg.realtime)
+        self.fifo = cfg.sched_fifo(self.sc.T)  # --realtime, read once: the nodes' loops and the router
+        self.router = RouterPriority(self.fifo)
         self.signal: int | None = None
         self.t0_mono: int | None = None               # sample 0's time, CLOCK_MONOTONIC ns
         self.status: status.LiveStatus | None = None  # the live status line (``status``): a terminal or --progress
@@ -182,7 +184,7 @@ class Launcher:
         return NodeConfig(
             role=role, scenario=self.scenario_ref, opts=self.opts, session=self.creds.session_options(role),
             ready_timeout=c.startup_timeout, launched=True, **rx, rx_spin_us=c.rx_spin_us,
-            cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=c.realtime,
+            cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=self.fifo,
             verbose=c.verbose, crash_at=c.crash.get(role), **guest_crash, **rerun,
             spin_us=c.spin_us if role == "plant" else None,
             ack_grace=c.ack_grace if role == "encoder" or self.opts.process_of("encoder") == role else None,
@@ -427,7 +429,7 @@ class Launcher:
         summary["security"] = self.creds.security()
         external.annotate(summary, self.external, self.faults)
         summary["faults"] = self.faults.dicts()
-        summary["launcher"] = {"pid": os.getpid(), "sched_fifo": self.router.fifo,
+        summary["launcher"] = {"pid": os.getpid(), "realtime": self.cfg.realtime, "sched_fifo": self.router.fifo,
                                "spawn": "fork" if self.nodes.any_forked() else "exec"}
         return summary
 

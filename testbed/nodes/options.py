@@ -27,6 +27,8 @@ if TYPE_CHECKING:
 
 #: ``testbed run --foxglove``'s port when none is given
 FOXGLOVE_PORT = 8765
+#: ``--realtime auto``: SCHED_FIFO for a loop faster than this (s), where it is permitted
+FAST_T = 0.01
 
 
 # ============================================================================ run options
@@ -306,7 +308,10 @@ class RunConfig:
     spawn: str = _run("fork", "how local nodes start: fork (default) from the launcher, which has loaded Python, numba "
                               "and the loop's compiled kernels once, or exec (a fresh 'python -m testbed.cli node' per "
                               "node, as with --node-prefix, which always execs)", choices=("fork", "exec"))
-    realtime: bool = _run(False, "nodes try SCHED_FIFO")
+    realtime: str = _run("auto", "the nodes' loops and the run's router under SCHED_FIFO: on (--realtime alone), off, "
+                                 f"or auto (default): on when T < {FAST_T * 1e3:g} ms and this user may (root or "
+                                 "CAP_SYS_NICE), where a scheduling delay of a millisecond misses a deadline",
+                         choices=("auto", "on", "off"), nargs="?", const="on", metavar="auto|on|off")
     cpu: dict = _run({}, "pin a node (plant, encoder, attacker, controller), the recorder or the launcher (the run's "
                          "router) to CPUs, e.g. plant=2 or launcher=0,1 (repeatable)", metavar="WHO=CPUS", repeat=True,
                      convert=_roles("=", "--cpu", (*transport.ROLES, transport.RECORDER, transport.LAUNCHER)))
@@ -340,6 +345,15 @@ class RunConfig:
     tls_dir = property(lambda self: self.session.tls_dir)
     insecure = property(lambda self: self.session.insecure)
     low_latency = property(lambda self: self.session.low_latency)
+
+    def sched_fifo(self, T: float) -> bool:
+        """Whether the nodes' loops and the run's router ask for SCHED_FIFO in a run of sample period ``T``: the one
+        reading of ``--realtime`` (``auto``: a loop faster than ``FAST_T``, where this process may)."""
+        if self.realtime == "auto":
+            from .process import fifo_permitted
+
+            return T < FAST_T and fifo_permitted()
+        return self.realtime == "on"
 
 
 def load_scenario(ref: str | Scenario, opts: RunOptions, *, check_design: bool = True) -> Scenario:

@@ -134,6 +134,18 @@ def parse_cpus(spec: str) -> set[int]:
     return out
 
 
+def fifo_permitted() -> bool:
+    """Whether this process may run under SCHED_FIFO (root or CAP_SYS_NICE, and an RT budget): tried on the
+    calling thread and undone."""
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (OSError, AttributeError):
+        return False
+    os.sched_setscheduler(0, before[0], before[1])
+    return True
+
+
 def set_realtime(on: bool, priority: int = 1) -> bool:
     """SCHED_FIFO (``on``) or back to SCHED_OTHER for every thread of this process.
 

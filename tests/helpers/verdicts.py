@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import json
 
-from failclosed import fifo_permitted, rerun_flags, rerun_while_stalled
+from failclosed import rerun_flags, rerun_while_stalled
 
 from helpers.cli import run_cli, tb_cmd
 from helpers.live import BIT_EXACT_KEYS, live_exact, mismatch, resimulated, simulate
+from testbed.nodes.process import fifo_permitted
 
 #: the outsider's run (test_security_process.py): long enough for at least 10 attempts after the start-up
 OUTSIDER_S = 8

@@ -155,10 +155,9 @@ def test_netns_physical_timing_over_a_delayed_actuation_link(tmp_path):
     jitter = 2 ms`` across network namespaces: every u_k is held for its drawn delay and still comes
     before its instant (0.4 d T = 36 ms at deadline 0.9), so the run converges, equals the simulator
     bit for bit, and its recording re-simulates within 1e-9."""
-    from failclosed import fifo_permitted
-
     from testbed import scenario
     from testbed.loop import channel
+    from testbed.nodes.process import fifo_permitted
 
     _require_netns()
     path = tmp_path / "paper-delay.toml"

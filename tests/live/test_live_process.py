@@ -15,7 +15,7 @@ import subprocess
 import time
 
 import pytest
-from failclosed import fifo_permitted, require
+from failclosed import require
 from helpers.cli import TIMEOUT, run_cli, tb_cmd
 from helpers.live import (
     BIT_EXACT_KEYS,
@@ -31,6 +31,8 @@ from helpers.live import (
 )
 from helpers.procs import procs_with, reap
 from helpers.verdicts import assert_physical_timing_on_the_paper
+
+from testbed.nodes.process import fifo_permitted
 
 pytestmark = pytest.mark.process
 
@@ -108,7 +110,7 @@ def test_greedy_attacker_live_equals_simulator(run_id, topology):
 
 def test_realtime_runs_the_nodes_and_the_router_under_sched_fifo(run_id):
     """--realtime: every node's loop and the launcher's router threads under SCHED_FIFO; the run is the
-    simulator's bit for bit."""
+    simulator's bit for bit.  With the default (auto), a run at T = 0.1 s asks for none, one at 5 ms for all."""
     if not fifo_permitted():
         require("fifo", "SCHED_FIFO is not permitted here (needs root or CAP_SYS_NICE)")
     rc, s, err = live_exact(run_id, "paper", "--duration", "3", "--realtime", "--no-record", "--topology", "router")
@@ -118,8 +120,13 @@ def test_realtime_runs_the_nodes_and_the_router_under_sched_fifo(run_id):
     sim = simulate("paper", 3)
     for key in BIT_EXACT_KEYS:
         assert s[key] == sim[key], mismatch(s, sim, key)
-    rc, s, err = live(run_id + "n", "paper", "--duration", "1", "--no-record")
-    assert rc == 0 and s["launcher"]["sched_fifo"] is False
+    rc, s, err = live(run_id + "n", "paper", "--duration", "1", "--no-record")  # auto, T = 0.1 s: not asked for
+    assert rc == 0 and s["launcher"]["sched_fifo"] is False and s["launcher"]["realtime"] == "auto"
+    assert not any(s["node_summaries"][r]["sched_fifo"] for r in ("plant", "encoder", "attacker", "controller"))
+    rc, s, err = live(run_id + "f", "paper", "--T", "0.005", "--duration", "1", "--no-record")  # auto, T < 10 ms
+    assert rc == 0, (s["faults"], err[-2000:])
+    assert s["launcher"]["sched_fifo"] is True
+    assert all(s["node_summaries"][r]["sched_fifo"] is True for r in ("plant", "encoder", "attacker", "controller"))
 
 
 # ====================================================================== faults

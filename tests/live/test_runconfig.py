@@ -89,6 +89,27 @@ def test_the_launcher_gives_each_process_its_part_of_the_run_config():
             shutil.rmtree(la.run_dir, ignore_errors=True)
 
 
+@pytest.mark.parametrize("flags, T, fifo", [
+    ([], 0.002, "permitted"),               # auto: a fast loop, where this process may
+    ([], 0.1, False),                       # auto: a slow loop stays SCHED_OTHER
+    (["--realtime"], 0.1, True),            # --realtime alone is on, whatever T
+    (["--realtime", "on"], 0.1, True),
+    (["--realtime", "off"], 0.002, False),
+    (["--realtime", "auto"], 0.002, "permitted"),
+])
+def test_realtime_is_read_once_as_on_off_or_auto_by_the_loops_period(flags, T, fifo):
+    """``--realtime`` [auto|on|off]: ``RunConfig.sched_fifo(T)`` is the one reading of it, the nodes' ``realtime``
+    and the router's priority follow it (auto: on below ``FAST_T`` where SCHED_FIFO is permitted)."""
+    from testbed.nodes.options import FAST_T
+    from testbed.nodes.process import fifo_permitted
+
+    cfg = run_config(_parse("testbed.commands.run", "run", ["paper", "--no-record", *flags]))
+    assert cfg.realtime == (flags[1] if len(flags) > 1 else "on" if flags else "auto")
+    want = fifo_permitted() if fifo == "permitted" else fifo
+    assert cfg.sched_fifo(T) is want
+    assert T < FAST_T or not cfg.sched_fifo(T) or cfg.realtime == "on"
+
+
 @pytest.mark.parametrize("flags, says", [
     (["--kill", "plant@soon"], "--kill: 'soon' is not a number"),
     (["--kill", "plant@nan"], "--kill: 'nan' is not a finite number >= 0"),
