@@ -424,6 +424,7 @@ def _p(d: dict | None, key: str) -> str:
 
 
 #: the live loop's variants for A/B runs: name -> (extra flags of testbed run, environment).
+_CPUS = sorted(os.sched_getaffinity(0))[:2]
 VARIANTS = {
     "default": ([], {}),                                              # --topology auto: peer on one host
     "router": (["--topology", "router"], {}),                         # the router topology (the default before auto)
@@ -435,6 +436,8 @@ VARIANTS = {
     "rx-spin": (["--rx", "spin"], {}),                                # ... and a spin before the input is due
     "realtime": (["--realtime"], {}),                                 # SCHED_FIFO (the nodes and the router) at any T
     "no-realtime": (["--realtime", "off"], {}),                       # OFF: SCHED_FIFO by default below 10 ms
+    "pinned": ([f for role, c in zip(("plant", "encoder", "attacker", "controller"), _CPUS * 2, strict=False)
+                for f in ("--cpu", f"{role}={c}")], {}),                  # the nodes on the first two CPUs, in turn
     "exec": (["--spawn", "exec"], {}),                                # OFF: nodes forked from the launcher
     "separate-ack": (["--separate-ack"], {}),                         # OFF: the ack on the actuation message
 }
@@ -551,7 +554,9 @@ def print_goals(T: float, floor: dict, work: dict | None, rows: list[dict]) -> N
                          f"/ with the work {_x(med('p50_over_work_floor'))}")
         if abs(T - 0.002) < 1e-9 or abs(T - 0.001) < 1e-9:
             m = med("misses_per_10k")
-            parts.append(f"misses per 10,000 {'n/a' if m is None else f'{m:.0f}'} / ideal "
+            each = [x["misses_per_10k"] for x in rs if x["misses_per_10k"] is not None]
+            spread = f" (runs: {', '.join(f'{v:.0f}' for v in each)})" if len(each) > 1 else ""
+            parts.append(f"misses per 10,000 {'n/a' if m is None else f'{m:.0f}'}{spread} / ideal "
                          f"{_x(med('misses_over_ideal'))} (goal <= {GOAL_MISSES_OVER_IDEAL:g}x), "
                          f"/ ideal with the work {_x(med('misses_over_work_ideal'))}")
         if not parts:

@@ -15,9 +15,11 @@ whole columns (``snapshot`` still gives those, for a caller that wants them).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import struct
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -61,30 +63,9 @@ class Spill:
     def blocks(self, chunk: int | None = None) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
         """The file ``chunk`` bytes at a time: ``(bytes, role indices, offsets, lengths)`` of the whole records
         in each read (the arrays index the bytes), in the order written."""
-        chunk = int(chunk or self.CHUNK)
-        unpack, hs = self.HEAD.unpack_from, self.HEAD.size
         self.f.flush()
         with open(self.path, "rb") as f:  # its own handle: the writer's position stays at the end
-            buf = b""
-            while True:
-                more = f.read(chunk)
-                buf = buf + more if buf else more
-                ris, offs, lens = [], [], []
-                off, size = 0, len(buf)
-                while off + hs <= size:
-                    ri, n = unpack(buf, off)
-                    if off + hs + n > size:
-                        break
-                    ris.append(ri)
-                    offs.append(off + hs)
-                    lens.append(n)
-                    off += hs + n
-                if ris:
-                    yield (buf, np.array(ris, dtype=np.int64), np.array(offs, dtype=np.int64),
-                           np.array(lens, dtype=np.int64))
-                buf = buf[off:]
-                if not more:
-                    return
+            yield from _file_blocks(f, int(chunk or self.CHUNK))
 
     def decoded(self) -> Iterator[tuple[int, Any]]:
         """Every ``(role index, telemetry dataclass)``, as ``records`` reads them."""
@@ -94,6 +75,30 @@ class Spill:
 
     def close(self) -> None:
         self.f.close()
+
+
+def _file_blocks(f: Any, chunk: int) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
+    """``Spill.blocks`` of an open file, from its position."""
+    unpack, hs = Spill.HEAD.unpack_from, Spill.HEAD.size
+    buf = b""
+    while True:
+        more = f.read(chunk)
+        buf = buf + more if buf else more
+        ris, offs, lens = [], [], []
+        off, size = 0, len(buf)
+        while off + hs <= size:
+            ri, n = unpack(buf, off)
+            if off + hs + n > size:
+                break
+            ris.append(ri)
+            offs.append(off + hs)
+            lens.append(n)
+            off += hs + n
+        if ris:
+            yield (buf, np.array(ris, dtype=np.int64), np.array(offs, dtype=np.int64), np.array(lens, dtype=np.int64))
+        buf = buf[off:]
+        if not more:
+            return
 
 
 class Collector:
@@ -120,6 +125,7 @@ class Collector:
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
         self.received: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # records kept, the plant's final one too
         self.lag = 0  # how far a record's k fell behind the highest k of any role before it (``SpillRows``)
+        self.role_lag = 0  # ... behind the highest k of its own role before it (a node's own order)
         self._top_all = -1
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
@@ -174,6 +180,8 @@ class Collector:
                     self.received[role] += 1
                     if t.k > self.top[role]:
                         self.top[role] = t.k
+                    elif self.top[role] - t.k > self.role_lag:
+                        self.role_lag = self.top[role] - t.k
                     if t.k > self._top_all:
                         self._top_all = t.k
                     elif self._top_all - t.k > self.lag:
@@ -396,6 +404,7 @@ class Collector:
             return ColumnChunks(self.snapshot(sc, fields), chunk)
         self._spill.f.flush()
         return SpillRows(sc, self._spill.path, max(self.top.values()) + 1, self.lag, fields, chunk=chunk,
+                         role_lag=self.role_lag,
                          events=self.events, status=self.status, summaries=self.summaries,
                          plant_final=self.plant_final, top=self.top)
 
@@ -425,12 +434,16 @@ def spill_columns(sc: Scenario, records: Iterable[tuple[int, Any]], rows: int, f
 class SpillRows:
     """A spill file's records (``Spill``) as rows of columns a chunk at a time, in the order of k: what the
     launcher's end-of-run summary reads (``record.summary.build_summary``), in memory bounded by the chunk
-    (``CHUNK`` rows) and by how far records arrived out of order (``lag``: the collector's ``Collector.lag``).
+    (``CHUNK`` rows) and by how far one node's records arrived out of their own order (``role_lag``: the
+    collector's ``Collector.role_lag``), not by how far the nodes fell behind one another.
 
     Records arrive in nearly the order of k (each node's in order, the nodes a few batches apart): after a
-    record of the highest k so far, no later record has a k below that minus ``lag``, so the rows below are
-    complete and go out as a chunk.  A record that breaks this (a ``lag`` too small) makes the rows read again
-    with room for every row at once: the same columns, in more memory."""
+    record of the highest k so far, no later record has a k below that minus ``lag`` (``Collector.lag``), so
+    the rows below are complete and go out as a chunk.  When a node fell behind the others by more than two
+    chunks (a stalled node, a late batch: ``lag`` large, ``role_lag`` small) the file is first split into one
+    unnamed file per node beside it, one pass a block at a time, and the four are read side by side a chunk of
+    k at a time: the window is then two chunks and ``role_lag``.  A record out of order beyond the lag given
+    raises ``RuntimeError``."""
 
     #: rows of a chunk
     CHUNK = 1 << 14
@@ -439,7 +452,7 @@ class SpillRows:
                  fields: set[str] | None = None, *, chunk: int | None = None, events: Iterable[msg.Event] = (),
                  status: Iterable[msg.AttackerStatus] = (), summaries: dict[str, dict] | None = None,
                  plant_final: msg.PlantTelemetry | None = None, top: dict[str, int] | None = None,
-                 metadata: dict | None = None) -> None:
+                 metadata: dict | None = None, role_lag: int | None = None) -> None:
         from ..record.columns import layout
 
         self.sc, self.path, self.fields = sc, Path(path), fields
@@ -453,7 +466,11 @@ class SpillRows:
                                                        "x": np.array(plant_final.x, dtype=float),
                                                        "flow_status": int(plant_final.flow_status)}
         self._top = dict(top) if top is not None else None
-        self.lag = self.measure_lag() if lag is None else int(lag)
+        if lag is None:
+            self.lag, self.role_lag = self.measure_lag()
+        else:  # the collector's, counted as the records came (no role_lag: no split)
+            self.lag = int(lag)
+            self.role_lag = self.lag if role_lag is None else min(self.lag, int(role_lag))
 
     def _spill(self) -> Spill:
         sp = Spill.__new__(Spill)
@@ -463,20 +480,25 @@ class SpillRows:
     def _blocks(self) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
         return self._spill().blocks()
 
-    def measure_lag(self) -> int:
-        """``Collector.lag`` of the file (its k order), read from it (a spill without its collector)."""
-        top, lag = -1, 0
+    def measure_lag(self) -> tuple[int, int]:
+        """``Collector.lag`` and ``Collector.role_lag`` of the file (its k order), read from it (a spill without
+        its collector)."""
+        top, lag, role_lag = -1, 0, 0
         tops: dict[int, int] = {}
         for buf, ris, offs, _lens in self._blocks():
             ks = _ks(buf, offs)
             for ri in np.unique(ris):
-                tops[int(ri)] = max(tops.get(int(ri), -1), int(ks[ris == ri].max()))
+                kr = ks[ris == ri]
+                t = tops.get(int(ri), -1)
+                before = np.maximum.accumulate(np.concatenate(([t], kr)))[:-1]
+                role_lag = max(role_lag, int((before - kr).max()))
+                tops[int(ri)] = max(t, int(kr.max()))
             before = np.maximum.accumulate(np.concatenate(([top], ks)))[:-1]  # the highest k before each record
             lag = max(lag, int((before - ks).max()))
             top = max(top, int(ks.max()))
         if self._top is None:
             self._top = {r: tops.get(i, -1) for i, r in enumerate(transport.ROLES)}
-        return lag
+        return lag, role_lag
 
     def last_k(self, role: str) -> int:
         if self._top is None:
@@ -488,18 +510,75 @@ class SpillRows:
         """``(k0, columns of rows k0 .. k0 + CHUNK - 1)`` covering rows 0 .. hi - 1 (at least one chunk)."""
         hi = max(0, min(int(hi), self.rows))
         try:
-            yield from self._chunks(hi, self.lag)
+            if self.split:
+                with contextlib.ExitStack() as files:
+                    parts = self._split(files)
+                    yield from self._chunks(hi, self.size + self.role_lag, self._side_by_side(parts))
+            else:
+                yield from self._chunks(hi, self.lag, self._blocks())
         except _Disorder as e:  # rows already handed out: the reader above starts again with every row at once
             raise RuntimeError("spill records out of order beyond the measured lag") from e
 
-    def _chunks(self, hi: int, lag: int) -> Iterator[tuple[int, Columns]]:
+    @property
+    def split(self) -> bool:
+        """Whether the file is read split by node (a node behind the others by more than two chunks)."""
+        return self.lag > 2 * self.size + self.role_lag
+
+    def _split(self, files: contextlib.ExitStack) -> list[Any]:
+        """The spill's records, one unnamed file per node beside it (each in the order written): one pass."""
+        hs = Spill.HEAD.size
+        parts = [files.enter_context(tempfile.TemporaryFile(dir=self.path.parent)) for _ in transport.ROLES]
+        for buf, ris, offs, lens in self._blocks():
+            arr = np.frombuffer(buf, dtype=np.uint8)
+            for ri in np.unique(ris):
+                sel = ris == ri
+                start, n = offs[sel] - hs, lens[sel] + hs   # each record with its head
+                first = np.cumsum(n) - n                   # where each lands in the node's part
+                idx = np.repeat(start - first, n) + np.arange(int(n.sum()))
+                parts[int(ri)].write(arr[idx].tobytes())
+        for f in parts:
+            f.seek(0)
+        return parts
+
+    def _side_by_side(self, parts: list[Any]) -> Iterator[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]:
+        """The nodes' parts (``_split``) read side by side: each round gives every node's records up to the next
+        chunk boundary of k, so a record falls behind one before it by at most a chunk and ``role_lag``."""
+        streams = [_file_blocks(f, Spill.CHUNK) for f in parts]
+        pending: list[tuple | None] = [None] * len(parts)
+        top = [-1] * len(parts)  # each node's highest k so far
+        live = list(range(len(parts)))
+        bound = self.size
+        while live:
+            for r in list(live):
+                while True:
+                    if pending[r] is None:
+                        nxt = next(streams[r], None)
+                        if nxt is None:
+                            live.remove(r)
+                            break
+                        buf, ris, offs, lens = nxt
+                        tops = np.maximum(np.maximum.accumulate(_ks(buf, offs)), top[r])
+                        top[r] = int(tops[-1])
+                        pending[r] = (buf, ris, offs, lens, tops)
+                    buf, ris, offs, lens, tops = pending[r]  # type: ignore[misc]  # set just above
+                    j = int(np.searchsorted(tops, bound, side="left"))  # the records whose k runs below the bound
+                    if j:
+                        yield buf, ris[:j], offs[:j], lens[:j]
+                    if j < len(tops):
+                        pending[r] = (buf, ris[j:], offs[j:], lens[j:], tops[j:])
+                        break
+                    pending[r] = None
+            bound += self.size
+
+    def _chunks(self, hi: int, lag: int, blocks: Iterable[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]]
+                ) -> Iterator[tuple[int, Columns]]:
         from ..record.columns import ColumnBuilder, normalize
 
         size = self.size
         span = size + lag + 1
         base, top = 0, -1
         b = self._builder(span, ColumnBuilder)
-        for buf, ris, offs, lens in self._blocks():
+        for buf, ris, offs, lens in blocks:
             ks = _ks(buf, offs)
             keep = ks < hi
             if not keep.all():

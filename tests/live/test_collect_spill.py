@@ -97,7 +97,9 @@ def test_the_streamed_end_of_run_equals_the_whole_file_read(tmp_path, monkeypatc
         assert got == want  # every key, every sample, every float
         # as the launcher reads it: rows a chunk at a time, the lag measured as the records came (the encoder's
         # batches shuffled), per-sample values in files
-        assert col.lag > 7
+        assert col.lag > 7 and col.role_lag > 0
+        from testbed.live.collect import SpillRows  # the file's own order, read back: the collector's figures
+        assert SpillRows(sc, col._spill.path, sc.n_steps, None, LIVE_FIELDS).measure_lag() == (col.lag, col.role_lag)
         for chunk in (7, None):
             s = build_summary(sc, col.rows(sc, LIVE_FIELDS, chunk=chunk), run_id="r", ack_via_attacker=False,
                               nodes={}, faults=[], codebook=Codebook(2, 6, True), arrays=True, store=tmp_path)
@@ -352,3 +354,52 @@ def test_records_added_at_once_equal_records_added_one_by_one(tmp_path, paper):
         assert np.array_equal(np.concatenate([c.tables[t] for c in got])[:250], want.tables[t], equal_nan=True), t
     assert np.array_equal(np.concatenate([c.present for c in got])[:250], want.present)
     assert sum(c.malformed for c in got) == want.malformed > 0
+
+
+@pytest.mark.parametrize("behind", [50, 150])
+def test_a_node_far_behind_the_others_is_read_split_by_node_in_a_window_of_two_chunks(tmp_path, behind):
+    """The controller's records arrive ``behind`` samples after the others' (a stalled node): the lag is that
+    large, each node's own order is kept, so ``SpillRows`` splits the file by node and reads the parts side
+    by side: the builder's window stays two chunks (not the lag), and the summary and the columns are those of
+    the whole columns, byte for byte."""
+    from testbed.live.collect import SpillRows
+
+    sc, res, path = sim_recording(tmp_path, "paper", duration=20.0)
+    rec = reader.read(path)
+    tele = rec.telemetry
+    ctl = transport.ROLES.index("controller")
+    order = []
+    for k in range(sc.n_steps + behind):
+        for ri, role in enumerate(transport.ROLES):
+            kk = k - behind if ri == ctl else k
+            if 0 <= kk < sc.n_steps and kk in tele[role]:
+                order.append((ri, kk))
+    _spill_of(tmp_path / "telemetry.bin", sc, rec, order)
+    whole = columns.from_records(sc, tele, plant_final=rec.plant_final, fields=LIVE_FIELDS)
+    want, _ = _text(sc, whole)
+    spans = []
+
+    class Watched(SpillRows):
+        def _builder(self, span, ColumnBuilder, k0=0):
+            spans.append(span)
+            return super()._builder(span, ColumnBuilder, k0)
+
+    chunk = 16
+    rows = Watched(sc, tmp_path / "telemetry.bin", whole.rows, None, LIVE_FIELDS, chunk=chunk,
+                   plant_final=rec.plant_final)
+    assert rows.lag >= behind - 1 and rows.role_lag == 0 and rows.split
+    got = list(rows.chunks(whole.rows))
+    assert max(spans) == 2 * chunk + 1  # two chunks, whatever the lag
+    for t in whole.tables:
+        assert np.array_equal(np.concatenate([c.tables[t] for _, c in got])[:whole.rows], whole.tables[t],
+                              equal_nan=True), t
+    assert np.array_equal(np.concatenate([c.present for _, c in got])[:whole.rows], whole.present)
+    # the collector's own lag figures give the same reading
+    same = SpillRows(sc, tmp_path / "telemetry.bin", whole.rows, rows.lag, LIVE_FIELDS, chunk=chunk,
+                     plant_final=rec.plant_final, role_lag=0)
+    assert same.split
+    assert _text(sc, same, tmp_path)[0] == want
+    # and without the split (no role_lag given) the window is the lag: the same summary
+    wide = SpillRows(sc, tmp_path / "telemetry.bin", whole.rows, rows.lag, LIVE_FIELDS, chunk=chunk,
+                     plant_final=rec.plant_final)
+    assert not wide.split and _text(sc, wide, tmp_path)[0] == want
