@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
+import heapq
 import struct
 import tempfile
 import threading
@@ -330,8 +331,8 @@ class Collector:
         arrived here: a difference means records were lost, forged or altered on the way.
 
         The digest is over the records in the order of k (and the plant's final record last); records
-        arrive in that order, so it is computed in one streaming pass, and again, from the k order of
-        the role's records, for a role whose records came out of order."""
+        arrive in nearly that order, so it is computed in one streaming pass that holds back, for each node,
+        at most ``role_lag`` records (how far its records came out of its own order)."""
         out: list[Fault] = []
         with self.lock:
             roles = [r for r in transport.ROLES if "telemetry_sha256" in (self.summaries.get(r) or {})]
@@ -340,19 +341,22 @@ class Collector:
             want = {transport.ROLES.index(r) for r in roles}
             h = {ri: hashlib.sha256() for ri in want}
             count = dict.fromkeys(want, 0)
-            last = dict.fromkeys(want, -1)
-            unordered: set[int] = set()
+            # in the order of k through a heap of each node's records that may still be overtaken: a record is
+            # never more than ``role_lag`` below its node's highest k before it, so one further below is final
+            heaps: dict[int, list[tuple[int, bytes]]] = {ri: [] for ri in want}
+            top = dict.fromkeys(want, -1)
             for ri, k, b in self._encoded():
                 if ri not in want:
                     continue
                 count[ri] += 1
-                if k < last[ri]:
-                    unordered.add(ri)
-                last[ri] = k
-                if ri not in unordered:
-                    h[ri].update(b)
-            for ri in unordered:
-                h[ri] = self._digest_by_k(ri)
+                heap = heaps[ri]
+                heapq.heappush(heap, (k, b))
+                top[ri] = max(top[ri], k)
+                while heap[0][0] < top[ri] - self.role_lag:
+                    h[ri].update(heapq.heappop(heap)[1])
+            for ri, heap in heaps.items():
+                while heap:
+                    h[ri].update(heapq.heappop(heap)[1])
             for ri in sorted(want):
                 role = transport.ROLES[ri]
                 s = self.summaries[role]
@@ -365,35 +369,6 @@ class Collector:
                                      detail=f"{n} records collected, the node published {s.get('telemetry_records')}"
                                             + ("" if n != s.get("telemetry_records") else "; digests differ")))
         return out
-
-    def _digest_by_k(self, ri: int) -> hashlib._Hash:
-        """sha256 of role ``ri``'s records in the order of k (they arrived out of order: rare)."""
-        import numpy as np
-
-        h = hashlib.sha256()
-        if self._spill is None:
-            d = self.tele[transport.ROLES[ri]]
-            for k in sorted(d):
-                h.update(d[k].encode())
-            return h
-        ks = np.array([k for r, k, _ in self._encoded() if r == ri], dtype=np.int64)  # 8 bytes a record
-        order = np.argsort(ks, kind="stable")
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        # the records again, a window of ranks at a time: held at most CHUNK records
-        win = max(1, Spill.CHUNK // 64)
-        for lo in range(0, len(order), win):
-            got: dict[int, bytes] = {}
-            i = 0
-            for r, _, b in self._encoded():
-                if r != ri:
-                    continue
-                if lo <= rank[i] < lo + win:
-                    got[int(rank[i])] = b
-                i += 1
-            for j in range(lo, min(lo + win, len(order))):
-                h.update(got[j])
-        return h
 
     def rows(self, sc: Scenario, fields: set[str] | None = None, chunk: int | None = None) -> SpillRows | ColumnChunks:
         """What has arrived, as rows a chunk at a time (``record.summary.build_summary``: the end-of-run summary in
