@@ -6,8 +6,9 @@ launcher and each of its child processes (the nodes ``tb-plant``, ``tb-encoder``
 ``tb-controller`` and the recorder), the resident memory (VmRSS), its peak so far (VmHWM), the
 open file descriptors and the threads, read from ``/proc``.  At the end of each run it prints each
 process's memory growth after the warm-up (``--warmup`` s: a least-squares slope of RSS over time,
-in MB per hour) against the goal (less than 5 MB an hour) and its peak (VmHWM: the launcher's as it
-reports it in its summary, ``launcher.peak_rss_mb``, so the end of the run is included), and the
+in MB per hour) against the goal (less than 5 MB an hour) and its peak (VmHWM; the launcher's also as it
+reports it in its summary, ``launcher.peak_rss_mb``, and at its exit, ``wait4``'s ``ru_maxrss``, so the
+end of the run and the printing of its summary are included), and the
 recording's completeness: ``recording_complete`` from the run's summary and the samples
 ``testbed report`` reads back against the run's samples.  With several durations it then prints
 the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
@@ -123,6 +124,17 @@ def starve(launcher: int, seconds: float, on_s: float, off_s: float, done: threa
             pass
 
 
+def reaped_peak_mb(p: subprocess.Popen) -> float | None:
+    """``p.poll()`` that reaps the launcher itself: None while it runs, else its peak RSS over its whole life
+    (``wait4``'s ``ru_maxrss``: the largest of the launcher and the children it reaped, the launcher being the
+    largest), its exit code set on ``p``."""
+    pid, status, ru = os.wait4(p.pid, os.WNOHANG)
+    if pid == 0:
+        return None
+    p.returncode = os.waitstatus_to_exitcode(status)
+    return ru.ru_maxrss / 1024
+
+
 def soak(dur: float, a, every: float, warmup: float) -> dict | None:
     """One run of ``dur`` seconds: its readings, each process's growth and peak, the recording's completeness."""
     tmp = tempfile.mkdtemp(prefix="bench-soak-")
@@ -146,7 +158,7 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
     next_print = 0.0
     try:
         print(f"{'t [s]':>7}  {'process':>13} {'RSS MB':>7} {'peak MB':>8} {'fds':>4} {'thr':>4}")
-        while p.poll() is None:
+        while (exit_peak := reaped_peak_mb(p)) is None:
             t = time.monotonic() - t_start
             over = t > dur + STARTUP_S
             time.sleep(END_EVERY if over else (every if readings else min(every, 5.0)))
@@ -186,6 +198,8 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
     reported = (summary.get("launcher") or {}).get("peak_rss_mb")
     if reported is not None:  # the launcher's own VmHWM, read after its summary (the last poll may be earlier)
         peak["launcher"] = max(peak.get("launcher", 0.0), reported)
+    if exit_peak:  # ... and at its exit: printing the --json summary included
+        peak["launcher"] = max(peak.get("launcher", 0.0), exit_peak)
     figures = {}
     print(f"memory growth after {warmup:g} s of warm-up (goal < {GOAL_MB_PER_H:g} MB/h) and peak (VmHWM):")
     names = sorted({n for r in readings for n in r["procs"]})

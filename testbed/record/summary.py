@@ -376,6 +376,16 @@ def arrow_plain(col: np.ndarray) -> bool:
     return col.dtype == bool or f"{col.dtype.kind}{col.dtype.itemsize}" in _ARROW_TYPES
 
 
+def _lit(text: str) -> Any:
+    """A string literal for ``pyarrow.compute`` as an Arrow scalar made over a buffer: a Python ``str`` argument
+    is converted by ``pa.scalar``, which imports pandas (40 MB)."""
+    import pyarrow as pa
+
+    b = text.encode()
+    return pa.Array.from_buffers(pa.string(), 1, [None, pa.py_buffer(np.array([0, len(b)], dtype=np.int32)),
+                                                  pa.py_buffer(b)])[0]
+
+
 def _texts(col: np.ndarray) -> Any:
     """A 1-D array as JSON texts, one per value (Arrow's shortest round-trip formatting, vectorized).
 
@@ -391,12 +401,12 @@ def _texts(col: np.ndarray) -> Any:
         # only an integral value can print without "." or "e": the texts of those alone are looked at
         integral = fin & (np.floor(col) == col)
         if integral.any():
-            sub = pc.take(s, pa.array(np.flatnonzero(integral)))
+            sub = pc.take(s, arrow_array(np.flatnonzero(integral)))
             plain = pc.invert(pc.or_(pc.match_substring(sub, "."), pc.match_substring(sub, "e")))
-            sub = pc.if_else(plain, pc.binary_join_element_wise(sub, ".0", ""), sub)
+            sub = pc.if_else(plain, pc.binary_join_element_wise(sub, _lit(".0"), _lit("")), sub)
             s = pc.replace_with_mask(s, arrow_array(integral), sub)
         if not fin.all():
-            s = pc.if_else(arrow_array(fin), s, "null")
+            s = pc.if_else(arrow_array(fin), s, _lit("null"))
     return s
 
 
@@ -406,7 +416,7 @@ def _joined(s: Any) -> str:
 
     if len(s) == 0:
         return ""
-    s = pc.binary_join_element_wise(s, ", ", "")
+    s = pc.binary_join_element_wise(s, _lit(", "), _lit(""))
     offsets = np.frombuffer(s.buffers()[1], dtype=np.int32)
     lo, hi = int(offsets[s.offset]), int(offsets[s.offset + len(s)])
     return memoryview(s.buffers()[2])[lo:hi - 2].tobytes().decode("ascii")
@@ -420,14 +430,15 @@ def _row_texts(b: np.ndarray, mask: np.ndarray | None = None) -> Any:
     if b.ndim == 1:
         s = _texts(b)
     elif b.shape[1] == 0:
-        s = pc.binary_join_element_wise(pc.cast(arrow_array(np.zeros(len(b), np.int8)), pa.string()), "[]", "")
+        zeros = pc.cast(arrow_array(np.zeros(len(b), np.int8)), pa.string())
+        s = pc.binary_join_element_wise(zeros, _lit("[]"), _lit(""))
         s = pc.utf8_slice_codeunits(s, 1)
     else:
         inner = pc.binary_join_element_wise(*[_texts(np.ascontiguousarray(b[:, j])) for j in range(b.shape[1])],
-                                            ", ")
-        s = pc.binary_join_element_wise("[", inner, "]", "")
+                                            _lit(", "))
+        s = pc.binary_join_element_wise(_lit("["), inner, _lit("]"), _lit(""))
     if mask is not None:
-        s = pc.if_else(arrow_array(np.asarray(mask, dtype=bool)), s, "null")
+        s = pc.if_else(arrow_array(np.asarray(mask, dtype=bool)), s, _lit("null"))
     return s
 
 

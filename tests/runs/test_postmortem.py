@@ -491,3 +491,18 @@ def test_export_streams_the_whole_table(tmp_path, monkeypatch):
     ex.export(run, tmp_path / "rows.parquet", "parquet")
     back = pq.read_table(tmp_path / "rows.parquet")
     assert back.equals(whole) and back.schema.metadata == whole.schema.metadata and back.num_rows == run.N > 7
+
+
+@pytest.mark.slow  # a process of its own: what the JSON output imports
+def test_the_streamed_json_does_not_import_pandas():
+    """``write_json`` formats numbers with Arrow over numpy buffers (``summary.arrow_array``): ``pa.array`` would
+    import pandas (40 MB in every ``--json`` of a run or a report)."""
+    import subprocess
+    import sys
+
+    code = ("import io, sys, numpy as np\nfrom testbed.record.summary import write_json\n"
+            "write_json({'x': np.array([1.0, 2.5, np.nan, 3.0, 1e-7, 2.0**60]), 'k': np.arange(5)}, io.StringIO())\n"
+            "print('pyarrow' in sys.modules, 'pandas' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["True", "False"], r.stdout
