@@ -109,6 +109,8 @@ class Collector:
     MAX_EVENTS = 10_000
     #: records of each node kept in memory when they are spilled to a file (the stall watch reads them)
     RECENT = 1024
+    #: records of a node the telemetry digest holds back at most to put them in the order of k
+    MAX_HELD = 1 << 16
 
     def __init__(self, session: Any, keys: transport.Keys, n_steps: int, spill: str | Path | None = None) -> None:
         import zenoh
@@ -126,7 +128,8 @@ class Collector:
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
         self.received: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # records kept, the plant's final one too
         self.lag = 0  # how far a record's k fell behind the highest k of any role before it (``SpillRows``)
-        self.role_lag = 0  # ... behind the highest k of its own role before it (a node's own order)
+        self.role_lag = 0  # ... behind the highest k of its own role before it (a node's own order), the largest
+        self.lag_of: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # ... of each role
         self._top_all = -1
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
@@ -181,8 +184,9 @@ class Collector:
                     self.received[role] += 1
                     if t.k > self.top[role]:
                         self.top[role] = t.k
-                    elif self.top[role] - t.k > self.role_lag:
-                        self.role_lag = self.top[role] - t.k
+                    elif self.top[role] - t.k > self.lag_of[role]:
+                        self.lag_of[role] = self.top[role] - t.k
+                        self.role_lag = max(self.role_lag, self.lag_of[role])
                     if t.k > self._top_all:
                         self._top_all = t.k
                     elif self._top_all - t.k > self.lag:
@@ -342,21 +346,28 @@ class Collector:
             h = {ri: hashlib.sha256() for ri in want}
             count = dict.fromkeys(want, 0)
             # in the order of k through a heap of each node's records that may still be overtaken: a record is
-            # never more than ``role_lag`` below its node's highest k before it, so one further below is final
-            heaps: dict[int, list[tuple[int, bytes]]] = {ri: [] for ri in want}
+            # never more than the node's lag below its highest k before it, so one further below is final.  A
+            # node whose records strayed further than ``MAX_HELD`` (one record far out of order is enough) is
+            # digested again from the k order of its records, a window at a time: bounded memory, more passes
+            lag = {transport.ROLES.index(r): n for r, n in self.lag_of.items()}
+            heaps: dict[int, list[tuple[int, bytes]]] = {ri: [] for ri in want if lag[ri] <= self.MAX_HELD}
             top = dict.fromkeys(want, -1)
             for ri, k, b in self._encoded():
                 if ri not in want:
                     continue
                 count[ri] += 1
-                heap = heaps[ri]
+                heap = heaps.get(ri)
+                if heap is None:
+                    continue
                 heapq.heappush(heap, (k, b))
                 top[ri] = max(top[ri], k)
-                while heap[0][0] < top[ri] - self.role_lag:
+                while heap[0][0] < top[ri] - lag[ri]:
                     h[ri].update(heapq.heappop(heap)[1])
             for ri, heap in heaps.items():
                 while heap:
                     h[ri].update(heapq.heappop(heap)[1])
+            for ri in want - set(heaps):
+                h[ri] = self._digest_by_k(ri)
             for ri in sorted(want):
                 role = transport.ROLES[ri]
                 s = self.summaries[role]
@@ -369,6 +380,32 @@ class Collector:
                                      detail=f"{n} records collected, the node published {s.get('telemetry_records')}"
                                             + ("" if n != s.get("telemetry_records") else "; digests differ")))
         return out
+
+    def _digest_by_k(self, ri: int) -> hashlib._Hash:
+        """sha256 of role ``ri``'s records in the order of k, for a node whose records strayed far from it."""
+        h = hashlib.sha256()
+        if self._spill is None:
+            d = self.tele[transport.ROLES[ri]]
+            for k in sorted(d):
+                h.update(d[k].encode())
+            return h
+        ks = np.array([k for r, k, _ in self._encoded() if r == ri], dtype=np.int64)  # 8 bytes a record
+        order = np.argsort(ks, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        # the records again, a window of ranks at a time: held at most MAX_HELD records
+        for lo in range(0, len(order), self.MAX_HELD):
+            got: dict[int, bytes] = {}
+            i = 0
+            for r, _, b in self._encoded():
+                if r != ri:
+                    continue
+                if lo <= rank[i] < lo + self.MAX_HELD:
+                    got[int(rank[i])] = b
+                i += 1
+            for j in range(lo, min(lo + self.MAX_HELD, len(order))):
+                h.update(got[j])
+        return h
 
     def rows(self, sc: Scenario, fields: set[str] | None = None, chunk: int | None = None) -> SpillRows | ColumnChunks:
         """What has arrived, as rows a chunk at a time (``record.summary.build_summary``: the end-of-run summary in

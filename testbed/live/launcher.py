@@ -430,7 +430,9 @@ class Launcher:
         external.annotate(summary, self.external, self.faults)
         summary["faults"] = self.faults.dicts()
         summary["launcher"] = {"pid": os.getpid(), "realtime": self.cfg.realtime, "sched_fifo": self.router.fifo,
-                               "spawn": "fork" if self.nodes.any_forked() else "exec"}
+                               "spawn": "fork" if self.nodes.any_forked() else "exec",
+                               # how far the records came out of the order of k (the end of run's windows)
+                               "telemetry_lag": col.lag, "telemetry_lag_of": dict(col.lag_of)}
         return summary
 
     def close(self, session: zenoh.Session, summary: dict) -> None:
