@@ -336,7 +336,7 @@ class Collector:
 
         The digest is over the records in the order of k (and the plant's final record last); records
         arrive in nearly that order, so it is computed in one streaming pass that holds back, for each node,
-        at most ``role_lag`` records (how far its records came out of its own order)."""
+        as many records as its own records came out of their order (``lag_of``), at most ``MAX_HELD``."""
         out: list[Fault] = []
         with self.lock:
             roles = [r for r in transport.ROLES if "telemetry_sha256" in (self.summaries.get(r) or {})]
