@@ -53,6 +53,11 @@ if TYPE_CHECKING:
 
     from .collect import Collector
 
+#: a launched node waits this much longer than ``--startup-timeout`` for its peers: the launcher's clock, which
+#: starts after the forked nodes' (it opens its session and the recorder first), decides a start-up timeout and
+#: stops them, so a slow machine does not turn it into a node's exit code 3 ("crashed") first
+STARTUP_GRACE_S = 10.0
+
 
 def recording_default_path(name: str, run_id: str) -> Path:
     from ..record.recording import default_path
@@ -183,7 +188,7 @@ class Launcher:
             {"rerun_save": self.rerun.part(role)} if self.rerun.mode == "save" else {"rerun_url": self.rerun.url})}
         return NodeConfig(
             role=role, scenario=self.scenario_ref, opts=self.opts, session=self.creds.session_options(role),
-            ready_timeout=c.startup_timeout, launched=True, **rx, rx_spin_us=c.rx_spin_us,
+            ready_timeout=c.startup_timeout + STARTUP_GRACE_S, launched=True, **rx, rx_spin_us=c.rx_spin_us,
             cpus=self.cpus.get(role), parent_pid=os.getpid() if here else None, realtime=self.fifo,
             verbose=c.verbose, crash_at=c.crash.get(role), **guest_crash, **rerun,
             spin_us=c.spin_us if role == "plant" else None,

@@ -100,6 +100,7 @@ def test_run_external_without_the_node_gives_up_after_the_startup_timeout(run_id
                                   run_id, "--run-dir", os.path.join(LOGS, run_id), "--startup-timeout", "8"))
     s = json.loads(out)
     assert rc == 1 and s["outcome"] == "startup timeout" and s["external"] == "controller", s["faults"]
+    assert [f["kind"] for f in s["faults"]] == ["startup_timeout"], s["faults"]  # no node timed out first
     assert "the external controller never joined" in s["faults"][0]["why"], s["faults"]
     path = next(ln for ln in err.splitlines() if ln.startswith(ANNOUNCE.format(role="controller", path="")))
     assert not os.path.exists(path.split(": ")[-1])  # removed at the end of the run

@@ -60,7 +60,7 @@ def test_a_recorder_config_survives_its_command_line():
 
 def test_the_launcher_gives_each_process_its_part_of_the_run_config():
     """``testbed run``'s flags -> one ``RunConfig`` -> each node's ``NodeConfig`` (what its command line carries)."""
-    from testbed.live.launcher import Launcher
+    from testbed.live.launcher import STARTUP_GRACE_S, Launcher
 
     args = _parse("testbed.commands.run", "run", [
         "paper", "--no-record", "--duration", "2", "--colocate", "encoder", "--crash", "controller@5",
@@ -74,7 +74,7 @@ def test_the_launcher_gives_each_process_its_part_of_the_run_config():
         assert set(nodes) == {"plant", "attacker", "controller"}  # the encoder runs in the plant's process
         for n in nodes.values():
             assert n.opts == la.opts and n.opts.duration == 2.0 and n.launched and n.realtime
-            assert n.ready_timeout == 40.0 and n.rx == "spin" and n.rx_spin_us == 80.0
+            assert n.ready_timeout == 40.0 + STARTUP_GRACE_S and n.rx == "spin" and n.rx_spin_us == 80.0
             assert n.session.run_id == la.run_id and n.session.connect == (la.creds.node_connect,)
             assert n.session.topology == la.creds.topology and n.session.low_latency
             assert n.scenario == la.scenario_ref
