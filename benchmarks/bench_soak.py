@@ -47,7 +47,7 @@ GOAL_PEAK_RATIO = 1.25
 #: readings later than the run's length plus this (start-up) are after the loop: left out of the growth
 STARTUP_S = 5.0
 #: seconds between two readings once the loop is over (the end of the run, whose peak is measured)
-END_EVERY = 0.2
+END_EVERY = 0.05
 
 
 def cmdline(pid: int) -> str:
@@ -229,10 +229,14 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
            "n_steps": summary.get("n_steps"), "recorded_samples": rec_samples, "exit_code": p.returncode,
            "outcome": summary.get("outcome"), "deadline_misses": summary.get("timing", {}).get("deadline_misses"),
            "timing_degraded": summary.get("timing_degraded"),
-           "faults": sorted({f"{f.get('node') or 'run'}: {f.get('kind')}" for f in summary.get("faults") or ()})}
+           "faults": sorted({f"{f.get('node') or 'run'}: {f.get('kind')}" for f in summary.get("faults") or ()}),
+           "summary_bytes": len(so), "telemetry_lag": (summary.get("launcher") or {}).get("telemetry_lag"),
+           "telemetry_lag_of": (summary.get("launcher") or {}).get("telemetry_lag_of")}
     print(f"run: {rec['outcome']}, exit {rec['exit_code']}, {rec['run_samples']}/{rec['n_steps']} samples, "
           f"{rec['deadline_misses']} deadline misses, timing degraded: {rec['timing_degraded']}")
     print(f"recording: complete {rec['recording_complete']}, {rec_samples} samples read back by testbed report")
+    print(f"summary: {rec['summary_bytes']} bytes of --json; records out of order by {rec['telemetry_lag']} samples "
+          f"(by node: {rec['telemetry_lag_of']})")
     if rec["faults"]:
         print(f"faults: {', '.join(rec['faults'])}")
     if not a.out:
