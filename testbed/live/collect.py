@@ -128,8 +128,7 @@ class Collector:
         self.top: dict[str, int] = dict.fromkeys(transport.ROLES, -1)  # each role's highest k so far
         self.received: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # records kept, the plant's final one too
         self.lag = 0  # how far a record's k fell behind the highest k of any role before it (``SpillRows``)
-        self.role_lag = 0  # ... behind the highest k of its own role before it (a node's own order), the largest
-        self.lag_of: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # ... of each role
+        self.lag_of: dict[str, int] = dict.fromkeys(transport.ROLES, 0)  # ... of its own role (a node's own order)
         self._top_all = -1
         self.plant_final: msg.PlantTelemetry | None = None
         self.events: list[msg.Event] = []
@@ -153,6 +152,11 @@ class Collector:
             session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive, history=True),
             session.liveliness().declare_subscriber(keys.ready("*"), self._on_ready, history=True),
         ]
+
+    @property
+    def role_lag(self) -> int:
+        """How far a record's k fell behind the highest k of its own role before it, the largest over the roles."""
+        return max(self.lag_of.values())
 
     def _on_telemetry(self, sample: Any) -> None:
         role = transport.Keys.node_of(sample.key_expr)
@@ -186,7 +190,6 @@ class Collector:
                         self.top[role] = t.k
                     elif self.top[role] - t.k > self.lag_of[role]:
                         self.lag_of[role] = self.top[role] - t.k
-                        self.role_lag = max(self.role_lag, self.lag_of[role])
                     if t.k > self._top_all:
                         self._top_all = t.k
                     elif self._top_all - t.k > self.lag:
