@@ -169,12 +169,16 @@ class Launcher:
         self._tokens: list = []
 
     def phase(self, name: str) -> None:
-        """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them)."""
+        """A milestone on stderr with ``-v`` (``benchmarks/bench_startup.py`` reads them): when, the CPU used, the
+        peak memory (MB) of this process and of the largest child it reaped so far."""
         if self.cfg.verbose:
+            import resource
+
             from ..nodes.process import process_age
 
-            print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}",
-                  file=sys.stderr, flush=True)
+            children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # the largest reaped child's
+            print(f"testbed run: phase {name} t={time.time():.6f} age={process_age():.3f} cpu={time.process_time():.3f}"
+                  f" hwm={peak_rss_mb() or 0:.1f} children_hwm={children:.1f}", file=sys.stderr, flush=True)
 
     # ---- what each process runs
     def node_config(self, role: str) -> NodeConfig:
