@@ -179,8 +179,7 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
                           f"{info['threads']:4d}", flush=True)
             if show:
                 next_print = t + every - 0.5
-            if row["running"] or show:
-                readings.append(row)
+            readings.append(row)  # every one after the loop too: the end of the run
         p.wait()
     except KeyboardInterrupt:
         starved.set()
@@ -196,10 +195,13 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
         print(f"bench_soak: the run printed no summary (exit {p.returncode}): {se[-1000:]}", file=sys.stderr)
         return None
     reported = (summary.get("launcher") or {}).get("peak_rss_mb")
+    sources = {"polled": peak.get("launcher"), "reported": reported, "at_exit": exit_peak}
     if reported is not None:  # the launcher's own VmHWM, read after its summary (the last poll may be earlier)
         peak["launcher"] = max(peak.get("launcher", 0.0), reported)
     if exit_peak:  # ... and at its exit: printing the --json summary included
         peak["launcher"] = max(peak.get("launcher", 0.0), exit_peak)
+    print("the launcher's peak: " + ", ".join(f"{k} {v:.1f} MB" for k, v in sources.items() if v is not None)
+          + " (polled VmHWM; its own launcher.peak_rss_mb; wait4's ru_maxrss)")
     figures = {}
     print(f"memory growth after {warmup:g} s of warm-up (goal < {GOAL_MB_PER_H:g} MB/h) and peak (VmHWM):")
     names = sorted({n for r in readings for n in r["procs"]})
@@ -247,7 +249,7 @@ def soak(dur: float, a, every: float, warmup: float) -> dict | None:
     if not os.listdir(tmp):
         os.rmdir(tmp)
     return {"duration_s": dur, "T": a.T, "warmup_s": warmup, "readings": readings, "growth": figures,
-            "peak_mb": peak, "recording": rec}
+            "peak_mb": peak, "launcher_peak_sources": sources, "recording": rec}
 
 
 def synthetic_spill(path, sc, n: int) -> None:
