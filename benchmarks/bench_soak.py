@@ -8,7 +8,8 @@ open file descriptors and the threads, read from ``/proc``.  At the end of each 
 process's memory growth after the warm-up (``--warmup`` s: a least-squares slope of RSS over time,
 in MB per hour) against the goal (less than 5 MB an hour) and its peak (VmHWM; the launcher's also as it
 reports it in its summary, ``launcher.peak_rss_mb``, and at its exit, ``wait4``'s ``ru_maxrss``, so the
-end of the run and the printing of its summary are included), and the
+end of the run and the printing of its summary are included; each run is started by a fresh process of this
+script, whose own memory ``ru_maxrss`` would otherwise count), and the
 recording's completeness: ``recording_complete`` from the run's summary and the samples
 ``testbed report`` reads back against the run's samples.  With several durations it then prints
 the launcher's peak against the run's length, as a ratio to its peak in the shortest run (the goal:
@@ -374,6 +375,8 @@ def main(argv=None) -> int:
     ap.add_argument("--starve-recorder", metavar="ON,OFF",
                     help="while the loop runs, stop and continue the recorder in a cycle of ON ms running and OFF ms "
                          "stopped (as a niced recorder on a loaded machine: its writer falls behind)")
+    ap.add_argument("--one-of", type=int, help=argparse.SUPPRESS)  # the run of this index only: a fresh process
+    ap.add_argument("--result", help=argparse.SUPPRESS)             # ... writes its figures here
     a = ap.parse_args(argv)
     if a.starve_recorder:
         spec = a.starve_recorder
@@ -396,14 +399,29 @@ def main(argv=None) -> int:
     if not all(d > 0 for d in durs) or not a.T > 0:
         print("bench_soak: the durations (--minutes, --durations) and --T or --rate must be positive", file=sys.stderr)
         return 2
-    runs = []
-    for dur in durs:
-        every = a.every or min(30.0, max(1.0, dur / 20))
-        warmup = a.warmup if a.warmup is not None else min(60.0, dur / 2)
-        r = soak(dur, a, every, warmup)
+    if a.one_of is not None:  # one run, in this fresh process (see below)
+        dur = durs[a.one_of]
+        r = soak(dur, a, a.every or min(30.0, max(1.0, dur / 20)),
+                 a.warmup if a.warmup is not None else min(60.0, dur / 2))
         if r is None:
             return 1
-        runs.append(r)
+        Path(a.result).write_text(json.dumps(r))
+        return 0
+    # Each run is made by a fresh process of this script: ``wait4``'s ru_maxrss of the launcher counts the memory of
+    # the process that forked it (the kernel carries the parent's peak across fork and exec), and this process,
+    # having parsed a long run's --json summary, holds hundreds of MB (a 20-minute run's peak at 1 kHz read 880 MB
+    # that way after a 5-minute run, where the launcher itself peaked at about 300 MB).
+    runs = []
+    argv = list(sys.argv[1:] if argv is None else argv)
+    with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp:
+        for i in range(len(durs)):
+            res = Path(tmp) / f"run-{i}.json"
+            sys.stdout.flush()
+            rc = subprocess.run([sys.executable, os.path.abspath(__file__), *argv, "--one-of", str(i),
+                                 "--result", str(res)]).returncode
+            if rc != 0 or not res.exists():
+                return 1
+            runs.append(json.loads(res.read_text()))
     if len(runs) > 1:
         base = min(runs, key=lambda r: r["duration_s"])
         b = base["peak_mb"].get("launcher")
