@@ -537,13 +537,18 @@ class RunTally:
                 self.tail[name] = v if old is None else np.concatenate([old, v])[-2:]
         self.samples += n
 
-    def intervals(self) -> Schedule:
-        """The realized DoS schedule (``SimResult.intervals``: ``Schedule.from_theta`` of the attacker's drops)."""
+    def interval_pairs(self) -> np.ndarray:
+        """The realized DoS schedule's ``(a_i, tau_i)`` as an (n, 2) array, in order (the runs of the attacker's
+        drops, disjoint and in k order): what :meth:`intervals` normalizes, without a Python object per interval."""
         a = np.frombuffer(self.run_first, dtype=np.int64)
         b = np.frombuffer(self.run_last, dtype=np.int64)
         if self._open is not None:
             a, b = np.append(a, self._open), np.append(b, self.samples - 1)
-        return Schedule(tuple(zip((a * self.T).tolist(), ((b - a) * self.T).tolist(), strict=True)))
+        return np.column_stack((a * self.T, (b - a) * self.T))
+
+    def intervals(self) -> Schedule:
+        """The realized DoS schedule (``SimResult.intervals``: ``Schedule.from_theta`` of the attacker's drops)."""
+        return Schedule(self.interval_pairs())
 
     def summarize(self, sc: Scenario, res: SimResult, *, arrays: bool = False, replay: Replay | None = None,
                   record: Callable[[], Iterable[tuple[int, np.ndarray, Replay]]] | None = None,
@@ -572,7 +577,6 @@ class RunTally:
             chunked = (self.samples, record)
         # a recording's plant or method whose stored code was not run (no --trust-code): not judged
         escaped = None if sc.code_not_run() else escaped_run(sc, last, crit, replay, record=chunked)
-        sch = self.intervals()
         cb = sc.make_method().codebook(model.n, sc.quantizer)
         o = run_outcome(sc, None, res.x_final, None, bits=cb.bits, saturations=self.saturations, agree=self.agree,
                         diverged=diverged, escaped=escaped, plant_fault=res.plant_fault, method_fault=res.method_fault,
@@ -605,7 +609,7 @@ class RunTally:
             "symbols": L(P["symbols"]),
             "saturations": o["saturations"],
             "saturated_at": L(self.saturated_at.result()),
-            "dos_intervals": [list(iv) for iv in sch.intervals],
+            "dos_intervals": self.interval_pairs().tolist(),  # = intervals().to_list() (test_simulate.py)
             "packets_dropped": o["packets_dropped"],
             "encoder_decoder_agree": o["encoder_decoder_agree"],
             "x_final": o["x_final"],

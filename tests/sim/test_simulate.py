@@ -35,6 +35,17 @@ def test_paper_converges():
     assert len(out["t"]) * sc.T <= 30.0 + 1e-9
 
 
+def test_dos_intervals_are_the_realized_schedule():
+    """``dos_intervals`` (made from the tally's arrays, no object per interval) = the realized schedule
+    ``SimResult.intervals`` (a second implementation: ``Schedule.from_theta``), float for float."""
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 30.0, "attack": {
+        "kind": "periodic", "period": 0.35, "length": 0.15, "offset": 0.05}})
+    res = simulate_scenario(sc)
+    out = summarize(sc, res)
+    assert len(out["dos_intervals"]) > 50 and out["dos_intervals"] == res.intervals().to_list()
+    assert all(type(v) is float for iv in out["dos_intervals"] for v in iv)
+
+
 def test_paper_escape_leaves_the_region_and_ends_near_the_limit_cycle():
     sc = scenario.load("paper-escape")
     p = sc.make_plant()
