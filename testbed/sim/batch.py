@@ -548,7 +548,7 @@ class RunTally:
 
     def intervals(self) -> Schedule:
         """The realized DoS schedule (``SimResult.intervals``: ``Schedule.from_theta`` of the attacker's drops)."""
-        return Schedule(self.interval_pairs())
+        return Schedule(tuple((a, tau) for a, tau in self.interval_pairs().tolist()))
 
     def summarize(self, sc: Scenario, res: SimResult, *, arrays: bool = False, replay: Replay | None = None,
                   record: Callable[[], Iterable[tuple[int, np.ndarray, Replay]]] | None = None,
