@@ -345,8 +345,6 @@ def build_summary(sc: Scenario, cols: Any, *, run_id: str, ack_via_attacker: boo
 
 # ============================================================================ JSON out, streamed
 _BLOCK = 1 << 14
-#: items of a plain list made into JSON text at a time by ``write_json`` (not the whole list's copy and text at once)
-_LIST_BLOCK = 1 << 12
 
 
 _POOL = None
@@ -497,11 +495,6 @@ def write_json(obj: Any, fp: IO[str]) -> None:
         _json_array(obj, w)
     elif isinstance(obj, RowsOrNone):
         _json_array(obj.values, w, obj.mask)
-    elif isinstance(obj, (list, tuple)) and len(obj) > _LIST_BLOCK:  # a long list (the DoS intervals of a long
-        w("[")                                                        # run): a block at a time, the same text
-        for i in range(0, len(obj), _LIST_BLOCK):
-            w((", " if i else "") + json.dumps(_clean(list(obj[i:i + _LIST_BLOCK])))[1:-1])
-        w("]")
     else:
         w(json.dumps(_clean(obj)))
 

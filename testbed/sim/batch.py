@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from attackers.greedy import greedy_init
-from attackers.schedule import Schedule
 
 from ..loop.channel import ATTACKER, LOSS_KINDS, loss_counts_of
 from ..loop.flow import DEFAULT_FLOW, FLOW_OK, FlowOptions
@@ -539,16 +538,12 @@ class RunTally:
 
     def interval_pairs(self) -> np.ndarray:
         """The realized DoS schedule's ``(a_i, tau_i)`` as an (n, 2) array, in order (the runs of the attacker's
-        drops, disjoint and in k order): what :meth:`intervals` normalizes, without a Python object per interval."""
+        drops, disjoint and in k order: ``SimResult.intervals``, without a Python object per interval)."""
         a = np.frombuffer(self.run_first, dtype=np.int64)
         b = np.frombuffer(self.run_last, dtype=np.int64)
         if self._open is not None:
             a, b = np.append(a, self._open), np.append(b, self.samples - 1)
         return np.column_stack((a * self.T, (b - a) * self.T))
-
-    def intervals(self) -> Schedule:
-        """The realized DoS schedule (``SimResult.intervals``: ``Schedule.from_theta`` of the attacker's drops)."""
-        return Schedule(tuple((a, tau) for a, tau in self.interval_pairs().tolist()))
 
     def summarize(self, sc: Scenario, res: SimResult, *, arrays: bool = False, replay: Replay | None = None,
                   record: Callable[[], Iterable[tuple[int, np.ndarray, Replay]]] | None = None,
@@ -609,7 +604,7 @@ class RunTally:
             "symbols": L(P["symbols"]),
             "saturations": o["saturations"],
             "saturated_at": L(self.saturated_at.result()),
-            "dos_intervals": self.interval_pairs().tolist(),  # = intervals().to_list() (test_simulate.py)
+            "dos_intervals": self.interval_pairs().tolist(),  # = SimResult.intervals().to_list() (test_simulate.py)
             "packets_dropped": o["packets_dropped"],
             "encoder_decoder_agree": o["encoder_decoder_agree"],
             "x_final": o["x_final"],

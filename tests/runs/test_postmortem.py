@@ -81,26 +81,6 @@ def test_streamed_json_equals_the_report(tmp_path):
     assert json.loads(buf.getvalue()) == json.loads(json.dumps(report(path)))
 
 
-def test_long_plain_lists_are_streamed_a_block_at_a_time_as_the_same_text(monkeypatch):
-    """A long list (a long run's DoS intervals) is written a block at a time: the bytes json.dumps gives."""
-    from testbed.record import summary as summary_mod
-    from testbed.sim.batch import json_clean
-
-    rng = random.Random(3)
-    obj = {"dos_intervals": [[round(rng.random() * 100, 6), 0.001 * rng.randint(1, 9)] for _ in range(10_001)],
-           "saturated_at": list(range(9_999)), "mixed": [1, float("nan"), "a", None, 2.5] * 2000, "short": [1, 2],
-           "nested": {"t": tuple(float(i) for i in range(5000))}, "empty": []}
-    monkeypatch.setattr(summary_mod, "_LIST_BLOCK", 97)
-    buf = io.StringIO()
-    writes = []
-    buf_write = buf.write
-    monkeypatch.setattr(buf, "write", lambda t: (writes.append(len(t)), buf_write(t))[1])
-    write_json(obj, buf)
-    assert buf.getvalue() == json.dumps(json_clean({k: list(v) if isinstance(v, tuple) else v for k, v in obj.items()}
-                                                   | {"nested": {"t": list(obj["nested"]["t"])}}))
-    assert max(writes) < 97 * 40 < len(buf.getvalue()) / 50  # a block's text at a time, never a whole list's
-
-
 def test_telemetry_outside_0_N_is_rejected_and_counted(tmp_path):
     """The crafted file of issue 11 (k = 1e7 in a 9 KB recording): nothing is sized by it."""
     sc = scenario.with_overrides(scenario.load("paper"), {"duration": 2.0})
