@@ -47,12 +47,12 @@ def _u64(buf, p):
 
 
 @njit(cache=True, nogil=True)
-def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
+def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
     """One telemetry message ``buf[a:b]`` into the scratch rows s0..s3; returns k, or -1 if malformed.
-    ``vf[:nv]``: the role's vector fields (the only ones ``fcount`` counts)."""
+    ``tgt[r]``: the map of role ``r``; ``vfs[r, :nv]``: its vector fields (the only ones ``fcount`` counts)."""
     k = np.int64(0)
     for i in range(nv):
-        fcount[vf[i]] = 0
+        fcount[vfs[r, i]] = 0
     p = a
     while p < b:
         key, p = _varint(buf, p, b)
@@ -66,9 +66,9 @@ def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
         col = 0
         w = 0
         if f < MAX_FIELD:
-            g = tg[f, 0]
-            col = tg[f, 1]
-            w = tg[f, 2]
+            g = tgt[r, f, 0]
+            col = tgt[r, f, 1]
+            w = tgt[r, f, 2]
         if g == G_SKIP:
             if wt == 0:
                 _v, p = _varint(buf, p, b)
@@ -92,7 +92,7 @@ def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
             if wt != 1 or p + 8 > b:
                 return -1
             fbits[0] = _u64(buf, p)
-            s3[col] = fbits.view(np.float64)[0]
+            s3[col] = fvals[0]
             p += 8
             continue
         if g == G_VEC:
@@ -111,7 +111,7 @@ def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
                 return -1
             for _ in range(cnt):
                 fbits[0] = _u64(buf, p)
-                s3[col + fcount[f]] = fbits.view(np.float64)[0]
+                s3[col + fcount[f]] = fvals[0]
                 fcount[f] += 1
                 p += 8
             continue
@@ -139,8 +139,8 @@ def _parse(buf, a, b, tg, s0, s1, s2, s3, fcount, fbits, vf, nv):
             s2[col] = np.uint8(lo)
     # a vector is absent (NaN) or has exactly its width
     for i in range(nv):
-        f = vf[i]
-        if fcount[f] != 0 and fcount[f] != tg[f, 2]:
+        f = vfs[r, i]
+        if fcount[f] != 0 and fcount[f] != tgt[r, f, 2]:
             return -1
     return k
 
@@ -165,6 +165,7 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
     s3 = D3.copy()
     fcount = np.zeros(MAX_FIELD, dtype=np.int64)
     fbits = np.zeros(1, dtype=np.uint64)
+    fvals = fbits.view(np.float64)          # fbits' 8 bytes read as a double (one view, made once)
     nroles = tgt.shape[0]
     vfs = np.zeros((nroles, MAX_FIELD), dtype=np.int64)   # each role's vector fields
     nvs = np.zeros(nroles, dtype=np.int64)
@@ -201,16 +202,19 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
             n_py += 1
         elif mode == CH_TELEMETRY:
             r = chan_role[cid]
-            tg = tgt[r]
             lo0, hi0 = ranges[r, 0, 0], ranges[r, 0, 1]
             lo1, hi1 = ranges[r, 1, 0], ranges[r, 1, 1]
             lo2, hi2 = ranges[r, 2, 0], ranges[r, 2, 1]
             lo3, hi3 = ranges[r, 3, 0], ranges[r, 3, 1]
-            s0[lo0:hi0] = D0[lo0:hi0]
-            s1[lo1:hi1] = D1[lo1:hi1]
-            s2[lo2:hi2] = D2[lo2:hi2]
-            s3[lo3:hi3] = D3[lo3:hi3]
-            k = _parse(buf, body + MSG_HEAD, end, tg, s0, s1, s2, s3, fcount, fbits, vfs[r], nvs[r])
+            for i in range(lo0, hi0):
+                s0[i] = D0[i]
+            for i in range(lo1, hi1):
+                s1[i] = D1[i]
+            for i in range(lo2, hi2):
+                s2[i] = D2[i]
+            for i in range(lo3, hi3):
+                s3[i] = D3[i]
+            k = _parse(buf, body + MSG_HEAD, end, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nvs[r])
             if k < 0:
                 role_stats[r, 0] += 1
             elif r == 0 and flags_col >= 0 and (s2[flags_col] & FLAG_FINAL) != 0:
@@ -231,9 +235,13 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
                 if present[k, r] != 0:
                     role_stats[r, 2] += 1
                 present[k, r] = 1
-                T0[k, lo0:hi0] = s0[lo0:hi0]
-                T1[k, lo1:hi1] = s1[lo1:hi1]
-                T2[k, lo2:hi2] = s2[lo2:hi2]
-                T3[k, lo3:hi3] = s3[lo3:hi3]
+                for i in range(lo0, hi0):
+                    T0[k, i] = s0[i]
+                for i in range(lo1, hi1):
+                    T1[k, i] = s1[i]
+                for i in range(lo2, hi2):
+                    T2[k, i] = s2[i]
+                for i in range(lo3, hi3):
+                    T3[k, i] = s3[i]
         pos = end
     return pos, 0, n_py

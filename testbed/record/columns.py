@@ -56,10 +56,9 @@ from .mcapfile import (
     REC,
     CorruptRecording,
     _channel_record,
-    _decompress,
     _File,
-    _records,
     _schema_record,
+    read_ahead,
     read_metadata,
 )
 from .topics import TELEMETRY_SCHEMA
@@ -427,23 +426,22 @@ class _Reader:
     def run(self) -> Columns:
         fh = _File(self.path)
         c = self.cols
-        crc = [0]
         data_crc = None
+        self.records(b"", 0)  # the walk loaded (numba's cache) before the read-ahead starts, not while it waits
         try:
-            for off, op, body in _records(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE,
-                                                      OP_DATA_END, OP_FOOTER}, crc=crc):
+            for off, op, body, crc in read_ahead(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE,
+                                                             OP_DATA_END, OP_FOOTER}, crc=[0]):
                 if op is None:
                     if body is not None:
                         c.truncated, c.read_error = True, body
                     break
                 if op == OP_CHUNK:
-                    inner, _ = _decompress(fh, off, body)
-                    self.records(inner, off)
+                    self.records(body, off)
                 elif op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
                     self.records(REC.pack(op, len(body)) + body, off)
                 elif op == OP_DATA_END:
                     data_crc = struct.unpack_from("<I", body, 0)[0] if len(body) >= 4 else 0
-                    if data_crc and data_crc != crc[0]:
+                    if data_crc and data_crc != crc:
                         raise CorruptRecording(f"{self.path}: corrupt recording: the data section fails its CRC "
                                                "(the file was changed after it was written); its results "
                                                "cannot be trusted")

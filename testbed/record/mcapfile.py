@@ -6,7 +6,9 @@ trusts the file (the layout, the CRCs, the chunk sizes); the metadata records re
 
 from __future__ import annotations
 
+import queue
 import struct
+import threading
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
@@ -102,6 +104,59 @@ def _records(fh: _File, *, bodies: set[int], crc: list | None = None) -> Iterato
         if op == OP_FOOTER:
             return
         off = end
+
+
+AHEAD = 4                     # chunks decompressed ahead of the reader (``read_ahead``): about 4 MiB
+
+
+def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Iterator[tuple]:
+    """``_records`` with every chunk decompressed and checked (``_decompress``) by a second thread.
+
+    Yields ``(offset, op, body, crc)`` for the records whose opcode is in ``bodies`` (and the cut), at most
+    ``AHEAD`` of them ahead of the caller: a chunk's body is its records, ``crc`` the data section's CRC-32 up
+    to this record.  zstd, lz4 and zlib's CRC release the GIL, so the next chunks are decompressed while the
+    caller decodes this one (with a kernel that releases it too); the memory held is the few chunks in
+    between.  An error of the walk or of a chunk is raised here, in the caller's thread, at the record where
+    it happened; the thread stops when the caller stops iterating."""
+    q: queue.Queue = queue.Queue(maxsize=AHEAD)
+    stop = threading.Event()
+    done = object()
+
+    def put(item: object) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for off, op, body in _records(fh, bodies=bodies, crc=crc):
+                if op is not None and op not in bodies:
+                    continue  # read for the CRC only (message indexes): not queued, so as not to fill it
+                if op == OP_CHUNK:
+                    body = _decompress(fh, off, body)[0]
+                if not put((off, op, body, crc[0])) or op is None or op == OP_FOOTER:
+                    break
+            put(done)
+        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread, raised there
+            put(e)
+
+    t = threading.Thread(target=produce, name="mcap-read-ahead", daemon=True)
+    t.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        t.join()
 
 
 def _metadata_record(body: bytes) -> tuple[str, dict[str, str]]:

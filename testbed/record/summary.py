@@ -528,6 +528,15 @@ def _fields(meta: dict) -> set[str]:
     return LIVE_FIELDS if live else (SUMMARY_FIELDS - TIMING_FIELDS) | REPLAY_FIELDS
 
 
+def _may_measure(meta: dict, sc: Scenario) -> bool:
+    """Whether a recording can hold x_meas (what a sensor read): a live run's plant may be a device that
+    sends it; ``testbed simulate`` writes it only for a scenario with a ``[plant.sensor]``."""
+    if meta.get("testbed.run", {}).get("source") != "simulate":
+        return True
+    device = getattr(sc.plant, "device", None)
+    return device is not None and device.sensor is not None
+
+
 def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = _fields,
          trust_code: bool = False, note: bool = True) -> tuple[Columns, Scenario]:
     """The columns of a recording and its scenario (``BadInput`` for anything unusable).
@@ -544,6 +553,10 @@ def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | Non
 
     meta, _ = read_metadata(path)
     sc, ps, ms = recorded_scenario(meta, str(path), trust_code=trust_code, note=note)
+    if callable(fields):
+        fields = fields(meta)
+    if fields is not None and "plant.x_meas" in fields and not _may_measure(meta, sc):
+        fields = fields - {"plant.x_meas"}  # a simulation writes x_meas only with a sensor: 2n columns less
     cols = read_columns(path, fields=fields, sc=sc)
     cols.plant_source, cols.model_source = ps, ms
     return cols, sc

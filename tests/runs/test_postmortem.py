@@ -136,6 +136,51 @@ def _bad_files(tmp_path) -> dict[str, Path]:
 
 
 @pytest.mark.slow  # half a second or more on a warm cache
+def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_path):
+    """Chunks are decompressed on a second thread (``mcapfile.read_ahead``): a chunk that fails its CRC is
+    the reader's ``CorruptRecording``, at the chunk where it happened, and a reader that stops early (an
+    error, or it stops iterating) stops the thread; a good file reads the same chunk for chunk as in turn."""
+    import threading
+
+    from testbed.record import mcapfile
+
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 6.0})
+    good = tmp_path / "good.mcap"
+    recording.record_simulation(good, sc, simulate_scenario(sc), flush_interval=0.0)  # a chunk a flush: dozens
+    data = good.read_bytes()
+    bodies = {mcapfile.OP_CHUNK, mcapfile.OP_DATA_END, mcapfile.OP_FOOTER}
+
+    def alive() -> list:
+        return [t for t in threading.enumerate() if t.name == "mcap-read-ahead"]
+
+    fh = mcapfile._File(good)
+    crc: list = [0]
+    plain = [(off, op, mcapfile._decompress(fh, off, body)[0] if op == mcapfile.OP_CHUNK else body, crc[0])
+             for off, op, body in mcapfile._records(fh, bodies=bodies, crc=crc) if op in bodies]
+    ahead = list(mcapfile.read_ahead(mcapfile._File(good), bodies=bodies, crc=[0]))
+    assert ahead == plain and sum(op == mcapfile.OP_CHUNK for _, op, _, _ in ahead) > 2 * mcapfile.AHEAD
+    chunks = [off for off, op, _, _ in ahead if op == mcapfile.OP_CHUNK]
+    it = mcapfile.read_ahead(mcapfile._File(good), bodies=bodies, crc=[0])
+    next(it)
+    it.close()  # stopped after one record: the thread ends with it
+    assert not alive()
+    # the last chunk's records changed (its CRC no longer holds): the chunks before it are read, then the error
+    last = chunks[-1]
+    flipped = bytearray(data)
+    flipped[last + 9 + 60] ^= 0x01  # a byte of its compressed records (its header is 48 bytes)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(flipped))
+    seen = []
+    with pytest.raises(mcapfile.CorruptRecording, match=f"at byte {last}"):
+        for off, _op, _, _ in mcapfile.read_ahead(mcapfile._File(bad), bodies=bodies, crc=[0]):
+            seen.append(off)
+    assert seen == chunks[:-1] and not alive()
+    with pytest.raises(mcapfile.CorruptRecording):
+        columns.read_columns(bad)
+    assert not alive()
+
+
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, capsys):
     """Not MCAP, missing, a directory, a foreign MCAP file, a bit-flipped recording: each in report, replay,
     export, compare and resimulate (in this process), and testbed.open; report as its own process too."""
