@@ -6,12 +6,13 @@ trusts the file (the layout, the CRCs, the chunk sizes); the metadata records re
 
 from __future__ import annotations
 
-import queue
 import struct
 import threading
 import zlib
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from ..common.errors import BadInput
 
@@ -106,56 +107,89 @@ def _records(fh: _File, *, bodies: set[int], crc: list | None = None) -> Iterato
         off = end
 
 
-AHEAD = 4                     # chunks decompressed ahead of the reader (``read_ahead``): about 4 MiB
+AHEAD = 4                     # records read ahead of the reader at most (``read_ahead``) ...
+AHEAD_BYTES = 16 << 20        # ... and bytes of decompressed chunks: a larger chunk waits until the reader does
+
+
+def _chunk_size(body: bytes) -> int:
+    """The decompressed size a chunk declares (0 if its header does not parse: ``_decompress`` says why)."""
+    try:
+        return int(CHUNK_HEAD.unpack_from(body, 0)[2])
+    except struct.error:
+        return 0
 
 
 def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Iterator[tuple]:
     """``_records`` with every chunk decompressed and checked (``_decompress``) by a second thread.
 
-    Yields ``(offset, op, body, crc)`` for the records whose opcode is in ``bodies`` (and the cut), at most
-    ``AHEAD`` of them ahead of the caller: a chunk's body is its records, ``crc`` the data section's CRC-32 up
-    to this record.  zstd, lz4 and zlib's CRC release the GIL, so the next chunks are decompressed while the
-    caller decodes this one (with a kernel that releases it too); the memory held is the few chunks in
-    between.  An error of the walk or of a chunk is raised here, in the caller's thread, at the record where
-    it happened; the thread stops when the caller stops iterating."""
-    q: queue.Queue = queue.Queue(maxsize=AHEAD)
-    stop = threading.Event()
+    Yields ``(offset, op, body, crc)`` for the records whose opcode is in ``bodies`` (and the cut): a chunk's
+    body is its records, ``crc`` the data section's CRC-32 up to this record.  zstd, lz4 and zlib's CRC release
+    the GIL, so the next chunks are decompressed while the caller decodes this one (with a kernel that releases
+    it too).  Memory: at most ``AHEAD`` records and ``AHEAD_BYTES`` of decompressed chunks wait; a chunk that
+    declares more is decompressed only once the caller waits for it with nothing else held, so the largest
+    chunk a file may declare (``MAX_CHUNK_BYTES``) is held once, as when reading in turn.  An error of the walk
+    or of a chunk is raised here, in the caller's thread, at the record where it happened; the thread stops
+    when the caller stops iterating."""
+    cv = threading.Condition()
+    items: deque[tuple[Any, int]] = deque()
+    st = {"held": 0, "idle": False, "stop": False}
     done = object()
 
-    def put(item: object) -> bool:
-        while not stop.is_set():
-            try:
-                q.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
+    def put(item: object, size: int = 0) -> bool:
+        """Wait for room for ``item`` (``size`` bytes reserved before it is made); False: the caller stopped."""
+        with cv:
+            cv.wait_for(lambda: st["stop"] or (len(items) < AHEAD and (
+                st["held"] + size <= AHEAD_BYTES or (not items and st["idle"]))))
+            if st["stop"]:
+                return False
+            st["held"] += size
+        return True
+
+    def queue(item: object, size: int = 0) -> None:
+        with cv:
+            items.append((item, size))
+            cv.notify_all()
 
     def produce() -> None:
         try:
             for off, op, body in _records(fh, bodies=bodies, crc=crc):
                 if op is not None and op not in bodies:
-                    continue  # read for the CRC only (message indexes): not queued, so as not to fill it
+                    continue  # read for the CRC only (message indexes): not queued
+                size = _chunk_size(body) if op == OP_CHUNK else 0
+                if not put(None, size):
+                    return
                 if op == OP_CHUNK:
                     body = _decompress(fh, off, body)[0]
-                if not put((off, op, body, crc[0])) or op is None or op == OP_FOOTER:
+                queue((off, op, body, crc[0]), size)
+                if op is None or op == OP_FOOTER:
                     break
-            put(done)
+            if put(None):
+                queue(done)
         except BaseException as e:  # noqa: BLE001 - handed to the caller's thread, raised there
-            put(e)
+            if put(None):
+                queue(e)
 
     t = threading.Thread(target=produce, name="mcap-read-ahead", daemon=True)
     t.start()
     try:
         while True:
-            item = q.get()
+            with cv:
+                st["idle"] = True
+                cv.notify_all()
+                cv.wait_for(lambda: items)
+                st["idle"] = False
+                item, size = items.popleft()
+                st["held"] -= size
+                cv.notify_all()
             if item is done:
                 return
             if isinstance(item, BaseException):
                 raise item
             yield item
     finally:
-        stop.set()
+        with cv:
+            st["stop"] = True
+            cv.notify_all()
         t.join()
 
 

@@ -181,6 +181,43 @@ def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_pa
 
 
 @pytest.mark.slow  # half a second or more on a warm cache
+def test_the_read_ahead_holds_a_chunk_larger_than_its_budget_alone(tmp_path, monkeypatch):
+    """A chunk declaring more than ``AHEAD_BYTES`` is decompressed only once the reader waits for it: while the
+    reader holds one, no other is decompressed (here every chunk is larger than a 1-byte budget), so a file's
+    largest chunks are held one at a time as when read in turn; with the budget, the thread reads ahead."""
+    import time
+
+    from testbed.record import mcapfile
+
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 6.0})
+    path = tmp_path / "run.mcap"
+    recording.record_simulation(path, sc, simulate_scenario(sc), flush_interval=0.0)
+    made: list[int] = []
+    orig = mcapfile._decompress
+    monkeypatch.setattr(mcapfile, "_decompress", lambda fh, off, body: (made.append(off), orig(fh, off, body))[1])
+
+    def ahead_while_held(wait: float) -> int:
+        """Chunks decompressed beyond the one the reader holds, the most seen over 10 chunks; the reader
+        holds each until one is (at most ``wait`` seconds)."""
+        made.clear()
+        most = 0
+        for n, (off, _op, _, _) in enumerate(
+                mcapfile.read_ahead(mcapfile._File(path), bodies={mcapfile.OP_CHUNK}, crc=[0])):
+            end = time.monotonic() + wait
+            while len(made) - made.index(off) - 1 == 0 and time.monotonic() < end:
+                time.sleep(0.002)
+            most = max(most, len(made) - made.index(off) - 1)
+            if n == 9:
+                break
+        return most
+
+    monkeypatch.setattr(mcapfile, "AHEAD_BYTES", 1)
+    assert ahead_while_held(0.02) == 0
+    monkeypatch.setattr(mcapfile, "AHEAD_BYTES", 16 << 20)
+    assert 1 <= ahead_while_held(10.0) <= mcapfile.AHEAD
+
+
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_bad_recordings_give_one_line_and_exit_2_in_every_command(tmp_path, capsys):
     """Not MCAP, missing, a directory, a foreign MCAP file, a bit-flipped recording: each in report, replay,
     export, compare and resimulate (in this process), and testbed.open; report as its own process too."""
