@@ -38,7 +38,9 @@
    seconds (user + system) and their ratio, which a busy machine moves less.  A second floor, "chunks + numba's
    start", reads the chunks as the first does and then starts numba as every post-mortem of ours does (imports it,
    loads its registries on the first call, which import scipy.linalg, and one cached kernel): the last column is
-   each time as a ratio to it, what our own decoding and analysis add.  Each command runs once unmeasured
+   each time as a ratio to it, what our own decoding and analysis add.  Last, where the time of ``testbed report
+   RUN`` goes: its stages in one fresh process (``STAGES``), wall and CPU seconds each (the median of ``--repeat``
+   processes; the CPU of every thread).  Each command runs once unmeasured
    first (the bytecode and numba's caches written, as a user's second run finds them; the children run without
    PYTHONDONTWRITEBYTECODE), and the goals are checked at the end.  The load average is printed
    too: on a busy machine the wall times swing, the memory does not.
@@ -381,6 +383,59 @@ def postmortem_timing(tmp: Path, path: Path, repeat: int = 3) -> dict:
                       for k, (w, r, lo, hi, c) in med.items()]}
 
 
+#: ``testbed report RUN``'s stages in one fresh process, each timed in wall and CPU seconds (the CPU of every
+#: thread: the read-ahead's decompression counts); what is left of the process's wall time is the interpreter
+STAGES = """
+import contextlib, io, json, sys, time
+marks = [("start", time.perf_counter(), time.process_time())]
+def mark(name):
+    marks.append((name, time.perf_counter(), time.process_time()))
+import numpy
+mark("numpy imported")
+import numba
+mark("numba imported")
+from testbed.commands.report import print_text
+from testbed.record.summary import load
+from testbed.runs.report import report_of_run
+from testbed.runs.run import run_of_recording
+mark("the report's other imports")
+cols, sc = load(sys.argv[1])
+mark("the scenario and the columns (summary.load)")
+run = run_of_recording(cols, sc)
+mark("the summary (run_of_recording)")
+out = report_of_run(run)
+mark("the report's own sections (resimulation)")
+with contextlib.redirect_stdout(io.StringIO()):
+    print_text(out)
+mark("the text")
+print(json.dumps([(b[0], b[1] - a[1], b[2] - a[2]) for a, b in zip(marks, marks[1:])]))
+"""
+
+
+def postmortem_stages(path: Path, repeat: int = 3) -> list[dict]:
+    """Where the time of ``testbed report RUN`` goes (``STAGES``), the median of ``repeat`` fresh processes."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    rows: dict[str, list[tuple[float, float]]] = {}
+    for _ in range(repeat):
+        cpu: list = []
+        wall, _, text = _measure([sys.executable, "-P", "-c", f"import sys; sys.path.insert(0, {str(ROOT)!r})\n"
+                                  + STAGES, str(path)], cpu=cpu, env=env)
+        stages = json.loads(text.strip().splitlines()[-1])
+        inner_w, inner_c = sum(w for _, w, _ in stages), sum(c for _, _, c in stages)
+        for name, w, c in [("interpreter start and exit", wall - inner_w, cpu[0] - inner_c)] + stages:
+            rows.setdefault(name, []).append((w, c))
+    return [{"stage": k, "wall_s": float(np.median([w for w, _ in v])), "cpu_s": float(np.median([c for _, c in v]))}
+            for k, v in rows.items()]
+
+
+def _print_stages(st: list[dict]) -> None:
+    print(f"  where the time of testbed report goes (one process, median of its runs):\n"
+          f"    {'stage':46} {'wall s':>7} {'CPU s':>6}")
+    for r in st:
+        print(f"    {r['stage']:46} {r['wall_s']:7.3f} {r['cpu_s']:6.3f}")
+    print(f"    {'total':46} {sum(r['wall_s'] for r in st):7.3f} {sum(r['cpu_s'] for r in st):6.3f}", flush=True)
+
+
 #: the post-mortems' goals: a ratio to the chunk floor, seconds, MB of peak RSS
 GOAL_RATIO, GOAL_S, GOAL_MB = 3.0, 5.0, 300.0
 
@@ -451,6 +506,8 @@ def main() -> int:
                                stdout=subprocess.DEVNULL)
             out["postmortem"] = postmortem_timing(tmp, path, a.repeat)
             _print_postmortem(out["postmortem"])
+            out["postmortem"]["stages"] = postmortem_stages(path, a.repeat)
+            _print_stages(out["postmortem"]["stages"])
             if a.json:
                 print(json.dumps(out))
             return 0
