@@ -19,13 +19,16 @@ each in-process as the launcher builds it (``synthetic_summary_peak``: rows of t
 time, ``build_summary``, the ``--json`` output to a sink), printing its peak memory (tracemalloc) against N.
 ``--starve-recorder ON,OFF`` stops and continues the recorder (SIGSTOP, SIGCONT) in a cycle of ON ms running
 and OFF ms stopped while the loop runs, as a recorder at nice 10 on a loaded machine gets little CPU: its
-writer falls behind and its queue grows (what its memory then does is the figure to read).
+writer falls behind and its queue grows (what its memory then does is the figure to read).  ``--mcap-index
+HOURS`` runs no live run either: it drives mcap's ``Writer`` as the recorder does (a chunk closed every 0.5 s,
+9 channels) and prints the memory it keeps for the file's summary section, which grows with the run.
 
     python benchmarks/bench_soak.py --minutes 10                       # T = 10 ms for 10 minutes
     python benchmarks/bench_soak.py --minutes 60 --every 60 --json soak.json
     python benchmarks/bench_soak.py --rate 1000 --durations 60,180     # 1 kHz, 1 and 3 minutes
     python benchmarks/bench_soak.py --synthetic 200000,1200000         # the end of run alone, in-process
     python benchmarks/bench_soak.py --rate 1000 --durations 150 --starve-recorder 5,45   # a writer behind
+    python benchmarks/bench_soak.py --mcap-index 1                     # the recorder's MCAP index, an hour
 """
 
 from __future__ import annotations
@@ -329,6 +332,47 @@ def synthetic_summary_peak(n: int, tmp: str | Path, traced: bool = True) -> dict
             "summary_samples": s["samples"]}
 
 
+def mcap_index_main(hours: float, channels: int = 9, flush_interval: float = 0.5) -> int:
+    """The memory mcap's ``Writer`` keeps for the file's summary section (a chunk index a closed chunk): the
+    recorder's ``Writer`` settings, ``channels`` channels, a chunk closed every ``flush_interval`` s of
+    ``hours`` (the recorder's flush), a few messages each, written to a sink; tracemalloc's figure."""
+    import io
+    import tracemalloc
+
+    from mcap.writer import CompressionType, Writer
+
+    class Sink(io.RawIOBase):
+        n = 0
+
+        def write(self, b) -> int:
+            self.n += len(b)
+            return len(b)
+
+        def writable(self) -> bool:
+            return True
+
+        def tell(self) -> int:
+            return self.n
+
+    w = Writer(Sink(), chunk_size=1 << 20, compression=CompressionType.ZSTD, enable_data_crcs=True)
+    w.start()
+    sid = w.register_schema("s", "protobuf", b"")
+    ch = [w.register_channel(f"/t{i}", "protobuf", sid) for i in range(channels)]
+    chunks = int(hours * 3600 / flush_interval)
+    tracemalloc.start()
+    t = 0
+    for _ in range(chunks):
+        for c in ch:
+            w.add_message(c, log_time=t, data=b"x" * 20, publish_time=t)
+            t += 1
+        w.flush()
+    held = tracemalloc.get_traced_memory()[0]
+    print(f"mcap's Writer after {chunks} chunks ({hours:g} h of a chunk every {flush_interval:g} s, {channels} "
+          f"channels): {held / 1e6:.1f} MB held, {held / max(chunks, 1):.0f} bytes a chunk, "
+          f"{held / 1e6 / hours:.1f} MB/h")
+    return 0
+
+
 def synthetic_main(spec: str, json_out: str | None) -> int:
     try:
         ns = [int(v) for v in spec.split(",")]
@@ -375,6 +419,9 @@ def main(argv=None) -> int:
     ap.add_argument("--starve-recorder", metavar="ON,OFF",
                     help="while the loop runs, stop and continue the recorder in a cycle of ON ms running and OFF ms "
                          "stopped (as a niced recorder on a loaded machine: its writer falls behind)")
+    ap.add_argument("--mcap-index", type=float, metavar="HOURS",
+                    help="no live run: the memory mcap's Writer keeps for the file's index after HOURS of the "
+                         "recorder's flushes (a chunk every 0.5 s, 9 channels)")
     ap.add_argument("--one-of", type=int, help=argparse.SUPPRESS)  # the run of this index only: a fresh process
     ap.add_argument("--result", help=argparse.SUPPRESS)             # ... writes its figures here
     a = ap.parse_args(argv)
@@ -389,6 +436,8 @@ def main(argv=None) -> int:
             return 2
     if a.synthetic:
         return synthetic_main(a.synthetic, a.json)
+    if a.mcap_index:
+        return mcap_index_main(a.mcap_index)
     if a.rate is not None:
         a.T = 1.0 / a.rate if a.rate > 0 else -1.0
     try:
