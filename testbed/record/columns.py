@@ -428,9 +428,9 @@ class _Reader:
         c = self.cols
         data_crc = None
         self.records(b"", 0)  # the walk loaded (numba's cache) before the read-ahead starts, not while it waits
+        items = read_ahead(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_DATA_END, OP_FOOTER}, crc=[0])
         try:
-            for off, op, body, crc in read_ahead(fh, bodies={OP_CHUNK, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE,
-                                                             OP_DATA_END, OP_FOOTER}, crc=[0]):
+            for off, op, body, crc in items:
                 if op is None:
                     if body is not None:
                         c.truncated, c.read_error = True, body
@@ -449,6 +449,7 @@ class _Reader:
                     self.check_summary(fh, off, body)
                     break
         finally:
+            items.close()  # the read-ahead's thread stopped here, even when this walk raised (not when collected)
             fh.close()
         self.finish()
         return c

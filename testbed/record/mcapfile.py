@@ -10,7 +10,7 @@ import struct
 import threading
 import zlib
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -119,7 +119,7 @@ def _chunk_size(body: bytes) -> int:
         return 0
 
 
-def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Iterator[tuple]:
+def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, None, None]:
     """``_records`` with every chunk decompressed and checked (``_decompress``) by a second thread.
 
     Yields ``(offset, op, body, crc)`` for the records whose opcode is in ``bodies`` (and the cut): a chunk's

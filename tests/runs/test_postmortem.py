@@ -136,7 +136,7 @@ def _bad_files(tmp_path) -> dict[str, Path]:
 
 
 @pytest.mark.slow  # half a second or more on a warm cache
-def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_path):
+def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_path, monkeypatch):
     """Chunks are decompressed on a second thread (``mcapfile.read_ahead``): a chunk that fails its CRC is
     the reader's ``CorruptRecording``, at the chunk where it happened, and a reader that stops early (an
     error, or it stops iterating) stops the thread; a good file reads the same chunk for chunk as in turn."""
@@ -178,6 +178,20 @@ def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_pa
     with pytest.raises(mcapfile.CorruptRecording):
         columns.read_columns(bad)
     assert not alive()
+    # an error of the reader's own (here: the third chunk's records), while its traceback is still held
+    walked = []
+
+    def records(self, buf, where):
+        walked.append(where)
+        if len(walked) == 4:  # the first call loads the parser
+            raise mcapfile.CorruptRecording("a record runs past the chunk's end")
+        return orig(self, buf, where)
+
+    orig = columns._Reader.records
+    monkeypatch.setattr(columns._Reader, "records", records)
+    with pytest.raises(mcapfile.CorruptRecording) as err:
+        columns.read_columns(good)
+    assert err.value is not None and not alive()
 
 
 @pytest.mark.slow  # half a second or more on a warm cache
