@@ -135,8 +135,9 @@ def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, No
     st = {"held": 0, "idle": False, "stop": False}
     done = object()
 
-    def put(item: object, size: int = 0) -> bool:
-        """Wait for room for ``item`` (``size`` bytes reserved before it is made); False: the caller stopped."""
+    def reserve(size: int = 0) -> bool:
+        """Wait for room for one more record (``size`` bytes of it reserved before it is made); False: the
+        caller stopped."""
         with cv:
             cv.wait_for(lambda: st["stop"] or (len(items) < AHEAD and (
                 st["held"] + size <= AHEAD_BYTES or (not items and st["idle"]))))
@@ -156,17 +157,17 @@ def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, No
                 if op is not None and op not in bodies:
                     continue  # read for the CRC only (message indexes): not queued
                 size = _chunk_size(body) if op == OP_CHUNK else 0
-                if not put(None, size):
+                if not reserve(size):
                     return
                 if op == OP_CHUNK:
                     body = _decompress(fh, off, body)[0]
                 queue((off, op, body, crc[0]), size)
                 if op is None or op == OP_FOOTER:
                     break
-            if put(None):
+            if reserve():
                 queue(done)
         except BaseException as e:  # noqa: BLE001 - handed to the caller's thread, raised there
-            if put(None):
+            if reserve():
                 queue(e)
 
     t = threading.Thread(target=produce, name="mcap-read-ahead", daemon=True)

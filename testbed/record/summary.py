@@ -533,8 +533,7 @@ def _may_measure(meta: dict, sc: Scenario) -> bool:
     sends it; ``testbed simulate`` writes it only for a scenario with a ``[plant.sensor]``."""
     if meta.get("testbed.run", {}).get("source") != "simulate":
         return True
-    device = getattr(sc.plant, "device", None)
-    return device is not None and device.sensor is not None
+    return sc.plant.device is not None and sc.plant.device.sensor is not None
 
 
 def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = _fields,
