@@ -39,8 +39,10 @@ CT = msg.ControllerTelemetry
 
 def _agree_where_known(xi_e: np.ndarray, E_e: np.ndarray, xi_d: np.ndarray, E_d: np.ndarray) -> bool:
     """xi_k, E_k identical at both ends on every sample where both were recorded."""
+    from ..sim.loop import equal_where
+
     known = np.isfinite(E_e) & np.isfinite(E_d)
-    return bool(np.array_equal(xi_e[known], xi_d[known]) and np.array_equal(E_e[known], E_d[known]))
+    return equal_where(xi_e, xi_d, known) and equal_where(E_e, E_d, known)
 
 
 class RowsOrNone:

@@ -43,6 +43,7 @@ from .loop import (  # noqa: F401 - LinkEffects, OnlineAttacker, simulate_loop: 
     SimResult,
     continue_ends,
     ends_from_record,
+    equal_where,
     loop_state_from_samples,
     loop_state_of,
     simulate_loop,
@@ -507,8 +508,7 @@ class RunTally:
         self.breaks.append(np.asarray(list(res.lockstep_breaks), dtype=np.int64))
         known = np.isfinite(res.E_enc)
         self.agree = self.agree and not len(res.lockstep_breaks) and not (res.withheld is None and not known.all()) \
-            and bool(np.array_equal(res.xi_enc[known], res.xi_dec[known])
-                     and np.array_equal(res.E_enc[known], res.E_dec[known]))
+            and equal_where(res.xi_enc, res.xi_dec, known) and equal_where(res.E_enc, res.E_dec, known)
         self.lost += int(np.asarray(res.theta).sum())
         if len(res.x):
             m = np.max(np.abs(res.x))

@@ -55,6 +55,19 @@ SCORES = {"state": SCORE_STATE, "E": SCORE_E}
 
 
 # ============================================================================ per-sample loop
+def equal_where(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> bool:
+    """``np.array_equal(a[mask], b[mask])`` (NaN differs from NaN), without copying the selected rows out:
+    ``mask`` selects along the first axis.  A copy of the rows of a recording's column view was 16 ms of 600,000
+    samples; this reads each column once."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape or np.shape(mask) != a.shape[:1]:
+        return bool(np.array_equal(a[mask], b[mask]))
+    diff = a != b
+    if diff.ndim > 1:
+        diff = diff.any(axis=tuple(range(1, diff.ndim)))
+    return not bool(np.any(diff & mask))
+
+
 @dataclass
 class SimResult:
     """Per-sample record of one closed-loop run (arrays indexed by k = 0..N-1)."""
@@ -111,8 +124,7 @@ class SimResult:
         known = np.isfinite(self.E_enc)
         if self.withheld is None and not known.all():
             return False
-        return bool(np.array_equal(self.xi_enc[known], self.xi_dec[known])
-                    and np.array_equal(self.E_enc[known], self.E_dec[known]))
+        return equal_where(self.xi_enc, self.xi_dec, known) and equal_where(self.E_enc, self.E_dec, known)
 
     def intervals(self) -> Schedule:
         """The realized DoS schedule as (start, length) pairs: the runs of samples the attacker dropped
