@@ -111,3 +111,26 @@ def test_physical_timing_with_a_drawn_latency():
     per, bat = both_simulators(sc, latency=lat)
     assert per.u_missing.any() and len(np.unique(per.delays)) > 10
     assert_simulators_identical(sc, per, bat)
+
+
+def test_equal_where_reads_as_array_equal_of_the_selected_rows():
+    """``equal_where`` (the ends' agreement of SimResult, the run tally and a recording's summary) is
+    ``np.array_equal(a[mask], b[mask])``: NaN differs from NaN, -0.0 equals 0.0, 1-D and 2-D, C and F views."""
+    from testbed.sim.loop import equal_where
+
+    rng = np.random.default_rng(7)
+    vals = np.array([0.0, -0.0, 1.5, np.nan, np.inf])
+    for trial in range(400):
+        rows, n = int(rng.integers(0, 6)), int(rng.integers(1, 3))
+        shape = (rows,) if trial % 2 else (rows, n)
+        a = rng.choice(vals, size=shape)
+        b = a.copy() if trial % 3 else rng.choice(vals, size=shape)
+        if rows and trial % 5 == 0:
+            b[rng.integers(0, rows)] = np.nan
+        mask = rng.random(rows) < 0.6
+        if trial % 4 == 0:  # a column view of a column-major table, as a recording's columns are
+            w = n if a.ndim == 2 else 1
+            ta = np.asfortranarray(np.column_stack([a.reshape(rows, w), np.zeros(rows)]))
+            tb = np.asfortranarray(np.column_stack([b.reshape(rows, w), np.zeros(rows)]))
+            a, b = ta[:, :-1].reshape(shape), tb[:, :-1].reshape(shape)
+        assert equal_where(a, b, mask) == bool(np.array_equal(a[mask], b[mask])), (a, b, mask)
