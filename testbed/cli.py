@@ -116,8 +116,8 @@ FAST_EXIT_AFTER_HANDLERS = {"report", "export", "compare", "resimulate"}
 
 #: ... and collect cyclic garbage after 50,000 new objects rather than Python's 700: loading numba's registries makes
 #: about 120,000 objects that live as long as the process and that every full collection walks again, and a
-#: post-mortem's data are numpy arrays, freed by their reference counts (``testbed report`` of a 10-minute 1 kHz
-#: recording: 0.05 to 0.09 s less, docs/benchmarks.md)
+#: post-mortem's data are numpy arrays, freed by their reference counts (docs/benchmarks.md, "Post-mortems against
+#: the disk")
 POSTMORTEM_GC_THRESHOLD = 50_000
 
 
