@@ -114,13 +114,6 @@ FAST_EXIT = {"run"}
 FAST_EXIT_AFTER_HANDLERS = {"report", "export", "compare", "resimulate"}
 
 
-#: ... and collect cyclic garbage after 50,000 new objects rather than Python's 700: loading numba's registries makes
-#: about 120,000 objects that live as long as the process and that every full collection walks again, and a
-#: post-mortem's data are numpy arrays, freed by their reference counts (docs/benchmarks.md, "Post-mortems against
-#: the disk")
-POSTMORTEM_GC_THRESHOLD = 50_000
-
-
 def _only_daemon_threads() -> bool:
     import threading
 
@@ -130,10 +123,10 @@ def _only_daemon_threads() -> bool:
 def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the process's own command line: it ends with the command
         name = sys.argv[1] if sys.argv[1:2] else ""
-        if name in FAST_EXIT_AFTER_HANDLERS:
-            import gc
+        if name in FAST_EXIT_AFTER_HANDLERS:  # their own process: fewer passes of the collector (common.gcpasses)
+            from .common import gcpasses
 
-            gc.set_threshold(POSTMORTEM_GC_THRESHOLD, *gc.get_threshold()[1:])
+            gcpasses.raise_threshold()
         code = _main(sys.argv[1:])
         if name in FAST_EXIT or (name in FAST_EXIT_AFTER_HANDLERS and _only_daemon_threads()):
             if name in FAST_EXIT_AFTER_HANDLERS:

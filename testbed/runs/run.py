@@ -286,14 +286,16 @@ def open(path: str | Path, *, trust_code: bool = False) -> Run:  # noqa: A001 - 
 
     Raises ``testbed.common.errors.BadInput`` for a file that is not a usable recording.
     """
-    from ..common import compilenotice
-    from ..record.summary import load
+    from ..common import compilenotice, gcpasses
 
-    compilenotice.install()
-    # the fields the arrays, the summary and the resimulation read (q_k at the encoder; the stage times of a live
-    # run), as ``testbed report`` reads them, and no other: the columns are the memory of a long recording
-    cols, sc = load(path, trust_code=trust_code)
-    return run_of_recording(cols, sc, path)
+    with gcpasses.fewer_passes():  # numba's start and the read (the caller's threshold is put back)
+        from ..record.summary import load
+
+        compilenotice.install()
+        # the fields the arrays, the summary and the resimulation read (q_k at the encoder; the stage times of a
+        # live run), as ``testbed report`` reads them, and no other: the columns are the memory of a long recording
+        cols, sc = load(path, trust_code=trust_code)
+        return run_of_recording(cols, sc, path)
 
 
 # ============================================================================ from the simulator

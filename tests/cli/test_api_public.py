@@ -148,6 +148,39 @@ def test_summary_keys_are_documented_one_by_one_and_live_ones_apart(tmp_path):
         assert re.search(rf"^\|[^|]*`{key}`", live, re.M), key
 
 
+def test_open_passes_the_collector_less_often_and_puts_the_callers_threshold_back(tmp_path):
+    """``testbed.open`` raises the collector's first threshold while it runs (``common.gcpasses``) and restores
+    the caller's, also when it raises."""
+    import contextlib
+    import gc
+
+    from testbed.common import gcpasses
+
+    path = testbed.simulate("paper", duration=1).save(tmp_path / "s.mcap")
+    old = gc.get_threshold()
+    seen = []
+    try:
+        gc.set_threshold(123, 4, 5)
+        real = gcpasses.fewer_passes
+
+        @contextlib.contextmanager
+        def spy():
+            with real():
+                seen.append(gc.get_threshold())
+                yield
+        gcpasses.fewer_passes = spy
+        try:
+            testbed.open(path)
+        finally:
+            gcpasses.fewer_passes = real
+        assert seen == [(gcpasses.THRESHOLD, 4, 5)] and gc.get_threshold() == (123, 4, 5)
+        with pytest.raises(testbed.BadInput):
+            testbed.open(tmp_path / "missing.mcap")
+        assert gc.get_threshold() == (123, 4, 5)
+    finally:
+        gc.set_threshold(*old)
+
+
 def test_x_final_is_the_state_one_period_after_the_last_sample():
     from testbed.loop.flow import phi_T
 
