@@ -190,8 +190,8 @@ def layout(n: int, m: int, fields: set[str] | None = None) -> Layout:
 
 def _tables(L: Layout, rows: int, order: Literal["C", "F"] = "C") -> dict[int, np.ndarray]:
     """The four tables of ``rows`` rows, every field absent.  ``order="F"``: each column contiguous (what a
-    recording's reader allocates: the summary reads a column at a time, 0.18 s to 0.10 s for 600,000 samples); the
-    live collector's bounded buffers keep rows ("C")."""
+    recording's reader allocates: the summary reads a column at a time; docs/benchmarks.md, "Post-mortems against the
+    disk"); the live collector's bounded buffers keep rows ("C")."""
     out = {}
     for t, dt in ((0, np.int64), (1, np.int32), (2, np.uint8), (3, np.float64)):
         a = np.empty((rows, L.widths[t]), dtype=dt, order=order)
