@@ -454,12 +454,10 @@ def _print_postmortem(pm: dict) -> None:
     for c in pm["cases"]:
         if c["what"] in FLOORS:
             continue
-        miss = [f"{c['vs_chunks']:.2f}x wall" if c["vs_chunks"] > GOAL_RATIO else "",
-                f"{c['wall_s']:.1f} s" if c["wall_s"] > GOAL_S else "", f"{c['peak_rss_mb']:.0f} MB"
-                if c["peak_rss_mb"] > GOAL_MB else ""]
-        miss = [m for m in miss if m]
+        miss = [name for name, over in ((f"{GOAL_RATIO:g}x", c["vs_chunks"] > GOAL_RATIO), (f"{GOAL_S:g} s",
+                c["wall_s"] > GOAL_S), (f"{GOAL_MB:g} MB", c["peak_rss_mb"] > GOAL_MB)) if over]
         got = f"{c['vs_chunks']:.2f}x wall, {c['wall_s']:.2f} s, {c['peak_rss_mb']:.0f} MB; CPU {c['cpu_vs_chunks']:.1f}x"
-        print(f"    {c['what']:34} {'met' if not miss else 'NOT met: ' + ', '.join(miss)} ({got})", flush=True)
+        print(f"    {c['what']:34} {'met' if not miss else 'NOT met (' + ', '.join(miss) + ')'}: {got}", flush=True)
 
 
 def _print_report(rr: dict) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..loop.channel import loss_tally, losses_of_tally, model_lost
 from ..sim.batch import json_clean as _clean
+from ..sim.loop import equal_where
 from ..wire import messages as msg
 from ..wire import transport
 from .degraded import timing_degraded
@@ -39,8 +40,6 @@ CT = msg.ControllerTelemetry
 
 def _agree_where_known(xi_e: np.ndarray, E_e: np.ndarray, xi_d: np.ndarray, E_d: np.ndarray) -> bool:
     """xi_k, E_k identical at both ends on every sample where both were recorded."""
-    from ..sim.loop import equal_where
-
     known = np.isfinite(E_e) & np.isfinite(E_d)
     return equal_where(xi_e, xi_d, known) and equal_where(E_e, E_d, known)
 
