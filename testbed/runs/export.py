@@ -30,8 +30,9 @@ if TYPE_CHECKING:
 FORMATS = ("parquet", "csv")
 
 
-#: rows of a run converted and written at a time (``export``): its memory is that of the run's arrays, not a copy
-ROWS = 1 << 16
+#: rows of a run converted and written at a time (``export``), one Parquet row group each: the export's memory is
+#: that of the run's arrays and one group's pages, not a copy of the run
+ROWS = 1 << 14
 
 
 def _metadata(run: Run) -> dict[bytes, bytes]:
@@ -74,7 +75,9 @@ def export(run: Run, path: str | Path, fmt: str) -> Path:
         if fmt == "parquet":
             import pyarrow.parquet as pq
 
-            writer = pq.ParquetWriter(path, first.schema)
+            # plain encoding: a float column of a run has as many values as rows, and a dictionary of them is larger
+            # and slower to write than the values (docs/benchmarks.md, "Post-mortems against the disk")
+            writer = pq.ParquetWriter(path, first.schema, use_dictionary=False)
         else:
             import pyarrow.csv as pcsv
 

@@ -587,6 +587,11 @@ def test_export_streams_the_whole_table(tmp_path, monkeypatch):
     ex.export(run, tmp_path / "rows.parquet", "parquet")
     back = pq.read_table(tmp_path / "rows.parquet")
     assert back.equals(whole) and back.schema.metadata == whole.schema.metadata and back.num_rows == run.N > 7
+    # plain pages: a dictionary of a run's floats (one value a row) is larger and slower than the values
+    meta = pq.ParquetFile(tmp_path / "rows.parquet").metadata
+    used = {e for g in range(meta.num_row_groups) for c in range(meta.num_columns)
+            for e in meta.row_group(g).column(c).encodings}
+    assert meta.num_row_groups > 1 and not used & {"PLAIN_DICTIONARY", "RLE_DICTIONARY"}, used
 
 
 @pytest.mark.slow  # a process of its own: what the JSON output imports
