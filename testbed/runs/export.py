@@ -10,7 +10,8 @@ Parquet files carry the run's metadata in their schema metadata: every
 metadata record of the recording (``testbed.scenario`` with the scenario's
 TOML, ``testbed.run``, ``testbed.software``, ...) as a JSON object under its
 name, and ``testbed.summary`` (the report's scalar results).  CSV has the
-columns only.
+columns only.  Parquet is written by ``testbed.common.parquet`` (plain pages, zstd, statistics),
+CSV by pyarrow.
 
 Exit codes: 0 written, 2 unreadable recording or unwritable output.
 """
@@ -70,25 +71,32 @@ def export(run: Run, path: str | Path, fmt: str) -> Path:
         raise BadInput(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     # streamed: ROWS rows at a time, so that no second copy of the run is made (one Parquet row group each)
     try:
-        meta = _metadata(run)
-        first = table(run, slice(0, ROWS), meta)
         if fmt == "parquet":
-            import pyarrow.parquet as pq
-
-            # plain encoding: a float column of a run has as many values as rows, and a dictionary of them is larger
-            # and slower to write than the values (docs/benchmarks.md, "Post-mortems against the disk")
-            writer = pq.ParquetWriter(path, first.schema, use_dictionary=False)
+            _parquet(run, path)
         else:
             import pyarrow.csv as pcsv
 
-            writer = pcsv.CSVWriter(path, first.schema)
-        with writer:
-            writer.write_table(first)
-            for a in range(ROWS, run.N, ROWS):
-                writer.write_table(table(run, slice(a, a + ROWS), meta))
+            meta = _metadata(run)
+            first = table(run, slice(0, ROWS), meta)
+            with pcsv.CSVWriter(path, first.schema) as writer:
+                writer.write_table(first)
+                for a in range(ROWS, run.N, ROWS):
+                    writer.write_table(table(run, slice(a, a + ROWS), meta))
     except OSError as e:
         raise BadInput(f"cannot write {path}: {e}") from None
     return path
+
+
+def _parquet(run: Run, path: Path) -> None:
+    """The run as Parquet, by ``testbed.common.parquet`` (plain pages, zstd): the table ``table(run)`` is, read back
+    by pyarrow, polars or pandas, without pyarrow's imports and write buffers beside the run's columns."""
+    from ..common.parquet import ParquetWriter
+
+    first = flat_columns({k: v[:0] for k, v in run.arrays.items()})
+    meta = {k.decode(): v.decode() for k, v in _metadata(run).items()}
+    with ParquetWriter(path, list(first), [a.dtype for a in first.values()], meta) as writer:
+        for a in range(0, run.N, ROWS):
+            writer.write(flat_columns({k: v[a:a + ROWS] for k, v in run.arrays.items()}))
 
 
 __all__ = ["export", "table", "FORMATS"]

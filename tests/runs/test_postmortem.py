@@ -571,7 +571,8 @@ def test_the_report_is_the_same_without_its_shortcuts(tmp_path, monkeypatch):
 
 def test_export_streams_the_whole_table(tmp_path, monkeypatch):
     """``testbed export`` writes a few rows at a time: the CSV is the bytes of the whole table written at once,
-    the Parquet file reads back as that table, metadata included."""
+    the Parquet file (``testbed.common.parquet``) reads back as that table, metadata included, in pyarrow and
+    polars."""
     import pyarrow.csv as pcsv
     import pyarrow.parquet as pq
 
@@ -588,10 +589,17 @@ def test_export_streams_the_whole_table(tmp_path, monkeypatch):
     back = pq.read_table(tmp_path / "rows.parquet")
     assert back.equals(whole) and back.schema.metadata == whole.schema.metadata and back.num_rows == run.N > 7
     # plain pages: a dictionary of a run's floats (one value a row) is larger and slower than the values
-    meta = pq.ParquetFile(tmp_path / "rows.parquet").metadata
+    meta = pq.ParquetFile(tmp_path / "rows.parquet", page_checksum_verification=True).metadata
     used = {e for g in range(meta.num_row_groups) for c in range(meta.num_columns)
             for e in meta.row_group(g).column(c).encodings}
     assert meta.num_row_groups > 1 and not used & {"PLAIN_DICTIONARY", "RLE_DICTIONARY"}, used
+    # a second reader, which shares no code with pyarrow, reads the same values
+    import polars as pl
+
+    df = pl.read_parquet(tmp_path / "rows.parquet")
+    assert df.columns == whole.column_names
+    for name in whole.column_names:
+        assert np.array_equal(df[name].to_numpy(), whole.column(name).to_numpy(), equal_nan=True), name
 
 
 @pytest.mark.slow  # a process of its own: what the JSON output imports
