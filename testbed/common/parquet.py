@@ -27,21 +27,11 @@ from typing import IO, Any
 
 import numpy as np
 
+from .protobuf import varint as _varint
+
 # ---- the Thrift compact protocol (the subset parquet.thrift needs)
 _T_TRUE, _T_FALSE, _T_BYTE, _T_I16, _T_I32, _T_I64, _T_DOUBLE, _T_BINARY, _T_LIST, _T_SET, _T_MAP, _T_STRUCT = (
     range(1, 13))
-
-
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while True:
-        b = n & 0x7F
-        n >>= 7
-        if n:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
 
 
 def _zigzag(n: int) -> int:

@@ -9,6 +9,21 @@ if TYPE_CHECKING:
     from google.protobuf.message import Message
 
 
+def varint(v: int) -> bytes:
+    """``v`` as a base-128 varint, least significant group first: protobuf's (a negative ``v`` as its 64-bit
+    two's complement) and the Thrift compact protocol's (``testbed.common.parquet``)."""
+    out = bytearray()
+    v &= (1 << 64) - 1
+    while True:
+        b = v & 0x7F
+        v >>= 7
+        if v:
+            out.append(b | 0x80)
+        else:
+            out.append(b)
+            return bytes(out)
+
+
 def classes_from(fds_bytes: bytes) -> dict[str, type[Message]]:
     """Message classes (full name -> class) built from a serialized ``FileDescriptorSet``."""
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory

@@ -43,6 +43,7 @@ from functools import cache
 from importlib import resources
 from typing import TYPE_CHECKING, Any
 
+from ..common.protobuf import varint as _varint
 from ..wire import messages as msg
 from .phase import PHASE_DIMS, RoaOutline, phase_bounds, roa_outline
 
@@ -97,19 +98,6 @@ def _log_class():
 
 
 # ============================================================================ wire-format pieces
-def _varint(v: int) -> bytes:
-    out = bytearray()
-    v &= (1 << 64) - 1
-    while True:
-        b = v & 0x7F
-        v >>= 7
-        if v:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
-
-
 class _Enc:
     """Encoders of the few Foxglove messages the phase plane needs (field numbers from the descriptor)."""
 
