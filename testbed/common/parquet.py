@@ -9,9 +9,9 @@ file's key-value metadata holds what the caller gives.
 
 Why not pyarrow's writer: it costs ``testbed export`` about 30 MB of imports and 10 to 25 MB of
 write buffers on top of the run's columns, and its default dictionary encoding makes a run's
-float columns larger and slower (docs/benchmarks.md, "Post-mortems against the disk"). pyarrow,
-polars and pandas read these files back as the table pyarrow would have written
-(``tests/runs/test_postmortem.py``).
+float columns larger and slower (measured on a 10-minute 1 kHz recording; docs/benchmarks.md,
+"Post-mortems against the disk"). pyarrow and polars read these files back as the table pyarrow
+would have written (``tests/core/test_parquet.py``, ``tests/runs/test_postmortem.py``).
 
 Types: float64 and float32 as DOUBLE and FLOAT; int64 and uint64 as INT64; the narrower integers
 as INT32 with their logical type (``INT(8, false)`` for uint8, ...), so that readers give back
@@ -158,8 +158,8 @@ class ParquetWriter:
     def write(self, columns: dict[str, np.ndarray]) -> None:
         """One row group: every column, all of one length."""
         n = {len(columns[name]) for name in self.names}
-        if len(n) != 1:
-            raise ValueError("the columns of a row group must have one length")
+        if len(n) != 1 or any(np.ndim(columns[name]) != 1 for name in self.names):
+            raise ValueError("the columns of a row group must be 1-D, of one length")
         rows = n.pop()
         if rows == 0:
             return

@@ -105,6 +105,9 @@ def test_columns_of_unequal_length_or_repeated_names_are_refused(tmp_path):
     with ParquetWriter(tmp_path / "b.parquet", ["x", "y"], [np.dtype("f8")] * 2, {}) as w, \
             pytest.raises(ValueError, match="one length"):
         w.write({"x": np.zeros(3), "y": np.zeros(4)})
+    with ParquetWriter(tmp_path / "c.parquet", ["x"], [np.dtype("f8")], {}) as w, \
+            pytest.raises(ValueError, match="1-D"):
+        w.write({"x": np.zeros((3, 2))})
     assert pq.read_table(tmp_path / "b.parquet").num_rows == 0   # closed with its footer all the same
 
 
