@@ -537,6 +537,13 @@ def _may_measure(meta: dict, sc: Scenario) -> bool:
     return sc.plant.device is not None and sc.plant.device.sensor is not None
 
 
+def _may_delay(meta: dict, sc: Scenario) -> bool:
+    """Whether anything reads a recording's ``delay_ns``: the actuation section and the resimulation of a run
+    under physical timing, and a live run's timing arrays (``testbed.runs.run``); a simulation under ideal
+    timing records 0 in every sample."""
+    return meta.get("testbed.run", {}).get("source") != "simulate" or sc.run.timing == "physical"
+
+
 def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = _fields,
          trust_code: bool = False, note: bool = True) -> tuple[Columns, Scenario]:
     """The columns of a recording and its scenario (``BadInput`` for anything unusable).
@@ -557,6 +564,10 @@ def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | Non
         fields = fields(meta)
     if fields is not None and "plant.x_meas" in fields and not _may_measure(meta, sc):
         fields = fields - {"plant.x_meas"}  # a simulation writes x_meas only with a sensor: 2n columns less
+    if fields is not None and "plant.delay_ns" in fields and not _may_delay(meta, sc):
+        fields = fields - {"plant.delay_ns"}  # read only under physical timing or for a live run's arrays
+    if fields is not None and sc.run.timing == "physical":
+        fields = fields | {"plant.u_rx_ns"}  # when u_k arrived: the report's actuation section, a simulation's too
     cols = read_columns(path, fields=fields, sc=sc)
     cols.plant_source, cols.model_source = ps, ms
     return cols, sc

@@ -615,3 +615,19 @@ def test_the_streamed_json_does_not_import_pandas():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["True", "False"], r.stdout
+
+
+@pytest.mark.parametrize("timing", ["ideal", "physical"])
+def test_the_report_decodes_what_it_reads_and_reads_the_same_as_with_every_field(tmp_path, timing):
+    """``summary.load`` leaves out the columns of a simulation's recording that nothing reads (x_meas without a
+    sensor; delay_ns under ideal timing): the memory of a long recording. It reads the arrival of u_k under
+    physical timing (the actuation section's). The report is the report of every field decoded."""
+    from testbed.record.summary import load
+
+    _, _, path = sim_recording(tmp_path, "paper", duration=4.0, timing=timing)
+    cols, sc = load(path)
+    assert ("plant", "x_meas") not in cols.lay.cols
+    assert (("plant", "delay_ns") in cols.lay.cols) == (timing == "physical")
+    every = load(path, fields=None)
+    assert ("plant", "delay_ns") in every[0].lay.cols and ("plant", "x_meas") in every[0].lay.cols
+    assert report((cols, sc)) == report(every)
