@@ -125,7 +125,7 @@ class ParquetWriter:
     """``with ParquetWriter(path, names, dtypes, metadata) as w: w.write({name: array, ...})``, one row group a call.
 
     ``metadata``: the file's key-value metadata (str to str). ``level``: zstd's compression level.  When the
-    ``with`` block raises (a full disk), the file is removed rather than left without its footer.
+    ``with`` block or the footer's write raises (a full disk), the file is removed rather than left without its footer.
     """
 
     def __init__(self, path: str | Path, names: list[str], dtypes: list[np.dtype], metadata: dict[str, str],
@@ -148,10 +148,18 @@ class ParquetWriter:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
+        if exc_type is not None:
+            self._discard()
             return
-        self._f.close()                  # a write that failed (a full disk): no file without its footer is left
+        try:
+            self.close()
+        except BaseException:
+            self._discard()
+            raise
+
+    def _discard(self) -> None:
+        """A write that failed (a full disk, in a row group or the footer): no file without its footer is left."""
+        self._f.close()
         if self.path.is_file():          # not a device such as /dev/full
             self.path.unlink()
 

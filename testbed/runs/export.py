@@ -36,11 +36,15 @@ FORMATS = ("parquet", "csv")
 ROWS = 1 << 14
 
 
-def _metadata(run: Run) -> dict[bytes, bytes]:
+def _metadata_text(run: Run) -> dict[str, str]:
     meta = {name: json.dumps(rec) for name, rec in run.metadata.items()}
     meta["testbed.summary"] = json.dumps(_scalars(run.summary), default=str)
     meta["testbed.source"] = run.source
-    return {k.encode(): v.encode() for k, v in meta.items()}
+    return meta
+
+
+def _metadata(run: Run) -> dict[bytes, bytes]:
+    return {k.encode(): v.encode() for k, v in _metadata_text(run).items()}
 
 
 def table(run: Run, rows: slice | None = None, metadata: dict[bytes, bytes] | None = None) -> Any:
@@ -93,8 +97,7 @@ def _parquet(run: Run, path: Path) -> None:
     from ..common.parquet import ParquetWriter
 
     first = flat_columns({k: v[:0] for k, v in run.arrays.items()})
-    meta = {k.decode(): v.decode() for k, v in _metadata(run).items()}
-    with ParquetWriter(path, list(first), [a.dtype for a in first.values()], meta) as writer:
+    with ParquetWriter(path, list(first), [a.dtype for a in first.values()], _metadata_text(run)) as writer:
         for a in range(0, run.N, ROWS):
             writer.write(flat_columns({k: v[a:a + ROWS] for k, v in run.arrays.items()}))
 

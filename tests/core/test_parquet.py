@@ -117,3 +117,24 @@ def test_a_write_that_fails_leaves_no_file_without_its_footer(tmp_path):
         w.write({"x": np.zeros(10)})
         raise RuntimeError("the disk filled up")
     assert not path.exists()
+
+
+def test_a_footer_that_cannot_be_written_leaves_no_file(tmp_path):
+    """The disk fills up as the footer is written (``close``, when the ``with`` block ends well)."""
+    path = tmp_path / "t.parquet"
+
+    class Full:
+        def __init__(self, f):
+            self.f, self.closed = f, False
+
+        def write(self, b):
+            raise OSError(28, "No space left on device")
+
+        def close(self):
+            self.f.close()
+            self.closed = True
+
+    with pytest.raises(OSError, match="No space"), ParquetWriter(path, ["x"], [np.dtype("f8")], {}) as w:
+        w.write({"x": np.zeros(10)})
+        w._f = Full(w._f)
+    assert not path.exists()

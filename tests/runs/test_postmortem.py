@@ -631,3 +631,18 @@ def test_the_report_decodes_what_it_reads_and_reads_the_same_as_with_every_field
     every = load(path, fields=None)
     assert ("plant", "delay_ns") in every[0].lay.cols and ("plant", "x_meas") in every[0].lay.cols
     assert report((cols, sc)) == report(every)
+
+
+@pytest.mark.parametrize("fmt", ["parquet", "csv"])
+def test_an_export_that_cannot_be_written_is_bad_input_and_leaves_no_parquet_without_its_footer(tmp_path, fmt):
+    """A missing folder and a full disk (/dev/full): one line (``BadInput``, exit 2), no half-written Parquet."""
+    from testbed.runs import export as ex
+
+    _, _, path = sim_recording(tmp_path, "paper", duration=2.0)
+    run = testbed.open(path)
+    with pytest.raises(BadInput, match="cannot write"):
+        ex.export(run, tmp_path / "no" / "such" / f"x.{fmt}", fmt)
+    if Path("/dev/full").exists():
+        with pytest.raises(BadInput, match="cannot write /dev/full"):
+            ex.export(run, "/dev/full", fmt)
+        assert Path("/dev/full").is_char_device()
