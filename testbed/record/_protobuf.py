@@ -22,19 +22,25 @@ MSG_HEAD = 22          # channel id u16, sequence u32, log time u64, publish tim
 
 @njit(cache=True, nogil=True)
 def _varint(buf, p, end):
-    """(value as uint64, next position); position -1 when the varint runs past ``end`` or on (> 10 bytes)."""
-    r = np.uint64(0)
-    s = 0
-    while p < end:
+    """(value as uint64, next position); position -1 when the varint runs past ``end`` or on (> 10 bytes).
+
+    A one-byte varint (keys, flags, small values) returns at once; longer ones read at most 10 bytes (the 10th
+    byte's bits above 2^64 are dropped, as protobuf's parsers drop them)."""
+    if p < end:
         b = buf[p]
-        p += 1
-        if s < 64:
-            r |= np.uint64(b & 0x7F) << np.uint64(s)
-        s += 7
         if b < 0x80:
-            return r, p
-        if s >= 70:
-            return r, -1
+            return np.uint64(b), p + 1
+    r = np.uint64(0)
+    s = np.uint64(0)
+    q = p
+    lim = min(end, p + 10)
+    while q < lim:
+        b = buf[q]
+        q += 1
+        r |= np.uint64(b & 0x7F) << s
+        s += np.uint64(7)
+        if b < 0x80:
+            return r, q
     return r, -1
 
 
@@ -107,13 +113,14 @@ def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
                     return -1
             else:
                 return -1
-            if fcount[f] + cnt > w:
+            c0 = fcount[f]
+            if c0 + cnt > w:
                 return -1
-            for _ in range(cnt):
+            for i in range(c0, c0 + cnt):
                 fbits[0] = _u64(buf, p)
-                s3[col + fcount[f]] = fvals[0]
-                fcount[f] += 1
+                s3[col + i] = fvals[0]
                 p += 8
+            fcount[f] = c0 + cnt
             continue
         # varint groups
         if wt != 0:

@@ -342,6 +342,44 @@ def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
     assert "bad input" in outcomes and grown_mb < 200, (outcomes, grown_mb)
 
 
+def test_varints_of_every_width_decode_as_protobuf_reads_them(tmp_path):
+    """The parser's varints against protobuf's own (the reference reader): one to ten bytes (negative int64 and
+    int32 take ten), fields left out, k at the widths' edges; an eleventh byte or a varint cut at the message's end
+    makes the message malformed."""
+    rng = random.Random(7)
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 100.0})
+    path = tmp_path / "varints.mcap"
+    w = recording.RecordingWriter(path, flush_interval=60.0)
+    recording.write_text_metadata(w, sc, source="live", run_id="varints",
+                                  extra={"scenario_overrides": {"duration": 100.0}})
+    cls = schema.classes()
+    edges = [0, 1, 127, 128, 16383, 16384, (1 << 31) - 1, -1, -(1 << 31), (1 << 62), -(1 << 63), (1 << 63) - 1]
+    ks = rng.sample(range(1, 1000), 400)
+    for i, k in enumerate(ks):
+        v = edges[i % len(edges)] if i < 3 * len(edges) else rng.randrange(-(1 << 63), 1 << 63) >> rng.randrange(64)
+        p = cls["PlantSample"](k=k, t_ns=v, u_rx_ns=~v, flow_status=max(-(1 << 31), min(v, (1 << 31) - 1)),
+                               theta=i % 2, flags=i % 8 if i % 3 else 0)
+        p.x.extend([rng.uniform(-1, 1), float(v)])
+        p.u.extend([float(i)])
+        e = cls["EncoderSample"](k=k, tx_ns=v, symbol=max(-(1 << 31), min(~v, (1 << 31) - 1)), E=abs(float(v)),
+                                 saturated=bool(i % 2))
+        e.xi.extend([1.0, -2.0])
+        e.q.extend([float(v), 0.5])
+        for role, name, m in (("plant", "PlantSample", p), ("encoder", "EncoderSample", e)):
+            w.write_bytes(topics.TELEMETRY_TOPICS[role], name, m.SerializeToString(), 2 * i)
+    malformed = [bytes([0x08]) + bytes([0x85]) * 10 + bytes([0x01]),    # k: an eleven-byte varint
+                 bytes([0x08, 0x05, 0x10]) + bytes([0xFF]) * 4,        # t_ns cut short at the message's end
+                 bytes([0x08, 0x06, 0x10]) + bytes([0xFF]) * 9 + b"\x01" + bytes([0x18, 0x80])]  # then one cut
+    for data in malformed:
+        w.write_bytes(topics.TELEMETRY_TOPICS["plant"], "PlantSample", data, 10_000)
+    w.close()
+    cols = columns.read_columns(path)
+    assert cols.malformed == len(malformed)
+    assert_columns_equal_reference(cols, reader.read(path))
+    assert int(cols.has("plant").sum()) == len(ks) and set(cols.get("plant", "t_ns")[ks[:len(edges)]]) >= \
+        {(1 << 63) - 1, -(1 << 63), -1}
+
+
 # ---------------------------------------------------------------------------- the API, export, compare
 @pytest.mark.slow  # half a second or more on a warm cache
 def test_open_and_simulate_give_the_same_arrays(tmp_path):
