@@ -127,6 +127,11 @@ def main(argv: list[str] | None = None) -> int:
             from .common import gcpasses
 
             gcpasses.raise_threshold()
+            # ... and one BLAS thread (set before numpy loads; the user's own setting wins): the two OpenBLAS
+            # copies that numpy and scipy (through numba) load start a pool each, whose threads spin when they
+            # start, about 0.3 s of CPU on the core the read-ahead decompresses on; a post-mortem multiplies no
+            # large matrices (docs/benchmarks.md, "Post-mortems against the disk")
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         code = _main(sys.argv[1:])
         if name in FAST_EXIT or (name in FAST_EXIT_AFTER_HANDLERS and _only_daemon_threads()):
             if name in FAST_EXIT_AFTER_HANDLERS:
