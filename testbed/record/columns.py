@@ -188,16 +188,34 @@ def layout(n: int, m: int, fields: set[str] | None = None) -> Layout:
                   {t: np.array(absent[t], dtype=dt[t]) for t in range(4)}, fc.col if fc else -1)
 
 
-def _tables(L: Layout, rows: int, order: Literal["C", "F"] = "C") -> dict[int, np.ndarray]:
+def _tables(L: Layout, rows: int, order: Literal["C", "F"] = "C", *, fill: bool = True) -> dict[int, np.ndarray]:
     """The four tables of ``rows`` rows, every field absent.  ``order="F"``: each column contiguous (what a
     recording's reader allocates: the summary reads a column at a time; docs/benchmarks.md, "Post-mortems against the
-    disk"); the live collector's bounded buffers keep rows ("C")."""
+    disk"); the live collector's bounded buffers keep rows ("C").  ``fill=False``: not written at all (the reader's:
+    the parser writes every column of a role in the rows it records, :func:`_fill_absent` the rest once read)."""
     out = {}
     for t, dt in ((0, np.int64), (1, np.int32), (2, np.uint8), (3, np.float64)):
         a = np.empty((rows, L.widths[t]), dtype=dt, order=order)
-        a[...] = L.absent[t]
+        if fill:
+            a[...] = L.absent[t]
         out[t] = a
     return out
+
+
+def _fill_absent(L: Layout, tables: dict[int, np.ndarray], present: np.ndarray) -> None:
+    """Every column of role r in the rows r did not record (``present[:, r] == 0``): its value there
+    (``Layout.absent``).  The role's columns are ``L.ranges[r, t]`` of each table; together the roles' ranges are
+    every column, so tables made with ``fill=False`` read as :func:`_tables`' once the parser has written the rest."""
+    for r in range(len(ROLES)):
+        if not any(L.ranges[r, t, 1] > L.ranges[r, t, 0] for t in range(4)):
+            continue
+        miss = np.flatnonzero(present[:, r] == 0)
+        if not miss.size:
+            continue
+        for t in range(4):
+            lo, hi = int(L.ranges[r, t, 0]), int(L.ranges[r, t, 1])
+            if hi > lo:
+                tables[t][miss, lo:hi] = L.absent[t][lo:hi]
 
 
 # ============================================================================ the numba parser
@@ -320,7 +338,10 @@ class _Reader:
         N = int(sc.n_steps)
         rows = rows_for(N, self.size)
         L = self.lay
-        tables = _tables(L, rows, "F")  # a column at a time: the summary's reductions read columns
+        # a column at a time (the summary's reductions read columns), and not written here: the parser is the first
+        # to touch the pages of the rows it records, on the main thread while the read-ahead decompresses on the
+        # other core; ``finish`` fills the rows a role did not record
+        tables = _tables(L, rows, "F", fill=False)
         self.cols = Columns(path=str(path), n=plant.n, m=plant.m, N=N, rows=rows, lay=L, tables=tables,
                             present=np.zeros((rows, len(ROLES)), dtype=np.uint8))
         self.chan_mode = np.zeros(1 << 16, dtype=np.int8)
@@ -483,6 +504,7 @@ class _Reader:
 
     def finish(self):
         c, L = self.cols, self.lay
+        _fill_absent(L, c.tables, c.present)
         for cid, (topic, _name) in self.channels.items():
             if self.chan_counts[cid]:
                 c.counts[topic] += int(self.chan_counts[cid])

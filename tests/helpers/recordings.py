@@ -31,6 +31,10 @@ def assert_columns_equal_reference(cols, rec):
                     assert np.array_equal(col[k], np.array(want)), (role, f.name, k)
                 else:
                     assert col[k] == want, (role, f.name, k)
+        for (r, name), c in cols.lay.cols.items():  # the rows the role did not record: the absent value
+            if r == role and (~has).any():
+                gone = np.asarray(cols.get(role, name))[~has]
+                assert (np.isnan(gone).all() if np.isnan(c.absent) else (gone == c.absent).all()), (role, name)
     if rec.plant_final is not None:
         assert cols.final["k"] == rec.plant_final.k and np.array_equal(cols.final["x"], rec.plant_final.x)
     assert len(cols.events) == len(rec.events) and len(cols.status) == len(rec.status)
