@@ -207,8 +207,6 @@ def _fill_absent(L: Layout, tables: dict[int, np.ndarray], present: np.ndarray) 
     (``Layout.absent``).  The role's columns are ``L.ranges[r, t]`` of each table; together the roles' ranges are
     every column, so tables made with ``fill=False`` read as :func:`_tables`' once the parser has written the rest."""
     for r in range(len(ROLES)):
-        if not any(L.ranges[r, t, 1] > L.ranges[r, t, 0] for t in range(4)):
-            continue
         miss = np.flatnonzero(present[:, r] == 0)
         if not miss.size:
             continue
