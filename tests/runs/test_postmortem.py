@@ -286,15 +286,21 @@ def test_a_cut_recording_is_read_up_to_the_cut_by_every_command(tmp_path, capsys
     assert run.N == n and len(run.arrays["x"]) == n
 
 
+def _live_recording(path: Path) -> tuple[recording.RecordingWriter, scenario.Scenario]:
+    """A writer of a live run's recording of the paper's scenario for 100 s (N = 1000), its metadata written."""
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 100.0})
+    w = recording.RecordingWriter(path, flush_interval=60.0)
+    recording.write_text_metadata(w, sc, source="live", run_id=path.stem,
+                                  extra={"scenario_overrides": {"duration": 100.0}})
+    return w, sc
+
+
 @pytest.mark.slow  # seconds: the reader fuzzed with random, cut and flipped files
 def test_fuzz_random_messages_cut_and_flipped_files(tmp_path):
     """Issue 11: 1e5 random telemetry messages, then cut and bit-flipped files: no traceback, bounded memory."""
     rng = random.Random(1234)
-    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 100.0})
     path = tmp_path / "fuzz.mcap"
-    w = recording.RecordingWriter(path, flush_interval=60.0)
-    recording.write_text_metadata(w, sc, source="live", run_id="fuzz",
-                                  extra={"scenario_overrides": {"duration": 100.0}})
+    w, sc = _live_recording(path)
     cls = schema.classes()
     roles = list(topics.TELEMETRY_SCHEMA.items())
     n_msgs = 100_000
@@ -347,11 +353,8 @@ def test_varints_of_every_width_decode_as_protobuf_reads_them(tmp_path):
     int32 take ten), fields left out, k at the widths' edges; an eleventh byte or a varint cut at the message's end
     makes the message malformed."""
     rng = random.Random(7)
-    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 100.0})
     path = tmp_path / "varints.mcap"
-    w = recording.RecordingWriter(path, flush_interval=60.0)
-    recording.write_text_metadata(w, sc, source="live", run_id="varints",
-                                  extra={"scenario_overrides": {"duration": 100.0}})
+    w, _sc = _live_recording(path)
     cls = schema.classes()
     edges = [0, 1, 127, 128, 16383, 16384, (1 << 31) - 1, -1, -(1 << 31), (1 << 62), -(1 << 63), (1 << 63) - 1]
     ks = rng.sample(range(1, 1000), 400)
