@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import subprocess
 
@@ -170,3 +171,19 @@ def test_exit_codes_come_from_one_definition_in_every_help_and_in_the_docs():
     section = doc.split("## Exit codes", 1)[1].split("\n## ", 1)[0]
     rows = re.findall(r"^\| (\d+) \|", section, flags=re.M)
     assert sorted(int(r) for r in rows) == sorted(EXIT_CODES), rows
+
+
+@pytest.mark.parametrize("given", [None, "3"])
+def test_a_post_mortem_command_runs_with_one_openblas_thread_unless_the_user_set_it(tmp_path, given):
+    """``testbed report`` (and the other post-mortems) set ``OPENBLAS_NUM_THREADS=1`` before numpy loads, and keep
+    the user's own value (docs/benchmarks.md: the pools' spin at their start)."""
+    code = ("import atexit, os, sys\n"
+            "atexit.register(lambda: print('threads', os.environ.get('OPENBLAS_NUM_THREADS')))\n"
+            f"sys.argv = ['testbed', 'report', {str(tmp_path / 'missing.mcap')!r}]\n"
+            "from testbed.cli import main\nmain()\n")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    r = subprocess.run([PY, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr      # a missing file: one line, exit 2
+    assert r.stdout.split() == ["threads", given or "1"], r.stdout
