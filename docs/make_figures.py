@@ -31,6 +31,9 @@ ROOT = DOCS.parent
 
 #: keys of a command's JSON that depend on the machine or on where it wrote (left out of the data files)
 VOLATILE = {"wall_s", "traj_steps_per_s", "parallel", "figure", "figures"}
+#: keys whose values are near-zero differences of O(1) numbers (a certificate's Lyapunov margins, ``verify``): their
+#: last ~1e-14 is the machine's arithmetic (its BLAS), so they are compared to this absolute tolerance, not 9 digits
+NEAR_ZERO = {"lyapunov0": 1e-12, "lyapunov1": 1e-12}
 
 
 @dataclass(frozen=True)
@@ -147,13 +150,13 @@ def strip(d):
     return d
 
 
-def _round(v):
+def _round(v, key: str | None = None):
     if isinstance(v, float) and math.isfinite(v) and v != 0:
-        return float(f"{v:.9g}")
+        return round(v / NEAR_ZERO[key]) * NEAR_ZERO[key] if key in NEAR_ZERO else float(f"{v:.9g}")
     if isinstance(v, dict):
-        return {k: _round(x) for k, x in v.items()}
+        return {k: _round(x, k) for k, x in v.items()}
     if isinstance(v, list):
-        return [_round(x) for x in v]
+        return [_round(x, key) for x in v]
     return v
 
 

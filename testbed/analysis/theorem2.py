@@ -59,7 +59,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -311,10 +311,12 @@ def evaluate(loop: Loop, pd: _PData, lem: LemmaConstants, cert: Certificate, bud
                           factor, E0, holds, omega_nu, share, cert)
 
 
-def _objective(loop, pd, lem, cert, budget, share):
+def _objective(loop, pd, lem, cert, budget, share, margin=0.0):
     """-ln(E_0 bound / delta) (feasible) or a penalty growing with the violation of the constraints.
 
-    The same arithmetic as :func:`evaluate`, inlined on floats (it runs thousands of times).
+    The same arithmetic as :func:`evaluate`, inlined on floats (it runs thousands of times); ``margin``
+    tightens the two decay-share constraints (in ln), so that a choice found on ``_search_inputs`` keeps them
+    on the exact inputs.
     """
     kF, rF, kD, rD = budget
     n, M, Lam, T = pd.n, loop.M, loop.Lambda, loop.T
@@ -338,14 +340,41 @@ def _objective(loop, pd, lem, cert, budget, share):
         mu = max(s * pd.ra, eta1 / eta0) * max(pd.rb / s, eta0 / eta1)
         lw = rF * T * math.log(mu) + (1 - rs) * math.log(omega0) + rs * math.log(omega1)
         l0 = math.log(omega0)
-        if delta_ok and l0 < 0 and lw < 0 and l0 <= lim0 + 1e-15 and lw <= lim + 1e-15:
+        if delta_ok and l0 < 0 and lw < 0 and l0 <= lim0 + 1e-15 - margin and lw <= lim + 1e-15 - margin:
             alpha = 0.5 * min(pd.lmin0, eta0, s * pd.lmin1, eta1)
             beta = max(n * pd.lmax0, eta0, n * s * pd.lmax1, eta1)
             return kF / 2 * math.log(mu) - kDs / (2 * T) * (l0 - math.log(omega1)) - 0.5 * math.log(alpha / beta)
         if not math.isfinite(lim):
             return 1e6 + 1e3
-        return 1e6 + 1e3 * (max(l0 - lim0, 0.0) + max(lw - lim, 0.0))
+        return 1e6 + 1e3 * (max(l0 - lim0 + margin, 0.0) + max(lw - lim + margin, 0.0))
     return f
+
+
+#: significant digits of the inputs the search for (s, epsilon, eta_0, eta_1) sees (``_search_inputs``) ...
+SEARCH_DIGITS = 10
+#: ... and how much tighter (in ln) it holds the decay-share constraints: far more than rounding at SEARCH_DIGITS
+#: moves them, so the exact inputs keep them at the choice found
+SEARCH_MARGIN = 1e-9
+
+
+def _digits(v: float) -> float:
+    v = float(v)
+    return float(f"{v:.{SEARCH_DIGITS}g}") if math.isfinite(v) else v
+
+
+def _search_inputs(pd: _PData, lem: LemmaConstants, cert: Certificate) -> tuple[_PData, LemmaConstants, Certificate]:
+    """The numbers the search starts from and moves on, to ``SEARCH_DIGITS`` significant digits.
+
+    The bound is flat along some of the free choices at its top, so where Nelder-Mead stops moves with the last
+    bits of its inputs: eigenvalues and products of the certificate that differ in their last bit between one
+    machine's BLAS and another's gave eta_1 0.5 % apart for the paper's example.  Rounded, they are the same
+    numbers on every machine (unless one lies within a few ulps of a rounding boundary), and so is the choice;
+    the bound is then evaluated on the exact inputs (``theorem2``), so it is exactly the theorem's for that choice.
+    """
+    floats = {f.name: _digits(getattr(pd, f.name)) for f in fields(_PData) if f.name != "n"}
+    lq = {f.name: _digits(getattr(lem, f.name)) for f in fields(LemmaConstants)}
+    return (replace(pd, **floats), replace(lem, **lq),
+            replace(cert, phi0=_digits(cert.phi0), phi1=_digits(cert.phi1)))
 
 
 def theorem2(loop: Loop, plant: Plant, cert: Certificate, gamma: float,
@@ -372,18 +401,21 @@ def theorem2(loop: Loop, plant: Plant, cert: Certificate, gamma: float,
     lem = lemma_constants(loop, radius, gamma, varrho)
     pd = _PData.of(loop, cert)
     M, Lam, n = loop.M, loop.Lambda, loop.n
-    # start: Young term costs half of the room left by phi^_0; eta_0 makes the
-    # quantization term of (omega0) equal to phi~_0; eta_1 balanced with eta_0
     probe = evaluate(loop, pd, lem, cert, budget, 1.0, 1.0, 1.0, 1.0, share)
     if not probe.omega_nu < 1.0:
         return probe        # (stability) fails for this certificate: nothing to optimize
-    room = cert.nu0 ** (1.0 - share) - probe.phi0_hat
-    eps = 2 * n * pd.nP0 / (pd.lmin0 * room) if room > 0 else 1e3
-    probe = evaluate(loop, pd, lem, cert, budget, 1.0, eps, 1.0, 1.0, share)
+    # the search on the inputs rounded (``_search_inputs``: the same choice on every machine), the bound on the exact
+    # ones. Start: Young term costs half of the room left by phi^_0; eta_0 makes the quantization term of (omega0)
+    # equal to phi~_0; eta_1 balanced with eta_0
+    pq, lq, cq = _search_inputs(pd, lem, cert)
+    probe = evaluate(loop, pq, lq, cq, budget, 1.0, 1.0, 1.0, 1.0, share)
+    room = pq.nu0 ** (1.0 - share) - probe.phi0_hat
+    eps = 2 * n * pq.nP0 / (pq.lmin0 * room) if room > 0 else 1e3
+    probe = evaluate(loop, pq, lq, cq, budget, 1.0, eps, 1.0, 1.0, share)
     q = probe.phi0_tilde - Lam ** 2 / M ** 2
     eta0 = probe.vartheta * ((M - 1) / M) ** 2 / q if q > 0 else 1e6 * probe.vartheta
-    eta1 = eta0 * math.sqrt(pd.ra / pd.rb)
-    f = _objective(loop, pd, lem, cert, budget, share)
+    eta1 = eta0 * math.sqrt(pq.ra / pq.rb)
+    f = _objective(loop, pq, lq, cq, budget, share, SEARCH_MARGIN)
     z0 = np.log([1.0, eps, eta0, eta1])
     best_z, best_f = z0, f(z0)
     from scipy.optimize import minimize  # here: importing the analysis (testbed report) needs no optimizer

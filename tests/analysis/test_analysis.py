@@ -400,6 +400,33 @@ def test_theorem2_constants_recomputed(lienard, lienard_regions):
             assert alpha * s2 <= W * (1 + 1e-12) and W <= beta * s2 * (1 + 1e-12)
 
 
+def test_theorem2_choice_does_not_move_with_the_last_bits_of_the_certificate(lienard, lienard_regions):
+    """The search for (s, epsilon, eta_0, eta_1) stops at the same choice for a certificate whose P_0 and P_1
+    differ in their last bits (as one machine's BLAS from another's), so the bound and its constants are the
+    same to 9 digits (what ``docs/make_figures.py --check`` compares); the bound holds on the exact inputs."""
+    import dataclasses
+
+    p = plants.make("lienard")
+    cert = lienard_regions["paper"].best_for(0.0, 0.0)
+    rng = np.random.default_rng(1)
+
+    def last_bits(P):
+        P = P.copy()
+        for _ in range(3):
+            i, j = rng.integers(0, P.shape[0], 2)
+            P[i, j] = np.nextafter(P[i, j], np.inf if rng.random() < 0.5 else -np.inf)
+        return (P + P.T) / 2
+
+    for gamma in (1e-8, 1e-5):
+        seen = set()
+        for t in range(6):
+            c = cert if t == 0 else dataclasses.replace(cert, P0=last_bits(cert.P0), P1=last_bits(cert.P1))
+            r = theorem2(lienard, p, c, gamma, (0.0, 0.0, 0.0, 0.0))
+            assert r.holds and r.E0_bound > 0
+            seen.add(tuple(f"{v:.9g}" for v in (r.s, r.eps, r.eta0, r.eta1, r.mu0, r.mu1, r.E0_bound)))
+        assert len(seen) == 1, (gamma, seen)
+
+
 def test_E0_bound_monotone_in_kappas(lienard, lienard_regions):
     """More initial attack energy never enlarges the guaranteed initial region."""
     p = plants.make("lienard")
