@@ -292,3 +292,42 @@ def test_the_launcher_waits_longer_for_the_recorder_than_it_drains():
     from testbed.nodes.recorder import RECORDER_STOP_GRACE_S
 
     assert STOP_WAIT_S > RECORDER_STOP_GRACE_S
+
+
+@pytest.mark.parametrize("compression", ["lz4", "none"])
+def test_lz4_and_uncompressed_chunks_read_as_zstd_ones(tmp_path, compression):
+    """A recording whose chunks another tool wrote with lz4 or no compression (mcap's own ``Writer``, the same
+    records): the columnar reader and the reference reader read it as the zstd original."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    from helpers.recordings import assert_columns_equal_reference
+    from testbed.record import columns
+
+    _sc, _res, path = sim_recording(tmp_path, "paper", duration=6.0)
+    out = tmp_path / f"{compression}.mcap"
+    with open(path, "rb") as f, open(out, "wb") as g:
+        r = make_reader(f)
+        w = Writer(g, chunk_size=16 << 10, compression=getattr(CompressionType, compression.upper()))
+        header = r.get_header()
+        w.start(profile=header.profile, library=header.library)
+        schemas: dict[int, int] = {}
+        chans: dict[int, int] = {}
+        for sch, ch, m in r.iter_messages(log_time_order=False):
+            if sch is not None and sch.id not in schemas:
+                schemas[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
+            if ch.id not in chans:
+                chans[ch.id] = w.register_channel(ch.topic, ch.message_encoding, schemas.get(ch.schema_id, 0),
+                                                  ch.metadata)
+            w.add_message(chans[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+        for md in r.iter_metadata():
+            w.add_metadata(md.name, md.metadata)
+        w.finish()
+    with open(out, "rb") as g:
+        assert len(make_reader(g).get_summary().chunk_indexes) > 3   # several chunks, each of that compression
+    cols, ref = columns.read_columns(out), columns.read_columns(path)
+    assert not cols.truncated and not cols.rejected and cols.malformed == 0 and cols.rows == ref.rows
+    for t in cols.tables:
+        assert np.array_equal(cols.tables[t], ref.tables[t], equal_nan=t == 3)
+    assert np.array_equal(cols.present, ref.present) and cols.counts == ref.counts
+    assert_columns_equal_reference(cols, reader.read(out))
