@@ -298,10 +298,10 @@ def test_the_launcher_waits_longer_for_the_recorder_than_it_drains():
 def test_lz4_and_uncompressed_chunks_read_as_zstd_ones(tmp_path, compression):
     """A recording whose chunks another tool wrote with lz4 or no compression (mcap's own ``Writer``, the same
     records): the columnar reader and the reference reader read it as the zstd original."""
+    from helpers.recordings import assert_columns_equal_reference
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
-    from helpers.recordings import assert_columns_equal_reference
     from testbed.record import columns
 
     _sc, _res, path = sim_recording(tmp_path, "paper", duration=6.0)
