@@ -371,10 +371,9 @@ def _search_inputs(pd: _PData, lem: LemmaConstants, cert: Certificate) -> tuple[
     numbers on every machine (unless one lies within a few ulps of a rounding boundary), and so is the choice;
     the bound is then evaluated on the exact inputs (``theorem2``), so it is exactly the theorem's for that choice.
     """
-    floats = {f.name: _digits(getattr(pd, f.name)) for f in fields(_PData) if f.name != "n"}
-    lq = {f.name: _digits(getattr(lem, f.name)) for f in fields(LemmaConstants)}
-    return (replace(pd, **floats), replace(lem, **lq),
-            replace(cert, phi0=_digits(cert.phi0), phi1=_digits(cert.phi1)))
+    pq = _PData(pd.n, *(_digits(getattr(pd, f.name)) for f in fields(_PData) if f.name != "n"))
+    lq = LemmaConstants(*(_digits(getattr(lem, f.name)) for f in fields(LemmaConstants)))
+    return pq, lq, replace(cert, phi0=_digits(cert.phi0), phi1=_digits(cert.phi1))
 
 
 def theorem2(loop: Loop, plant: Plant, cert: Certificate, gamma: float,
