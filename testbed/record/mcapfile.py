@@ -42,7 +42,6 @@ class _File:
 
     def __init__(self, path: Path):
         self.path = path
-        self.zstd: Any = None   # ``_zstd``
         if path.is_dir():
             raise BadInput(f"{path}: is a directory, not a recording")
         try:
@@ -268,15 +267,6 @@ def read_metadata(path: str | Path) -> tuple[dict[str, dict], bool]:
     return out, footer
 
 
-def _zstd(fh: _File) -> Any:
-    """The file's zstd decompressor, made once (one context for all its chunks; one thread decompresses them)."""
-    if fh.zstd is None:
-        import zstandard
-
-        fh.zstd = zstandard.ZstdDecompressor()
-    return fh.zstd
-
-
 def _decompress(fh: _File, off: int, body: bytes) -> tuple[bytes, bool]:
     """A chunk's records, checked: (records, whether a CRC was checked)."""
     try:
@@ -298,7 +288,9 @@ def _decompress(fh: _File, off: int, body: bytes) -> tuple[bytes, bool]:
                                f"{rlen} compressed bytes: more than this reader accepts")
     try:
         if compression == "zstd":
-            inner = _zstd(fh).decompress(data, max_output_size=size)
+            import zstandard
+
+            inner = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
         elif compression == "lz4":
             import lz4.frame
 
