@@ -4,6 +4,13 @@ Used by ``testbed.record.columns`` (which documents the layout of the tables); k
 apart so that importing the reader stays cheap until a file is read.  Every
 read is bounds-checked: a crafted buffer makes a message malformed (counted,
 never half-written) or the chunk corrupt (status 2), never an out-of-bounds access.
+
+Indices are cast to unsigned (``np.uint64(p)``) where they are used: numba gives a
+signed index Python's meaning (negative counts from the end), a test and a branch
+on every access, and none of the walk's indices can be negative (each is a
+position from 0 upwards, checked against its bound before it is used, or a
+column of the reader's own layout).  The walk takes about a fifth less time so
+(docs/benchmarks.md, "Post-mortems against the disk").
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ def _varint(buf, p, end):
     A one-byte varint (keys, flags, small values) returns at once; longer ones read at most 10 bytes (the 10th
     byte's bits above 2^64 are dropped, as protobuf's parsers drop them)."""
     if p < end:
-        b = buf[p]
+        b = buf[np.uint64(p)]
         if b < 0x80:
             return np.uint64(b), p + 1
     r = np.uint64(0)
@@ -35,7 +42,7 @@ def _varint(buf, p, end):
     q = p
     lim = min(end, p + 10)
     while q < lim:
-        b = buf[q]
+        b = buf[np.uint64(q)]
         q += 1
         r |= np.uint64(b & 0x7F) << s
         s += np.uint64(7)
@@ -46,9 +53,10 @@ def _varint(buf, p, end):
 
 @njit(cache=True, nogil=True)
 def _u64(buf, p):
+    q = np.uint64(p)
     v = np.uint64(0)
-    for i in range(8):
-        v |= np.uint64(buf[p + i]) << np.uint64(8 * i)
+    for i in range(8):   # unsigned indices: LLVM makes one 8-byte load of these
+        v |= np.uint64(buf[q + np.uint64(i)]) << np.uint64(8 * i)
     return v
 
 
@@ -57,8 +65,9 @@ def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
     """One telemetry message ``buf[a:b]`` into the scratch rows s0..s3; returns k, or -1 if malformed.
     ``tgt[r]``: the map of role ``r``; ``vfs[r, :nv]``: its vector fields (the only ones ``fcount`` counts)."""
     k = np.int64(0)
+    ur = np.uint64(r)
     for i in range(nv):
-        fcount[vfs[r, i]] = 0
+        fcount[np.uint64(vfs[ur, np.uint64(i)])] = 0
     p = a
     while p < b:
         key, p = _varint(buf, p, b)
@@ -72,9 +81,10 @@ def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
         col = 0
         w = 0
         if f < MAX_FIELD:
-            g = tgt[r, f, 0]
-            col = tgt[r, f, 1]
-            w = tgt[r, f, 2]
+            uf = np.uint64(f)
+            g = tgt[ur, uf, np.uint64(0)]
+            col = tgt[ur, uf, np.uint64(1)]
+            w = tgt[ur, uf, np.uint64(2)]
         if g == G_SKIP:
             if wt == 0:
                 _v, p = _varint(buf, p, b)
@@ -98,7 +108,7 @@ def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
             if wt != 1 or p + 8 > b:
                 return -1
             fbits[0] = _u64(buf, p)
-            s3[col] = fvals[0]
+            s3[np.uint64(col)] = fvals[0]
             p += 8
             continue
         if g == G_VEC:
@@ -113,14 +123,15 @@ def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
                     return -1
             else:
                 return -1
-            c0 = fcount[f]
+            uf = np.uint64(f)
+            c0 = fcount[uf]
             if c0 + cnt > w:
                 return -1
             for i in range(c0, c0 + cnt):
                 fbits[0] = _u64(buf, p)
-                s3[col + i] = fvals[0]
+                s3[np.uint64(col + i)] = fvals[0]
                 p += 8
-            fcount[f] = c0 + cnt
+            fcount[uf] = c0 + cnt
             continue
         # varint groups
         if wt != 0:
@@ -131,19 +142,19 @@ def _parse(buf, a, b, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nv):
         if g == G_K:
             k = np.int64(v & np.uint64(0xFFFFFFFF))
         elif g == G_I64:
-            s0[col] = np.int64(v)
+            s0[np.uint64(col)] = np.int64(v)
         elif g == G_U32:
-            s0[col] = np.int64(v & np.uint64(0xFFFFFFFF))
+            s0[np.uint64(col)] = np.int64(v & np.uint64(0xFFFFFFFF))
         elif g == G_I32:
             lo = np.int64(v & np.uint64(0xFFFFFFFF))
             if lo >= 2147483648:
                 lo -= 4294967296
-            s1[col] = np.int32(lo)
+            s1[np.uint64(col)] = np.int32(lo)
         elif g == G_U8:
             lo = np.int64(v & np.uint64(0xFFFFFFFF))
             if lo > 255:
                 return -1
-            s2[col] = np.uint8(lo)
+            s2[np.uint64(col)] = np.uint8(lo)
     # a vector is absent (NaN) or has exactly its width
     for i in range(nv):
         f = vfs[r, i]
@@ -184,7 +195,7 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
     while pos < n:
         if pos + 9 > n:
             return pos, 2, n_py
-        op = buf[pos]
+        op = buf[np.uint64(pos)]
         ln = _u64(buf, pos + 1)
         if ln > np.uint64(n - pos - 9):
             return pos, 2, n_py
@@ -194,7 +205,7 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
             return pos, 1, n_py
         if end - body < MSG_HEAD:
             return pos, 2, n_py
-        cid = np.int64(buf[body]) | (np.int64(buf[body + 1]) << 8)
+        cid = np.uint64(buf[np.uint64(body)]) | (np.uint64(buf[np.uint64(body + 1)]) << np.uint64(8))
         mode = chan_mode[cid]
         if mode == CH_UNKNOWN:
             stats[1] += 1
@@ -209,18 +220,19 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
             n_py += 1
         elif mode == CH_TELEMETRY:
             r = chan_role[cid]
-            lo0, hi0 = ranges[r, 0, 0], ranges[r, 0, 1]
-            lo1, hi1 = ranges[r, 1, 0], ranges[r, 1, 1]
-            lo2, hi2 = ranges[r, 2, 0], ranges[r, 2, 1]
-            lo3, hi3 = ranges[r, 3, 0], ranges[r, 3, 1]
+            rg = ranges[np.uint64(r)]
+            lo0, hi0 = rg[0, 0], rg[0, 1]
+            lo1, hi1 = rg[1, 0], rg[1, 1]
+            lo2, hi2 = rg[2, 0], rg[2, 1]
+            lo3, hi3 = rg[3, 0], rg[3, 1]
             for i in range(lo0, hi0):
-                s0[i] = D0[i]
+                s0[np.uint64(i)] = D0[np.uint64(i)]
             for i in range(lo1, hi1):
-                s1[i] = D1[i]
+                s1[np.uint64(i)] = D1[np.uint64(i)]
             for i in range(lo2, hi2):
-                s2[i] = D2[i]
+                s2[np.uint64(i)] = D2[np.uint64(i)]
             for i in range(lo3, hi3):
-                s3[i] = D3[i]
+                s3[np.uint64(i)] = D3[np.uint64(i)]
             k = _parse(buf, body + MSG_HEAD, end, tgt, r, s0, s1, s2, s3, fcount, fbits, fvals, vfs, nvs[r])
             if k < 0:
                 role_stats[r, 0] += 1
@@ -239,16 +251,17 @@ def walk(buf, pos, chan_mode, chan_role, chan_counts, tgt, ranges, N, rows, T0, 
             elif k >= rows:
                 role_stats[r, 3] += 1
             else:
-                if present[k, r] != 0:
+                uk = np.uint64(k)
+                if present[uk, np.uint64(r)] != 0:
                     role_stats[r, 2] += 1
-                present[k, r] = 1
+                present[uk, np.uint64(r)] = 1
                 for i in range(lo0, hi0):
-                    T0[k, i] = s0[i]
+                    T0[uk, np.uint64(i)] = s0[np.uint64(i)]
                 for i in range(lo1, hi1):
-                    T1[k, i] = s1[i]
+                    T1[uk, np.uint64(i)] = s1[np.uint64(i)]
                 for i in range(lo2, hi2):
-                    T2[k, i] = s2[i]
+                    T2[uk, np.uint64(i)] = s2[np.uint64(i)]
                 for i in range(lo3, hi3):
-                    T3[k, i] = s3[i]
+                    T3[uk, np.uint64(i)] = s3[np.uint64(i)]
         pos = end
     return pos, 0, n_py
