@@ -112,6 +112,11 @@ AHEAD = 12                    # records read ahead of the reader at most (``read
 AHEAD_BYTES = 16 << 20        # ... and bytes of decompressed chunks: a larger chunk waits until the reader does
 
 
+HAND_CRC = AHEAD // 3         # fewer records than this waiting: the reader checks the next chunk's CRC, not the
+                              # thread (which decompresses, checks and reads ahead: the read's pace when it checks
+                              # every CRC; docs/benchmarks.md, "Post-mortems against the disk")
+
+
 def _chunk_size(body: bytes) -> int:
     """The decompressed size a chunk declares (0 if its header does not parse: ``_decompress`` says why)."""
     try:
@@ -121,7 +126,8 @@ def _chunk_size(body: bytes) -> int:
 
 
 def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, None, None]:
-    """``_records`` with every chunk decompressed and checked (``_decompress``) by a second thread.
+    """``_records`` with every chunk decompressed and checked (``_decompress``) by a second thread.  A chunk's
+    CRC is checked by that thread or, when it is not far ahead (``HAND_CRC``), here, before the chunk is yielded.
 
     Yields ``(offset, op, body, crc)`` for the records whose opcode is in ``bodies`` (and the cut): a chunk's
     body is its records, ``crc`` the data section's CRC-32 up to this record.  zstd, lz4 and zlib's CRC release
@@ -132,7 +138,7 @@ def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, No
     or of a chunk is raised here, in the caller's thread, at the record where it happened; the thread stops
     when the caller stops iterating."""
     cv = threading.Condition()
-    items: deque[tuple[Any, int]] = deque()
+    items: deque[tuple[Any, int, int]] = deque()
     st = {"held": 0, "idle": False, "stop": False}
     done = object()
 
@@ -147,9 +153,9 @@ def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, No
             st["held"] += size
         return True
 
-    def queue(item: object, size: int = 0) -> None:
+    def queue(item: object, size: int = 0, crc_left: int = 0) -> None:
         with cv:
-            items.append((item, size))
+            items.append((item, size, crc_left))
             cv.notify_all()
 
     def produce() -> None:
@@ -160,9 +166,12 @@ def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, No
                 size = _chunk_size(body) if op == OP_CHUNK else 0
                 if not reserve(size):
                     return
+                left = 0
                 if op == OP_CHUNK:
-                    body = _decompress(fh, off, body)[0]
-                queue((off, op, body, crc[0]), size)
+                    with cv:  # not far ahead of the reader: the reader checks this chunk's CRC (``HAND_CRC``)
+                        hand = len(items) < HAND_CRC
+                    body, left = _decompress(fh, off, body, check=not hand)
+                queue((off, op, body, crc[0]), size, left)
                 if op is None or op == OP_FOOTER:
                     break
             if reserve():
@@ -180,13 +189,15 @@ def read_ahead(fh: _File, *, bodies: set[int], crc: list) -> Generator[tuple, No
                 cv.notify_all()
                 cv.wait_for(lambda: items)
                 st["idle"] = False
-                item, size = items.popleft()
+                item, size, left = items.popleft()
                 st["held"] -= size
                 cv.notify_all()
             if item is done:
                 return
             if isinstance(item, BaseException):
                 raise item
+            if left:
+                _check_crc(fh, item[0], item[2], left)
             yield item
     finally:
         with cv:
@@ -267,8 +278,9 @@ def read_metadata(path: str | Path) -> tuple[dict[str, dict], bool]:
     return out, footer
 
 
-def _decompress(fh: _File, off: int, body: bytes) -> tuple[bytes, bool]:
-    """A chunk's records, checked: (records, whether a CRC was checked)."""
+def _decompress(fh: _File, off: int, body: bytes, *, check: bool = True) -> tuple[bytes, int]:
+    """A chunk's records, checked: (records, the CRC left to check).  ``check=False``: the records' CRC is not
+    computed here; the CRC the chunk declares (0: none) is returned for the caller to check (``_check_crc``)."""
     try:
         _s, _e, size, crc = CHUNK_HEAD.unpack_from(body, 0)
         p = CHUNK_HEAD.size
@@ -309,7 +321,13 @@ def _decompress(fh: _File, off: int, body: bytes) -> tuple[bytes, bool]:
     if len(inner) != size:
         raise CorruptRecording(f"{fh.path}: corrupt recording: the chunk at byte {off} decompresses to "
                                f"{len(inner)} bytes, not the {size} it declares")
+    if not check:
+        return inner, crc
+    _check_crc(fh, off, inner, crc)
+    return inner, 0
+
+
+def _check_crc(fh: _File, off: int, inner: bytes, crc: int) -> None:
     if crc and zlib.crc32(inner) != crc:
         raise CorruptRecording(f"{fh.path}: corrupt recording: the chunk at byte {off} fails its CRC (changed "
                                "after it was written); its results cannot be trusted")
-    return inner, bool(crc)

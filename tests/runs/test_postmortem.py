@@ -195,6 +195,40 @@ def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_pa
 
 
 @pytest.mark.slow  # half a second or more on a warm cache
+@pytest.mark.parametrize("hand", ["never", "always"])
+def test_a_chunk_crc_is_checked_whichever_thread_checks_it(tmp_path, monkeypatch, hand):
+    """A chunk's CRC is checked by the read-ahead's thread or, when that thread is not far ahead, by the reader
+    (``mcapfile.HAND_CRC``): a chunk whose records decompress but whose stored CRC no longer matches them is
+    ``CorruptRecording`` at that chunk either way, and a good file reads the same."""
+    from testbed.record import mcapfile
+
+    sc = scenario.with_overrides(scenario.load("paper"), {"duration": 6.0})
+    good = tmp_path / "good.mcap"
+    recording.record_simulation(good, sc, simulate_scenario(sc), flush_interval=0.0)
+    monkeypatch.setattr(mcapfile, "HAND_CRC", 0 if hand == "never" else mcapfile.AHEAD + 1)
+    checked: list[int] = []
+    orig = mcapfile._check_crc
+    monkeypatch.setattr(mcapfile, "_check_crc", lambda fh, off, inner, crc: (checked.append(crc), orig(fh, off,
+                                                                                                          inner, crc)))
+    bodies = {mcapfile.OP_CHUNK, mcapfile.OP_DATA_END, mcapfile.OP_FOOTER}
+    chunks = [off for off, op, _, _ in mcapfile.read_ahead(mcapfile._File(good), bodies=bodies, crc=[0])
+              if op == mcapfile.OP_CHUNK]
+    assert len(checked) == len(chunks) > 3 and all(checked)   # every chunk's CRC, by one thread or the other
+    # the stored CRC of the third chunk changed: its records still decompress, their CRC does not match
+    data = bytearray(good.read_bytes())
+    third = chunks[2]
+    crc_at = third + 9 + 24     # the chunk's body: message start, message end, uncompressed size, then the CRC
+    data[crc_at] ^= 0x01
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    seen = []
+    with pytest.raises(mcapfile.CorruptRecording, match=f"chunk at byte {third} fails its CRC"):
+        for off, op, _, _ in mcapfile.read_ahead(mcapfile._File(bad), bodies=bodies, crc=[0]):
+            seen.append(off)
+    assert [o for o in seen if o in chunks] == chunks[:2]
+
+
+@pytest.mark.slow  # half a second or more on a warm cache
 def test_the_read_ahead_holds_a_chunk_larger_than_its_budget_alone(tmp_path, monkeypatch):
     """A chunk declaring more than ``AHEAD_BYTES`` is decompressed only once the reader waits for it: while the
     reader holds one, no other is decompressed (here every chunk is larger than a 1-byte budget), so a file's
@@ -208,7 +242,8 @@ def test_the_read_ahead_holds_a_chunk_larger_than_its_budget_alone(tmp_path, mon
     recording.record_simulation(path, sc, simulate_scenario(sc), flush_interval=0.0)
     made: list[int] = []
     orig = mcapfile._decompress
-    monkeypatch.setattr(mcapfile, "_decompress", lambda fh, off, body: (made.append(off), orig(fh, off, body))[1])
+    monkeypatch.setattr(mcapfile, "_decompress",
+                        lambda fh, off, body, **kw: (made.append(off), orig(fh, off, body, **kw))[1])
 
     def ahead_while_held(wait: float) -> int:
         """Chunks decompressed beyond the one the reader holds, the most seen over 10 chunks; the reader
