@@ -21,7 +21,9 @@ the dtype; booleans as BOOLEAN (bit-packed). Any other dtype is cast to float64.
 from __future__ import annotations
 
 import struct
+import threading
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import IO, Any
 
@@ -97,10 +99,11 @@ def column_type(dtype: np.dtype) -> tuple[int, np.dtype, tuple[int, bool] | None
     return DOUBLE, np.dtype("<f8"), None
 
 
-def _plain(values: np.ndarray, phys: int, wdt: np.dtype) -> bytes:
+def _plain(values: np.ndarray, phys: int, wdt: np.dtype) -> np.ndarray:
+    """The values' PLAIN encoding, as an array whose bytes are it (no copy when they already are)."""
     if phys == BOOLEAN:
-        return np.packbits(values, bitorder="little").tobytes()
-    return np.ascontiguousarray(values, dtype=wdt).tobytes()
+        return np.packbits(values, bitorder="little")
+    return np.ascontiguousarray(values, dtype=wdt)
 
 
 def _stat_bytes(v: Any, phys: int, wdt: np.dtype) -> bytes:
@@ -136,7 +139,10 @@ class ParquetWriter:
             raise ValueError("column names must differ")
         self.names, self.types = list(names), [column_type(d) for d in dtypes]
         self.metadata, self.created_by = dict(metadata), created_by
-        self._z = zstandard.ZstdCompressor(level=level)
+        self._compressor = lambda: zstandard.ZstdCompressor(level=level)
+        self._local = threading.local()     # a compressor a thread (one is not safe to share between threads)
+        # zstd releases the GIL: a row group's pages are compressed by two threads (``write``)
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="parquet-zstd")
         self._groups: list[bytes] = []
         self._rows = 0
         self.path = Path(path)
@@ -157,8 +163,17 @@ class ParquetWriter:
             self._discard()
             raise
 
+    def _compress(self, levels: bytes, plain: np.ndarray) -> bytes:
+        """One page's body: its definition levels and its values, compressed as one frame (never concatenated)."""
+        z = getattr(self._local, "z", None)
+        if z is None:
+            z = self._local.z = self._compressor()
+        c = z.compressobj(size=len(levels) + plain.nbytes)
+        return c.compress(levels) + c.compress(plain) + c.flush()
+
     def _discard(self) -> None:
         """A write that failed (a full disk, in a row group or the footer): no file without its footer is left."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
         self._f.close()
         if self.path.is_file():          # not a device such as /dev/full
             self.path.unlink()
@@ -174,17 +189,20 @@ class ParquetWriter:
         # definition levels, all 1: a 4-byte length, then one RLE run of ``rows`` ones (bit width 1)
         run = _varint(rows << 1) + b"\x01"
         levels = struct.pack("<I", len(run)) + run
-        chunks, total = [], 0
+        pages = []
         for name, (phys, wdt, ann) in zip(self.names, self.types, strict=True):
             values = np.asarray(columns[name])
             if phys == BOOLEAN:
                 values = values.astype(bool, copy=False)
             elif values.dtype != wdt and ann is None:
                 values = values.astype(wdt)
-            raw = levels + _plain(values, phys, wdt)
-            body = self._z.compress(raw)
-            stats = _statistics(values, phys, wdt)
-            head = _struct((1, _T_I32, _DATA_PAGE), (2, _T_I32, len(raw)), (3, _T_I32, len(body)),
+            plain = _plain(values, phys, wdt)
+            pages.append((name, self._pool.submit(self._compress, levels, plain), _statistics(values, phys, wdt),
+                          phys, len(levels) + plain.nbytes))
+        chunks, total = [], 0
+        for name, future, stats, phys, raw_len in pages:
+            body = future.result()
+            head = _struct((1, _T_I32, _DATA_PAGE), (2, _T_I32, raw_len), (3, _T_I32, len(body)),
                            (4, _T_I32, _signed32(zlib.crc32(body))),
                            (5, _T_STRUCT, _struct((1, _T_I32, rows), (2, _T_I32, _PLAIN), (3, _T_I32, _RLE),
                                                   (4, _T_I32, _RLE), (5, _T_STRUCT, stats))))
@@ -194,10 +212,10 @@ class ParquetWriter:
             self._pos += len(head) + len(body)
             meta = _struct((1, _T_I32, phys), (2, _T_LIST, (_T_I32, [_PLAIN, _RLE])),
                            (3, _T_LIST, (_T_BINARY, [name])), (4, _T_I32, _ZSTD), (5, _T_I64, rows),
-                           (6, _T_I64, len(head) + len(raw)), (7, _T_I64, len(head) + len(body)),
+                           (6, _T_I64, len(head) + raw_len), (7, _T_I64, len(head) + len(body)),
                            (9, _T_I64, offset), (12, _T_STRUCT, stats))
             chunks.append(_struct((2, _T_I64, offset), (3, _T_STRUCT, meta)))
-            total += len(head) + len(raw)
+            total += len(head) + raw_len
         self._groups.append(_struct((1, _T_LIST, (_T_STRUCT, chunks)), (2, _T_I64, total), (3, _T_I64, rows)))
         self._rows += rows
 
@@ -206,6 +224,7 @@ class ParquetWriter:
         if self._f.closed:
             return
         try:
+            self._pool.shutdown(wait=True)
             schema = [_struct((4, _T_BINARY, "schema"), (5, _T_I32, len(self.names)))]
             for name, (phys, _wdt, ann) in zip(self.names, self.types, strict=True):
                 logical = None if ann is None else _struct(

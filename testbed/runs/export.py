@@ -33,7 +33,7 @@ FORMATS = ("parquet", "csv")
 
 #: rows of a run converted and written at a time (``export``), one Parquet row group each: the export's memory is
 #: that of the run's arrays and one group's pages, not a copy of the run
-ROWS = 1 << 14
+ROWS = 1 << 16
 
 
 def _metadata_text(run: Run) -> dict[str, str]:
