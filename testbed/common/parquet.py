@@ -2,10 +2,11 @@
 
 It writes the subset of the format every Parquet reader reads (format 2, ``parquet.thrift`` of
 apache/parquet-format): one optional column per array, version 1 data pages in PLAIN encoding,
-one page per column chunk, compressed with zstd (``zstandard``, which mcap already needs), each
-page's CRC-32, and min / max statistics where they are exact (integers, booleans, and floats
-without NaN). Definition levels are all 1 (no nulls); a NaN is a value, as in the arrays. The
-file's key-value metadata holds what the caller gives.
+one page per column chunk, compressed with zstd (``zstandard``, which mcap already needs; a row
+group's pages by two threads, since zstd releases the GIL), each page's CRC-32, and min / max
+statistics where they are exact (integers, booleans, and floats without NaN). Definition levels
+are all 1 (no nulls); a NaN is a value, as in the arrays. The file's key-value metadata holds
+what the caller gives.
 
 Why not pyarrow's writer: it costs ``testbed export`` about 30 MB of imports and 10 to 25 MB of
 write buffers on top of the run's columns, and its default dictionary encoding makes a run's

@@ -223,7 +223,7 @@ def test_a_chunk_crc_is_checked_whichever_thread_checks_it(tmp_path, monkeypatch
     bad.write_bytes(bytes(data))
     seen = []
     with pytest.raises(mcapfile.CorruptRecording, match=f"chunk at byte {third} fails its CRC"):
-        for off, op, _, _ in mcapfile.read_ahead(mcapfile._File(bad), bodies=bodies, crc=[0]):
+        for off, _op, _, _ in mcapfile.read_ahead(mcapfile._File(bad), bodies=bodies, crc=[0]):
             seen.append(off)
     assert [o for o in seen if o in chunks] == chunks[:2]
 
