@@ -352,7 +352,7 @@ class _Reader:
         self.final_tabs = {t: L.defaults[t].copy() for t in range(4)}
         self.final_k = np.full(1, -1, dtype=np.int64)
         self.py_pos = np.zeros(1, dtype=np.int64)
-        self.classes = schema.classes()
+        self.classes: dict[str, Any] | None = None   # the protobuf classes, made at the first such message
 
     # ---- registry
     def schema_rec(self, body: bytes):
@@ -380,6 +380,8 @@ class _Reader:
         topic, name = self.channels[cid]
         data = bytes(buf[off + MSG_HEAD.size:end])
         c = self.cols
+        if self.classes is None:  # (while the read-ahead decompresses the next chunks)
+            self.classes = schema.classes()
         try:
             m = self.classes[name].FromString(data)
         except Exception:  # noqa: BLE001 - protobuf DecodeError (and friends on crafted input)
@@ -523,17 +525,19 @@ class _Reader:
 
 
 def read_columns(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | None] | None = None,
-                 sc: Scenario | None = None) -> Columns:
+                 sc: Scenario | None = None, metadata: dict[str, dict] | None = None) -> Columns:
     """Decode a recording into columns (see the module docstring).
 
     ``fields``: the ``"role.field"`` names to decode (default all), or a function of
-    the file's metadata giving them; ``sc``: the scenario (default: the one stored).
+    the file's metadata giving them; ``sc``: the scenario (default: the one stored);
+    ``metadata``: the file's metadata records when the caller has read them already
+    (``mcapfile.read_metadata``: a walk of every record's header).
 
     Raises ``BadInput`` (exit 2) for a file that is not a recording, has no
     usable scenario, or is corrupt; a file cut short is read up to its cut.
     """
     path = Path(path)
-    meta, _footer = read_metadata(path)  # BadInput for a directory or a file that is not MCAP
+    meta = metadata if metadata is not None else read_metadata(path)[0]  # BadInput: a directory, not MCAP, ...
     if sc is None:
         sc = scenario_of(meta, str(path))
     if callable(fields):

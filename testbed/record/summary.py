@@ -568,6 +568,6 @@ def load(path: str | Path, *, fields: set[str] | Callable[[dict], set[str] | Non
         fields = fields - {"plant.delay_ns"}  # read only under physical timing or for a live run's arrays
     if fields is not None and sc.run.timing == "physical":
         fields = fields | {"plant.u_rx_ns"}  # when u_k arrived: the report's actuation section, a simulation's too
-    cols = read_columns(path, fields=fields, sc=sc)
+    cols = read_columns(path, fields=fields, sc=sc, metadata=meta)
     cols.plant_source, cols.model_source = ps, ms
     return cols, sc
