@@ -143,7 +143,8 @@ def simulate_batch(plant: Plant, K: npt.ArrayLike, qp: QuantizerParams, X0: npt.
         tab = np.ascontiguousarray(np.atleast_2d(np.asarray(theta, dtype=np.uint8)))
     if sched_idx is None:
         sched_idx = np.arange(B) if tab.shape[0] == B else np.zeros(B, dtype=np.int64)
-    sched_idx = np.ascontiguousarray(np.broadcast_to(np.asarray(sched_idx, dtype=np.int64), (B,)))
+    # a copy, writable: the kernel is typed (and cached) once, not again for a read-only broadcast
+    sched_idx = np.array(np.broadcast_to(np.asarray(sched_idx, dtype=np.int64), (B,)))
     if sched_idx.size and (sched_idx.max() >= tab.shape[0] or sched_idx.min() < 0):
         raise ValueError("sched_idx points outside the theta table")
     if greedy_params is None:

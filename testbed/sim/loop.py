@@ -477,7 +477,8 @@ def loop_state_from_samples(res: SimResult, model: Plant, qp: QuantizerParams,
     if (N >= 2 and int(res.theta[-2]) == 0 and int(res.symbols[-2]) != cb.overflow
             and np.all(np.isfinite(res.q[-2]))):
         up = np.empty(model.m)
-        control_input(dec.K, np.asarray(res.q[-2], dtype=np.float64), 0, False, up)
+        q_prev = np.ascontiguousarray(res.q[-2], dtype=np.float64)  # a row of a recording's column-major q is
+        control_input(dec.K, q_prev, 0, False, up)                  # strided: one kernel signature, not two
         dec.u_prev = up
     th = int(res.theta[-1])
     sym = int(res.symbols[-1])
