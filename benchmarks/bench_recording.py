@@ -261,7 +261,7 @@ GNU_TIME = "/usr/bin/time" if os.access("/usr/bin/time", os.X_OK) else None
 
 def _measure(cmd: list[str], *, output: bool = True, cpu: list | None = None,
              env: dict | None = None) -> tuple[float, float, str]:
-    """Run ``cmd``; its wall time (s), peak RSS (MB: GNU time's, else ``os.wait4``'s) and stdout (in a temporary
+    """Run ``cmd``; its wall time (s), peak RSS (MiB: GNU time's, else ``os.wait4``'s) and stdout (in a temporary
     file; ``output=False``: discarded).  ``cpu``: a list its CPU seconds (user + system, its children's
     included) are appended to."""
     with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe, \
@@ -446,27 +446,29 @@ def _print_stages(st: list[dict]) -> None:
     print(f"    {'total':46} {sum(r['wall_s'] for r in st):7.3f} {sum(r['cpu_s'] for r in st):6.3f}", flush=True)
 
 
-#: the post-mortems' goals: a ratio to the chunk floor, seconds, MB of peak RSS
+#: the post-mortems' goals: a ratio to the chunk floor, seconds, MiB of peak RSS (the issue's "300 MB", counted
+#: in the unit the kernel counts RSS in; the lines of the goals print the decimal megabytes beside it)
 GOAL_RATIO, GOAL_S, GOAL_MB = 3.0, 5.0, 300.0
 
 
 def _print_postmortem(pm: dict) -> None:
     print(f"post-mortems of {pm['path']} ({pm['file_mb']:.0f} MB), median of {pm['repeat']} runs each, "
           f"load average {', '.join(f'{x:.1f}' for x in pm['load_avg_1min'])}:\n"
-          f"  {'what':44} {'wall s':>7} {'(min-max)':>13} {'peak MB':>8} {'x chunks':>9} {'CPU s':>6} "
+          f"  {'what':44} {'wall s':>7} {'(min-max)':>13} {'peak MiB':>8} {'x chunks':>9} {'CPU s':>6} "
           f"{'x chunks':>9} {'x chunks+numba':>15}")
     for c in pm["cases"]:
         print(f"  {c['what']:44} {c['wall_s']:7.2f} {c['wall_min_s']:6.2f}-{c['wall_max_s']:<6.2f} "
               f"{c['peak_rss_mb']:8.0f} {c['vs_chunks']:9.2f} {c['cpu_s']:6.2f} {c['cpu_vs_chunks']:9.2f} "
               f"{c['vs_chunks_and_numba_start']:15.2f}", flush=True)
-    print(f"  goals (issue 38): <= {GOAL_RATIO:g}x the chunks' wall time, <= {GOAL_S:g} s, <= {GOAL_MB:g} MB peak "
+    print(f"  goals (issue 38): <= {GOAL_RATIO:g}x the chunks' wall time, <= {GOAL_S:g} s, <= {GOAL_MB:g} MiB peak "
           "(the CPU ratio is shown, not judged: numba's start alone is most of it, and the read runs on two threads)")
     for c in pm["cases"]:
         if c["what"] in FLOORS:
             continue
         miss = [name for name, over in ((f"{GOAL_RATIO:g}x", c["vs_chunks"] > GOAL_RATIO), (f"{GOAL_S:g} s",
-                c["wall_s"] > GOAL_S), (f"{GOAL_MB:g} MB", c["peak_rss_mb"] > GOAL_MB)) if over]
-        got = f"{c['vs_chunks']:.2f}x wall, {c['wall_s']:.2f} s, {c['peak_rss_mb']:.0f} MB; CPU {c['cpu_vs_chunks']:.1f}x"
+                c["wall_s"] > GOAL_S), (f"{GOAL_MB:g} MiB", c["peak_rss_mb"] > GOAL_MB)) if over]
+        got = (f"{c['vs_chunks']:.2f}x wall, {c['wall_s']:.2f} s, {c['peak_rss_mb']:.0f} MiB "
+               f"({c['peak_rss_mb'] * 1.048576:.0f} MB); CPU {c['cpu_vs_chunks']:.1f}x")
         print(f"    {c['what']:44} {'met' if not miss else 'NOT met (' + ', '.join(miss) + ')'}: {got}", flush=True)
 
 
