@@ -170,7 +170,7 @@ class ParquetWriter:
         if z is None:
             z = self._local.z = self._compressor()
         c = z.compressobj(size=len(levels) + plain.nbytes)
-        return c.compress(levels) + c.compress(plain) + c.flush()
+        return c.compress(levels) + c.compress(plain.data.cast("B")) + c.flush()
 
     def _discard(self) -> None:
         """A write that failed (a full disk, in a row group or the footer): no file without its footer is left."""

@@ -218,17 +218,10 @@ def _fill_absent(L: Layout, tables: dict[int, np.ndarray], present: np.ndarray) 
 
 # ============================================================================ the numba parser
 def _kernels():
-    """Compile (or load from numba's cache) the wire-format parser."""
-    global _walk
-    if _walk is not None:
-        return _walk
-    from ._protobuf import walk
+    """The wire-format parser (numba: compiled, or loaded from its cache, on the first call)."""
+    from ._protobuf import walk  # here: importing the reader stays cheap until a file is read
 
-    _walk = walk
-    return _walk
-
-
-_walk = None
+    return walk
 
 
 # ============================================================================ result
@@ -528,13 +521,11 @@ def read_columns(path: str | Path, *, fields: set[str] | Callable[[dict], set[st
                  sc: Scenario | None = None, metadata: dict[str, dict] | None = None) -> Columns:
     """Decode a recording into columns (see the module docstring).
 
-    ``fields``: the ``"role.field"`` names to decode (default all), or a function of
-    the file's metadata giving them; ``sc``: the scenario (default: the one stored);
-    ``metadata``: the file's metadata records when the caller has read them already
-    (``mcapfile.read_metadata``: a walk of every record's header).
-
-    Raises ``BadInput`` (exit 2) for a file that is not a recording, has no
-    usable scenario, or is corrupt; a file cut short is read up to its cut.
+    ``fields``: the ``"role.field"`` names to decode (default all), or a function of the file's metadata
+    giving them; ``sc``: the scenario (default: the one stored); ``metadata``: the file's metadata records
+    when the caller has read them (``mcapfile.read_metadata``: a walk of every record's header).
+    Raises ``BadInput`` (exit 2) for a file that is not a recording, has no usable scenario, or is
+    corrupt; a file cut short is read up to its cut.
     """
     path = Path(path)
     meta = metadata if metadata is not None else read_metadata(path)[0]  # BadInput: a directory, not MCAP, ...
