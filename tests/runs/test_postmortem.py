@@ -135,6 +135,26 @@ def _bad_files(tmp_path) -> dict[str, Path]:
     return out
 
 
+def _flipped(tmp_path, data: bytes, at: int):
+    """A copy of a recording's bytes with one bit of byte ``at`` flipped, as ``bad.mcap``."""
+    flipped = bytearray(data)
+    flipped[at] ^= 0x01
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(flipped))
+    return bad
+
+
+def _read_until_corrupt(path, bodies: set[int], match: str) -> list[int]:
+    """The offsets ``read_ahead`` yields from ``path`` before it raises the ``CorruptRecording`` ``match`` says."""
+    from testbed.record import mcapfile
+
+    seen = []
+    with pytest.raises(mcapfile.CorruptRecording, match=match):
+        for off, _op, _, _ in mcapfile.read_ahead(mcapfile._File(path), bodies=bodies, crc=[0]):
+            seen.append(off)
+    return seen
+
+
 @pytest.mark.slow  # half a second or more on a warm cache
 def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_path, monkeypatch):
     """Chunks are decompressed on a second thread (``mcapfile.read_ahead``): a chunk that fails its CRC is
@@ -166,15 +186,8 @@ def test_the_read_ahead_raises_in_the_readers_thread_and_leaves_no_thread(tmp_pa
     assert not alive()
     # the last chunk's records changed (its CRC no longer holds): the chunks before it are read, then the error
     last = chunks[-1]
-    flipped = bytearray(data)
-    flipped[last + 9 + 60] ^= 0x01  # a byte of its compressed records (its header is 48 bytes)
-    bad = tmp_path / "bad.mcap"
-    bad.write_bytes(bytes(flipped))
-    seen = []
-    with pytest.raises(mcapfile.CorruptRecording, match=f"at byte {last}"):
-        for off, _op, _, _ in mcapfile.read_ahead(mcapfile._File(bad), bodies=bodies, crc=[0]):
-            seen.append(off)
-    assert seen == chunks[:-1] and not alive()
+    bad = _flipped(tmp_path, data, last + 9 + 60)  # a byte of its compressed records (its header is 48 bytes)
+    assert _read_until_corrupt(bad, bodies, f"at byte {last}") == chunks[:-1] and not alive()
     with pytest.raises(mcapfile.CorruptRecording):
         columns.read_columns(bad)
     assert not alive()
@@ -215,16 +228,9 @@ def test_a_chunk_crc_is_checked_whichever_thread_checks_it(tmp_path, monkeypatch
               if op == mcapfile.OP_CHUNK]
     assert len(checked) == len(chunks) > 3 and all(checked)   # every chunk's CRC, by one thread or the other
     # the stored CRC of the third chunk changed: its records still decompress, their CRC does not match
-    data = bytearray(good.read_bytes())
     third = chunks[2]
-    crc_at = third + 9 + 24     # the chunk's body: message start, message end, uncompressed size, then the CRC
-    data[crc_at] ^= 0x01
-    bad = tmp_path / "bad.mcap"
-    bad.write_bytes(bytes(data))
-    seen = []
-    with pytest.raises(mcapfile.CorruptRecording, match=f"chunk at byte {third} fails its CRC"):
-        for off, _op, _, _ in mcapfile.read_ahead(mcapfile._File(bad), bodies=bodies, crc=[0]):
-            seen.append(off)
+    bad = _flipped(tmp_path, good.read_bytes(), third + 9 + 24)  # its body: message start and end, size, CRC
+    seen = _read_until_corrupt(bad, bodies, f"chunk at byte {third} fails its CRC")
     assert [o for o in seen if o in chunks] == chunks[:2]
 
 
