@@ -116,12 +116,15 @@ def _stat_bytes(v: Any, phys: int, wdt: np.dtype) -> bytes:
 def _statistics(values: np.ndarray, phys: int, wdt: np.dtype) -> bytes:
     """Statistics (null count 0; min and max where exact: not for floats with NaN, whose order is undefined)."""
     lo = hi = None
-    if len(values) and not (values.dtype.kind == "f" and np.isnan(values).any()):
-        lo, hi = values.min(), values.max()
-        if values.dtype.kind == "f":     # the format's rule for zeros: min -0.0, max +0.0
+    if len(values):
+        lo, hi = values.min(), values.max()   # NaN when the values hold one (numpy's min and max propagate it)
+        if values.dtype.kind == "f" and (np.isnan(lo) or np.isnan(hi)):
+            lo = hi = None
+        elif values.dtype.kind == "f":     # the format's rule for zeros: min -0.0, max +0.0
             lo = -0.0 if lo == 0 else lo
             hi = 0.0 if hi == 0 else hi
-        lo, hi = _stat_bytes(lo, phys, wdt), _stat_bytes(hi, phys, wdt)
+        if lo is not None:
+            lo, hi = _stat_bytes(lo, phys, wdt), _stat_bytes(hi, phys, wdt)
     return _struct((3, _T_I64, 0), (5, _T_BINARY, hi), (6, _T_BINARY, lo))
 
 
@@ -142,7 +145,7 @@ class ParquetWriter:
         self.metadata, self.created_by = dict(metadata), created_by
         self._compressor = lambda: zstandard.ZstdCompressor(level=level)
         self._local = threading.local()     # a compressor a thread (one is not safe to share between threads)
-        # zstd releases the GIL: a row group's pages are compressed by two threads (``write``)
+        # zstd releases the GIL: a row group's pages are compressed by two threads (``write``, ``_page``)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="parquet-zstd")
         self._groups: list[bytes] = []
         self._rows = 0
@@ -164,13 +167,16 @@ class ParquetWriter:
             self._discard()
             raise
 
-    def _compress(self, levels: bytes, plain: np.ndarray) -> bytes:
-        """One page's body: its definition levels and its values, compressed as one frame (never concatenated)."""
+    def _page(self, levels: bytes, plain: np.ndarray, values: np.ndarray, phys: int,
+              wdt: np.dtype) -> tuple[bytes, bytes]:
+        """One page's body (its definition levels and its values compressed as one frame, never concatenated)
+        and its statistics: the work of a row group's pages, shared by the pool's threads (zstd and numpy's
+        reductions release the GIL)."""
         z = getattr(self._local, "z", None)
         if z is None:
             z = self._local.z = self._compressor()
         c = z.compressobj(size=len(levels) + plain.nbytes)
-        return c.compress(levels) + c.compress(plain.data.cast("B")) + c.flush()
+        return c.compress(levels) + c.compress(plain.data.cast("B")) + c.flush(), _statistics(values, phys, wdt)
 
     def _discard(self) -> None:
         """A write that failed (a full disk, in a row group or the footer): no file without its footer is left."""
@@ -198,11 +204,11 @@ class ParquetWriter:
             elif values.dtype != wdt and ann is None:
                 values = values.astype(wdt)
             plain = _plain(values, phys, wdt)
-            pages.append((name, self._pool.submit(self._compress, levels, plain), _statistics(values, phys, wdt),
-                          phys, len(levels) + plain.nbytes))
+            pages.append((name, self._pool.submit(self._page, levels, plain, values, phys, wdt), phys,
+                          len(levels) + plain.nbytes))
         chunks, total = [], 0
-        for name, future, stats, phys, raw_len in pages:
-            body = future.result()
+        for name, future, phys, raw_len in pages:
+            body, stats = future.result()
             head = _struct((1, _T_I32, _DATA_PAGE), (2, _T_I32, raw_len), (3, _T_I32, len(body)),
                            (4, _T_I32, _signed32(zlib.crc32(body))),
                            (5, _T_STRUCT, _struct((1, _T_I32, rows), (2, _T_I32, _PLAIN), (3, _T_I32, _RLE),
