@@ -374,8 +374,8 @@ def postmortem_timing(tmp: Path, path: Path, repeat: int = 3) -> dict:
     load = [os.getloadavg()[0]]
     for _ in range(repeat):  # in turn, so that a busy spell hits every case alike
         for name, cmd in cases.items():
-            # the export writes a new file, as into a fresh path: not the removal of the last run's output (an
-            # existing file of 61 MB took the export's open() 0.05 s to truncate here)
+            # the export writes a new file, as into a fresh path: truncating the last repetition's output is not
+            # the export's work
             (tmp / "export.parquet").unlink(missing_ok=True)
             cpu: list = []
             wall, rss, _ = _measure(cmd, output=False, cpu=cpu, env=env)

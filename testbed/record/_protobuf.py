@@ -9,8 +9,8 @@ Indices are cast to unsigned (``np.uint64(p)``) where they are used: numba gives
 signed index Python's meaning (negative counts from the end), a test and a branch
 on every access, and none of the walk's indices can be negative (each is a
 position from 0 upwards, checked against its bound before it is used, or a
-column of the reader's own layout).  The walk takes about a fifth less time so
-(docs/benchmarks.md, "Post-mortems against the disk").
+column of the reader's own layout).  With unsigned indices LLVM also reads an
+8-byte field with one load (docs/benchmarks.md, "Post-mortems against the disk").
 """
 
 from __future__ import annotations
