@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import os
 import secrets
 import shlex
@@ -63,6 +64,18 @@ def recording_default_path(name: str, run_id: str) -> Path:
     from ..record.recording import default_path
 
     return default_path(name, run_id=run_id)
+
+
+def declare_summaries_held(session: zenoh.Session, keys: transport.Keys, col: Collector) -> zenoh.Queryable:
+    """The queryable ``collector/summaries``: the roles whose summaries ``col`` holds, as a JSON list (a node
+    closes its session once its own is among them: ``NodeContext.summary_received``)."""
+    def reply(query: zenoh.Query) -> None:
+        try:
+            query.reply(query.key_expr, json.dumps(sorted(col.snapshot_summaries())).encode())
+        except Exception:  # noqa: BLE001 - the querier gave up or the session is closing
+            pass
+
+    return session.declare_queryable(keys.summaries_held, reply)
 
 
 class RouterPriority:
@@ -288,7 +301,8 @@ class Launcher:
 
         col = Collector(session, self.keys, self.sc.n_steps, spill=self.run_dir / "telemetry.bin")
         self.status = status.start(self.cfg.progress, self.sc.n_steps, self.sc.T, self.sc.network)  # the live status line
-        self._tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR))]
+        self._tokens = [session.liveliness().declare_token(self.keys.alive(transport.COLLECTOR)),
+                        declare_summaries_held(session, self.keys, col)]
         return col
 
     def start(self, session: zenoh.Session) -> None:

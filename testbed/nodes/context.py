@@ -224,6 +224,29 @@ class NodeContext:
         except Exception:
             log.exception("summary not published")
 
+    #: how long a node waits at exit for the collector to hold its summary (``summary_received``)
+    RECEIPT_TIMEOUT_S = 2.0
+
+    def summary_received(self, roles: Iterable[str], timeout: float = RECEIPT_TIMEOUT_S) -> bool:
+        """Whether the launcher's collector holds the summaries of ``roles``: asked on ``collector/summaries``
+        until it does, at most ``timeout`` s.  A session closed right after its last put can lose it (the
+        router still had messages for this node, whose close then resets the link before the router has
+        read the summary); the query goes behind the summary on the same link (the same priority), so its
+        reply comes after the summary reached the collector."""
+        want, end = set(roles), time.monotonic() + timeout
+        while (left := end - time.monotonic()) > 0 and transport.COLLECTOR in self.alive:
+            try:
+                replies = list(self.session.get(self.keys.summaries_held, timeout=left))
+            except Exception:  # noqa: BLE001 - the session is closing: nothing more to wait for
+                return False
+            if any(want <= _roles_held(r) for r in replies):
+                return True
+            time.sleep(0.02)
+        if transport.COLLECTOR not in self.alive:
+            return False  # the launcher is gone: nobody to confirm
+        log.warning("%s: the collector did not confirm the summaries of %s in %g s", self.role, sorted(want), timeout)
+        return False
+
     def close(self) -> None:
         for t in self._tokens:
             try:
@@ -375,3 +398,16 @@ def warm_publisher(pub: Any, payload: bytes, times: int = 3, pause: float = 0.00
     for _ in range(times):
         pub.put(payload, attachment=att)
         time.sleep(pause)
+
+
+def _roles_held(reply: Any, limit: int = 1024) -> set[str]:
+    """The roles of a ``collector/summaries`` reply (a JSON list of names); anything else: none."""
+    import json
+
+    ok = getattr(reply, "ok", None)
+    raw = b"" if ok is None else ok.payload.to_bytes()
+    try:
+        held = json.loads(raw) if len(raw) <= limit else None
+    except ValueError:
+        return set()
+    return {r for r in held if isinstance(r, str)} if isinstance(held, list) else set()

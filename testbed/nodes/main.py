@@ -210,6 +210,7 @@ def run_node(cfg: NodeConfig) -> int:
             node.fail(e)
         phase(role, "end")
         guest = getattr(node, "encoder", None)
+        published = [role]
         if guest is not None and not guest.killed:  # the colocated encoder's own account, under its name
             guest.ctx.telemetry.flush()
             gd = guest.summary()
@@ -222,6 +223,7 @@ def run_node(cfg: NodeConfig) -> int:
             gd.update(stop_reason=ctx.stop_reason if not guest.dead else "died", pid=os.getpid(), netns=_netns(),
                       error=None if guest.error is None else f"{type(guest.error).__name__}: {guest.error}")
             guest.ctx.publish_summary(gd)
+            published.append(guest.ctx.role)
             guest.ctx.close()
         elif guest_tap is not None:
             guest_tap.close()
@@ -239,6 +241,8 @@ def run_node(cfg: NodeConfig) -> int:
         data["netns"] = _netns()
         data["error"] = None if node.error is None else f"{type(node.error).__name__}: {node.error}"
         ctx.publish_summary(data)
+        if cfg.launched:  # the launcher's collector has them before the session closes
+            ctx.summary_received(published)
         ctx.close()
         phase(role, "closing")
         if node.error is not None:

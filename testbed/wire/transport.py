@@ -132,6 +132,12 @@ class Keys:
         return f"{self.prefix}/summary/{node}"
 
     @property
+    def summaries_held(self) -> str:
+        """The launcher's collector answers a query here with the roles whose ``NodeSummary`` it holds: a node
+        closes its session once its own is among them (``NodeContext.summary_received``)."""
+        return f"{self.prefix}/collector/summaries"
+
+    @property
     def attacker_status(self) -> str:
         return f"{self.prefix}/attacker/status"
 
@@ -159,7 +165,8 @@ class Keys:
                 ("actuation", self.actuation), ("ack_tx", self.ack_tx), ("ack_rx", self.ack_rx)]
         rows += [(f"telemetry_{r}", self.telemetry(r)) for r in ROLES]
         rows += [("attacker_status", self.attacker_status), ("events", self.events("<node>")),
-                 ("summary", self.summary("<node>")), ("start", self.start), ("stop", self.stop),
+                 ("summary", self.summary("<node>")), ("summaries_held", self.summaries_held),
+                 ("start", self.start), ("stop", self.stop),
                  ("alive", self.alive("<node>")), ("ready", self.ready("<node>"))]
         return rows
 
@@ -454,7 +461,7 @@ def _own_keys(user: str) -> list[str]:
            "attacker": ["loop/symbol/rx", "loop/ack/rx", "attacker/status"],
            "controller": ["loop/actuation", "loop/ack/tx"],
            RECORDER: ["recorder/stats"],
-           LAUNCHER: ["control/stop"]}[user]
+           LAUNCHER: ["control/stop", "collector/summaries"]}[user]
     name = COLLECTOR if user == LAUNCHER else user
     if user in ROLES or user == LAUNCHER:
         own += [f"telemetry/{user}", f"events/{user}", f"summary/{user}"] if user in ROLES else \
