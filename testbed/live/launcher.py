@@ -410,6 +410,7 @@ class Launcher:
         self.nodes.wait_summaries(col)  # late telemetry and summaries
         status.stop(self.status, col)  # the status line's last state, the run's losses
         self.nodes.check_guests(col, self.t0_mono, final=True)  # one that died alone just before the end
+        self.nodes.check_summaries(col)  # after the guests: one that died alone owes none
         self.stalls.end(col, self.t0_mono)
         if self.t0_mono is not None:  # what arrived as the run ended
             outcome = self.device_faults(col, time.monotonic_ns(), self.t0_mono, final=True) or outcome

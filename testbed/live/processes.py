@@ -214,24 +214,34 @@ class NodeProcesses:
         for guest in self.colocated:
             self.check_guest(guest, col, t0_mono, final=final)
 
+    def summaries_due(self) -> set[str]:
+        """The roles that owe the launcher a summary: each node process that exited cleanly, and the colocated
+        roles it hosted that did not die alone."""
+        due = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
+        return due | {g for g in self.colocated if self.process_of(g) in due and g not in self.exits}
+
     def wait_summaries(self, col: Collector, timeout: float = 1.0, telemetry_timeout: float = 3.0) -> None:
-        """Until every node that exited cleanly has its summary in (they publish it before they exit), then
-        until the telemetry each summary counts has arrived (at most ``telemetry_timeout`` more: what is still
-        missing then is the telemetry check's to report).  A node that exited cleanly without its summary in
-        is the fault ``summary_missing``: its telemetry cannot be checked."""
-        want = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
-        want |= {g for g in self.colocated if self.process_of(g) in want and g not in self.exits}
+        """Until every summary due is in (a node publishes it before it exits), then until the telemetry each
+        summary counts has arrived (at most ``telemetry_timeout`` more: what is still missing then is the
+        telemetry check's to report)."""
+        want = self.summaries_due()
         end = time.monotonic() + timeout
         while time.monotonic() < end and not want <= set(col.snapshot_summaries()):
             time.sleep(0.01)
-        for r in sorted(want - set(col.snapshot_summaries())):
+        end = time.monotonic() + telemetry_timeout
+        while time.monotonic() < end and col.telemetry_behind():
+            time.sleep(0.02)
+
+    def check_summaries(self, col: Collector) -> None:
+        """Once the run has started (a node publishes its summary after the run's loop), a summary due that is
+        not in is the fault ``summary_missing``: the node's telemetry cannot be checked."""
+        if col.start is None:
+            return
+        for r in sorted(self.summaries_due() - set(col.snapshot_summaries())):
             self.faults.append(Fault(role=r, kind="summary_missing",
                                      detail="it exited cleanly, but its summary (its own account of its telemetry) "
                                             "never arrived: its telemetry is unchecked"))
             print(f"testbed run: node {r}: exited cleanly, but its summary never arrived", file=sys.stderr)
-        end = time.monotonic() + telemetry_timeout
-        while time.monotonic() < end and col.telemetry_behind():
-            time.sleep(0.02)
 
     def nodes(self, roles: tuple[str, ...]) -> dict:
         """The summary's ``nodes``: each role's exit and log (a colocated role: its host's, unless it died alone)."""

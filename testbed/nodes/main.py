@@ -241,8 +241,7 @@ def run_node(cfg: NodeConfig) -> int:
         data["netns"] = _netns()
         data["error"] = None if node.error is None else f"{type(node.error).__name__}: {node.error}"
         ctx.publish_summary(data)
-        if cfg.launched:  # the launcher's collector has them before the session closes
-            ctx.summary_received(published)
+        ctx.summary_received(published)  # a run's collector (if there is one) has them before the session closes
         ctx.close()
         phase(role, "closing")
         if node.error is not None:

@@ -205,6 +205,7 @@ def test_a_live_run_with_the_device_as_plant_over_mutual_tls(device, run_id, tmp
     rc, s, err = rerun_while_stalled(run, "paper with the pico plant")
     facts, rec = res["facts"], res["rec"]
     assert rc == 0 and facts["device_rc"] == 0, (s["faults"], err[-2000:], facts.get("device_err"))
+    assert "did not confirm" not in facts["device_err"], facts["device_err"]  # the collector held its summary
     d = facts["join"]
     assert d["credentials"]["kind"] == "mutual_tls" and d["mode"] == "client" and d["connect"][0].startswith("tls/")
     assert s["security"]["transport"] == "mutual tls" and s["external"] == "plant", s["security"]

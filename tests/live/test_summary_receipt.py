@@ -16,6 +16,7 @@ from testbed.live.launcher import declare_summaries_held
 from testbed.live.processes import NodeProcesses
 from testbed.nodes.context import NodeContext, _roles_held
 from testbed.nodes.options import RunOptions, load_scenario
+from testbed.wire import messages as msg
 from testbed.wire import transport
 
 
@@ -63,13 +64,21 @@ def test_a_node_closes_once_the_collector_holds_its_summary_and_a_missing_one_is
                               node_prefix={}, fork=False, external=None, command=lambda r: [], faults=FaultLog())
         procs.procs["plant"], procs.exits["plant"] = done, {"exit_code": 0}
         procs.wait_summaries(col, timeout=0.1, telemetry_timeout=0.1)
+        procs.check_summaries(col)
+        assert list(procs.faults) == []  # no run started (a start-up timeout): no summary is due
+        start = msg.Start(run_id=keys.run_id, t0_ns=1, T_ns=ctx.T_ns, n_steps=sc.n_steps, digest=ctx.digest,
+                          timing="ideal", ack_via_attacker=False)
+        node.put(keys.start, start.encode())  # the plant's Start: the run has begun
+        assert _until(lambda: col.start is not None)
+        procs.check_summaries(col)
         assert [(f.role, f.kind) for f in procs.faults] == [("plant", "summary_missing")]
 
         ctx.publish_summary({"samples": 3})
         assert ctx.summary_received(["plant"], timeout=20)  # the reply comes after the summary reached it
         assert col.snapshot_summaries() == {"plant": {"samples": 3}}
         procs.faults = FaultLog()
-        procs.wait_summaries(col, timeout=0.1, telemetry_timeout=0.1)
+        procs.wait_summaries(col, timeout=5, telemetry_timeout=0.1)
+        procs.check_summaries(col)
         assert list(procs.faults) == []
 
         token.undeclare()  # the launcher gone: nobody to confirm, no wait
