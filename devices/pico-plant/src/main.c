@@ -369,6 +369,51 @@ static void put(z_owned_publisher_t *pub, const uint8_t *data, size_t n, const u
     z_publisher_put(z_publisher_loan(pub), z_bytes_move(&payload), &o);
 }
 
+/* docs/protocol.md (Telemetry): ask the launcher's collector on collector/summaries, after the summary, until its
+ * reply (a JSON list of role names) holds "plant", at most 2 s and only while the collector's liveliness token is
+ * there: a session closed right after its last put can lose it. 1: confirmed, 0: not in time, -1: no collector */
+static int summary_received(void) {
+    char k[256], buf[1024];
+    z_view_keyexpr_t ke;
+    if (key_of(k, sizeof k, "collector/summaries") || z_view_keyexpr_from_str(&ke, k) < 0) return 0;
+    int64_t until = mono_ns() + 2000000000LL;
+    while (mono_ns() < until) {
+        pthread_mutex_lock(&lock);
+        peer *c = peer_named("collector");
+        int there = c != NULL && c->alive;
+        pthread_mutex_unlock(&lock);
+        if (!there) return -1;
+        z_owned_closure_reply_t closure;
+        z_owned_fifo_handler_reply_t handler;
+        z_get_options_t o;
+        int held = 0;
+        z_fifo_channel_reply_new(&closure, &handler, 4);
+        z_get_options_default(&o);
+        o.timeout_ms = (uint64_t)((until - mono_ns()) / 1000000) + 1;
+        if (z_get(z_session_loan(&session), z_view_keyexpr_loan(&ke), "", z_closure_reply_move(&closure), &o) == Z_OK) {
+            z_owned_reply_t reply;
+            while (z_fifo_handler_reply_recv(z_fifo_handler_reply_loan(&handler), &reply) == Z_OK) {
+                z_owned_string_t str;
+                if (z_reply_is_ok(z_reply_loan(&reply)) &&
+                    z_bytes_to_string(z_sample_payload(z_reply_ok(z_reply_loan(&reply))), &str) == Z_OK) {
+                    size_t n = z_string_len(z_string_loan(&str));
+                    if (n < sizeof buf) { /* a longer reply is no list of the run's roles */
+                        memcpy(buf, z_string_data(z_string_loan(&str)), n);
+                        buf[n] = 0;
+                        held |= strstr(buf, "\"plant\"") != NULL;
+                    }
+                    z_string_drop(z_string_move(&str));
+                }
+                z_reply_drop(z_reply_move(&reply));
+            }
+        }
+        z_fifo_handler_reply_drop(z_fifo_handler_reply_move(&handler));
+        if (held) return 1;
+        sleep_mono_until(mono_ns() + 20000000LL);
+    }
+    return 0;
+}
+
 /* ---- timing statistics (percentiles as numpy's default, linear) */
 typedef struct {
     int64_t *v;
@@ -673,7 +718,10 @@ int main(void) {
         (unsigned long)k_done, misses, no_u, late_u, future_u, rejected, clamped, overruns, malformed,
         controller_lost_at, jit_s, lat_s, (double)spin_ns / 1e3, ns, rk4_substeps(T), records, hex);
     pthread_mutex_unlock(&lock);
-    if (m < sizeof summary) put(&pub_summary, (const uint8_t *)summary, m, NULL);
+    if (m < sizeof summary) {
+        put(&pub_summary, (const uint8_t *)summary, m, NULL);
+        if (summary_received() == 0) fprintf(stderr, NAME ": the collector did not confirm the summary in 2 s\n");
+    }
     free(jitter.v);
     free(latency.v);
 
