@@ -128,7 +128,7 @@ KEY_DOC = {
                          "every sample, batched (<= 20 ms of samples per message)"),
     "events/<node>": ("recorder, launcher", "Event", "on faults, saturations, ... (<= 20 per s per kind)"),
     "summary/<node>": ("recorder, launcher", "NodeSummary", "once, at exit"),
-    "collector/summaries": ("every node `testbed run` starts (a query, after its summary)", "JSON list of roles",
+    "collector/summaries": ("every node that sees alive/collector (a query, after its summary)", "JSON list of roles",
                             "a reply to each query: the roles whose NodeSummary the collector holds"),
     "alive/<node>": ("every process (liveliness)", "liveliness token", "from warm-up to exit"),
     "ready/<node>": ("every process (liveliness)", "liveliness token", "once the node is warm and sees its peers"),
