@@ -214,9 +214,12 @@ class NodeProcesses:
         for guest in self.colocated:
             self.check_guest(guest, col, t0_mono, final=final)
 
-    def summaries_due(self) -> set[str]:
-        """The roles that owe the launcher a summary: each node process that exited cleanly, and the colocated
-        roles it hosted that did not die alone."""
+    def summaries_due(self, col: Collector) -> set[str]:
+        """The roles that owe the launcher a summary: none before the run's Start (a node publishes it after the
+        run's loop); then each node process that exited cleanly, and the colocated roles it hosted that did not
+        die alone."""
+        if col.start is None:
+            return set()
         due = {r for r, e in self.exits.items() if e.get("exit_code") == 0 and r in self.procs}
         return due | {g for g in self.colocated if self.process_of(g) in due and g not in self.exits}
 
@@ -224,7 +227,7 @@ class NodeProcesses:
         """Until every summary due is in (a node publishes it before it exits), then until the telemetry each
         summary counts has arrived (at most ``telemetry_timeout`` more: what is still missing then is the
         telemetry check's to report)."""
-        want = self.summaries_due()
+        want = self.summaries_due(col)
         end = time.monotonic() + timeout
         while time.monotonic() < end and not want <= set(col.snapshot_summaries()):
             time.sleep(0.01)
@@ -233,11 +236,9 @@ class NodeProcesses:
             time.sleep(0.02)
 
     def check_summaries(self, col: Collector) -> None:
-        """Once the run has started (a node publishes its summary after the run's loop), a summary due that is
-        not in is the fault ``summary_missing``: the node's telemetry cannot be checked."""
-        if col.start is None:
-            return
-        for r in sorted(self.summaries_due() - set(col.snapshot_summaries())):
+        """A summary due (``summaries_due``) that is not in is the fault ``summary_missing``: the node's telemetry
+        cannot be checked."""
+        for r in sorted(self.summaries_due(col) - set(col.snapshot_summaries())):
             self.faults.append(Fault(role=r, kind="summary_missing",
                                      detail="it exited cleanly, but its summary (its own account of its telemetry) "
                                             "never arrived: its telemetry is unchecked"))

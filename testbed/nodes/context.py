@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import threading
 import time
@@ -402,8 +403,6 @@ def warm_publisher(pub: Any, payload: bytes, times: int = 3, pause: float = 0.00
 
 def _roles_held(reply: Any, limit: int = 1024) -> set[str]:
     """The roles of a ``collector/summaries`` reply (a JSON list of names); anything else: none."""
-    import json
-
     ok = getattr(reply, "ok", None)
     raw = b"" if ok is None else ok.payload.to_bytes()
     try:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import subprocess
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -89,9 +90,9 @@ def test_a_node_closes_once_the_collector_holds_its_summary_and_a_missing_one_is
         held.undeclare()
 
 
-class _Reply:
-    def __init__(self, raw: bytes | None):
-        self.ok = None if raw is None else type("S", (), {"payload": type("P", (), {"to_bytes": lambda s: raw})()})()
+def _reply(raw: bytes | None) -> SimpleNamespace:
+    """A reply as ``_roles_held`` reads it: ``ok`` (None for an error reply) with its payload's bytes."""
+    return SimpleNamespace(ok=None if raw is None else SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: raw)))
 
 
 @pytest.mark.parametrize("raw,roles", [
@@ -104,4 +105,4 @@ class _Reply:
     (None, set()),                           # an error reply
 ])
 def test_a_reply_is_read_as_a_bounded_list_of_names(raw, roles):
-    assert _roles_held(_Reply(raw)) == roles
+    assert _roles_held(_reply(raw)) == roles
